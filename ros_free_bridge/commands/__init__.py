@@ -1,0 +1,1 @@
+"""One module per subcommand; see :mod:`ros_free_bridge.cli`."""

@@ -1,0 +1,30 @@
+"""Shared test fixtures: where the real test data lives, and skipping when it is absent."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+#: ../shared/data beside the project root (override with DUALFLOW_SHARED_DATA).
+SHARED_DATA = Path(os.environ.get("DUALFLOW_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+CMU_DIR = SHARED_DATA / "mocap" / "cmu"
+MUSIC_DIR = SHARED_DATA / "music"
+
+
+def _require(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"real test data not found at {path} (../shared/data is absent on this machine)")
+    return path
+
+
+@pytest.fixture
+def cmu_pair_paths() -> tuple[Path, Path]:
+    """The CMU two-person trial 18_01 (actor) / 19_01 (partner), 120 fps BVH."""
+    return _require(CMU_DIR / "18_01.bvh"), _require(CMU_DIR / "19_01.bvh")
+
+
+@pytest.fixture
+def music_dir() -> Path:
+    return _require(MUSIC_DIR)
