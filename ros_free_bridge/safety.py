@@ -1,0 +1,196 @@
+"""The safety filter between whatever upstream produced and what a transport may send.
+
+Every tick the control loop passes its desired joint targets (n,) in radians through
+:meth:`SafetyFilter.step`. The command that comes out satisfies, whatever came in:
+
+- it is finite (a target with NaN or inf is rejected whole and the last safe command is
+  held, since a partially valid pose is not a pose);
+- ``lower <= q <= upper`` (soft joint limits);
+- ``|q_k - q_{k-1}| <= v_max · dt`` (velocity limit, per tick);
+- ``|q_k - 2 q_{k-1} + q_{k-2}| <= a_max · dt²`` (acceleration limit), except where keeping
+  inside the position limits forces a harder stop; to keep that rare, the velocity towards
+  a limit is also capped at the braking speed ``sqrt(2 · a_max · distance)`` (in its
+  discrete-time form).
+
+Limits come from :class:`JointLimits`, which is built as the intersection of every
+source (MJCF, hardware config, servo EEPROM): the bridge never enforces a limit wider
+than any of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntFlag
+
+import numpy as np
+
+from ros_free_bridge.errors import BridgeError
+
+
+class Intervention(IntFlag):
+    """What the filter changed on a joint this tick (bit flags, stored in telemetry)."""
+
+    NONE = 0
+    NONFINITE = 1  #: upstream produced NaN/inf; the last safe command was held
+    POSITION = 2  #: clamped to the soft joint limits
+    VELOCITY = 4  #: slowed to the velocity limit (or the braking speed)
+    ACCELERATION = 8  #: smoothed to the acceleration limit
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Per-joint limits, arrays of shape (n,) in the order of ``names``.
+
+    lower, upper: rad. max_velocity: rad/s (> 0). max_acceleration: rad/s² (> 0).
+    """
+
+    names: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    max_velocity: np.ndarray
+    max_acceleration: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.names)
+        for field in ("lower", "upper", "max_velocity", "max_acceleration"):
+            arr = np.broadcast_to(np.asarray(getattr(self, field), dtype=np.float64), (n,)).copy()
+            if not np.all(np.isfinite(arr)):
+                raise BridgeError(f"joint limits: {field} must be finite for every joint, got {arr}")
+            arr.setflags(write=False)
+            object.__setattr__(self, field, arr)
+        bad = np.flatnonzero(self.lower >= self.upper)
+        if bad.size:
+            j = self.names[bad[0]]
+            raise BridgeError(f"joint limits: joint {j!r} has lower {self.lower[bad[0]]:.4f} >= upper {self.upper[bad[0]]:.4f}")
+        for field in ("max_velocity", "max_acceleration"):
+            arr = getattr(self, field)
+            if np.any(arr <= 0):
+                j = self.names[int(np.argmin(arr))]
+                raise BridgeError(f"joint limits: {field} of joint {j!r} must be > 0")
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    def intersect(self, other: "JointLimits") -> "JointLimits":
+        """The tighter of two limit sets for the same joints (by name)."""
+        idx = [other.names.index(n) if n in other.names else -1 for n in self.names]
+        missing = [n for n, i in zip(self.names, idx) if i < 0]
+        if missing:
+            raise BridgeError(f"joint limits: joints {missing} are missing from the other limit set")
+        idx = np.asarray(idx)
+        return JointLimits(
+            self.names,
+            np.maximum(self.lower, other.lower[idx]),
+            np.minimum(self.upper, other.upper[idx]),
+            np.minimum(self.max_velocity, other.max_velocity[idx]),
+            np.minimum(self.max_acceleration, other.max_acceleration[idx]),
+        )
+
+    def contains(self, q: np.ndarray, tol: float = 1e-9) -> bool:
+        q = np.asarray(q, dtype=np.float64)
+        return bool(np.all(np.isfinite(q)) and np.all(q >= self.lower - tol) and np.all(q <= self.upper + tol))
+
+    def clip(self, q: np.ndarray) -> np.ndarray:
+        return np.clip(np.asarray(q, dtype=np.float64), self.lower, self.upper)
+
+
+class SafetyFilter:
+    """Clamp each tick's targets to position, velocity and acceleration limits.
+
+    ``dt`` is the control period in seconds. Call :meth:`reset` with the measured
+    present positions (clipped into the limits) before the first :meth:`step`.
+    """
+
+    def __init__(self, limits: JointLimits, dt: float):
+        if not dt > 0:
+            raise BridgeError(f"safety filter: control period must be > 0 s, got {dt}")
+        self.limits = limits
+        self.dt = float(dt)
+        self._q: np.ndarray | None = None  # last command
+        self._v = np.zeros(limits.n)  # last command's per-tick step (rad/tick)
+
+    @property
+    def last_command(self) -> np.ndarray:
+        if self._q is None:
+            raise BridgeError("safety filter: reset() with the present positions before stepping")
+        return self._q.copy()
+
+    def reset(self, present: np.ndarray) -> np.ndarray:
+        """Start from the measured positions; returns the (clipped) starting command."""
+        present = np.asarray(present, dtype=np.float64)
+        if present.shape != (self.limits.n,) or not np.all(np.isfinite(present)):
+            raise BridgeError(
+                f"safety filter: present positions must be {self.limits.n} finite values, got {present}; "
+                "check the servo readings"
+            )
+        self._q = self.limits.clip(present)
+        self._v = np.zeros(self.limits.n)
+        return self._q.copy()
+
+    def step(self, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filter one tick's targets (n,) rad. Returns (command (n,), interventions (n,) uint8)."""
+        q_prev = self.last_command
+        lim = self.limits
+        flags = np.zeros(lim.n, dtype=np.uint8)
+        NONFINITE, ACCEL, VEL, POS = (np.uint8(f) for f in (Intervention.NONFINITE, Intervention.ACCELERATION,
+                                                            Intervention.VELOCITY, Intervention.POSITION))
+        target = np.asarray(target, dtype=np.float64)
+        if target.shape != (lim.n,) or not np.all(np.isfinite(target)):
+            # Hold: decelerate to a stop as fast as the acceleration limit allows.
+            flags[:] = NONFINITE
+            target = q_prev + self._brake_step()
+        dt = self.dt
+        step = target - q_prev
+        in_pos = (target < lim.lower) | (target > lim.upper)
+        # acceleration: the step may change by at most a_max·dt² from the previous step
+        a_step = lim.max_acceleration * dt * dt
+        lo, hi = self._v - a_step, self._v + a_step
+        clipped = np.clip(step, lo, hi)
+        flags[clipped != step] |= ACCEL
+        step = clipped
+        # velocity, including the braking speed towards whichever limit we are heading to
+        v_step = lim.max_velocity * dt
+        dist = np.where(step > 0, lim.upper - q_prev, q_prev - lim.lower)
+        # largest step s from which steps s, s - a, s - 2a, ... stop within dist:
+        # s (s + a) / (2 a) <= dist  (the discrete form of v <= sqrt(2 a d))
+        brake = 0.5 * (-a_step + np.sqrt(a_step * a_step + 8.0 * a_step * np.maximum(dist, 0.0)))
+        cap = np.minimum(v_step, np.maximum(brake, a_step))
+        clipped = np.clip(step, -cap, cap)
+        flags[clipped != step] |= VEL
+        step = clipped
+        q = q_prev + step
+        q_clipped = lim.clip(q)
+        flags[(q_clipped != q) | in_pos] |= POS
+        self._v = q_clipped - q_prev
+        self._q = q_clipped
+        return q_clipped.copy(), flags
+
+    def _brake_step(self) -> np.ndarray:
+        a_step = self.limits.max_acceleration * self.dt * self.dt
+        return np.sign(self._v) * np.maximum(np.abs(self._v) - a_step, 0.0)
+
+
+def min_jerk(q0: np.ndarray, q1: np.ndarray, duration: float, dt: float) -> np.ndarray:
+    """Minimum-jerk path from q0 to q1 (n,) over ``duration`` seconds sampled every dt.
+
+    q(s) = q0 + (q1 - q0) · (10 s³ - 15 s⁴ + 6 s⁵), s = t / duration; zero velocity and
+    acceleration at both ends. Returns (K, n) with K = ceil(duration / dt), ending at q1.
+    """
+    q0 = np.asarray(q0, dtype=np.float64)
+    q1 = np.asarray(q1, dtype=np.float64)
+    k = max(1, int(np.ceil(duration / dt - 1e-9)))
+    s = np.arange(1, k + 1) / k
+    blend = 10 * s**3 - 15 * s**4 + 6 * s**5
+    return q0 + (q1 - q0) * blend[:, None]
+
+
+def min_jerk_duration(q0: np.ndarray, q1: np.ndarray, limits: JointLimits, minimum: float = 0.5) -> float:
+    """Shortest minimum-jerk duration that respects the velocity and acceleration limits.
+
+    Peak speed of the profile is 1.875·Δ/T and peak acceleration 5.774·Δ/T².
+    """
+    delta = np.abs(np.asarray(q1, float) - np.asarray(q0, float))
+    t_v = np.max(1.875 * delta / limits.max_velocity)
+    t_a = np.max(np.sqrt(5.774 * delta / limits.max_acceleration))
+    return float(max(minimum, t_v, t_a))

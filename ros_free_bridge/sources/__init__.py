@@ -1,0 +1,1 @@
+"""Actor sources: where the human partner's motion comes from (file replay, live UDP, synthetic)."""

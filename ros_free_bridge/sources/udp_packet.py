@@ -1,0 +1,106 @@
+"""The live actor stream's UDP packet format, version 1 (all fields little-endian).
+
+Every packet starts with an 16-byte header:
+
+====== ====== ==========================================================
+offset size   field
+====== ====== ==========================================================
+0      4      magic ``b"DFA1"``
+4      1      version = 1
+5      1      type: 1 = actor frame, 2 = e-stop
+6      2      reserved, 0
+8      4      sequence number (uint32, increases by 1 per packet, wraps)
+12     4      reserved, 0
+====== ====== ==========================================================
+
+then, for type 1 (actor frame, 288 bytes in all):
+
+====== ====== ==========================================================
+16     8      sender timestamp, seconds (float64, the sender's clock)
+24     264    22 × 3 float32 joint positions, metres, SMPL-22 order, Z-up
+              world frame (DESIGN.md), row-major (joint, xyz)
+====== ====== ==========================================================
+
+and for type 2 (e-stop, 24 bytes in all): the sender timestamp (float64) only.
+
+A receiver drops, and counts, any datagram whose size, magic, version or type is wrong,
+whose positions are not finite, or whose sequence number is not newer than the last
+accepted one (modulo 2³²: newer means 1 ≤ (seq - last) mod 2³² < 2³¹).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+MAGIC = b"DFA1"
+VERSION = 1
+TYPE_FRAME = 1
+TYPE_ESTOP = 2
+HEADER = struct.Struct("<4sBBHII")
+STAMP = struct.Struct("<d")
+N_VALUES = 22 * 3
+FRAME_SIZE = HEADER.size + STAMP.size + 4 * N_VALUES  # 288
+ESTOP_SIZE = HEADER.size + STAMP.size  # 24
+
+
+class PacketError(ValueError):
+    """A datagram that is not a valid version-1 packet (it is dropped and counted)."""
+
+
+@dataclass(frozen=True)
+class ActorFramePacket:
+    seq: int
+    stamp: float
+    positions: np.ndarray  # (22, 3) float64 metres
+
+
+@dataclass(frozen=True)
+class EStopPacket:
+    seq: int
+    stamp: float
+
+
+def encode_frame(seq: int, stamp: float, positions) -> bytes:
+    pos = np.asarray(positions, dtype="<f4")
+    if pos.shape != (22, 3):
+        raise PacketError(f"positions must have shape (22, 3), got {pos.shape}")
+    return HEADER.pack(MAGIC, VERSION, TYPE_FRAME, 0, seq & 0xFFFFFFFF, 0) + STAMP.pack(stamp) + pos.tobytes()
+
+
+def encode_estop(seq: int, stamp: float) -> bytes:
+    return HEADER.pack(MAGIC, VERSION, TYPE_ESTOP, 0, seq & 0xFFFFFFFF, 0) + STAMP.pack(stamp)
+
+
+def decode(data: bytes) -> ActorFramePacket | EStopPacket:
+    if len(data) < HEADER.size:
+        raise PacketError(f"datagram of {len(data)} bytes is shorter than the {HEADER.size}-byte header")
+    magic, version, kind, _, seq, _ = HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise PacketError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise PacketError(f"unsupported packet version {version}, this receiver speaks version {VERSION}")
+    if kind == TYPE_FRAME:
+        if len(data) != FRAME_SIZE:
+            raise PacketError(f"actor frame must be {FRAME_SIZE} bytes, got {len(data)}")
+        (stamp,) = STAMP.unpack_from(data, HEADER.size)
+        pos = np.frombuffer(data, dtype="<f4", count=N_VALUES, offset=HEADER.size + STAMP.size)
+        if not (np.isfinite(stamp) and np.all(np.isfinite(pos))):
+            raise PacketError(f"actor frame {seq} has NaN or inf values")
+        return ActorFramePacket(seq, stamp, pos.reshape(22, 3).astype(np.float64))
+    if kind == TYPE_ESTOP:
+        if len(data) != ESTOP_SIZE:
+            raise PacketError(f"e-stop packet must be {ESTOP_SIZE} bytes, got {len(data)}")
+        (stamp,) = STAMP.unpack_from(data, HEADER.size)
+        return EStopPacket(seq, stamp)
+    raise PacketError(f"unknown packet type {kind}")
+
+
+def is_newer(seq: int, last: int | None) -> bool:
+    """Sequence comparison with wrap-around (RFC 1982 style serial arithmetic)."""
+    if last is None:
+        return True
+    diff = (seq - last) & 0xFFFFFFFF
+    return 0 < diff < 0x80000000
