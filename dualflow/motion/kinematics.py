@@ -1,0 +1,170 @@
+"""Forward and inverse kinematics of the SMPL-22 skeleton (numpy, vectorised over frames).
+
+Rotation convention (the one SMPL uses): every joint ``j`` has a *global*
+rotation ``G_j`` (3, 3) that maps rest-pose vectors to posed world vectors, and a
+*local* rotation ``L_j = G_parent(j)^T G_j`` relative to its parent. For the
+root, ``L_0 = G_0`` is its global orientation. A bone offset ``o_j`` is the
+rest-pose vector from ``parent(j)`` to ``j``, and forward kinematics is
+
+    G_0 = L_0,                     p_0 = root_pos
+    G_j = G_parent(j) L_j,         p_j = p_parent(j) + G_parent(j) o_j
+
+i.e. a joint's rotation moves the bones leaving it (its children), not itself.
+
+The functions are frame-agnostic: positions, offsets and the rest pose only have
+to be expressed in the same frame. The defaults come from
+:data:`dualflow.motion.skeleton.REST_POSE` (Z-up, facing +X); to work in another
+frame (e.g. the Y-up feature frame) pass the rest pose expressed in that frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dualflow.errors import DualFlowError
+from dualflow.motion.rotations import align_vector_sets, swing_rotation
+from dualflow.motion.skeleton import N_JOINTS, PARENTS, REST_POSE
+
+_PARENTS = np.asarray(PARENTS)
+
+#: Children of each joint, SMPL order.
+CHILDREN: tuple[tuple[int, ...], ...] = tuple(
+    tuple(c for c in range(N_JOINTS) if PARENTS[c] == j) for j in range(N_JOINTS)
+)
+#: Joints without children (feet, head, wrists): positions do not determine
+#: their rotation, so inverse kinematics gives them the identity local rotation.
+LEAF_JOINTS: tuple[int, ...] = tuple(j for j in range(N_JOINTS) if not CHILDREN[j])
+
+
+def _check_rest(rest, what: str = "rest pose") -> np.ndarray:
+    rest = np.asarray(rest, dtype=np.float64)
+    if rest.shape != (N_JOINTS, 3) or not np.isfinite(rest).all():
+        raise DualFlowError(f"{what}: must be finite with shape ({N_JOINTS}, 3), got {tuple(rest.shape)}")
+    return rest
+
+
+def rest_offsets(rest=REST_POSE) -> np.ndarray:
+    """Bone offsets (22, 3) in metres: ``o_j = rest_j - rest_parent(j)``; ``o_0 = 0``."""
+    rest = _check_rest(rest)
+    off = rest - rest[np.maximum(_PARENTS, 0)]
+    off[0] = 0.0
+    return off
+
+
+def scaled_offsets(lengths, rest=REST_POSE) -> np.ndarray:
+    """Rest-pose bone directions scaled to other bone lengths.
+
+    lengths: (..., 21) metres, entry ``j-1`` for the bone ending at joint ``j``
+    (the layout of :func:`dualflow.motion.skeleton.bone_lengths`). Returns
+    (..., 22, 3) offsets with ``o_0 = 0``: the rest pose of a person with these
+    proportions, for :func:`forward_kinematics`.
+    """
+    lengths = np.asarray(lengths, dtype=np.float64)
+    if lengths.ndim < 1 or lengths.shape[-1] != N_JOINTS - 1:
+        raise DualFlowError(f"bone lengths: expected shape (..., {N_JOINTS - 1}), got {tuple(lengths.shape)}")
+    off = rest_offsets(rest)
+    dirs = off[1:] / np.linalg.norm(off[1:], axis=-1, keepdims=True)
+    out = np.zeros(lengths.shape[:-1] + (N_JOINTS, 3))
+    out[..., 1:, :] = dirs * lengths[..., None]
+    return out
+
+
+def global_rotations(local_rot) -> np.ndarray:
+    """Local rotations (T, 22, 3, 3) -> global rotations (T, 22, 3, 3): ``G_j = G_parent L_j``."""
+    local_rot = np.asarray(local_rot, dtype=np.float64)
+    if local_rot.ndim != 4 or local_rot.shape[1:] != (N_JOINTS, 3, 3):
+        raise DualFlowError(f"local_rot: expected shape (T, {N_JOINTS}, 3, 3), got {tuple(local_rot.shape)}")
+    G = np.empty_like(local_rot)
+    G[:, 0] = local_rot[:, 0]
+    for j in range(1, N_JOINTS):
+        G[:, j] = G[:, PARENTS[j]] @ local_rot[:, j]
+    return G
+
+
+def forward_kinematics(root_pos, local_rot, offsets=None) -> np.ndarray:
+    """Joint positions from a root trajectory and local joint rotations.
+
+    root_pos: (T, 3) metres, position of the pelvis.
+    local_rot: (T, 22, 3, 3) rotation matrices; ``[:, 0]`` is the pelvis's global
+        orientation, ``[:, j]`` the rotation of joint j relative to its parent.
+        Identity everywhere gives the rest pose.
+    offsets: bone offsets (22, 3) or per frame (T, 22, 3) in metres (``o_j`` from
+        the parent to joint j in the rest pose; ``o_0`` is ignored). Default:
+        :func:`rest_offsets` of ``REST_POSE``, i.e. Z-up, rest pose facing +X.
+    Returns (T, 22, 3) positions in metres, in the frame of ``root_pos``.
+    """
+    root_pos = np.asarray(root_pos, dtype=np.float64)
+    local_rot = np.asarray(local_rot, dtype=np.float64)
+    if root_pos.ndim != 2 or root_pos.shape[1] != 3:
+        raise DualFlowError(f"root_pos: expected shape (T, 3), got {tuple(root_pos.shape)}")
+    T = root_pos.shape[0]
+    if local_rot.shape != (T, N_JOINTS, 3, 3):
+        raise DualFlowError(
+            f"local_rot: expected shape ({T}, {N_JOINTS}, 3, 3) to match root_pos, got {tuple(local_rot.shape)}"
+        )
+    off = rest_offsets() if offsets is None else np.asarray(offsets, dtype=np.float64)
+    if off.shape not in ((N_JOINTS, 3), (T, N_JOINTS, 3)):
+        raise DualFlowError(
+            f"offsets: expected shape ({N_JOINTS}, 3) or ({T}, {N_JOINTS}, 3), got {tuple(off.shape)}"
+        )
+    off = np.broadcast_to(off, (T, N_JOINTS, 3))
+    G = global_rotations(local_rot)
+    pos = np.empty((T, N_JOINTS, 3))
+    pos[:, 0] = root_pos
+    for j in range(1, N_JOINTS):
+        p = PARENTS[j]
+        pos[:, j] = pos[:, p] + np.einsum("tab,tb->ta", G[:, p], off[:, j])
+    return pos
+
+
+def inverse_kinematics(positions, rest=REST_POSE) -> tuple[np.ndarray, np.ndarray]:
+    """Local joint rotations that pose ``rest`` like ``positions`` (one IK step, no iteration).
+
+    positions: (T, 22, 3) metres; rest: (22, 3), same frame. Returns
+    ``(root_pos (T, 3), local_rot (T, 22, 3, 3))`` for :func:`forward_kinematics`.
+
+    Walking the tree from the root, each joint's global rotation ``G_j`` is chosen
+    so that its rest-pose child bones point like the posed ones:
+
+    * several children (pelvis: hips + spine1; spine3: neck + collars): the
+      least-squares rotation (Kabsch, :func:`align_vector_sets`) taking the rest
+      child directions, scaled to the posed bone lengths, onto the posed child
+      offsets. The spread of the children fixes the twist; for a rigid,
+      rest-shaped pelvis/chest it is exact.
+    * one child: ``L_j`` is the *swing-only* rotation (:func:`swing_rotation`)
+      taking the rest bone direction onto the posed bone direction expressed in
+      the parent's frame, ``G_parent^T (p_child - p_j)``. The twist about the
+      bone is therefore zero relative to the parent (positions carry no twist).
+    * no children (feet, head, wrists, see :data:`LEAF_JOINTS`): identity.
+
+    Consequence: FK of the result with offsets of the posed bone lengths lands
+    every single-child joint's child exactly on its posed direction; residual
+    error comes only from a pelvis/chest whose triangle shape differs from the
+    rest pose's, and it is passed down the chain as a translation, not amplified.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.ndim != 3 or positions.shape[1:] != (N_JOINTS, 3):
+        raise DualFlowError(f"positions: expected shape (T, {N_JOINTS}, 3), got {tuple(positions.shape)}")
+    if not np.isfinite(positions).all():
+        raise DualFlowError("positions: contain NaN or inf; clean or drop those frames before inverse kinematics")
+    off = rest_offsets(rest)
+    T = positions.shape[0]
+    local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
+    G = local.copy()
+    for j in range(N_JOINTS):
+        kids = CHILDREN[j]
+        if not kids:
+            G[:, j] = G[:, PARENTS[j]] if j else G[:, j]
+            continue
+        parent_G = G[:, PARENTS[j]] if j else np.broadcast_to(np.eye(3), (T, 3, 3))
+        posed = positions[:, list(kids)] - positions[:, j : j + 1]  # (T, k, 3) world
+        posed_in_parent = np.einsum("tba,tkb->tka", parent_G, posed)  # G_parent^T d
+        rest_dirs = off[list(kids)] / np.linalg.norm(off[list(kids)], axis=-1, keepdims=True)
+        if len(kids) == 1:
+            L = swing_rotation(rest_dirs[0], posed_in_parent[:, 0])
+        else:
+            lengths = np.linalg.norm(posed_in_parent, axis=-1, keepdims=True)  # (T, k, 1)
+            L = align_vector_sets(rest_dirs[None] * lengths, posed_in_parent)
+        local[:, j] = L
+        G[:, j] = parent_G @ L
+    return positions[:, 0].copy(), local
