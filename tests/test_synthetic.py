@@ -1,0 +1,177 @@
+"""The synthetic duet generator: exact bones, planted feet, the follower rules, beats, text."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dualflow import DualFlowError
+from dualflow.motion import REST_POSE, Motion, TwoPersonMotion, bone_lengths
+from dualflow.synthetic import (
+    FOLLOW_LAG_S,
+    FOLLOW_SIDE_M,
+    HOLD_GAP_M,
+    ORBIT_RADIUS_M,
+    RULES,
+    make_duet,
+    make_leader,
+)
+
+REST_BONES = bone_lengths(REST_POSE)
+
+
+def _facing(positions: np.ndarray) -> np.ndarray:
+    """(T, 2) unit horizontal facing direction from the hips: (left - right) x up."""
+    across = positions[:, 1] - positions[:, 2]
+    f = np.cross(across, [0.0, 0.0, 1.0])[:, :2]
+    return f / np.linalg.norm(f, axis=-1, keepdims=True)
+
+
+@pytest.mark.parametrize("rule", RULES)
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5])
+def test_bodies_are_physical(rule, seed):
+    pair = make_duet(rule, seconds=4.0, fps=30.0, seed=seed)
+    assert isinstance(pair, TwoPersonMotion) and pair.n_frames == 120 and pair.fps == 30.0
+    for m in (pair.actor, pair.reactor):
+        # bones keep the rest-pose lengths exactly (forward kinematics)
+        np.testing.assert_allclose(bone_lengths(m.positions), np.broadcast_to(REST_BONES, (120, 21)), atol=1e-9)
+        # nothing below the ground; every frame has a planted foot
+        assert m.positions[..., 2].min() > -1e-9
+        c = m.contacts
+        assert c is not None and (c[:, 0] | c[:, 2]).all()
+        ankles = m.positions[:, [7, 8]]
+        planted = c[:, [0, 2]]
+        # a planted ankle sits at its rest height and does not slide
+        np.testing.assert_allclose(ankles[..., 2][planted], REST_POSE[7, 2], atol=1e-6)
+        still = planted[1:] & planted[:-1]
+        step = np.linalg.norm(np.diff(ankles, axis=0), axis=-1)
+        assert step[still].max() < 1e-6
+        # a swinging foot really lifts
+        if (~planted).any():
+            assert ankles[..., 2][~planted].max() > REST_POSE[7, 2] + 0.03
+
+
+def test_deterministic_by_seed_and_leader_shared_across_rules():
+    a = make_duet("orbit", seed=7)
+    b = make_duet("orbit", seed=7)
+    np.testing.assert_array_equal(a.actor.positions, b.actor.positions)
+    np.testing.assert_array_equal(a.reactor.positions, b.reactor.positions)
+    np.testing.assert_array_equal(a.meta["beats"], b.meta["beats"])
+    assert a.text == b.text
+    c = make_duet("orbit", seed=8)
+    assert np.abs(a.actor.positions - c.actor.positions).max() > 0.05
+    for rule in RULES:
+        np.testing.assert_array_equal(make_duet(rule, seed=7).actor.positions, a.actor.positions)
+    np.testing.assert_array_equal(make_leader(seed=7).positions, a.actor.positions)
+
+
+def test_mirror_is_a_reflection_in_a_fixed_plane():
+    pair = make_duet("mirror", seconds=4.0, seed=3)
+    lead, foll = pair.actor.positions, pair.reactor.positions
+    from dualflow.motion import MIRROR_INDEX
+
+    # each leader joint and its mirror-twin in the follower are symmetric about one plane:
+    # midpoints lie on the plane and the connecting segments are parallel to its normal
+    twin = foll[:, list(MIRROR_INDEX)]
+    seg = twin - lead
+    normal = seg[..., :2].reshape(-1, 2)
+    normal = normal[np.linalg.norm(normal, axis=-1) > 0.2]
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    n0 = normal[0]
+    assert np.abs(np.abs(normal @ n0) - 1.0).max() < 1e-9
+    np.testing.assert_allclose(seg[..., 2], 0.0, atol=1e-12)
+    mid = 0.5 * (twin + lead)
+    offsets = mid[..., :2].reshape(-1, 2) @ n0
+    assert np.ptp(offsets) < 1e-9
+    # face to face (a leader that does not turn keeps facing its mirror image)
+    assert pair.meta["slots"]["turn"] != "none"
+    still = make_duet("mirror", seconds=4.0, seed=2)
+    assert still.meta["slots"]["turn"] == "none"
+    for p, frames in ((pair, slice(0, 1)), (still, slice(None))):
+        to_leader = p.actor.positions[frames, 0, :2] - p.reactor.positions[frames, 0, :2]
+        to_leader /= np.linalg.norm(to_leader, axis=-1, keepdims=True)
+        assert (np.sum(_facing(p.reactor.positions[frames]) * to_leader, axis=-1) > 0.99).all()
+
+
+def test_follow_copies_the_leader_with_a_lag_beside_them():
+    pair = make_duet("follow", seconds=4.0, fps=30.0, seed=2)
+    lag = int(round(FOLLOW_LAG_S * 30.0))
+    lead, foll = pair.actor.positions, pair.reactor.positions
+    shift = foll[lag:] - lead[:-lag]
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(shift[0, 0]), FOLLOW_SIDE_M, atol=1e-12)
+    assert np.abs(shift[0, 0, 2]) < 1e-12
+    # before the lag has elapsed the follower holds the leader's first frame
+    np.testing.assert_allclose(foll[:lag] - lead[0], np.broadcast_to(shift[0], foll[:lag].shape), atol=1e-12)
+    np.testing.assert_array_equal(pair.reactor.contacts[lag:], pair.actor.contacts[:-lag])
+
+
+@pytest.mark.parametrize("rule,radius", [("hand_hold", HOLD_GAP_M), ("orbit", ORBIT_RADIUS_M)])
+def test_distance_rules_keep_their_distance_and_face_the_leader(rule, radius):
+    for seed in range(4):
+        pair = make_duet(rule, seconds=4.0, seed=seed)
+        lead, foll = pair.actor.positions, pair.reactor.positions
+        d = np.linalg.norm(foll[:, 0, :2] - lead[:, 0, :2], axis=-1)
+        np.testing.assert_allclose(d, radius, atol=1e-9)
+        to_leader = (lead[:, 0, :2] - foll[:, 0, :2]) / d[:, None]
+        assert np.sum(_facing(foll) * to_leader, axis=-1).min() > 0.95
+
+
+def test_orbit_goes_round_the_leader():
+    pair = make_duet("orbit", seconds=8.0, seed=1)
+    rel = pair.reactor.positions[:, 0, :2] - pair.actor.positions[:, 0, :2]
+    angle = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
+    turns_expected = 8.0 * pair.meta["bpm"] / 60.0 / 16.0 * (239 / 240)
+    np.testing.assert_allclose((angle[-1] - angle[0]) / (2 * np.pi), turns_expected, rtol=1e-6)
+
+
+def test_beat_track_matches_the_tempo_and_the_steps():
+    pair = make_duet("mirror", seconds=6.0, fps=30.0, seed=4)
+    beats, frames, bpm = pair.meta["beats"], pair.meta["beat_frames"], pair.meta["bpm"]
+    assert beats.shape == (180, 4) and beats.dtype == np.float32
+    assert 90.0 <= bpm <= 130.0
+    np.testing.assert_array_equal(np.flatnonzero(beats[:, 0]), frames)
+    spacing = np.diff(frames)
+    assert np.abs(spacing - 30.0 * 60.0 / bpm).max() <= 1.0
+    assert len(frames) >= int(6.0 * bpm / 60.0) - 1
+    # phase columns are a unit circle, the downbeat is every 4th beat
+    np.testing.assert_allclose(beats[:, 1] ** 2 + beats[:, 2] ** 2, 1.0, atol=1e-6)
+    down = np.flatnonzero(beats[:, 3])
+    assert set(down) <= set(frames) and len(down) >= 1
+    assert np.all(np.diff(np.searchsorted(frames, down)) == 4)
+    # the leader lands a foot on every beat: a contact starts within a frame of each beat
+    c = pair.actor.contacts[:, [0, 2]]
+    landings = np.flatnonzero((c[1:] & ~c[:-1]).any(axis=1)) + 1
+    for f in frames[frames > 3]:
+        assert np.abs(landings - f).min() <= 1
+
+
+def test_text_and_meta_describe_the_clip():
+    for rule, word in (("mirror", "mirrors"), ("follow", "later"), ("hand_hold", "hand-hold"), ("orbit", "circles")):
+        pair = make_duet(rule, seed=5)
+        assert word in pair.text and "leader" in pair.text
+        assert pair.meta["synthetic"] is True and pair.meta["rule"] == rule and pair.meta["seed"] == 5
+        assert set(pair.meta["slots"]) == {"step", "arms", "turn", "travel"}
+    texts = {make_duet("mirror", seed=s).text for s in range(12)}
+    assert len(texts) > 4
+
+
+def test_make_leader_and_errors():
+    m = make_leader(seconds=2.0, fps=50.0, seed=1)
+    assert isinstance(m, Motion) and m.n_frames == 100 and m.fps == 50.0 and m.contacts.shape == (100, 4)
+    with pytest.raises(DualFlowError, match="unknown rule 'tango'"):
+        make_duet("tango")
+    with pytest.raises(DualFlowError, match="fps must be > 0"):
+        make_duet("mirror", fps=0)
+    with pytest.raises(DualFlowError, match="seconds must be > 0"):
+        make_leader(seconds=-1)
+    with pytest.raises(DualFlowError, match="bpm"):
+        make_leader(bpm=1000)
+
+
+def test_importing_the_generator_does_not_import_torch():
+    code = "import sys, dualflow.synthetic as s; s.make_duet('orbit'); assert 'torch' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)
