@@ -1,0 +1,17 @@
+"""Reading and writing human motion files (numpy only; never imports torch).
+
+BVH (any hierarchy, with joint maps to SMPL-22, unit and up-axis detection) lives
+in :mod:`.bvh` (the format) and :mod:`.bvh_motion` (to and from SMPL-22 motion).
+"""
+
+from dualflow.motion.io.bvh import BvhClip, BvhJoint, read_bvh, write_bvh
+from dualflow.motion.io.bvh_motion import (
+    BvhImport,
+    BvhImportOptions,
+    bvh_to_motion,
+    motion_to_bvh,
+    read_bvh_motion,
+    write_bvh_motion,
+)
+from dualflow.motion.io.joint_maps import BUILTIN_MAPS, JointMap, load_joint_map, resolve_joint_map
+from dualflow.motion.io.units import HEIGHT_RANGE, KNOWN_UNITS, estimate_height
