@@ -1,0 +1,392 @@
+"""The fixed-rate control loop and its safety supervisor.
+
+One tick (default 100 Hz), never blocking on the slow stages:
+
+1. wait for the tick's absolute deadline (:class:`~ros_free_bridge.clock.FixedRateClock`);
+2. read the transport's state; check e-stop, watchdogs and servo health;
+3. pick the target: the start ramp, the interpolated stream from the
+   :class:`~ros_free_bridge.targets.TargetBuffer`, a hold, or the stop ramp;
+4. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
+5. record the tick in telemetry.
+
+Life cycle: open → read present → goal = present → torque on → minimum-jerk ramp to the
+rest pose → ``ready`` is set (actor replay may start) → stream → minimum-jerk ramp back
+to the rest pose → stop policy (``hold`` or ``limp``) → close. An e-stop (SIGINT,
+SIGTERM, a key, a UDP e-stop packet, :meth:`ControlLoop.estop`) skips the ramp and applies
+the e-stop policy at once. Any exception applies the e-stop policy before it propagates,
+and an ``atexit`` hook covers a process exit that bypasses ``finally``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from enum import IntEnum, IntFlag
+
+import numpy as np
+
+from ros_free_bridge.clock import FixedRateClock
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
+from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.telemetry import TelemetryWriter
+from ros_free_bridge.transports.base import STOP_POLICIES
+
+
+class State(IntEnum):
+    STARTING = 0
+    RAMP_IN = 1
+    WAITING = 2  #: at the rest pose, waiting for the first target frame
+    RUNNING = 3
+    HOLD = 4  #: the actor stream or the generator went quiet: holding the last command
+    RAMP_OUT = 5
+    STOPPED = 6
+    ESTOP = 7
+
+
+class Fault(IntFlag):
+    NONE = 0
+    ACTOR_TIMEOUT = 1
+    STARVED = 2  #: the next target frame was not ready in time
+    GENERATOR_ERROR = 4
+    NONFINITE = 8
+    DEADLINE_MISS = 16
+    OVERHEAT = 32
+    VOLTAGE = 64
+    HARDWARE_ERROR = 128
+    BUS_ERROR = 256
+    ESTOP = 512
+    DEGRADED = 1024  #: running with reduced velocity limits (warm servos)
+
+
+@dataclass
+class LoopConfig:
+    """Timing and safety settings of a run. Times in seconds, temperatures in °C, volts."""
+
+    rate_hz: float = 100.0
+    rest_pose: np.ndarray | None = None  #: (n,) rad; None: the measured start pose
+    stop_policy: str = "hold"  #: after the stop ramp: 'hold' or 'limp'
+    estop_policy: str = "limp"  #: on e-stop and on errors
+    start_timeout: float = 20.0  #: waiting for the first target frame, then stop
+    actor_timeout: float = 0.5  #: no new target frame for this long: hold
+    rest_after: float = 3.0  #: holding for this long: ramp to rest and stop
+    playback_margin: float = 0.05  #: extra delay before playing a frame, to absorb jitter
+    min_ramp: float = 1.0  #: shortest start / stop ramp
+    max_duration: float | None = None  #: stop after this long streaming (None: until the stream ends)
+    temperature_warn: float = 65.0  #: degrade (slow down) above this
+    temperature_stop: float = 75.0  #: ramp out and stop above this
+    voltage_min: float = 9.5
+    voltage_max: float = 16.0
+    degrade_factor: float = 0.5  #: velocity-limit scale while degraded
+    handle_signals: bool = True  #: SIGINT / SIGTERM → e-stop (main thread only)
+
+    def __post_init__(self) -> None:
+        for name in ("stop_policy", "estop_policy"):
+            if getattr(self, name) not in STOP_POLICIES:
+                raise BridgeError(f"loop config: {name} must be one of {STOP_POLICIES}, got {getattr(self, name)!r}")
+        if not self.rate_hz > 0:
+            raise BridgeError(f"loop config: rate_hz must be > 0, got {self.rate_hz}")
+
+
+@dataclass
+class RunSummary:
+    ticks: int = 0
+    deadline_misses: int = 0
+    late_ticks: int = 0
+    interventions: int = 0  #: ticks on which the safety filter changed something
+    faults: int = 0  #: OR of every Fault seen
+    end_state: str = ""
+    reason: str = ""
+    frames_played: int = 0
+    e2e_latency: list = field(default_factory=list)  #: seconds, one per played target frame
+
+    def latency_percentiles(self) -> dict:
+        if not self.e2e_latency:
+            return {}
+        arr = np.asarray(self.e2e_latency)
+        return {"p50": float(np.percentile(arr, 50)), "p99": float(np.percentile(arr, 99)), "max": float(arr.max())}
+
+
+class ControlLoop:
+    """Drive ``transport`` from ``targets`` at ``config.rate_hz`` within ``limits``."""
+
+    def __init__(self, transport, limits: JointLimits, targets: TargetBuffer, config: LoopConfig,
+                 telemetry: TelemetryWriter | None = None, on_status=None):
+        if tuple(transport.joint_names) != tuple(limits.names):
+            raise BridgeError(
+                f"control loop: transport joints {tuple(transport.joint_names)} differ from the limits' "
+                f"joints {tuple(limits.names)}; both must come from the same robot config"
+            )
+        self.transport = transport
+        self.limits = limits
+        self.targets = targets
+        self.config = config
+        self.telemetry = telemetry
+        self.on_status = on_status
+        self.dt = 1.0 / config.rate_hz
+        self.safety = SafetyFilter(limits, self.dt)
+        self.state = State.STARTING
+        self.ready = threading.Event()  #: set once the robot is at its rest pose, streaming may start
+        self.summary = RunSummary()
+        self._estop_reason: str | None = None
+        self._stop_reason: str | None = None
+        self._active = False
+        self._faults = Fault.NONE
+        self._degraded = False
+        self._ramp_out: list[np.ndarray] = []
+        self._last_used: int | None = None  # index of the last target frame played
+
+    # -- external requests (thread-safe: they only set flags) --------------
+    def estop(self, reason: str = "e-stop") -> None:
+        if self._estop_reason is None:
+            self._estop_reason = reason
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        if self._stop_reason is None:
+            self._stop_reason = reason
+
+    # -- the run ------------------------------------------------------------
+    def run(self) -> RunSummary:
+        restore = self._install_signal_handlers()
+        atexit.register(self._atexit)
+        self._active = True
+        try:
+            self.transport.open()
+            self._main()
+        except BaseException as exc:
+            self._emergency(f"{type(exc).__name__}: {exc}")
+            raise
+        finally:
+            self._active = False
+            try:
+                self.transport.close()
+            finally:
+                atexit.unregister(self._atexit)
+                restore()
+                self.summary.deadline_misses = self._clock.missed if hasattr(self, "_clock") else 0
+                self.summary.late_ticks = self._clock.late if hasattr(self, "_clock") else 0
+                self.summary.end_state = self.state.name
+                self.summary.faults = int(self._faults)
+                if self.telemetry is not None:
+                    self.telemetry.event("end", state=self.state.name, reason=self.summary.reason,
+                                         summary={k: v for k, v in self.summary.__dict__.items() if k != "e2e_latency"})
+                    self.telemetry.close()
+        return self.summary
+
+    def _main(self) -> None:
+        cfg = self.config
+        present = self._read().position
+        if not np.all(np.isfinite(present)):
+            raise BridgeError(f"start: could not read every joint's present position ({present}); check the bus")
+        if not self.limits.contains(present, tol=0.05):
+            bad = [n for n, q, lo, hi in zip(self.limits.names, present, self.limits.lower, self.limits.upper)
+                   if not lo - 0.05 <= q <= hi + 0.05]
+            self._event("start_outside_limits", joints=bad)
+        start = self.safety.reset(present)
+        self.transport.write_goal(start)  # goal = present before torque on: no jump
+        self.transport.set_torque(True)
+        self._event("torque_on")
+        rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
+        self._rest = rest
+        self._clock = FixedRateClock(cfg.rate_hz)
+        self._clock.start()
+        self._t_start = time.monotonic()
+        self.state = State.RAMP_IN
+        ramp = list(min_jerk(start, rest, min_jerk_duration(start, rest, self.limits, cfg.min_ramp), self.dt))
+        t0 = None  # motion time origin: frame k is played at t0 + k / fps
+        last_new = time.monotonic()
+        last_frame_index = -1
+        stream_start = None
+        while True:
+            tick = self._clock.wait()
+            faults = Fault.NONE
+            if tick.skipped:
+                faults |= Fault.DEADLINE_MISS
+            state = self._read()
+            faults |= self._check_health(state)
+            if self._estop_reason is not None:
+                self._emergency(self._estop_reason)
+                return
+            target = self.safety.last_command
+            used = None
+            now = time.monotonic()
+            if self.state == State.RAMP_IN:
+                target = ramp.pop(0)
+                if not ramp:
+                    self.state = State.WAITING
+                    self.ready.set()
+                    wait_since = now
+                    self._event("ready")
+            elif self.state == State.WAITING:
+                target = self._rest
+                first = self.targets.first()
+                if self.targets.error is not None:
+                    self._begin_stop(f"generator failed before the first frame: {self.targets.error}")
+                    faults |= Fault.GENERATOR_ERROR
+                elif first is not None:
+                    t0 = now + cfg.playback_margin - first.index / self.targets.fps
+                    stream_start = now
+                    last_new = now
+                    self.state = State.RUNNING
+                    self._event("streaming", first_frame=first.index)
+                elif self.targets.closed or now - wait_since > cfg.start_timeout:
+                    self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"))
+            elif self.state in (State.RUNNING, State.HOLD):
+                sample = self.targets.sample(now - t0)
+                if self.targets.error is not None:
+                    faults |= Fault.GENERATOR_ERROR
+                    self._begin_stop(f"generator failed: {self.targets.error}")
+                elif sample.finished:
+                    self._begin_stop("the motion ended")
+                elif self._stop_reason is not None:
+                    self._begin_stop(self._stop_reason)
+                elif cfg.max_duration is not None and now - stream_start >= cfg.max_duration:
+                    self._begin_stop(f"max duration {cfg.max_duration:g} s reached")
+                else:
+                    newest = self.targets.newest()
+                    if newest is not None and newest.index != last_frame_index:
+                        last_frame_index, last_new = newest.index, now
+                    quiet = now - last_new
+                    if sample.starved:
+                        faults |= Fault.STARVED
+                    if quiet > cfg.rest_after:
+                        faults |= Fault.ACTOR_TIMEOUT
+                        self._begin_stop(f"no new frames for {quiet:.1f} s")
+                    elif quiet > cfg.actor_timeout or sample.q is None:
+                        if self.state != State.HOLD:
+                            self._event("hold", quiet_s=round(quiet, 3))
+                        self.state = State.HOLD
+                        faults |= Fault.ACTOR_TIMEOUT if quiet > cfg.actor_timeout else Fault.NONE
+                    else:
+                        if self.state == State.HOLD:
+                            self._event("resume")
+                        self.state = State.RUNNING
+                        target = sample.q
+                        used = sample.newest
+                        if not np.all(np.isfinite(target)):
+                            faults |= Fault.NONFINITE
+            if self.state == State.RAMP_OUT:
+                if not self._ramp_out:
+                    cur = self.safety.last_command
+                    self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits, cfg.min_ramp), self.dt))
+                target = self._ramp_out.pop(0)
+                if not self._ramp_out:
+                    self.state = State.STOPPED
+            command, flags = self.safety.step(target)
+            compute = time.monotonic() - tick.woke
+            self.transport.write_goal(command)
+            write_time = time.monotonic()
+            e2e = float("nan")
+            if used is not None and used.index != self._last_used:
+                self._last_used = used.index
+                self.summary.frames_played += 1
+                e2e = write_time - used.source_arrival
+                self.summary.e2e_latency.append(e2e)
+            if flags.any():
+                self.summary.interventions += 1
+            if self._degraded:
+                faults |= Fault.DEGRADED
+            self._faults |= faults
+            self.summary.ticks += 1
+            if self.telemetry is not None:
+                self.telemetry.record(
+                    t=tick.woke - self._t_start, tick=tick.index, lateness=tick.lateness, compute=compute,
+                    target=target, command=command,
+                    measured=state.position, intervention=flags, state=int(self.state), faults=int(faults),
+                    actor_frame=-1 if used is None else used.actor_frame,
+                    generator_latency=np.nan if used is None else used.generator_latency,
+                    retarget_latency=np.nan if used is None else used.retarget_latency, end_to_end=e2e,
+                )
+            if self.on_status is not None:
+                self.on_status(self, tick, faults)
+            if self.state == State.STOPPED:
+                self.transport.safe_stop(cfg.stop_policy)
+                self._event("stopped", policy=cfg.stop_policy, reason=self.summary.reason)
+                return
+
+    # -- helpers --------------------------------------------------------------
+    def _begin_stop(self, reason: str) -> None:
+        if self.state in (State.RAMP_OUT, State.STOPPED, State.ESTOP):
+            return
+        self.summary.reason = reason
+        self._event("stopping", reason=reason)
+        self._ramp_out = []
+        self.state = State.RAMP_OUT
+
+    def _read(self):
+        try:
+            return self.transport.read_state()
+        except BridgeError:
+            self._faults |= Fault.BUS_ERROR
+            raise
+
+    def _check_health(self, state) -> Fault:
+        cfg = self.config
+        faults = Fault.NONE
+        temps = np.asarray(state.temperature, float)
+        volts = np.asarray(state.voltage, float)
+        if state.errors:
+            faults |= Fault.HARDWARE_ERROR
+            self._begin_stop("hardware error: " + ", ".join(f"{j}: {e}" for j, e in state.errors.items()))
+        if np.any(temps >= cfg.temperature_stop):
+            j = self.limits.names[int(np.nanargmax(temps))]
+            faults |= Fault.OVERHEAT
+            self._begin_stop(f"{j} at {np.nanmax(temps):.0f} °C (stop threshold {cfg.temperature_stop:g} °C)")
+        elif np.any(temps >= cfg.temperature_warn) and not self._degraded:
+            j = self.limits.names[int(np.nanargmax(temps))]
+            self._degraded = True
+            slow = JointLimits(self.limits.names, self.limits.lower, self.limits.upper,
+                               self.limits.max_velocity * cfg.degrade_factor, self.limits.max_acceleration)
+            self.safety.limits = slow
+            self._event("degraded", joint=j, temperature=float(np.nanmax(temps)), factor=cfg.degrade_factor)
+        finite_v = volts[np.isfinite(volts)]
+        if finite_v.size and (finite_v.min() < cfg.voltage_min or finite_v.max() > cfg.voltage_max):
+            faults |= Fault.VOLTAGE
+            self._begin_stop(f"supply voltage {finite_v.min():.1f}-{finite_v.max():.1f} V outside "
+                             f"{cfg.voltage_min:g}-{cfg.voltage_max:g} V")
+        return faults
+
+    def _emergency(self, reason: str) -> None:
+        """Apply the e-stop policy now; never raises (it runs on the error path)."""
+        if self.state == State.ESTOP:
+            return
+        self.state = State.ESTOP
+        self._faults |= Fault.ESTOP
+        self.summary.reason = reason
+        try:
+            self.transport.safe_stop(self.config.estop_policy)
+        except Exception as exc:  # noqa: BLE001 - the stop itself failed: report, keep going
+            self._event("estop_failed", error=repr(exc))
+        self._event("estop", reason=reason, policy=self.config.estop_policy)
+
+    def _event(self, kind: str, **info) -> None:
+        if self.telemetry is not None:
+            self.telemetry.event(kind, **info)
+
+    def _atexit(self) -> None:
+        if self._active:
+            self._emergency("process exit while running")
+            try:
+                self.transport.close()
+            except Exception:  # noqa: BLE001
+                pass
+
+    def _install_signal_handlers(self):
+        if not self.config.handle_signals or threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        previous = {}
+
+        def handler(signum, _frame):
+            self.estop(f"signal {signal.Signals(signum).name}")
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+
+        def restore():
+            for sig, old in previous.items():
+                signal.signal(sig, old)
+
+        return restore

@@ -1,0 +1,109 @@
+"""The hand-over between the slow stages (generation, retargeting) and the control loop.
+
+The pipeline thread pushes robot joint targets at the motion frame rate (30 fps by
+default), each stamped with its place on the motion timeline and the monotonic second
+the actor frame that completed it arrived. The control loop samples the buffer at its
+own rate (100 Hz by default), interpolating between frames, and never waits on it: if
+the next frame is not there yet, :meth:`TargetBuffer.sample` says so (``starved``) and
+the loop holds.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TargetFrame:
+    """One robot pose on the motion timeline.
+
+    index: frame number (time = index / fps). q: (n,) rad. source_arrival: monotonic second
+    the actor frame that completed this target arrived (for end-to-end latency).
+    generator_latency / retarget_latency: seconds those stages spent on it.
+    """
+
+    index: int
+    q: np.ndarray
+    source_arrival: float
+    actor_frame: int = -1
+    generator_latency: float = float("nan")
+    retarget_latency: float = float("nan")
+
+
+@dataclass(frozen=True)
+class Sample:
+    q: np.ndarray | None  #: interpolated target, None when no frame covers the time yet
+    starved: bool  #: the loop asked for a time beyond the newest frame
+    newest: TargetFrame | None  #: the newest frame at or before the sampled time
+    finished: bool  #: the producer said no more frames will come and all were played
+
+
+class TargetBuffer:
+    """Thread-safe ring of recent target frames (the producer pushes, the loop samples)."""
+
+    def __init__(self, fps: float, capacity: int = 512, interpolation: str = "linear"):
+        if interpolation not in ("linear", "cubic"):
+            raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
+        self.fps = float(fps)
+        self.interpolation = interpolation
+        self._frames: deque[TargetFrame] = deque(maxlen=capacity)
+        self._lock = threading.Lock()
+        self._closed = False
+        self._ready = threading.Event()
+        self.error: BaseException | None = None  #: set by a producer that died
+
+    def push(self, frame: TargetFrame) -> None:
+        with self._lock:
+            if self._frames and frame.index != self._frames[-1].index + 1:
+                raise ValueError(f"target frames must be consecutive: got {frame.index} after {self._frames[-1].index}")
+            self._frames.append(frame)
+        self._ready.set()
+
+    def close(self, error: BaseException | None = None) -> None:
+        """The producer is done (or failed with ``error``)."""
+        self.error = error
+        self._closed = True
+        self._ready.set()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def wait_first(self, timeout: float) -> bool:
+        return self._ready.wait(timeout)
+
+    def first(self) -> TargetFrame | None:
+        with self._lock:
+            return self._frames[0] if self._frames else None
+
+    def newest(self) -> TargetFrame | None:
+        with self._lock:
+            return self._frames[-1] if self._frames else None
+
+    def sample(self, t: float) -> Sample:
+        """Target at motion time ``t`` seconds (frame k is at k / fps)."""
+        with self._lock:
+            frames = list(self._frames)
+        if not frames:
+            return Sample(None, True, None, self._closed)
+        first, last = frames[0].index, frames[-1].index
+        pos = max(t * self.fps, first)  # before the first frame: hold the first frame
+        if pos >= last:
+            done = self._closed and pos >= last
+            return Sample(frames[-1].q.copy(), not self._closed and pos > last, frames[-1], done)
+        k = int(np.floor(pos))
+        i = k - first
+        w = pos - k
+        a, b = frames[i], frames[i + 1]
+        if self.interpolation == "cubic" and 0 < i and i + 2 < len(frames):
+            p0, p1, p2, p3 = frames[i - 1].q, a.q, b.q, frames[i + 2].q
+            # Catmull-Rom: passes through every frame with continuous velocity
+            q = 0.5 * ((2 * p1) + (-p0 + p2) * w + (2 * p0 - 5 * p1 + 4 * p2 - p3) * w**2
+                       + (-p0 + 3 * p1 - 3 * p2 + p3) * w**3)
+        else:
+            q = (1.0 - w) * a.q + w * b.q
+        return Sample(q, False, a if w < 1.0 else b, False)
