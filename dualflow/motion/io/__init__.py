@@ -15,3 +15,12 @@ from dualflow.motion.io.bvh_motion import (
 )
 from dualflow.motion.io.joint_maps import BUILTIN_MAPS, JointMap, load_joint_map, resolve_joint_map
 from dualflow.motion.io.units import HEIGHT_RANGE, KNOWN_UNITS, estimate_height
+from dualflow.motion.io.formats import (
+    DUET_FORMAT,
+    MOTION_FORMAT,
+    load_any,
+    load_motion,
+    load_pair,
+    put_on_ground,
+    save_motion,
+)
