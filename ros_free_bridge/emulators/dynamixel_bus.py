@@ -1,0 +1,660 @@
+"""A byte-level emulated Dynamixel bus on a pseudo-terminal, for dynamixel-sdk to open.
+
+Try the bridge without hardware, and test transports byte for byte::
+
+    from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
+    import dynamixel_sdk as sdk
+
+    with DynamixelBusEmulator(servos=range(1, 21), baud=2_000_000) as emu:   # 20 × XM430-W350
+        port = sdk.PortHandler(emu.port_path)
+        port.openPort(); port.setBaudRate(2_000_000)
+        ph = sdk.PacketHandler(2.0)
+        model, result, error = ph.ping(port, 1)          # 1020, COMM_SUCCESS, 0
+        ...
+        emu.goal_history[3]        # every Goal Position that reached servo 3 (GoalRecord)
+        emu.violations             # goals outside ranges set with allowed_range=...
+
+Servos: ``servos`` takes ints (IDs of the default model: XM430-W350 for protocol 2,
+AX-12A for protocol 1), ``(id, model)`` pairs, or :class:`ServoSpec` for the start
+position and an allowed goal range. Protocol 1.0 and 2.0 servos may share one bus; each
+answers only packets of its own protocol.
+
+What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
+
+- protocol 2.0: PING (unicast and broadcast), READ, WRITE, REG_WRITE, ACTION, REBOOT,
+  FACTORY_RESET, CLEAR, SYNC_READ, SYNC_WRITE, FAST_SYNC_READ, BULK_READ, BULK_WRITE,
+  FAST_BULK_READ, with byte stuffing and CRC-16; a bad CRC is answered with a CRC error,
+  an unknown instruction with an instruction error;
+- protocol 1.0: PING, READ, WRITE, REG_WRITE, ACTION, RESET, SYNC_WRITE, BULK_READ;
+- Status Return Level (PING always answered; level 1 adds reads; level 2 everything),
+  broadcast ID 0xFE (no reply except PING and the group reads);
+- per-servo control tables, write rules (EEPROM lock while torque is on, access/range/limit
+  errors), motor model, hardware errors and alert bit: see :mod:`.emulated_servo`;
+- baud: a servo only hears the host when the pty's baud setting (what the host set with
+  termios) equals its Baud Rate register, as a wrong baud gives garbage on a real bus
+  (``match_baud=False`` turns this off); a pty itself ignores the baud rate;
+- wire timing (``wire_timing=True``): each instruction occupies the bus for its bytes at
+  10 bits per byte at the baud rate; each reply is written to the pty when its last byte
+  would have arrived: ``t = end of previous traffic + Return Delay Time (2 µs units) +
+  10 * n_bytes / baud``. Replies of a SYNC/BULK read follow one another in ID order.
+  Without it, replies are written as soon as they are computed (fast tests).
+
+Fault injection (all take effect on the next packet; ``clear_faults`` undoes them):
+``drop_replies(id, n)`` (the servo acts but its reply is lost), ``corrupt_replies(id, n)``
+(reply sent with a broken CRC), ``disconnect(id)`` (the servo neither hears nor
+answers), ``set_hardware_error(id, bits)`` (Hardware Error Status bits and the alert bit;
+shutdown bits switch torque off until REBOOT), ``overheat(id)`` (temperature held above
+the limit), ``set_supply_voltage(id, volts)``, ``stick(id)`` (motor blocked: stall
+current, overload after 1 s), ``push(id, ticks)`` (external displacement), and
+``vanish()`` (the pty closes as when a USB adapter is unplugged: the host's next read or
+write fails with an OSError/SerialException).
+
+Setup notes for dynamixel-sdk on a pty: ``PortHandler.openPort``/``setBaudRate`` work
+unchanged (pyserial sets the baud with termios, which a pty accepts for the standard
+rates up to 4 Mbps); pyserial's ``set_low_latency_mode`` raises ValueError on a pty
+(there is no ASYNC_LOW_LATENCY on a pseudo-terminal), so a transport must treat that
+call as best-effort.
+
+Thread model: one reader thread per emulator; all servo state is guarded by
+``emu.lock``, which every public method takes.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import select
+import struct
+import termios
+import threading
+import time
+import tty
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+from firmware_cfg.servo_models import load_servo_model
+from ros_free_bridge.emulators import dynamixel_protocol as dp
+from ros_free_bridge.emulators.emulated_servo import (
+    EmulatedServo,
+    GoalRecord,
+    WriteResult,
+)
+from ros_free_bridge.errors import BridgeError
+
+#: Default model per protocol for servos given by ID only.
+DEFAULT_MODELS = {2: "XM430-W350", 1: "AX-12A"}
+
+_P2_WRITE_ERRORS = {"access": dp.ERR_ACCESS, "length": dp.ERR_DATA_LENGTH, "range": dp.ERR_DATA_RANGE,
+                    "limit": dp.ERR_DATA_LIMIT}
+_P1_WRITE_ERRORS = {"access": dp.ERR1_RANGE, "length": dp.ERR1_RANGE, "range": dp.ERR1_RANGE,
+                    "limit": dp.ERR1_ANGLE}
+
+_TCGETS2 = 0x802C542A
+_BOTHER = 0o010000
+_BAUD_CONSTANTS = {getattr(termios, name): int(name[1:]) for name in dir(termios)
+                   if name.startswith("B") and name[1:].isdigit()}
+
+
+@dataclass(frozen=True)
+class ServoSpec:
+    """One servo on the emulated bus: its ID, model (name or number), start position in
+    ticks (None: the model's center) and an optional allowed goal range in ticks; a goal
+    outside it is recorded in ``emu.violations`` (it is still applied if the servo's own
+    limits accept it)."""
+
+    id: int
+    model: str | int = "XM430-W350"
+    position: float | None = None
+    allowed_range: tuple[int, int] | None = None
+
+
+class DynamixelBusEmulator:
+    """An emulated multi-servo Dynamixel bus behind a pseudo-terminal (see module docstring)."""
+
+    def __init__(
+        self,
+        servos: Iterable[ServoSpec | tuple[int, str | int] | int] = (1,),
+        baud: int = 1_000_000,
+        protocol: int = 2,
+        *,
+        wire_timing: bool = False,
+        return_delay_us: float | None = 0.0,
+        reboot_time_s: float = 0.05,
+        match_baud: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """``return_delay_us`` sets every servo's Return Delay Time register (None keeps the
+        factory 250 = 500 µs); ``reboot_time_s`` is how long a rebooted servo stays silent."""
+        if protocol not in (1, 2):
+            raise BridgeError(f"emulator protocol must be 1 or 2, got {protocol!r}")
+        self.baud = int(baud)
+        self.protocol = protocol
+        self.wire_timing = wire_timing
+        self.reboot_time_s = reboot_time_s
+        self.match_baud = match_baud
+        self.clock = clock
+        self.lock = threading.RLock()
+        self._servos: list[EmulatedServo] = []
+        for item in servos:
+            spec = self._spec(item)
+            model = load_servo_model(spec.model)
+            servo = EmulatedServo(model, spec.id, spec.position, clock=clock)
+            try:
+                servo.set("baud_rate", model.baud_to_register(self.baud))
+            except Exception as exc:
+                raise BridgeError(f"emulated servo {spec.id} ({model.name}) cannot run at {self.baud} bps: {exc}") from None
+            if return_delay_us is not None:
+                servo.set("return_delay_time", int(round(return_delay_us / model.return_delay_us)))
+            servo.allowed_range = spec.allowed_range
+            self._servos.append(servo)
+        ids = [s.servo_id for s in self._servos]
+        if len(set(ids)) != len(ids):
+            raise BridgeError(f"emulated bus has duplicate servo IDs: {sorted(ids)}")
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._port_path = ""
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._parser = dp.StreamParser(protocol=None)
+        self._bus_free_at = 0.0
+        self.instruction_counts: dict[str, int] = {}
+        self.rx_bytes = 0
+        self.tx_bytes = 0
+        self.crc_errors = 0
+        self.vanished = False
+
+    def _spec(self, item: ServoSpec | tuple | int) -> ServoSpec:
+        if isinstance(item, ServoSpec):
+            return item
+        if isinstance(item, int):
+            return ServoSpec(item, DEFAULT_MODELS[self.protocol])
+        if isinstance(item, tuple) and len(item) == 2:
+            return ServoSpec(int(item[0]), item[1])
+        raise BridgeError(f"emulator servo entry must be an ID, (id, model) or ServoSpec, got {item!r}")
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> "DynamixelBusEmulator":
+        if self._thread is not None:
+            return self
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        tty.setraw(self._master)
+        os.set_blocking(self._master, False)
+        self._port_path = os.ttyname(self._slave)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="dxl-bus-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the reader thread and close the pty (safe to call twice)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        self._thread = None
+        self._close_fds()
+
+    close = stop
+
+    def __enter__(self) -> "DynamixelBusEmulator":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _close_fds(self) -> None:
+        for name in ("_master", "_slave"):
+            fd = getattr(self, name)
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+                setattr(self, name, None)
+
+    @property
+    def port_path(self) -> str:
+        """The pty device to give to ``PortHandler`` (e.g. /dev/pts/7)."""
+        if not self._port_path:
+            raise BridgeError("the emulator is not started: use it as a context manager or call start()")
+        return self._port_path
+
+    # ------------------------------------------------------------------ servo access
+    @property
+    def servos(self) -> list[EmulatedServo]:
+        return list(self._servos)
+
+    def servo(self, servo_id: int) -> EmulatedServo:
+        """The servo whose ID register is ``servo_id`` now."""
+        for s in self._servos:
+            if s.servo_id == servo_id:
+                return s
+        raise BridgeError(f"no emulated servo with ID {servo_id} (IDs: {sorted(s.servo_id for s in self._servos)})")
+
+    def read_register(self, servo_id: int, name: str) -> int:
+        """A register's value, with the motor model brought up to now."""
+        with self.lock:
+            s = self.servo(servo_id)
+            s.advance()
+            return s.get(name)
+
+    def write_register(self, servo_id: int, name: str, value: int) -> None:
+        """Set a register behind the bus's back (no access rules): e.g. a calibration offset."""
+        with self.lock:
+            s = self.servo(servo_id)
+            s.advance()
+            s.set(name, value)
+
+    @property
+    def goal_history(self) -> dict[int, list[GoalRecord]]:
+        """Every Goal Position that reached each servo, by the servo's ID at creation order."""
+        with self.lock:
+            return {s.servo_id: list(s.goal_history) for s in self._servos}
+
+    @property
+    def violations(self) -> list[GoalRecord]:
+        """Goals outside a servo's ``allowed_range`` (any servo), in time order."""
+        with self.lock:
+            return sorted((r for s in self._servos for r in s.violations), key=lambda r: r.stamp)
+
+    def allowed_range(self, servo_id: int, lo: int | None, hi: int | None = None) -> None:
+        """Set (or with ``lo=None`` clear) the goal range, in ticks, that counts as safe."""
+        with self.lock:
+            self.servo(servo_id).allowed_range = None if lo is None else (int(lo), int(hi))
+
+    # ------------------------------------------------------------------ fault injection
+    def drop_replies(self, servo_id: int, count: int | None = None) -> None:
+        """Lose the next ``count`` replies of this servo (None: all until cleared)."""
+        with self.lock:
+            self.servo(servo_id).faults.drop_replies = -1 if count is None else int(count)
+
+    def corrupt_replies(self, servo_id: int, count: int | None = None) -> None:
+        """Send the next ``count`` replies with a broken CRC (None: all until cleared)."""
+        with self.lock:
+            self.servo(servo_id).faults.corrupt_replies = -1 if count is None else int(count)
+
+    def disconnect(self, servo_id: int, disconnected: bool = True) -> None:
+        """The servo drops off the bus: it neither hears nor answers."""
+        with self.lock:
+            self.servo(servo_id).faults.disconnected = disconnected
+
+    def set_hardware_error(self, servo_id: int, bits: int, *, survives_reboot: bool = False) -> None:
+        """Force Hardware Error Status bits (e.g. 0x20 overload); the alert bit follows."""
+        with self.lock:
+            s = self.servo(servo_id)
+            s.advance()
+            s.faults.injected_hw_error = int(bits)
+            s.faults.hw_error_survives_reboot = survives_reboot
+            s.advance(s._last + 1e-9)
+
+    def overheat(self, servo_id: int, celsius: float | None = None) -> None:
+        """Hold the temperature at ``celsius`` (default: Temperature Limit + 5 °C)."""
+        with self.lock:
+            s = self.servo(servo_id)
+            s.advance()
+            if celsius is None:
+                celsius = s.get("temperature_limit") + 5.0
+            s.faults.held_temperature_c = float(celsius)
+            s.advance(s._last + 1e-9)
+
+    def set_supply_voltage(self, servo_id: int, volts: float | None) -> None:
+        """Supply voltage seen by the servo (None: its rated voltage)."""
+        with self.lock:
+            s = self.servo(servo_id)
+            s.advance()
+            s.faults.supply_v = volts
+            s.advance(s._last + 1e-9)
+
+    def stick(self, servo_id: int, stuck: bool = True) -> None:
+        """Block the motor: goal changes give stall current and, after 1 s, overload."""
+        with self.lock:
+            s = self.servo(servo_id)
+            s.advance()
+            s.faults.stuck = stuck
+
+    def push(self, servo_id: int, ticks: float) -> None:
+        """Move the horn by hand to ``ticks``."""
+        with self.lock:
+            self.servo(servo_id).push(ticks)
+
+    def clear_faults(self, servo_id: int | None = None) -> None:
+        """Undo injected faults (one servo or all); the temperature returns to ambient."""
+        with self.lock:
+            for s in self._servos if servo_id is None else [self.servo(servo_id)]:
+                s.advance()
+                held = s.faults.held_temperature_c is not None
+                s.faults = type(s.faults)()
+                if held:
+                    s._temp = s.ambient_c
+                s.advance(s._last + 1e-9)
+
+    def vanish(self) -> None:
+        """Close the pty as if the adapter were unplugged."""
+        with self.lock:
+            self.vanished = True
+            self._stop.set()
+            self._close_fds()
+
+    # ------------------------------------------------------------------ reader thread
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            master = self._master
+            if master is None:
+                return
+            try:
+                ready, _, _ = select.select([master], [], [], 0.05)
+            except (OSError, ValueError):
+                return
+            if not ready:
+                continue
+            t_first = self.clock()
+            try:
+                data = os.read(master, 65536)
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                if exc.errno == errno.EIO:  # no process holds the slave open right now
+                    time.sleep(0.01)
+                    continue
+                return
+            if not data:
+                continue
+            self.rx_bytes += len(data)
+            for frame in self._parser.feed(data):
+                try:
+                    self._handle(frame, t_first)
+                except OSError:
+                    return
+
+    def _host_baud(self) -> int | None:
+        """The baud rate the host configured on the pty (termios), or None if unknown."""
+        try:
+            attrs = termios.tcgetattr(self._master)
+        except (termios.error, TypeError):
+            return None
+        speed = attrs[5]
+        if speed in _BAUD_CONSTANTS and speed != 0:
+            return _BAUD_CONSTANTS[speed]
+        if speed == _BOTHER or speed & _BOTHER:
+            try:
+                buf = fcntl.ioctl(self._master, _TCGETS2, bytes(44))
+                return struct.unpack_from("I", buf, 40)[0]
+            except OSError:
+                return None
+        return None
+
+    def _listeners(self, protocol: int, now: float) -> dict[int, EmulatedServo]:
+        """Servos that hear this packet: right protocol, connected, not booting, same baud."""
+        host_baud = self._host_baud() if self.match_baud else None
+        out = {}
+        for s in self._servos:
+            if s.protocol != protocol or s.faults.disconnected or now < s.booting_until:
+                continue
+            if host_baud is not None and s.baud() != host_baud:
+                continue
+            out[s.servo_id] = s
+        return out
+
+    def _handle(self, frame: dp.Frame, t_first: float) -> None:
+        with self.lock:
+            now = self.clock()
+            wire_baud = self._host_baud() or self.baud
+            t_start = max(t_first, self._bus_free_at)
+            t_end_in = t_start + 10.0 * len(frame.raw) / wire_baud
+            self._bus_free_at = t_end_in
+            listeners = self._listeners(frame.protocol, now)
+            if frame.protocol == 2:
+                replies = self._dispatch2(frame, listeners)
+            else:
+                replies = self._dispatch1(frame, listeners)
+            self._emit(replies, t_end_in, wire_baud)
+
+    def _emit(self, replies: list[tuple[EmulatedServo, bytes]], t_end_in: float, baud: int) -> None:
+        t = t_end_in
+        for servo, raw in replies:
+            if self._master is None:
+                return
+            if self.wire_timing:
+                t = t + servo.return_delay_s() + 10.0 * len(raw) / baud
+                _sleep_until(t, self.clock)
+            os.write(self._master, raw)
+            self.tx_bytes += len(raw)
+        if self.wire_timing:
+            self._bus_free_at = max(self._bus_free_at, t)
+
+    def _count(self, instruction: int) -> None:
+        name = dp.INSTRUCTION_NAMES.get(instruction, f"0x{instruction:02X}")
+        self.instruction_counts[name] = self.instruction_counts.get(name, 0) + 1
+
+    # ------------------------------------------------------------------ protocol 2.0
+    def _status2(self, servo: EmulatedServo, error: int = 0, params: bytes = b"") -> tuple[EmulatedServo, bytes] | None:
+        """A status packet from ``servo`` unless a fault swallows it."""
+        if servo.faults.take("drop_replies"):
+            return None
+        raw = dp.encode_status(servo.servo_id, error | servo.status_error(), params)
+        if servo.faults.take("corrupt_replies"):
+            raw = raw[:-2] + bytes((raw[-2] ^ 0xFF, raw[-1] ^ 0xFF))
+        return servo, raw
+
+    def _dispatch2(self, frame: dp.Frame, servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
+        raw = frame.raw
+        target = raw[4]
+        if not frame.valid:
+            self.crc_errors += 1
+            s = servos.get(target)
+            rep = self._status2(s, dp.ERR_CRC) if s is not None else None
+            return [rep] if rep else []
+        pkt = dp.decode_packet(raw)
+        if pkt.is_status:
+            return []  # another device's reply (or our own echo): not for servos
+        inst, params = pkt.instruction, pkt.params
+        self._count(inst)
+        replies: list[tuple[EmulatedServo, bytes] | None] = []
+        broadcast = target == dp.BROADCAST_ID
+        unicast = servos.get(target)
+
+        def reply_level(servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
+            if not broadcast and servo.status_return_level() >= level:
+                replies.append(self._status2(servo, error, data))
+
+        def werr(result: WriteResult) -> int:
+            return 0 if result.ok else _P2_WRITE_ERRORS[result.error]
+
+        if inst == dp.PING:
+            group = sorted(servos.values(), key=lambda s: s.servo_id) if broadcast else [unicast] if unicast else []
+            for s in group:
+                replies.append(self._status2(s, 0, s.model.model_number.to_bytes(2, "little")
+                                             + bytes((s.get("firmware_version") & 0xFF,))))
+        elif inst == dp.READ:
+            if unicast and len(params) == 4:
+                addr, length = _u16(params, 0), _u16(params, 2)
+                data = unicast.read(addr, length)
+                if data is None:
+                    reply_level(unicast, 1, dp.ERR_ACCESS)
+                else:
+                    reply_level(unicast, 1, 0, data)
+            elif unicast:
+                reply_level(unicast, 1, dp.ERR_DATA_LENGTH)
+        elif inst in (dp.WRITE, dp.REG_WRITE):
+            group = list(servos.values()) if broadcast else [unicast] if unicast else []
+            for s in group:
+                if len(params) < 3:
+                    reply_level(s, 2, dp.ERR_DATA_LENGTH)
+                    continue
+                addr, data = _u16(params, 0), params[2:]
+                result = s.write(addr, data) if inst == dp.WRITE else s.reg_write(addr, data)
+                reply_level(s, 2, werr(result))
+        elif inst == dp.ACTION:
+            group = list(servos.values()) if broadcast else [unicast] if unicast else []
+            for s in group:
+                done = s.action()
+                reply_level(s, 2, 0 if done else dp.ERR_INSTRUCTION)
+        elif inst == dp.REBOOT:
+            group = list(servos.values()) if broadcast else [unicast] if unicast else []
+            for s in group:
+                reply_level(s, 2)
+                s.reboot(self.reboot_time_s)
+        elif inst == dp.FACTORY_RESET:
+            option = params[0] if params else 0xFF
+            if not (broadcast and option == 0xFF):
+                group = list(servos.values()) if broadcast else [unicast] if unicast else []
+                for s in group:
+                    reply_level(s, 2)
+                    s.factory_reset(option)
+        elif inst == dp.CLEAR:
+            if unicast:
+                ok = params[:5] == bytes((0x01, 0x44, 0x58, 0x4C, 0x22))
+                reply_level(unicast, 2, 0 if ok else dp.ERR_DATA_RANGE)
+        elif inst in (dp.SYNC_READ, dp.FAST_SYNC_READ) and broadcast and len(params) >= 4:
+            addr, length = _u16(params, 0), _u16(params, 2)
+            ids = list(params[4:])
+            if inst == dp.SYNC_READ:
+                for i in ids:
+                    s = servos.get(i)
+                    if s is not None and s.status_return_level() >= 1:
+                        data = s.read(addr, length)
+                        replies.append(self._status2(s, dp.ERR_ACCESS if data is None else 0, data or b""))
+            else:
+                replies.extend(self._fast_read([(i, addr, length) for i in ids], servos))
+        elif inst == dp.SYNC_WRITE and broadcast and len(params) >= 4:
+            addr, length = _u16(params, 0), _u16(params, 2)
+            body = params[4:]
+            for k in range(0, len(body) - length, length + 1):
+                s = servos.get(body[k])
+                if s is not None:
+                    s.write(addr, body[k + 1:k + 1 + length], "SYNC_WRITE")
+        elif inst in (dp.BULK_READ, dp.FAST_BULK_READ) and broadcast:
+            items = [(params[k], _u16(params, k + 1), _u16(params, k + 3)) for k in range(0, len(params) - 4, 5)]
+            if inst == dp.BULK_READ:
+                for i, addr, length in items:
+                    s = servos.get(i)
+                    if s is not None and s.status_return_level() >= 1:
+                        data = s.read(addr, length)
+                        replies.append(self._status2(s, dp.ERR_ACCESS if data is None else 0, data or b""))
+            else:
+                replies.extend(self._fast_read(items, servos))
+        elif inst == dp.BULK_WRITE and broadcast:
+            k = 0
+            while k + 5 <= len(params):
+                i, addr, length = params[k], _u16(params, k + 1), _u16(params, k + 3)
+                s = servos.get(i)
+                if s is not None:
+                    s.write(addr, params[k + 5:k + 5 + length], "BULK_WRITE")
+                k += 5 + length
+        elif unicast is not None:
+            reply_level(unicast, 0, dp.ERR_INSTRUCTION)
+        return [r for r in replies if r is not None]
+
+    def _fast_read(self, items: list[tuple[int, int, int]], servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
+        """FAST_SYNC_READ / FAST_BULK_READ: one packet built servo by servo. A silent
+        servo breaks the chain: the reply is cut where its part should begin."""
+        parts, owners = [], []
+        broken = False
+        for i, addr, length in items:
+            s = servos.get(i)
+            if s is None or s.status_return_level() < 1 or s.faults.take("drop_replies"):
+                broken = True
+                break
+            data = s.read(addr, length)
+            parts.append((s.status_error() | (dp.ERR_ACCESS if data is None else 0), i, data or bytes(length)))
+            owners.append(s)
+        if not parts:
+            return []
+        full = dp.encode_fast_status(parts)
+        raw = bytearray(full)
+        pos = 8
+        for (err, i, data), s in zip(parts, owners):
+            if s.faults.take("corrupt_replies"):
+                raw[pos + 2 if data else pos] ^= 0xFF  # flip a byte; the packet CRC no longer holds
+            pos += 4 + len(data)
+        if broken:
+            raw = raw[:pos]
+        # the whole packet goes out at once; its timing is charged to the last servo in it
+        return [(owners[-1], bytes(raw))]
+
+    # ------------------------------------------------------------------ protocol 1.0
+    def _status1(self, servo: EmulatedServo, error: int = 0, params: bytes = b"") -> tuple[EmulatedServo, bytes] | None:
+        if servo.faults.take("drop_replies"):
+            return None
+        raw = dp.encode_status1(servo.servo_id, error | servo.status_error(), params)
+        if servo.faults.take("corrupt_replies"):
+            raw = raw[:-1] + bytes((raw[-1] ^ 0xFF,))
+        return servo, raw
+
+    def _dispatch1(self, frame: dp.Frame, servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
+        raw = frame.raw
+        target = raw[2]
+        broadcast = target == dp.BROADCAST_ID
+        unicast = servos.get(target)
+        if not frame.valid:
+            self.crc_errors += 1
+            rep = self._status1(unicast, dp.ERR1_CHECKSUM) if unicast is not None else None
+            return [rep] if rep else []
+        pkt = dp.decode_packet1(raw, status=False)
+        inst, params = pkt.instruction, pkt.params
+        self._count(inst)
+        replies: list[tuple[EmulatedServo, bytes] | None] = []
+
+        def reply_level(servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
+            if not broadcast and servo.status_return_level() >= level:
+                replies.append(self._status1(servo, error, data))
+
+        group = list(servos.values()) if broadcast else [unicast] if unicast else []
+        if inst == dp.PING:
+            if unicast:
+                replies.append(self._status1(unicast))
+        elif inst == dp.READ:
+            if unicast and len(params) == 2:
+                data = unicast.read(params[0], params[1])
+                reply_level(unicast, 1, dp.ERR1_RANGE if data is None else 0, data or b"")
+        elif inst in (dp.WRITE, dp.REG_WRITE):
+            for s in group:
+                if len(params) < 2:
+                    reply_level(s, 2, dp.ERR1_RANGE)
+                    continue
+                result = s.write(params[0], params[1:]) if inst == dp.WRITE else s.reg_write(params[0], params[1:])
+                reply_level(s, 2, 0 if result.ok else _P1_WRITE_ERRORS[result.error])
+        elif inst == dp.ACTION:
+            for s in group:
+                done = s.action()
+                reply_level(s, 2, 0 if done else dp.ERR1_INSTRUCTION)
+        elif inst == dp.FACTORY_RESET:
+            for s in group:
+                reply_level(s, 2)
+                s.factory_reset(0xFF)
+        elif inst == dp.SYNC_WRITE and broadcast and len(params) >= 2:
+            addr, length = params[0], params[1]
+            body = params[2:]
+            for k in range(0, len(body) - length, length + 1):
+                s = servos.get(body[k])
+                if s is not None:
+                    s.write(addr, body[k + 1:k + 1 + length], "SYNC_WRITE")
+        elif inst == dp.BULK_READ and broadcast and params:
+            body = params[1:]
+            for k in range(0, len(body) - 2, 3):
+                length, i, addr = body[k], body[k + 1], body[k + 2]
+                s = servos.get(i)
+                if s is not None and s.status_return_level() >= 1:
+                    data = s.read(addr, length)
+                    replies.append(self._status1(s, dp.ERR1_RANGE if data is None else 0, data or b""))
+        elif unicast is not None:
+            reply_level(unicast, 0, dp.ERR1_INSTRUCTION)
+        return [r for r in replies if r is not None]
+
+
+def _u16(data: bytes, at: int) -> int:
+    return data[at] | (data[at + 1] << 8)
+
+
+def _sleep_until(t: float, clock: Callable[[], float]) -> None:
+    """Sleep to within ~0.3 ms of ``t``, then spin: sub-millisecond wire times stay accurate."""
+    while True:
+        left = t - clock()
+        if left <= 0:
+            return
+        if left > 0.0005:
+            time.sleep(left - 0.0003)
+
+
+__all__ = ["DynamixelBusEmulator", "ServoSpec", "DEFAULT_MODELS"]

@@ -1,0 +1,339 @@
+"""Dynamixel packet codec: protocol 2.0 (CRC-16, byte stuffing) and protocol 1.0 (checksum).
+
+Pure functions over ``bytes``; no I/O. The emulator (:mod:`.dynamixel_bus`) and the tests
+use it; the Dynamixel transport itself talks through dynamixel-sdk, and the tests check
+that both produce the same bytes.
+
+Protocol 2.0 packet (ROBOTIS e-Manual, "Protocol 2.0", https://emanual.robotis.com/docs/en/dxl/protocol2/)::
+
+    FF FF FD 00 | ID | LEN_L LEN_H | INST | PARAM... | CRC_L CRC_H          (instruction)
+    FF FF FD 00 | ID | LEN_L LEN_H | 0x55 | ERR | PARAM... | CRC_L CRC_H    (status)
+
+    LEN = len(INST [+ ERR] + PARAM (stuffed)) + 2          (the CRC's two bytes count)
+    CRC = CRC-16 over every byte from the first FF up to the last parameter, with
+          stuffing already applied; polynomial x^16 + x^15 + x^2 + 1 (0x8005),
+          initial value 0, no reflection, no final XOR.
+
+Byte stuffing: wherever the pattern ``FF FF FD`` appears in INST..PARAM, one extra
+``FD`` is inserted after it, so the header cannot occur inside a packet body.
+
+Fast Sync Read / Fast Bulk Read status: one packet with ID 0xFE whose parameters are,
+per servo, ``ERR ID DATA... CRC_L CRC_H``; each servo's CRC is the CRC of the whole
+packet up to that point (the last one is the packet's own CRC). These replies are
+never stuffed (e-Manual, "Fast Sync Read").
+
+Protocol 1.0 packet (e-Manual, "Protocol 1.0")::
+
+    FF FF | ID | LEN | INST or ERR | PARAM... | CHECKSUM
+    LEN = len(PARAM) + 2;  CHECKSUM = ~(ID + LEN + INST + sum(PARAM)) & 0xFF
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ros_free_bridge.errors import BridgeError
+
+HEADER2 = b"\xff\xff\xfd\x00"
+HEADER1 = b"\xff\xff"
+BROADCAST_ID = 0xFE
+STATUS = 0x55
+
+# Instructions (protocol 2.0; the 1.0 subset uses the same numbers).
+PING = 0x01
+READ = 0x02
+WRITE = 0x03
+REG_WRITE = 0x04
+ACTION = 0x05
+FACTORY_RESET = 0x06
+REBOOT = 0x08
+CLEAR = 0x10
+SYNC_READ = 0x82
+SYNC_WRITE = 0x83
+FAST_SYNC_READ = 0x8A
+BULK_READ = 0x92
+BULK_WRITE = 0x93
+FAST_BULK_READ = 0x9A
+
+INSTRUCTION_NAMES = {
+    PING: "PING", READ: "READ", WRITE: "WRITE", REG_WRITE: "REG_WRITE", ACTION: "ACTION",
+    FACTORY_RESET: "FACTORY_RESET", REBOOT: "REBOOT", CLEAR: "CLEAR", SYNC_READ: "SYNC_READ",
+    SYNC_WRITE: "SYNC_WRITE", FAST_SYNC_READ: "FAST_SYNC_READ", BULK_READ: "BULK_READ",
+    BULK_WRITE: "BULK_WRITE", FAST_BULK_READ: "FAST_BULK_READ", STATUS: "STATUS",
+}
+
+# Protocol 2.0 status error numbers (bits 0-6 of ERR); bit 7 is the hardware alert.
+ERR_RESULT_FAIL = 0x01
+ERR_INSTRUCTION = 0x02
+ERR_CRC = 0x03
+ERR_DATA_RANGE = 0x04
+ERR_DATA_LENGTH = 0x05
+ERR_DATA_LIMIT = 0x06
+ERR_ACCESS = 0x07
+ERR_ALERT = 0x80
+
+# Protocol 1.0 status error bits.
+ERR1_VOLTAGE = 0x01
+ERR1_ANGLE = 0x02
+ERR1_OVERHEAT = 0x04
+ERR1_RANGE = 0x08
+ERR1_CHECKSUM = 0x10
+ERR1_OVERLOAD = 0x20
+ERR1_INSTRUCTION = 0x40
+
+
+class PacketError(BridgeError):
+    """A malformed packet: wrong header, length, CRC or checksum. Says which and why."""
+
+
+def _make_crc_table(poly: int = 0x8005) -> tuple[int, ...]:
+    """Table for the MSB-first CRC-16: entry i is the remainder of (i << 8) / poly."""
+    table = []
+    for i in range(256):
+        crc = i << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ poly) if crc & 0x8000 else (crc << 1)
+        table.append(crc & 0xFFFF)
+    return tuple(table)
+
+
+CRC_TABLE = _make_crc_table()
+
+
+def crc16(data: bytes | bytearray, crc: int = 0) -> int:
+    """CRC-16 (poly 0x8005, init 0, MSB first): crc <- (crc << 8) ^ T[(crc >> 8) ^ byte].
+
+    ``crc`` continues a running CRC, so ``crc16(b, crc16(a)) == crc16(a + b)``.
+    """
+    table = CRC_TABLE
+    for byte in data:
+        crc = ((crc << 8) ^ table[((crc >> 8) ^ byte) & 0xFF]) & 0xFFFF
+    return crc
+
+
+def stuff(body: bytes) -> bytes:
+    """Insert ``FD`` after every ``FF FF FD`` in the INST..PARAM bytes."""
+    if b"\xff\xff\xfd" not in body:
+        return bytes(body)
+    return bytes(body).replace(b"\xff\xff\xfd", b"\xff\xff\xfd\xfd")
+
+
+def unstuff(body: bytes) -> bytes:
+    """Inverse of :func:`stuff`: ``FF FF FD FD`` becomes ``FF FF FD``."""
+    if b"\xff\xff\xfd\xfd" not in body:
+        return bytes(body)
+    return bytes(body).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
+
+
+def _frame2(packet_id: int, body: bytes) -> bytes:
+    """Header + ID + LEN + body (already stuffed) + CRC."""
+    length = len(body) + 2
+    head = HEADER2 + bytes((packet_id & 0xFF, length & 0xFF, length >> 8))
+    crc = crc16(body, crc16(head))
+    return head + body + bytes((crc & 0xFF, crc >> 8))
+
+
+def encode_instruction(packet_id: int, instruction: int, params: bytes = b"") -> bytes:
+    """A protocol 2.0 instruction packet, stuffed and with its CRC."""
+    return _frame2(packet_id, stuff(bytes((instruction,)) + bytes(params)))
+
+
+def encode_status(packet_id: int, error: int, params: bytes = b"", *, stuffing: bool = True) -> bytes:
+    """A protocol 2.0 status packet (INST 0x55). ``stuffing=False`` for fast replies only."""
+    body = bytes((STATUS, error & 0xFF)) + bytes(params)
+    return _frame2(packet_id, stuff(body) if stuffing else body)
+
+
+def encode_fast_status(parts: list[tuple[int, int, bytes]]) -> bytes:
+    """The single status packet of a Fast Sync/Bulk Read: ``parts`` = [(error, id, data)].
+
+    Each part is followed by the CRC of the packet up to and including that part,
+    as every servo in the chain appends its own piece. Never stuffed.
+    """
+    length = 1 + sum(4 + len(data) for _, _, data in parts)
+    out = bytearray(HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS)))
+    for error, servo_id, data in parts:
+        out += bytes((error & 0xFF, servo_id & 0xFF)) + bytes(data)
+        crc = crc16(out)
+        out += bytes((crc & 0xFF, crc >> 8))
+    return bytes(out)
+
+
+@dataclass(frozen=True)
+class Packet:
+    """A decoded packet of either protocol.
+
+    ``instruction`` is 0x55 for a protocol 2.0 status packet; for protocol 1.0 status
+    packets (which have no instruction byte) it is ``STATUS`` too. ``error`` is None
+    for instruction packets. ``params`` are unstuffed.
+    """
+
+    protocol: int
+    id: int
+    instruction: int
+    params: bytes
+    error: int | None = None
+
+    @property
+    def is_status(self) -> bool:
+        return self.error is not None
+
+
+def decode_packet(raw: bytes) -> Packet:
+    """Decode one complete protocol 2.0 packet (instruction or status), checking its CRC."""
+    raw = bytes(raw)
+    if len(raw) < 10 or raw[:4] != HEADER2:
+        raise PacketError(f"not a protocol 2.0 packet: {raw[:8].hex(' ')}... (needs header FF FF FD 00 and >= 10 bytes)")
+    length = raw[5] | (raw[6] << 8)
+    if len(raw) != 7 + length:
+        raise PacketError(f"packet length field says {length} bytes after it but {len(raw) - 7} follow")
+    crc = raw[-2] | (raw[-1] << 8)
+    expected = crc16(raw[:-2])
+    if crc != expected:
+        raise PacketError(f"CRC mismatch: packet carries 0x{crc:04X}, bytes give 0x{expected:04X}")
+    body = unstuff(raw[7:-2])
+    instruction = body[0]
+    if instruction == STATUS:
+        if len(body) < 2:
+            raise PacketError("status packet without an error byte")
+        return Packet(2, raw[4], STATUS, body[2:], body[1])
+    return Packet(2, raw[4], instruction, body[1:])
+
+
+def decode_fast_status(raw: bytes, data_lengths: list[int]) -> list[tuple[int, int, bytes]]:
+    """Split a Fast Sync/Bulk Read reply into [(error, id, data)], checking every CRC.
+
+    ``data_lengths`` gives each servo's data length in reply order.
+    """
+    raw = bytes(raw)
+    if raw[:4] != HEADER2 or len(raw) < 8 or raw[4] != BROADCAST_ID or raw[7] != STATUS:
+        raise PacketError("not a fast-read status packet (needs FF FF FD 00 FE .. .. 55)")
+    length = raw[5] | (raw[6] << 8)
+    if len(raw) != 7 + length or length != 1 + sum(4 + n for n in data_lengths):
+        raise PacketError(f"fast-read length {length} does not match {len(data_lengths)} servos of {data_lengths} bytes")
+    parts, pos = [], 8
+    for n in data_lengths:
+        end = pos + 2 + n
+        crc = raw[end] | (raw[end + 1] << 8)
+        if crc16(raw[:end]) != crc:
+            raise PacketError(f"fast-read CRC mismatch in the part for servo ID {raw[pos + 1]}")
+        parts.append((raw[pos], raw[pos + 1], raw[pos + 2:end]))
+        pos = end + 2
+    return parts
+
+
+# ----------------------------------------------------------------------------- protocol 1.0
+
+def checksum1(body: bytes) -> int:
+    """Protocol 1.0 checksum over ID..last parameter: ~sum & 0xFF."""
+    return (~sum(body)) & 0xFF
+
+
+def encode_instruction1(packet_id: int, instruction: int, params: bytes = b"") -> bytes:
+    """A protocol 1.0 instruction packet."""
+    body = bytes((packet_id & 0xFF, len(params) + 2, instruction)) + bytes(params)
+    return HEADER1 + body + bytes((checksum1(body),))
+
+
+def encode_status1(packet_id: int, error: int, params: bytes = b"") -> bytes:
+    """A protocol 1.0 status packet."""
+    body = bytes((packet_id & 0xFF, len(params) + 2, error & 0xFF)) + bytes(params)
+    return HEADER1 + body + bytes((checksum1(body),))
+
+
+def decode_packet1(raw: bytes, *, status: bool) -> Packet:
+    """Decode one complete protocol 1.0 packet. Protocol 1.0 cannot tell an instruction
+    from a status packet by its bytes, so the caller says which it expects."""
+    raw = bytes(raw)
+    if len(raw) < 6 or raw[:2] != HEADER1:
+        raise PacketError(f"not a protocol 1.0 packet: {raw[:6].hex(' ')} (needs FF FF and >= 6 bytes)")
+    length = raw[3]
+    if len(raw) != 4 + length:
+        raise PacketError(f"protocol 1.0 length field says {length} bytes after it but {len(raw) - 4} follow")
+    if checksum1(raw[2:-1]) != raw[-1]:
+        raise PacketError(f"checksum mismatch: packet carries 0x{raw[-1]:02X}, bytes give 0x{checksum1(raw[2:-1]):02X}")
+    if status:
+        return Packet(1, raw[2], STATUS, raw[5:-1], raw[4])
+    return Packet(1, raw[2], raw[4], raw[5:-1])
+
+
+# ----------------------------------------------------------------------------- stream framing
+
+@dataclass(frozen=True)
+class Frame:
+    """One framed packet out of a byte stream: its raw bytes, its protocol (1 or 2) and
+    whether its CRC/checksum held."""
+
+    raw: bytes
+    valid: bool
+    protocol: int = 2
+
+
+class StreamParser:
+    """Cuts a byte stream (as read from a serial port) into packets.
+
+    ``protocol`` is 1, 2, or None to accept both on one bus (a packet starting
+    ``FF FF FD 00`` is protocol 2.0, any other ``FF FF ID`` is protocol 1.0; a 1.0 packet
+    cannot start ``FF FF FD 00`` because its length byte is at least 2).
+    ``feed(data)`` returns the frames completed by ``data``; partial packets wait for
+    more bytes. Garbage before a header is skipped. A frame with a bad CRC/checksum is
+    returned with ``valid=False`` (a servo answers it with a CRC error); an impossible
+    length (protocol 2.0 above ``max_length``, protocol 1.0 below 2) drops one byte and
+    resyncs.
+    """
+
+    def __init__(self, protocol: int | None = 2, max_length: int = 1024) -> None:
+        if protocol not in (1, 2, None):
+            raise PacketError(f"protocol must be 1, 2 or None (both), got {protocol!r}")
+        self.protocol = protocol
+        self.max_length = max_length
+        self._buf = bytearray()
+
+    def reset(self) -> None:
+        self._buf.clear()
+
+    @property
+    def pending(self) -> int:
+        """Bytes held back waiting for the rest of a packet."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[Frame]:
+        self._buf += data
+        out: list[Frame] = []
+        buf = self._buf
+        while True:
+            start = buf.find(b"\xff\xff")
+            if start < 0:
+                del buf[: len(buf) - (1 if buf.endswith(b"\xff") else 0)]
+                return out
+            # skip runs of FF so the header's last FF is the one before the ID/FD byte
+            while len(buf) > start + 2 and buf[start + 2] == 0xFF:
+                start += 1
+            del buf[:start]
+            if len(buf) < 4:
+                return out
+            is_v2 = buf[2] == 0xFD and buf[3] == 0x00
+            if is_v2 and self.protocol != 1:
+                if len(buf) < 7:
+                    return out
+                length = buf[5] | (buf[6] << 8)
+                if length < 3 or length > self.max_length:
+                    del buf[0]
+                    continue
+                if len(buf) < 7 + length:
+                    return out
+                raw = bytes(buf[: 7 + length])
+                del buf[: 7 + length]
+                out.append(Frame(raw, crc16(raw[:-2]) == (raw[-2] | (raw[-1] << 8)), 2))
+            elif not is_v2 and self.protocol != 2:
+                length = buf[3]
+                if length < 2:
+                    del buf[0]
+                    continue
+                if len(buf) < 4 + length:
+                    return out
+                raw = bytes(buf[: 4 + length])
+                del buf[: 4 + length]
+                out.append(Frame(raw, checksum1(raw[2:-1]) == raw[-1], 1))
+            else:
+                del buf[0]

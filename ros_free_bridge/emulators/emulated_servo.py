@@ -1,0 +1,451 @@
+"""One emulated Dynamixel servo: its control-table memory, write rules and a motor model.
+
+The bus emulator (:mod:`.dynamixel_bus`) owns a list of these and calls them from its
+reader thread under one lock; they hold no lock of their own. Everything is in the
+servo's own units (ticks, register units); the model's tables come from
+:mod:`firmware_cfg.servo_models`.
+
+Write rules (what a protocol 2.0 servo answers, e-Manual "Protocol 2.0", Status Packet
+errors), returned as a :class:`WriteResult`:
+
+- a write must cover whole registers (else ``length``: Data Length Error); bytes that fall
+  in gaps between registers are ignored;
+- read-only registers refuse writes (``access``: Access Error);
+- EEPROM-area registers refuse writes while Torque Enable is 1 (``access``; "ROM lock");
+  protocol 1.0 models instead refuse EEPROM writes while their Lock register is 1;
+- a value outside the register's range gives ``range`` (Data Range Error);
+- a Goal Position outside [Min, Max] Position Limit (or the CW/CCW Angle Limits on
+  protocol 1.0 models) gives ``limit`` (Data Limit Error / Angle Limit Error);
+- any error leaves the table unchanged (all-or-nothing).
+
+Motor model, advanced lazily to the current time before every access (position control
+modes; velocity mode 1 follows Goal Velocity; other modes hold)::
+
+    v_max  = min(profile velocity (or Velocity Limit when it is 0), no-load speed * V/V_rated)
+    x     <- x + clip(goal - x, -v_max dt, +v_max dt)           (only with torque on)
+    I      = I_stall * clip((goal - x) / 128 ticks, -1, 1)        (torque on; 0 when off)
+    T     <- T_ss + (T - T_ss) exp(-dt / 60 s),  T_ss = T_ambient + 60 K * (I / I_stall)^2
+
+Hardware errors (Hardware Error Status, register 70 on X models; bits of the status
+error byte on protocol 1.0 models): input voltage (bit 0) outside the voltage limits,
+overheating (bit 2) at or above Temperature Limit, overload (bit 5) after 1 s at stall
+current, plus any bits injected by a test. A bit that is also set in Shutdown(63) switches
+torque off and keeps it off until REBOOT.
+
+With torque off the goal is stored but ignored, and :meth:`push` moves the horn (an
+external hand); with torque on a pushed servo moves back to its goal.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from firmware_cfg.servo_models import Register, ServoModel
+
+#: Hardware Error Status bits (X series, e-Manual "Shutdown(63)").
+HW_INPUT_VOLTAGE = 0x01
+HW_OVERHEATING = 0x04
+HW_MOTOR_ENCODER = 0x08
+HW_ELECTRICAL_SHOCK = 0x10
+HW_OVERLOAD = 0x20
+
+#: Protocol 1.0 status error bits that mirror hardware conditions.
+_P1_HW_BITS = {HW_INPUT_VOLTAGE: 0x01, HW_OVERHEATING: 0x04, HW_OVERLOAD: 0x20}
+
+THERMAL_TAU_S = 60.0
+THERMAL_RISE_AT_STALL_K = 60.0
+OVERLOAD_TIME_S = 1.0
+CURRENT_SATURATION_TICKS = 128.0
+
+
+@dataclass(frozen=True)
+class GoalRecord:
+    """A Goal Position value that reached a servo: when (``time.monotonic()`` s), what
+    (ticks), through which instruction, and whether the servo accepted it."""
+
+    stamp: float
+    servo_id: int
+    ticks: int
+    accepted: bool
+    instruction: str
+
+
+@dataclass(frozen=True)
+class WriteResult:
+    """Outcome of a write: ``error`` is None, 'access', 'length', 'range' or 'limit'."""
+
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+@dataclass
+class Faults:
+    """Injected faults of one servo (see the bus emulator's fault API)."""
+
+    drop_replies: int = 0          # replies to swallow; -1 = all until cleared
+    corrupt_replies: int = 0       # replies to send with a broken CRC; -1 = all
+    disconnected: bool = False     # neither hears nor answers
+    stuck: bool = False            # motor cannot move
+    injected_hw_error: int = 0     # Hardware Error Status bits forced on
+    hw_error_survives_reboot: bool = False
+    held_temperature_c: float | None = None
+    supply_v: float | None = None  # None: the model's rated voltage
+
+    def take(self, name: str) -> bool:
+        """Consume one count of a counted fault; True if it applies to this reply."""
+        n = getattr(self, name)
+        if n == 0:
+            return False
+        if n > 0:
+            setattr(self, name, n - 1)
+        return True
+
+
+class EmulatedServo:
+    """A servo's state. ``servo_id`` is read from its ID register (it can be rewritten)."""
+
+    def __init__(
+        self,
+        model: ServoModel,
+        servo_id: int,
+        position_ticks: float | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        ambient_c: float = 25.0,
+    ) -> None:
+        self.model = model
+        self.clock = clock
+        self.ambient_c = ambient_c
+        self.faults = Faults()
+        self.goal_history: list[GoalRecord] = []
+        self.allowed_range: tuple[int, int] | None = None
+        self.violations: list[GoalRecord] = []
+        self.booting_until = 0.0
+        self._mem = bytearray(max(model.table_size, 1))
+        self._regs = model.registers
+        self._registered: tuple[int, bytes] | None = None
+        self._pos = float(model.position.center_tick if position_ticks is None else position_ticks)
+        self._temp = ambient_c
+        self._stall_time = 0.0
+        self._hw_latched = 0
+        self._last = clock()
+        self._t0 = self._last
+        self._factory_fill(keep=())
+        self.set("id", servo_id)
+        self._sync_outputs(0.0, 0.0)
+        self.set("goal_position", int(round(self._pos)))
+
+    # ------------------------------------------------------------------ raw access
+    def _reg(self, name: str) -> Register:
+        return self._regs[name]
+
+    def has(self, name: str) -> bool:
+        return name in self._regs
+
+    def get(self, name: str) -> int:
+        """A register's value (no motor update, no access rules)."""
+        r = self._regs[name]
+        return r.decode(self._mem[r.address:r.end])
+
+    def set(self, name: str, value: int) -> None:
+        """Set a register's value directly (back door for tests: no access rules)."""
+        r = self._regs[name]
+        self._mem[r.address:r.end] = r.encode(value)
+
+    @property
+    def servo_id(self) -> int:
+        return self.get("id")
+
+    @property
+    def protocol(self) -> int:
+        return self.model.protocol
+
+    @property
+    def torque_enabled(self) -> bool:
+        return self.get("torque_enable") == 1
+
+    @property
+    def position(self) -> float:
+        """Present position in ticks (float, before rounding into the register)."""
+        return self._pos
+
+    @property
+    def temperature_c(self) -> float:
+        return self._temp
+
+    def return_delay_s(self) -> float:
+        return self.model.return_delay_s(self.get("return_delay_time"))
+
+    def status_return_level(self) -> int:
+        return self.get("status_return_level") if self.has("status_return_level") else 2
+
+    def baud(self) -> int | None:
+        """The baud rate this servo listens at, from its Baud Rate register."""
+        try:
+            return self.model.register_to_baud(self.get("baud_rate"))
+        except Exception:
+            return None
+
+    def _factory_fill(self, keep: tuple[str, ...]) -> None:
+        kept = {name: self.get(name) for name in keep if name in self._regs}
+        self._mem[:] = bytes(len(self._mem))
+        for r in self._regs.values():
+            if r.initial is not None:
+                self._mem[r.address:r.end] = r.encode(r.initial)
+        for name, value in kept.items():
+            self.set(name, value)
+
+    # ------------------------------------------------------------------ hardware errors
+    def hardware_error(self) -> int:
+        """Current Hardware Error Status bits (computed + latched + injected)."""
+        bits = self._hw_latched | self.faults.injected_hw_error
+        volts = self.supply_voltage()
+        if self.has("min_voltage_limit"):
+            lo = self.get("min_voltage_limit") * self.model.voltage_v
+            hi = self.get("max_voltage_limit") * self.model.voltage_v
+            if not lo <= volts <= hi:
+                bits |= HW_INPUT_VOLTAGE
+        if self.has("temperature_limit") and self._temp >= self.get("temperature_limit"):
+            bits |= HW_OVERHEATING
+        return bits
+
+    def supply_voltage(self) -> float:
+        return self.model.ratings.rated_voltage_v if self.faults.supply_v is None else self.faults.supply_v
+
+    def status_error(self) -> int:
+        """Hardware part of a status packet's error byte: protocol 2.0 alert bit 0x80,
+        or the protocol 1.0 voltage/overheat/overload bits."""
+        bits = self.hardware_error()
+        if self.model.protocol == 2:
+            return 0x80 if bits else 0
+        return sum(p1 for hw, p1 in _P1_HW_BITS.items() if bits & hw)
+
+    def _shutdown_active(self) -> bool:
+        mask = self.get("shutdown") if self.has("shutdown") else 0
+        return bool(self.hardware_error() & mask)
+
+    # ------------------------------------------------------------------ motor model
+    def advance(self, now: float | None = None) -> None:
+        """Bring the motor model and the read-only registers up to ``now``."""
+        now = self.clock() if now is None else now
+        dt = now - self._last
+        if dt <= 0.0:
+            return
+        self._last = now
+        m = self.model
+        if self._shutdown_active() and self.torque_enabled:
+            self.set("torque_enable", 0)
+        velocity_ticks_s = 0.0
+        current_a = 0.0
+        if self.torque_enabled and not self.faults.disconnected:
+            mode = self.get("operating_mode") if self.has("operating_mode") else 3
+            v_cap = self._max_speed_ticks_s()
+            if mode == 1 and self.has("goal_velocity"):
+                target_v = max(-v_cap, min(v_cap, self.get("goal_velocity") * m.velocity_rpm * m.position.ticks_per_turn / 60.0))
+                step = 0.0 if self.faults.stuck else target_v * dt
+                current_a = m.ratings.stall_current_a * (1.0 if self.faults.stuck and target_v else abs(target_v) / max(v_cap, 1e-9) * 0.2)
+            else:
+                goal = self.get("goal_position")
+                err = goal - self._pos
+                step = 0.0 if self.faults.stuck else max(-v_cap * dt, min(v_cap * dt, err))
+                residual = err - step
+                current_a = m.ratings.stall_current_a * max(-1.0, min(1.0, residual / CURRENT_SATURATION_TICKS))
+            if mode == 3:
+                step = max(m.position.min_tick - self._pos, min(m.position.max_tick - self._pos, step))
+            self._pos += step
+            velocity_ticks_s = step / dt
+        # overload: sustained stall current
+        if abs(current_a) >= 0.95 * m.ratings.stall_current_a:
+            self._stall_time += dt
+            if self._stall_time >= OVERLOAD_TIME_S:
+                self._hw_latched |= HW_OVERLOAD
+        else:
+            self._stall_time = 0.0
+        # thermal first-order model (exact for piecewise-constant current)
+        if self.faults.held_temperature_c is not None:
+            self._temp = self.faults.held_temperature_c
+        else:
+            ratio = current_a / m.ratings.stall_current_a
+            t_ss = self.ambient_c + THERMAL_RISE_AT_STALL_K * ratio * ratio
+            self._temp = t_ss + (self._temp - t_ss) * math.exp(-dt / THERMAL_TAU_S)
+        if self._shutdown_active() and self.torque_enabled:
+            self.set("torque_enable", 0)
+        self._sync_outputs(velocity_ticks_s, current_a, now)
+
+    def _max_speed_ticks_s(self) -> float:
+        m = self.model
+        if self.has("profile_velocity"):
+            limit = self.get("velocity_limit") if self.has("velocity_limit") else 0
+            pv = self.get("profile_velocity")
+            units = limit if pv == 0 else (min(pv, limit) if limit else pv)
+            rpm = units * m.velocity_rpm if units else m.ratings.no_load_speed_rpm
+        else:
+            ms = self.get("moving_speed") & 0x3FF if self.has("moving_speed") else 0
+            rpm = ms * m.velocity_rpm if ms else m.ratings.no_load_speed_rpm
+        rpm = min(rpm, m.ratings.no_load_speed_rpm * self.supply_voltage() / m.ratings.rated_voltage_v)
+        return rpm * m.position.ticks_per_turn / 60.0
+
+    def _sync_outputs(self, velocity_ticks_s: float, current_a: float, now: float | None = None) -> None:
+        m = self.model
+        self.set("present_position", int(round(self._pos)))
+        vel_units = int(round(velocity_ticks_s * 60.0 / m.position.ticks_per_turn / m.velocity_rpm))
+        for name in ("present_velocity", "present_speed"):
+            if self.has(name):
+                self.set(name, vel_units)
+        if self.has("present_current") and m.current_ma:
+            self.set("present_current", int(round(current_a * 1000.0 / m.current_ma)))
+        if self.has("present_load"):
+            self.set("present_load", int(round(1000.0 * current_a / m.ratings.stall_current_a)))
+        if self.has("velocity_trajectory"):
+            self.set("velocity_trajectory", vel_units)
+        if self.has("position_trajectory"):
+            self.set("position_trajectory", self.get("goal_position") if self.torque_enabled else int(round(self._pos)))
+        volt_reg = m.first_register("present_input_voltage", "present_voltage")
+        self._mem[volt_reg.address:volt_reg.end] = volt_reg.encode(int(round(self.supply_voltage() / m.voltage_v)))
+        self.set("present_temperature", int(round(self._temp / m.temperature_c)))
+        moving = abs(vel_units) > (self.get("moving_threshold") if self.has("moving_threshold") else 0)
+        self.set("moving", int(moving))
+        if self.has("moving_status"):
+            in_position = abs(self.get("goal_position") - self._pos) < 1.0
+            self.set("moving_status", int(in_position) | (0x02 if moving else 0))
+        if self.has("hardware_error_status"):
+            self.set("hardware_error_status", self.hardware_error())
+        if self.has("realtime_tick") and now is not None:
+            self.set("realtime_tick", int((now - self._t0) * 1000.0) % 32768)
+
+    def push(self, ticks: float) -> None:
+        """An external hand moves the horn to ``ticks`` (a torque-on servo will return to its goal)."""
+        self.advance()
+        self._pos = float(ticks)
+        self._sync_outputs(0.0, 0.0, self._last)
+
+    # ------------------------------------------------------------------ protocol operations
+    def read(self, address: int, length: int) -> bytes | None:
+        """Raw bytes of the control table, or None if the span leaves the table."""
+        self.advance()
+        if address < 0 or length < 0 or address + length > len(self._mem):
+            return None
+        return bytes(self._mem[address:address + length])
+
+    def check_write(self, address: int, data: bytes) -> WriteResult:
+        """Whether a write of ``data`` at ``address`` would be accepted (no side effects)."""
+        end = address + len(data)
+        regs = self.model.registers_in(address, end)
+        if not regs or end > len(self._mem):
+            return WriteResult("access")
+        for r in regs:
+            if r.address < address or r.end > end:
+                return WriteResult("length")
+        for r in regs:
+            if not r.writable:
+                return WriteResult("access")
+        if any(r.eeprom for r in regs):
+            if self.model.protocol == 2 and self.torque_enabled:
+                return WriteResult("access")
+            if self.has("lock") and self.get("lock") == 1:
+                return WriteResult("access")
+        for r in regs:
+            value = r.decode(data[r.address - address:r.end - address])
+            if r.name == "goal_position":
+                lo, hi = self._goal_limits()
+                if lo is not None and not lo <= value <= hi:
+                    return WriteResult("limit")
+                continue
+            if not r.in_range(value):
+                return WriteResult("range")
+        return WriteResult(None)
+
+    def _goal_limits(self) -> tuple[int | None, int | None]:
+        if self.has("min_position_limit"):
+            mode = self.get("operating_mode") if self.has("operating_mode") else 3
+            if mode != 3:
+                return None, None
+            return self.get("min_position_limit"), self.get("max_position_limit")
+        if self.has("cw_angle_limit"):
+            lo, hi = self.get("cw_angle_limit"), self.get("ccw_angle_limit")
+            if lo == 0 and hi == 0:  # wheel mode
+                return None, None
+            return lo, hi
+        return None, None
+
+    def write(self, address: int, data: bytes, instruction: str = "WRITE") -> WriteResult:
+        """Apply a write under the rules above; records every Goal Position it carries."""
+        self.advance()
+        data = bytes(data)
+        result = self.check_write(address, data)
+        goal_reg = self._regs["goal_position"]
+        if address <= goal_reg.address and goal_reg.end <= address + len(data):
+            ticks = goal_reg.decode(data[goal_reg.address - address:goal_reg.end - address])
+            self._record_goal(ticks, result.ok, instruction)
+        if not result.ok:
+            return result
+        was_on = self.torque_enabled
+        old_offset = self.get("homing_offset") if self.has("homing_offset") else 0
+        for r in self.model.registers_in(address, address + len(data)):
+            self._mem[r.address:r.end] = data[r.address - address:r.end - address]
+        if self.has("homing_offset"):
+            self._pos += self.get("homing_offset") - old_offset
+        if self.torque_enabled and not was_on and self._shutdown_active():
+            self.set("torque_enable", 0)  # shutdown holds torque off until REBOOT
+        self._sync_outputs(0.0, 0.0, self._last)
+        return result
+
+    def _record_goal(self, ticks: int, accepted: bool, instruction: str) -> None:
+        rec = GoalRecord(self.clock(), self.servo_id, ticks, accepted, instruction)
+        self.goal_history.append(rec)
+        if self.allowed_range is not None and not self.allowed_range[0] <= ticks <= self.allowed_range[1]:
+            self.violations.append(rec)
+
+    def reg_write(self, address: int, data: bytes) -> WriteResult:
+        """REG_WRITE: check now, hold until ACTION (Registered Instruction = 1)."""
+        self.advance()
+        result = self.check_write(address, bytes(data))
+        if result.ok:
+            self._registered = (address, bytes(data))
+            self.set(self._registered_name(), 1)
+        return result
+
+    def _registered_name(self) -> str:
+        return "registered_instruction" if self.has("registered_instruction") else "registered"
+
+    def action(self) -> bool:
+        """ACTION: apply the registered write; False if nothing was registered."""
+        if self._registered is None:
+            return False
+        address, data = self._registered
+        self._registered = None
+        self.set(self._registered_name(), 0)
+        self.write(address, data, "ACTION")
+        return True
+
+    def reboot(self, downtime_s: float) -> None:
+        """REBOOT: RAM back to factory values, errors cleared, torque off, goal = present;
+        the servo answers nothing for ``downtime_s``."""
+        self.advance()
+        eeprom = {r.name: self.get(r.name) for r in self._regs.values() if r.eeprom}
+        self._factory_fill(keep=())
+        for name, value in eeprom.items():
+            self.set(name, value)
+        self._registered = None
+        self._hw_latched = 0
+        self._stall_time = 0.0
+        if not self.faults.hw_error_survives_reboot:
+            self.faults.injected_hw_error = 0
+        self.set("goal_position", int(round(self._pos)))
+        self._sync_outputs(0.0, 0.0, self._last)
+        self.booting_until = self.clock() + downtime_s
+
+    def factory_reset(self, option: int) -> None:
+        """FACTORY_RESET: 0xFF everything, 0x01 all but ID, 0x02 all but ID and baud rate."""
+        self.advance()
+        keep = {0x01: ("id",), 0x02: ("id", "baud_rate")}.get(option, ())
+        self._factory_fill(keep=keep)
+        self._registered = None
+        self.set("goal_position", int(round(self._pos)))
+        self._sync_outputs(0.0, 0.0, self._last)
