@@ -61,6 +61,7 @@ Design choices where the paper is silent (see also the issue notes)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, fields, replace
 
@@ -546,6 +547,11 @@ def count_parameters(config: DualFlowConfig | str) -> int:
     """Number of trainable parameters of a config (built on the meta device: no memory used)."""
     if isinstance(config, str):
         config = DualFlowConfig.preset(config)
+    return _count_parameters(config)
+
+
+@functools.lru_cache(maxsize=16)
+def _count_parameters(config: DualFlowConfig) -> int:
     with torch.device("meta"):
         model = DualFlow(config)
     return sum(p.numel() for p in model.parameters())
