@@ -1,0 +1,407 @@
+"""Physical check of a robot trajectory: play it through the servos in MuJoCo and judge it.
+
+The trajectory (:class:`retarget.RobotTrajectory`) is resampled to the control rate
+(default 100 Hz, like the bridge) by linear or cubic (PCHIP, no overshoot)
+interpolation; each control tick writes the goal angles to the position servos and
+advances physics ``physics_hz / control_hz`` steps (default 500 Hz). Commands are
+held between ticks (zero-order hold), as a servo bus does.
+
+Modes: ``free`` (the robot stands on its own feet; only gravity, contacts and its
+servos act on it; the root pose of the trajectory sets the start pose only) and
+``fixed`` (the root body is bolted at the trajectory's first root pose).
+
+Before playing, the robot is put in the first frame's pose with its lowest point
+on the floor and the first frame is held for ``settle_s`` seconds (not judged).
+
+Judged, each with the time of its first failure (s from the start of the clip):
+``joint_limit`` (a command outside the MJCF range), ``speed_limit`` (a commanded
+joint speed above the servo's no-load speed), ``fall`` (root height below
+``fall_height_frac`` of its standing height, tilt above ``fall_tilt_deg``, or a
+part other than a foot on the floor), ``self_collision``, ``human_penetration``,
+``ground_penetration``, ``foot_slip`` (sliding distance of a foot while in
+contact), ``balance`` (centre of mass outside the support polygon for
+``balance_window_s``), ``torque_saturation`` (a servo at its stall torque for
+``saturation_window_s``) and ``tracking_error`` (|q - q_cmd| above
+``max_tracking_error`` for ``tracking_window_s``). The first in time is the reason.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from dualflow.motion import Motion
+from retarget.errors import RetargetError
+from retarget.trajectory import RobotTrajectory
+from sim.contacts import ContactClassifier, min_distance, support_margin
+from sim.errors import SimError
+from sim.human_figure import Placement
+from sim.scene import Scene, SceneConfig
+
+REASONS = ("joint_limit", "speed_limit", "fall", "self_collision", "human_penetration", "ground_penetration",
+           "foot_slip", "balance", "torque_saturation", "tracking_error")
+
+
+@dataclass(frozen=True)
+class CheckConfig:
+    """Rates, mode and thresholds. Lengths in m are for the OP3's size unless scaled:
+    ``foot_slip_frac`` and ``fall_height_frac`` scale with the robot."""
+
+    control_hz: float = 100.0
+    physics_hz: float = 500.0
+    interpolation: str = "linear"  # "linear" | "cubic"
+    mode: str = "free"  # "free" | "fixed"
+    settle_s: float = 0.5
+    fall_height_frac: float = 0.6  # of the standing root height
+    fall_tilt_deg: float = 50.0
+    speed_tolerance: float = 1.0  # x no-load speed
+    self_collision_depth: float = 0.0  # m; any contact between two robot parts
+    human_penetration_depth: float = 0.005  # m
+    ground_penetration_depth: float = 0.01  # m
+    foot_slip_frac: float = 0.06  # of the robot's height, total sliding per foot
+    balance_margin: float = 0.0  # m; fail below -balance_margin ...
+    balance_window_s: float = 0.2  # ... sustained this long
+    saturation_window_s: float = 0.5
+    max_tracking_error: float = 0.35  # rad
+    tracking_window_s: float = 0.25
+    stop_after_fall_s: float = 0.5
+
+    def validate(self) -> None:
+        for name in ("control_hz", "physics_hz"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise SimError(f"check config: {name} must be > 0 Hz, got {v!r}")
+        ratio = self.physics_hz / self.control_hz
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+            raise SimError(f"check config: physics_hz ({self.physics_hz:g}) must be a whole multiple of "
+                           f"control_hz ({self.control_hz:g}), e.g. 500 and 100")
+        if self.interpolation not in ("linear", "cubic"):
+            raise SimError(f"check config: interpolation must be 'linear' or 'cubic', got {self.interpolation!r}")
+        if self.mode not in ("free", "fixed"):
+            raise SimError(f"check config: mode must be 'free' or 'fixed', got {self.mode!r}")
+        if self.settle_s < 0:
+            raise SimError(f"check config: settle_s must be >= 0, got {self.settle_s!r}")
+
+
+@dataclass
+class Failure:
+    reason: str
+    time: float  # s from the start of the clip
+    detail: str
+
+
+@dataclass
+class CheckResult:
+    """The verdict and everything measured. ``series`` holds (K,) or (K, n) arrays at
+    the control rate for plots: t, q, q_cmd, torque, root_height, tilt_deg, com_margin."""
+
+    robot: str
+    mode: str
+    passed: bool
+    reason: str
+    first_failure_time: float | None
+    failures: list[Failure]
+    metrics: dict
+    joint_names: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    series: dict = field(repr=False, default_factory=dict)
+    config: CheckConfig = field(default_factory=CheckConfig)
+
+    def summary(self) -> dict:
+        """JSON-ready dict (no arrays)."""
+        return {
+            "robot": self.robot, "mode": self.mode, "passed": self.passed, "reason": self.reason,
+            "first_failure_time_s": self.first_failure_time,
+            "failures": [asdict(f) for f in self.failures],
+            "metrics": self.metrics, "joint_names": list(self.joint_names),
+            "config": asdict(self.config),
+        }
+
+
+# -- input -----------------------------------------------------------------
+def load_trajectory(path) -> RobotTrajectory:
+    """Read a trajectory npz; any problem becomes a SimError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise SimError(f"{path}: trajectory file not found; give an npz written by RobotTrajectory.save_npz")
+    try:
+        return RobotTrajectory.load_npz(path)
+    except RetargetError as exc:
+        raise SimError(str(exc)) from None
+
+
+def _as_trajectory(traj) -> RobotTrajectory:
+    if isinstance(traj, (str, Path)):
+        return load_trajectory(traj)
+    if not isinstance(traj, RobotTrajectory):
+        raise SimError(f"check: expected a RobotTrajectory or an npz path, got {type(traj).__name__}")
+    return traj
+
+
+def _joint_columns(traj: RobotTrajectory, names: tuple[str, ...], robot: str) -> np.ndarray:
+    """(T, n) joint angles reordered to the robot's joint order."""
+    if traj.n_joints != len(names):
+        raise SimError(f"trajectory: has {traj.n_joints} joints but robot {robot!r} has {len(names)} "
+                       f"({', '.join(names)}); retarget for this robot")
+    missing = [j for j in names if j not in traj.joint_names]
+    if missing:
+        raise SimError(f"trajectory: joints {missing} of robot {robot!r} are missing (it has "
+                       f"{list(traj.joint_names)}); retarget for this robot")
+    cols = [traj.joint_names.index(j) for j in names]
+    q = traj.joint_pos[:, cols]
+    if not np.all(np.isfinite(q)):
+        raise SimError("trajectory: joint_pos has NaN or inf; fix the source motion")
+    return q
+
+
+def resample(times: np.ndarray, values: np.ndarray, t_new: np.ndarray, kind: str) -> np.ndarray:
+    """Values (T, n) at ``times`` (T,) resampled at ``t_new`` (K,), clamped at the ends."""
+    if len(times) == 1:
+        return np.repeat(values[:1], len(t_new), axis=0)
+    t_new = np.clip(t_new, times[0], times[-1])
+    if kind == "cubic" and len(times) >= 3:
+        from scipy.interpolate import PchipInterpolator
+
+        return PchipInterpolator(times, values, axis=0)(t_new)
+    idx = np.clip(np.searchsorted(times, t_new, side="right") - 1, 0, len(times) - 2)
+    w = ((t_new - times[idx]) / (times[idx + 1] - times[idx]))[:, None]
+    return (1.0 - w) * values[idx] + w * values[idx + 1]
+
+
+# -- the check ---------------------------------------------------------------
+def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None = None, actor: Motion | None = None,
+                     actor_placement: Placement | None = None) -> CheckResult:
+    """Play ``traj`` (RobotTrajectory or npz path) and judge it. ``robot`` overrides
+    ``traj.robot`` (default "op3"); ``actor`` adds the human figure (robot-human
+    penetration is then measured)."""
+    config = config or CheckConfig()
+    config.validate()
+    traj = _as_trajectory(traj)
+    robot = robot or traj.robot or "op3"
+    scene = Scene(SceneConfig(robot=robot, fixed_base=(config.mode == "fixed"),
+                              base_pos=tuple(traj.root_pos[0]), base_quat=tuple(traj.root_quat[0]),
+                              timestep=1.0 / config.physics_hz, actor=actor,
+                              actor_placement=actor_placement or Placement()))
+    return Checker(scene, config).run(traj)
+
+
+class Checker:
+    """Runs one trajectory through one scene and collects the measurements."""
+
+    def __init__(self, scene: Scene, config: CheckConfig):
+        self.scene, self.config = scene, config
+        m, r = scene.model, scene.robot
+        foot_bodies = [int(m.site_bodyid[s]) for s in r.foot_sites]
+        self.contacts = ContactClassifier(m, r.geom_ids, scene.floor_geom, foot_bodies)
+        self.foot_bodies = foot_bodies
+        self.robot_col_geoms = np.array([g for g in r.geom_ids if m.geom_contype[g] or m.geom_conaffinity[g]])
+
+    def run(self, traj: RobotTrajectory) -> CheckResult:
+        sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
+        q_traj = _joint_columns(traj, r.joint_names, sc.config.robot)
+        dt = 1.0 / cfg.control_hz
+        n_sub = int(round(cfg.physics_hz / cfg.control_hz))
+        n_ticks = int(math.floor(traj.duration * cfg.control_hz + 1e-9)) + 1
+        t = np.arange(n_ticks) * dt
+        q_cmd = resample(traj.times, q_traj, t, cfg.interpolation)
+        free = not r.fixed_base
+
+        # start: first frame, lowest point on the floor, settle
+        sc.set_robot_pose(q_cmd[0], traj.root_pos[0], traj.root_quat[0], ground=free)
+        sc.pose_humans(0.0)
+        mujoco.mj_step(m, d, int(round(cfg.settle_s * cfg.physics_hz)))
+        stand_h = sc.stand_root_height if free else np.nan
+
+        K, n = n_ticks, r.n
+        q = np.full((K, n), np.nan)
+        qd = np.full((K, n), np.nan)
+        tau = np.full((K, n), np.nan)
+        root_h = np.full(K, np.nan)
+        tilt = np.full(K, np.nan)
+        com_xy = np.full((K, 2), np.nan)
+        self_min = np.full(K, np.inf)
+        floor_min = np.full(K, np.inf)
+        human_min = np.full(K, np.inf)
+        non_foot = np.zeros(K, bool)
+        support_pts: list[np.ndarray] = [np.zeros((0, 3))] * K
+        slip = np.zeros((K, len(r.foot_sites)))
+        self_pairs: set[tuple[str, str]] = set()
+        foot_prev = d.site_xpos[list(r.foot_sites)][:, :2].copy() if r.foot_sites else np.zeros((0, 2))
+        on_prev = [False] * len(r.foot_sites)
+        actor = sc.actor
+        stop_at = K
+        fall_k = None
+
+        for k in range(K):
+            d.ctrl[r.actuator_ids] = q_cmd[k]
+            if actor is not None:
+                actor.pose_at(d, t[k])
+            mujoco.mj_step(m, d, n_sub)
+            q[k] = d.qpos[r.qpos_adr]
+            qd[k] = d.qvel[r.dof_adr]
+            tau[k] = d.actuator_force[r.actuator_ids]
+            root_h[k] = d.xpos[r.root_body, 2]
+            tilt[k] = math.degrees(math.acos(max(-1.0, min(1.0, d.xmat[r.root_body, 8]))))
+            com_xy[k] = d.subtree_com[r.root_body, :2]
+            c = self.contacts.classify(d)
+            self_min[k] = c["self_min_dist"]
+            floor_min[k] = c["floor_min_dist"]
+            non_foot[k] = c["non_foot_on_floor"]
+            support_pts[k] = c["floor_points"]
+            for g1, g2 in c["self_pairs"]:
+                self_pairs.add(tuple(sorted((m.geom(g1).name, m.geom(g2).name))))
+            if r.foot_sites:
+                fxy = d.site_xpos[list(r.foot_sites)][:, :2]
+                for i, b in enumerate(self.foot_bodies):
+                    on = b in c["foot_bodies_on_floor"]
+                    if on and on_prev[i]:
+                        slip[k, i] = np.linalg.norm(fxy[i] - foot_prev[i])
+                    on_prev[i] = on
+                foot_prev = fxy.copy()
+            if actor is not None:
+                human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids)
+            if free and fall_k is None and (root_h[k] < cfg.fall_height_frac * stand_h or tilt[k] > cfg.fall_tilt_deg
+                                            or non_foot[k]):
+                fall_k = k
+                stop_at = min(K, k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
+            if k + 1 >= stop_at:
+                break
+        K_run = min(stop_at, K)
+
+        margin = np.full(K, np.nan)
+        if free:
+            for k in range(K_run):
+                margin[k] = support_margin(com_xy[k], support_pts[k][:, :2])
+
+        failures = self._judge(t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min,
+                               slip, margin, K_run, fall_k, stand_h, dt, free, actor is not None, self_pairs)
+        failures.sort(key=lambda f: (f.time, REASONS.index(f.reason)))
+        err = np.abs(q[:K_run] - q_cmd[:K_run])
+        cmd_speed = np.abs(np.diff(q_cmd, axis=0)) / dt if K > 1 else np.zeros((1, n))
+        sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
+        metrics = {
+            "duration_s": float(traj.duration),
+            "simulated_s": float(K_run * dt),
+            "control_hz": cfg.control_hz, "physics_hz": cfg.physics_hz,
+            "tracking_rms_rad": _per_joint(r.joint_names, np.sqrt(np.nanmean(err ** 2, axis=0))),
+            "tracking_max_rad": _per_joint(r.joint_names, np.nanmax(err, axis=0)),
+            "torque_saturation_s": _per_joint(r.joint_names, sat.sum(axis=0) * dt),
+            "max_abs_torque_nm": _per_joint(r.joint_names, np.nanmax(np.abs(tau[:K_run]), axis=0)),
+            "stall_torque_nm": r.stall_torque,
+            "no_load_speed_rad_s": r.no_load_speed,
+            "speed_limit_hits": {j: int(v) for j, v in zip(r.joint_names, (cmd_speed > cfg.speed_tolerance * r.no_load_speed).sum(axis=0))},
+            "max_command_speed_rad_s": _per_joint(r.joint_names, cmd_speed.max(axis=0)),
+            "max_measured_speed_rad_s": _per_joint(r.joint_names, np.nanmax(np.abs(qd[:K_run]), axis=0)),
+            "self_collision_ticks": int((self_min[:K_run] < -cfg.self_collision_depth).sum()),
+            "self_collision_pairs": sorted(" / ".join(p) for p in self_pairs),
+            "min_self_distance_m": _finite(self_min[:K_run].min()),
+            "max_ground_penetration_m": _finite(max(0.0, -floor_min[:K_run].min())),
+            "min_human_distance_m": _finite(human_min[:K_run].min()) if actor is not None else None,
+            "foot_slip_m": [float(s) for s in slip[:K_run].sum(axis=0)],
+            "min_com_margin_m": _finite(np.nanmin(margin)) if free and np.isfinite(margin).any() else None,
+            "no_support_s": float(np.isnan(margin[:K_run]).sum() * dt) if free else None,
+            "max_tilt_deg": _finite(np.nanmax(tilt[:K_run])) if free else None,
+            "min_root_height_m": _finite(np.nanmin(root_h[:K_run])) if free else None,
+            "standing_root_height_m": _finite(stand_h) if free else None,
+        }
+        first = failures[0] if failures else None
+        series = {"t": t[:K_run], "q": q[:K_run], "q_cmd": q_cmd[:K_run], "torque": tau[:K_run],
+                  "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run]}
+        return CheckResult(sc.config.robot, cfg.mode, first is None, first.reason if first else "ok",
+                           first.time if first else None, failures, metrics, r.joint_names, r.lower, r.upper,
+                           series, cfg)
+
+    def _judge(self, t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min, slip, margin,
+               K_run, fall_k, stand_h, dt, free, has_actor, self_pairs) -> list[Failure]:
+        cfg, r = self.config, self.scene.robot
+        names = r.joint_names
+        out: list[Failure] = []
+        below = q_cmd < r.lower - 1e-6
+        above = q_cmd > r.upper + 1e-6
+        if (below | above).any():
+            k, j = np.argwhere(below | above)[0]
+            out.append(Failure("joint_limit", float(t[k]), f"{names[j]} commanded {q_cmd[k, j]:.3f} rad outside "
+                               f"[{r.lower[j]:.3f}, {r.upper[j]:.3f}]"))
+        if len(t) > 1:
+            speed = np.abs(np.diff(q_cmd, axis=0)) / dt
+            hit = speed > cfg.speed_tolerance * r.no_load_speed
+            if hit.any():
+                k, j = np.argwhere(hit)[0]
+                out.append(Failure("speed_limit", float(t[k]), f"{names[j]} commanded at {speed[k, j]:.2f} rad/s, "
+                                   f"above the servo's no-load speed {r.no_load_speed:.2f} rad/s"))
+        if fall_k is not None:
+            why = (f"root height {root_h[fall_k]:.3f} m (standing {stand_h:.3f} m)" if root_h[fall_k] < cfg.fall_height_frac * stand_h
+                   else f"torso tilt {tilt[fall_k]:.0f} deg" if tilt[fall_k] > cfg.fall_tilt_deg
+                   else "a part other than a foot touched the floor")
+            out.append(Failure("fall", float(t[fall_k]), why))
+        k = _first(self_min[:K_run] < -cfg.self_collision_depth)
+        if k is not None:
+            out.append(Failure("self_collision", float(t[k]), f"robot parts collide ({-self_min[k] * 1000:.1f} mm deep) "
+                               f"({', '.join(sorted(' / '.join(p) for p in self_pairs)) or 'see report'})"))
+        if has_actor:
+            k = _first(human_min[:K_run] < -cfg.human_penetration_depth)
+            if k is not None:
+                out.append(Failure("human_penetration", float(t[k]), f"robot enters the human figure by {-human_min[k] * 1000:.1f} mm"))
+        k = _first(floor_min[:K_run] < -cfg.ground_penetration_depth)
+        if k is not None:
+            out.append(Failure("ground_penetration", float(t[k]), f"robot is {-floor_min[k] * 1000:.1f} mm into the floor"))
+        if slip.shape[1]:
+            limit = cfg.foot_slip_frac * self.scene.robot_height
+            cum = np.cumsum(slip[:K_run], axis=0)
+            k = _first((cum > limit).any(axis=1))
+            if k is not None:
+                out.append(Failure("foot_slip", float(t[k]), f"a foot slid {cum[k].max() * 1000:.0f} mm while in contact "
+                                   f"(limit {limit * 1000:.0f} mm)"))
+        if free:
+            k = _first_sustained(margin[:K_run] < -cfg.balance_margin, int(round(cfg.balance_window_s / dt)))
+            if k is not None:
+                worst = -np.nanmin(margin[k:k + int(round(cfg.balance_window_s / dt)) + 1])
+                out.append(Failure("balance", float(t[k]), f"centre of mass up to {worst * 1000:.0f} mm outside the "
+                                   f"support polygon for over {cfg.balance_window_s:g} s"))
+        sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
+        w = int(round(cfg.saturation_window_s / dt))
+        firsts = [(_first_sustained(sat[:, j], w), j) for j in range(r.n)]
+        firsts = [(k, j) for k, j in firsts if k is not None]
+        if firsts:
+            k, j = min(firsts)
+            out.append(Failure("torque_saturation", float(t[k]), f"{names[j]} at its stall torque {r.stall_torque:g} N m "
+                               f"for over {cfg.saturation_window_s:g} s"))
+        err = np.abs(q[:K_run] - q_cmd[:K_run])
+        w = int(round(cfg.tracking_window_s / dt))
+        firsts = [(_first_sustained(err[:, j] > cfg.max_tracking_error, w), j) for j in range(r.n)]
+        firsts = [(k, j) for k, j in firsts if k is not None]
+        if firsts:
+            k, j = min(firsts)
+            out.append(Failure("tracking_error", float(t[k]), f"{names[j]} lags its command by over "
+                               f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s"))
+        return out
+
+
+def _first(mask: np.ndarray) -> int | None:
+    idx = np.flatnonzero(mask)
+    return int(idx[0]) if len(idx) else None
+
+
+def _first_sustained(mask: np.ndarray, window: int) -> int | None:
+    """Index where the first run of at least ``window`` consecutive True values starts."""
+    window = max(1, window)
+    run = 0
+    for i, v in enumerate(mask):
+        run = run + 1 if v else 0
+        if run >= window:
+            return i - window + 1
+    return None
+
+
+def _per_joint(names, values) -> dict:
+    return {n: (float(v) if np.isfinite(v) else None) for n, v in zip(names, values)}
+
+
+def _finite(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None

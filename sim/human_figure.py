@@ -1,0 +1,134 @@
+"""A person as a kinematic figure: one capsule per SMPL-22 bone on a mocap body.
+
+The capsules are posed each frame from joint positions (T, 22, 3) in metres; they
+take part in no contact (contype = conaffinity = 0) so they never push the robot.
+Distances and penetrations between the robot and the figure are measured
+explicitly (:mod:`sim.contacts`).
+
+Placement: world = R_z(yaw) @ (scale * p) + offset, applied to every joint position
+p of the source motion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from dualflow.motion import PARENTS, REST_POSE, Motion
+from sim.errors import SimError
+
+#: Height of the adult whose joint span (head joint to foot joints) the rest pose has.
+_REST_HEIGHT_M = 1.72
+_REST_JOINT_SPAN_M = float(REST_POSE[15, 2] - REST_POSE[[10, 11], 2].min())
+
+
+@dataclass(frozen=True)
+class Placement:
+    """How a human motion is placed in the scene.
+
+    ``scale``: a float, "human" (1.0) or "robot" (the robot's standing height over
+    the person's estimated height). ``offset`` (3,) metres and ``yaw_deg`` about +Z
+    are applied after scaling.
+    """
+
+    scale: float | str = "robot"
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    yaw_deg: float = 0.0
+
+    def resolve_scale(self, motion: Motion, robot_height: float) -> float:
+        if self.scale == "human":
+            return 1.0
+        if self.scale == "robot":
+            return robot_height / estimate_height(motion)
+        try:
+            s = float(self.scale)
+        except (TypeError, ValueError):
+            raise SimError(f"human placement: scale must be 'robot', 'human' or a number, got {self.scale!r}") from None
+        if not np.isfinite(s) or s <= 0:
+            raise SimError(f"human placement: scale must be > 0, got {self.scale!r}")
+        return s
+
+
+def estimate_height(motion: Motion) -> float:
+    """A person's standing height (m) from the first frame's head-to-foot span."""
+    p = motion.positions[0]
+    span = float(p[15, 2] - min(p[10, 2], p[11, 2], p[7, 2], p[8, 2]))
+    if span <= 0.1:
+        raise SimError(f"human motion {motion.name or ''}: first frame is not upright (head-to-foot span {span:.3f} m)")
+    return span * _REST_HEIGHT_M / _REST_JOINT_SPAN_M
+
+
+def place(positions: np.ndarray, scale: float, placement: Placement) -> np.ndarray:
+    """(T, 22, 3) joint positions in scene coordinates."""
+    c, s = np.cos(np.radians(placement.yaw_deg)), np.sin(np.radians(placement.yaw_deg))
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return (scale * positions) @ rot.T + np.asarray(placement.offset, dtype=np.float64)
+
+
+class HumanFigure:
+    """Capsules on mocap bodies for one person, added to an ``MjSpec`` before compiling.
+
+    ``radius`` (m, before scaling) sets the limb thickness; ``group`` the geom group
+    (renderers toggle groups to show or hide a figure).
+    """
+
+    def __init__(self, spec: mujoco.MjSpec, prefix: str, motion: Motion, scale: float, placement: Placement,
+                 rgba=(0.85, 0.55, 0.35, 0.8), radius: float = 0.05, group: int = 3):
+        self.prefix = prefix
+        self.motion = motion
+        self.positions = place(motion.positions, scale, placement)  # (T, 22, 3)
+        lengths = np.linalg.norm(self.positions[:, 1:] - self.positions[:, np.array(PARENTS[1:])], axis=-1)
+        self.lengths = np.maximum(np.median(lengths, axis=0), 1e-3)  # (21,)
+        r = radius * scale
+        for k, joint in enumerate(range(1, len(PARENTS))):
+            body = spec.worldbody.add_body(name=f"{prefix}bone{joint}", mocap=True)
+            half = max(self.lengths[k] / 2.0 - r * 0.5, 1e-4)
+            body.add_geom(name=f"{prefix}bone{joint}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[r, half, 0],
+                          rgba=list(rgba), contype=0, conaffinity=0, group=group)
+        head = spec.worldbody.add_body(name=f"{prefix}head", mocap=True)
+        head.add_geom(name=f"{prefix}head", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[1.8 * r, 0, 0],
+                      rgba=list(rgba), contype=0, conaffinity=0, group=group)
+        self._mocap: np.ndarray | None = None
+        self.geom_ids: np.ndarray | None = None
+
+    def bind(self, model: mujoco.MjModel) -> None:
+        """Look up mocap and geom ids in the compiled model."""
+        names = [f"{self.prefix}bone{j}" for j in range(1, len(PARENTS))] + [f"{self.prefix}head"]
+        self._mocap = np.array([model.body_mocapid[model.body(n).id] for n in names])
+        self.geom_ids = np.array([model.geom(n).id for n in names])
+
+    @property
+    def n_frames(self) -> int:
+        return self.positions.shape[0]
+
+    def pose_at(self, data: mujoco.MjData, t: float) -> None:
+        """Pose the figure at time ``t`` seconds (linear interpolation, clamped at the ends)."""
+        f = np.clip(t * self.motion.fps, 0.0, self.n_frames - 1)
+        i0 = int(np.floor(f))
+        i1 = min(i0 + 1, self.n_frames - 1)
+        w = f - i0
+        p = (1.0 - w) * self.positions[i0] + w * self.positions[i1]
+        parents = np.array(PARENTS[1:])
+        a, b = p[parents], p[1:]
+        data.mocap_pos[self._mocap[:-1]] = 0.5 * (a + b)
+        data.mocap_quat[self._mocap[:-1]] = _z_to(b - a)
+        head_dir = p[15] - p[12]
+        data.mocap_pos[self._mocap[-1]] = p[15] + 0.3 * head_dir
+        data.mocap_quat[self._mocap[-1]] = (1.0, 0.0, 0.0, 0.0)
+
+
+def _z_to(v: np.ndarray) -> np.ndarray:
+    """Unit quaternions wxyz (k, 4) rotating +Z onto each direction v (k, 3).
+
+    q = normalise(1 + z.u, z x u) (half-way quaternion); the antiparallel case maps to
+    a half turn about +X.
+    """
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    u = np.where(n > 1e-9, v / np.maximum(n, 1e-12), np.array([0.0, 0.0, 1.0]))
+    w = 1.0 + u[:, 2]
+    q = np.stack([w, -u[:, 1], u[:, 0], np.zeros(len(u))], axis=1)
+    flip = w < 1e-9
+    q[flip] = (0.0, 1.0, 0.0, 0.0)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)

@@ -1,0 +1,161 @@
+"""Check reports: a JSON summary and a markdown page with matplotlib plots.
+
+Files are written under a temporary name and renamed, so a report is complete or
+absent. Plots (PNG, Agg backend, no display needed):
+- ``joints.png``: each joint's measured angle, command and limits (rad) over time;
+- ``torque.png``: each servo's drive torque (N m) with its stall torque;
+- ``balance.png``: centre-of-mass margin to the support polygon (m), root height
+  (m) and torso tilt (deg).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sim.check import CheckResult
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def write_json(result: CheckResult, path) -> Path:
+    path = Path(path)
+    _atomic_write_text(path, json.dumps(result.summary(), indent=2, allow_nan=False, default=_json_default) + "\n")
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def write_report(result: CheckResult, out_dir, stem: str = "check") -> dict[str, Path]:
+    """Write ``<stem>.json``, ``<stem>.md`` and the plots into ``out_dir``; return the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": write_json(result, out / f"{stem}.json")}
+    paths.update(_plots(result, out, stem))
+    paths["markdown"] = out / f"{stem}.md"
+    _atomic_write_text(paths["markdown"], markdown(result, {k: v.name for k, v in paths.items() if k.endswith("png")}))
+    return paths
+
+
+def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
+    m = result.metrics
+    verdict = "PASS" if result.passed else f"FAIL: {result.reason} at {result.first_failure_time:.2f} s"
+    lines = [f"# Physical check: {result.robot} ({result.mode} base)", "", f"**{verdict}**", ""]
+    if result.failures:
+        lines += ["| reason | first at (s) | detail |", "|---|---|---|"]
+        lines += [f"| {f.reason} | {f.time:.2f} | {f.detail} |" for f in result.failures]
+        lines.append("")
+    lines += ["## Summary", "",
+              f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
+              f"physics {m['physics_hz']:g} Hz",
+              f"- servo: stall torque {m['stall_torque_nm']:g} N m, no-load speed {m['no_load_speed_rad_s']:g} rad/s",
+              f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
+              f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')}",
+              f"- min distance to the human: {_fmt(m['min_human_distance_m'], 1000, 'mm')}",
+              f"- foot slip per foot: {', '.join(f'{s * 1000:.1f} mm' for s in m['foot_slip_m']) or 'n/a'}",
+              f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; max tilt "
+              f"{_fmt(m['max_tilt_deg'], 1, 'deg')}", ""]
+    lines += ["## Per joint", "", "| joint | rms err (rad) | max err (rad) | max torque (N m) | saturated (s) | "
+              "max cmd speed (rad/s) | speed hits |", "|---|---|---|---|---|---|---|"]
+    for j in result.joint_names:
+        lines.append(f"| {j} | {_num(m['tracking_rms_rad'][j])} | {_num(m['tracking_max_rad'][j])} | "
+                     f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['torque_saturation_s'][j])} | "
+                     f"{_num(m['max_command_speed_rad_s'][j])} | {m['speed_limit_hits'][j]} |")
+    lines.append("")
+    for key, title in (("joints_png", "Joint angle, command and limits"), ("torque_png", "Servo torque"),
+                       ("balance_png", "Balance")):
+        if images and key in images:
+            lines += [f"## {title}", "", f"![{title}]({images[key]})", ""]
+    return "\n".join(lines)
+
+
+def _num(v) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+def _fmt(v, scale: float, unit: str) -> str:
+    return "n/a" if v is None or not math.isfinite(v) else f"{v * scale:.1f} {unit}"
+
+
+def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s, names = result.series, result.joint_names
+    t = s["t"]
+    n = len(names)
+    cols = 4
+    rows = math.ceil(n / cols)
+    paths = {}
+
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.2 * rows), sharex=True, squeeze=False)
+    for j, ax in enumerate(axes.flat):
+        if j >= n:
+            ax.axis("off")
+            continue
+        ax.plot(t, s["q_cmd"][:, j], "--", color="tab:orange", lw=1, label="command")
+        ax.plot(t, s["q"][:, j], color="tab:blue", lw=1, label="measured")
+        ax.axhline(result.lower[j], color="tab:red", lw=0.8, ls=":")
+        ax.axhline(result.upper[j], color="tab:red", lw=0.8, ls=":", label="limits")
+        ax.set_title(names[j], fontsize=9)
+        ax.tick_params(labelsize=7)
+    axes[0, 0].legend(fontsize=7)
+    fig.supxlabel("time (s)")
+    fig.supylabel("angle (rad)")
+    paths["joints_png"] = _save(fig, out / f"{stem}_joints.png")
+
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.2 * rows), sharex=True, sharey=True, squeeze=False)
+    stall = result.metrics["stall_torque_nm"]
+    for j, ax in enumerate(axes.flat):
+        if j >= n:
+            ax.axis("off")
+            continue
+        ax.plot(t, s["torque"][:, j], color="tab:green", lw=1)
+        ax.axhline(stall, color="tab:red", lw=0.8, ls=":")
+        ax.axhline(-stall, color="tab:red", lw=0.8, ls=":")
+        ax.set_title(names[j], fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.supxlabel("time (s)")
+    fig.supylabel("servo torque (N m)")
+    paths["torque_png"] = _save(fig, out / f"{stem}_torque.png")
+
+    fig, axes = plt.subplots(3, 1, figsize=(8, 6), sharex=True)
+    axes[0].plot(t, s["com_margin"] * 1000, color="tab:purple")
+    axes[0].axhline(0, color="tab:red", lw=0.8, ls=":")
+    axes[0].set_ylabel("CoM margin (mm)")
+    axes[1].plot(t, s["root_height"], color="tab:blue")
+    axes[1].set_ylabel("root height (m)")
+    axes[2].plot(t, s["tilt_deg"], color="tab:brown")
+    axes[2].set_ylabel("tilt (deg)")
+    axes[2].set_xlabel("time (s)")
+    if result.first_failure_time is not None:
+        for ax in axes:
+            ax.axvline(result.first_failure_time, color="k", lw=0.8, ls="--")
+    paths["balance_png"] = _save(fig, out / f"{stem}_balance.png")
+    return paths
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    tmp = path.with_name(path.stem + ".partial.png")
+    fig.tight_layout()
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,201 @@
+"""The scene: floor, lights, the robot partner and the human figures, compiled once.
+
+A :class:`Scene` owns one ``MjModel``/``MjData`` pair. The robot comes from its
+MJCF (:func:`sim.robots.mjcf_path`); ``fixed_base=True`` removes its freejoint and
+bolts the root body at ``base_pos``/``base_quat`` (an upper-body partner, or a
+free robot checked with its torso held). The human actor (and optionally the
+generated reactor, drawn as a thin stick figure) are kinematic capsule figures
+(:class:`sim.human_figure.HumanFigure`) that never exert forces.
+
+Geom groups: 0-2 robot and floor, 3 the actor, 4 the reactor stick figure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from dualflow.motion import Motion
+from sim.errors import SimError
+from sim.human_figure import HumanFigure, Placement
+from sim.robot_index import RobotIndex
+from sim.robots import ROBOTS, mjcf_path
+
+ACTOR_GROUP = 3
+REACTOR_GROUP = 4
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """What goes into the scene.
+
+    ``robot``: a bundled robot name or an MJCF path. ``fixed_base``: None keeps the
+    model's own choice (bundled fixed-base robots have no freejoint), True bolts the
+    root body at ``base_pos`` (m) / ``base_quat`` (wxyz). ``timestep`` s is the
+    physics step (default 0.002 s = 500 Hz).
+    """
+
+    robot: str = "op3"
+    fixed_base: bool | None = None
+    base_pos: tuple[float, float, float] | None = None
+    base_quat: tuple[float, float, float, float] | None = None
+    timestep: float = 0.002
+    actor: Motion | None = None
+    actor_placement: Placement = field(default_factory=Placement)
+    reactor: Motion | None = None
+    reactor_placement: Placement = field(default_factory=Placement)
+    floor_friction: float = 1.0
+
+
+class Scene:
+    """The compiled scene. Attributes: ``model``, ``data``, ``robot`` (RobotIndex),
+    ``actor`` / ``reactor`` (HumanFigure or None), ``floor_geom`` (id),
+    ``stand_ctrl`` (n,) the "stand" keyframe in joint order, ``stand_root_height``
+    (m, root body z when standing) and ``robot_height`` (m, top of the robot when
+    standing)."""
+
+    def __init__(self, config: SceneConfig | None = None):
+        self.config = config = config or SceneConfig()
+        if not (np.isfinite(config.timestep) and 0 < config.timestep <= 0.01):
+            raise SimError(f"scene: timestep must be in (0, 0.01] s, got {config.timestep!r}")
+        path = mjcf_path(config.robot)
+        try:
+            spec = mujoco.MjSpec.from_file(str(path))
+        except ValueError as exc:
+            raise SimError(f"robot model {path}: MuJoCo cannot load it ({exc})") from None
+        root = spec.worldbody.first_body()
+        if root is None:
+            raise SimError(f"robot model {path}: worldbody has no body")
+        self.root_name = root.name
+        free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE]
+        if config.fixed_base and free:
+            spec.delete(free[0])
+            for key in spec.keys:
+                if len(key.qpos) > 7:
+                    key.qpos = list(key.qpos)[7:]
+        if config.fixed_base or not free:
+            if config.base_pos is not None:
+                root.pos = list(config.base_pos)
+            if config.base_quat is not None:
+                root.quat = list(config.base_quat)
+        spec.option.timestep = config.timestep
+        self._add_world(spec, config)
+
+        # robot height and standing figures from a first compile (before the humans)
+        probe = spec.compile()
+        probe_data = mujoco.MjData(probe)
+        self._reset_to_stand(probe, probe_data)
+        robot_probe = RobotIndex.from_model(probe, self.root_name)
+        z_top = probe_data.geom_xpos[robot_probe.geom_ids, 2] + probe.geom_rbound[robot_probe.geom_ids]
+        self.robot_height = float(np.max(z_top) - 0.0)
+        self.stand_root_height = float(probe_data.xpos[robot_probe.root_body, 2])
+
+        self.actor = self.reactor = None
+        if config.actor is not None:
+            s = config.actor_placement.resolve_scale(config.actor, self.robot_height)
+            self.actor = HumanFigure(spec, "actor_", config.actor, s, config.actor_placement, group=ACTOR_GROUP)
+        if config.reactor is not None:
+            s = config.reactor_placement.resolve_scale(config.reactor, self.robot_height)
+            self.reactor = HumanFigure(spec, "reactor_", config.reactor, s, config.reactor_placement,
+                                       rgba=(0.2, 0.45, 0.9, 1.0), radius=0.012, group=REACTOR_GROUP)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self.robot = RobotIndex.from_model(self.model, self.root_name)
+        self.floor_geom = self.model.geom("floor").id
+        for fig in (self.actor, self.reactor):
+            if fig is not None:
+                fig.bind(self.model)
+        self.stand_ctrl = self._stand_ctrl()
+        self.reset()
+
+    # -- building ----------------------------------------------------------
+    @staticmethod
+    def _add_world(spec: mujoco.MjSpec, config: SceneConfig) -> None:
+        tex = spec.add_texture(name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+                               rgb1=[0.82, 0.84, 0.86], rgb2=[0.72, 0.74, 0.77], width=256, height=256)
+        mat = spec.add_material(name="grid", texrepeat=[8, 8], reflectance=0.05)
+        mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = tex.name
+        spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[10, 10, 0.05], material="grid",
+                                friction=[config.floor_friction, 0.02, 0.001], contype=1, conaffinity=1)
+        spec.worldbody.add_light(name="key", pos=[1.5, -1.5, 3.0], dir=[-0.45, 0.45, -0.77], diffuse=[0.7, 0.7, 0.7])
+        spec.worldbody.add_light(name="fill", pos=[-1.5, 1.0, 2.5], dir=[0.5, -0.3, -0.8], diffuse=[0.35, 0.35, 0.35])
+        spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
+        spec.visual.global_.offwidth = 1920
+        spec.visual.global_.offheight = 1080
+
+    @staticmethod
+    def _reset_to_stand(model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        mujoco.mj_resetData(model, data)
+        try:
+            key = model.key("stand").id
+            mujoco.mj_resetDataKeyframe(model, data, key)
+        except KeyError:
+            pass
+        mujoco.mj_forward(model, data)
+
+    def _stand_ctrl(self) -> np.ndarray:
+        try:
+            key = self.model.key("stand").id
+            return self.model.key_ctrl[key, self.robot.actuator_ids].copy()
+        except KeyError:
+            return np.zeros(self.robot.n)
+
+    # -- state -------------------------------------------------------------
+    def reset(self) -> None:
+        """Robot in its "stand" keyframe, humans at their first frame."""
+        self._reset_to_stand(self.model, self.data)
+        self.pose_humans(0.0)
+        mujoco.mj_forward(self.model, self.data)
+
+    def pose_humans(self, t: float) -> None:
+        for fig in (self.actor, self.reactor):
+            if fig is not None:
+                fig.pose_at(self.data, t)
+
+    def set_robot_pose(self, joint_pos, root_pos=None, root_quat=None, ground: bool = False) -> None:
+        """Set joints (n,) rad in joint order and, for a free base, the root pose;
+        ``ground`` shifts the root vertically so the lowest robot geom touches z = 0.
+        Velocities are zeroed and the actuators' goals set to ``joint_pos``."""
+        r = self.robot
+        q = np.asarray(joint_pos, dtype=np.float64)
+        self.data.qpos[r.qpos_adr] = q
+        self.data.qvel[:] = 0.0
+        self.data.ctrl[r.actuator_ids] = q
+        if not r.fixed_base:
+            if root_pos is not None:
+                self.data.qpos[r.free_qpos:r.free_qpos + 3] = root_pos
+            if root_quat is not None:
+                self.data.qpos[r.free_qpos + 3:r.free_qpos + 7] = root_quat
+        mujoco.mj_forward(self.model, self.data)
+        if ground and not r.fixed_base:
+            self.data.qpos[r.free_qpos + 2] -= self.lowest_robot_point()
+            mujoco.mj_forward(self.model, self.data)
+
+    def lowest_robot_point(self) -> float:
+        """z (m) of the lowest point of any robot collision geom (exact for boxes,
+        capsules and spheres)."""
+        m, d = self.model, self.data
+        zmin = np.inf
+        for g in self.robot.geom_ids:
+            if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0:
+                continue
+            size, R, c = m.geom_size[g], d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g]
+            t = m.geom_type[g]
+            if t == mujoco.mjtGeom.mjGEOM_BOX:
+                z = c[2] - np.abs(R[2, :]) @ size
+            elif t == mujoco.mjtGeom.mjGEOM_CAPSULE:
+                z = c[2] - abs(R[2, 2]) * size[1] - size[0]
+            elif t == mujoco.mjtGeom.mjGEOM_SPHERE:
+                z = c[2] - size[0]
+            elif t == mujoco.mjtGeom.mjGEOM_CYLINDER:
+                z = c[2] - abs(R[2, 2]) * size[1] - np.hypot(R[2, 0], R[2, 1]) * size[0]
+            else:
+                z = c[2] - m.geom_rbound[g]
+            zmin = min(zmin, float(z))
+        return zmin
+
+
+def bundled_robot_names() -> list[str]:
+    return sorted(ROBOTS)
