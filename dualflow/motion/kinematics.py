@@ -81,6 +81,33 @@ def global_rotations(local_rot) -> np.ndarray:
     return G
 
 
+def fit_offsets(positions, local_rot) -> np.ndarray:
+    """Bone offsets (22, 3) for which FK of ``local_rot`` best reproduces ``positions``.
+
+    positions (T, 22, 3), local_rot (T, 22, 3, 3) (``[:, 0]`` the root's global
+    orientation), one frame. With the global rotations ``G`` of ``local_rot``
+    fixed, each bone is fitted on its own by least squares,
+
+        o_j = argmin_o sum_t |G_parent(j)[t] o - (p_j[t] - p_parent(j)[t])|^2
+            = mean_t G_parent(j)[t]^T (p_j[t] - p_parent(j)[t]),
+
+    i.e. the person's own rest skeleton (proportions *and* pelvis / chest shape)
+    in the rest pose's frame. ``o_0 = 0``. For a rigid skeleton whose rotations
+    came from :func:`inverse_kinematics`, FK with these offsets is exact.
+    """
+    positions = _check_positions(positions)
+    G = global_rotations(local_rot)
+    if G.shape[0] != positions.shape[0]:
+        raise DualFlowError(
+            f"local_rot: {G.shape[0]} frames but positions has {positions.shape[0]}; give one rotation set per frame"
+        )
+    bones = positions[:, 1:] - positions[:, _PARENTS[1:]]  # (T, 21, 3)
+    local_bones = np.einsum("tjba,tjb->tja", G[:, _PARENTS[1:]], bones)
+    off = np.zeros((N_JOINTS, 3))
+    off[1:] = local_bones.mean(axis=0)
+    return off
+
+
 def forward_kinematics(root_pos, local_rot, offsets=None) -> np.ndarray:
     """Joint positions from a root trajectory and local joint rotations.
 
@@ -142,29 +169,47 @@ def inverse_kinematics(positions, rest=REST_POSE) -> tuple[np.ndarray, np.ndarra
     error comes only from a pelvis/chest whose triangle shape differs from the
     rest pose's, and it is passed down the chain as a translation, not amplified.
     """
+    positions = _check_positions(positions)
+    off = rest_offsets(rest)
+    T = positions.shape[0]
+    identity = np.broadcast_to(np.eye(3), (T, 3, 3))
+    local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
+    G = local.copy()
+    for j in range(N_JOINTS):
+        parent_G = G[:, PARENTS[j]] if j else identity
+        if CHILDREN[j]:
+            local[:, j] = _joint_rotation(positions, j, parent_G, off)
+        G[:, j] = parent_G @ local[:, j]
+    return positions[:, 0].copy(), local
+
+
+def _check_positions(positions) -> np.ndarray:
     positions = np.asarray(positions, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[1:] != (N_JOINTS, 3):
         raise DualFlowError(f"positions: expected shape (T, {N_JOINTS}, 3), got {tuple(positions.shape)}")
     if not np.isfinite(positions).all():
         raise DualFlowError("positions: contain NaN or inf; clean or drop those frames before inverse kinematics")
-    off = rest_offsets(rest)
+    return positions
+
+
+def _joint_rotation(positions: np.ndarray, j: int, parent_G: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Local rotation (T, 3, 3) of joint j (with children) given its parent's global rotation."""
+    kids = list(CHILDREN[j])
+    posed = positions[:, kids] - positions[:, j : j + 1]  # (T, k, 3) world
+    posed_in_parent = np.einsum("tba,tkb->tka", parent_G, posed)  # G_parent^T d
+    rest_dirs = off[kids] / np.linalg.norm(off[kids], axis=-1, keepdims=True)
+    if len(kids) == 1:
+        return swing_rotation(rest_dirs[0], posed_in_parent[:, 0])
+    lengths = np.linalg.norm(posed_in_parent, axis=-1, keepdims=True)  # (T, k, 1)
+    return align_vector_sets(rest_dirs[None] * lengths, posed_in_parent)
+
+
+def root_orientation(positions, rest=REST_POSE) -> np.ndarray:
+    """Global pelvis rotation (T, 3, 3) from the pelvis and its children (hips, spine1).
+
+    The same least-squares step :func:`inverse_kinematics` uses for the root;
+    positions (T, 22, 3) and rest (22, 3) in one frame.
+    """
+    positions = _check_positions(positions)
     T = positions.shape[0]
-    local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
-    G = local.copy()
-    for j in range(N_JOINTS):
-        kids = CHILDREN[j]
-        if not kids:
-            G[:, j] = G[:, PARENTS[j]] if j else G[:, j]
-            continue
-        parent_G = G[:, PARENTS[j]] if j else np.broadcast_to(np.eye(3), (T, 3, 3))
-        posed = positions[:, list(kids)] - positions[:, j : j + 1]  # (T, k, 3) world
-        posed_in_parent = np.einsum("tba,tkb->tka", parent_G, posed)  # G_parent^T d
-        rest_dirs = off[list(kids)] / np.linalg.norm(off[list(kids)], axis=-1, keepdims=True)
-        if len(kids) == 1:
-            L = swing_rotation(rest_dirs[0], posed_in_parent[:, 0])
-        else:
-            lengths = np.linalg.norm(posed_in_parent, axis=-1, keepdims=True)  # (T, k, 1)
-            L = align_vector_sets(rest_dirs[None] * lengths, posed_in_parent)
-        local[:, j] = L
-        G[:, j] = parent_G @ L
-    return positions[:, 0].copy(), local
+    return _joint_rotation(positions, 0, np.broadcast_to(np.eye(3), (T, 3, 3)), rest_offsets(rest))
