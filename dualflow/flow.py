@@ -298,6 +298,8 @@ def generate(
     if tuple(noise.shape) != (batch, n_frames, width):
         raise DualFlowError(f"noise must be {(batch, n_frames, width)}, got {tuple(noise.shape)}")
     noise = noise.to(device, dtype)
+    if x_actor is not None:
+        x_actor = x_actor.to(device, dtype)
     velocity = guided_velocity(
         model, cond, mode=mode, x_actor=x_actor, cfg_scale=cfg_scale, look_ahead=look_ahead
     )
