@@ -292,8 +292,8 @@ class Checker:
             "tracking_max_rad": _per_joint(r.joint_names, np.nanmax(err, axis=0)),
             "torque_saturation_s": _per_joint(r.joint_names, sat.sum(axis=0) * dt),
             "max_abs_torque_nm": _per_joint(r.joint_names, np.nanmax(np.abs(tau[:K_run]), axis=0)),
-            "stall_torque_nm": r.stall_torque,
-            "no_load_speed_rad_s": r.no_load_speed,
+            "stall_torque_nm": _per_joint(r.joint_names, r.stall_torque),
+            "no_load_speed_rad_s": _per_joint(r.joint_names, r.no_load_speed),
             "speed_limit_hits": {j: int(v) for j, v in zip(r.joint_names, (cmd_speed > cfg.speed_tolerance * r.no_load_speed).sum(axis=0))},
             "max_command_speed_rad_s": _per_joint(r.joint_names, cmd_speed.max(axis=0)),
             "max_measured_speed_rad_s": _per_joint(r.joint_names, np.nanmax(np.abs(qd[:K_run]), axis=0)),
@@ -333,7 +333,7 @@ class Checker:
             if hit.any():
                 k, j = np.argwhere(hit)[0]
                 out.append(Failure("speed_limit", float(t[k]), f"{names[j]} commanded at {speed[k, j]:.2f} rad/s, "
-                                   f"above the servo's no-load speed {r.no_load_speed:.2f} rad/s"))
+                                   f"above the servo's no-load speed {r.no_load_speed[j]:.2f} rad/s"))
         if fall_k is not None:
             why = (f"root height {root_h[fall_k]:.3f} m (standing {stand_h:.3f} m)" if root_h[fall_k] < cfg.fall_height_frac * stand_h
                    else f"torso tilt {tilt[fall_k]:.0f} deg" if tilt[fall_k] > cfg.fall_tilt_deg
@@ -369,7 +369,7 @@ class Checker:
         firsts = [(k, j) for k, j in firsts if k is not None]
         if firsts:
             k, j = min(firsts)
-            out.append(Failure("torque_saturation", float(t[k]), f"{names[j]} at its stall torque {r.stall_torque:g} N m "
+            out.append(Failure("torque_saturation", float(t[k]), f"{names[j]} at its stall torque {r.stall_torque[j]:g} N m "
                                f"for over {cfg.saturation_window_s:g} s"))
         err = np.abs(q[:K_run] - q_cmd[:K_run])
         w = int(round(cfg.tracking_window_s / dt))

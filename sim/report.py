@@ -61,19 +61,19 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
     lines += ["## Summary", "",
               f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
               f"physics {m['physics_hz']:g} Hz",
-              f"- servo: stall torque {m['stall_torque_nm']:g} N m, no-load speed {m['no_load_speed_rad_s']:g} rad/s",
               f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
               f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')}",
               f"- min distance to the human: {_fmt(m['min_human_distance_m'], 1000, 'mm')}",
               f"- foot slip per foot: {', '.join(f'{s * 1000:.1f} mm' for s in m['foot_slip_m']) or 'n/a'}",
               f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; max tilt "
               f"{_fmt(m['max_tilt_deg'], 1, 'deg')}", ""]
-    lines += ["## Per joint", "", "| joint | rms err (rad) | max err (rad) | max torque (N m) | saturated (s) | "
-              "max cmd speed (rad/s) | speed hits |", "|---|---|---|---|---|---|---|"]
+    lines += ["## Per joint", "", "| joint | rms err (rad) | max err (rad) | max torque (N m) | stall (N m) | saturated (s) | "
+              "max cmd speed (rad/s) | no-load speed (rad/s) | speed hits |", "|---|---|---|---|---|---|---|---|---|"]
     for j in result.joint_names:
         lines.append(f"| {j} | {_num(m['tracking_rms_rad'][j])} | {_num(m['tracking_max_rad'][j])} | "
-                     f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['torque_saturation_s'][j])} | "
-                     f"{_num(m['max_command_speed_rad_s'][j])} | {m['speed_limit_hits'][j]} |")
+                     f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['stall_torque_nm'][j])} | {_num(m['torque_saturation_s'][j])} | "
+                     f"{_num(m['max_command_speed_rad_s'][j])} | {_num(m['no_load_speed_rad_s'][j])} | "
+                     f"{m['speed_limit_hits'][j]} |")
     lines.append("")
     for key, title in (("joints_png", "Joint angle, command and limits"), ("torque_png", "Servo torque"),
                        ("balance_png", "Balance")):
@@ -119,15 +119,16 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
     fig.supylabel("angle (rad)")
     paths["joints_png"] = _save(fig, out / f"{stem}_joints.png")
 
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.2 * rows), sharex=True, sharey=True, squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.2 * rows), sharex=True, squeeze=False)
     stall = result.metrics["stall_torque_nm"]
     for j, ax in enumerate(axes.flat):
         if j >= n:
             ax.axis("off")
             continue
         ax.plot(t, s["torque"][:, j], color="tab:green", lw=1)
-        ax.axhline(stall, color="tab:red", lw=0.8, ls=":")
-        ax.axhline(-stall, color="tab:red", lw=0.8, ls=":")
+        if stall[names[j]] is not None:
+            ax.axhline(stall[names[j]], color="tab:red", lw=0.8, ls=":")
+            ax.axhline(-stall[names[j]], color="tab:red", lw=0.8, ls=":")
         ax.set_title(names[j], fontsize=9)
         ax.tick_params(labelsize=7)
     fig.supxlabel("time (s)")

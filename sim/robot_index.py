@@ -20,8 +20,10 @@ class RobotIndex:
     """Indices and servo figures of one robot in a compiled model.
 
     Arrays are (n,) in actuator (= joint) order. ``free_qpos`` is the qpos address
-    of the root freejoint, or -1 for a fixed base. ``stall_torque`` N m and
-    ``no_load_speed`` rad/s come from the MJCF's ``<custom>`` numerics.
+    of the root freejoint, or -1 for a fixed base. ``stall_torque`` (n,) N m is each
+    actuator's force limit; ``no_load_speed`` (n,) rad/s comes from the MJCF's
+    ``<custom>`` numeric ``servo_no_load_speed`` (one value for all joints, or one
+    per actuator in actuator order).
     """
 
     joint_names: tuple[str, ...]
@@ -30,8 +32,8 @@ class RobotIndex:
     actuator_ids: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
-    stall_torque: float
-    no_load_speed: float
+    stall_torque: np.ndarray
+    no_load_speed: np.ndarray
     root_body: int
     free_qpos: int
     free_dof: int
@@ -75,8 +77,8 @@ class RobotIndex:
         bodies = [b for b in range(model.nbody) if _in_subtree(model, b, root)]
         geoms = np.flatnonzero(np.isin(model.geom_bodyid, bodies))
         feet = tuple(model.site(n).id for n in ("l_foot", "r_foot") if _has_site(model, n))
-        stall = _numeric(model, "servo_stall_torque", float(np.max(model.actuator_forcerange[acts, 1])))
-        speed = _numeric(model, "servo_no_load_speed", np.inf)
+        stall = np.where(model.actuator_forcelimited[acts].astype(bool), model.actuator_forcerange[acts, 1], np.inf)
+        speed = _numeric(model, "servo_no_load_speed", len(acts))
         return cls(tuple(names), np.array(qadr), np.array(dadr), np.array(acts), np.array(lo), np.array(hi),
                    stall, speed, root, free_q, free_d, np.array(bodies), geoms, feet)
 
@@ -103,8 +105,14 @@ def _has_site(model: mujoco.MjModel, name: str) -> bool:
         return False
 
 
-def _numeric(model: mujoco.MjModel, name: str, default: float) -> float:
+def _numeric(model: mujoco.MjModel, name: str, n: int) -> np.ndarray:
+    """(n,) values of a custom numeric holding 1 or n numbers; +inf when absent."""
     try:
-        return float(model.numeric(name).data[0])
+        data = np.asarray(model.numeric(name).data, dtype=np.float64)
     except KeyError:
-        return float(default)
+        return np.full(n, np.inf)
+    if data.size == 1:
+        return np.full(n, float(data[0]))
+    if data.size != n:
+        raise SimError(f"robot model: custom numeric {name!r} has {data.size} values; give 1 or {n} (one per actuator)")
+    return data.copy()

@@ -39,6 +39,11 @@ ROBOTS: dict[str, RobotInfo] = {
         "OP3-class 20-DOF Dynamixel humanoid (XM430-W350 servos), 0.51 m, 3.37 kg, free-standing",
         fixed_base=False,
     ),
+    "ub14": RobotInfo(
+        "ub14",
+        "fixed-base adult-sized upper-body partner, 14 DOF (waist yaw/pitch, neck, 5 per arm), XM540-W270 servos",
+        fixed_base=True,
+    ),
 }
 
 #: Retarget keypoint sites every bundled humanoid with legs has (op3). Fixed-base
