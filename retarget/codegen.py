@@ -1,0 +1,122 @@
+"""Compile CasADi functions and IPOPT problems to C once, and cache the shared objects on disk.
+
+Cache: ``$DUALFLOW_CACHE/retarget`` (default ``~/.cache/dualflow/retarget``); a file is
+named by the function's name and a key the caller derives from a hash of the robot
+model, its profile and the problem layout, so a changed MJCF or profile never reuses a
+stale binary. Files are written under a temporary name and renamed into place.
+
+Compiler: ``$CC`` or ``cc``/``gcc``/``clang`` on PATH, ``-O1 -shared -fPIC``. Without one
+(or when compilation fails) the caller gets the uncompiled CasADi object back, which
+evaluates in CasADi's virtual machine: same results, several times slower. The reason is
+returned so it can be shown to the user (``info``) and logged once as a warning.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import casadi as ca
+
+_warned: set[str] = set()
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("DUALFLOW_CACHE")
+    root = Path(base) if base else Path.home() / ".cache" / "dualflow"
+    d = root / "retarget"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def find_compiler() -> str | None:
+    cc = os.environ.get("CC")
+    if cc and shutil.which(cc):
+        return shutil.which(cc)
+    for name in ("cc", "gcc", "clang"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def _fallback(reason: str) -> str:
+    msg = f"retarget: {reason}; using CasADi's virtual machine instead of compiled code (same results, slower)"
+    if msg not in _warned:
+        _warned.add(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
+    return msg
+
+
+def _compile(c_file: Path, so_file: Path) -> str | None:
+    """Compile ``c_file`` to ``so_file`` atomically; returns an error text or None."""
+    cc = find_compiler()
+    if cc is None:
+        return "no C compiler found (set CC or install gcc)"
+    tmp = so_file.with_name(so_file.name + f".{os.getpid()}.partial")
+    cmd = [cc, "-O1", "-shared", "-fPIC", "-o", str(tmp), str(c_file), "-lm"]
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"compiling {c_file.name} failed ({exc})"
+    if res.returncode != 0:
+        tmp.unlink(missing_ok=True)
+        return f"compiling {c_file.name} failed: {res.stderr.strip().splitlines()[-1] if res.stderr.strip() else res.returncode}"
+    tmp.replace(so_file)
+    return None
+
+
+def compiled_function(fn: ca.Function, key: str, enable: bool = True) -> tuple[ca.Function, str]:
+    """``fn`` compiled to C and loaded back (cached by ``key``), or ``fn`` itself as fallback.
+
+    Returns (function, info) where info says which it is and why."""
+    if not enable:
+        return fn, "not compiled (disabled)"
+    name = fn.name()
+    so_file = cache_dir() / f"{name}_{key}.so"
+    if not so_file.exists():
+        with tempfile.TemporaryDirectory() as tmp:
+            c_name = f"{name}_{key}.c"
+            gen = ca.CodeGenerator(c_name)
+            gen.add(fn)
+            gen.generate(tmp + os.sep)
+            err = _compile(Path(tmp) / c_name, so_file)
+        if err:
+            return fn, _fallback(err)
+    try:
+        return ca.external(name, str(so_file)), f"compiled ({so_file})"
+    except RuntimeError as exc:
+        so_file.unlink(missing_ok=True)
+        return fn, _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
+
+
+def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = True) -> tuple[ca.Function, str]:
+    """An IPOPT solver whose problem functions (objective, constraints, their gradient,
+    Jacobian and Lagrangian Hessian) are compiled C loaded from the cache, or the plain
+    CasADi solver as fallback. Returns (solver, info)."""
+    if enable:
+        so_file = cache_dir() / f"{name}_{key}.so"
+        if not so_file.exists():
+            solver = ca.nlpsol(name, "ipopt", nlp, opts)
+            with tempfile.TemporaryDirectory() as tmp:
+                c_file = Path(tmp) / f"{name}_{key}.c"
+                cwd = os.getcwd()
+                try:
+                    os.chdir(tmp)
+                    solver.generate_dependencies(c_file.name)
+                finally:
+                    os.chdir(cwd)
+                err = _compile(c_file, so_file)
+            if err:
+                return solver, _fallback(err)
+        try:
+            return ca.nlpsol(name, "ipopt", str(so_file), opts), f"compiled ({so_file})"
+        except RuntimeError as exc:
+            so_file.unlink(missing_ok=True)
+            info = _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
+            return ca.nlpsol(name, "ipopt", nlp, opts), info
+    return ca.nlpsol(name, "ipopt", nlp, opts), "not compiled (disabled)"

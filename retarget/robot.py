@@ -1,0 +1,324 @@
+"""A robot ready for retargeting: its symbolic kinematics bound to its retarget profile.
+
+``load_robot("op3")`` resolves the robot name to ``sim/robots/op3/op3.xml`` (read as a
+file; ``sim``'s code is never imported) and ``retarget/profiles/op3.yaml``. An MJCF
+path works too, with a profile beside the name or given explicitly.
+
+Everything the solvers need per frame is a CasADi expression of the configuration
+vector ``x`` (see :mod:`retarget.kinematics`):
+
+- ``keypoints(x)``: (3, K) world positions of the profile's robot points;
+- ``sole(x)``: (3, 8) the four sole corners of the left then the right foot;
+- ``com(x)``: (3, 1) the centre of mass;
+- ``collision(x)``: (P, 1) squared distance between the axis segments of each capsule
+  pair minus (r_a + r_b + margin)², ≥ 0 when the pair is apart.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from dualflow.motion.skeleton import JOINT_NAMES, PARENTS, REST_POSE
+from retarget.errors import RetargetError
+from retarget.kinematics import Capsule, RobotKinematics, quat_to_mat
+from retarget.profile import RetargetProfile
+
+#: The project's root (…/retarget/robot.py → …).
+_ROOT = Path(__file__).resolve().parents[1]
+PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
+ROBOT_DIR = _ROOT / "sim" / "robots"
+
+
+def segment_distance_sq(p0, p1, q0, q1, eps: float = 1e-12):
+    """Squared distance between segments p0p1 and q0q1 ((3,1) CasADi or numpy).
+
+    With u = p1 − p0, v = q1 − q0, w = p0 − q0, a = u·u, b = u·v, c = v·v, d = u·w, e = v·w:
+    s = clamp((b e − c d) / (a c − b²)), t = clamp((b s + e) / c), s = clamp((b t − d) / a);
+    the closest points are p0 + s u and q0 + t v (Ericson, Real-Time Collision Detection §5.1.9).
+    """
+    lib = ca if isinstance(p0, (ca.SX, ca.MX)) else np
+    dot = (lambda x, y: ca.dot(x, y)) if lib is ca else (lambda x, y: float(np.dot(np.ravel(x), np.ravel(y))))
+    u, v, w = p1 - p0, q1 - q0, p0 - q0
+    a, b, c, d, e = dot(u, u) + eps, dot(u, v), dot(v, v) + eps, dot(u, w), dot(v, w)
+    den = a * c - b * b
+    clamp = (lambda x: ca.fmin(ca.fmax(x, 0), 1)) if lib is ca else (lambda x: min(max(x, 0.0), 1.0))
+    s = clamp((b * e - c * d) / (den + eps))
+    t = clamp((b * s + e) / c)
+    s = clamp((b * t - d) / a)
+    diff = w + s * u - t * v
+    return dot(diff, diff)
+
+
+@dataclass(frozen=True)
+class Foot:
+    """Sole corners (4, 3) and the same corners shrunk by the balance margin, body frame, m."""
+
+    side: str
+    body: int
+    corners: np.ndarray
+    normal_local: np.ndarray
+
+
+class RetargetRobot:
+    """Kinematics + profile, validated against each other, with the per-frame CasADi functions."""
+
+    def __init__(self, kin: RobotKinematics, profile: RetargetProfile, mjcf_text: str = ""):
+        self.kin = kin
+        self.profile = profile
+        self.name = profile.robot or kin.name
+        src = profile.source or "profile"
+        self._mjcf_hash = hashlib.sha256(mjcf_text.encode()).hexdigest() if mjcf_text else kin.fingerprint()
+
+        # keypoints
+        pts, self.keypoint_names, self.human_index, weights = [], [], [], []
+        for spec in profile.keypoints:
+            if spec.site is not None:
+                sid = kin.site_id(spec.site, f"{src}: field keypoints.{spec.human}.site")
+                body, local = int(kin.model.site_bodyid[sid]), np.array(kin.model.site_pos[sid])
+            else:
+                body = kin.body_id(spec.body, f"{src}: field keypoints.{spec.human}.body")
+                local = np.array(spec.offset)
+            pts.append((body, local))
+            self.keypoint_names.append(spec.human)
+            self.human_index.append(JOINT_NAMES.index(spec.human))
+            weights.append(spec.weight)
+        self.keypoint_points = pts
+        self.human_index = np.array(self.human_index)
+        self.keypoint_weights = np.array(weights, dtype=float)
+        self.n_keypoints = len(pts)
+        self.root_keypoint = self.keypoint_names.index(profile.root_joint)
+
+        # limits
+        lo, hi = kin.x_bounds()
+        for jname, (jlo, jhi) in profile.joint_limits.items():
+            i = kin.n_root + kin.joint_index(jname, f"{src}: field joint_limits.{jname}")
+            if jlo < lo[i] - 1e-9 or jhi > hi[i] + 1e-9:
+                raise RetargetError(
+                    f"{src}: field joint_limits.{jname}: [{jlo:.4f}, {jhi:.4f}] is wider than the MJCF range "
+                    f"[{lo[i]:.4f}, {hi[i]:.4f}]; profile limits may only narrow the MJCF's")
+            lo[i], hi[i] = jlo, jhi
+        unlimited = [h.name for h in kin.joints if not (np.isfinite(lo[kin.n_root + h.index]) and np.isfinite(hi[kin.n_root + h.index]))]
+        if unlimited:
+            raise RetargetError(f"{kin.source or kin.name}: joints {unlimited} have no range; give them range= in the MJCF or joint_limits in {src}")
+        self.x_lower, self.x_upper = lo, hi
+        vel = np.full(kin.n_joints, profile.velocity_default)
+        for jname, v in profile.velocity_limits.items():
+            vel[kin.joint_index(jname, f"{src}: field velocity_limits.{jname}")] = v
+        self.velocity_limits = vel
+
+        # stand pose
+        self.x_stand = self._stand_pose(src)
+
+        # feet
+        self.feet: list[Foot] = []
+        if profile.feet:
+            for side in ("left", "right"):
+                spec = profile.feet[side]
+                body = kin.body_id(spec.body, f"{src}: field feet.{side}.body")
+                if spec.geom is not None:
+                    gid = kin.geom_id(spec.geom, f"{src}: field feet.{side}.geom")
+                    if int(kin.model.geom_bodyid[gid]) != body:
+                        raise RetargetError(f"{src}: field feet.{side}.geom: geom {spec.geom!r} is not on body {spec.body!r}")
+                    corners, normal = self._sole_from_box(gid, src, side)
+                else:
+                    corners = np.array(spec.corners, dtype=float)
+                    n = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+                    normal = -n / np.linalg.norm(n)
+                self.feet.append(Foot(side, body, corners, normal))
+
+        # capsules
+        self.capsules: dict[str, Capsule] = {}
+        for name, spec in profile.capsules.items():
+            if spec.geom is not None:
+                gid = kin.geom_id(spec.geom, f"{src}: field capsules.{name}.geom")
+                self.capsules[name] = kin.capsule_from_geom(gid, name)
+            else:
+                body = kin.body_id(spec.body, f"{src}: field capsules.{name}.body")
+                self.capsules[name] = Capsule(name, body, np.array(spec.p0), np.array(spec.p1), float(spec.radius))
+        self.collision_pairs = tuple(profile.collision_pairs)
+
+        self._build_functions()
+        self._rest_scales()
+
+    # -- construction helpers --------------------------------------------------
+    def _stand_pose(self, src: str) -> np.ndarray:
+        import mujoco
+
+        m = self.kin.model
+        kid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, self.profile.stand_keyframe)
+        qpos = np.array(m.key_qpos[kid]) if kid >= 0 else np.array(m.qpos0)
+        x = self.kin.x_from_qpos(qpos)
+        return np.clip(x, self.x_lower, self.x_upper)
+
+    def _sole_from_box(self, gid: int, src: str, side: str):
+        import mujoco
+
+        m = self.kin.model
+        if int(m.geom_type[gid]) != int(mujoco.mjtGeom.mjGEOM_BOX):
+            raise RetargetError(f"{src}: field feet.{side}.geom: the sole geom must be a box; give corners: instead")
+        Rg = quat_to_mat(m.geom_quat[gid])
+        size = np.array(m.geom_size[gid])
+        # the sole is the box face whose outward normal points most downward in the stand pose
+        Rb = np.array(ca.Function("Rb", [self.kin.x_sym], [self.kin.body_frame(int(m.geom_bodyid[gid]))[1]])(self.x_stand))
+        best = None
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                n_local = sign * Rg[:, axis]
+                nz = float((Rb @ n_local)[2])
+                if best is None or nz < best[0]:
+                    best = (nz, axis, sign, n_local)
+        _, axis, sign, n_local = best
+        others = [a for a in range(3) if a != axis]
+        c = np.array(m.geom_pos[gid]) + sign * size[axis] * Rg[:, axis]
+        corners = [c + s1 * size[others[0]] * Rg[:, others[0]] + s2 * size[others[1]] * Rg[:, others[1]]
+                   for s1, s2 in ((1, 1), (1, -1), (-1, -1), (-1, 1))]
+        return np.array(corners), n_local
+
+    def _build_functions(self) -> None:
+        kin, x = self.kin, self.kin.x_sym
+        kp = ca.horzcat(*[kin.point(b, local) for b, local in self.keypoint_points])
+        self.keypoints_expr = kp
+        sole = [kin.point(f.body, c) for f in self.feet for c in f.corners]
+        self.sole_expr = ca.horzcat(*sole) if sole else ca.SX.zeros(3, 0)
+        self.com_expr = kin.com()
+        coll = []
+        for a, b in self.collision_pairs:
+            ca_, cb = self.capsules[a], self.capsules[b]
+            p0, p1 = kin.capsule_segment(ca_)
+            q0, q1 = kin.capsule_segment(cb)
+            r = ca_.radius + cb.radius + self.profile.collision_margin
+            coll.append(segment_distance_sq(p0, p1, q0, q1) - r * r)
+        self.collision_expr = ca.vertcat(*coll) if coll else ca.SX.zeros(0, 1)
+        self.f_keypoints = ca.Function("keypoints", [x], [kp])
+        self.f_all = ca.Function("robot_points", [x], [kp, self.sole_expr, self.com_expr, self.collision_expr],
+                                 ["x"], ["keypoints", "sole", "com", "collision"])
+
+    def _rest_scales(self) -> None:
+        """Per-keypoint bone scale s_k = |r_k − r_parent(k)| / |h_k − h_parent(k)| from the robot at
+        q = 0 (root at the origin, upright) and the SMPL REST_POSE; parent(k) is the nearest human
+        ancestor that is also a keypoint. The root scale is the ratio of standing root heights."""
+        src = self.profile.source or "profile"
+        x0 = np.zeros(self.kin.nx)
+        for h in self.kin.joints:
+            x0[self.kin.n_root + h.index] = h.qpos0
+        rest_kp, rest_sole, _, _ = (np.array(v) for v in self.f_all(x0))
+        self.robot_rest_keypoints = rest_kp.T
+        parent = []
+        for k, j in enumerate(self.human_index):
+            a = PARENTS[j]
+            while a >= 0 and a not in self.human_index:
+                a = PARENTS[a]
+            if k == self.root_keypoint:
+                parent.append(-1)
+                continue
+            if a < 0:
+                raise RetargetError(f"{src}: field root: keypoint {self.keypoint_names[k]!r} is not below the root joint "
+                                    f"{self.profile.root_joint!r} in the SMPL tree; use pelvis as the root")
+            parent.append(int(np.flatnonzero(self.human_index == a)[0]))
+        self.keypoint_parent = np.array(parent)
+        scales = np.ones(self.n_keypoints)
+        for k, p in enumerate(parent):
+            if p < 0:
+                continue
+            name = self.keypoint_names[k]
+            if name in self.profile.scale_overrides:
+                scales[k] = self.profile.scale_overrides[name]
+                continue
+            hl = np.linalg.norm(REST_POSE[self.human_index[k]] - REST_POSE[self.human_index[p]])
+            rl = np.linalg.norm(rest_kp[:, k] - rest_kp[:, p])
+            if hl < 1e-6:
+                raise RetargetError(f"{src}: field keypoints.{name}: the human bone to it has zero length; map another joint")
+            scales[k] = rl / hl
+        self.bone_scales = scales
+        if self.profile.root_scale is not None:
+            self.root_scale = self.profile.root_scale
+        else:
+            ground = rest_sole[2].min() if rest_sole.size else rest_kp[2].min()
+            robot_h = rest_kp[2, self.root_keypoint] - ground
+            human_h = REST_POSE[self.human_index[self.root_keypoint], 2]
+            self.root_scale = float(robot_h / human_h)
+
+    # -- facts ------------------------------------------------------------------
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.kin.joint_names
+
+    @property
+    def nx(self) -> int:
+        return self.kin.nx
+
+    @property
+    def n_root(self) -> int:
+        return self.kin.n_root
+
+    @property
+    def floating(self) -> bool:
+        return self.kin.floating
+
+    @property
+    def has_feet(self) -> bool:
+        return bool(self.feet)
+
+    def fingerprint(self) -> str:
+        """Hash of model + profile + base mode, the key of compiled-code caches."""
+        h = hashlib.sha256()
+        h.update(self._mjcf_hash.encode())
+        h.update(self.kin.fingerprint().encode())
+        h.update(self.profile.fingerprint().encode())
+        return h.hexdigest()[:16]
+
+    def evaluate(self, X: np.ndarray) -> dict:
+        """Numeric keypoints (T, K, 3), sole (T, 8, 3), com (T, 3), collision (T, P) for X (T, nx)."""
+        X = np.atleast_2d(X)
+        f = self.f_all.map(X.shape[0])
+        kp, sole, com, coll = f(X.T)
+        kp = np.array(kp).reshape(3, X.shape[0], -1).transpose(1, 2, 0)
+        sole = np.array(sole).reshape(3, X.shape[0], -1).transpose(1, 2, 0)
+        return {"keypoints": kp, "sole": sole, "com": np.array(com).T, "collision": np.array(coll).T}
+
+
+def resolve_paths(robot: str | Path, profile: str | Path | None = None) -> tuple[Path, Path]:
+    """(MJCF path, profile path) for a robot name or an MJCF path."""
+    text = str(robot)
+    if text.endswith(".xml") or "/" in text or Path(text).suffix:
+        mjcf = Path(text)
+        default_profile = PROFILE_DIR / f"{mjcf.stem}.yaml"
+    else:
+        mjcf = ROBOT_DIR / text / f"{text}.xml"
+        default_profile = PROFILE_DIR / f"{text}.yaml"
+        if not mjcf.is_file():
+            known = sorted(p.name for p in ROBOT_DIR.iterdir() if (p / f"{p.name}.xml").is_file()) if ROBOT_DIR.is_dir() else []
+            raise RetargetError(f"robot {text!r}: no MJCF at {mjcf}; known robots: {', '.join(known) or 'none'}; or give an MJCF path")
+    prof = Path(profile) if profile is not None else default_profile
+    if not prof.is_file():
+        raise RetargetError(f"robot {text}: no retarget profile at {prof}; write one (see retarget/profiles/op3.yaml) and pass it with --profile")
+    return mjcf, prof
+
+
+def load_robot(robot: str | Path, profile: str | Path | RetargetProfile | None = None, fixed_base: bool = False) -> RetargetRobot:
+    """A :class:`RetargetRobot` from a robot name (``"op3"``) or an MJCF path, and its profile."""
+    if isinstance(profile, RetargetProfile):
+        mjcf, _ = resolve_paths(robot, profile.source or None) if profile.source else (Path(robot), None)
+        prof = profile
+    else:
+        mjcf, prof_path = resolve_paths(robot, profile)
+        prof = RetargetProfile.load(prof_path)
+    kin = RobotKinematics.from_xml(mjcf, name=prof.robot or Path(mjcf).stem, fixed_base=fixed_base)
+    return RetargetRobot(kin, prof, mjcf_text=Path(mjcf).read_text())
+
+
+def robot_from_xml_string(xml: str, profile: RetargetProfile, fixed_base: bool = False) -> RetargetRobot:
+    """A :class:`RetargetRobot` from MJCF text (tests, generated models)."""
+    import mujoco
+
+    try:
+        model = mujoco.MjModel.from_xml_string(xml)
+    except ValueError as exc:
+        raise RetargetError(f"MJCF text: MuJoCo cannot load it ({str(exc).splitlines()[0]})") from None
+    kin = RobotKinematics(model, profile.robot or "robot", fixed_base=fixed_base, source="MJCF text")
+    return RetargetRobot(kin, profile, mjcf_text=xml)
