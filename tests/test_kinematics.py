@@ -13,10 +13,12 @@ from dualflow.errors import DualFlowError
 from dualflow.motion import REST_POSE, bone_lengths, joint_index
 from dualflow.motion.kinematics import (
     LEAF_JOINTS,
+    fit_offsets,
     forward_kinematics,
     global_rotations,
     inverse_kinematics,
     rest_offsets,
+    root_orientation,
     scaled_offsets,
 )
 from dualflow.motion.rotations import (
@@ -218,3 +220,17 @@ def test_ik_fk_with_measured_lengths_on_other_proportions():
     root, rots_ik = inverse_kinematics(pos)
     np.testing.assert_allclose(forward_kinematics(root, rots_ik, scaled_offsets(bone_lengths(pos))), pos, atol=1e-9)
     assert rest_offsets().shape == (22, 3)
+
+
+def test_fit_offsets_recovers_a_rigid_skeleton_of_another_shape():
+    T = 12
+    rots = random_rotations(T * 22, 8).reshape(T, 22, 3, 3)
+    off = rest_offsets() + np.random.default_rng(8).normal(0.0, 0.02, size=(22, 3))
+    off[0] = 0.0
+    pos = forward_kinematics(np.zeros((T, 3)), rots, off)
+    root, rots_ik = inverse_kinematics(pos)
+    fitted = fit_offsets(pos, rots_ik)
+    np.testing.assert_allclose(forward_kinematics(root, rots_ik, fitted), pos, atol=1e-9)
+    # with the rest pose's own offsets the perturbed pelvis/chest shape is not reproduced
+    assert np.abs(forward_kinematics(root, rots_ik, scaled_offsets(bone_lengths(pos[0]))) - pos).max() > 1e-3
+    np.testing.assert_allclose(root_orientation(pos), rots_ik[:, 0], atol=1e-12)
