@@ -211,6 +211,9 @@ def encode_person(motion: Motion, canonical: CanonicalFrame | None = None) -> np
     ``canonical``: the frame to express the motion in; default
     :func:`canonical_frame` of this motion. Pass another person's frame to place
     this person relative to them (what :func:`encode_pair` does).
+    ``motion.contacts`` is not used: contacts are recomputed by
+    :func:`foot_contacts` in the canonical frame, as InterGen does. The contact
+    thresholds are per frame, so give motion at the model's rate (30 fps).
     """
     motion = _motion(motion, "motion")
     if motion.n_frames < 2:
