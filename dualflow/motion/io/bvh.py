@@ -390,7 +390,7 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
     if not finite.all():
         k, c = np.argwhere(~finite)[0]
         raise DualFlowError(
-            f"{source}, line {row_lines[k]}: channel {c + 1} is {motion[k, c]!r}; "
+            f"{source}, line {row_lines[k]}: channel {c + 1} is {float(motion[k, c])}; "
             "motion values must be finite numbers (drop or repair that frame)"
         )
     return BvhClip(tuple(joints), frame_time, motion, source, row_lines[0])
@@ -432,10 +432,14 @@ def bvh_text(clip: BvhClip, precision: int = 6) -> str:
     roots = []
     for j, joint in enumerate(clip.joints):
         (children[joint.parent] if joint.parent >= 0 else roots).append(j)
+    # the file lists joints depth-first; motion columns follow that order
+    starts = clip.channel_offsets()
+    columns: list[int] = []
     out = ["HIERARCHY"]
 
     def emit(j: int, depth: int) -> None:
         joint = clip.joints[j]
+        columns.extend(range(starts[j], starts[j] + len(joint.channels)))
         pad = "\t" * depth
         if joint.is_end_site:
             out.extend([f"{pad}End Site", f"{pad}{{", f"{pad}\tOFFSET {_fmt(joint.offset, precision)}", f"{pad}}}"])
@@ -454,7 +458,7 @@ def bvh_text(clip: BvhClip, precision: int = 6) -> str:
     out.append("MOTION")
     out.append(f"Frames: {clip.n_frames}")
     out.append(f"Frame Time: {clip.frame_time:.8f}")
-    out.extend(_fmt(row, precision) for row in clip.motion)
+    out.extend(_fmt(row, precision) for row in clip.motion[:, columns])
     return "\n".join(out) + "\n"
 
 
