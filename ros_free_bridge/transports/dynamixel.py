@@ -1,0 +1,778 @@
+"""Dynamixel transport over the real ``dynamixel_sdk`` (protocol 2.0 and 1.0).
+
+Per control tick (protocol 2.0):
+
+- ``write_goal``: one GroupSyncWrite of Goal Position to every servo (broadcast, no reply);
+- ``read_state``: one GroupFastSyncRead of Present Position (falls back to GroupSyncRead
+  when the servos do not answer the fast form), then the *slow* fields of
+  ``slow_per_cycle`` servos, round robin: one individual READ of the contiguous block
+  Present Current .. Present Temperature. Individual reads, because the SDK's group reads
+  drop each servo's status error byte and with it the hardware-alert bit (0x80); when
+  that bit is set the transport reads Hardware Error Status (register 70), decodes it and
+  recovers by policy (:class:`RecoveryPolicy`).
+
+Protocol 1.0 buses (AX/MX) have no sync read: positions are read servo by servo, and the
+status error byte itself carries the hardware bits.
+
+Units: joint side rad, rad/s, N·m (current × stall torque / stall current, a linear
+torque-constant estimate), °C, V. Mapping, per servo (``firmware_cfg.config``)::
+
+    servo_rad = direction · joint_rad + zero_offset
+    tick      = center_tick + servo_rad · ticks_per_turn / 2π      (ServoModel.rad_to_ticks)
+
+Port handling: the SDK's ``PortHandler`` is subclassed (port layer only; packet code is
+untouched) to open the device with ``exclusive=True`` (pyserial ``flock``) plus
+``TIOCEXCL``, and to size reply timeouts from the real latency instead of the SDK's fixed
+16 ms. On Linux the FTDI latency timer is set to 1 ms through
+``/sys/bus/usb-serial/devices/<tty>/latency_timer`` when writable (needs root or a udev
+rule, e.g. ``ACTION=="add", SUBSYSTEM=="usb-serial", DRIVERS=="ftdi_sio",
+ATTR{latency_timer}="1"``); a pty or a CDC-ACM device has no such file and is skipped.
+Every SDK call resets the SDK's ``is_using`` flag in ``finally``, and the port is closed
+in ``finally`` on any failure, so it is never left "in use".
+
+Safety: torque is switched on only after Goal Position = Present Position; ``close``,
+errors and interpreter exit apply the stop policy ('hold': keep the present position
+with torque on; 'limp': torque off). Every failure is a :class:`BridgeError` naming the
+servo ID, its joint and what happened.
+"""
+
+from __future__ import annotations
+
+import atexit
+import fcntl
+import math
+import os
+import termios
+import time
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import dynamixel_sdk as sdk
+import numpy as np
+
+from firmware_cfg.config import BusConfig, ServoConfig
+from firmware_cfg.servo_models import Register, ServoModel, load_servo_model
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.transports.base import STOP_POLICIES, JointState
+
+#: Hardware Error Status (register 70, X series) bits → names.
+HW_ERROR_BITS = {
+    0x01: "input voltage",
+    0x04: "overheating",
+    0x08: "motor encoder",
+    0x10: "electrical shock",
+    0x20: "overload",
+}
+#: Protocol 1.0 status error byte bits → names.
+P1_ERROR_BITS = {0x01: "input voltage", 0x02: "angle limit", 0x04: "overheating", 0x08: "range",
+                 0x10: "checksum", 0x20: "overload", 0x40: "instruction"}
+P1_HARDWARE_MASK = 0x01 | 0x04 | 0x20
+ALERT_BIT = 0x80
+#: Profile Acceleration unit of X-series servos: 214.577 rev/min² in rad/s².
+ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0
+SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
+
+
+def decode_hardware_error(bits: int, protocol: int = 2) -> list[str]:
+    """Hardware Error Status bits (protocol 2.0) or status error bits (1.0) → names."""
+    table = HW_ERROR_BITS if protocol == 2 else P1_ERROR_BITS
+    names = [name for bit, name in table.items() if bits & bit]
+    unknown = bits & ~sum(table)
+    if unknown:
+        names.append(f"unknown bits 0x{unknown:02X}")
+    return names
+
+
+@dataclass(frozen=True)
+class RecoveryPolicy:
+    """What to do on a hardware alert. ``reboot_on``: the decoded error names for which
+    the servo is rebooted automatically (then settings re-applied, goal = present, torque
+    back on if it was on); at most ``max_reboots`` per servo per session. Overheating is
+    not in the default set: a hot servo must cool down, not restart."""
+
+    reboot: bool = True
+    reboot_on: frozenset[str] = frozenset({"overload", "electrical shock", "input voltage"})
+    max_reboots: int = 3
+    reboot_wait_s: float = 0.6
+
+
+def set_latency_timer(port_name: str, ms: int = 1) -> tuple[int | None, str]:
+    """Lower the USB-serial (FTDI) latency timer of ``port_name`` to ``ms``.
+
+    Returns (the timer now in force in ms, or None when the device has none, a note)."""
+    tty = Path(os.path.realpath(port_name)).name
+    path = SYSFS_USB_SERIAL / tty / "latency_timer"
+    if not path.exists():
+        return None, f"{port_name}: no USB-serial latency timer (a pty or CDC-ACM device); nothing to set"
+    try:
+        current = int(path.read_text().strip())
+    except (OSError, ValueError) as exc:
+        return None, f"{path}: unreadable ({exc})"
+    if current <= ms:
+        return current, f"{path}: latency timer already {current} ms"
+    try:
+        path.write_text(str(ms))
+        return ms, f"{path}: latency timer {current} → {ms} ms"
+    except OSError as exc:
+        return current, (f"{path}: latency timer stays {current} ms ({exc.strerror}); each reply may wait up to "
+                         f"{current} ms. Fix: a udev rule setting ATTR{{latency_timer}}=\"1\", or run once as root")
+
+
+class ExclusivePortHandler(sdk.PortHandler):
+    """The SDK's port with exclusive access and realistic reply timeouts.
+
+    Only the port layer is changed: ``setupPort`` opens with ``exclusive=True`` and sets
+    TIOCEXCL; ``setPacketTimeout`` uses ``latency_ms`` (the latency timer in force) instead
+    of the SDK's fixed 16 ms: timeout = bytes · 10 bits / baud + 2 · latency + margin."""
+
+    def __init__(self, port_name: str, latency_ms: float = 16.0, margin_ms: float = 3.0) -> None:
+        super().__init__(port_name)
+        self.latency_ms = latency_ms
+        self.margin_ms = margin_ms
+
+    def setupPort(self, cflag_baud):  # noqa: N802 - SDK naming
+        import serial
+
+        if self.is_open:
+            self.closePort()
+        self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS,
+                                 timeout=0, exclusive=True)
+        try:
+            fcntl.ioctl(self.ser.fileno(), termios.TIOCEXCL)
+        except OSError:
+            pass  # not a tty that supports it; the flock still guards
+        self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
+
+    def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK naming
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_ms + self.margin_ms
+
+
+def servo_register_settings(servo: ServoConfig, model: ServoModel) -> dict[str, int]:
+    """The control-table values a servo's config implies, register name → raw value.
+
+    EEPROM: return delay, temperature and voltage limits, position limits (the joint
+    limits mapped to ticks, rounded inwards). RAM: status return level (EEPROM on 1.0),
+    PID gains, profile velocity/acceleration, bus watchdog. Registers a model lacks are
+    skipped."""
+    out: dict[str, int] = {}
+
+    def put(name: str, value: int | None) -> None:
+        if value is not None and model.has(name):
+            out[name] = int(value)
+
+    put("return_delay_time", None if servo.return_delay_us is None else round(servo.return_delay_us / model.return_delay_us))
+    put("temperature_limit", servo.temperature_limit_c)
+    if servo.voltage_limits_v is not None:
+        put("min_voltage_limit", math.ceil(servo.voltage_limits_v[0] / model.voltage_v - 1e-9))
+        put("max_voltage_limit", math.floor(servo.voltage_limits_v[1] / model.voltage_v + 1e-9))
+    lo_t, hi_t = servo_tick_limits(servo, model)
+    if model.has("min_position_limit"):
+        put("min_position_limit", lo_t)
+        put("max_position_limit", hi_t)
+    elif model.has("cw_angle_limit"):
+        put("cw_angle_limit", lo_t)
+        put("ccw_angle_limit", hi_t)
+    put("status_return_level", servo.status_return_level)
+    if servo.pid is not None:
+        if model.has("position_p_gain"):
+            put("position_p_gain", servo.pid.p)
+            put("position_i_gain", servo.pid.i)
+            put("position_d_gain", servo.pid.d)
+        else:
+            for name, v in (("p_gain", servo.pid.p), ("i_gain", servo.pid.i), ("d_gain", servo.pid.d)):
+                if model.has(name):
+                    rng = model.register(name).range
+                    put(name, min(v, rng[1]) if rng else v)
+    if servo.profile_velocity is not None and model.has("profile_velocity"):
+        put("profile_velocity", model.rad_s_to_velocity(servo.profile_velocity))
+    if servo.profile_acceleration is not None and model.has("profile_acceleration"):
+        put("profile_acceleration", round(servo.profile_acceleration / ACCEL_UNIT_RAD_S2))
+    if servo.bus_watchdog_ms is not None:
+        put("bus_watchdog", servo.bus_watchdog_ms // 20)
+    return out
+
+
+def servo_tick_limits(servo: ServoConfig, model: ServoModel) -> tuple[int, int]:
+    """The joint limits in the servo's ticks, rounded inwards (never wider than the config)."""
+    lo, hi = servo.servo_limits()
+    c, k = model.position.center_tick, model.ticks_per_rad
+    return (max(model.position.min_tick, math.ceil(c + lo * k - 1e-6)),
+            min(model.position.max_tick, math.floor(c + hi * k + 1e-6)))
+
+
+class DynamixelBus:
+    """One open bus: the SDK port + packet handler with bounded retries and errors that
+    name the servo. Used by the transport and by the ``servo`` commands.
+
+    ``names``: servo ID → a label for messages (the joint name)."""
+
+    def __init__(self, port: str, baud: int, protocol: float = 2.0, *, retries: int = 2,
+                 latency_ms: float = 16.0, names: dict[int, str] | None = None) -> None:
+        self.port_name = port
+        self.baud = baud
+        self.protocol = float(protocol)
+        self.retries = retries
+        self.names = dict(names or {})
+        self.latency_note = ""
+        self._latency_ms = latency_ms
+        self.port: ExclusivePortHandler | None = None
+        self.ph = sdk.PacketHandler(self.protocol)
+
+    # ------------------------------------------------------------------ life cycle
+    def open(self) -> None:
+        if self.port is not None:
+            return
+        timer, self.latency_note = set_latency_timer(self.port_name, 1)
+        port = ExclusivePortHandler(self.port_name, latency_ms=timer if timer is not None else self._latency_ms)
+        if port.getCFlagBaud(self.baud) <= 0:
+            raise BridgeError(f"Dynamixel bus {self.port_name}: baud {self.baud} is not one the SDK can set")
+        port.baudrate = self.baud
+        try:
+            port.setBaudRate(self.baud)
+        except Exception as exc:  # serial.SerialException, OSError
+            try:
+                if port.ser is not None:
+                    port.ser.close()
+            except Exception:
+                pass
+            text = str(exc)
+            hint = ("another program holds the port; close it (e.g. a second bridge, Dynamixel Wizard)"
+                    if "lock" in text.lower() or "busy" in text.lower() or "resource temporarily" in text.lower()
+                    else "check the cable and the port name (ls /dev/ttyUSB* /dev/ttyACM*)")
+            raise BridgeError(f"Dynamixel bus {self.port_name}: cannot open ({text}); {hint}") from None
+        self.port = port
+
+    def close(self) -> None:
+        port, self.port = self.port, None
+        if port is not None:
+            try:
+                port.is_using = False
+                if port.ser is not None:
+                    port.closePort()
+            except Exception:
+                pass
+
+    def __enter__(self) -> "DynamixelBus":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ primitives
+    def label(self, sid: int) -> str:
+        name = self.names.get(sid)
+        return f"servo ID {sid}" + (f" ({name})" if name else "")
+
+    def call(self, fn, *args):
+        """Run one SDK call; the port's ``is_using`` flag is cleared whatever happens and
+        OS-level failures (the port vanished) become BridgeError."""
+        if self.port is None:
+            raise BridgeError(f"Dynamixel bus {self.port_name}: not open; call open() first")
+        try:
+            return fn(self.port, *args)
+        except BridgeError:
+            raise
+        except Exception as exc:  # serial.SerialException, OSError, TypeError from a dead fd
+            raise BridgeError(f"Dynamixel bus {self.port_name}: port failed during {getattr(fn, '__name__', 'a call')} "
+                              f"({type(exc).__name__}: {exc}); the adapter was unplugged or lost power") from None
+        finally:
+            if self.port is not None:
+                self.port.is_using = False
+
+    def _comm(self, result: int) -> str:
+        return self.ph.getTxRxResult(result).replace("[TxRxResult] ", "").rstrip("!")
+
+    def _error_text(self, error: int) -> str:
+        if self.protocol == 2.0:
+            return self.ph.getRxPacketError(error & ~ALERT_BIT).replace("[RxPacketError] ", "").rstrip("!")
+        return ", ".join(decode_hardware_error(error, 1))
+
+    def ping(self, sid: int, retries: int | None = None) -> int:
+        """Model number of ``sid``; BridgeError after the retries."""
+        last = 0
+        for _ in range((self.retries if retries is None else retries) + 1):
+            model, result, error = self.call(self.ph.ping, sid)
+            if result == sdk.COMM_SUCCESS:
+                return model
+            last = result
+        raise BridgeError(f"{self.label(sid)} on {self.port_name}: no answer to PING after "
+                          f"{(self.retries if retries is None else retries) + 1} tries ({self._comm(last)}); "
+                          f"check its power, ID and baud {self.baud}")
+
+    def read_raw(self, sid: int, address: int, length: int, what: str = "") -> tuple[bytes, int]:
+        """Bytes [address, address+length) of ``sid`` and the status error byte."""
+        last = 0
+        for _ in range(self.retries + 1):
+            data, result, error = self.call(self.ph.readTxRx, sid, address, length)
+            if result == sdk.COMM_SUCCESS and len(data) == length:
+                if self.protocol == 2.0 and error & 0x7F:
+                    raise BridgeError(f"{self.label(sid)}: READ {what or address} refused: {self._error_text(error)}")
+                return bytes(data), error
+            last = result
+        raise BridgeError(f"{self.label(sid)} on {self.port_name}: READ {what or f'address {address}'} failed after "
+                          f"{self.retries + 1} tries ({self._comm(last)})")
+
+    def read(self, sid: int, reg: Register) -> tuple[int, int]:
+        """(value, status error byte) of one register."""
+        data, error = self.read_raw(sid, reg.address, reg.size, reg.name)
+        return reg.decode(data), error
+
+    def write(self, sid: int, reg: Register, value: int) -> int:
+        """Write one register, waiting for the status; returns the status error byte.
+        A refused write (range, access, EEPROM locked by torque) is a BridgeError."""
+        data = list(reg.encode(value))
+        last = 0
+        for _ in range(self.retries + 1):
+            result, error = self.call(self.ph.writeTxRx, sid, reg.address, reg.size, data)
+            if result == sdk.COMM_SUCCESS:
+                refused = (error & 0x7F) if self.protocol == 2.0 else (error & ~P1_HARDWARE_MASK & 0x7F)
+                if refused:
+                    hint = " (EEPROM is locked while torque is on; switch torque off first)" if reg.eeprom else ""
+                    raise BridgeError(f"{self.label(sid)}: WRITE {reg.name}={value} refused: {self._error_text(error)}{hint}")
+                return error
+            last = result
+        raise BridgeError(f"{self.label(sid)} on {self.port_name}: WRITE {reg.name}={value} failed after "
+                          f"{self.retries + 1} tries ({self._comm(last)})")
+
+    def reboot(self, sid: int) -> None:
+        if self.protocol != 2.0:
+            raise BridgeError(f"{self.label(sid)}: REBOOT exists on protocol 2.0 only; power-cycle the servo")
+        last = 0
+        for _ in range(self.retries + 1):
+            result, error = self.call(self.ph.reboot, sid)
+            if result == sdk.COMM_SUCCESS:
+                return
+            last = result
+        raise BridgeError(f"{self.label(sid)}: REBOOT failed after {self.retries + 1} tries ({self._comm(last)})")
+
+    def sync_write(self, reg: Register, values: dict[int, int]) -> None:
+        """One GroupSyncWrite of ``reg`` (broadcast: no reply to wait for)."""
+        group = sdk.GroupSyncWrite(self.port, self.ph, reg.address, reg.size)
+        for sid, v in values.items():
+            group.addParam(sid, list(reg.encode(v)))
+        result = self.call(lambda port: group.txPacket())
+        if result != sdk.COMM_SUCCESS:
+            raise BridgeError(f"Dynamixel bus {self.port_name}: SYNC_WRITE {reg.name} failed ({self._comm(result)})")
+
+
+@dataclass
+class _Servo:
+    cfg: ServoConfig
+    model: ServoModel
+    goal: Register
+    present: Register
+    torque: Register
+    settings: dict[str, int]
+    reboots: int = 0
+
+
+@dataclass
+class DynamixelStats:
+    """Counters for diagnostics: cycles, retries, fallbacks and recoveries."""
+
+    cycles: int = 0
+    read_retries: int = 0
+    alerts: int = 0
+    reboots: int = 0
+    fast_sync_read: bool = True
+    notes: list[str] = field(default_factory=list)
+
+
+class DynamixelTransport:
+    """:class:`~ros_free_bridge.transports.base.Transport` for one Dynamixel bus of a
+    robot's hardware config. Use as a context manager or open()/close()."""
+
+    def __init__(self, bus: BusConfig, *, port: str | None = None, joint_names: tuple[str, ...] | None = None,
+                 stop_policy: str = "hold", recovery: RecoveryPolicy | None = None, retries: int = 2,
+                 slow_per_cycle: int = 1, apply_settings: bool = True, latency_ms: float = 16.0) -> None:
+        if bus.protocol not in ("1.0", "2.0"):
+            raise BridgeError(f"bus {bus.name!r} uses {bus.protocol}; the Dynamixel transport needs protocol 1.0 or 2.0")
+        if stop_policy not in STOP_POLICIES:
+            raise BridgeError(f"stop_policy {stop_policy!r} is not one of {STOP_POLICIES}")
+        by_joint = {s.joint: s for s in bus.servos}
+        names = tuple(joint_names) if joint_names is not None else tuple(s.joint for s in bus.servos)
+        missing = [j for j in names if j not in by_joint]
+        if missing:
+            raise BridgeError(f"Dynamixel bus {bus.name!r}: joints {missing} have no servo in the hardware config")
+        self.joint_names = names
+        self.bus_cfg = bus
+        self.stop_policy = stop_policy
+        self.recovery = recovery or RecoveryPolicy()
+        self.slow_per_cycle = max(0, int(slow_per_cycle))
+        self.apply_settings = apply_settings
+        self.stats = DynamixelStats()
+        self.servos: list[_Servo] = []
+        for j in names:
+            s = by_joint[j]
+            m = load_servo_model(s.model)
+            self.servos.append(_Servo(s, m, m.register("goal_position"), m.register("present_position"),
+                                      m.register("torque_enable"), servo_register_settings(s, m)))
+        first = self.servos[0]
+        for sv in self.servos[1:]:
+            if (sv.goal.address, sv.goal.size, sv.present.address, sv.present.size) != \
+               (first.goal.address, first.goal.size, first.present.address, first.present.size):
+                raise BridgeError(f"Dynamixel bus {bus.name!r}: {sv.model.name} and {first.model.name} place Goal/Present "
+                                  "Position at different addresses; put them on separate buses")
+        self.bus = DynamixelBus(port or bus.port, bus.baud, bus.protocol_version, retries=retries,
+                                latency_ms=latency_ms, names={s.cfg.id: s.cfg.joint for s in self.servos})
+        self._ids = [s.cfg.id for s in self.servos]
+        self._lower = np.array([s.cfg.lower for s in self.servos], float)
+        self._upper = np.array([s.cfg.upper for s in self.servos], float)
+        self._half_tick = np.array([0.5 / s.model.ticks_per_rad for s in self.servos])
+        self._slow_next = 0
+        self._state = JointState.unknown(len(self.servos))
+        self._reader = None
+        self._writer = None
+        self._torque_on = np.zeros(len(self.servos), bool)
+        self._atexit = None
+
+    # ------------------------------------------------------------------ life cycle
+    def open(self) -> None:
+        if self.bus.port is not None:
+            return
+        self.bus.open()
+        try:
+            if self.bus.latency_note:
+                self.stats.notes.append(self.bus.latency_note)
+            for sv in self.servos:
+                number = self.bus.ping(sv.cfg.id)
+                if number != sv.model.model_number:
+                    try:
+                        found = load_servo_model(number, protocol=sv.model.protocol).name
+                    except Exception:
+                        found = "unknown model"
+                    raise BridgeError(f"{self.bus.label(sv.cfg.id)}: model number {number} ({found}) but the config "
+                                      f"says {sv.model.name} ({sv.model.model_number}); fix the config or the wiring")
+            for i, sv in enumerate(self.servos):
+                self._torque_on[i] = bool(self.bus.read(sv.cfg.id, sv.torque)[0])
+                self._narrow_to_eeprom(i)
+            if self.apply_settings:
+                for sv in self.servos:
+                    self._apply_ram_settings(sv)
+            self._make_groups()
+            self._read_positions()
+        except BaseException:
+            self.bus.close()
+            raise
+        ref = weakref.ref(self)
+        self._atexit = lambda: (ref() is not None and ref().close())
+        atexit.register(self._atexit)
+
+    def close(self) -> None:
+        if self.bus.port is None:
+            return
+        try:
+            self.safe_stop(self.stop_policy)
+        except BridgeError:
+            if self.stop_policy == "limp":
+                self._broadcast_torque_off()
+        finally:
+            self.bus.close()
+            if self._atexit is not None:
+                atexit.unregister(self._atexit)
+                self._atexit = None
+
+    def __enter__(self) -> "DynamixelTransport":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ Transport
+    def read_state(self) -> JointState:
+        try:
+            self._read_positions()
+            for _ in range(min(self.slow_per_cycle, len(self.servos))):
+                self._read_slow(self._slow_next)
+                self._slow_next = (self._slow_next + 1) % len(self.servos)
+        except BridgeError:
+            self._on_error()
+            raise
+        self.stats.cycles += 1
+        st = self._state
+        return JointState(st.position.copy(), st.velocity.copy(), st.effort.copy(), st.temperature.copy(),
+                          st.voltage.copy(), self._torque_on.copy(), st.stamp, dict(st.errors))
+
+    def write_goal(self, positions: np.ndarray) -> None:
+        q = np.asarray(positions, float)
+        if q.shape != (len(self.servos),):
+            raise BridgeError(f"Dynamixel: write_goal needs shape ({len(self.servos)},), got {q.shape}")
+        # half a tick of slack: the EEPROM limits are the config's rounded inwards to ticks
+        bad = ~np.isfinite(q) | (q < self._lower - self._half_tick) | (q > self._upper + self._half_tick)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise BridgeError(f"{self.bus.label(self._ids[i])}: goal {q[i]:.4f} rad is outside the joint limits "
+                              f"[{self._lower[i]:.4f}, {self._upper[i]:.4f}]; refusing to send")
+        q = np.clip(q, self._lower, self._upper)
+        try:
+            self._send_goal_ticks([self._ticks(i, q[i]) for i in range(len(self.servos))])
+        except BridgeError:
+            self._on_error()
+            raise
+
+    def set_torque(self, enabled: bool) -> None:
+        if enabled:
+            self._read_positions()
+            present = np.clip(self._state.position, self._lower, self._upper)
+            self._send_goal_ticks([self._ticks(i, present[i]) for i in range(len(self.servos))])
+        for i, sv in enumerate(self.servos):
+            self.bus.write(sv.cfg.id, sv.torque, 1 if enabled else 0)
+            self._torque_on[i] = enabled
+
+    def safe_stop(self, policy: str = "hold") -> None:
+        if policy not in STOP_POLICIES:
+            raise BridgeError(f"safe_stop: policy {policy!r} is not one of {STOP_POLICIES}")
+        if policy == "limp":
+            self._broadcast_torque_off()
+            failures = []
+            for i, sv in enumerate(self.servos):
+                try:
+                    self.bus.write(sv.cfg.id, sv.torque, 0)
+                    self._torque_on[i] = False
+                except BridgeError as exc:
+                    failures.append(str(exc))
+            if failures:
+                raise BridgeError("safe_stop limp: " + "; ".join(failures))
+            return
+        self._read_positions()
+        present = np.clip(self._state.position, self._lower, self._upper)
+        self._send_goal_ticks([self._ticks(i, present[i]) for i in range(len(self.servos))])
+
+    @property
+    def lower(self) -> np.ndarray:
+        """Joint lower limits (n,) rad in force: the config's, narrowed at ``open`` to the
+        servo's EEPROM position limits, so never wider than either."""
+        return self._lower.copy()
+
+    @property
+    def upper(self) -> np.ndarray:
+        return self._upper.copy()
+
+    def _narrow_to_eeprom(self, i: int) -> None:
+        sv = self.servos[i]
+        names = (("min_position_limit", "max_position_limit") if sv.model.has("min_position_limit")
+                 else ("cw_angle_limit", "ccw_angle_limit") if sv.model.has("cw_angle_limit") else None)
+        if names is None:
+            return
+        lo_t = self.bus.read(sv.cfg.id, sv.model.register(names[0]))[0]
+        hi_t = self.bus.read(sv.cfg.id, sv.model.register(names[1]))[0]
+        if lo_t >= hi_t:
+            return  # wheel / multi-turn setting: no position limits in EEPROM
+        a, b = (sv.cfg.to_joint(sv.model.ticks_to_rad(t)) for t in (lo_t, hi_t))
+        lo, hi = max(self._lower[i], min(a, b)), min(self._upper[i], max(a, b))
+        if lo >= hi:
+            raise BridgeError(f"{self.bus.label(sv.cfg.id)}: EEPROM position limits [{lo_t}, {hi_t}] ticks do not overlap "
+                              f"the config limits [{sv.cfg.lower:.3f}, {sv.cfg.upper:.3f}] rad; run `dualflow-bridge servo provision`")
+        if (lo, hi) != (self._lower[i], self._upper[i]):
+            self.stats.notes.append(f"{self.bus.label(sv.cfg.id)}: limits narrowed to the EEPROM's [{lo:.4f}, {hi:.4f}] rad")
+        self._lower[i], self._upper[i] = lo, hi
+
+    # ------------------------------------------------------------------ recovery
+    def recover(self, joint: str) -> str:
+        """Recover one servo after a hardware alert: read register 70, reboot (protocol 2.0),
+        wait, re-apply settings, goal = present, torque on if it was on. Returns what was done."""
+        i = self.joint_names.index(joint)
+        sv = self.servos[i]
+        sid = sv.cfg.id
+        was_on = bool(self._torque_on[i])
+        bits = self.bus.read(sid, sv.model.register("hardware_error_status"))[0] if sv.model.has("hardware_error_status") else 0
+        self.bus.reboot(sid)
+        self.stats.reboots += 1
+        sv.reboots += 1
+        deadline = time.monotonic() + self.recovery.reboot_wait_s + 2.0
+        time.sleep(self.recovery.reboot_wait_s)
+        while True:
+            try:
+                self.bus.ping(sid, retries=0)
+                break
+            except BridgeError:
+                if time.monotonic() > deadline:
+                    raise BridgeError(f"{self.bus.label(sid)}: did not come back after REBOOT; power-cycle it") from None
+                time.sleep(0.05)
+        if sv.model.has("hardware_error_status"):
+            left = self.bus.read(sid, sv.model.register("hardware_error_status"))[0]
+            if left:
+                self._torque_on[i] = False
+                raise BridgeError(f"{self.bus.label(sid)}: hardware error persists after REBOOT: "
+                                  f"{', '.join(decode_hardware_error(left))}; torque stays off, inspect the servo")
+        self._torque_on[i] = False  # a reboot switches torque off
+        self._apply_ram_settings(sv)
+        value, _ = self.bus.read(sid, sv.present)
+        goal = int(np.clip(value, *servo_tick_limits(sv.cfg, sv.model)))
+        self.bus.write(sid, sv.goal, goal)
+        if was_on:
+            self.bus.write(sid, sv.torque, 1)
+            self._torque_on[i] = True
+        done = f"rebooted after {', '.join(decode_hardware_error(bits)) or 'alert'}; settings re-applied, goal = present" + \
+               (", torque on" if was_on else "")
+        self._state.errors.pop(joint, None)
+        return done
+
+    # ------------------------------------------------------------------ internals
+    def _ticks(self, i: int, q: float) -> int:
+        sv = self.servos[i]
+        return sv.model.rad_to_ticks(sv.cfg.to_servo(q))
+
+    def _make_groups(self) -> None:
+        if self.bus.protocol != 2.0:
+            return
+        first = self.servos[0]
+        self._reader = sdk.GroupSyncRead(self.bus.port, self.bus.ph, first.present.address, first.present.size)
+        for sid in self._ids:
+            self._reader.addParam(sid)
+        self._writer = sdk.GroupSyncWrite(self.bus.port, self.bus.ph, first.goal.address, first.goal.size)
+        # decide once whether the servos answer FAST_SYNC_READ (firmware >= v45 on X series)
+        if self.bus.call(lambda port: self._reader.fastSyncRead()) != sdk.COMM_SUCCESS:
+            if self.bus.call(lambda port: self._reader.txRxPacket()) == sdk.COMM_SUCCESS:
+                self.stats.fast_sync_read = False
+                self.stats.notes.append("servos did not answer FAST_SYNC_READ; using SYNC_READ")
+
+    def _send_goal_ticks(self, ticks: list[int]) -> None:
+        if self._writer is None:  # protocol 1.0: SYNC_WRITE exists there too
+            first = self.servos[0]
+            self.bus.sync_write(first.goal, dict(zip(self._ids, ticks)))
+            return
+        reg = self.servos[0].goal
+        for sid, t in zip(self._ids, ticks):
+            data = list(reg.encode(t))
+            if not self._writer.changeParam(sid, data):
+                self._writer.addParam(sid, data)
+        result = self.bus.call(lambda port: self._writer.txPacket())
+        if result != sdk.COMM_SUCCESS:
+            raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus._comm(result)})")
+
+    def _read_positions(self) -> None:
+        n = len(self.servos)
+        ticks = np.empty(n)
+        if self._reader is None:
+            for i, sv in enumerate(self.servos):
+                value, error = self.bus.read(sv.cfg.id, sv.present)
+                ticks[i] = value
+                if self.bus.protocol == 1.0:
+                    self._note_p1_error(i, error)
+        else:
+            op = (lambda port: self._reader.fastSyncRead()) if self.stats.fast_sync_read else (lambda port: self._reader.txRxPacket())
+            result = sdk.COMM_TX_FAIL
+            for attempt in range(self.bus.retries + 1):
+                result = self.bus.call(op)
+                if result == sdk.COMM_SUCCESS:
+                    break
+                self.stats.read_retries += 1
+            if result != sdk.COMM_SUCCESS:
+                self._raise_missing("present position", result)
+            reg = self.servos[0].present
+            for i, sid in enumerate(self._ids):
+                raw = self._reader.getData(sid, reg.address, reg.size)
+                ticks[i] = reg.decode(int(raw).to_bytes(reg.size, "little"))
+        pos = np.array([sv.cfg.to_joint(sv.model.ticks_to_rad(t)) for sv, t in zip(self.servos, ticks)])
+        self._state.position = pos
+        self._state.stamp = time.monotonic()
+
+    def _raise_missing(self, what: str, result: int) -> None:
+        """A group read failed: find which servo is silent, to name it."""
+        for sid in self._ids:
+            try:
+                self.bus.ping(sid, retries=0)
+            except BridgeError:
+                raise BridgeError(f"{self.bus.label(sid)}: no status packet for {what} after "
+                                  f"{self.bus.retries + 1} tries; check its cable and power") from None
+        raise BridgeError(f"Dynamixel bus {self.bus.port_name}: group read of {what} failed after "
+                          f"{self.bus.retries + 1} tries ({self.bus._comm(result)}), though every servo answers PING; "
+                          "check for noise or a wrong baud rate")
+
+    def _slow_registers(self, sv: _Servo) -> dict[str, Register]:
+        m = sv.model
+        regs = {}
+        for key, names in (("current", ("present_current", "present_load")), ("velocity", ("present_velocity", "present_speed")),
+                           ("voltage", ("present_input_voltage", "present_voltage")), ("temperature", ("present_temperature",))):
+            for name in names:
+                if m.has(name):
+                    regs[key] = m.register(name)
+                    break
+        return regs
+
+    def _read_slow(self, i: int) -> None:
+        sv = self.servos[i]
+        regs = self._slow_registers(sv)
+        start = min(r.address for r in regs.values())
+        end = max(r.end for r in regs.values())
+        data, error = self.bus.read_raw(sv.cfg.id, start, end - start, "status block")
+        val = {k: r.decode(data[r.address - start:r.end - start]) for k, r in regs.items()}
+        m, d = sv.model, sv.cfg.direction
+        if "velocity" in val:
+            self._state.velocity[i] = d * float(m.velocity_to_rad_s(val["velocity"]))
+        if "current" in val:
+            if m.current_ma is not None:
+                self._state.effort[i] = d * float(m.current_to_amps(val["current"])) * m.torque_constant_nm_per_a
+            elif m.load_percent is not None:
+                self._state.effort[i] = d * val["current"] * m.load_percent / 100.0 * m.ratings.stall_torque_nm
+        if "voltage" in val:
+            self._state.voltage[i] = float(m.voltage_to_volts(val["voltage"]))
+        if "temperature" in val:
+            self._state.temperature[i] = float(m.temperature_to_celsius(val["temperature"]))
+        if self.bus.protocol == 2.0:
+            if error & ALERT_BIT:
+                self._on_alert(i)
+            else:
+                self._state.errors.pop(self.joint_names[i], None)
+        else:
+            self._note_p1_error(i, error)
+
+    def _note_p1_error(self, i: int, error: int) -> None:
+        bits = error & P1_HARDWARE_MASK
+        if bits:
+            self._state.errors[self.joint_names[i]] = ", ".join(decode_hardware_error(bits, 1))
+        else:
+            self._state.errors.pop(self.joint_names[i], None)
+
+    def _on_alert(self, i: int) -> None:
+        sv = self.servos[i]
+        joint = self.joint_names[i]
+        self.stats.alerts += 1
+        bits = self.bus.read(sv.cfg.id, sv.model.register("hardware_error_status"))[0]
+        names = decode_hardware_error(bits)
+        text = ", ".join(names) or "alert without a hardware error bit"
+        torque = bool(self.bus.read(sv.cfg.id, sv.torque)[0])
+        if not torque:
+            self._torque_on[i] = False  # the servo's Shutdown switched torque off
+        pol = self.recovery
+        if pol.reboot and names and set(names) <= pol.reboot_on and sv.reboots < pol.max_reboots:
+            try:
+                done = self.recover(joint)
+                self.stats.notes.append(f"{self.bus.label(sv.cfg.id)}: {done}")
+                return
+            except BridgeError as exc:
+                self._state.errors[joint] = f"{text}; recovery failed: {exc}"
+                return
+        reason = ("policy does not reboot on this" if set(names) - pol.reboot_on or not pol.reboot
+                  else f"already rebooted {sv.reboots} times")
+        self._state.errors[joint] = f"{text} (servo ID {sv.cfg.id}; torque {'on' if torque else 'off'}; {reason})"
+
+    def _apply_ram_settings(self, sv: _Servo) -> None:
+        for name, value in sv.settings.items():
+            reg = sv.model.register(name)
+            if reg.eeprom:
+                continue
+            self.bus.write(sv.cfg.id, reg, value)
+
+    def _broadcast_torque_off(self) -> None:
+        """One SYNC_WRITE Torque Enable = 0 to every servo (no reply needed): the cheapest
+        way to make the bus safe when individual writes are failing."""
+        try:
+            self.bus.sync_write(self.servos[0].torque, {sid: 0 for sid in self._ids})
+            self._torque_on[:] = False
+        except BridgeError:
+            pass
+
+    def _on_error(self) -> None:
+        """After a communication failure: 'limp' switches torque off by broadcast;
+        'hold' leaves the servos on their last goal, which is holding."""
+        if self.stop_policy == "limp":
+            self._broadcast_torque_off()
