@@ -182,12 +182,20 @@ def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None 
     config = config or CheckConfig()
     config.validate()
     traj = _as_trajectory(traj)
-    robot = robot or traj.robot or "op3"
-    scene = Scene(SceneConfig(robot=robot, fixed_base=(config.mode == "fixed"),
-                              base_pos=tuple(traj.root_pos[0]), base_quat=tuple(traj.root_quat[0]),
-                              timestep=1.0 / config.physics_hz, actor=actor,
-                              actor_placement=actor_placement or Placement()))
+    scene = scene_for(traj, config, robot, actor, actor_placement)
     return Checker(scene, config).run(traj)
+
+
+def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = None, actor: Motion | None = None,
+              actor_placement: Placement | None = None, reactor: Motion | None = None,
+              reactor_placement: Placement | None = None) -> Scene:
+    """The scene a check of ``traj`` runs in (robot from ``robot``, ``traj.robot`` or op3)."""
+    robot = robot or traj.robot or "op3"
+    return Scene(SceneConfig(robot=robot, fixed_base=(config.mode == "fixed"),
+                             base_pos=tuple(traj.root_pos[0]), base_quat=tuple(traj.root_quat[0]),
+                             timestep=1.0 / config.physics_hz, actor=actor,
+                             actor_placement=actor_placement or Placement(), reactor=reactor,
+                             reactor_placement=reactor_placement or Placement()))
 
 
 class Checker:
@@ -201,7 +209,9 @@ class Checker:
         self.foot_bodies = foot_bodies
         self.robot_col_geoms = np.array([g for g in r.geom_ids if m.geom_contype[g] or m.geom_conaffinity[g]])
 
-    def run(self, traj: RobotTrajectory) -> CheckResult:
+    def run(self, traj: RobotTrajectory, on_tick=None) -> CheckResult:
+        """Play and judge ``traj``. ``on_tick(t)`` (optional) is called after each
+        control tick with the clip time t in seconds (a renderer grabs frames there)."""
         sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
         q_traj = _joint_columns(traj, r.joint_names, sc.config.robot)
         dt = 1.0 / cfg.control_hz
@@ -269,6 +279,8 @@ class Checker:
                                             or non_foot[k]):
                 fall_k = k
                 stop_at = min(K, k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
+            if on_tick is not None:
+                on_tick(float(t[k]))
             if k + 1 >= stop_at:
                 break
         K_run = min(stop_at, K)

@@ -7,7 +7,8 @@ free robot checked with its torso held). The human actor (and optionally the
 generated reactor, drawn as a thin stick figure) are kinematic capsule figures
 (:class:`sim.human_figure.HumanFigure`) that never exert forces.
 
-Geom groups: 0-2 robot and floor, 3 the actor, 4 the reactor stick figure.
+Geom groups: 0 floor, 1 robot (moved there after compiling), 3 the actor, 4 the
+reactor stick figure.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from sim.human_figure import HumanFigure, Placement
 from sim.robot_index import RobotIndex
 from sim.robots import ROBOTS, mjcf_path
 
+ROBOT_GROUP = 1
 ACTOR_GROUP = 3
 REACTOR_GROUP = 4
 
@@ -104,6 +106,7 @@ class Scene:
         self.data = mujoco.MjData(self.model)
         self.robot = RobotIndex.from_model(self.model, self.root_name)
         self.floor_geom = self.model.geom("floor").id
+        self.model.geom_group[self.robot.geom_ids] = ROBOT_GROUP
         for fig in (self.actor, self.reactor):
             if fig is not None:
                 fig.bind(self.model)
@@ -172,6 +175,10 @@ class Scene:
         if ground and not r.fixed_base:
             self.data.qpos[r.free_qpos + 2] -= self.lowest_robot_point()
             mujoco.mj_forward(self.model, self.data)
+
+    def mujoco_forward(self) -> None:
+        """Recompute positions after setting qpos or mocap poses by hand."""
+        mujoco.mj_forward(self.model, self.data)
 
     def lowest_robot_point(self) -> float:
         """z (m) of the lowest point of any robot collision geom (exact for boxes,
