@@ -269,15 +269,24 @@ class DynamixelBus:
         name = self.names.get(sid)
         return f"servo ID {sid}" + (f" ({name})" if name else "")
 
-    def call(self, fn, *args):
+    def call(self, fn, *args, malformed=None):
         """Run one SDK call; the port's ``is_using`` flag is cleared whatever happens and
-        OS-level failures (the port vanished) become BridgeError."""
+        OS-level failures (the port vanished) become BridgeError. With ``malformed`` given,
+        an exception inside the SDK's reply parsing (e.g. an IndexError on a truncated
+        fast-sync-read reply) returns ``malformed`` instead, so it counts as a failed try."""
+        import serial
+
         if self.port is None:
             raise BridgeError(f"Dynamixel bus {self.port_name}: not open; call open() first")
         try:
             return fn(self.port, *args)
         except BridgeError:
             raise
+        except (IndexError, KeyError, ValueError) as exc:
+            if malformed is not None and not isinstance(exc, serial.SerialException):
+                return malformed
+            raise BridgeError(f"Dynamixel bus {self.port_name}: malformed reply during {getattr(fn, '__name__', 'a call')} "
+                              f"({type(exc).__name__}: {exc}); check for noise or a wrong baud rate") from None
         except Exception as exc:  # serial.SerialException, OSError, TypeError from a dead fd
             raise BridgeError(f"Dynamixel bus {self.port_name}: port failed during {getattr(fn, '__name__', 'a call')} "
                               f"({type(exc).__name__}: {exc}); the adapter was unplugged or lost power") from None
@@ -429,7 +438,8 @@ class DynamixelTransport:
         self._state = JointState.unknown(len(self.servos))
         self._reader = None
         self._writer = None
-        self._torque_on = np.zeros(len(self.servos), bool)
+        self._torque_on = np.zeros(len(self.servos), bool)   # last known state on the servo
+        self._torque_cmd = np.zeros(len(self.servos), bool)  # what the host asked for
         self._atexit = None
 
     # ------------------------------------------------------------------ life cycle
@@ -450,7 +460,7 @@ class DynamixelTransport:
                     raise BridgeError(f"{self.bus.label(sv.cfg.id)}: model number {number} ({found}) but the config "
                                       f"says {sv.model.name} ({sv.model.model_number}); fix the config or the wiring")
             for i, sv in enumerate(self.servos):
-                self._torque_on[i] = bool(self.bus.read(sv.cfg.id, sv.torque)[0])
+                self._torque_on[i] = self._torque_cmd[i] = bool(self.bus.read(sv.cfg.id, sv.torque)[0])
                 self._narrow_to_eeprom(i)
             if self.apply_settings:
                 for sv in self.servos:
@@ -523,6 +533,7 @@ class DynamixelTransport:
             present = np.clip(self._state.position, self._lower, self._upper)
             self._send_goal_ticks([self._ticks(i, present[i]) for i in range(len(self.servos))])
         for i, sv in enumerate(self.servos):
+            self._torque_cmd[i] = enabled
             self.bus.write(sv.cfg.id, sv.torque, 1 if enabled else 0)
             self._torque_on[i] = enabled
 
@@ -530,6 +541,7 @@ class DynamixelTransport:
         if policy not in STOP_POLICIES:
             raise BridgeError(f"safe_stop: policy {policy!r} is not one of {STOP_POLICIES}")
         if policy == "limp":
+            self._torque_cmd[:] = False
             self._broadcast_torque_off()
             failures = []
             for i, sv in enumerate(self.servos):
@@ -581,7 +593,7 @@ class DynamixelTransport:
         i = self.joint_names.index(joint)
         sv = self.servos[i]
         sid = sv.cfg.id
-        was_on = bool(self._torque_on[i])
+        was_on = bool(self._torque_cmd[i])  # what the host commanded, not what Shutdown left
         bits = self.bus.read(sid, sv.model.register("hardware_error_status"))[0] if sv.model.has("hardware_error_status") else 0
         self.bus.reboot(sid)
         self.stats.reboots += 1
@@ -629,8 +641,8 @@ class DynamixelTransport:
             self._reader.addParam(sid)
         self._writer = sdk.GroupSyncWrite(self.bus.port, self.bus.ph, first.goal.address, first.goal.size)
         # decide once whether the servos answer FAST_SYNC_READ (firmware >= v45 on X series)
-        if self.bus.call(lambda port: self._reader.fastSyncRead()) != sdk.COMM_SUCCESS:
-            if self.bus.call(lambda port: self._reader.txRxPacket()) == sdk.COMM_SUCCESS:
+        if self.bus.call(lambda port: self._reader.fastSyncRead(), malformed=sdk.COMM_RX_CORRUPT) != sdk.COMM_SUCCESS:
+            if self.bus.call(lambda port: self._reader.txRxPacket(), malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
                 self.stats.fast_sync_read = False
                 self.stats.notes.append("servos did not answer FAST_SYNC_READ; using SYNC_READ")
 
@@ -661,7 +673,7 @@ class DynamixelTransport:
             op = (lambda port: self._reader.fastSyncRead()) if self.stats.fast_sync_read else (lambda port: self._reader.txRxPacket())
             result = sdk.COMM_TX_FAIL
             for attempt in range(self.bus.retries + 1):
-                result = self.bus.call(op)
+                result = self.bus.call(op, malformed=sdk.COMM_RX_CORRUPT)
                 if result == sdk.COMM_SUCCESS:
                     break
                 self.stats.read_retries += 1
