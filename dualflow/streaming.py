@@ -1,0 +1,306 @@
+"""Causal streaming reactive inference: actor frames in, reactor frames out, delay L frames.
+
+``ReactiveStreamer`` is fed the actor's motion one frame at a time (or in chunks) and emits
+the reactor's motion as soon as it may: reactor frame i needs actor frames up to i + L
+(the look-ahead of the reactive mode), so it is emitted when actor frame i + L arrives,
+a fixed delay of L frames plus the compute time of one window.
+
+Inputs and outputs
+------------------
+* ``push(frames)``: actor frames as normalised 262-d features (the model's input space,
+  ``NormStats.normalize`` of ``dualflow.motion.features.encode_person``'s rows), shape
+  (262,) or (n, 262), numpy or torch. Returns the newly emitted reactor frames (m, 262)
+  (m may be 0), normalised the same way; ``on_frame(index, frame)`` is also called per frame.
+* ``flush()`` at the end of the stream emits the last L frames with whatever look-ahead
+  remains (the actor has stopped).
+* ``emitted`` (N, 262): everything emitted so far; ``timing``: compute time per emitted frame.
+* All frames of one stream share one canonical frame (the actor's first frame), as one long
+  clip of the training data would.
+
+How a window is generated (inpainting with a causal network)
+-----------------------------------------------------------
+Let n be the number of actor frames received and e = n - 1 - L the last emittable frame.
+When at least ``hop`` frames in [n_emitted, e] are pending, one window of W frames is
+generated over the frames [s, s + W), s = max(0, u + L - W), where u (<= e + 1) is the end of
+the frames to emit:
+
+* actor: the received frames [s, u + L), clean (reactive mode);
+* reactor: frames [s, n_emitted) are already emitted and are kept fixed as context. At every
+  ODE grid time t they are overwritten with their point on the rectified path,
+  x_t = (1 - t) eps + t x_known (``project`` of ``dualflow.flow.ode_solve``), with the same
+  eps used to start them; frames [n_emitted, u) are generated and emitted; the frames
+  [u, u + L) are generated too but discarded: they exist only because both streams of the
+  network have one length, and by the causality of the reactive network (see
+  ``dualflow.model``) they cannot influence the frames before them.
+* noise: eps of absolute frame i is the i-th row drawn from one ``torch.Generator`` seeded
+  with ``seed``, so a stream is reproducible and a frame's noise does not depend on windows.
+
+Causality: the emitted frame i is computed from actor frames <= i + L, the already-emitted
+reactor frames (< i, themselves causal by induction) and noise; actor frames > i + L are not
+in the window or are masked by the network (tests/test_streaming.py checks it end to end).
+
+Continuity: the new frames attend (causal self-attention, causal convolutions) to the context
+frames, which sit on the data side of the path at t = 1, so the motion continues across
+window seams. ``seam_report`` measures the velocity jump at seams against the jump inside
+windows (bench/bench_streaming.py prints the figures).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dualflow.errors import DualFlowError
+from dualflow.flow import RectifiedPath, guided_velocity, ode_solve
+from dualflow.model import Conditions, DualFlow
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """window: frames per generation window W (actor and reactor); must exceed L + hop.
+    hop: generate once at least this many frames are pending (1 = emit every frame as soon as
+    its look-ahead arrives: delay exactly L frames; larger hops amortise the compute and add
+    up to hop - 1 frames of delay). max_new: cap on frames emitted by one window (chunks).
+    steps / method / cfg_scale: the ODE sampler (``dualflow.flow``). look_ahead: L (None =
+    the model's). inpaint: keep emitted frames as context (False only for ablations: each
+    window then starts from noise everywhere and the seams jump). seed: noise seed.
+    """
+
+    window: int = 60
+    hop: int = 1
+    max_new: int | None = None
+    steps: int = 20
+    method: str = "euler"
+    cfg_scale: float = 1.0
+    look_ahead: int | None = None
+    inpaint: bool = True
+    seed: int = 0
+
+
+@dataclass
+class StreamTiming:
+    """Compute time of the generation windows: per emitted frame and per window (seconds)."""
+
+    windows: list[tuple[int, int, float]] = field(default_factory=list)  # (first frame, n new, s)
+
+    @property
+    def total_s(self) -> float:
+        return sum(w[2] for w in self.windows)
+
+    @property
+    def frames(self) -> int:
+        return sum(w[1] for w in self.windows)
+
+    @property
+    def per_frame_s(self) -> float:
+        """Average compute time per emitted reactor frame."""
+        return self.total_s / max(self.frames, 1)
+
+    @property
+    def max_window_s(self) -> float:
+        """Longest window: the worst added latency beyond the L-frame delay."""
+        return max((w[2] for w in self.windows), default=0.0)
+
+
+class ReactiveStreamer:
+    """Feed actor frames, get reactor frames (module docstring). One stream, batch 1.
+
+    model: a DualFlow (its reactive mode). cond: Conditions for the whole stream with batch 1:
+    text (1, D_text), music (1, T_track, D_music) covering every frame the stream will reach
+    (sliced per window; a live track must be known L frames ahead too), retrieval (1, R, width).
+    on_frame(index, frame (262,) tensor): called for each emitted frame, in order.
+    """
+
+    def __init__(
+        self,
+        model: DualFlow,
+        config: StreamConfig = StreamConfig(),
+        cond: Conditions | None = None,
+        on_frame: Callable[[int, torch.Tensor], None] | None = None,
+    ):
+        self.model = model
+        self.config = config
+        self.cond = cond or Conditions()
+        self.on_frame = on_frame
+        self.look_ahead = model.config.look_ahead if config.look_ahead is None else int(config.look_ahead)
+        self.max_new = config.max_new or max(config.hop, (config.window - self.look_ahead) // 2)
+        if config.hop < 1:
+            raise DualFlowError(f"StreamConfig.hop must be >= 1 frame, got {config.hop}")
+        if config.window < self.look_ahead + self.max_new + 1:
+            raise DualFlowError(
+                f"StreamConfig.window ({config.window}) must be at least look_ahead ({self.look_ahead}) + "
+                f"max_new ({self.max_new}) + 1 so a window holds context, new frames and look-ahead; "
+                "raise window or lower hop/max_new"
+            )
+        for name in ("text", "music", "retrieval"):
+            value = getattr(self.cond, name)
+            if value is not None and value.shape[0] != 1:
+                raise DualFlowError(f"streaming conditions: {name} must have batch size 1, got {tuple(value.shape)}")
+        param = next(model.parameters())
+        self.device, self.dtype = param.device, param.dtype
+        self.dim = model.config.motion_dim
+        self._actor = torch.zeros(0, self.dim, dtype=self.dtype, device=self.device)
+        self._emitted = torch.zeros(0, self.dim, dtype=self.dtype, device=self.device)
+        self._noise = torch.zeros(0, self.dim)
+        self._generator = torch.Generator().manual_seed(int(config.seed))
+        self.timing = StreamTiming()
+        self.path = RectifiedPath()
+
+    # -- state ---------------------------------------------------------------------------
+
+    @property
+    def emitted(self) -> torch.Tensor:
+        """All reactor frames emitted so far, (N, 262) normalised features."""
+        return self._emitted
+
+    @property
+    def n_actor(self) -> int:
+        return self._actor.shape[0]
+
+    @property
+    def delay_frames(self) -> int:
+        """Frames between receiving actor frame i + L and emitting reactor frame i: L + hop - 1 at most."""
+        return self.look_ahead + self.config.hop - 1
+
+    # -- input ---------------------------------------------------------------------------
+
+    def push(self, frames) -> torch.Tensor:
+        """Append actor frames (262,) or (n, 262) and return the newly emitted reactor frames (m, 262)."""
+        x = torch.as_tensor(np.asarray(frames) if not torch.is_tensor(frames) else frames)
+        if x.ndim == 1:
+            x = x[None]
+        if x.ndim != 2 or x.shape[1] != self.dim:
+            raise DualFlowError(
+                f"actor frames must have shape ({self.dim},) or (n, {self.dim}) (normalised features), got {tuple(x.shape)}"
+            )
+        if not torch.isfinite(x).all():
+            raise DualFlowError("actor frames contain NaN or inf; drop or repair those frames before pushing")
+        self._actor = torch.cat([self._actor, x.to(self.device, self.dtype)], 0)
+        return self._drain(final=False)
+
+    def flush(self) -> torch.Tensor:
+        """End of stream: emit the remaining frames (their look-ahead is cut at the last actor frame)."""
+        return self._drain(final=True)
+
+    # -- generation ----------------------------------------------------------------------
+
+    def _drain(self, final: bool) -> torch.Tensor:
+        out = []
+        while True:
+            n_done = self._emitted.shape[0]
+            limit = self.n_actor if final else self.n_actor - self.look_ahead  # frames [0, limit) emittable
+            pending = limit - n_done
+            if pending <= 0 or (pending < self.config.hop and not final):
+                break
+            upto = n_done + min(pending, self.max_new)
+            out.append(self._generate(n_done, upto))
+        if not out:
+            return self._emitted[:0]
+        return torch.cat(out, 0)
+
+    def _noise_rows(self, stop: int) -> torch.Tensor:
+        """eps of absolute frames [0, stop), drawn in frame order from the seeded generator."""
+        have = self._noise.shape[0]
+        if stop > have:
+            fresh = torch.randn((stop - have, self.dim), generator=self._generator)
+            self._noise = torch.cat([self._noise, fresh], 0)
+        return self._noise[:stop]
+
+    def _window_conditions(self, start: int, stop: int) -> Conditions:
+        music = self.cond.music
+        if music is not None and music.shape[1] < stop:
+            raise DualFlowError(
+                f"streaming conditions: the music track has {music.shape[1]} frames but the stream reached "
+                f"frame {stop}; give a track covering the whole stream (or no music)"
+            )
+        return self.cond.slice_frames(start, stop)
+
+    @torch.no_grad()
+    def _generate(self, first_new: int, upto: int) -> torch.Tensor:
+        """Generate and emit reactor frames [first_new, upto) in one window."""
+        tic = time.perf_counter()
+        stop = min(upto + self.look_ahead, self.n_actor)
+        stop = max(stop, upto)
+        start = max(0, stop - self.config.window)
+        n_ctx = first_new - start  # already-emitted frames kept as context
+        actor = self._actor[start:stop][None]
+        eps = self._noise_rows(stop)[start:stop].to(self.device, self.dtype)[None]
+        known = self._emitted[start:first_new][None]
+
+        def project(x: torch.Tensor, t: float) -> torch.Tensor:
+            if n_ctx == 0 or not self.config.inpaint:
+                return x
+            x = x.clone()
+            x[:, :n_ctx] = (1 - t) * eps[:, :n_ctx] + t * known  # x_t of the known frames
+            return x
+
+        velocity = guided_velocity(
+            self.model,
+            self._window_conditions(start, stop),
+            mode="reactive",
+            x_actor=actor,
+            cfg_scale=self.config.cfg_scale,
+            look_ahead=self.look_ahead,
+        )
+        was_training = self.model.training
+        self.model.eval()
+        try:
+            x = ode_solve(velocity, eps, steps=self.config.steps, method=self.config.method, project=project)
+        finally:
+            self.model.train(was_training)
+        new = x[0, n_ctx: n_ctx + (upto - first_new)]
+        self._emitted = torch.cat([self._emitted, new], 0)
+        self.timing.windows.append((first_new, new.shape[0], time.perf_counter() - tic))
+        if self.on_frame is not None:
+            for k in range(new.shape[0]):
+                self.on_frame(first_new + k, new[k])
+        return new
+
+
+# ---------------------------------------------------------------------------------------------
+# Seam continuity
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SeamReport:
+    """Velocity jumps ||(p[i] - p[i-1]) - (p[i-1] - p[i-2])|| averaged over joints (units of p per
+    frame), at window seams (frames i - 2, i - 1, i span two windows: i = s and s + 1 for a window
+    starting at s) and inside windows (all three frames from one window).
+    ratio = seam / within: about 1 means the seams are invisible."""
+
+    seam_mean: float
+    within_mean: float
+    n_seams: int
+    n_within: int
+
+    @property
+    def ratio(self) -> float:
+        return self.seam_mean / self.within_mean if self.within_mean > 0 else float("inf")
+
+
+def seam_report(positions: torch.Tensor | np.ndarray, window_starts: list[int]) -> SeamReport:
+    """positions (N, J, 3) (or (N, D) features) of the emitted frames; window_starts: the first
+    frame index of each window (``[w[0] for w in streamer.timing.windows]``)."""
+    p = torch.as_tensor(np.asarray(positions) if not torch.is_tensor(positions) else positions).double()
+    p = p.reshape(p.shape[0], -1, p.shape[-1]) if p.ndim == 3 else p.reshape(p.shape[0], 1, -1)
+    if p.shape[0] < 3:
+        raise DualFlowError(f"seam_report needs at least 3 frames, got {p.shape[0]}")
+    acc = torch.linalg.vector_norm(p[2:] - 2 * p[1:-1] + p[:-2], dim=-1).mean(-1)  # jump at frame i = 2..N-1
+    window_id = torch.zeros(p.shape[0], dtype=torch.long)
+    for k, s in enumerate(sorted(window_starts)):
+        window_id[s:] = k
+    idx = torch.arange(2, p.shape[0])
+    seam = window_id[idx] != window_id[idx - 2]  # the triple (i-2, i-1, i) spans a seam
+    within = ~seam
+    seam_vals, within_vals = acc[seam], acc[within]
+    return SeamReport(
+        seam_mean=float(seam_vals.mean()) if seam_vals.numel() else 0.0,
+        within_mean=float(within_vals.mean()) if within_vals.numel() else 0.0,
+        n_seams=int(seam_vals.numel()),
+        n_within=int(within_vals.numel()),
+    )

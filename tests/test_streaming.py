@@ -1,0 +1,153 @@
+"""Streaming reactive inference: causality end to end, fixed delay, determinism, seams, timing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dualflow import DualFlowError
+from dualflow.flow import generate
+from dualflow.model import Conditions, DualFlow, DualFlowConfig
+from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report
+
+L = 3
+N = 24
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """One torch thread: on a shared 2-core machine, two threads contend and run ~20x slower."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def model() -> DualFlow:
+    torch.manual_seed(0)
+    m = DualFlow(DualFlowConfig.preset("tiny", look_ahead=L)).eval()
+    for name, p in m.named_parameters():
+        if name.startswith(("out_a", "out_b")) or ".modulation." in name:
+            torch.nn.init.normal_(p, std=0.1)
+    return m
+
+
+def _actor(seed=0, n=N):
+    return torch.randn(n, 262, generator=torch.Generator().manual_seed(seed))
+
+
+def _run(model, actor, chunks=1, **cfg):
+    config = StreamConfig(**{"window": 16, "steps": 3, "seed": 5, **cfg})
+    s = ReactiveStreamer(model, config, Conditions(text=torch.ones(1, 384)))
+    for k in range(0, actor.shape[0], chunks):
+        s.push(actor[k:k + chunks])
+    s.flush()
+    return s
+
+
+@pytest.mark.parametrize("hop,chunks", [(1, 1), (3, 1), (1, 5)])
+def test_changing_actor_frames_after_i_plus_L_never_changes_emitted_frame_i(model, hop, chunks):
+    actor = _actor()
+    ref = _run(model, actor, chunks, hop=hop).emitted
+    assert ref.shape == (N, 262)
+    for cut in (6, 16):
+        changed = actor.clone()
+        changed[cut:] = _actor(seed=cut, n=N - cut) * 3.0
+        out = _run(model, changed, chunks, hop=hop).emitted
+        safe = cut - L  # frames i with i + L < cut
+        assert torch.equal(out[:safe], ref[:safe]), f"frame < {safe} changed when actor frames >= {cut} changed"
+        assert not torch.allclose(out[safe:], ref[safe:])  # and the later frames do react
+
+
+def test_frame_i_is_emitted_when_actor_frame_i_plus_L_arrives(model):
+    s = ReactiveStreamer(model, StreamConfig(window=16, steps=2))
+    got = []
+    s.on_frame = lambda i, f: got.append(i)
+    for j, frame in enumerate(_actor().numpy()):  # numpy input, one frame at a time
+        new = s.push(frame)
+        assert s.emitted.shape[0] == max(0, j + 1 - L)
+        assert new.shape[0] == (1 if j >= L else 0)
+    assert s.delay_frames == L
+    tail = s.flush()
+    assert tail.shape[0] == L and s.emitted.shape[0] == N
+    assert got == list(range(N))
+
+
+def test_hop_batches_frames_and_bounds_the_delay(model):
+    s = ReactiveStreamer(model, StreamConfig(window=16, steps=2, hop=4))
+    for j, frame in enumerate(_actor()):
+        s.push(frame)
+        pending = max(0, j + 1 - L) - s.emitted.shape[0]
+        assert 0 <= pending < 4
+    assert s.delay_frames == L + 3
+    assert all(n == 4 for _, n, _ in s.timing.windows)
+
+
+def test_stream_is_deterministic_per_seed(model):
+    actor = _actor()
+    a = _run(model, actor, seed=1).emitted
+    b = _run(model, actor, seed=1).emitted
+    c = _run(model, actor, seed=2).emitted
+    assert torch.equal(a, b)
+    assert not torch.allclose(a, c)
+
+
+def test_first_window_equals_the_offline_reactive_sampler(model):
+    """Before any context exists, a window is exactly ``flow.generate`` in reactive mode."""
+    actor = _actor()
+    s = ReactiveStreamer(model, StreamConfig(window=16, steps=3, seed=9, max_new=5, hop=5))
+    s.push(actor[: 5 + L])
+    assert s.emitted.shape[0] == 5
+    eps = torch.randn((5 + L, 262), generator=torch.Generator().manual_seed(9))
+    _, offline = generate(model, 5 + L, mode="reactive", x_actor=actor[None, : 5 + L], steps=3, noise=eps[None])
+    torch.testing.assert_close(s.emitted, offline[0, :5])
+
+
+def test_context_frames_are_kept_fixed_inside_later_windows(model):
+    """With inpainting, the known prefix sits exactly on the path: at t = 1 it equals the emitted frames,
+    and later windows change nothing already emitted; without it, windows ignore their context."""
+    actor = _actor()
+    with_ctx = _run(model, actor, hop=4).emitted
+    without = _run(model, actor, hop=4, inpaint=False).emitted
+    first = 4  # the first window (no context) is the same in both
+    torch.testing.assert_close(with_ctx[:first], without[:first])
+    assert not torch.allclose(with_ctx[first:], without[first:])
+
+
+def test_timing_is_reported_per_emitted_frame(model):
+    s = _run(model, _actor(), hop=2)
+    assert s.timing.frames == N
+    assert s.timing.total_s > 0 and s.timing.per_frame_s == pytest.approx(s.timing.total_s / N)
+    assert s.timing.max_window_s >= s.timing.per_frame_s
+
+
+def test_seam_report_on_hand_made_tracks():
+    t = np.arange(12, dtype=float)
+    smooth = np.stack([0.1 * t, np.zeros_like(t), np.zeros_like(t)], -1)[:, None, :]  # constant velocity
+    r = seam_report(smooth, [0, 4, 8])
+    assert r.seam_mean == pytest.approx(0.0) and r.within_mean == pytest.approx(0.0)
+    kinked = smooth.copy()
+    kinked[4:, 0, 1] += 0.5  # a 0.5 m step at the seam of frame 4: jumps of 0.5 at i = 4 and i = 5
+    r = seam_report(kinked, [0, 4, 8])
+    assert r.n_seams == 4 and r.n_within == 6  # seams: i = 4, 5, 8, 9; within: 2, 3, 6, 7, 10, 11
+    assert r.seam_mean == pytest.approx((0.5 + 0.5 + 0.0 + 0.0) / 4)
+    assert r.within_mean == pytest.approx(0.0, abs=1e-12)
+    bent = smooth.copy()
+    bent[6:, 0, 2] += 0.2 * (t[6:] - 5)[:, None].squeeze(-1)  # velocity change of 0.2 inside window 1
+    r = seam_report(bent, [0, 4, 8])
+    assert r.seam_mean == pytest.approx(0.0, abs=1e-12) and r.within_mean == pytest.approx(0.2 / 6)
+
+
+def test_bad_input_raises_clear_errors(model):
+    s = ReactiveStreamer(model, StreamConfig(window=16))
+    with pytest.raises(DualFlowError, match="actor frames"):
+        s.push(torch.zeros(3, 100))
+    with pytest.raises(DualFlowError, match="NaN"):
+        s.push(torch.full((262,), float("nan")))
+    with pytest.raises(DualFlowError, match="window"):
+        ReactiveStreamer(model, StreamConfig(window=L + 1))
+    short = ReactiveStreamer(model, StreamConfig(window=16, steps=1), Conditions(music=torch.zeros(1, 5, 35)))
+    with pytest.raises(DualFlowError, match="music track"):
+        short.push(_actor(n=10))
