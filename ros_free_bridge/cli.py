@@ -25,6 +25,9 @@ from sim.errors import SimError
 COMMAND_MODULES: tuple[str, ...] = (
     "motion",
     "servo",
+    "check",
+    "render",
+    "view",
 )
 
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)

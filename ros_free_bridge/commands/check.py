@@ -1,0 +1,74 @@
+"""``check``: play a robot trajectory through the simulated servos and judge it physically.
+
+Writes ``<out>/<stem>.json`` and ``<out>/<stem>.md`` (with plots); exit code 0 when
+the trajectory passes, 1 when it fails, 2 on a user error.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("check", help="judge a robot trajectory in MuJoCo (falls, collisions, torque, speed)",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("trajectory", help="robot trajectory .npz (RobotTrajectory.save_npz)")
+    p.add_argument("--robot", help="robot name or MJCF path (default: the trajectory's robot, else op3)")
+    p.add_argument("--mode", choices=("free", "fixed"), default="free", help="free-standing or torso bolted")
+    p.add_argument("--control-hz", type=float, default=100.0)
+    p.add_argument("--physics-hz", type=float, default=500.0)
+    p.add_argument("--interp", choices=("linear", "cubic"), default="linear")
+    p.add_argument("--actor", help="human actor motion file (.bvh/.npz/.npy) to place in the scene")
+    p.add_argument("--actor-scale", default="robot", help="'robot', 'human' or a number (default robot)")
+    p.add_argument("--actor-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
+    p.add_argument("--actor-yaw", type=float, default=0.0, help="degrees about +Z")
+    p.add_argument("-o", "--out", default="check_report", help="report folder (default check_report)")
+    p.add_argument("--no-plots", action="store_true", help="write only the JSON report")
+    p.set_defaults(func=run)
+
+
+def placement_from_args(args, prefix: str = "actor"):
+    from sim.human_figure import Placement
+
+    scale = getattr(args, f"{prefix}_scale")
+    if scale not in ("robot", "human"):
+        try:
+            scale = float(scale)
+        except ValueError:
+            from sim.errors import SimError
+
+            raise SimError(f"--{prefix}-scale must be 'robot', 'human' or a number, got {scale!r}") from None
+    return Placement(scale, tuple(getattr(args, f"{prefix}_offset")), getattr(args, f"{prefix}_yaw"))
+
+
+def load_human(path):
+    if path is None:
+        return None
+    from dualflow.motion.io import load_motion
+
+    return load_motion(path)
+
+
+def run(args) -> int:
+    from sim.check import CheckConfig, check_trajectory
+    from sim.report import write_json, write_report
+
+    config = CheckConfig(control_hz=args.control_hz, physics_hz=args.physics_hz, interpolation=args.interp,
+                         mode=args.mode)
+    result = check_trajectory(args.trajectory, config, robot=args.robot, actor=load_human(args.actor),
+                              actor_placement=placement_from_args(args))
+    out = Path(args.out)
+    stem = Path(args.trajectory).stem
+    if args.no_plots:
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {"json": write_json(result, out / f"{stem}.json")}
+    else:
+        paths = write_report(result, out, stem)
+    if result.passed:
+        print(f"PASS {args.trajectory} ({result.robot}, {result.mode})")
+    else:
+        print(f"FAIL {args.trajectory}: {result.reason} at {result.first_failure_time:.2f} s: {result.failures[0].detail}")
+    for kind, path in paths.items():
+        print(f"  {kind}: {path}")
+    return 0 if result.passed else 1

@@ -1,0 +1,31 @@
+"""``view``: the interactive MuJoCo viewer playing a robot trajectory (needs a display;
+without one it says so and suggests ``render``)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("view", help="open the interactive MuJoCo viewer", description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("trajectory", nargs="?", help="robot trajectory .npz (default: the robot standing)")
+    p.add_argument("--robot", help="robot name or MJCF path")
+    p.add_argument("--mode", choices=("free", "fixed"), default="free")
+    p.add_argument("--loop", action="store_true", help="replay until the window is closed")
+    p.add_argument("--actor", help="human actor motion file")
+    p.add_argument("--actor-scale", default="robot")
+    p.add_argument("--actor-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
+    p.add_argument("--actor-yaw", type=float, default=0.0)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ros_free_bridge.commands.check import load_human, placement_from_args
+    from sim.check import CheckConfig
+    from sim.viewer import require_display, view
+
+    require_display()
+    view(args.trajectory, robot=args.robot, check_config=CheckConfig(mode=args.mode), actor=load_human(args.actor),
+         actor_placement=placement_from_args(args), loop=args.loop)
+    return 0

@@ -1,0 +1,287 @@
+"""The virtual robot: a MuJoCo robot that behaves like a servo bus.
+
+Method names mirror ``ros_free_bridge.transports.base.Transport`` (open,
+read_state, write_goal, set_torque, safe_stop, close) so the bridge can wrap it as
+its sim transport; ``sim`` does not import the bridge, so readings come back as
+:class:`VirtualReading`, field for field like the bridge's ``JointState``.
+Units: rad, rad/s, N m, deg C, V; arrays (n,) in the robot's joint (actuator) order.
+
+Time. ``clock="realtime"``: every call advances physics to the wall clock (times
+``speed``), at most ``max_catchup_s`` per call. ``clock="lockstep"``: each
+``write_goal`` advances exactly ``1 / control_hz`` s of physics, as fast as the
+CPU allows (tests, faster-than-real-time runs). A free-standing robot rests in its
+"stand" keyframe, as if on its stand, until torque is first switched on; physics
+starts then.
+
+Servo figures per joint: present position and velocity from MuJoCo; effort = the
+servo's drive torque (actuator force, N m); temperature from a first-order
+thermal model of the motor winding driven by the current the torque needs:
+    I = |tau| / tau_stall * I_stall
+    C dT/dt = I^2 R - (T - T_ambient) / R_th,   C = tau_th / R_th
+with I_stall = 2.1 A (XM430-W350 datasheet: 2.3 A at 12 V, scaled to 11.1 V),
+R = V / I_stall, and R_th = 5 K/W, tau_th = 120 s (our estimates: a servo at stall
+overheats in a few minutes, as XM430s do). Above ``max_temperature_c`` (the
+Dynamixel default shutdown temperature, 80 C) the servo switches its torque off and
+reports "overheating", as a real one does, until :meth:`reboot`.
+
+Faults (:meth:`inject_fault`): ``"stuck"`` locks the joint mechanically where it
+is (a seized gearbox; goals are ignored); ``"torque_limit"`` lowers the servo's
+torque limit to ``value`` N m (a weak battery, a worn motor).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sim.errors import SimError
+
+STOP_POLICIES = ("hold", "limp")
+
+
+@dataclass
+class VirtualReading:
+    """One reading, like the bridge's JointState: arrays (n,) in joint order."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    temperature: np.ndarray
+    voltage: np.ndarray
+    torque_enabled: np.ndarray
+    stamp: float
+    errors: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class VirtualRobotConfig:
+    robot: str = "op3"
+    fixed_base: bool | None = None
+    physics_hz: float = 500.0
+    clock: str = "realtime"  # "realtime" | "lockstep"
+    control_hz: float = 100.0  # lockstep: physics advanced per write_goal = 1 / control_hz
+    speed: float = 1.0  # realtime: multiple of real time
+    max_catchup_s: float = 0.1
+    voltage: float = 11.1
+    ambient_c: float = 25.0
+    stall_current_a: float = 2.1
+    thermal_resistance_k_per_w: float = 5.0
+    thermal_time_constant_s: float = 120.0
+    max_temperature_c: float = 80.0
+    stop_policy: str = "hold"
+
+    def validate(self) -> None:
+        if self.clock not in ("realtime", "lockstep"):
+            raise SimError(f"virtual robot: clock must be 'realtime' or 'lockstep', got {self.clock!r}")
+        for name in ("physics_hz", "control_hz", "speed", "max_catchup_s", "voltage", "stall_current_a",
+                     "thermal_resistance_k_per_w", "thermal_time_constant_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise SimError(f"virtual robot: {name} must be > 0, got {v!r}")
+        if self.stop_policy not in STOP_POLICIES:
+            raise SimError(f"virtual robot: stop_policy must be one of {STOP_POLICIES}, got {self.stop_policy!r}")
+
+
+class VirtualRobot:
+    """A simulated servo bus; see the module docstring for time, figures and faults."""
+
+    def __init__(self, config: VirtualRobotConfig | None = None, clock=time.monotonic):
+        self.config = config = config or VirtualRobotConfig()
+        config.validate()
+        from sim.robots import joint_names
+
+        self.joint_names: tuple[str, ...] = joint_names(config.robot)
+        self._clock = clock
+        self._scene = None
+        self._opened = False
+
+    # -- Transport-like interface --------------------------------------------
+    def open(self) -> None:
+        """Build the scene, stand the robot in its "stand" pose, torque off."""
+        if self._opened:
+            return
+        from sim.scene import Scene, SceneConfig
+
+        cfg = self.config
+        self._scene = sc = Scene(SceneConfig(robot=cfg.robot, fixed_base=cfg.fixed_base, timestep=1.0 / cfg.physics_hz))
+        r, m = sc.robot, sc.model
+        self._n = r.n
+        self._gain = m.actuator_gainprm[r.actuator_ids, 0].copy()
+        self._bias = m.actuator_biasprm[r.actuator_ids, 1].copy()
+        self._force = m.actuator_forcerange[r.actuator_ids].copy()
+        self._range = m.jnt_range[[m.actuator_trnid[a, 0] for a in r.actuator_ids]].copy()
+        self._joint_ids = np.array([m.actuator_trnid[a, 0] for a in r.actuator_ids])
+        self._enabled = np.zeros(self._n, bool)
+        self._temp = np.full(self._n, cfg.ambient_c)
+        self._errors: dict[str, str] = {}
+        self._stuck = np.zeros(self._n, bool)
+        self._started = r.fixed_base  # a free robot rests on its stand until torque comes on
+        self._sim_t = 0.0
+        self._wall0 = self._clock()
+        self._goal = sc.stand_ctrl.copy()
+        for j in range(self._n):
+            self._apply_torque(j, False)
+        sc.data.ctrl[r.actuator_ids] = self._goal
+        self._opened = True
+
+    def read_state(self) -> VirtualReading:
+        self._require_open()
+        self._advance_realtime()
+        r, d = self._scene.robot, self._scene.data
+        n = self._n
+        return VirtualReading(
+            position=d.qpos[r.qpos_adr].copy(), velocity=d.qvel[r.dof_adr].copy(),
+            effort=d.actuator_force[r.actuator_ids].copy(), temperature=self._temp.copy(),
+            voltage=np.full(n, self.config.voltage), torque_enabled=self._enabled.copy(),
+            stamp=self._clock(), errors=dict(self._errors),
+        )
+
+    def write_goal(self, positions) -> None:
+        """Goal positions (n,) rad; clamped to the MJCF range like a servo's position limits."""
+        self._require_open()
+        q = np.asarray(positions, dtype=np.float64)
+        if q.shape != (self._n,):
+            raise SimError(f"virtual robot: write_goal needs {self._n} positions ({', '.join(self.joint_names)}), "
+                           f"got shape {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise SimError("virtual robot: write_goal got NaN or inf; send finite angles in radians")
+        self._goal = np.clip(q, self._range[:, 0], self._range[:, 1])
+        self._scene.data.ctrl[self._scene.robot.actuator_ids] = self._goal
+        if self.config.clock == "lockstep":
+            self.step(1.0 / self.config.control_hz)
+        else:
+            self._advance_realtime()
+
+    def set_torque(self, enabled: bool) -> None:
+        self._require_open()
+        for j in range(self._n):
+            if enabled and self.joint_names[j] in self._errors:
+                continue  # a servo in an error state stays off until reboot
+            self._apply_torque(j, bool(enabled))
+        if enabled and not self._started:
+            self._started = True
+            self._wall0 = self._clock() - self._sim_t / self.config.speed
+
+    def safe_stop(self, policy: str = "hold") -> None:
+        self._require_open()
+        if policy not in STOP_POLICIES:
+            raise SimError(f"virtual robot: stop policy must be one of {STOP_POLICIES}, got {policy!r}")
+        if policy == "hold":
+            present = self._scene.data.qpos[self._scene.robot.qpos_adr].copy()
+            self._goal = np.clip(present, self._range[:, 0], self._range[:, 1])
+            self._scene.data.ctrl[self._scene.robot.actuator_ids] = self._goal
+            self.set_torque(True)
+        else:
+            self.set_torque(False)
+
+    def close(self) -> None:
+        if not self._opened:
+            return
+        try:
+            self.safe_stop(self.config.stop_policy)
+        finally:
+            self._opened = False
+            self._scene = None
+
+    # -- simulation ------------------------------------------------------------
+    @property
+    def scene(self):
+        """The underlying :class:`sim.scene.Scene` (for rendering or inspection)."""
+        self._require_open()
+        return self._scene
+
+    @property
+    def sim_time(self) -> float:
+        return self._sim_t
+
+    def step(self, seconds: float) -> None:
+        """Advance physics by ``seconds`` (rounded to whole physics steps)."""
+        self._require_open()
+        if not self._started:
+            self._sim_t += seconds
+            return
+        import mujoco
+
+        m, d, r = self._scene.model, self._scene.data, self._scene.robot
+        n_steps = int(round(seconds * self.config.physics_hz))
+        dt = 1.0 / self.config.physics_hz
+        for _ in range(n_steps):
+            mujoco.mj_step(m, d)
+            self._heat(d.actuator_force[r.actuator_ids], dt)
+        self._sim_t += n_steps * dt
+
+    def _advance_realtime(self) -> None:
+        if self.config.clock != "realtime":
+            return
+        target = (self._clock() - self._wall0) * self.config.speed
+        lag = target - self._sim_t
+        if lag > self.config.max_catchup_s:  # the caller stalled: skip ahead rather than freeze
+            self._sim_t = target - self.config.max_catchup_s
+            lag = self.config.max_catchup_s
+        if lag >= 1.0 / self.config.physics_hz:
+            self.step(lag)
+
+    def _heat(self, torque: np.ndarray, dt: float) -> None:
+        cfg = self.config
+        current = np.abs(torque) / self._force[:, 1] * cfg.stall_current_a
+        resistance = cfg.voltage / cfg.stall_current_a
+        power = current ** 2 * resistance
+        self._temp += dt / cfg.thermal_time_constant_s * (power * cfg.thermal_resistance_k_per_w - (self._temp - cfg.ambient_c))
+        hot = (self._temp > cfg.max_temperature_c) & self._enabled
+        for j in np.flatnonzero(hot):
+            self._errors[self.joint_names[j]] = "overheating"
+            self._apply_torque(int(j), False)
+
+    def _apply_torque(self, j: int, on: bool) -> None:
+        m, a = self._scene.model, self._scene.robot.actuator_ids[j]
+        m.actuator_gainprm[a, 0] = self._gain[j] if on else 0.0
+        m.actuator_biasprm[a, 1] = self._bias[j] if on else 0.0
+        self._enabled[j] = on
+
+    # -- faults ----------------------------------------------------------------
+    def inject_fault(self, joint: str, kind: str, value: float | None = None) -> None:
+        """``kind`` "stuck" (lock the joint where it is) or "torque_limit" (limit to ``value`` N m)."""
+        self._require_open()
+        j = self._index(joint)
+        m, d, r = self._scene.model, self._scene.data, self._scene.robot
+        if kind == "stuck":
+            q = float(d.qpos[r.qpos_adr[j]])
+            m.jnt_range[self._joint_ids[j]] = (q - 1e-4, q + 1e-4)
+            self._stuck[j] = True
+        elif kind == "torque_limit":
+            if value is None or not np.isfinite(value) or value < 0:
+                raise SimError(f"virtual robot: torque_limit fault needs value >= 0 N m, got {value!r}")
+            m.actuator_forcerange[r.actuator_ids[j]] = (-float(value), float(value))
+        else:
+            raise SimError(f"virtual robot: unknown fault {kind!r}; use 'stuck' or 'torque_limit'")
+
+    def clear_faults(self) -> None:
+        self._require_open()
+        m, r = self._scene.model, self._scene.robot
+        m.jnt_range[self._joint_ids] = self._range
+        m.actuator_forcerange[r.actuator_ids] = self._force
+        self._stuck[:] = False
+
+    def reboot(self, joint: str) -> None:
+        """Clear a servo's error (like the Dynamixel Reboot instruction); torque stays off."""
+        self._require_open()
+        self._errors.pop(self.joint_names[self._index(joint)], None)
+
+    def _index(self, joint: str) -> int:
+        try:
+            return self.joint_names.index(joint)
+        except ValueError:
+            raise SimError(f"virtual robot: unknown joint {joint!r}; joints are {', '.join(self.joint_names)}") from None
+
+    def _require_open(self) -> None:
+        if not self._opened:
+            raise SimError("virtual robot: call open() first (or it was closed)")
+
+    def __enter__(self) -> "VirtualRobot":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
