@@ -49,6 +49,7 @@ from dualflow.motion.io.units import (
     detect_scale,
     estimate_height,
 )
+from dualflow.motion.rotations import align_vector_sets, swing_rotation
 from dualflow.motion.skeleton import JOINT_NAMES, N_JOINTS, PARENTS, REST_POSE
 
 
@@ -182,37 +183,6 @@ _END_SITES = {
 _CHILDREN = {j: [c for c in range(N_JOINTS) if PARENTS[c] == j] for j in range(N_JOINTS)}
 
 
-def _shortest_arc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations taking unit vectors a (T, 3) onto unit vectors b (T, 3) by the
-    smallest angle (Rodrigues: R = I + [v]x + [v]x^2 / (1 + c), v = a x b, c = a.b);
-    for opposite vectors, a half turn about an axis perpendicular to a."""
-    v = np.cross(a, b)
-    c = np.einsum("ti,ti->t", a, b)
-    flip = c < -1.0 + 1e-9
-    if flip.any():
-        helper = np.where(np.abs(a[flip, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        axis = np.cross(a[flip], helper)
-        axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    vx = np.zeros(a.shape[:-1] + (3, 3))
-    vx[..., 0, 1], vx[..., 0, 2], vx[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    vx[..., 1, 0], vx[..., 2, 0], vx[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    denom = np.where(flip, 1.0, 1.0 + c)[:, None, None]
-    rot = np.eye(3) + vx + vx @ vx / denom
-    if flip.any():
-        rot[flip] = 2.0 * np.einsum("ti,tj->tij", axis, axis) - np.eye(3)
-    return rot
-
-
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations R minimising sum_c |R src_c - dst_c|^2; src (C, 3), dst (T, C, 3)."""
-    h = np.einsum("ci,tcj->tij", src, dst)  # sum_c src_c dst_c^T
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.swapaxes(vt, -1, -2) @ np.swapaxes(u, -1, -2)))
-    fix = np.ones(h.shape[:-1])
-    fix[:, -1] = d
-    return np.swapaxes(vt, -1, -2) @ (fix[..., None] * np.swapaxes(u, -1, -2))
-
-
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return v / np.where(n > 1e-12, n, 1.0)
@@ -243,17 +213,17 @@ def motion_to_bvh(motion: Motion, translations: str = "root") -> BvhClip:
         kids = _CHILDREN[j]
         if len(kids) > 1:
             dst = p[:, kids] - p[:, j : j + 1]  # (T, C, 3)
-            g = _kabsch(offsets[kids], dst)
+            g = align_vector_sets(np.broadcast_to(offsets[kids], dst.shape), dst)
             # replace the rest-layout offsets by the clip's mean body-frame vectors
             offsets[kids] = np.einsum("tba,tcb->tca", g, dst).mean(axis=0)
-            glob[:, j] = _kabsch(offsets[kids], dst)
+            glob[:, j] = align_vector_sets(np.broadcast_to(offsets[kids], dst.shape), dst)
         elif len(kids) == 1:
             c = kids[0]
             carried = _unit(np.einsum("tab,b->ta", g_parent, offsets[c]))
             observed = p[:, c] - p[:, j]
             ok = np.linalg.norm(observed, axis=-1) > 1e-9
             target = np.where(ok[:, None], _unit(observed), carried)
-            glob[:, j] = _shortest_arc(carried, target) @ g_parent
+            glob[:, j] = swing_rotation(carried, target) @ g_parent
         else:
             glob[:, j] = g_parent
 

@@ -130,6 +130,9 @@ BUILTIN_MAPS: dict[str, dict] = {
     "smpl": SMPL,
 }
 
+#: Detection tries the built-in maps in this order, most specific first.
+DETECTION_ORDER: tuple[str, ...] = ("cmu", "mixamo_spine3", "mixamo", "smpl")
+
 
 @dataclass(frozen=True)
 class JointMap:
@@ -228,21 +231,20 @@ def load_joint_map(path: str | os.PathLike) -> JointMap:
 def detect_joint_map(names: Sequence[str], source: str = "<bvh>") -> JointMap:
     """The built-in map that fits a hierarchy's joint names.
 
-    Among the maps whose source joints all exist, the one using the most distinct
-    joints wins (so ``mixamo_spine3`` beats ``mixamo`` when Spine3 exists). When
-    none fits, the error lists what the closest map misses and how to fix it.
+    The first map in :data:`DETECTION_ORDER` whose source joints all exist wins;
+    the order puts the more specific skeletons first (a four-joint spine also
+    has the joints of the three-joint one). When none fits, the error lists what
+    the closest map misses and how to fix it.
     """
     present = set(names)
-    fits, closest = [], None
-    for key in BUILTIN_MAPS:
+    closest = None
+    for key in DETECTION_ORDER:
         jm = builtin_map(key)
         missing = jm.source_names() - present
         if not missing:
-            fits.append((len(jm.source_names()), key, jm))
-        elif closest is None or len(missing) < len(closest[1]):
+            return jm
+        if closest is None or len(missing) < len(closest[1]):
             closest = (key, missing)
-    if fits:
-        return max(fits, key=lambda f: f[0])[2]
     key, missing = closest
     raise DualFlowError(
         f"{source}: unknown skeleton; no built-in joint map fits (closest {key!r} misses "
