@@ -55,6 +55,8 @@ def register(subparsers) -> None:
     s.add_argument("--bauds", default=",".join(str(b) for b in SCAN_BAUDS), help="comma-separated baud rates")
     s.add_argument("--protocols", default="2,1", help="protocols to try: 2,1 (default), 2 or 1")
     s.add_argument("--ids", default="0-252", help="ID range for protocol 1.0 unicast pings, e.g. 0-30 (2.0 uses broadcast ping)")
+    s.add_argument("--latency-ms", type=float, default=4.0,
+                   help="reply latency allowed per ping, ms (default 4; the timeout adds the bytes' time and 3 ms)")
     s.set_defaults(func=run_scan)
 
     s = sub.add_parser("provision", help="write EEPROM/RAM settings from CONFIG (torque off), read back, show the diff")
@@ -240,7 +242,7 @@ def run_scan(args) -> int:
         for protocol in protocols:
             for baud in bauds:
                 print(f"protocol {protocol}.0 at {baud} bps ...", file=sys.stderr, flush=True)
-                dxl = DynamixelBus(port, baud, float(protocol), retries=0, latency_ms=2.0)
+                dxl = DynamixelBus(port, baud, float(protocol), retries=0, latency_ms=args.latency_ms)
                 with dxl:
                     if protocol == 2:
                         found, result = dxl.call(dxl.ph.broadcastPing)
@@ -248,9 +250,11 @@ def run_scan(args) -> int:
                     else:
                         hits = []
                         for sid in ids:
-                            model, result, _ = dxl.call(dxl.ph.ping, sid)
-                            if result == 0:
-                                hits.append((sid, model, None))
+                            for _try in range(2):  # one retry: a missed reply must not hide a servo
+                                model, result, _ = dxl.call(dxl.ph.ping, sid)
+                                if result == 0:
+                                    hits.append((sid, model, None))
+                                    break
                     for sid, number, fw in hits:
                         m = known.get((number, protocol))
                         if fw is None and m is not None and m.has("firmware_version"):
