@@ -561,15 +561,13 @@ class DynamixelBusEmulator:
             owners.append(s)
         if not parts:
             return []
-        full = dp.encode_fast_status(parts)
-        raw = bytearray(full)
+        announced = 1 + sum(4 + length for _, _, length in items)
+        raw = bytearray(dp.encode_fast_status(parts, announced))
         pos = 8
         for (err, i, data), s in zip(parts, owners):
             if s.faults.take("corrupt_replies"):
                 raw[pos + 2 if data else pos] ^= 0xFF  # flip a byte; the packet CRC no longer holds
             pos += 4 + len(data)
-        if broken:
-            raw = raw[:pos]
         # the whole packet goes out at once; its timing is charged to the last servo in it
         return [(owners[-1], bytes(raw))]
 

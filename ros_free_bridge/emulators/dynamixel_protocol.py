@@ -144,13 +144,16 @@ def encode_status(packet_id: int, error: int, params: bytes = b"", *, stuffing: 
     return _frame2(packet_id, stuff(body) if stuffing else body)
 
 
-def encode_fast_status(parts: list[tuple[int, int, bytes]]) -> bytes:
+def encode_fast_status(parts: list[tuple[int, int, bytes]], length: int | None = None) -> bytes:
     """The single status packet of a Fast Sync/Bulk Read: ``parts`` = [(error, id, data)].
 
     Each part is followed by the CRC of the packet up to and including that part,
-    as every servo in the chain appends its own piece. Never stuffed.
+    as every servo in the chain appends its own piece. Never stuffed. ``length``
+    overrides the LEN field: the first servo announces the whole reply, so a chain
+    that breaks part-way leaves a packet shorter than its LEN says.
     """
-    length = 1 + sum(4 + len(data) for _, _, data in parts)
+    if length is None:
+        length = 1 + sum(4 + len(data) for _, _, data in parts)
     out = bytearray(HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS)))
     for error, servo_id, data in parts:
         out += bytes((error & 0xFF, servo_id & 0xFF)) + bytes(data)

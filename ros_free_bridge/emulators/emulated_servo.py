@@ -353,6 +353,8 @@ class EmulatedServo:
         for r in regs:
             value = r.decode(data[r.address - address:r.end - address])
             if r.name == "goal_position":
+                if self.model.protocol == 1 and not r.in_range(value):
+                    return WriteResult("range")
                 lo, hi = self._goal_limits()
                 if lo is not None and not lo <= value <= hi:
                     return WriteResult("limit")
@@ -380,9 +382,13 @@ class EmulatedServo:
         data = bytes(data)
         result = self.check_write(address, data)
         goal_reg = self._regs["goal_position"]
-        if address <= goal_reg.address and goal_reg.end <= address + len(data):
-            ticks = goal_reg.decode(data[goal_reg.address - address:goal_reg.end - address])
-            self._record_goal(ticks, result.ok, instruction)
+        if address < goal_reg.end and goal_reg.address < address + len(data):
+            # record any write touching Goal Position; a partial one as the bytes it
+            # would have left in the register (it is refused with a length error)
+            merged = bytearray(self._mem[goal_reg.address:goal_reg.end])
+            for k in range(max(address, goal_reg.address), min(address + len(data), goal_reg.end)):
+                merged[k - goal_reg.address] = data[k - address]
+            self._record_goal(goal_reg.decode(bytes(merged)), result.ok, instruction)
         if not result.ok:
             return result
         was_on = self.torque_enabled
