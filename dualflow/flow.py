@@ -233,15 +233,23 @@ def guided_velocity(
 
     v = v_u + s (v_c - v_u), v_c with ``cond``, v_u with text and music dropped; s = 1 is
     plain conditional sampling (one model call). State layout: interactive (B, T, 524) =
-    [x_a; x_b]; reactive (B, T, 262) = x_b, with the clean actor ``x_actor`` fixed.
+    [x_a; x_b]; reactive (B, T, 262) = x_b, with the clean actor ``x_actor`` fixed (its stream
+    is computed once per conditioning variant and cached for all steps).
     """
     cond = cond or Conditions()
     uncond = cond.unconditional()
     d = model.config.motion_dim
+    # Reactive: the actor stream is independent of t and of the reactor, so it is computed once
+    # per conditioning variant and reused at every step (model.actor_context).
+    contexts: dict[int, object] = {}
 
     def one(x: torch.Tensor, t: torch.Tensor, c: Conditions) -> torch.Tensor:
         if mode == "reactive":
-            return model(x_actor, x, t, c, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask)[1]
+            key = id(c)
+            if key not in contexts:
+                contexts[key] = model.actor_context(x_actor, c, frame_mask=frame_mask)
+            return model(x_actor, x, t, c, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask,
+                         actor_context=contexts[key])[1]
         v_a, v_b = model(x[..., :d], x[..., d:], t, c, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask)
         return torch.cat([v_a, v_b], -1)
 

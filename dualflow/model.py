@@ -23,6 +23,8 @@ Public API (stable; the trainer, the sampler and the streamer build on it)
     frame_mask  (B, T) bool, True on real frames (padding at the end of a clip); optional.
   returns (v_a, v_b), each (B, T, 262). In reactive mode x_a is the clean actor motion and
   v_a is exactly zero (paper app. D.3: v = [0; v_reactor]).
+  actor_context: optional ``model.actor_context(x_a, cond, frame_mask=...)`` (reactive only):
+  the actor stream does not depend on t or on the reactor, so samplers compute it once.
 ``sample_condition_drop(batch, generator)``  CFG drop masks: both 10 %, text 20 %, music 20 %.
 ``count_parameters(config)`` / ``parameter_report()`` / ``python -m dualflow.model``.
 
@@ -310,30 +312,33 @@ class FeedForward(nn.Module):
 
 @dataclass
 class BlockMasks:
-    """Boolean attention masks for one forward pass (True = may attend).
+    """Boolean attention masks of one stream pass (True = may attend).
 
-    self_mask: (N, 1, T, T) or None (= full); cross_mask: (B, 1, T, T) for the reactor/other
-    person's keys; music/retrieval masks are full (None). reactive: skip the actor's motion
-    cross-attention and use causal convolutions.
+    self_mask: (N, 1, T, T), (T, T) or None (= full); cross_mask: the same for the motion
+    cross-attention to the other person's keys; causal: left-padded convolutions;
+    frame_mask: (N, T) float, 1 on real frames (zeroes padding before the convolutions).
     """
 
     self_mask: torch.Tensor | None
     cross_mask: torch.Tensor | None
-    reactive: bool
-    frame_mask: torch.Tensor | None  # (N, T) over the stacked persons
+    causal: bool
+    frame_mask: torch.Tensor | None
 
 
 class DualFlowBlock(nn.Module):
-    """One DualFlow block applied to both persons with shared weights.
+    """One DualFlow block, applied to each person with shared weights.
 
-    Stacked input z (2B, T, W): rows [0, B) are person A, rows [B, 2B) are person B.
       z'      = z + sum_k gamma_k GELU(Conv_k(z))                       multi-scale conv
       z^(1)   = z' + Attn(LN(z', z_d))                                  self-attention   (11)
       z^(2)   = z^(1) + Attn(Q=LN(z^(1), z_d), K=V=z_m)                 music cross      (12)
       z^(3)_a = z^(2)_a + Attn(Q=LN(z^(2)_a, z_d), K=V=LN0(z^(2)_b))    motion cross     (13)
-                (reactive: only the reactor, with the look-ahead mask; the actor skips it)
       z^(4)   = z^(3) + Attn(Q=LN(z^(3), z_d), K=V=z_R)                 retrieval cross  (14)
       z^(j+1) = z^(4) + FFN(LN(z^(4), z_d))                             feed-forward     (15)
+
+    The three stages are separate methods so that the model can run the two persons stacked
+    along the batch (interactive) or one after the other (reactive: the actor first, without
+    motion cross-attention; then the reactor, whose causal cross-attention reads the actor's
+    LN0(z^(2)_a) of the same block).
     """
 
     def __init__(self, cfg: DualFlowConfig):
@@ -349,33 +354,47 @@ class DualFlowBlock(nn.Module):
         self.ffn = FeedForward(w, cfg.ff_dim, cfg.dropout)
         self.drop = nn.Dropout(cfg.dropout)
 
-    def forward(self, z, z_d, z_m, z_r, masks: BlockMasks):
-        n_person = z.shape[0] // 2
-        z = self.conv(z, causal=masks.reactive, frame_mask=masks.frame_mask)
+    def temporal(self, z, z_d, z_m, masks: BlockMasks) -> torch.Tensor:
+        """Conv, self-attention (11) and music cross-attention (12): z^(j) -> z^(j,2)."""
+        z = self.conv(z, causal=masks.causal, frame_mask=masks.frame_mask)
         h = self.norms[0](z, z_d)
         z = z + self.drop(self.self_attn(h, h, masks.self_mask))
-        z = z + self.drop(self.music_attn(self.norms[1](z, z_d), z_m, None))
-        # Motion cross-attention: each person queries the other's (j,2) latent.
-        q = self.norms[2](z, z_d)
-        other = self.other_norm(z)
-        if masks.reactive:
-            # Actor rows [0, B) are conditioning only; the reactor rows attend causally to them.
-            upd = self.motion_attn(q[n_person:], other[:n_person], masks.cross_mask)
-            z = torch.cat([z[:n_person], z[n_person:] + self.drop(upd)], dim=0)
-        else:
-            swapped = torch.cat([other[n_person:], other[:n_person]], dim=0)
-            cross = masks.cross_mask
-            if cross is not None:
-                cross = torch.cat([cross, cross], dim=0)
-            z = z + self.drop(self.motion_attn(q, swapped, cross))
+        return z + self.drop(self.music_attn(self.norms[1](z, z_d), z_m, None))
+
+    def keys_of(self, z2: torch.Tensor) -> torch.Tensor:
+        """What the other person's motion cross-attention reads: LN0(z^(j,2))."""
+        return self.other_norm(z2)
+
+    def motion_cross(self, z2, z_d, other_keys, mask) -> torch.Tensor:
+        """z^(3) = z^(2) + Attn(Q=LN(z^(2), z_d), K=V=other_keys)  (13; causal in reactive mode)."""
+        return z2 + self.drop(self.motion_attn(self.norms[2](z2, z_d), other_keys, mask))
+
+    def finish(self, z, z_d, z_r) -> torch.Tensor:
+        """Retrieval cross-attention (14) and feed-forward (15): z^(j,3) -> z^(j+1)."""
         z = z + self.drop(self.retrieval_attn(self.norms[3](z, z_d), z_r, None))
-        z = z + self.drop(self.ffn(self.norms[4](z, z_d)))
-        return z
+        return z + self.drop(self.ffn(self.norms[4](z, z_d)))
+
+    def forward(self, z, z_d, z_m, z_r, masks: BlockMasks) -> torch.Tensor:
+        """Interactive: stacked z (2B, T, W), rows [0, B) person A, [B, 2B) person B."""
+        n = z.shape[0] // 2
+        z2 = self.temporal(z, z_d, z_m, masks)
+        keys = self.keys_of(z2)
+        swapped = torch.cat([keys[n:], keys[:n]], dim=0)
+        z3 = self.motion_cross(z2, z_d, swapped, masks.cross_mask)
+        return self.finish(z3, z_d, z_r)
 
 
 # ---------------------------------------------------------------------------------------------
 # The model
 # ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ActorContext:
+    """The reactive actor stream's per-block keys/values LN0(z^(j,2)_a), each (B, T, W)."""
+
+    keys: list[torch.Tensor]
+    shape: tuple[int, int]
 
 
 def look_ahead_mask(t_query: int, t_key: int, look_ahead: int, device=None) -> torch.Tensor:
@@ -478,6 +497,54 @@ class DualFlow(nn.Module):
         if frame_mask is not None and tuple(frame_mask.shape) != (b, t):
             raise DualFlowError(f"frame_mask must be (B, T) = ({b}, {t}) bool, got {tuple(frame_mask.shape)}")
 
+    def _pe(self, n_frames: int, device) -> torch.Tensor:
+        return sinusoidal_encoding(torch.arange(n_frames, device=device), self.config.width)
+
+    @staticmethod
+    def _frame_mask(frame_mask, dtype):
+        return None if frame_mask is None else frame_mask.to(dtype)
+
+    def actor_context(
+        self,
+        x_a: torch.Tensor,
+        cond: Conditions | None = None,
+        *,
+        frame_mask: torch.Tensor | None = None,
+    ) -> ActorContext:
+        """Run the clean actor through the reactive-mode actor stream once.
+
+        x_a (B, T, 262) normalised clean actor motion. Returns, per block, the keys/values
+        LN0(z^(j,2)_a) (B, T, W) the reactor's causal cross-attention reads. The actor stream
+        is causal (self-attention j <= i, left-padded convolutions), never reads the reactor and
+        sits at flow time 1, so it does not change over the ODE steps of a sample: samplers
+        compute it once per conditioning (``forward(..., actor_context=...)``).
+        """
+        cfg = self.config
+        cond = cond or Conditions()
+        self._check(x_a, x_a, cond, "reactive", 0, frame_mask)
+        b, n_frames = x_a.shape[:2]
+        device = x_a.device
+        z_d = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index("reactive")]
+        z_d = z_d + self.time_embedding(torch.ones(b, dtype=x_a.dtype, device=device))
+        z_m = self.music_latent(cond, b, n_frames)
+        z_r = self.retrieval_latent(cond, b)
+        masks = self._reactive_masks(n_frames, 0, frame_mask, device, x_a.dtype)
+        z = self.in_a(x_a) + self._pe(n_frames, device)
+        keys = []
+        for block in self.blocks:
+            z2 = block.temporal(z, z_d, z_m, masks)
+            keys.append(block.keys_of(z2))
+            z = block.finish(z2, z_d, z_r)
+        return ActorContext(keys=keys, shape=(b, n_frames))
+
+    def _reactive_masks(self, n_frames, look_ahead, frame_mask, device, dtype) -> BlockMasks:
+        causal = look_ahead_mask(n_frames, n_frames, 0, device)
+        cross = look_ahead_mask(n_frames, n_frames, look_ahead, device)
+        if frame_mask is not None:
+            key_mask = frame_mask.bool()[:, None, None, :]  # (B, 1, 1, T)
+            causal, cross = causal & key_mask, cross & key_mask
+        return BlockMasks(causal, cross, causal=True, frame_mask=self._frame_mask(frame_mask, dtype))
+
     def forward(
         self,
         x_a: torch.Tensor,
@@ -488,54 +555,54 @@ class DualFlow(nn.Module):
         mode: str = "interactive",
         look_ahead: int | None = None,
         frame_mask: torch.Tensor | None = None,
+        actor_context: ActorContext | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Velocities (v_a, v_b), each (B, T, 262); v_a == 0 in reactive mode (app. D.3)."""
+        """Velocities (v_a, v_b), each (B, T, 262); v_a == 0 in reactive mode (app. D.3).
+
+        actor_context (reactive only): the result of ``actor_context(x_a, cond, frame_mask=...)``
+        for the same x_a, cond and frame_mask, to skip recomputing the actor stream.
+        """
         cfg = self.config
         cond = cond or Conditions()
         look_ahead = cfg.look_ahead if look_ahead is None else int(look_ahead)
         self._check(x_a, x_b, cond, mode, look_ahead, frame_mask)
-        reactive = mode == "reactive"
         b, n_frames = x_a.shape[:2]
         device = x_a.device
         t = torch.as_tensor(t, dtype=x_a.dtype, device=device).reshape(-1).expand(b)
+        # z_d = text + time + task, the conditioning of every adaptive LayerNorm.
+        z_text = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index(mode)]
+        z_m = self.music_latent(cond, b, n_frames)
+        z_r = self.retrieval_latent(cond, b)
+        pe = self._pe(n_frames, device)
 
-        # Conditioning latent z_d per person row: text + time + task. The clean actor of the
-        # reactive task sits at flow time 1.
-        t_a = torch.ones_like(t) if reactive else t
-        z_text = self.text_latent(cond, b, device)
-        z_task = self.task_embed.weight[MODES.index(mode)]
-        z_d = torch.cat([z_text + self.time_embedding(t_a), z_text + self.time_embedding(t)], 0) + z_task
-        z_m = self.music_latent(cond, b, n_frames).repeat(2, 1, 1)
-        z_r = self.retrieval_latent(cond, b).repeat(2, 1, 1)
+        if mode == "reactive":
+            if actor_context is None:
+                actor_context = self.actor_context(x_a, cond, frame_mask=frame_mask)
+            elif actor_context.shape != (b, n_frames) or len(actor_context.keys) != len(self.blocks):
+                raise DualFlowError(
+                    f"actor_context was built for (B, T) = {actor_context.shape}, but x_a is {(b, n_frames)}; "
+                    "rebuild it with model.actor_context(x_a, cond)"
+                )
+            z_d = z_text + self.time_embedding(t)
+            masks = self._reactive_masks(n_frames, look_ahead, frame_mask, device, x_b.dtype)
+            z = self.in_b(x_b) + pe
+            for block, keys in zip(self.blocks, actor_context.keys):
+                z2 = block.temporal(z, z_d, z_m, masks)
+                z3 = block.motion_cross(z2, z_d, keys, masks.cross_mask)
+                z = block.finish(z3, z_d, z_r)
+            return torch.zeros_like(x_a), self.out_b(self.out_norm(z))
 
-        # Input projections + positional encoding; stack persons along the batch.
-        pe = sinusoidal_encoding(torch.arange(n_frames, device=device), cfg.width)
+        # Interactive: both persons noised at the same t, stacked along the batch.
+        z_d = (z_text + self.time_embedding(t)).repeat(2, 1)
+        key_mask = None if frame_mask is None else frame_mask.bool()[:, None, None, :].repeat(2, 1, 1, 1)
+        fm = self._frame_mask(frame_mask, x_a.dtype)
+        masks = BlockMasks(key_mask, key_mask, causal=False, frame_mask=None if fm is None else fm.repeat(2, 1))
         z = torch.cat([self.in_a(x_a), self.in_b(x_b)], 0) + pe
-
-        # Masks (True = may attend).
-        key_mask = None if frame_mask is None else frame_mask.bool()[:, None, None, :]  # (B,1,1,T)
-        if reactive:
-            causal = look_ahead_mask(n_frames, n_frames, 0, device)
-            cross = look_ahead_mask(n_frames, n_frames, look_ahead, device)
-            self_mask = causal if key_mask is None else causal & key_mask.repeat(2, 1, 1, 1)
-            cross_mask = cross if key_mask is None else cross & key_mask
-        else:
-            self_mask = None if key_mask is None else key_mask.repeat(2, 1, 1, 1)
-            cross_mask = key_mask
-        masks = BlockMasks(
-            self_mask=self_mask,
-            cross_mask=cross_mask,
-            reactive=reactive,
-            frame_mask=None if frame_mask is None else frame_mask.to(z.dtype).repeat(2, 1),
-        )
-
+        z_m, z_r = z_m.repeat(2, 1, 1), z_r.repeat(2, 1, 1)
         for block in self.blocks:
             z = block(z, z_d, z_m, z_r, masks)
-
         z = self.out_norm(z)
-        v_b = self.out_b(z[b:])
-        v_a = torch.zeros_like(x_a) if reactive else self.out_a(z[:b])
-        return v_a, v_b
+        return self.out_a(z[:b]), self.out_b(z[b:])
 
 
 # ---------------------------------------------------------------------------------------------

@@ -207,3 +207,27 @@ def test_a_few_training_steps_reduce_the_flow_loss():
     flow_training_step(m, x_a, x_b, cond, mode="interactive").loss.backward()
     missing = {n for n, p in m.named_parameters() if p.grad is None or not p.grad.any()}
     assert missing <= {"null_text", "null_music", "null_retrieval"}, missing
+
+
+def test_cached_actor_context_gives_the_same_reactive_field(model):
+    x_a, x_b = _x()
+    cond = _cond()
+    ctx = model.actor_context(x_a, cond)
+    assert len(ctx.keys) == model.config.n_blocks and ctx.keys[0].shape == (B, T, 32)
+    for t in (0.1, 0.8):
+        ref = model(x_a, x_b, t, cond, mode="reactive")[1]
+        cached = model(x_a, x_b, t, cond, mode="reactive", actor_context=ctx)[1]
+        torch.testing.assert_close(cached, ref)
+    with pytest.raises(DualFlowError, match="actor_context"):
+        model(x_a[:, :8], x_b[:, :8], 0.5, Conditions(), mode="reactive", actor_context=ctx)
+
+
+def test_reactive_sampler_computes_the_actor_stream_once_per_condition(model, monkeypatch):
+    from dualflow.flow import generate
+
+    calls = []
+    original = model.actor_context
+    monkeypatch.setattr(model, "actor_context", lambda *a, **k: calls.append(1) or original(*a, **k))
+    x_a, _ = _x()
+    generate(model, T, _cond(), mode="reactive", x_actor=x_a, steps=4, cfg_scale=2.0)
+    assert len(calls) == 2  # conditional + unconditional, not 2 x 4 steps
