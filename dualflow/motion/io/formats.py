@@ -91,10 +91,18 @@ def _axes(opts: dict, default: str) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # npz
 # ---------------------------------------------------------------------------
+def _magic(path: Path, prefix: bytes, what: str) -> None:
+    with open(path, "rb") as f:
+        head = f.read(len(prefix))
+    if head != prefix:
+        raise DualFlowError(f"{path}: not a readable {what} file (wrong header); is it really {what}?")
+
+
 def _open_npz(path: Path):
+    _magic(path, b"PK", ".npz")
     try:
         return np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
         raise DualFlowError(f"{path}: not a readable .npz file ({exc}); is it truncated?") from None
 
 
@@ -202,6 +210,7 @@ def _features():
 
 def _read_npy(path: Path, opts: dict):
     source = str(path)
+    _magic(path, b"\x93NUMPY", ".npy")
     try:
         arr = np.load(path, allow_pickle=False)
     except ValueError as exc:
