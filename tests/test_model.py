@@ -231,3 +231,13 @@ def test_reactive_sampler_computes_the_actor_stream_once_per_condition(model, mo
     x_a, _ = _x()
     generate(model, T, _cond(), mode="reactive", x_actor=x_a, steps=4, cfg_scale=2.0)
     assert len(calls) == 2  # conditional + unconditional, not 2 x 4 steps
+
+
+def test_parameter_breakdown_adds_up():
+    from dualflow.model import parameter_breakdown
+
+    parts = parameter_breakdown("tiny")
+    assert sum(parts.values()) == count_parameters("tiny")
+    cfg = DualFlowConfig.preset("tiny")
+    conv = cfg.n_blocks * sum(cfg.width * cfg.width * k + cfg.width for k in cfg.conv_kernels) + cfg.n_blocks * 3
+    assert parts["temporal convolutions"] == conv
