@@ -43,9 +43,14 @@ from firmware_cfg.errors import ConfigError
 #: Folder holding one YAML file per servo model.
 MODELS_DIR = Path(__file__).resolve().parent / "servo_models"
 
+_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 _ACCESS = ("R", "RW")
 _AREAS = ("EEPROM", "RAM")
 _RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+
+#: Relative baud-rate mismatch a UART still decodes (the e-Manual's tables list errors
+#: of up to about 3 % as usable).
+BAUD_TOLERANCE = 0.03
 
 
 @dataclass(frozen=True)
@@ -238,10 +243,12 @@ class ServoModel:
 
     # ---------------------------------------------------------------- baud
     def baud_to_register(self, baud: int) -> int:
-        """Baud Rate register value for ``baud`` bps; ConfigError if the model lacks it."""
-        for value, bps in self.baud_rates.items():
-            if bps == baud:
-                return value
+        """Baud Rate register value for ``baud`` bps: the listed rate nearest to it within
+        :data:`BAUD_TOLERANCE` (protocol 1.0 rates are 2 Mbps / (value + 1), so 57600 bps
+        maps to 57142); ConfigError if the model has none that close."""
+        value, bps = min(self.baud_rates.items(), key=lambda kv: abs(kv[1] - baud))
+        if abs(bps - baud) <= BAUD_TOLERANCE * baud:
+            return value
         raise ConfigError(
             f"servo model {self.name} does not support {baud} bps "
             f"(supported: {', '.join(str(b) for b in sorted(set(self.baud_rates.values())))})"
@@ -354,7 +361,7 @@ def load_servo_model_file(path: str | Path) -> ServoModel:
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read servo model file ({exc.strerror})") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_SAFE_LOADER)  # safe loader (libyaml's when present)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from None
     return parse_servo_model(data, str(path))

@@ -367,3 +367,10 @@ def test_mixed_protocol_bus_answers_each_protocol_separately():
         assert ph2.ping(port, 2)[1] == sdk.COMM_RX_TIMEOUT
         assert ph1.ping(port, 2) == (12, sdk.COMM_SUCCESS, 0)
         assert ph1.ping(port, 1)[1] == sdk.COMM_RX_TIMEOUT
+
+
+def test_protocol1_servo_at_57600_answers_a_host_within_uart_tolerance():
+    # AX-12A Baud Rate 34 is 2 Mbps / 35 = 57142 bps: 0.8 % off the host's 57600.
+    with bus([(1, "AX-12A")], baud=57600, protocol=1) as (emu, port, ph):
+        assert emu.read_register(1, "baud_rate") == 34
+        assert ph.ping(port, 1) == (12, sdk.COMM_SUCCESS, 0)

@@ -31,7 +31,8 @@ What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
 - per-servo control tables, write rules (EEPROM lock while torque is on, access/range/limit
   errors), motor model, hardware errors and alert bit: see :mod:`.emulated_servo`;
 - baud: a servo only hears the host when the pty's baud setting (what the host set with
-  termios) equals its Baud Rate register, as a wrong baud gives garbage on a real bus
+  termios) is within 3 % of its Baud Rate register's rate, as a wrong baud gives garbage
+  on a real bus
   (``match_baud=False`` turns this off); a pty itself ignores the baud rate;
 - wire timing (``wire_timing=True``): each instruction occupies the bus for its bytes at
   10 bits per byte at the baud rate; each reply is written to the pty when its last byte
@@ -73,7 +74,7 @@ import tty
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
-from firmware_cfg.servo_models import load_servo_model
+from firmware_cfg.servo_models import BAUD_TOLERANCE, load_servo_model
 from ros_free_bridge.emulators import dynamixel_protocol as dp
 from ros_free_bridge.emulators.emulated_servo import (
     EmulatedServo,
@@ -391,7 +392,8 @@ class DynamixelBusEmulator:
         for s in self._servos:
             if s.protocol != protocol or s.faults.disconnected or now < s.booting_until:
                 continue
-            if host_baud is not None and s.baud() != host_baud:
+            servo_baud = s.baud()
+            if host_baud is not None and (servo_baud is None or abs(servo_baud - host_baud) > BAUD_TOLERANCE * host_baud):
                 continue
             out[s.servo_id] = s
         return out

@@ -259,7 +259,9 @@ class EmulatedServo:
             if mode == 3:
                 step = max(m.position.min_tick - self._pos, min(m.position.max_tick - self._pos, step))
             self._pos += step
-            velocity_ticks_s = step / dt
+            # the velocity at the end of the interval: zero if it arrived before the end
+            arrived = mode != 1 and abs(step) < v_cap * dt * (1.0 - 1e-9)
+            velocity_ticks_s = 0.0 if arrived else step / dt
         # overload: sustained stall current
         if abs(current_a) >= 0.95 * m.ratings.stall_current_a:
             self._stall_time += dt
