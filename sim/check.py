@@ -42,6 +42,9 @@ from sim.errors import SimError
 from sim.human_figure import Placement
 from sim.scene import Scene, SceneConfig
 
+#: Robot-human distances are measured up to this many metres; farther reads as the cap.
+HUMAN_DISTANCE_CAP = 0.1
+
 REASONS = ("joint_limit", "speed_limit", "fall", "self_collision", "human_penetration", "ground_penetration",
            "foot_slip", "balance", "torque_saturation", "tracking_error")
 
@@ -274,7 +277,7 @@ class Checker:
                     on_prev[i] = on
                 foot_prev = fxy.copy()
             if actor is not None:
-                human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids)
+                human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids, HUMAN_DISTANCE_CAP)
             if free and fall_k is None and (root_h[k] < cfg.fall_height_frac * stand_h or tilt[k] > cfg.fall_tilt_deg
                                             or non_foot[k]):
                 fall_k = k

@@ -63,7 +63,7 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
               f"physics {m['physics_hz']:g} Hz",
               f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
               f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')}",
-              f"- min distance to the human: {_fmt(m['min_human_distance_m'], 1000, 'mm')}",
+              f"- min distance to the human (measured up to 100 mm): {_fmt(m['min_human_distance_m'], 1000, 'mm')}",
               f"- foot slip per foot: {', '.join(f'{s * 1000:.1f} mm' for s in m['foot_slip_m']) or 'n/a'}",
               f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; max tilt "
               f"{_fmt(m['max_tilt_deg'], 1, 'deg')}", ""]
@@ -103,7 +103,8 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
     rows = math.ceil(n / cols)
     paths = {}
 
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.2 * rows), sharex=True, squeeze=False)
+    grid = {"left": 0.06, "right": 0.99, "bottom": 0.07, "top": 0.95, "hspace": 0.45, "wspace": 0.25}
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 1.8 * rows), sharex=True, squeeze=False, gridspec_kw=grid)
     for j, ax in enumerate(axes.flat):
         if j >= n:
             ax.axis("off")
@@ -112,14 +113,13 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
         ax.plot(t, s["q"][:, j], color="tab:blue", lw=1, label="measured")
         ax.axhline(result.lower[j], color="tab:red", lw=0.8, ls=":")
         ax.axhline(result.upper[j], color="tab:red", lw=0.8, ls=":", label="limits")
-        ax.set_title(names[j], fontsize=9)
-        ax.tick_params(labelsize=7)
+        _light_axes(ax, names[j])
     axes[0, 0].legend(fontsize=7)
     fig.supxlabel("time (s)")
     fig.supylabel("angle (rad)")
     paths["joints_png"] = _save(fig, out / f"{stem}_joints.png")
 
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.2 * rows), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 1.8 * rows), sharex=True, squeeze=False, gridspec_kw=grid)
     stall = result.metrics["stall_torque_nm"]
     for j, ax in enumerate(axes.flat):
         if j >= n:
@@ -129,13 +129,12 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
         if stall[names[j]] is not None:
             ax.axhline(stall[names[j]], color="tab:red", lw=0.8, ls=":")
             ax.axhline(-stall[names[j]], color="tab:red", lw=0.8, ls=":")
-        ax.set_title(names[j], fontsize=9)
-        ax.tick_params(labelsize=7)
+        _light_axes(ax, names[j])
     fig.supxlabel("time (s)")
     fig.supylabel("servo torque (N m)")
     paths["torque_png"] = _save(fig, out / f"{stem}_torque.png")
 
-    fig, axes = plt.subplots(3, 1, figsize=(8, 6), sharex=True)
+    fig, axes = plt.subplots(3, 1, figsize=(8, 6), sharex=True, gridspec_kw={"left": 0.1, "right": 0.98, "top": 0.97})
     axes[0].plot(t, s["com_margin"] * 1000, color="tab:purple")
     axes[0].axhline(0, color="tab:red", lw=0.8, ls=":")
     axes[0].set_ylabel("CoM margin (mm)")
@@ -151,12 +150,21 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
     return paths
 
 
+def _light_axes(ax, title: str) -> None:
+    """Few ticks and small labels: drawing 20 small axes stays fast."""
+    from matplotlib.ticker import MaxNLocator
+
+    ax.set_title(title, fontsize=8, pad=2)
+    ax.xaxis.set_major_locator(MaxNLocator(4))
+    ax.yaxis.set_major_locator(MaxNLocator(3))
+    ax.tick_params(labelsize=6, length=2, pad=1)
+
+
 def _save(fig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     tmp = path.with_name(path.stem + ".partial.png")
-    fig.tight_layout()
-    fig.savefig(tmp, dpi=80)
+    fig.savefig(tmp, dpi=72)
     plt.close(fig)
     tmp.replace(path)
     return path

@@ -1,0 +1,216 @@
+"""The physical check: good motion passes, each kind of bad motion fails with the
+right reason, bad input is one clear SimError, reports are complete."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dualflow.motion import REST_POSE, Motion
+from retarget import RobotTrajectory
+from sim import SimError
+from sim.check import HUMAN_DISTANCE_CAP, CheckConfig, check_trajectory, resample
+from sim.human_figure import Placement
+from sim.report import write_report
+from sim.robots import joint_names
+from sim.scene import Scene, SceneConfig
+
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def stand() -> np.ndarray:
+    return Scene(SceneConfig(robot="op3")).stand_ctrl
+
+
+def make(q_of_t, duration: float, robot: str = "op3", root_z: float = 0.27) -> RobotTrajectory:
+    names = joint_names(robot)
+    t = np.arange(int(round(duration * FPS)) + 1) / FPS
+    q = np.array([q_of_t(tt) for tt in t])
+    n = len(t)
+    return RobotTrajectory(names, q, np.tile([0.0, 0.0, root_z], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), FPS, robot)
+
+
+def idx(name: str, robot: str = "op3") -> int:
+    return joint_names(robot).index(name)
+
+
+def ramp(tt: float, duration: float) -> float:
+    """0 -> 1 smoothly over ``duration`` seconds."""
+    x = min(max(tt / duration, 0.0), 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def test_slow_in_limit_dance_passes(stand):
+    def q(tt):
+        out = stand.copy()
+        out[idx("r_sho_pitch")] -= 0.6 * np.sin(0.8 * tt) ** 2
+        out[idx("l_sho_pitch")] -= 0.6 * np.sin(0.8 * tt + 1.0) ** 2
+        out[idx("l_el")] += 0.4 * np.sin(0.9 * tt) ** 2
+        out[idx("head_pan")] = 0.5 * np.sin(0.5 * tt)
+        out[idx("head_tilt")] = 0.2 * np.sin(0.7 * tt)
+        return out
+
+    result = check_trajectory(make(q, 5.0), CheckConfig(interpolation="cubic"))
+    assert result.passed, result.failures
+    assert result.reason == "ok" and result.first_failure_time is None
+    m = result.metrics
+    assert max(m["tracking_max_rad"].values()) < 0.1
+    assert m["min_com_margin_m"] > 0.01
+    assert m["self_collision_ticks"] == 0 and max(m["foot_slip_m"]) < 0.005
+    assert sum(m["speed_limit_hits"].values()) == 0
+    assert result.series["q"].shape == (501, 20)
+
+
+@pytest.mark.slow  # matplotlib draws 40 small axes: a few seconds, more on a busy machine
+def test_report_files_are_complete(stand, tmp_path):
+    def q(tt):
+        out = stand.copy()
+        out[idx("r_sho_pitch")] = -0.8 * np.sin(2 * np.pi * 2.0 * tt) ** 2
+        return out
+
+    result = check_trajectory(make(q, 1.0))
+    paths = write_report(result, tmp_path, "fast_arm")
+    summary = json.loads(paths["json"].read_text())
+    assert summary["passed"] is False and summary["reason"] == "speed_limit"
+    assert summary["joint_names"] == list(joint_names("op3"))
+    assert summary["failures"][0]["time"] == pytest.approx(result.first_failure_time)
+    md = paths["markdown"].read_text()
+    assert "FAIL: speed_limit" in md and "fast_arm_joints.png" in md and md.count("| r_sho_pitch |") == 1
+    for key in ("joints_png", "torque_png", "balance_png"):
+        assert paths[key].stat().st_size > 5000
+    assert not list(tmp_path.glob("*partial*"))
+
+
+def test_too_fast_fails_on_speed_limit(stand):
+    def q(tt):
+        out = stand.copy()
+        out[idx("r_sho_pitch")] = -0.8 * np.sin(2 * np.pi * 2.0 * tt) ** 2  # peak 10 rad/s
+        return out
+
+    result = check_trajectory(make(q, 2.0))
+    assert not result.passed
+    assert result.reason == "speed_limit"
+    assert "r_sho_pitch" in result.failures[0].detail
+    assert 0.0 <= result.first_failure_time < 0.2
+    assert result.metrics["speed_limit_hits"]["r_sho_pitch"] > 0
+    assert result.metrics["speed_limit_hits"]["l_sho_pitch"] == 0
+
+
+def test_self_collision_fails_with_its_reason(stand):
+    def q(tt):  # both legs adduct until the feet hit each other (torso bolted: no balance confound)
+        out = stand.copy()
+        out[idx("l_hip_roll")] = -0.5 * ramp(tt, 2.0)
+        out[idx("r_hip_roll")] = -0.5 * ramp(tt, 2.0)
+        return out
+
+    result = check_trajectory(make(q, 3.0, root_z=0.4), CheckConfig(mode="fixed"))
+    assert result.reason == "self_collision", result.failures
+    assert "l_foot / r_foot" in result.failures[0].detail
+    assert 0.3 < result.first_failure_time < 2.0
+    assert result.metrics["self_collision_pairs"] == ["l_foot / r_foot"]
+
+
+def test_leaning_over_the_toes_fails_on_balance_before_the_fall(stand):
+    def q(tt):  # ankles tip the whole body forward
+        out = stand.copy()
+        out[idx("l_ank_pitch")] += -0.5 * ramp(tt, 3.0)
+        out[idx("r_ank_pitch")] += -0.5 * ramp(tt, 3.0)
+        return out
+
+    result = check_trajectory(make(q, 4.0))
+    assert result.reason == "balance", result.failures
+    reasons = [f.reason for f in result.failures]
+    assert "fall" in reasons
+    fall = next(f for f in result.failures if f.reason == "fall")
+    assert result.first_failure_time < fall.time
+    assert result.metrics["min_com_margin_m"] < 0
+
+
+def test_robot_entering_the_human_fails(stand):
+    pos = np.tile(REST_POSE, (61, 1, 1))
+    actor = Motion(pos, 30.0, name="overlapping person")
+    # a person scaled to the robot's size standing where the robot stands
+    result = check_trajectory(make(lambda tt: stand, 2.0), actor=actor, actor_placement=Placement("robot", (0.02, 0, 0)))
+    assert result.reason == "human_penetration"
+    assert result.metrics["min_human_distance_m"] < -0.005
+    far = check_trajectory(make(lambda tt: stand, 1.0), actor=Motion(pos[:31], 30.0),
+                           actor_placement=Placement("robot", (0.6, 0, 0)))
+    assert far.passed and far.metrics["min_human_distance_m"] == pytest.approx(HUMAN_DISTANCE_CAP)
+
+
+def test_command_outside_joint_limits_fails(stand):
+    def q(tt):
+        out = stand.copy()
+        out[idx("head_pan")] = 1.8 * ramp(tt, 1.0)  # beyond +0.5 pi
+        return out
+
+    result = check_trajectory(make(q, 1.5))
+    assert result.failures[0].reason == "joint_limit"
+    assert "head_pan" in result.failures[0].detail
+
+
+def test_fixed_base_upper_body_robot_checks():
+    names = joint_names("ub14")
+    stand = Scene(SceneConfig(robot="ub14")).stand_ctrl
+
+    def q(tt):
+        out = stand.copy()
+        out[names.index("waist_yaw")] = 0.4 * np.sin(0.6 * tt)
+        out[names.index("l_sho_pitch")] = -1.0 * np.sin(0.5 * tt) ** 2
+        out[names.index("r_el")] = 0.3 + 0.8 * np.sin(0.7 * tt) ** 2
+        return out
+
+    result = check_trajectory(make(q, 4.0, robot="ub14", root_z=0.0), CheckConfig(mode="fixed"))
+    assert result.passed, result.failures
+    assert result.metrics["min_com_margin_m"] is None  # no balance judged for a bolted base
+
+
+def test_wrong_joint_count_is_a_sim_error(stand):
+    names = joint_names("op3")[:19]
+    traj = RobotTrajectory(names, np.tile(stand[:19], (10, 1)), np.zeros((10, 3)), np.tile([1.0, 0, 0, 0], (10, 1)), 30.0, "op3")
+    with pytest.raises(SimError, match="has 19 joints but robot 'op3' has 20"):
+        check_trajectory(traj)
+
+
+def _write_npz(path, joint_pos, fps):
+    header = json.dumps({"joint_names": list(joint_names("op3")), "robot": "op3", "meta": {}})
+    n = len(joint_pos)
+    np.savez(path, joint_pos=joint_pos, root_pos=np.zeros((n, 3)), root_quat=np.tile([1.0, 0, 0, 0], (n, 1)),
+             fps=np.float64(fps), header=np.array(header))
+    return path
+
+
+def test_nan_and_zero_fps_files_are_sim_errors(stand, tmp_path):
+    q = np.tile(stand, (10, 1))
+    q[4, 3] = np.nan
+    with pytest.raises(SimError, match="NaN"):
+        check_trajectory(_write_npz(tmp_path / "nan.npz", q, 30.0))
+    with pytest.raises(SimError, match="fps must be > 0"):
+        check_trajectory(_write_npz(tmp_path / "fps0.npz", np.tile(stand, (10, 1)), 0.0))
+    with pytest.raises(SimError, match="not found"):
+        check_trajectory(tmp_path / "missing.npz")
+
+
+@pytest.mark.parametrize("config, match", [
+    (CheckConfig(control_hz=0), "control_hz must be > 0"),
+    (CheckConfig(physics_hz=450), "whole multiple"),
+    (CheckConfig(interpolation="spline"), "interpolation"),
+    (CheckConfig(mode="floating"), "mode"),
+])
+def test_bad_config_is_a_sim_error(stand, config, match):
+    with pytest.raises(SimError, match=match):
+        check_trajectory(make(lambda tt: stand, 0.5), config)
+
+
+def test_resample_linear_and_cubic_hit_the_samples():
+    times = np.arange(5) / 10.0
+    values = np.stack([np.sin(times), times ** 2], axis=1)
+    for kind in ("linear", "cubic"):
+        out = resample(times, values, times, kind)
+        assert np.allclose(out, values)
+    mid = resample(times, values, np.array([0.05, 1.0]), "linear")
+    assert np.allclose(mid[0], (values[0] + values[1]) / 2)
+    assert np.allclose(mid[1], values[-1])  # clamped past the end

@@ -1,0 +1,181 @@
+"""The bundled robot models: they compile, match the published OP3 facts and the
+hardware config, follow the documented axis conventions, stand and fall."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import yaml
+
+from sim import SimError
+from sim.robots import KEYPOINT_SITES, ROBOTS, joint_limits, joint_names, mjcf_path
+from sim.scene import Scene, SceneConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+OP3_IDS = ("r_sho_pitch", "l_sho_pitch", "r_sho_roll", "l_sho_roll", "r_el", "l_el", "r_hip_yaw", "l_hip_yaw",
+           "r_hip_roll", "l_hip_roll", "r_hip_pitch", "l_hip_pitch", "r_knee", "l_knee", "r_ank_pitch",
+           "l_ank_pitch", "r_ank_roll", "l_ank_roll", "head_pan", "head_tilt")
+PI = math.pi
+ISSUE_LIMITS = {
+    "head_pan": (-0.5 * PI, 0.5 * PI), "head_tilt": (-0.5 * PI, 0.5 * PI),
+    "sho_pitch": (-0.5 * PI, 0.5 * PI), "sho_roll": (-0.3 * PI, 0.5 * PI), "el": (-0.5 * PI, 0.5 * PI),
+    "hip_yaw": (-0.45 * PI, 0.45 * PI), "hip_roll": (-0.3 * PI, 0.3 * PI), "hip_pitch": (-0.4 * PI, 0.4 * PI),
+    "knee": (-0.1 * PI, 0.7 * PI), "ank_pitch": (-0.45 * PI, 0.45 * PI), "ank_roll": (-0.45 * PI, 0.45 * PI),
+}
+
+
+@pytest.fixture(scope="module")
+def op3() -> Scene:
+    return Scene(SceneConfig(robot="op3"))
+
+
+@pytest.mark.parametrize("name", sorted(ROBOTS))
+def test_bundled_models_compile_with_stand_keyframe_and_sites(name):
+    scene = Scene(SceneConfig(robot=name))
+    m = scene.model
+    assert scene.robot.joint_names == joint_names(name)  # XML reading agrees with the compiled model
+    assert m.key("stand") is not None
+    assert scene.robot.fixed_base == ROBOTS[name].fixed_base
+    for site in ("pelvis", "torso", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand"):
+        m.site(site)  # raises KeyError when missing
+    # the standing pose is collision-free: no self contact, nothing below the floor
+    mujoco.mj_forward(m, scene.data)
+    robot = set(scene.robot.geom_ids.tolist())
+    for c in scene.data.contact[: scene.data.ncon]:
+        assert not (c.geom1 in robot and c.geom2 in robot), (m.geom(c.geom1).name, m.geom(c.geom2).name)
+        assert c.dist > -1e-3
+    assert np.all(scene.robot.stall_torque > 0) and np.all(np.isfinite(scene.robot.no_load_speed))
+
+
+def test_op3_published_facts(op3):
+    m = op3.model
+    assert joint_names("op3") == OP3_IDS
+    assert 3.1 <= sum(m.body_mass) <= 3.5
+    assert m.body("torso").mass[0] == pytest.approx(1.35)
+    assert 0.48 <= op3.robot_height <= 0.54
+    for site in KEYPOINT_SITES:
+        m.site(site)
+    foot = m.geom("l_foot")
+    assert 2 * foot.size[0] == pytest.approx(0.127) and 2 * foot.size[1] == pytest.approx(0.078)
+    # XM430-W350 at 11.1 V: stall torque, no-load speed; back-EMF damping = stall / no-load speed
+    assert np.allclose(op3.robot.stall_torque, 3.8) and np.allclose(op3.robot.no_load_speed, 4.5)
+    j = m.joint("r_knee")
+    assert j.damping[0] >= 3.8 / 4.5
+    # a saturated, unloaded servo cannot exceed the no-load speed: tau_s - b * w = 0 at w <= w0
+    assert 3.8 / j.damping[0] <= 4.5 + 1e-9
+    # published offsets (parent-relative)
+    assert np.allclose(m.body("head_pan_link").pos, (-0.001, 0, 0.1365))
+    assert np.allclose(m.body("l_sho_pitch_link").pos, (-0.001, 0.060, 0.111))
+    assert np.allclose(m.body("r_sho_roll_link").pos, (0.019, -0.0285, -0.010))
+    assert np.allclose(m.body("l_knee_link").pos, (0, 0, -0.11015))
+    assert np.allclose(m.body("r_ank_roll_link").pos, (-0.0241, 0.019, 0))
+
+
+def test_op3_limits_are_the_issue_limits_on_both_sides():
+    limits = joint_limits("op3")
+    for joint, (lo, hi) in limits.items():
+        key = joint if joint.startswith("head") else joint[2:]
+        assert (lo, hi) == pytest.approx(ISSUE_LIMITS[key], abs=1e-6), joint
+
+
+def test_op3_limits_match_hardware_config():
+    path = ROOT / "firmware_cfg" / "robots" / "op3.yaml"
+    if not path.exists():
+        pytest.skip(f"{path} does not exist yet")
+    cfg = yaml.safe_load(path.read_text())
+    servos = [s for bus in cfg["buses"] for s in bus["servos"]]
+    by_id = sorted(servos, key=lambda s: s["id"])
+    assert tuple(s["joint"] for s in by_id) == OP3_IDS  # ID order = MJCF actuator order
+    mjcf = joint_limits("op3")
+    for s in servos:
+        assert tuple(s["limits"]) == pytest.approx(mjcf[s["joint"]], abs=1e-6), s["joint"]
+
+
+def _site_in_body_frame(scene: Scene, site: str, body: str, joints: dict) -> np.ndarray:
+    d = scene.data
+    mujoco.mj_resetData(scene.model, d)
+    for j, v in joints.items():
+        d.qpos[scene.model.joint(j).qposadr[0]] = v
+    mujoco.mj_kinematics(scene.model, d)
+    R = d.xmat[scene.model.body(body).id].reshape(3, 3)
+    return R.T @ (d.site_xpos[scene.model.site(site).id] - d.xpos[scene.model.body(body).id])
+
+
+def test_op3_axis_conventions(op3):
+    # knee + = flexion: the ankle moves backwards (-X) relative to the thigh
+    assert _site_in_body_frame(op3, "l_ankle", "torso", {"l_knee": 0.5})[0] < -0.02
+    assert _site_in_body_frame(op3, "r_ankle", "torso", {"r_knee": 0.5})[0] < -0.02
+    # hip pitch - = thigh forward
+    assert _site_in_body_frame(op3, "l_knee", "torso", {"l_hip_pitch": -0.5})[0] > 0.02
+    # shoulder roll + = arm lowers (both sides, same number)
+    for side in "lr":
+        assert _site_in_body_frame(op3, f"{side}_hand", "torso", {f"{side}_sho_roll": 1.2})[2] < -0.05
+    # elbow + = flexion: with the arm hanging, the hand comes forward
+    for side in "lr":
+        assert _site_in_body_frame(op3, f"{side}_hand", "torso", {f"{side}_sho_roll": 1.5, f"{side}_el": 1.0})[0] > 0.05
+    # hip roll + = abduction on both sides (foot moves outward)
+    assert _site_in_body_frame(op3, "l_foot", "torso", {"l_hip_roll": 0.3})[1] > 0.1
+    assert _site_in_body_frame(op3, "r_foot", "torso", {"r_hip_roll": 0.3})[1] < -0.1
+    # mirror symmetry: the same values on both sides give mirror-image sites
+    pose = {"sho_pitch": 0.3, "sho_roll": 0.7, "el": 0.4, "hip_yaw": 0.2, "hip_roll": 0.15, "hip_pitch": -0.4,
+            "knee": 0.8, "ank_pitch": -0.3, "ank_roll": 0.1}
+    both = {f"{s}_{k}": v for k, v in pose.items() for s in "lr"}
+    for site in ("hand", "elbow", "knee", "ankle", "foot", "toe"):
+        left = _site_in_body_frame(op3, f"l_{site}", "torso", both)
+        right = _site_in_body_frame(op3, f"r_{site}", "torso", both)
+        assert np.allclose(left * (1, -1, 1), right, atol=1e-9), site
+
+
+def test_op3_stands_still_for_10_s(op3):
+    op3.reset()
+    m, d, r = op3.model, op3.data, op3.robot
+    start_xy = d.xpos[r.root_body, :2].copy()
+    mujoco.mj_step(m, d, int(10.0 / m.opt.timestep))
+    assert d.time == pytest.approx(10.0)
+    assert d.xpos[r.root_body, 2] > 0.95 * op3.stand_root_height
+    assert np.degrees(np.arccos(d.xmat[r.root_body, 8])) < 3.0
+    assert np.linalg.norm(d.xpos[r.root_body, :2] - start_xy) < 0.01
+    assert np.abs(d.qpos[r.qpos_adr] - op3.stand_ctrl).max() < 0.1
+    assert np.abs(d.qvel).max() < 0.02  # still, not oscillating
+
+
+def test_op3_falls_when_pushed_hard(op3):
+    op3.reset()
+    m, d, r = op3.model, op3.data, op3.robot
+    mujoco.mj_step(m, d, 250)  # settle 0.5 s
+    d.xfrc_applied[r.root_body, 0] = 40.0  # N, forward, on the torso for 0.2 s
+    mujoco.mj_step(m, d, 100)
+    d.xfrc_applied[:] = 0.0
+    mujoco.mj_step(m, d, 1000)
+    tilt = np.degrees(np.arccos(d.xmat[r.root_body, 8]))
+    assert tilt > 60.0 or d.xpos[r.root_body, 2] < 0.5 * op3.stand_root_height
+
+
+def test_op3_survives_a_gentle_push(op3):
+    op3.reset()
+    m, d, r = op3.model, op3.data, op3.robot
+    mujoco.mj_step(m, d, 250)
+    d.xfrc_applied[r.root_body, 0] = 3.0
+    mujoco.mj_step(m, d, 50)
+    d.xfrc_applied[:] = 0.0
+    mujoco.mj_step(m, d, 1000)
+    assert np.degrees(np.arccos(d.xmat[r.root_body, 8])) < 10.0
+
+
+def test_unknown_robot_is_a_clear_error():
+    with pytest.raises(SimError, match="bundled robots are: op3, ub14"):
+        mjcf_path("nao")
+    with pytest.raises(SimError, match="file not found"):
+        mjcf_path("/nonexistent/robot.xml")
+
+
+def test_importing_sim_does_not_import_mujoco_or_torch():
+    code = "import sys, sim, sim.robots; sim.robots.joint_limits('op3'); print('mujoco' in sys.modules, 'torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.split() == ["False", "False"]
