@@ -24,6 +24,7 @@ from sim.errors import SimError
 #: Subcommand modules, in the order ``--help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
     "motion",
+    "train",
     "servo",
     "check",
     "render",

@@ -1,0 +1,267 @@
+"""DualFlow checkpoints: safetensors weights + json config + npz statistics. No pickle.
+
+A checkpoint is a directory::
+
+    model.safetensors      network weights (the EMA weights in exported checkpoints)
+    config.json            {"format", "version", "model": DualFlowConfig dict, "text_encoder",
+                            "music", "weights", "step", "train", "data", ...}
+    norm_stats.npz         NormStats of the training features (mean, std; allow_pickle=False)
+  training checkpoints also hold, for resuming:
+    ema.safetensors        the EMA model's state (when EMA is on)
+    optimizer.safetensors  AdamW moments, keys "state/<param index>/<name>"
+    trainer_state.json     step, the optimizer's param_groups, anything else json-able
+
+Everything is read back with ``safetensors.torch.load_file``, ``json`` and
+``np.load(allow_pickle=False)``; a checkpoint cannot execute code when loaded.
+Directories are written under a temporary name and renamed, so a checkpoint is
+complete or absent.
+
+The package ships one exported checkpoint, :data:`BUNDLED_CHECKPOINT` (the
+``small`` preset trained on the synthetic duets; see its README.md for the
+command that reproduces it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from dualflow.errors import DualFlowError
+from dualflow.model import DualFlow, DualFlowConfig
+from dualflow.motion.normalization import NormStats
+
+FORMAT = "dualflow-checkpoint"
+VERSION = 1
+MODEL_FILE = "model.safetensors"
+EMA_FILE = "ema.safetensors"
+OPTIMIZER_FILE = "optimizer.safetensors"
+CONFIG_FILE = "config.json"
+STATS_FILE = "norm_stats.npz"
+TRAINER_STATE_FILE = "trainer_state.json"
+
+#: The small synthetic-duet model shipped inside the package.
+BUNDLED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "synthetic_small"
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint (weights on the CPU).
+
+    config: the model's DualFlowConfig; state_dict: weights to build it with;
+    stats: NormStats of the training features; meta: the rest of config.json;
+    ema_state: the EMA model's state (training checkpoints), else None;
+    optimizer_state / trainer_state: for resuming, else None; path: the directory.
+    """
+
+    config: DualFlowConfig
+    state_dict: dict[str, torch.Tensor]
+    stats: NormStats
+    meta: dict
+    path: Path
+    ema_state: dict[str, torch.Tensor] | None = None
+    optimizer_state: dict | None = None
+    trainer_state: dict = field(default_factory=dict)
+
+    @property
+    def text_encoder(self) -> str:
+        return str(self.meta.get("text_encoder", ""))
+
+    def build_model(self, device: str | torch.device = "cpu", use_ema: bool = True) -> DualFlow:
+        """The network in eval mode on ``device``, float32, EMA weights when present and asked."""
+        model = DualFlow(self.config)
+        state = self.state_dict
+        if use_ema and self.ema_state is not None:
+            state = ema_module_state(self.ema_state)
+        missing, unexpected = model.load_state_dict({k: v.float() for k, v in state.items()}, strict=False)
+        if missing or unexpected:
+            raise DualFlowError(
+                f"{self.path / MODEL_FILE}: weights do not match the model in {CONFIG_FILE} "
+                f"(missing {missing[:3]}, unexpected {unexpected[:3]}); the checkpoint is from another model version"
+            )
+        return model.to(device).eval()
+
+
+def ema_module_state(ema_state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The wrapped model's weights from a ``torch.optim.swa_utils.AveragedModel`` state."""
+    return {k[len("module."):]: v for k, v in ema_state.items() if k.startswith("module.")}
+
+
+# ---------------------------------------------------------------------------------------------
+# optimizer state <-> flat tensors + json
+# ---------------------------------------------------------------------------------------------
+
+
+def optimizer_to_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], list[dict]]:
+    """Split an optimizer's state_dict into tensors "state/<index>/<name>" and json param_groups."""
+    sd = optimizer.state_dict()
+    tensors: dict[str, torch.Tensor] = {}
+    for index, state in sd["state"].items():
+        for name, value in state.items():
+            t = value if isinstance(value, torch.Tensor) else torch.tensor(value)
+            tensors[f"state/{index}/{name}"] = t.detach().cpu().contiguous()
+    groups = []
+    for g in sd["param_groups"]:
+        groups.append({k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()})
+    return tensors, groups
+
+
+def optimizer_from_tensors(tensors: dict[str, torch.Tensor], param_groups: list[dict]) -> dict:
+    """Inverse of :func:`optimizer_to_tensors`: a state_dict for ``optimizer.load_state_dict``."""
+    state: dict[int, dict] = {}
+    for key, value in tensors.items():
+        _, index, name = key.split("/", 2)
+        state.setdefault(int(index), {})[name] = value
+    groups = []
+    for g in param_groups:
+        g = dict(g)
+        if "betas" in g:
+            g["betas"] = tuple(g["betas"])
+        groups.append(g)
+    return {"state": state, "param_groups": groups}
+
+
+# ---------------------------------------------------------------------------------------------
+# save / load
+# ---------------------------------------------------------------------------------------------
+
+
+def _contiguous_cpu(state: dict[str, torch.Tensor], dtype: torch.dtype | None = None) -> dict[str, torch.Tensor]:
+    out = {}
+    for k, v in state.items():
+        v = v.detach().cpu()
+        if dtype is not None and v.is_floating_point():
+            v = v.to(dtype)
+        out[k] = v.contiguous().clone()
+    return out
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
+def save_checkpoint(
+    path: str | os.PathLike,
+    *,
+    model: DualFlow,
+    stats: NormStats,
+    meta: dict | None = None,
+    ema_state: dict[str, torch.Tensor] | None = None,
+    optimizer: torch.optim.Optimizer | None = None,
+    trainer_state: dict | None = None,
+    weights_dtype: torch.dtype | None = None,
+) -> Path:
+    """Write a checkpoint directory atomically (temp dir, then rename over ``path``).
+
+    model: its config and weights; stats: NormStats; meta: json-able extras merged
+    into config.json; ema_state: an AveragedModel state (saved as ema.safetensors);
+    optimizer / trainer_state: resume information; weights_dtype: e.g.
+    torch.float16 to store model.safetensors at half size (loading casts back
+    to float32).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        weights = _contiguous_cpu(model.state_dict(), weights_dtype)
+        save_file(weights, str(tmp / MODEL_FILE), metadata={"format": FORMAT, "version": str(VERSION)})
+        if ema_state is not None:
+            save_file(_contiguous_cpu(ema_state), str(tmp / EMA_FILE), metadata={"format": FORMAT})
+        config = {"format": FORMAT, "version": VERSION, "model": model.config.to_dict()}
+        config.update(meta or {})
+        config["weights_dtype"] = str(weights_dtype or torch.float32).replace("torch.", "")
+        _write_json(tmp / CONFIG_FILE, config)
+        stats.save(tmp / STATS_FILE)
+        if optimizer is not None or trainer_state is not None:
+            state = dict(trainer_state or {})
+            if optimizer is not None:
+                tensors, groups = optimizer_to_tensors(optimizer)
+                save_file(tensors, str(tmp / OPTIMIZER_FILE), metadata={"format": FORMAT})
+                state["optimizer_param_groups"] = groups
+            _write_json(tmp / TRAINER_STATE_FILE, state)
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def _load_tensors(file: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(file))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise DualFlowError(f"{file}: not a readable safetensors file ({exc}); re-save the checkpoint") from None
+
+
+def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpoint:
+    """Read a checkpoint directory (see the module docstring); ``resume`` also reads the
+    optimizer and trainer state. Bad or missing files raise DualFlowError naming them."""
+    path = Path(path)
+    if not path.is_dir():
+        raise DualFlowError(f"{path}: checkpoint directory not found; give a directory with {MODEL_FILE}, {CONFIG_FILE}, {STATS_FILE}")
+    for name in (MODEL_FILE, CONFIG_FILE, STATS_FILE):
+        if not (path / name).is_file():
+            raise DualFlowError(f"{path}: checkpoint lacks {name}; it is incomplete, re-export it")
+    try:
+        meta = json.loads((path / CONFIG_FILE).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DualFlowError(f"{path / CONFIG_FILE}: not valid json ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or "model" not in meta:
+        raise DualFlowError(f"{path / CONFIG_FILE}: not a DualFlow checkpoint config (needs format={FORMAT!r} and 'model')")
+    if int(meta.get("version", -1)) > VERSION:
+        raise DualFlowError(f"{path / CONFIG_FILE}: checkpoint version {meta['version']} is newer than this code ({VERSION}); update the package")
+    try:
+        config = DualFlowConfig.from_dict(meta["model"])
+    except (TypeError, DualFlowError) as exc:
+        raise DualFlowError(f"{path / CONFIG_FILE}: bad 'model' section: {exc}") from None
+    state = _load_tensors(path / MODEL_FILE)
+    stats = NormStats.load(path / STATS_FILE)
+    ema = _load_tensors(path / EMA_FILE) if (path / EMA_FILE).is_file() else None
+    ckpt = Checkpoint(config=config, state_dict=state, stats=stats, meta=meta, path=path, ema_state=ema)
+    if resume:
+        if not (path / TRAINER_STATE_FILE).is_file():
+            raise DualFlowError(f"{path}: lacks {TRAINER_STATE_FILE}; this is an exported checkpoint and cannot be resumed")
+        try:
+            ckpt.trainer_state = json.loads((path / TRAINER_STATE_FILE).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DualFlowError(f"{path / TRAINER_STATE_FILE}: not valid json ({exc})") from None
+        if (path / OPTIMIZER_FILE).is_file():
+            ckpt.optimizer_state = optimizer_from_tensors(
+                _load_tensors(path / OPTIMIZER_FILE), ckpt.trainer_state.get("optimizer_param_groups", [])
+            )
+    return ckpt
+
+
+def load_model(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> tuple[DualFlow, Checkpoint]:
+    """(model in eval mode, checkpoint) from ``path``, or the bundled checkpoint when None."""
+    ckpt = load_checkpoint(bundled_checkpoint() if path is None else path)
+    return ckpt.build_model(device), ckpt
+
+
+def bundled_checkpoint() -> Path:
+    """Path of the checkpoint shipped with the package; DualFlowError if it is missing."""
+    if not (BUNDLED_CHECKPOINT / MODEL_FILE).is_file():
+        raise DualFlowError(
+            f"{BUNDLED_CHECKPOINT}: the bundled checkpoint is missing; reinstall the package or train one with "
+            "`dualflow-bridge train --config dualflow/configs/small_synthetic.yaml`"
+        )
+    return BUNDLED_CHECKPOINT
+
+
+def stats_arrays(stats: NormStats) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) float32 arrays of a NormStats, for building torch tensors."""
+    return np.asarray(stats.mean, dtype=np.float32), np.asarray(stats.std, dtype=np.float32)

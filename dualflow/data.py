@@ -1,0 +1,242 @@
+"""Training data for DualFlow built from the SYNTHETIC duet generator.
+
+Nothing here is captured motion: every clip comes from :mod:`dualflow.synthetic`
+(a procedural leader and a rule-driven follower). Real dataset loaders are a
+later issue; they should produce the same sample layout.
+
+Pipeline, per clip ``i`` of a split:
+
+1. ``make_duet(rule_i, seconds=(frames + 1) / fps, fps, seed_i)`` with the rules
+   cycling through ``config.rules`` and seeds disjoint between splits
+   (train: ``seed·10⁶ + i``, val: ``seed·10⁶ + 500000 + i``);
+2. :func:`dualflow.motion.features.encode_pair` → (frames, 2, 262) float32 in the
+   actor's canonical Y-up frame (InterGen's convention drops the last frame);
+3. normalisation with :class:`NormStats` fitted on the *training* split (both
+   persons pooled): ``x = (features − mean) / std``;
+4. the text embedding of the clip's template sentence
+   (:func:`template_text_embedding`) and the beat track (T, 4).
+
+One sample (and one batch, stacked) is a dict of float32 tensors::
+
+    actor    (T, 262)   normalised features of person A (the leader)
+    reactor  (T, 262)   normalised features of person B (the follower)
+    text     (D_text,)  sentence embedding
+    beats    (T, 4)     [beat impulse, sin 2π·phase, cos 2π·phase, downbeat impulse]
+    rule     ()         int64 index into ``config.rules``
+
+Text embedding: until a real text encoder exists (the encoders are another
+issue), :func:`template_text_embedding` is a documented, deterministic stand-in
+(a random projection of the bag of words). Checkpoints record its id
+(:data:`TEXT_ENCODER_ID`) so that inference embeds prompts the same way; a later
+encoder replaces this one function and gets a new id.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import asdict, dataclass, field, fields
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from dualflow.errors import DualFlowError
+from dualflow.motion.features import FEATURE_SLICES, encode_pair
+from dualflow.motion.normalization import NormStats
+from dualflow.synthetic import RULES, make_duet
+
+#: Id of the text embedding below, stored in checkpoints (config.json "text_encoder").
+TEXT_ENCODER_ID = "hashed_bag_of_words_v1"
+
+TextEmbedder = Callable[[Sequence[str], int], np.ndarray]
+
+_WORD = re.compile(r"[a-z0-9]+")
+
+
+def _word_vector(word: str, dim: int, seed: int) -> np.ndarray:
+    digest = hashlib.blake2b(f"{seed}:{word}".encode(), digest_size=8).digest()
+    rng = np.random.default_rng(int.from_bytes(digest, "little"))
+    return rng.standard_normal(dim)
+
+
+def template_text_embedding(texts: Sequence[str], dim: int, seed: int = 0) -> np.ndarray:
+    """Deterministic sentence embedding (N, dim) float32 — a stand-in for a text encoder.
+
+    e(s) = Σ_w g(w) / ‖Σ_w g(w)‖, the sum over the lower-case alphanumeric words w
+    of s (with repeats) and g(w) ~ N(0, I_dim) drawn from a generator seeded by
+    BLAKE2b(seed, w). This equals a one-hot bag of words over an unbounded
+    vocabulary times a fixed Gaussian matrix, so sentences that share template
+    slots ("mirrors", "left", "fast") get correlated embeddings. The empty string
+    gives the zero vector. Stable across runs, machines and Python versions.
+    """
+    if isinstance(texts, str):
+        raise DualFlowError("template_text_embedding: texts must be a list of strings, not one string")
+    if int(dim) < 1:
+        raise DualFlowError(f"template_text_embedding: dim must be >= 1, got {dim!r}")
+    out = np.zeros((len(texts), int(dim)), dtype=np.float64)
+    cache: dict[str, np.ndarray] = {}
+    for i, text in enumerate(texts):
+        for word in _WORD.findall(str(text).lower()):
+            if word not in cache:
+                cache[word] = _word_vector(word, int(dim), seed)
+            out[i] += cache[word]
+        norm = np.linalg.norm(out[i])
+        if norm > 0:
+            out[i] /= norm
+    return out.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class SyntheticDataConfig:
+    """How many synthetic clips, how long, which rules.
+
+    n_clips: training clips; val_clips: validation clips (disjoint seeds);
+    frames: feature rows per clip (the model's window, T); fps: frame rate;
+    rules: follower rules to cycle through; seed: base seed of the split seeds.
+    """
+
+    n_clips: int = 512
+    val_clips: int = 32
+    frames: int = 60
+    fps: float = 30.0
+    rules: tuple[str, ...] = RULES
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rules", tuple(self.rules))
+        bad = [r for r in self.rules if r not in RULES]
+        if bad or not self.rules:
+            raise DualFlowError(f"data.rules: unknown or empty rules {bad or '[]'}; choose from {', '.join(RULES)}")
+        for name in ("n_clips", "frames"):
+            if int(getattr(self, name)) < 1:
+                raise DualFlowError(f"data.{name} must be >= 1, got {getattr(self, name)!r}")
+        if int(self.val_clips) < 0:
+            raise DualFlowError(f"data.val_clips must be >= 0, got {self.val_clips!r}")
+        if not float(self.fps) > 0:
+            raise DualFlowError(f"data.fps must be > 0, got {self.fps!r}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["rules"] = list(self.rules)
+        return d
+
+    @staticmethod
+    def from_dict(d: dict, where: str = "data") -> "SyntheticDataConfig":
+        known = {f.name for f in fields(SyntheticDataConfig)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise DualFlowError(f"{where}: unknown field(s) {unknown}; valid fields: {sorted(known)}")
+        return SyntheticDataConfig(**d)
+
+
+@dataclass
+class SyntheticSplit:
+    """Raw (un-normalised) features of one split.
+
+    features (N, T, 2, 262) float32; texts: N sentences; beats (N, T, 4) float32;
+    rules (N,) int64 index into the config's rules; seeds (N,) int64.
+    """
+
+    features: np.ndarray
+    texts: list[str]
+    beats: np.ndarray
+    rules: np.ndarray
+    seeds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+def clip_seed(config: SyntheticDataConfig, split: str, index: int) -> int:
+    """Seed of clip ``index`` of ``split`` ('train' or 'val'); the splits never share a seed."""
+    if split not in ("train", "val"):
+        raise DualFlowError(f"split must be 'train' or 'val', got {split!r}")
+    return int(config.seed) * 1_000_000 + (500_000 if split == "val" else 0) + int(index)
+
+
+def build_split(config: SyntheticDataConfig, split: str = "train") -> SyntheticSplit:
+    """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core)."""
+    n = int(config.n_clips if split == "train" else config.val_clips)
+    frames = int(config.frames)
+    seconds = (frames + 1) / float(config.fps)
+    feats = np.empty((n, frames, 2, 262), dtype=np.float32)
+    beats = np.empty((n, frames, 4), dtype=np.float32)
+    texts: list[str] = []
+    rules = np.empty(n, dtype=np.int64)
+    seeds = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        rule_index = i % len(config.rules)
+        seed = clip_seed(config, split, i)
+        pair = make_duet(config.rules[rule_index], seconds=seconds, fps=float(config.fps), seed=seed)
+        f, _ = encode_pair(pair)
+        if f.shape[0] != frames:
+            raise DualFlowError(f"synthetic clip {i}: expected {frames} feature rows, got {f.shape[0]} (fps/frames mismatch)")
+        feats[i] = f
+        beats[i] = pair.meta["beats"][:frames]
+        texts.append(pair.text)
+        rules[i] = rule_index
+        seeds[i] = seed
+    return SyntheticSplit(feats, texts, beats, rules, seeds)
+
+
+class DuetDataset(torch.utils.data.Dataset):
+    """Normalised two-person windows as float32 tensors (see the module docstring).
+
+    features (N, T, 2, 262) raw; texts N sentences; beats (N, T, 4); rules (N,);
+    stats: the training split's NormStats; text_dim: D_text of the model;
+    text_embedder(texts, dim) -> (N, dim): default :func:`template_text_embedding`.
+    """
+
+    def __init__(
+        self,
+        split: SyntheticSplit,
+        stats: NormStats,
+        text_dim: int,
+        text_embedder: TextEmbedder = template_text_embedding,
+    ):
+        self.stats = stats
+        x = torch.from_numpy(stats.normalize(split.features).astype(np.float32))
+        self.actor = x[:, :, 0].contiguous()
+        self.reactor = x[:, :, 1].contiguous()
+        self.text = torch.from_numpy(np.asarray(text_embedder(split.texts, int(text_dim)), dtype=np.float32))
+        self.beats = torch.from_numpy(split.beats)
+        self.rule = torch.from_numpy(split.rules)
+        self.texts = list(split.texts)
+        if self.text.shape != (len(self.texts), int(text_dim)):
+            raise DualFlowError(f"text embedder returned {tuple(self.text.shape)}, expected ({len(self.texts)}, {text_dim})")
+
+    def __len__(self) -> int:
+        return int(self.actor.shape[0])
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.actor.shape[1])
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {"actor": self.actor[i], "reactor": self.reactor[i], "text": self.text[i],
+                "beats": self.beats[i], "rule": self.rule[i]}
+
+    def batch(self, indices: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Stacked samples for a (B,) index tensor (no DataLoader overhead)."""
+        return {"actor": self.actor[indices], "reactor": self.reactor[indices], "text": self.text[indices],
+                "beats": self.beats[indices], "rule": self.rule[indices]}
+
+
+def make_datasets(
+    config: SyntheticDataConfig, text_dim: int, text_embedder: TextEmbedder = template_text_embedding
+) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
+    """(train, val or None, NormStats fitted on the train split's raw features)."""
+    train = build_split(config, "train")
+    stats = NormStats.from_features(train.features)
+    train_ds = DuetDataset(train, stats, text_dim, text_embedder)
+    val_ds = None
+    if int(config.val_clips) > 0:
+        val_ds = DuetDataset(build_split(config, "val"), stats, text_dim, text_embedder)
+    return train_ds, val_ds, stats
+
+
+def positions_from_normalized(x: torch.Tensor | np.ndarray, stats: NormStats) -> np.ndarray:
+    """Normalised features (..., T, 262) -> joint positions (..., T, 22, 3) in metres
+    (the position block of the de-normalised feature, canonical Y-up frame)."""
+    arr = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    raw = stats.denormalize(arr.astype(np.float64))
+    pos = raw[..., FEATURE_SLICES["positions"]]
+    return pos.reshape(pos.shape[:-1] + (22, 3))

@@ -1,0 +1,641 @@
+"""Training DualFlow: config file, AdamW with warm-up, clipping, EMA, checkpoints, DDP, AMP.
+
+Run one process::
+
+    dualflow-bridge train --config dualflow/configs/small_synthetic.yaml [--set steps=200 ...]
+    python -m dualflow.train --config FILE            (the same, without the bridge CLI)
+
+or several with torchrun (gloo on CPU, NCCL on GPU, chosen from the device)::
+
+    torchrun --standalone --nproc_per_node 2 -m dualflow.train --config FILE
+
+What one optimisation step does (rank r of W processes, step s):
+
+1. a batch of ``batch_size`` windows drawn with replacement from the training set
+   by a generator seeded with (seed, s, r), so ranks see different samples;
+2. the task — reactive with probability ``reactive_prob``, else interactive — drawn
+   from (seed, s), the same on every rank (one set of weights, both tasks);
+3. classifier-free-guidance drop masks (text and music: both 10 %, text 20 %,
+   music 20 %; :func:`dualflow.model.sample_condition_drop`);
+4. :func:`dualflow.flow.flow_training_step`: t ~ U(0, 1) (or logit-normal),
+   x_t = (1 − t) ε + t x0, loss = ‖v_θ − (x0 − ε)‖²; under ``torch.autocast``
+   with bfloat16 on CUDA (``amp``), float32 on the CPU;
+5. backward (DDP averages gradients over ranks), gradient clipping to
+   ``grad_clip`` (global L2 norm), AdamW (lr 2e-4, weight decay 2e-5 by default)
+   with linear warm-up: lr_s = lr · min(1, (s + 1) / warmup_steps);
+6. EMA of the weights: θ_ema ← d θ_ema + (1 − d) θ (``ema_decay`` d; 0 = off),
+   via ``torch.optim.swa_utils.AveragedModel``.
+
+Every random draw is seeded from (seed, step, rank), so a run resumed from a
+checkpoint continues exactly as the uninterrupted run (same batches, noise,
+dropout masks). Outputs under ``out_dir``: ``checkpoints/step_XXXXXXX/`` (see
+:mod:`dualflow.checkpoint`), ``latest.json`` (the newest one), ``final/`` (the
+exported inference checkpoint: EMA weights when EMA is on), ``train_log.csv``
+(one row per ``log_every`` steps) and, with ``save_replicas``, every rank's final
+weights (``replica_rank<r>.safetensors``, for checking that DDP replicas agree).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import datetime as _dt
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+import yaml
+from safetensors.torch import save_file
+from torch.nn.parallel import DistributedDataParallel
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from dualflow.checkpoint import load_checkpoint, save_checkpoint
+from dualflow.data import TEXT_ENCODER_ID, SyntheticDataConfig, make_datasets
+from dualflow.errors import DualFlowError
+from dualflow.flow import TimeSampler, flow_training_step
+from dualflow.model import Conditions, DualFlow, DualFlowConfig, sample_condition_drop
+
+MUSIC_SOURCES = ("none", "beats")
+AMP_MODES = ("auto", "bf16", "off")
+
+
+# ---------------------------------------------------------------------------------------------
+# configuration
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs; loadable from yaml/json (:func:`load_train_config`).
+
+    preset / model: the DualFlowConfig preset and field overrides (e.g. {"width": 64}).
+    data: SyntheticDataConfig fields. music: "none" (music absent, learned null) or
+    "beats" (the synthetic beat track as per-frame music features; needs model.music_dim = 4).
+    steps, batch_size (per process), lr, weight_decay, warmup_steps, betas, grad_clip
+    (0 = off), ema_decay (0 = off), reactive_prob, look_ahead (None = model default),
+    time_sampler ("uniform" | "logit_normal"), cfg_drop (classifier-free-guidance drops).
+    out_dir, log_every, ckpt_every (0 = only at the end), keep_last checkpoints,
+    val_every (0 = off; validation flow loss on the val split), seed, device
+    ("auto" | "cpu" | "cuda"), amp ("auto": bf16 autocast on CUDA only), threads
+    (torch intra-op threads per process, 0 = leave the default), progress bar,
+    save_replicas, export_dtype ("float32" | "float16" for final/model.safetensors).
+    """
+
+    preset: str = "small"
+    model: dict = field(default_factory=dict)
+    data: dict = field(default_factory=dict)
+    music: str = "none"
+    steps: int = 2000
+    batch_size: int = 16
+    lr: float = 2e-4
+    weight_decay: float = 2e-5
+    warmup_steps: int = 1000
+    betas: tuple[float, float] = (0.9, 0.999)
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    reactive_prob: float = 0.5
+    look_ahead: int | None = None
+    time_sampler: str = "uniform"
+    cfg_drop: bool = True
+    out_dir: str = "runs/dualflow"
+    log_every: int = 10
+    ckpt_every: int = 500
+    keep_last: int = 2
+    val_every: int = 0
+    seed: int = 0
+    device: str = "auto"
+    amp: str = "auto"
+    threads: int = 0
+    progress: bool = True
+    save_replicas: bool = False
+    export_dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
+        object.__setattr__(self, "model", dict(self.model or {}))
+        object.__setattr__(self, "data", dict(self.data or {}))
+        checks = [
+            (self.steps >= 1, "steps must be >= 1"),
+            (self.batch_size >= 1, "batch_size must be >= 1"),
+            (self.lr > 0, "lr must be > 0"),
+            (self.weight_decay >= 0, "weight_decay must be >= 0"),
+            (self.warmup_steps >= 0, "warmup_steps must be >= 0"),
+            (len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas), "betas must be two numbers in [0, 1)"),
+            (self.grad_clip >= 0, "grad_clip must be >= 0 (0 = off)"),
+            (0 <= self.ema_decay < 1, "ema_decay must be in [0, 1) (0 = off)"),
+            (0 <= self.reactive_prob <= 1, "reactive_prob must be in [0, 1]"),
+            (self.look_ahead is None or self.look_ahead >= 0, "look_ahead must be >= 0 or null"),
+            (self.music in MUSIC_SOURCES, f"music must be one of {MUSIC_SOURCES}"),
+            (self.amp in AMP_MODES, f"amp must be one of {AMP_MODES}"),
+            (self.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
+            (self.log_every >= 1, "log_every must be >= 1"),
+            (self.ckpt_every >= 0 and self.val_every >= 0, "ckpt_every and val_every must be >= 0"),
+            (self.keep_last >= 1, "keep_last must be >= 1"),
+            (self.export_dtype in ("float32", "float16", "bfloat16"), "export_dtype must be float32, float16 or bfloat16"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise DualFlowError(f"train config: {message}")
+        TimeSampler(self.time_sampler)
+        self.model_config()
+        self.data_config()
+
+    def model_config(self) -> DualFlowConfig:
+        try:
+            cfg = DualFlowConfig.preset(self.preset, **self.model)
+        except TypeError as exc:
+            raise DualFlowError(f"train config: bad 'model' overrides {self.model}: {exc}") from None
+        if self.music == "beats" and cfg.music_dim != 4:
+            raise DualFlowError("train config: music 'beats' feeds the 4-d beat track; set model.music_dim: 4")
+        return cfg
+
+    def data_config(self) -> SyntheticDataConfig:
+        return SyntheticDataConfig.from_dict(self.data, "train config 'data'")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["betas"] = list(self.betas)
+        return d
+
+
+def _parse_override(item: str) -> tuple[list[str], object]:
+    if "=" not in item:
+        raise DualFlowError(f"override {item!r}: expected key=value, e.g. steps=100 or model.width=64")
+    key, value = item.split("=", 1)
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError:
+        parsed = value
+    return key.strip().split("."), parsed
+
+
+def _coerce(name: str, value, type_name: str, where: str):
+    """Numbers written as strings (YAML reads ``1e-3`` as a string) -> the field's type."""
+    base = type_name.replace(" | None", "")
+    if value is None and "None" in type_name:
+        return None
+    try:
+        if base == "float" and not isinstance(value, bool):
+            return float(value)
+        if base == "int" and not isinstance(value, bool):
+            as_float = float(value)
+            if as_float != int(as_float):
+                raise ValueError("not a whole number")
+            return int(as_float)
+        if base == "bool" and not isinstance(value, bool):
+            raise ValueError("expected true or false")
+        if base == "str" and not isinstance(value, str):
+            raise ValueError("expected a string")
+    except (TypeError, ValueError) as exc:
+        raise DualFlowError(f"{where}: field {name!r} must be {base}, got {value!r} ({exc})") from None
+    return value
+
+
+def load_train_config(path: str | os.PathLike | None = None, overrides: list[str] | tuple[str, ...] = ()) -> TrainConfig:
+    """TrainConfig from a yaml or json file (or the defaults when ``path`` is None),
+    then ``key=value`` overrides (dotted keys reach into ``model`` and ``data``)."""
+    raw: dict = {}
+    where = "defaults"
+    if path is not None:
+        where = str(path)
+        p = Path(path)
+        if not p.is_file():
+            raise DualFlowError(f"{p}: training config file not found; see dualflow/configs/small_synthetic.yaml")
+        try:
+            raw = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise DualFlowError(f"{p}: not valid yaml/json ({str(exc).splitlines()[0]})") from None
+        if not isinstance(raw, dict):
+            raise DualFlowError(f"{p}: the training config must be a mapping of fields, got {type(raw).__name__}")
+    for item in overrides:
+        keys, value = _parse_override(item)
+        node = raw
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise DualFlowError(f"override {item!r}: {k} is not a section")
+        node[keys[-1]] = value
+    types = {f.name: f.type for f in fields(TrainConfig)}
+    unknown = sorted(set(raw) - set(types))
+    if unknown:
+        raise DualFlowError(f"{where}: unknown training field(s) {unknown}; valid fields: {sorted(types)}")
+    raw = {k: _coerce(k, v, types[k], where) for k, v in raw.items()}
+    try:
+        return TrainConfig(**raw)
+    except DualFlowError as exc:
+        raise DualFlowError(f"{where}: {exc}") from None
+    except TypeError as exc:
+        raise DualFlowError(f"{where}: {exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# distributed context
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DistContext:
+    """rank / world size / device of this process; DDP when launched by torchrun (WORLD_SIZE > 1)."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    device: torch.device = torch.device("cpu")
+    initialised_here: bool = False
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world_size > 1
+
+    @staticmethod
+    def from_env(device: str = "auto") -> "DistContext":
+        """Read torchrun's RANK / WORLD_SIZE / LOCAL_RANK; start the process group
+        (NCCL for CUDA, gloo for CPU) when more than one process runs."""
+        world = int(os.environ.get("WORLD_SIZE", "1"))
+        rank = int(os.environ.get("RANK", "0"))
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        use_cuda = device == "cuda" or (device == "auto" and torch.cuda.is_available())
+        if device == "cuda" and not torch.cuda.is_available():
+            raise DualFlowError("train config: device is 'cuda' but no CUDA device is available; use device: cpu")
+        dev = torch.device(f"cuda:{local}") if use_cuda else torch.device("cpu")
+        if use_cuda:
+            torch.cuda.set_device(dev)
+        ctx = DistContext(rank, world, local, dev)
+        if world > 1 and not dist.is_initialized():
+            dist.init_process_group(backend="nccl" if use_cuda else "gloo")
+            ctx.initialised_here = True
+        return ctx
+
+    def barrier(self) -> None:
+        if self.distributed:
+            dist.barrier()
+
+    def close(self) -> None:
+        if self.initialised_here and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+# ---------------------------------------------------------------------------------------------
+# small helpers with one job each
+# ---------------------------------------------------------------------------------------------
+
+
+def warmup_lr(base_lr: float, step: int, warmup_steps: int) -> float:
+    """lr_s = base_lr · min(1, (s + 1) / warmup_steps) (constant after the warm-up)."""
+    if warmup_steps <= 0:
+        return base_lr
+    return base_lr * min(1.0, (step + 1) / warmup_steps)
+
+
+def step_seed(*parts: int) -> int:
+    """A 63-bit seed mixed from integers (splitmix64 over the parts)."""
+    x = 0x9E3779B97F4A7C15
+    for p in parts:
+        x = (x ^ (int(p) & 0xFFFFFFFFFFFFFFFF)) * 0xBF58476D1CE4E5B9 & 0xFFFFFFFFFFFFFFFF
+        x = (x ^ (x >> 31)) * 0x94D049BB133111EB & 0xFFFFFFFFFFFFFFFF
+    return x & 0x7FFFFFFFFFFFFFFF
+
+
+class CsvLog:
+    """Append-only CSV of training metrics; on resume rows after the resumed step are dropped."""
+
+    COLUMNS = ("step", "mode", "loss", "lr", "grad_norm", "val_loss", "elapsed_s", "samples_per_s")
+
+    def __init__(self, path: Path, resume_step: int | None):
+        self.path = path
+        rows = []
+        if resume_step is not None and path.is_file():
+            with open(path, newline="") as fh:
+                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= resume_step]
+        tmp = path.with_name(path.name + ".partial")
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, self.COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+        os.replace(tmp, path)
+
+    def write(self, row: dict) -> None:
+        with open(self.path, "a", newline="") as fh:
+            csv.DictWriter(fh, self.COLUMNS).writerow({k: row.get(k, "") for k in self.COLUMNS})
+
+
+@dataclass
+class TrainResult:
+    """What a run produced: final step, last logged loss, paths, seconds, replica check."""
+
+    step: int
+    loss: float
+    out_dir: Path
+    final_checkpoint: Path | None
+    log_path: Path
+    seconds: float
+    replica_max_abs_diff: float | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# the trainer
+# ---------------------------------------------------------------------------------------------
+
+
+class Trainer:
+    """Builds data, model, optimiser, EMA from a TrainConfig and runs the loop (module docstring)."""
+
+    def __init__(self, config: TrainConfig, resume: bool = False, ctx: DistContext | None = None):
+        self.config = config
+        self.ctx = ctx or DistContext.from_env(config.device)
+        if config.threads > 0:
+            torch.set_num_threads(config.threads)
+        self.out_dir = Path(config.out_dir)
+        self.model_config = config.model_config()
+        self.data_config = config.data_config()
+        self.train_set, self.val_set, self.stats = make_datasets(self.data_config, self.model_config.text_dim)
+
+        torch.manual_seed(step_seed(config.seed, 0xA11CE))  # identical initial weights on every rank
+        self.model = DualFlow(self.model_config).to(self.ctx.device)
+        self.optimizer = torch.optim.AdamW(
+            self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay, betas=config.betas
+        )
+        self.ema = None
+        if config.ema_decay > 0:
+            self.ema = AveragedModel(self.model, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
+        self.step = 0
+        self.resumed_from: Path | None = None
+        if resume:
+            self._resume()
+        self.ddp = self.model
+        if self.ctx.distributed:
+            ids = [self.ctx.device.index] if self.ctx.device.type == "cuda" else None
+            # find_unused_parameters: a reactive step leaves the actor's output head and
+            # (with music absent) the music encoder out of the graph.
+            self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=True)
+        self.time_sampler = TimeSampler(config.time_sampler)
+        use_amp = config.amp == "bf16" or (config.amp == "auto" and self.ctx.device.type == "cuda")
+        self.autocast_dtype = torch.bfloat16 if use_amp else None
+
+    # -- checkpoints ----------------------------------------------------------------------
+
+    def _meta(self) -> dict:
+        return {
+            "text_encoder": TEXT_ENCODER_ID,
+            "music": self.config.music,
+            "step": self.step,
+            "train": self.config.to_dict(),
+            "data": self.data_config.to_dict(),
+            "synthetic": True,
+            "world_size": self.ctx.world_size,
+            "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "torch": torch.__version__,
+        }
+
+    def _resume(self) -> None:
+        latest = self.out_dir / "latest.json"
+        if not latest.is_file():
+            raise DualFlowError(f"{latest}: nothing to resume from (no checkpoint written yet); run without --resume")
+        info = json.loads(latest.read_text())
+        ckpt = load_checkpoint(self.out_dir / info["path"], resume=True)
+        if ckpt.config != self.model_config:
+            raise DualFlowError(f"{ckpt.path}: its model config differs from this training config; resume with the same config")
+        self.model.load_state_dict(ckpt.state_dict)
+        if ckpt.optimizer_state is not None:
+            self.optimizer.load_state_dict(ckpt.optimizer_state)
+        if self.ema is not None and ckpt.ema_state is not None:
+            self.ema.load_state_dict(ckpt.ema_state)
+        self.step = int(ckpt.trainer_state["step"])
+        self.resumed_from = ckpt.path
+
+    def save(self) -> Path:
+        """Write checkpoints/step_XXXXXXX (rank 0), update latest.json, prune old ones."""
+        root = self.out_dir / "checkpoints"
+        path = root / f"step_{self.step:07d}"
+        save_checkpoint(
+            path,
+            model=self.model,
+            stats=self.stats,
+            meta=self._meta(),
+            ema_state=None if self.ema is None else self.ema.state_dict(),
+            optimizer=self.optimizer,
+            trainer_state={"step": self.step},
+        )
+        tmp = self.out_dir / "latest.json.partial"
+        tmp.write_text(json.dumps({"step": self.step, "path": str(path.relative_to(self.out_dir))}) + "\n")
+        os.replace(tmp, self.out_dir / "latest.json")
+        kept = sorted(p for p in root.glob("step_*") if p.is_dir())
+        for old in kept[: -self.config.keep_last]:
+            for f in old.iterdir():
+                f.unlink()
+            old.rmdir()
+        return path
+
+    def export(self) -> Path:
+        """out_dir/final: inference checkpoint (EMA weights when EMA is on), no optimizer."""
+        model = self.model
+        if self.ema is not None:
+            model = DualFlow(self.model_config)
+            model.load_state_dict(self.ema.module.state_dict())
+        meta = self._meta()
+        meta["weights"] = "ema" if self.ema is not None else "raw"
+        dtype = getattr(torch, self.config.export_dtype)
+        return save_checkpoint(self.out_dir / "final", model=model, stats=self.stats, meta=meta,
+                               weights_dtype=None if dtype == torch.float32 else dtype)
+
+    # -- one step -------------------------------------------------------------------------
+
+    def _conditions(self, batch: dict, gen: torch.Generator) -> Conditions:
+        dev = self.ctx.device
+        b = batch["text"].shape[0]
+        music = batch["beats"].to(dev) if self.config.music == "beats" else None
+        drop_text = drop_music = None
+        if self.config.cfg_drop:
+            drop_text, drop_music = sample_condition_drop(b, gen, dev)
+        return Conditions(text=batch["text"].to(dev), music=music, drop_text=drop_text,
+                          drop_music=drop_music if music is not None else None)
+
+    def train_step(self) -> dict:
+        cfg, ctx = self.config, self.ctx
+        shared = torch.Generator().manual_seed(step_seed(cfg.seed, self.step))
+        mode = "reactive" if torch.rand(1, generator=shared).item() < cfg.reactive_prob else "interactive"
+        gen = torch.Generator().manual_seed(step_seed(cfg.seed, self.step, ctx.rank + 1))
+        torch.manual_seed(step_seed(cfg.seed, self.step, ctx.rank + 1, 7))  # dropout masks
+        idx = torch.randint(len(self.train_set), (cfg.batch_size,), generator=gen)
+        batch = self.train_set.batch(idx)
+        cond = self._conditions(batch, gen)
+        lr = warmup_lr(cfg.lr, self.step, cfg.warmup_steps)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        self.ddp.train()
+        amp = (torch.autocast(ctx.device.type, dtype=self.autocast_dtype) if self.autocast_dtype is not None
+               else contextlib.nullcontext())
+        with amp:
+            out = flow_training_step(
+                self.ddp, batch["actor"].to(ctx.device), batch["reactor"].to(ctx.device), cond,
+                mode=mode, look_ahead=cfg.look_ahead, time_sampler=self.time_sampler, generator=gen,
+            )
+        loss = out.loss.float()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip > 0:
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip))
+        else:
+            grad_norm = float(torch.linalg.vector_norm(torch.stack(
+                [p.grad.norm() for p in self.model.parameters() if p.grad is not None])))
+        self.optimizer.step()
+        if self.ema is not None:
+            self.ema.update_parameters(self.model)
+        self.step += 1
+        loss_value = loss.detach()
+        if ctx.distributed:
+            dist.all_reduce(loss_value)
+            loss_value /= ctx.world_size
+        return {"step": self.step, "mode": mode, "loss": float(loss_value), "lr": lr, "grad_norm": grad_norm}
+
+    @torch.no_grad()
+    def validation_loss(self, n_batches: int = 4) -> float:
+        """Mean reactive flow loss on the val split with fixed noise (seeded), EMA weights if on."""
+        if self.val_set is None:
+            return float("nan")
+        model = self.ema.module if self.ema is not None else self.model
+        model.eval()
+        gen = torch.Generator().manual_seed(step_seed(self.config.seed, 0x5A1))
+        n = len(self.val_set)
+        bs = max(1, min(self.config.batch_size, n))
+        losses = []
+        for start in range(0, min(n, bs * n_batches), bs):
+            idx = torch.arange(start, min(start + bs, n))
+            batch = self.val_set.batch(idx)
+            cond = Conditions(text=batch["text"].to(self.ctx.device),
+                              music=batch["beats"].to(self.ctx.device) if self.config.music == "beats" else None)
+            out = flow_training_step(model, batch["actor"].to(self.ctx.device), batch["reactor"].to(self.ctx.device),
+                                     cond, mode="reactive", look_ahead=self.config.look_ahead,
+                                     time_sampler=self.time_sampler, generator=gen)
+            losses.append(float(out.loss))
+        return sum(losses) / len(losses)
+
+    def replica_max_abs_diff(self) -> float:
+        """max |θ_rank − θ_rank0| over all parameters and ranks (0.0 in one process)."""
+        if not self.ctx.distributed:
+            return 0.0
+        worst = torch.zeros((), device=self.ctx.device)
+        for p in self.model.parameters():
+            ref = p.detach().clone()
+            dist.broadcast(ref, src=0)
+            worst = torch.maximum(worst, (p.detach() - ref).abs().max())
+        dist.all_reduce(worst, op=dist.ReduceOp.MAX)
+        return float(worst)
+
+    # -- the loop -------------------------------------------------------------------------
+
+    def run(self) -> TrainResult:
+        cfg, ctx = self.config, self.ctx
+        from tqdm import tqdm
+
+        log = None
+        if ctx.is_main:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            (self.out_dir / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
+            log = CsvLog(self.out_dir / "train_log.csv", self.step if self.resumed_from else None)
+        ctx.barrier()
+        bar = tqdm(total=cfg.steps, initial=self.step, disable=not (ctx.is_main and cfg.progress),
+                   desc="train", unit="step", dynamic_ncols=True)
+        t0 = time.perf_counter()
+        start_step = self.step
+        last = {"loss": float("nan")}
+        while self.step < cfg.steps:
+            last = self.train_step()
+            if not math.isfinite(last["loss"]):
+                raise DualFlowError(
+                    f"training diverged at step {self.step} (loss {last['loss']}); lower lr or raise warmup_steps"
+                )
+            bar.update(1)
+            bar.set_postfix(loss=f"{last['loss']:.4f}", lr=f"{last['lr']:.1e}", mode=last["mode"][0])
+            val = None
+            if cfg.val_every and self.step % cfg.val_every == 0:
+                val = self.validation_loss()
+            if ctx.is_main and (self.step % cfg.log_every == 0 or val is not None or self.step == cfg.steps):
+                elapsed = time.perf_counter() - t0
+                done = self.step - start_step
+                log.write({**last, "val_loss": "" if val is None else f"{val:.6f}",
+                           "loss": f"{last['loss']:.6f}", "lr": f"{last['lr']:.3e}",
+                           "grad_norm": f"{last['grad_norm']:.4f}", "elapsed_s": f"{elapsed:.2f}",
+                           "samples_per_s": f"{done * cfg.batch_size * ctx.world_size / max(elapsed, 1e-9):.2f}"})
+            if cfg.ckpt_every and self.step % cfg.ckpt_every == 0 and self.step < cfg.steps:
+                if ctx.is_main:
+                    self.save()
+                ctx.barrier()
+        bar.close()
+        final = None
+        if ctx.is_main:
+            self.save()
+            final = self.export()
+        replica = self.replica_max_abs_diff() if ctx.distributed else None
+        if cfg.save_replicas:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            weights = {k: v.detach().cpu().contiguous() for k, v in self.model.state_dict().items()}
+            save_file(weights, str(self.out_dir / f"replica_rank{ctx.rank}.safetensors"))
+        ctx.barrier()
+        return TrainResult(step=self.step, loss=last["loss"], out_dir=self.out_dir, final_checkpoint=final,
+                           log_path=self.out_dir / "train_log.csv", seconds=time.perf_counter() - t0,
+                           replica_max_abs_diff=replica)
+
+
+def train(config: TrainConfig, resume: bool = False) -> TrainResult:
+    """Run a training job in this process (DDP when launched by torchrun)."""
+    trainer = Trainer(config, resume=resume)
+    try:
+        return trainer.run()
+    finally:
+        trainer.ctx.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# command line (shared by ``dualflow-bridge train`` and ``python -m dualflow.train``)
+# ---------------------------------------------------------------------------------------------
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    if args.print_params:
+        from dualflow.model import parameter_report
+
+        print(parameter_report())
+        return 0
+    overrides = list(args.overrides)
+    if args.out_dir:
+        overrides.append(f"out_dir={args.out_dir}")
+    if args.steps is not None:
+        overrides.append(f"steps={args.steps}")
+    config = load_train_config(args.config, overrides)
+    result = train(config, resume=args.resume)
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(f"trained to step {result.step} in {result.seconds:.1f} s, last loss {result.loss:.4f}")
+        print(f"checkpoint: {result.final_checkpoint}")
+        print(f"log: {result.log_path}")
+        if result.replica_max_abs_diff is not None:
+            print(f"replica max |diff| across {os.environ.get('WORLD_SIZE')} processes: {result.replica_max_abs_diff:.3e}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from dualflow.train_cli import add_arguments
+
+    parser = argparse.ArgumentParser(prog="python -m dualflow.train", description=__doc__.split("\n\n")[0])
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_from_args(args)
+    except DualFlowError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
