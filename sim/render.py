@@ -178,6 +178,8 @@ def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_
 
     config = config or RenderConfig()
     config.validate()
+    if Path(out_path).suffix.lower() != ".mp4":
+        raise SimError(f"render: output {out_path} must end in .mp4")
     check_config = check_config or CheckConfig()
     check_config.validate()
     traj = _as_trajectory(traj)

@@ -200,8 +200,7 @@ class VirtualRobot:
         """Advance physics by ``seconds`` (rounded to whole physics steps)."""
         self._require_open()
         if not self._started:
-            self._sim_t += seconds
-            return
+            return  # resting on its stand: the simulation clock has not started
         import mujoco
 
         m, d, r = self._scene.model, self._scene.data, self._scene.robot
@@ -213,7 +212,7 @@ class VirtualRobot:
         self._sim_t += n_steps * dt
 
     def _advance_realtime(self) -> None:
-        if self.config.clock != "realtime":
+        if self.config.clock != "realtime" or not self._started:
             return
         target = (self._clock() - self._wall0) * self.config.speed
         lag = target - self._sim_t
