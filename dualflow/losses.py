@@ -357,3 +357,14 @@ def dualflow_losses(
     }
     terms["total"] = sum(terms.values())
     return terms
+
+
+def step_losses(step, x0_a: torch.Tensor, x0_b: torch.Tensor, mean, std, **kwargs) -> dict[str, torch.Tensor]:
+    """``dualflow_losses`` for a ``dualflow.flow.FlowStep`` and its clean batch (normalised x0_a, x0_b).
+
+    The trainer's one call: ``terms = step_losses(out, x0_a, x0_b, stats.mean, stats.std,
+    mode=mode, text=cond.text, labels=batch["rule"])``; ``terms["total"].backward()``.
+    kwargs: mode, text, labels, frame_mask, weights, sync_weights, dm_threshold.
+    """
+    return dualflow_losses(flow=step.loss, v_a=step.v_a, v_b=step.v_b, x0_hat_a=step.x0_hat_a,
+                           x0_hat_b=step.x0_hat_b, x0_a=x0_a, x0_b=x0_b, mean=mean, std=std, **kwargs)

@@ -1,0 +1,121 @@
+"""Streaming reactive inference: compute time per emitted frame and seam continuity.
+
+    python bench/bench_streaming.py [--checkpoint DIR] [--seconds 10] [--steps 20] [--hop 8]
+
+Uses a trained checkpoint (default: the bundled synthetic one, ``dualflow.checkpoint``) and
+one synthetic duet (``dualflow.synthetic``, SYNTHETIC data: a procedural leader and a rule
+follower) of ``--seconds`` at 30 fps. Prints, each next to a baseline measured in the same run
+and the issue's target:
+
+1. compute time per emitted reactor frame of ``ReactiveStreamer`` (hop 1: every frame as soon
+   as its look-ahead arrives; hop N: N frames per window), against one offline window of the
+   same length divided by its frames; target: below 33.3 ms per frame (30 fps real time).
+2. seam continuity: the mean velocity jump ||p[i] - 2 p[i-1] + p[i-2]|| (mm/frame^2, joints
+   averaged) at window seams vs inside windows (ratio about 1 = invisible seams), for the
+   streamer with inpainted context and for the baseline without it (windows independent);
+   the follower's own ground-truth jump gives the natural scale.
+3. reactor MPJPE (m) of the stream against the rule follower, and of the no-context baseline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+import torch
+
+from dualflow.checkpoint import load_model
+from dualflow.data import positions_from_normalized, template_text_embedding
+from dualflow.flow import generate
+from dualflow.model import Conditions
+from dualflow.motion.features import encode_pair
+from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report
+from dualflow.synthetic import make_duet
+
+REALTIME_MS = 1000.0 / 30.0
+
+
+def stream(model, actor, cond, **cfg) -> ReactiveStreamer:
+    s = ReactiveStreamer(model, StreamConfig(**cfg), cond)
+    for frame in actor:
+        s.push(frame)
+    s.flush()
+    return s
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--checkpoint", default=None, help="checkpoint directory (default: the bundled one)")
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--window", type=int, default=60, help="window length (frames); the training clip length")
+    ap.add_argument("--hop", type=int, default=8, help="frames per window for the seam measurement")
+    ap.add_argument("--rule", default="follow")
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    model, ckpt = load_model(args.checkpoint, device=args.device)
+    stats = ckpt.stats
+    pair = make_duet(args.rule, seconds=args.seconds + 1 / 30, fps=30.0, seed=args.seed)
+    feats, _ = encode_pair(pair)
+    norm = stats.normalize(feats).astype(np.float32)
+    actor = torch.from_numpy(norm[:, 0]).to(args.device)
+    truth = positions_from_normalized(norm[:, 1], stats)
+    text = torch.from_numpy(template_text_embedding([pair.text], model.config.text_dim)).to(args.device)
+    cond = Conditions(text=text)
+    n = actor.shape[0]
+    L = model.config.look_ahead
+    print(f"model: {ckpt.path} ({sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params), L = {L} frames, "
+          f"{n} frames ({args.seconds:.0f} s at 30 fps), rule {args.rule!r}, {args.steps} Euler steps, "
+          f"window {args.window}, device {args.device}, {torch.get_num_threads()} thread(s)")
+
+    # 1. timing --------------------------------------------------------------------------
+    with torch.no_grad():
+        generate(model, args.window, cond, mode="reactive", x_actor=actor[None, : args.window], steps=2)  # warm-up
+        tic = time.perf_counter()
+        generate(model, args.window, cond, mode="reactive", x_actor=actor[None, : args.window], steps=args.steps)
+        offline_ms = (time.perf_counter() - tic) * 1000 / args.window
+    s1 = stream(model, actor, cond, window=args.window, hop=1, steps=args.steps)
+    sh = stream(model, actor, cond, window=args.window, hop=args.hop, steps=args.steps)
+    print("\ncompute time per emitted frame (ms):")
+    print(f"  baseline: one offline {args.window}-frame window / {args.window} frames   {offline_ms:8.2f}")
+    print(f"  streamer hop 1  (delay L = {L} frames + compute)      {s1.timing.per_frame_s * 1000:8.2f}"
+          f"   (worst window {s1.timing.max_window_s * 1000:.1f} ms)")
+    print(f"  streamer hop {args.hop:<2d} (delay up to {L + args.hop - 1} frames + compute) {sh.timing.per_frame_s * 1000:8.2f}"
+          f"   (worst window {sh.timing.max_window_s * 1000:.1f} ms)")
+    print(f"  target: < {REALTIME_MS:.1f} ms per frame for 30 fps real time")
+
+    # 2. seams ---------------------------------------------------------------------------
+    sn = stream(model, actor, cond, window=args.window, hop=args.hop, steps=args.steps, inpaint=False)
+    starts = [w[0] for w in sh.timing.windows]
+    pos_h = positions_from_normalized(sh.emitted, stats)
+    pos_n = positions_from_normalized(sn.emitted, stats)
+    r_h = seam_report(pos_h, starts)
+    r_n = seam_report(pos_n, [w[0] for w in sn.timing.windows])
+    r_gt = seam_report(truth, starts)
+    print(f"\nvelocity jump (mm/frame^2, mean over joints), windows of {args.hop} new frames:")
+    print(f"  {'':34s} {'at seams':>9s} {'inside':>9s} {'ratio':>7s}")
+    print(f"  ground-truth follower (scale)      {r_gt.seam_mean * 1000:9.2f} {r_gt.within_mean * 1000:9.2f} {r_gt.ratio:7.2f}")
+    print(f"  baseline: windows without context  {r_n.seam_mean * 1000:9.2f} {r_n.within_mean * 1000:9.2f} {r_n.ratio:7.2f}")
+    print(f"  streamer (inpainted context)       {r_h.seam_mean * 1000:9.2f} {r_h.within_mean * 1000:9.2f} {r_h.ratio:7.2f}")
+    print("  target: seam jump about the within-window jump (ratio about 1)")
+
+    # 3. accuracy ------------------------------------------------------------------------
+    def mpjpe(p):
+        return float(np.linalg.norm(p - truth, axis=-1).mean())
+
+    pos_1 = positions_from_normalized(s1.emitted, stats)
+    print("\nreactor MPJPE against the rule follower (m):")
+    print(f"  baseline: windows without context  {mpjpe(pos_n):.3f}")
+    print(f"  streamer hop {args.hop:<2d}                    {mpjpe(pos_h):.3f}")
+    print(f"  streamer hop 1                     {mpjpe(pos_1):.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
