@@ -434,6 +434,10 @@ class DynamixelTransport:
         self._lower = np.array([s.cfg.lower for s in self.servos], float)
         self._upper = np.array([s.cfg.upper for s in self.servos], float)
         self._half_tick = np.array([0.5 / s.model.ticks_per_rad for s in self.servos])
+        self._center = np.array([s.model.position.center_tick for s in self.servos], float)
+        self._tpr = np.array([s.model.ticks_per_rad for s in self.servos])
+        self._dir = np.array([s.cfg.direction for s in self.servos], float)
+        self._off = np.array([s.cfg.zero_offset for s in self.servos])
         self._slow_next = 0
         self._state = JointState.unknown(len(self.servos))
         self._reader = None
@@ -522,7 +526,7 @@ class DynamixelTransport:
                               f"[{self._lower[i]:.4f}, {self._upper[i]:.4f}]; refusing to send")
         q = np.clip(q, self._lower, self._upper)
         try:
-            self._send_goal_ticks([self._ticks(i, q[i]) for i in range(len(self.servos))])
+            self._send_goal_ticks(self._to_ticks(q))
         except BridgeError:
             self._on_error()
             raise
@@ -531,7 +535,7 @@ class DynamixelTransport:
         if enabled:
             self._read_positions()
             present = np.clip(self._state.position, self._lower, self._upper)
-            self._send_goal_ticks([self._ticks(i, present[i]) for i in range(len(self.servos))])
+            self._send_goal_ticks(self._to_ticks(present))
         for i, sv in enumerate(self.servos):
             self._torque_cmd[i] = enabled
             self.bus.write(sv.cfg.id, sv.torque, 1 if enabled else 0)
@@ -555,7 +559,7 @@ class DynamixelTransport:
             return
         self._read_positions()
         present = np.clip(self._state.position, self._lower, self._upper)
-        self._send_goal_ticks([self._ticks(i, present[i]) for i in range(len(self.servos))])
+        self._send_goal_ticks(self._to_ticks(present))
 
     @property
     def lower(self) -> np.ndarray:
@@ -628,9 +632,13 @@ class DynamixelTransport:
         return done
 
     # ------------------------------------------------------------------ internals
-    def _ticks(self, i: int, q: float) -> int:
-        sv = self.servos[i]
-        return sv.model.rad_to_ticks(sv.cfg.to_servo(q))
+    def _to_ticks(self, q: np.ndarray) -> list[int]:
+        """Joint rad (n,) → goal ticks: round(center + (direction · q + offset) · ticks_per_rad)."""
+        return np.rint(self._center + (self._dir * q + self._off) * self._tpr).astype(np.int64).tolist()
+
+    def _to_joint(self, ticks: np.ndarray) -> np.ndarray:
+        """Present ticks (n,) → joint rad: direction · ((ticks − center) / ticks_per_rad − offset)."""
+        return self._dir * ((ticks - self._center) / self._tpr - self._off)
 
     def _make_groups(self) -> None:
         if self.bus.protocol != 2.0:
@@ -651,9 +659,10 @@ class DynamixelTransport:
             first = self.servos[0]
             self.bus.sync_write(first.goal, dict(zip(self._ids, ticks)))
             return
-        reg = self.servos[0].goal
-        for sid, t in zip(self._ids, ticks):
-            data = list(reg.encode(t))
+        size = self.servos[0].goal.size
+        raw = b"".join(int(t).to_bytes(size, "little", signed=True) for t in ticks)
+        for k, sid in enumerate(self._ids):
+            data = list(raw[k * size:(k + 1) * size])
             if not self._writer.changeParam(sid, data):
                 self._writer.addParam(sid, data)
         result = self.bus.call(lambda port: self._writer.txPacket())
@@ -680,11 +689,11 @@ class DynamixelTransport:
             if result != sdk.COMM_SUCCESS:
                 self._raise_missing("present position", result)
             reg = self.servos[0].present
-            for i, sid in enumerate(self._ids):
-                raw = self._reader.getData(sid, reg.address, reg.size)
-                ticks[i] = reg.decode(int(raw).to_bytes(reg.size, "little"))
-        pos = np.array([sv.cfg.to_joint(sv.model.ticks_to_rad(t)) for sv, t in zip(self.servos, ticks)])
-        self._state.position = pos
+            get = self._reader.getData
+            ticks = np.array([get(sid, reg.address, reg.size) for sid in self._ids], dtype=np.int64)
+            if reg.signed:
+                ticks[ticks >= 1 << (8 * reg.size - 1)] -= 1 << (8 * reg.size)
+        self._state.position = self._to_joint(ticks)
         self._state.stamp = time.monotonic()
 
     def _raise_missing(self, what: str, result: int) -> None:
