@@ -303,3 +303,75 @@ def test_register_settings_from_the_op3_config():
     assert XM.ticks_to_rad(lo) >= knee.lower - 1e-12 and XM.ticks_to_rad(hi) <= knee.upper + 1e-12
     assert XM.ticks_to_rad(lo - 1) < knee.lower and XM.ticks_to_rad(hi + 1) > knee.upper
     assert regs["position_p_gain"] == 800 and regs["bus_watchdog"] == 0
+
+
+def test_communication_error_with_limp_policy_switches_every_servo_off():
+    bus = small_bus(3)
+    emu = guarded_emulator(bus)
+    try:
+        t = make(bus, emu, stop_policy="limp", retries=0)
+        t.open()
+        t.set_torque(True)
+        emu.disconnect(2)
+        with pytest.raises(BridgeError, match=r"servo ID 2 \(j2\)"):
+            t.read_state()
+        # the broadcast torque-off reached the servos that still listen
+        assert wait_for(lambda: emu.read_register(1, "torque_enable") == 0 and emu.read_register(3, "torque_enable") == 0)
+        t.close()
+    finally:
+        emu.stop()
+
+
+EXIT_SCRIPT = """
+import sys, numpy as np
+from firmware_cfg.config import parse_config
+from ros_free_bridge.transports.dynamixel import DynamixelTransport
+bus = parse_config({config!r}).buses[0]
+t = DynamixelTransport(bus, port=sys.argv[1], stop_policy="limp", latency_ms=30.0)
+t.open()
+t.set_torque(True)
+t.write_goal(np.zeros(len(bus.servos)))
+raise SystemExit(0)  # no close(): the atexit hook must apply the stop policy
+"""
+
+
+def test_interpreter_exit_applies_the_stop_policy():
+    import subprocess
+    import sys
+
+    config = {"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "2.0",
+                                       "servos": [{"id": i, "joint": f"j{i}", "model": "XM430-W350", "limits": [-1, 1]}
+                                                  for i in (1, 2)]}]}
+    bus = parse_config(config).buses[0]
+    emu = guarded_emulator(bus)
+    try:
+        proc = subprocess.run([sys.executable, "-c", EXIT_SCRIPT.format(config=config), emu.port_path],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 0, proc.stderr
+        assert any(r.accepted for r in emu.goal_history[1])  # it did run with torque on
+        assert emu.read_register(1, "torque_enable") == 0 and emu.read_register(2, "torque_enable") == 0
+    finally:
+        emu.stop()
+
+
+def test_protocol_1_bus_ax12():
+    cfg = parse_config({"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "1.0",
+                                                 "servos": [{"id": 1, "joint": "a", "model": "AX-12A", "limits": [-1.5, 1.5]},
+                                                            {"id": 2, "joint": "b", "model": "AX-12A", "limits": [-1.0, 1.0],
+                                                             "direction": -1}]}]})
+    bus = cfg.buses[0]
+    ax = load_servo_model("AX-12A")
+    emu = DynamixelBusEmulator([ServoSpec(1, "AX-12A"), ServoSpec(2, "AX-12A")], baud=1_000_000, protocol=1).start()
+    try:
+        emu.push(1, 512 + 100)
+        with DynamixelTransport(bus, port=emu.port_path, latency_ms=LAT, slow_per_cycle=2) as t:
+            s = t.read_state()
+            assert s.position[0] == pytest.approx(100 / ax.ticks_per_rad)
+            t.set_torque(True)
+            t.write_goal(np.array([0.5, 0.5]))
+            assert wait_for(lambda: emu.read_register(2, "goal_position") == ax.rad_to_ticks(-0.5))
+            emu.overheat(2)
+            s = t.read_state()
+            assert "overheating" in s.errors.get("b", "")
+    finally:
+        emu.stop()

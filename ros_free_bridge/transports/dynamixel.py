@@ -142,6 +142,10 @@ class ExclusivePortHandler(sdk.PortHandler):
             fcntl.ioctl(self.ser.fileno(), termios.TIOCEXCL)
         except OSError:
             pass  # not a tty that supports it; the flock still guards
+        try:
+            self.ser.set_low_latency_mode(True)  # ASYNC_LOW_LATENCY for drivers that honour it
+        except (ValueError, OSError, AttributeError):
+            pass  # a pty (and some drivers) have no such flag; best effort
         self.is_open = True
         self.ser.reset_input_buffer()
         self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
