@@ -221,27 +221,17 @@ class RetargetRobot:
                                     f"{self.profile.root_joint!r} in the SMPL tree; use pelvis as the root")
             parent.append(int(np.flatnonzero(self.human_index == a)[0]))
         self.keypoint_parent = np.array(parent)
-        scales = np.ones(self.n_keypoints)
-        for k, p in enumerate(parent):
-            if p < 0:
-                continue
-            name = self.keypoint_names[k]
-            if name in self.profile.scale_overrides:
-                scales[k] = self.profile.scale_overrides[name]
-                continue
-            hl = np.linalg.norm(REST_POSE[self.human_index[k]] - REST_POSE[self.human_index[p]])
-            rl = np.linalg.norm(rest_kp[:, k] - rest_kp[:, p])
-            if hl < 1e-6:
-                raise RetargetError(f"{src}: field keypoints.{name}: the human bone to it has zero length; map another joint")
-            scales[k] = rl / hl
-        self.bone_scales = scales
-        if self.profile.root_scale is not None:
-            self.root_scale = self.profile.root_scale
-        else:
-            ground = rest_sole[2].min() if rest_sole.size else rest_kp[2].min()
-            robot_h = rest_kp[2, self.root_keypoint] - ground
-            human_h = REST_POSE[self.human_index[self.root_keypoint], 2]
-            self.root_scale = float(robot_h / human_h)
+        #: robot rest length of the bone ending at each keypoint (m; 0 for the root)
+        self.bone_lengths = np.array([np.linalg.norm(rest_kp[:, k] - rest_kp[:, p]) if p >= 0 else 0.0
+                                      for k, p in enumerate(parent)])
+        #: robot rest offset (3,) from the parent keypoint, world = root frame at q = 0 (m)
+        self.rest_offsets = np.array([rest_kp[:, k] - rest_kp[:, p] if p >= 0 else np.zeros(3)
+                                      for k, p in enumerate(parent)])
+        ground = rest_sole[2].min() if rest_sole.size else rest_kp[2].min()
+        #: height of the root keypoint above the lowest sole point at q = 0 (m)
+        self.standing_root_height = float(rest_kp[2, self.root_keypoint] - ground)
+        #: height of each keypoint above the lowest sole point at q = 0 (m)
+        self.standing_heights = rest_kp[2] - ground
 
     # -- facts ------------------------------------------------------------------
     @property

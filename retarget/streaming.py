@@ -45,7 +45,7 @@ class StreamingConfig:
     contact_weight: float = 30.0
     ground_weight: float = 30.0
     iterations: int = 3
-    first_iterations: int = 40
+    first_iterations: int = 60
     damping: float = 1e-4  # Levenberg-Marquardt: H + λ(I + diag H), λ adapted per step
     compile: bool = True
 
@@ -177,25 +177,9 @@ class StreamingRetargeter:
                 x[3] = np.arctan2(-across[0], across[1])
         return x
 
-    def step(self, targets: np.ndarray, contact=(False, False)) -> np.ndarray:
-        """targets (K, 3) m, contact (2,) bool → configuration x (nx,) within all limits."""
-        targets = np.asarray(targets, dtype=np.float64)
-        if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
-            raise RetargetError(f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}")
+    def _solve(self, x, x1, x2, acc, targets, contact, iters, lo, hi) -> np.ndarray:
+        """Levenberg-Marquardt with box constraints from x (see the module docstring)."""
         cfg = self.config
-        first = self._x1 is None
-        if first:
-            x = self._initial_guess(targets)
-            x1 = x2 = x
-            acc = 0.0
-            iters = cfg.first_iterations
-        else:
-            x1 = self._x1
-            x2 = self._x2 if self._x2 is not None else self._x1
-            x = x1.copy()
-            acc = self._sqrt_wa_fps2
-            iters = cfg.iterations
-        lo, hi = self.bounds()
         x = np.clip(x, lo, hi)
         pb = self._pbuf
         pb[self._p_tgt] = targets.reshape(-1)  # (K, 3) row-major = (3, K) column-major
@@ -226,6 +210,46 @@ class StreamingRetargeter:
                 break
             if np.max(np.abs(d)) < 1e-6:
                 break
+        return x
+
+    def _best_start(self, x_stand: np.ndarray, targets: np.ndarray, contact) -> np.ndarray:
+        rb = self.robot
+        x_zero = x_stand.copy()
+        x_zero[rb.n_root:] = np.clip([h.qpos0 for h in rb.kin.joints], rb.x_lower[rb.n_root:], rb.x_upper[rb.n_root:])
+        best, best_cost = x_stand, np.inf
+        for start in (x_stand, x_zero):
+            self.reset()
+            self._x1 = None
+            x = self._solve(start, start, start, 0.0, targets, contact, self.config.first_iterations,
+                            self._lo_pos, self._hi_pos)
+            cost = self._residual(x)
+            if cost < best_cost:
+                best, best_cost = x, cost
+        return best
+
+    def step(self, targets: np.ndarray, contact=(False, False)) -> np.ndarray:
+        """targets (K, 3) m, contact (2,) bool → configuration x (nx,) within all limits."""
+        targets = np.asarray(targets, dtype=np.float64)
+        if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
+            raise RetargetError(f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}")
+        cfg = self.config
+        first = self._x1 is None
+        if first:
+            x = self._initial_guess(targets)
+            x1 = x2 = x
+            acc = 0.0
+            iters = cfg.first_iterations
+            contact = (False, False)  # nothing to stay put against yet
+            # two starts (the stand pose and the zero pose); keep the better fit
+            x = self._best_start(x, targets, contact)
+        else:
+            x1 = self._x1
+            x2 = self._x2 if self._x2 is not None else self._x1
+            x = x1.copy()
+            acc = self._sqrt_wa_fps2
+            iters = cfg.iterations
+        lo, hi = self.bounds()
+        x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi)
         x = np.clip(x, lo, hi)
         if self._has_feet:
             self._residual(x)

@@ -1,12 +1,14 @@
 """Human motion → robot keypoint targets at robot scale, and foot contacts.
 
-Scaling walks the keypoint tree from the root (the profile's ``root``, normally the pelvis):
+Scaling (:class:`KeypointScaler`) walks the keypoint tree from the root (the profile's ``root``,
+normally the pelvis):
 
     target_root(t) = s_root · h_root(t)                                   (free base)
     target_k(t)    = target_parent(k)(t) + s_k · (h_k(t) − h_parent(k)(t))
 
 where h are human joint positions (m), parent(k) the nearest ancestor keypoint and
-s_k, s_root the robot/human rest-pose length ratios of :class:`retarget.robot.RetargetRobot`.
+s_k = (robot rest bone length) / (this human's bone length), s_root the ratio of standing
+root heights (robot rest lengths from :class:`retarget.robot.RetargetRobot`).
 Directions are the human's, lengths the robot's; nothing depends on joint frames.
 
 For a fixed base the root is the robot's (fixed) root keypoint, and the human's bone
@@ -100,32 +102,110 @@ def _heading(positions: np.ndarray) -> np.ndarray:
     return np.arctan2(-across[:, 0], across[:, 1])
 
 
-def make_targets(robot, motion: Motion, contacts: np.ndarray | None = None) -> Targets:
-    """Scaled keypoint targets (T, K, 3) and side contacts (T, 2) for ``robot`` (a RetargetRobot)."""
-    check_motion(motion, min_frames=1)
-    h = motion.positions[:, robot.human_index, :]
-    T, K = h.shape[:2]
-    out = np.zeros_like(h)
-    r = robot.root_keypoint
-    if robot.floating:
-        out[:, r] = robot.root_scale * h[:, r]
+class KeypointScaler:
+    """Per-bone scales for one human: s_k = robot rest length / this human's length.
+
+    The human's bone lengths are the medians over a clip (robust to marker noise), or the
+    SMPL REST_POSE when no clip is given (e.g. a live stream's start). The root scale is the
+    robot's standing root height over the human's, the human's being REST_POSE's pelvis height
+    times the ratio of this human's leg length (hip→knee→ankle) to REST_POSE's. Profile
+    overrides (``scale:``) win over both.
+    """
+
+    def __init__(self, robot, human_positions: np.ndarray | None = None):
+        self.robot = robot
+        ref = REST_POSE[None] if human_positions is None else np.asarray(human_positions, dtype=np.float64)
+        hidx, par = robot.human_index, robot.keypoint_parent
+        scales = np.ones(robot.n_keypoints)
+        for k, p in enumerate(par):
+            if p < 0:
+                continue
+            name = robot.keypoint_names[k]
+            if name in robot.profile.scale_overrides:
+                scales[k] = robot.profile.scale_overrides[name]
+                continue
+            hl = float(np.median(np.linalg.norm(ref[:, hidx[k]] - ref[:, hidx[p]], axis=-1)))
+            if hl < 1e-4:
+                raise RetargetError(f"motion: the human bone {robot.keypoint_names[p]} -> {name} has zero length; check the joint positions")
+            scales[k] = robot.bone_lengths[k] / hl
+        self.bone_scales = scales
+        if robot.profile.root_scale is not None:
+            self.root_scale = robot.profile.root_scale
+        else:
+            legs = [(1, 4), (4, 7), (2, 5), (5, 8)]  # SMPL hip→knee→ankle, both sides
+            rest = sum(np.linalg.norm(REST_POSE[a] - REST_POSE[b]) for a, b in legs)
+            this = sum(float(np.median(np.linalg.norm(ref[:, a] - ref[:, b], axis=-1))) for a, b in legs)
+            human_h = REST_POSE[hidx[robot.root_keypoint], 2] * this / rest
+            self.root_scale = float(robot.standing_root_height / human_h)
+
+    def targets(self, positions: np.ndarray) -> np.ndarray:
+        """Human positions (T, 22, 3) → robot keypoint targets (T, K, 3) (see the module docstring)."""
+        rb = self.robot
+        h = np.asarray(positions, dtype=np.float64)[:, rb.human_index, :]
+        T = h.shape[0]
+        out = np.zeros_like(h)
+        r = rb.root_keypoint
         rot = None
+        if rb.floating:
+            out[:, r] = self.root_scale * h[:, r]
+        else:
+            stand = rb.evaluate(rb.x_stand[None])["keypoints"][0]
+            out[:, r] = stand[r]
+            yaw = _heading(np.asarray(positions))
+            c, s = np.cos(-yaw), np.sin(-yaw)
+            rot = np.zeros((T, 3, 3))
+            rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s, s, c, 1.0
+        frames = {}
+        for k in _topological(rb.keypoint_parent):
+            p = rb.keypoint_parent[k]
+            if p < 0:
+                continue
+            frame_of = _FRAME_BONES.get(rb.keypoint_names[k])
+            if frame_of is not None:
+                if frame_of not in frames:
+                    frames[frame_of] = _body_frame(np.asarray(positions, dtype=np.float64), frame_of)
+                bone = np.einsum("tij,j->ti", frames[frame_of], rb.rest_offsets[k])
+                scale = 1.0
+            else:
+                bone = h[:, k] - h[:, p]
+                scale = self.bone_scales[k]
+            if rot is not None:
+                bone = np.einsum("tij,tj->ti", rot, bone)
+            out[:, k] = out[:, p] + scale * bone
+        return out
+
+
+#: Short bones across the pelvis and the chest whose direction differs between skeletons
+#: (human hips sit lower and wider than most robots'): their targets are the robot's own
+#: rest offset turned by the human's pelvis / chest frame instead of the scaled human bone.
+_FRAME_BONES = {"left_hip": "pelvis", "right_hip": "pelvis", "left_shoulder": "chest", "right_shoulder": "chest"}
+
+
+def _body_frame(positions: np.ndarray, which: str) -> np.ndarray:
+    """(T, 3, 3) rotation of the human's pelvis or chest: columns forward, left, up.
+
+    left = unit(left − right joint) (hips, or shoulders), up = the spine direction
+    (pelvis→spine1, or spine3→neck) made orthogonal to left, forward = left × up.
+    In the rest pose both are the identity (DESIGN.md: facing +X, left +Y, Z up)."""
+    if which == "pelvis":
+        across, up = positions[:, 1] - positions[:, 2], positions[:, 3] - positions[:, 0]
     else:
-        stand = robot.evaluate(robot.x_stand[None])["keypoints"][0]
-        out[:, r] = stand[r]
-        yaw = _heading(motion.positions)
-        c, s = np.cos(-yaw), np.sin(-yaw)
-        rot = np.zeros((T, 3, 3))
-        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s, s, c, 1.0
-    order = _topological(robot.keypoint_parent)
-    for k in order:
-        p = robot.keypoint_parent[k]
-        if p < 0:
-            continue
-        bone = h[:, k] - h[:, p]
-        if rot is not None:
-            bone = np.einsum("tij,tj->ti", rot, bone)
-        out[:, k] = out[:, p] + robot.bone_scales[k] * bone
+        across, up = positions[:, 16] - positions[:, 17], positions[:, 12] - positions[:, 9]
+    y = across / np.maximum(np.linalg.norm(across, axis=-1, keepdims=True), 1e-9)
+    z = up - np.sum(up * y, axis=-1, keepdims=True) * y
+    z /= np.maximum(np.linalg.norm(z, axis=-1, keepdims=True), 1e-9)
+    x = np.cross(y, z)
+    return np.stack([x, y, z], axis=-1)
+
+
+def make_targets(robot, motion: Motion, contacts: np.ndarray | None = None, scaler: KeypointScaler | None = None) -> Targets:
+    """Scaled keypoint targets (T, K, 3) and side contacts (T, 2) for ``robot`` (a RetargetRobot).
+
+    The scaler defaults to one fitted on this clip's own bone lengths."""
+    check_motion(motion, min_frames=1)
+    scaler = scaler or KeypointScaler(robot, motion.positions)
+    out = scaler.targets(motion.positions)
+    T = out.shape[0]
     if contacts is None:
         contacts = motion.contacts if motion.contacts is not None else detect_contacts(motion)
     contacts = np.asarray(contacts, dtype=bool)
@@ -135,7 +215,21 @@ def make_targets(robot, motion: Motion, contacts: np.ndarray | None = None) -> T
         raise RetargetError(f"contacts: expected shape ({T}, 4) or ({T}, 2), got {contacts.shape}")
     if not robot.has_feet or not robot.floating:
         contacts = np.zeros((T, 2), dtype=bool)
+    else:
+        out = out + np.array([0.0, 0.0, ground_offset(robot, out, contacts)])
     return Targets(out, contacts, motion.fps)
+
+
+def ground_offset(robot, keypoints: np.ndarray, contacts: np.ndarray) -> float:
+    """Vertical shift (m) that puts the scaled ankles, while their foot is in contact, at the
+    robot's own standing ankle height (median over contact frames). Scaling a real person's
+    feet rarely lands them exactly on the ground; this is the clip-level correction."""
+    shifts = []
+    for side, joint in ((0, "left_ankle"), (1, "right_ankle")):
+        if joint in robot.keypoint_names and contacts[:, side].any():
+            k = robot.keypoint_names.index(joint)
+            shifts.append(robot.standing_heights[k] - np.median(keypoints[contacts[:, side], k, 2]))
+    return float(np.median(shifts)) if shifts else 0.0
 
 
 def _topological(parent: np.ndarray) -> list[int]:
@@ -155,11 +249,14 @@ def _topological(parent: np.ndarray) -> list[int]:
 
 
 def human_from_keypoints(robot, keypoints: np.ndarray, fps: float, name: str = "from robot keypoints") -> Motion:
-    """The inverse of :func:`make_targets` (free base): a human Motion whose scaled targets are
-    exactly ``keypoints`` (T, K, 3). Human joints that are not keypoints are placed at their
-    rest offset from their parent. Used for round-trip checks and for replaying robot clips."""
+    """The inverse of :meth:`KeypointScaler.targets` with the REST_POSE scaler (free base): a
+    human Motion whose scaled targets are ``keypoints`` (T, K, 3). Human joints that are not
+    keypoints sit at their rest offset from their parent. Because only bone *directions* of
+    the result matter, re-fitting the scaler on it gives back REST_POSE's scales only if its
+    bone lengths are constant, which they are for a rigid robot. Used for round-trip checks."""
     from dualflow.motion.skeleton import N_JOINTS, PARENTS
 
+    sc = KeypointScaler(robot)
     kp = np.asarray(keypoints, dtype=np.float64)
     T = kp.shape[0]
     h = np.zeros((T, N_JOINTS, 3))
@@ -167,9 +264,12 @@ def human_from_keypoints(robot, keypoints: np.ndarray, fps: float, name: str = "
     for k in _topological(robot.keypoint_parent):
         j, p = robot.human_index[k], robot.keypoint_parent[k]
         if p < 0:
-            h[:, j] = kp[:, k] / robot.root_scale
+            h[:, j] = kp[:, k] / sc.root_scale
+        elif robot.keypoint_names[k] in _FRAME_BONES:
+            h[:, j] = h[:, robot.human_index[p]] + (kp[:, k] - kp[:, p]) * (
+                np.linalg.norm(REST_POSE[j] - REST_POSE[robot.human_index[p]]) / max(robot.bone_lengths[k], 1e-9))
         else:
-            h[:, j] = h[:, robot.human_index[p]] + (kp[:, k] - kp[:, p]) / robot.bone_scales[k]
+            h[:, j] = h[:, robot.human_index[p]] + (kp[:, k] - kp[:, p]) / sc.bone_scales[k]
         done[j] = True
     for j in range(N_JOINTS):
         if not done[j]:

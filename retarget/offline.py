@@ -1,0 +1,283 @@
+"""Offline retargeting: the whole clip, or long overlapping windows, solved with IPOPT.
+
+Per window of W frames, with X = [x_0 … x_{W−1}] (nx, W) and, with balance, convex weights
+Λ = [λ_0 … λ_{W−1}] (8, W) over the shrunk sole corners:
+
+    min  Σ_t f_t Σ_k w_k ‖p_k(x_t) − target_kt‖²                        keypoint tracking (m²)
+       + w_a Σ_t ‖fps² (x_{t+1} − 2x_t + x_{t−1})‖²                     acceleration
+       + w_j Σ_t ‖fps³ (x_{t+2} − 3x_{t+1} + 3x_t − x_{t−1})‖²          jerk
+       + w_p Σ_t ‖q_t − q_stand‖²  + w_fix Σ_{t<n_fix} ‖x_t − x̄_t‖²     posture; continuity with the previous window
+    s.t. lb ≤ x_t ≤ ub                                                    joint position limits (bounds)
+         |q_{t+1} − q_t| ≤ v_max / fps                                    joint velocity limits (linear)
+         z_c(x_t) ≥ 0, and = 0 while that foot is in contact              no sole corner below the ground; contact
+         xy_c(x_{t+1}) = xy_c(x_t) while the foot stays in contact        no foot sliding (two diagonal corners)
+         com_xy(x_t) = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0            balance: CoM over the support polygon
+              (λ_ti = 0 for corners of a foot in the air)                   shrunk by ``balance_margin``
+         ‖seg_a − seg_b‖² ≥ (r_a + r_b + margin)²                         self-collision between capsule pairs
+
+f_t is 1 for real frames and 0 for padding, x̄ are the frames already fixed by the
+previous window (w_fix = 0 in the first), so consecutive windows share n_fix frames and
+the acceleration/jerk terms run across the seam: there is no seam to blend.
+
+Per-frame quantities come from one CasADi function ``frame(x)`` mapped over the W frames
+(``Function.map``), so the problem is a handful of matrix expressions whatever W is. Its
+structure depends only on the robot, the profile and W (contacts enter as constraint
+bounds, padding as f_t), so IPOPT's problem functions (objective, gradient, constraint
+Jacobian, Lagrangian Hessian) are compiled to C once per robot and cached on disk
+(:mod:`retarget.codegen`). Each window is warm-started from the streaming solver's output.
+
+If IPOPT reports the window infeasible (limits and contacts cannot all hold at the clip's
+speed), :class:`RetargetError` says which frames and offers re-timing (``retime``: play the
+clip that many times slower); ``auto_retime`` tries 1.25×, 1.5×, 2× by itself.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import casadi as ca
+import numpy as np
+
+from dualflow.motion import Motion
+from retarget.codegen import compiled_nlpsol
+from retarget.errors import RetargetError
+from retarget.streaming import StreamingConfig, StreamingRetargeter, hash_config, trajectory_from_x
+from retarget.targets import Targets, check_motion, make_targets
+from retarget.trajectory import RobotTrajectory
+
+_OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+
+
+@dataclass(frozen=True)
+class OfflineConfig:
+    """Solver settings. ``window`` 0 means the whole clip in one problem."""
+
+    window: int = 64
+    overlap: int = 16
+    n_fix: int = 3
+    accel_weight: float = 1e-7
+    jerk_weight: float = 1e-10
+    posture_weight: float | None = None
+    fix_weight: float = 1e4
+    contacts: bool = True
+    balance: bool = False
+    balance_margin: float = 0.01
+    self_collision: bool = True
+    velocity_safety: float = 0.995
+    compile: bool = True
+    max_iter: int = 200
+    tol: float = 1e-6
+    retime: float = 1.0
+    auto_retime: bool = False
+
+
+class OfflineRetargeter:
+    """Retarget whole clips for one robot; the IPOPT problem is built (and compiled) once per window length."""
+
+    def __init__(self, robot, config: OfflineConfig = OfflineConfig(), streaming: StreamingConfig | None = None):
+        self.robot = robot
+        self.config = config
+        self.streaming_config = streaming or StreamingConfig(accel_weight=1e-8)
+        self._solvers: dict[tuple, tuple] = {}
+        self._frame_fn = self._build_frame_function()
+
+    # -- problem construction -----------------------------------------------------
+    def _build_frame_function(self) -> ca.Function:
+        """frame(x) → keypoints (3, K), sole (3, 8), shrunk sole xy (2, 8), com (3, 1), collision (P, 1)."""
+        rb, cfg = self.robot, self.config
+        x = rb.kin.x_sym
+        shrunk = []
+        for foot in rb.feet:
+            c = foot.corners
+            centre = c.mean(axis=0)
+            off = c - centre
+            # shrink each corner towards the centre by the margin along the two sole edge directions
+            e1 = (c[0] - c[1]) / np.linalg.norm(c[0] - c[1])
+            e2 = (c[1] - c[2]) / np.linalg.norm(c[1] - c[2])
+            for o in off:
+                a, b = o @ e1, o @ e2
+                a = np.sign(a) * max(abs(a) - cfg.balance_margin, 0.0)
+                b = np.sign(b) * max(abs(b) - cfg.balance_margin, 0.0)
+                shrunk.append(rb.kin.point(foot.body, centre + a * e1 + b * e2)[0:2])
+        shr = ca.horzcat(*shrunk) if shrunk else ca.SX.zeros(2, 0)
+        coll = rb.collision_expr if cfg.self_collision else ca.SX.zeros(0, 1)
+        return ca.Function("frame", [x], [rb.keypoints_expr, rb.sole_expr, shr, rb.com_expr, coll])
+
+    def _solver(self, W: int, fps: float):
+        key = (W, round(fps, 6))
+        if key in self._solvers:
+            return self._solvers[key]
+        rb, cfg = self.robot, self.config
+        nx, nr, nj, K = rb.nx, rb.n_root, rb.kin.n_joints, rb.n_keypoints
+        feet = rb.has_feet and rb.floating and cfg.contacts
+        balance = feet and cfg.balance
+        X = ca.MX.sym("X", nx, W)
+        L = ca.MX.sym("L", 8, W) if balance else ca.MX.sym("L", 0, W)
+        TGT = ca.MX.sym("TGT", 3 * K, W)
+        FW = ca.MX.sym("FW", 1, W)
+        XF = ca.MX.sym("XF", nx, cfg.n_fix)
+        WF = ca.MX.sym("WF", 1, 1)
+        kp, sole, shr, com, coll = self._frame_fn.map(W, "serial")(X)
+        wk = np.repeat(rb.keypoint_weights, 3)[:, None]
+        err = ca.reshape(kp, 3 * K, W) - TGT
+        J = ca.sum2(ca.sum1(ca.repmat(ca.DM(wk), 1, W) * err ** 2) * FW)
+        wp = rb.profile.posture_weight if cfg.posture_weight is None else cfg.posture_weight
+        J += wp * ca.sumsqr(X[nr:, :] - ca.repmat(ca.DM(rb.x_stand[nr:]), 1, W))
+        acc = (X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]) * fps ** 2
+        jerk = (X[:, 3:] - 3 * X[:, 2:-1] + 3 * X[:, 1:-2] - X[:, :-3]) * fps ** 3
+        J += cfg.accel_weight * ca.sumsqr(acc) + cfg.jerk_weight * ca.sumsqr(jerk)
+        J += WF * cfg.fix_weight * ca.sumsqr(X[:, :cfg.n_fix] - XF)
+        g = [ca.vec(X[nr:, 1:] - X[nr:, :-1])]
+        layout = {"vel": nj * (W - 1)}
+        if feet:
+            g.append(ca.vec(ca.reshape(sole[2, :], 8, W)))
+            layout["sole_z"] = 8 * W
+            xy = ca.reshape(sole[0:2, :], 16, W)  # per frame: x0 y0 x1 y1 ... of the 8 corners
+            rows = [0, 1, 4, 5, 8, 9, 12, 13]       # corners 0 and 2 of each foot
+            g.append(ca.vec(xy[rows, 1:] - xy[rows, :-1]))
+            layout["slide"] = 8 * (W - 1)
+        if balance:
+            s = ca.reshape(shr, 16, W)
+            sx, sy = s[0::2, :], s[1::2, :]
+            comxy = ca.reshape(com, 3, W)[0:2, :]
+            g.append(ca.vec(ca.vertcat(comxy[0, :] - ca.sum1(L * sx), comxy[1, :] - ca.sum1(L * sy), ca.sum1(L) - 1)))
+            layout["balance"] = 3 * W
+        P = coll.shape[0]
+        if P:
+            g.append(ca.vec(coll))
+            layout["collision"] = P * W
+        nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(L)), "p": ca.vertcat(ca.vec(TGT), ca.vec(FW), ca.vec(XF), WF),
+               "f": J, "g": ca.vertcat(*g)}
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
+                "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-4,
+                "ipopt.mu_strategy": "adaptive", "ipopt.bound_relax_factor": 1e-10,
+                "ipopt.linear_solver": "mumps"}
+        name = f"rtw{W}"
+        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True))}_{int(round(fps * 1000))}"
+        solver, info = compiled_nlpsol(name, nlp, opts, ckey, enable=cfg.compile)
+        entry = (solver, layout, P, balance, feet, info)
+        self._solvers[key] = entry
+        return entry
+
+    # -- solving ---------------------------------------------------------------------
+    def retarget(self, motion: Motion, contacts=None) -> RobotTrajectory:
+        """Retarget a clip; raises RetargetError if it is infeasible at its speed (see ``retime``)."""
+        check_motion(motion, min_frames=2)
+        cfg = self.config
+        factors = [cfg.retime] + ([cfg.retime * f for f in (1.25, 1.5, 2.0)] if cfg.auto_retime else [])
+        last = None
+        for factor in factors:
+            try:
+                return self._retarget_at(motion, contacts, factor)
+            except _Infeasible as exc:
+                last = exc
+        msg = (f"{motion.name or 'motion'}: infeasible at {'its speed' if factors[-1] == 1.0 else f'{factors[-1]:g}x slower'}: "
+               f"{last}; re-time the clip (retime=1.5 plays it 1.5x slower, CLI --retime 1.5) or let it try "
+               "(auto_retime=True, CLI --auto-retime)")
+        raise RetargetError(msg)
+
+    def _retarget_at(self, motion: Motion, contacts, factor: float) -> RobotTrajectory:
+        fps = motion.fps
+        if factor != 1.0:
+            if contacts is not None:
+                contacts = None  # re-detected on the slowed clip
+            slowed = Motion(motion.positions, fps=fps / factor, contacts=motion.contacts, name=motion.name)
+            motion = slowed.resample(fps)
+        tg = make_targets(self.robot, motion, contacts)
+        t0 = time.perf_counter()
+        stream = StreamingRetargeter(self.robot, fps, self.streaming_config)
+        X0 = np.stack([stream.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
+        X, stats = self.solve(tg, X0)
+        stats["seconds"] = time.perf_counter() - t0
+        stats["retime"] = factor
+        return trajectory_from_x(self.robot, X, fps, {"mode": "offline", "source": motion.name, **stats})
+
+    def solve(self, tg: Targets, X0: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Solve all windows; X0 (T, nx) is the initial guess. Returns X (T, nx) and solver stats."""
+        cfg, rb = self.config, self.robot
+        T = tg.keypoints.shape[0]
+        W = T if cfg.window <= 0 or cfg.window >= T else cfg.window
+        if W < 4:
+            W = 4
+        hop = max(W - cfg.overlap, cfg.n_fix + 1)
+        X = X0.copy()
+        starts = [0]
+        while starts[-1] + W < T:
+            starts.append(starts[-1] + hop)
+        iters, info = 0, ""
+        for wi, s in enumerate(starts):
+            Xw, it, info = self._solve_window(tg, X, s, W, fixed=wi > 0)
+            n_real = min(W, T - s)
+            keep_from = 0 if wi == 0 else cfg.n_fix
+            X[s + keep_from:s + n_real] = Xw[keep_from:n_real]
+            iters += it
+        X = np.clip(X, rb.x_lower, rb.x_upper)
+        return X, {"windows": len(starts), "window": W, "ipopt_iterations": iters, "compiled": info}
+
+    def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool):
+        cfg, rb = self.config, self.robot
+        solver, layout, P, balance, feet, info = self._solver(W, tg.fps)
+        T, nx, nr = X.shape[0], rb.nx, rb.n_root
+        idx = np.minimum(np.arange(s, s + W), T - 1)
+        real = (np.arange(s, s + W) < T).astype(float)
+        tgt = tg.keypoints[idx].reshape(W, -1).T  # (3K, W): column t = (k0x k0y k0z k1x …)
+        x0 = X[idx].T
+        xf = X[s:s + cfg.n_fix].T if fixed else np.tile(X[s], (cfg.n_fix, 1)).T
+        p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0]])
+        contact = tg.contacts[idx]
+        lbg, ubg = [], []
+        v = rb.velocity_limits[:, None] * cfg.velocity_safety / tg.fps
+        lbg.append(np.tile(-v, (1, W - 1)).ravel(order="F"))
+        ubg.append(np.tile(v, (1, W - 1)).ravel(order="F"))
+        lam0 = np.zeros((0, W))
+        if feet:
+            cz = np.repeat(contact, 4, axis=1).T  # (8, W)
+            lbg.append(np.zeros(8 * W))
+            ubg.append(np.where(cz, 0.0, np.inf).ravel(order="F"))
+            both = contact[1:] & contact[:-1]       # (W-1, 2)
+            cs = np.repeat(both, 4, axis=1).T        # (8, W-1)
+            lbg.append(np.where(cs, 0.0, -np.inf).ravel(order="F"))
+            ubg.append(np.where(cs, 0.0, np.inf).ravel(order="F"))
+        lbx = np.tile(rb.x_lower[:, None], (1, W))
+        ubx = np.tile(rb.x_upper[:, None], (1, W))
+        lbl = np.zeros((0, W))
+        ubl = np.zeros((0, W))
+        if balance:
+            active = contact.any(axis=1)
+            b = np.where(active, 0.0, np.inf)
+            lbg.append(np.stack([-b, -b, -b]).ravel(order="F"))
+            ubg.append(np.stack([b, b, b]).ravel(order="F"))
+            cl = np.repeat(contact, 4, axis=1).T
+            lbl = np.zeros((8, W))
+            ubl = np.where(cl, 1.0, 0.0)
+            n_on = np.maximum(cl.sum(axis=0, keepdims=True), 1)
+            lam0 = cl / n_on
+        if P:
+            lbg.append(np.zeros(P * W))
+            ubg.append(np.full(P * W, np.inf))
+        args = dict(x0=np.concatenate([x0.ravel(order="F"), lam0.ravel(order="F")]), p=p,
+                    lbx=np.concatenate([lbx.ravel(order="F"), lbl.ravel(order="F")]),
+                    ubx=np.concatenate([ubx.ravel(order="F"), ubl.ravel(order="F")]),
+                    lbg=np.concatenate(lbg), ubg=np.concatenate(ubg))
+        # a warm start must lie inside the box
+        args["x0"] = np.clip(args["x0"], args["lbx"], args["ubx"])
+        sol = solver(**args)
+        st = solver.stats()
+        status = st.get("return_status", "")
+        xs = np.array(sol["x"]).ravel()
+        g = np.array(sol["g"]).ravel()
+        viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
+        if status not in _OK and viol > 1e-5:
+            raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g})")
+        Xw = xs[:nx * W].reshape(W, nx)
+        return Xw, int(st.get("iter_count", 0)), info
+
+
+class _Infeasible(Exception):
+    pass
+
+
+def retarget_offline(robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None) -> RobotTrajectory:
+    """One-call convenience: ``OfflineRetargeter(robot, config).retarget(motion)``."""
+    return OfflineRetargeter(robot, config).retarget(motion, contacts)
