@@ -155,6 +155,11 @@ class FrameRenderer:
         self._parent = np.asarray(PARENTS[1:])
 
     def render(self, frame: int, time_s: float | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 image of ``frame`` (a new array)."""
+        return self.render_rgba(frame, time_s)[:, :, :3].copy()
+
+    def render_rgba(self, frame: int, time_s: float | None = None) -> np.ndarray:
+        """(H, W, 4) uint8 view of the canvas showing ``frame``; valid until the next call."""
         self.canvas.restore_region(self.background)
         frames = [m.positions[min(frame, m.n_frames - 1)] for m in self.people]
         order = np.argsort([-self.camera.depth(p.mean(axis=0)) for p in frames])  # far first
@@ -167,7 +172,7 @@ class FrameRenderer:
         if time_s is not None:
             self.clock.set_text(f"{time_s:5.2f} s")
             self.ax.draw_artist(self.clock)
-        return np.asarray(self.canvas.buffer_rgba())[:, :, :3].copy()
+        return np.asarray(self.canvas.buffer_rgba())
 
 
 def _temp_like(path: Path) -> Path:
@@ -201,12 +206,12 @@ def render_preview(motion, out_path, config: PreviewConfig = PreviewConfig()) ->
 
             writer = imageio_ffmpeg.write_frames(
                 str(tmp), (config.width, config.height), fps=fps, codec="libx264",
-                pix_fmt_out="yuv420p", macro_block_size=2, output_params=["-f", "mp4"],
-                ffmpeg_log_level="error",
+                pix_fmt_in="rgba", pix_fmt_out="yuv420p", macro_block_size=2,
+                output_params=["-f", "mp4", "-preset", "veryfast"], ffmpeg_log_level="error",
             )
             writer.send(None)
             for i in range(n):
-                writer.send(renderer.render(i, i / fps))
+                writer.send(renderer.render_rgba(i, i / fps))
             writer.close()
         else:
             from PIL import Image
@@ -214,7 +219,7 @@ def render_preview(motion, out_path, config: PreviewConfig = PreviewConfig()) ->
             frames = []
             palette = None
             for i in range(n):
-                img = Image.fromarray(renderer.render(i, i / fps))
+                img = Image.fromarray(renderer.render_rgba(i, i / fps)).convert("RGB")
                 if palette is None:
                     palette = img.quantize(colors=64, method=Image.Quantize.MEDIANCUT)
                 frames.append(img.quantize(palette=palette, dither=Image.Dither.NONE))
