@@ -176,7 +176,26 @@ class ServoModel:
 
     def registers_in(self, start: int, end: int) -> list[Register]:
         """Registers overlapping the byte span [start, end), in address order."""
-        return [r for r in self._by_address.values() if r.address < end and r.end > start]
+        cover = self._cover
+        out: list[Register] = []
+        for a in range(max(start, 0), min(end, len(cover))):
+            r = cover[a]
+            if r is not None and (not out or out[-1] is not r):
+                out.append(r)
+        return out
+
+    @property
+    def _cover(self) -> tuple[Register | None, ...]:
+        """For each byte address, the register covering it (None in gaps); built once."""
+        cover = self.__dict__.get("_cover_cache")
+        if cover is None:
+            table = [None] * self.table_size
+            for r in self._by_address.values():
+                for a in range(r.address, r.end):
+                    table[a] = r
+            cover = tuple(table)
+            object.__setattr__(self, "_cover_cache", cover)
+        return cover
 
     @property
     def table_size(self) -> int:

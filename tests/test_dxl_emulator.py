@@ -79,6 +79,7 @@ def test_goal_moves_the_servo_only_with_torque_on_and_push_follows_with_torque_o
         emu.push(1, 1500)
         assert ph.read4ByteTxRx(port, 1, PRESENT_POS)[0] == 1500  # limp horn follows the hand
         assert ph.write1ByteTxRx(port, 1, TORQUE, 1) == (sdk.COMM_SUCCESS, 0)
+        time.sleep(0.02)
         moving = ph.read4ByteTxRx(port, 1, PRESENT_VEL)[0]
         assert 0 < moving <= 1023  # heading up towards 2600
         wait_until(lambda: ph.read4ByteTxRx(port, 1, PRESENT_POS)[0] == 2600)

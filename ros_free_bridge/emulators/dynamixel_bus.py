@@ -287,7 +287,7 @@ class DynamixelBusEmulator:
             s.advance()
             s.faults.injected_hw_error = int(bits)
             s.faults.hw_error_survives_reboot = survives_reboot
-            s.advance(s._last + 1e-9)
+            s.refresh()
 
     def overheat(self, servo_id: int, celsius: float | None = None) -> None:
         """Hold the temperature at ``celsius`` (default: Temperature Limit + 5 °C)."""
@@ -297,7 +297,7 @@ class DynamixelBusEmulator:
             if celsius is None:
                 celsius = s.get("temperature_limit") + 5.0
             s.faults.held_temperature_c = float(celsius)
-            s.advance(s._last + 1e-9)
+            s.refresh()
 
     def set_supply_voltage(self, servo_id: int, volts: float | None) -> None:
         """Supply voltage seen by the servo (None: its rated voltage)."""
@@ -305,7 +305,7 @@ class DynamixelBusEmulator:
             s = self.servo(servo_id)
             s.advance()
             s.faults.supply_v = volts
-            s.advance(s._last + 1e-9)
+            s.refresh()
 
     def stick(self, servo_id: int, stuck: bool = True) -> None:
         """Block the motor: goal changes give stall current and, after 1 s, overload."""
@@ -328,7 +328,7 @@ class DynamixelBusEmulator:
                 s.faults = type(s.faults)()
                 if held:
                     s._temp = s.ambient_c
-                s.advance(s._last + 1e-9)
+                s.refresh()
 
     def vanish(self) -> None:
         """Close the pty as if the adapter were unplugged."""
@@ -648,13 +648,12 @@ def _u16(data: bytes, at: int) -> int:
 
 
 def _sleep_until(t: float, clock: Callable[[], float]) -> None:
-    """Sleep to within ~0.3 ms of ``t``, then spin: sub-millisecond wire times stay accurate."""
-    while True:
+    """Sleep until ``t``. Never spins: a spinning emulator thread would hold the GIL the
+    host's SDK (in the same process) needs; sleep overshoots by ~0.1 ms on Linux."""
+    left = t - clock()
+    while left > 0:
+        time.sleep(left)
         left = t - clock()
-        if left <= 0:
-            return
-        if left > 0.0005:
-            time.sleep(left - 0.0003)
 
 
 __all__ = ["DynamixelBusEmulator", "ServoSpec", "DEFAULT_MODELS"]

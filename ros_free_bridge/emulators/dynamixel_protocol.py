@@ -155,10 +155,12 @@ def encode_fast_status(parts: list[tuple[int, int, bytes]], length: int | None =
     if length is None:
         length = 1 + sum(4 + len(data) for _, _, data in parts)
     out = bytearray(HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS)))
+    crc = crc16(out)
     for error, servo_id, data in parts:
-        out += bytes((error & 0xFF, servo_id & 0xFF)) + bytes(data)
-        crc = crc16(out)
-        out += bytes((crc & 0xFF, crc >> 8))
+        piece = bytes((error & 0xFF, servo_id & 0xFF)) + bytes(data)
+        crc = crc16(piece, crc)                  # running CRC of the packet so far
+        out += piece + bytes((crc & 0xFF, crc >> 8))
+        crc = crc16(out[-2:], crc)
     return bytes(out)
 
 

@@ -39,6 +39,7 @@ external hand); with torque on a pushed servo moves back to its goal.
 from __future__ import annotations
 
 import math
+import struct
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -54,6 +55,12 @@ HW_OVERLOAD = 0x20
 
 #: Protocol 1.0 status error bits that mirror hardware conditions.
 _P1_HW_BITS = {HW_INPUT_VOLTAGE: 0x01, HW_OVERHEATING: 0x04, HW_OVERLOAD: 0x20}
+
+_FORMATS = {(1, False): "<B", (2, False): "<H", (4, False): "<I", (1, True): "<b", (2, True): "<h", (4, True): "<i"}
+
+#: The motor model skips updates shorter than this (s); time keeps accumulating, so
+#: nothing is lost, and a 20-servo sync read does not recompute 20 models per packet.
+MIN_STEP_S = 2e-4
 
 THERMAL_TAU_S = 60.0
 THERMAL_RISE_AT_STALL_K = 60.0
@@ -129,7 +136,28 @@ class EmulatedServo:
         self.booting_until = 0.0
         self._mem = bytearray(max(model.table_size, 1))
         self._regs = model.registers
+        # name -> (offset, struct packer or None for sign-magnitude, register): fast access
+        self._acc = {
+            r.name: (r.address, None if r.sign_bit is not None else struct.Struct(_FORMATS[(r.size, r.signed)]), r)
+            for r in model.registers.values()
+        }
         self._registered: tuple[int, bytes] | None = None
+        has = model.registers.__contains__
+        self._vel_name = "present_velocity" if has("present_velocity") else "present_speed"
+        self._volt_name = model.first_register("present_input_voltage", "present_voltage").name
+        self._has_current = has("present_current") and bool(model.current_ma)
+        self._has_load = has("present_load")
+        self._has_trajectory = has("velocity_trajectory") and has("position_trajectory")
+        self._has_threshold = has("moving_threshold")
+        self._has_hw_register = has("hardware_error_status")
+        self._has_tick = has("realtime_tick")
+        self._has_voltage_limits = has("min_voltage_limit") and has("max_voltage_limit")
+        self._has_temp_limit = has("temperature_limit")
+        self._has_shutdown = has("shutdown")
+        self._vel_units_per_tick_s = 60.0 / model.position.ticks_per_turn / model.velocity_rpm
+        self._vel = 0.0
+        self._cur = 0.0
+        self._stale = True
         self._pos = float(model.position.center_tick if position_ticks is None else position_ticks)
         self._temp = ambient_c
         self._stall_time = 0.0
@@ -149,18 +177,33 @@ class EmulatedServo:
         return name in self._regs
 
     def get(self, name: str) -> int:
-        """A register's value (no motor update, no access rules)."""
-        r = self._regs[name]
-        return r.decode(self._mem[r.address:r.end])
+        """A register's value as a READ would return it now, without advancing the motor
+        model (call :meth:`advance` first for the present state)."""
+        if self._stale:
+            self._sync_outputs(self._vel, self._cur, self._last)
+        return self._g(name)
+
+    def _g(self, name: str) -> int:
+        """Raw register value (internal: no refresh of the output registers)."""
+        offset, packer, reg = self._acc[name]
+        if packer is None:
+            return reg.decode(self._mem[offset:reg.end])
+        return packer.unpack_from(self._mem, offset)[0]
 
     def set(self, name: str, value: int) -> None:
         """Set a register's value directly (back door for tests: no access rules)."""
-        r = self._regs[name]
-        self._mem[r.address:r.end] = r.encode(value)
+        offset, packer, reg = self._acc[name]
+        if packer is None or not reg.signed and value < 0:
+            self._mem[offset:reg.end] = reg.encode(value)
+        else:
+            try:
+                packer.pack_into(self._mem, offset, value)
+            except struct.error:  # out of the register's width: wrap like the encoder does
+                self._mem[offset:reg.end] = reg.encode(value)
 
     @property
     def servo_id(self) -> int:
-        return self.get("id")
+        return self._g("id")
 
     @property
     def protocol(self) -> int:
@@ -168,7 +211,7 @@ class EmulatedServo:
 
     @property
     def torque_enabled(self) -> bool:
-        return self.get("torque_enable") == 1
+        return self._g("torque_enable") == 1
 
     @property
     def position(self) -> float:
@@ -180,20 +223,20 @@ class EmulatedServo:
         return self._temp
 
     def return_delay_s(self) -> float:
-        return self.model.return_delay_s(self.get("return_delay_time"))
+        return self.model.return_delay_s(self._g("return_delay_time"))
 
     def status_return_level(self) -> int:
-        return self.get("status_return_level") if self.has("status_return_level") else 2
+        return self._g("status_return_level") if self.has("status_return_level") else 2
 
     def baud(self) -> int | None:
         """The baud rate this servo listens at, from its Baud Rate register."""
         try:
-            return self.model.register_to_baud(self.get("baud_rate"))
+            return self.model.register_to_baud(self._g("baud_rate"))
         except Exception:
             return None
 
     def _factory_fill(self, keep: tuple[str, ...]) -> None:
-        kept = {name: self.get(name) for name in keep if name in self._regs}
+        kept = {name: self._g(name) for name in keep if name in self._regs}
         self._mem[:] = bytes(len(self._mem))
         for r in self._regs.values():
             if r.initial is not None:
@@ -205,13 +248,11 @@ class EmulatedServo:
     def hardware_error(self) -> int:
         """Current Hardware Error Status bits (computed + latched + injected)."""
         bits = self._hw_latched | self.faults.injected_hw_error
-        volts = self.supply_voltage()
-        if self.has("min_voltage_limit"):
-            lo = self.get("min_voltage_limit") * self.model.voltage_v
-            hi = self.get("max_voltage_limit") * self.model.voltage_v
-            if not lo <= volts <= hi:
+        if self._has_voltage_limits:
+            volts = self.supply_voltage() / self.model.voltage_v
+            if not self._g("min_voltage_limit") - 1e-9 <= volts <= self._g("max_voltage_limit") + 1e-9:
                 bits |= HW_INPUT_VOLTAGE
-        if self.has("temperature_limit") and self._temp >= self.get("temperature_limit"):
+        if self._has_temp_limit and self._temp >= self._g("temperature_limit"):
             bits |= HW_OVERHEATING
         return bits
 
@@ -227,31 +268,29 @@ class EmulatedServo:
         return sum(p1 for hw, p1 in _P1_HW_BITS.items() if bits & hw)
 
     def _shutdown_active(self) -> bool:
-        mask = self.get("shutdown") if self.has("shutdown") else 0
-        return bool(self.hardware_error() & mask)
+        mask = self._g("shutdown") if self._has_shutdown else 0
+        return bool(mask and self.hardware_error() & mask)
 
     # ------------------------------------------------------------------ motor model
     def advance(self, now: float | None = None) -> None:
         """Bring the motor model and the read-only registers up to ``now``."""
         now = self.clock() if now is None else now
         dt = now - self._last
-        if dt <= 0.0:
+        if dt < MIN_STEP_S:
             return
         self._last = now
         m = self.model
-        if self._shutdown_active() and self.torque_enabled:
-            self.set("torque_enable", 0)
         velocity_ticks_s = 0.0
         current_a = 0.0
         if self.torque_enabled and not self.faults.disconnected:
-            mode = self.get("operating_mode") if self.has("operating_mode") else 3
+            mode = self._g("operating_mode") if self.has("operating_mode") else 3
             v_cap = self._max_speed_ticks_s()
             if mode == 1 and self.has("goal_velocity"):
-                target_v = max(-v_cap, min(v_cap, self.get("goal_velocity") * m.velocity_rpm * m.position.ticks_per_turn / 60.0))
+                target_v = max(-v_cap, min(v_cap, self._g("goal_velocity") * m.velocity_rpm * m.position.ticks_per_turn / 60.0))
                 step = 0.0 if self.faults.stuck else target_v * dt
                 current_a = m.ratings.stall_current_a * (1.0 if self.faults.stuck and target_v else abs(target_v) / max(v_cap, 1e-9) * 0.2)
             else:
-                goal = self.get("goal_position")
+                goal = self._g("goal_position")
                 err = goal - self._pos
                 step = 0.0 if self.faults.stuck else max(-v_cap * dt, min(v_cap * dt, err))
                 residual = err - step
@@ -276,50 +315,64 @@ class EmulatedServo:
             ratio = current_a / m.ratings.stall_current_a
             t_ss = self.ambient_c + THERMAL_RISE_AT_STALL_K * ratio * ratio
             self._temp = t_ss + (self._temp - t_ss) * math.exp(-dt / THERMAL_TAU_S)
-        if self._shutdown_active() and self.torque_enabled:
+        if self.torque_enabled and self._shutdown_active():
             self.set("torque_enable", 0)
-        self._sync_outputs(velocity_ticks_s, current_a, now)
+        self._vel, self._cur, self._stale = velocity_ticks_s, current_a, True
 
     def _max_speed_ticks_s(self) -> float:
         m = self.model
         if self.has("profile_velocity"):
-            limit = self.get("velocity_limit") if self.has("velocity_limit") else 0
-            pv = self.get("profile_velocity")
+            limit = self._g("velocity_limit") if self.has("velocity_limit") else 0
+            pv = self._g("profile_velocity")
             units = limit if pv == 0 else (min(pv, limit) if limit else pv)
             rpm = units * m.velocity_rpm if units else m.ratings.no_load_speed_rpm
         else:
-            ms = self.get("moving_speed") & 0x3FF if self.has("moving_speed") else 0
+            ms = self._g("moving_speed") & 0x3FF if self.has("moving_speed") else 0
             rpm = ms * m.velocity_rpm if ms else m.ratings.no_load_speed_rpm
         rpm = min(rpm, m.ratings.no_load_speed_rpm * self.supply_voltage() / m.ratings.rated_voltage_v)
         return rpm * m.position.ticks_per_turn / 60.0
 
     def _sync_outputs(self, velocity_ticks_s: float, current_a: float, now: float | None = None) -> None:
+        """Write the model's state into the read-only registers."""
+        self._stale = False
         m = self.model
-        self.set("present_position", int(round(self._pos)))
-        vel_units = int(round(velocity_ticks_s * 60.0 / m.position.ticks_per_turn / m.velocity_rpm))
-        for name in ("present_velocity", "present_speed"):
-            if self.has(name):
-                self.set(name, vel_units)
-        if self.has("present_current") and m.current_ma:
-            self.set("present_current", int(round(current_a * 1000.0 / m.current_ma)))
-        if self.has("present_load"):
-            self.set("present_load", int(round(1000.0 * current_a / m.ratings.stall_current_a)))
-        if self.has("velocity_trajectory"):
-            self.set("velocity_trajectory", vel_units)
-        if self.has("position_trajectory"):
-            self.set("position_trajectory", self.get("goal_position") if self.torque_enabled else int(round(self._pos)))
-        volt_reg = m.first_register("present_input_voltage", "present_voltage")
-        self._mem[volt_reg.address:volt_reg.end] = volt_reg.encode(int(round(self.supply_voltage() / m.voltage_v)))
-        self.set("present_temperature", int(round(self._temp / m.temperature_c)))
-        moving = abs(vel_units) > (self.get("moving_threshold") if self.has("moving_threshold") else 0)
-        self.set("moving", int(moving))
-        if self.has("moving_status"):
-            in_position = abs(self.get("goal_position") - self._pos) < 1.0
-            self.set("moving_status", int(in_position) | (0x02 if moving else 0))
-        if self.has("hardware_error_status"):
-            self.set("hardware_error_status", self.hardware_error())
-        if self.has("realtime_tick") and now is not None:
-            self.set("realtime_tick", int((now - self._t0) * 1000.0) % 32768)
+        has = self._regs.__contains__
+        setr = self.set
+        self._vel, self._cur = velocity_ticks_s, current_a
+        setr("present_position", int(round(self._pos)))
+        vel_units = int(round(velocity_ticks_s * self._vel_units_per_tick_s))
+        setr(self._vel_name, vel_units)
+        if self._has_current:
+            setr("present_current", int(round(current_a * 1000.0 / m.current_ma)))
+        if self._has_load:
+            setr("present_load", int(round(1000.0 * current_a / m.ratings.stall_current_a)))
+        torque_on = self._g("torque_enable") == 1
+        goal = self._g("goal_position")
+        if self._has_trajectory:
+            setr("velocity_trajectory", vel_units)
+            setr("position_trajectory", goal if torque_on else int(round(self._pos)))
+        setr(self._volt_name, int(round(self.supply_voltage() / m.voltage_v)))
+        setr("present_temperature", int(round(self._temp / m.temperature_c)))
+        moving = abs(vel_units) > (self._g("moving_threshold") if self._has_threshold else 0)
+        setr("moving", int(moving))
+        if has("moving_status"):
+            setr("moving_status", int(abs(goal - self._pos) < 1.0) | (0x02 if moving else 0))
+        if self._has_hw_register:
+            setr("hardware_error_status", self.hardware_error())
+        if self._has_tick and now is not None:
+            setr("realtime_tick", int((now - self._t0) * 1000.0) % 32768)
+        self._stale = False
+
+    def refresh(self) -> None:
+        """Apply changed faults now (held temperature, shutdown) without advancing time."""
+        if self.faults.held_temperature_c is not None:
+            self._temp = self.faults.held_temperature_c
+        if self.torque_enabled and self._shutdown_active():
+            self._set_torque_off()
+        self._stale = True
+
+    def _set_torque_off(self) -> None:
+        self.set("torque_enable", 0)
 
     def push(self, ticks: float) -> None:
         """An external hand moves the horn to ``ticks`` (a torque-on servo will return to its goal)."""
@@ -331,6 +384,8 @@ class EmulatedServo:
     def read(self, address: int, length: int) -> bytes | None:
         """Raw bytes of the control table, or None if the span leaves the table."""
         self.advance()
+        if self._stale:
+            self._sync_outputs(self._vel, self._cur, self._last)
         if address < 0 or length < 0 or address + length > len(self._mem):
             return None
         return bytes(self._mem[address:address + length])
@@ -350,7 +405,7 @@ class EmulatedServo:
         if any(r.eeprom for r in regs):
             if self.model.protocol == 2 and self.torque_enabled:
                 return WriteResult("access")
-            if self.has("lock") and self.get("lock") == 1:
+            if self.has("lock") and self._g("lock") == 1:
                 return WriteResult("access")
         for r in regs:
             value = r.decode(data[r.address - address:r.end - address])
@@ -367,12 +422,12 @@ class EmulatedServo:
 
     def _goal_limits(self) -> tuple[int | None, int | None]:
         if self.has("min_position_limit"):
-            mode = self.get("operating_mode") if self.has("operating_mode") else 3
+            mode = self._g("operating_mode") if self.has("operating_mode") else 3
             if mode != 3:
                 return None, None
-            return self.get("min_position_limit"), self.get("max_position_limit")
+            return self._g("min_position_limit"), self._g("max_position_limit")
         if self.has("cw_angle_limit"):
-            lo, hi = self.get("cw_angle_limit"), self.get("ccw_angle_limit")
+            lo, hi = self._g("cw_angle_limit"), self._g("ccw_angle_limit")
             if lo == 0 and hi == 0:  # wheel mode
                 return None, None
             return lo, hi
@@ -394,14 +449,14 @@ class EmulatedServo:
         if not result.ok:
             return result
         was_on = self.torque_enabled
-        old_offset = self.get("homing_offset") if self.has("homing_offset") else 0
+        old_offset = self._g("homing_offset") if self.has("homing_offset") else 0
         for r in self.model.registers_in(address, address + len(data)):
             self._mem[r.address:r.end] = data[r.address - address:r.end - address]
         if self.has("homing_offset"):
-            self._pos += self.get("homing_offset") - old_offset
+            self._pos += self._g("homing_offset") - old_offset
         if self.torque_enabled and not was_on and self._shutdown_active():
             self.set("torque_enable", 0)  # shutdown holds torque off until REBOOT
-        self._sync_outputs(0.0, 0.0, self._last)
+        self._stale = True
         return result
 
     def _record_goal(self, ticks: int, accepted: bool, instruction: str) -> None:
@@ -436,7 +491,7 @@ class EmulatedServo:
         """REBOOT: RAM back to factory values, errors cleared, torque off, goal = present;
         the servo answers nothing for ``downtime_s``."""
         self.advance()
-        eeprom = {r.name: self.get(r.name) for r in self._regs.values() if r.eeprom}
+        eeprom = {r.name: self._g(r.name) for r in self._regs.values() if r.eeprom}
         self._factory_fill(keep=())
         for name, value in eeprom.items():
             self.set(name, value)
