@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from dualflow import DualFlowError
 from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
 from dualflow.motion.io import load_any, load_motion, save_motion
 from dualflow.motion.preview import PERSON_COLOURS, FrameRenderer, PreviewConfig, render_preview
@@ -159,5 +160,9 @@ def test_frame_renderer_draws_where_the_person_is():
     cols = np.flatnonzero(np.array([_has_colour(img[:, [c]], PERSON_COLOURS[0], tol=30) for c in range(img.shape[1])]))
     cols2 = np.flatnonzero(np.array([_has_colour(img[:, [c]], PERSON_COLOURS[1], tol=30) for c in range(img.shape[1])]))
     assert cols.size and cols2.size and cols.mean() < cols2.mean()  # the person at smaller x is further left
-    with pytest.raises(Exception, match="even"):
+    with pytest.raises(DualFlowError, match="even"):
         render_preview(left, "x.mp4", PreviewConfig(width=201))
+    with pytest.raises(DualFlowError, match="does not exist"):
+        render_preview(left, "/no/such/folder/x.mp4")
+    with pytest.raises(DualFlowError, match="give a Motion"):
+        render_preview([left, "not a motion"], "x.gif")
