@@ -29,6 +29,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "check",
     "render",
     "view",
+    "retarget",
 )
 
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)

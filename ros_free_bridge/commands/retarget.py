@@ -1,0 +1,105 @@
+"""``dualflow-bridge retarget``: human motion file(s) in, robot trajectory + report out.
+
+One person: ``FILE``. Two people (``FILE FILE2``, ``--actor A --reactor B`` or a duet
+``.npz``): the reactor (person B, the robot's role) is retargeted. The robot is a name
+(``op3``, ``ub14``: ``sim/robots/<name>/<name>.xml`` + ``retarget/profiles/<name>.yaml``) or
+an MJCF path (with ``--profile``). Writes, under ``--out``:
+
+- ``<stem>.npz`` and ``<stem>.csv``: the :class:`retarget.RobotTrajectory`;
+- ``<stem>.report.json`` / ``.report.md``: the figures of :mod:`retarget.report`;
+- ``<stem>.joints.png``: each joint against its limits.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("retarget", help="retarget human motion to a robot (CasADi/IPOPT), with a report",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("files", nargs="*", metavar="FILE", help="motion file, or two files (actor, reactor) in one world frame")
+    p.add_argument("--actor", metavar="FILE", help="actor file (with --reactor)")
+    p.add_argument("--reactor", metavar="FILE", help="reactor file: the person whose motion the robot takes")
+    p.add_argument("--person", choices=("reactor", "actor"), default="reactor", help="which person of a pair to retarget")
+    p.add_argument("--robot", default="op3", help="robot name or MJCF path (default op3)")
+    p.add_argument("--profile", metavar="YAML", help="retarget profile (default retarget/profiles/<robot>.yaml)")
+    p.add_argument("--mode", choices=("offline", "streaming"), default="offline")
+    p.add_argument("--fps", type=float, default=30.0, help="resample the motion to this rate first (default 30)")
+    p.add_argument("--ground", action="store_true", help="shift the motion so its lowest foot joint is at z = 0")
+    p.add_argument("--window", type=int, default=64, help="offline window length in frames (0 = whole clip)")
+    p.add_argument("--overlap", type=int, default=16, help="frames shared by consecutive windows")
+    p.add_argument("--balance", action="store_true", help="keep the CoM over the support polygon while feet touch")
+    p.add_argument("--balance-margin", type=float, default=0.01, help="support polygon shrink (m, default 0.01)")
+    p.add_argument("--no-contacts", action="store_true", help="do not hold feet in contact on the ground")
+    p.add_argument("--no-collision", action="store_true", help="do not keep the profile's capsule pairs apart")
+    p.add_argument("--fixed-base", action="store_true", help="bolt the robot's root in place (upper-body partner)")
+    p.add_argument("--retime", type=float, default=1.0, help="play the clip this many times slower (e.g. 1.5)")
+    p.add_argument("--auto-retime", action="store_true", help="if infeasible, try 1.25x, 1.5x, 2x slower")
+    p.add_argument("--no-compile", action="store_true", help="skip C code generation (slower; for machines without a compiler)")
+    p.add_argument("--out", default="out/retarget", help="output folder (default out/retarget)")
+    p.add_argument("--name", help="output file stem (default: the input's stem)")
+    p.add_argument("--strict", action="store_true", help="exit 1 when the report fails its checks")
+    p.set_defaults(func=run)
+
+
+def _load(args):
+    from dualflow.motion import TwoPersonMotion
+    from dualflow.motion.io import load_any, load_pair, put_on_ground
+    from retarget.errors import RetargetError
+
+    files = list(args.files)
+    if args.actor or args.reactor:
+        if not (args.actor and args.reactor) or files:
+            raise RetargetError("give FILE [FILE2], or both --actor and --reactor (not both forms)")
+        files = [args.actor, args.reactor]
+    if not files:
+        raise RetargetError("no input: give a motion FILE, two files (actor reactor), or --actor A --reactor B")
+    if len(files) > 2:
+        raise RetargetError(f"at most two input files (actor, reactor), got {len(files)}")
+    opts = {"fps": args.fps} if args.fps else {}
+    motion = load_any(files[0], **opts) if len(files) == 1 else load_pair(files[0], files[1], **opts)
+    if args.ground:
+        motion = put_on_ground(motion)
+    if isinstance(motion, TwoPersonMotion):
+        motion = motion.reactor if args.person == "reactor" else motion.actor
+    stem = args.name or Path(files[-1 if args.person == "reactor" else 0]).stem
+    return motion, stem
+
+
+def run(args) -> int:
+    from retarget.offline import OfflineConfig, OfflineRetargeter
+    from retarget.report import evaluate, plot_joints
+    from retarget.robot import load_robot
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+    from retarget.targets import make_targets
+
+    motion, stem = _load(args)
+    robot = load_robot(args.robot, args.profile, fixed_base=args.fixed_base)
+    if args.mode == "streaming":
+        traj = StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile)).run(motion)
+    else:
+        cfg = OfflineConfig(window=args.window, overlap=args.overlap, balance=args.balance,
+                            balance_margin=args.balance_margin, contacts=not args.no_contacts,
+                            self_collision=not args.no_collision, retime=args.retime, auto_retime=args.auto_retime,
+                            compile=not args.no_compile)
+        traj = OfflineRetargeter(robot, cfg).retarget(motion)
+    retime = float(traj.meta.get("retime", 1.0))
+    src = motion if retime == 1.0 else _slowed(motion, retime)
+    report = evaluate(robot, traj, make_targets(robot, src), clip=motion.name or stem)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    traj.save_npz(out / f"{stem}.npz")
+    traj.save_csv(out / f"{stem}.csv")
+    report.save(out, stem)
+    plot_joints(robot, traj, out / f"{stem}.joints.png")
+    print(report.to_markdown())
+    print(f"wrote {out / (stem + '.npz')}, .csv, .report.json, .report.md, .joints.png")
+    return 1 if (args.strict and not report.passed) else 0
+
+
+def _slowed(motion, factor: float):
+    from dualflow.motion import Motion
+
+    return Motion(motion.positions, fps=motion.fps / factor, contacts=motion.contacts, name=motion.name).resample(motion.fps)
