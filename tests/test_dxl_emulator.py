@@ -375,3 +375,15 @@ def test_protocol1_servo_at_57600_answers_a_host_within_uart_tolerance():
     with bus([(1, "AX-12A")], baud=57600, protocol=1) as (emu, port, ph):
         assert emu.read_register(1, "baud_rate") == 34
         assert ph.ping(port, 1) == (12, sdk.COMM_SUCCESS, 0)
+
+
+def test_bus_watchdog_trips_when_the_host_goes_quiet():
+    with bus([1, 2]) as (emu, port, ph):
+        assert ph.write1ByteTxRx(port, 1, 98, 2) == (sdk.COMM_SUCCESS, 0)   # 40 ms
+        ph.write4ByteTxRx(port, 1, GOAL, 3000)
+        ph.write1ByteTxRx(port, 1, TORQUE, 1)
+        time.sleep(0.15)
+        assert ph.read1ByteTxRx(port, 1, 98) == (0xFF, sdk.COMM_SUCCESS, 0)  # -1: watchdog error
+        assert ph.write4ByteTxRx(port, 1, GOAL, 2500) == (sdk.COMM_SUCCESS, 4)  # Data Range Error
+        assert ph.write1ByteTxRx(port, 1, 98, 0) == (sdk.COMM_SUCCESS, 0)
+        assert ph.write4ByteTxRx(port, 1, GOAL, 2500) == (sdk.COMM_SUCCESS, 0)

@@ -171,3 +171,29 @@ def test_protocol1_lock_register_protects_eeprom_and_errors_map_to_bits():
     servo.advance()
     assert servo.status_error() == 0x04         # protocol 1.0 overheating bit
     assert servo.get("present_load") == 0
+
+
+def test_bus_watchdog_stops_a_servo_that_hears_nothing():
+    servo, clock = make()
+    assert servo.write(98, b"\x05").ok           # Bus Watchdog 5 x 20 ms = 100 ms
+    servo.write(116, u32(4000))
+    servo.write(64, b"\x01")
+    clock.t += 0.08
+    servo.heard()                                # a packet at 80 ms restarts the interval
+    clock.t += 0.15                              # silence from 80 ms: fires at 180 ms
+    servo.advance()
+    stop = 2048 + 46.0 / 60 * 4096 * 0.18        # moved at no-load speed until the watchdog fired
+    assert servo.get("bus_watchdog") == -1 and servo.get("goal_position") == round(stop)
+    assert servo.position == round(stop)         # and holds there
+    assert servo.write(116, u32(3000)).error == "range"   # goals are read-only now
+    assert servo.goal_history[-1].accepted is False
+    assert servo.write(98, b"\x00").ok           # writing 0 clears the error
+    assert servo.write(116, u32(3000)).ok
+
+
+def test_bus_watchdog_is_idle_with_torque_off():
+    servo, clock = make()
+    servo.write(98, b"\x01")
+    clock.t += 1.0
+    servo.advance()
+    assert servo.get("bus_watchdog") == 1

@@ -406,6 +406,9 @@ class DynamixelBusEmulator:
             t_end_in = t_start + 10.0 * len(frame.raw) / wire_baud
             self._bus_free_at = t_end_in
             listeners = self._listeners(frame.protocol, now)
+            if frame.valid:
+                for s in listeners.values():
+                    s.heard(now)  # restarts each servo's Bus Watchdog interval
             if frame.protocol == 2:
                 replies = self._dispatch2(frame, listeners)
             else:

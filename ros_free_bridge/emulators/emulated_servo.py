@@ -34,6 +34,11 @@ torque off and keeps it off until REBOOT.
 
 With torque off the goal is stored but ignored, and :meth:`push` moves the horn (an
 external hand); with torque on a pushed servo moves back to its goal.
+
+Bus Watchdog(98) (X models): with torque on and a period of 1..127 x 20 ms, a servo that
+hears no instruction packet for that long stops where it is, Bus Watchdog reads -1 and
+the goal registers refuse writes with a Data Range Error until 0 is written to it.
+Every valid instruction packet the servo hears on its bus restarts the interval.
 """
 
 from __future__ import annotations
@@ -55,6 +60,8 @@ HW_OVERLOAD = 0x20
 
 #: Protocol 1.0 status error bits that mirror hardware conditions.
 _P1_HW_BITS = {HW_INPUT_VOLTAGE: 0x01, HW_OVERHEATING: 0x04, HW_OVERLOAD: 0x20}
+
+_GOAL_REGISTERS = frozenset({"goal_pwm", "goal_current", "goal_velocity", "goal_position"})
 
 _FORMATS = {(1, False): "<B", (2, False): "<H", (4, False): "<I", (1, True): "<b", (2, True): "<h", (4, True): "<i"}
 
@@ -154,6 +161,9 @@ class EmulatedServo:
         self._has_voltage_limits = has("min_voltage_limit") and has("max_voltage_limit")
         self._has_temp_limit = has("temperature_limit")
         self._has_shutdown = has("shutdown")
+        self._has_watchdog = has("bus_watchdog")
+        self._last_heard = clock()
+        self._torque_on_at = self._last_heard
         self._vel_units_per_tick_s = 60.0 / model.position.ticks_per_turn / model.velocity_rpm
         self._vel = 0.0
         self._cur = 0.0
@@ -275,6 +285,14 @@ class EmulatedServo:
     def advance(self, now: float | None = None) -> None:
         """Bring the motor model and the read-only registers up to ``now``."""
         now = self.clock() if now is None else now
+        deadline = self._watchdog_deadline()
+        if deadline is not None and deadline <= now:
+            if deadline > self._last:
+                self._step(deadline)       # move until the watchdog fires...
+            self._trip_watchdog()          # ...then stop
+        self._step(now)
+
+    def _step(self, now: float) -> None:
         dt = now - self._last
         if dt < MIN_STEP_S:
             return
@@ -374,6 +392,32 @@ class EmulatedServo:
     def _set_torque_off(self) -> None:
         self.set("torque_enable", 0)
 
+    # ------------------------------------------------------------------ bus watchdog
+    def heard(self, now: float | None = None) -> None:
+        """The servo heard an instruction packet: restart its Bus Watchdog interval."""
+        now = self.clock() if now is None else now
+        self.advance(now)
+        self._last_heard = now
+
+    def _watchdog_deadline(self) -> float | None:
+        """When the Bus Watchdog(98) fires: torque on, 1..127 x 20 ms after the last packet."""
+        if not self._has_watchdog or self._g("torque_enable") != 1:
+            return None
+        period = self._g("bus_watchdog")
+        if period <= 0:
+            return None
+        return max(self._last_heard, self._torque_on_at) + period * 0.020
+
+    def _trip_watchdog(self) -> None:
+        """Bus Watchdog error (e-Manual "Bus Watchdog(98)"): stop where it is, Bus Watchdog
+        becomes -1 and the goal registers turn read-only (Data Range Error) until 0 is written."""
+        self.set("bus_watchdog", -1)
+        self.set("goal_position", int(round(self._pos)))
+        for name in ("goal_velocity", "profile_velocity", "profile_acceleration"):
+            if self.has(name):
+                self.set(name, 0)
+        self._stale = True
+
     def push(self, ticks: float) -> None:
         """An external hand moves the horn to ``ticks`` (a torque-on servo will return to its goal)."""
         self.advance()
@@ -402,6 +446,8 @@ class EmulatedServo:
         for r in regs:
             if not r.writable:
                 return WriteResult("access")
+        if self._has_watchdog and self._g("bus_watchdog") == -1 and any(r.name in _GOAL_REGISTERS for r in regs):
+            return WriteResult("range")  # goals are read-only after a Bus Watchdog error
         if any(r.eeprom for r in regs):
             if self.model.protocol == 2 and self.torque_enabled:
                 return WriteResult("access")
@@ -454,8 +500,10 @@ class EmulatedServo:
             self._mem[r.address:r.end] = data[r.address - address:r.end - address]
         if self.has("homing_offset"):
             self._pos += self._g("homing_offset") - old_offset
-        if self.torque_enabled and not was_on and self._shutdown_active():
-            self.set("torque_enable", 0)  # shutdown holds torque off until REBOOT
+        if self.torque_enabled and not was_on:
+            self._torque_on_at = self.clock()
+            if self._shutdown_active():
+                self.set("torque_enable", 0)  # shutdown holds torque off until REBOOT
         self._stale = True
         return result
 
