@@ -190,3 +190,23 @@ def test_bad_invocations_are_one_line_errors(capsys):
     assert code == 2 and "give --port" in err
     code, _, err = run(capsys, "scan", "--port", "/dev/nonexistent-tty", "--bauds", "57600", "--protocols", "2")
     assert code == 2 and "cannot open" in err
+
+
+def test_emulate_serial_link_board(tmp_path):
+    from firmware_cfg.config import load_config as load
+    from ros_free_bridge.transports.serial_link import SerialLinkTransport
+
+    cfg_path = tmp_path / "arm.yaml"
+    cfg_path.write_text(yaml.safe_dump({"robot": "arm", "buses": [
+        {"name": "board", "port": "/dev/ttyACM0", "baud": 1000000, "protocol": "serial-link",
+         "servos": [{"id": 0, "joint": "a", "limits": [-1, 1]}, {"id": 3, "joint": "b", "limits": [-1, 1]}]}]}))
+    proc = subprocess.Popen([sys.executable, "-m", "ros_free_bridge", "servo", "emulate", str(cfg_path), "--bus", "board",
+                             "--duration", "30"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        with SerialLinkTransport(load(cfg_path).buses[0], port=port) as t:
+            assert t.board.n_channels == 4
+            assert t.read_state().position.shape == (2,)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

@@ -85,7 +85,7 @@ def register(subparsers) -> None:
 
     s = sub.add_parser("emulate", help="start an emulated bus from CONFIG on a pty and print its port")
     s.add_argument("config", help="robot hardware config or bundled robot name")
-    s.add_argument("--bus", help="bus name in the config")
+    s.add_argument("--bus", help="bus name in the config (a serial-link bus starts an emulated DFSL board)")
     s.add_argument("--provisioned", action="store_true", help="servos start with the config's settings (verify passes)")
     s.add_argument("--wire-timing", action="store_true", help="delay replies by their time on the wire")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
@@ -452,12 +452,21 @@ def run_monitor(args) -> int:
 
 def run_emulate(args) -> int:
     cfg = load_robot_config(args.config)
-    bus = dynamixel_bus_of(cfg, args.bus)
-    emu = start_emulator(bus, provisioned=args.provisioned, wire_timing=args.wire_timing)
+    bus = cfg.bus(args.bus) if args.bus else None
+    if bus is not None and bus.protocol == "serial-link":
+        from ros_free_bridge.emulators.serial_mcu import SerialMcuEmulator
+
+        emu = SerialMcuEmulator(n_channels=max(s.id for s in bus.servos) + 1).start()
+        port = emu.port
+        what = f"a DFSL serial-link board with {emu.n_channels} channels"
+    else:
+        bus = dynamixel_bus_of(cfg, args.bus)
+        emu = start_emulator(bus, provisioned=args.provisioned, wire_timing=args.wire_timing)
+        port = emu.port_path
+        what = f"{len(bus.servos)} servo(s) of {cfg.robot} at {bus.baud} bps, protocol {bus.protocol}"
     try:
-        print(emu.port_path, flush=True)
-        print(f"emulating {len(bus.servos)} servo(s) of {cfg.robot} at {bus.baud} bps, protocol {bus.protocol} "
-              f"on {emu.port_path}; use --port {emu.port_path}. Ctrl-C to stop.", file=sys.stderr, flush=True)
+        print(port, flush=True)
+        print(f"emulating {what} on {port}; use --port {port}. Ctrl-C to stop.", file=sys.stderr, flush=True)
         end = None if args.duration is None else time.monotonic() + args.duration
         while end is None or time.monotonic() < end:
             time.sleep(0.1)
