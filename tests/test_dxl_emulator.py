@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
 
@@ -9,6 +10,7 @@ import dynamixel_sdk as sdk
 import pytest
 import serial
 
+from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge import BridgeError
 from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 from ros_free_bridge.emulators import dynamixel_protocol as dp
@@ -387,3 +389,48 @@ def test_bus_watchdog_trips_when_the_host_goes_quiet():
         assert ph.write4ByteTxRx(port, 1, GOAL, 2500) == (sdk.COMM_SUCCESS, 4)  # Data Range Error
         assert ph.write1ByteTxRx(port, 1, 98, 0) == (sdk.COMM_SUCCESS, 0)
         assert ph.write4ByteTxRx(port, 1, GOAL, 2500) == (sdk.COMM_SUCCESS, 0)
+
+
+def test_standalone_emulator_process_serves_another_process(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    link = tmp_path / "ttyDXL"
+    proc = subprocess.Popen([sys.executable, "-m", "ros_free_bridge.emulators", "--ids", "1-3,7", "--baud", "2000000",
+                             "--link", str(link)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/") and os.path.realpath(link) == path
+        port = sdk.PortHandler(str(link))
+        assert port.openPort() and port.setBaudRate(2_000_000)
+        ph = sdk.PacketHandler(2.0)
+        assert [ph.ping(port, i)[:2] for i in (1, 3, 7)] == [(1020, sdk.COMM_SUCCESS)] * 3
+        assert ph.ping(port, 4)[1] == sdk.COMM_RX_TIMEOUT
+        port.closePort()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    assert not link.exists()
+    bad = subprocess.run([sys.executable, "-m", "ros_free_bridge.emulators", "--ids", "1-x"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--ids: cannot read '1-x'" in bad.stderr
+
+
+def test_stuck_servo_reports_stall_current_and_does_not_move():
+    with bus([1, 2]) as (emu, port, ph):
+        emu.stick(1)
+        for i in (1, 2):
+            ph.write1ByteTxRx(port, i, TORQUE, 1)
+            ph.write4ByteTxRx(port, i, GOAL, 2400)
+        wait_until(lambda: ph.read4ByteTxRx(port, 2, PRESENT_POS)[0] == 2400)
+        assert ph.read4ByteTxRx(port, 1, PRESENT_POS)[0] == 2048
+        current = ph.read2ByteTxRx(port, 1, 126)[0]
+        assert current == round(2.3 / 2.69e-3)                # stall current, 2.69 mA units
+        assert ph.read2ByteTxRx(port, 2, 126)[0] == 0          # the free one holds at no load
+
+
+@pytest.mark.parametrize("baud", [57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000])
+def test_every_sdk_baud_rate_works_on_the_pty(baud):
+    with bus([1], baud=baud) as (emu, port, ph):
+        assert ph.ping(port, 1) == (1020, sdk.COMM_SUCCESS, 0)
+        assert emu.read_register(1, "baud_rate") == load_servo_model("XM430-W350").baud_to_register(baud)
