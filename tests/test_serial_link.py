@@ -120,6 +120,12 @@ def make_bus(n=4, lower=-1.0, upper=1.0, first=0):
     return cfg.buses[0]
 
 
+def link(bus, port, **kw):
+    """A transport whose board watchdog (tested on its own) cannot trip on a slow test machine."""
+    kw.setdefault("watchdog_ms", 2000)
+    return SerialLinkTransport(bus, port=port, **kw)
+
+
 def wait_until(pred, timeout=3.0):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -134,7 +140,7 @@ def test_transport_implements_interface_and_maps_direction_and_offset():
     # servo side = direction * joint + offset, so joint = direction * (servo - offset)
     start_servo = [0.3, 0.2, -0.1, 0.5]
     with SerialMcuEmulator(4, initial_positions=start_servo) as mcu:
-        t = SerialLinkTransport(bus, port=mcu.port)
+        t = link(bus, mcu.port)
         assert isinstance(t, Transport)
         with t:
             assert t.board.n_channels == 4 and t.board.name == "dfsl-emu"
@@ -162,7 +168,7 @@ def test_close_holds_or_goes_limp_by_policy_and_is_idempotent():
     bus = make_bus()
     for policy, expect_enabled in (("hold", True), ("limp", False)):
         with SerialMcuEmulator(4) as mcu:
-            t = SerialLinkTransport(bus, port=mcu.port, stop_policy=policy)
+            t = link(bus, mcu.port, stop_policy=policy)
             t.open()
             t.set_torque(True)
             t.close()
@@ -172,7 +178,7 @@ def test_close_holds_or_goes_limp_by_policy_and_is_idempotent():
 
 def test_out_of_limit_goal_never_reaches_the_board():
     bus = make_bus(lower=-0.5, upper=0.5)
-    with SerialMcuEmulator(4) as mcu, SerialLinkTransport(bus, port=mcu.port) as t:
+    with SerialMcuEmulator(4) as mcu, link(bus, mcu.port) as t:
         t.set_torque(True)
         n = len(mcu.target_log)
         with pytest.raises(BridgeError, match=r"j2 \(channel 2\).*outside its limits"):
@@ -189,7 +195,7 @@ def test_out_of_limit_goal_never_reaches_the_board():
 def test_board_rejects_a_target_outside_its_limits_and_the_host_hears_it():
     """Defence in depth: a target that bypasses the host check is refused by the board."""
     bus = make_bus(lower=-0.5, upper=0.5)
-    with SerialMcuEmulator(4) as mcu, SerialLinkTransport(bus, port=mcu.port) as t:
+    with SerialMcuEmulator(4) as mcu, link(bus, mcu.port) as t:
         t._send(sl.MsgType.TARGETS, sl.Targets(1, (sl.rad_to_cdeg(1.0),)).pack())
         with pytest.raises(BridgeError, match="outside the channel's limits.*channel 1, joint j1"):
             t.read_state()
@@ -198,7 +204,7 @@ def test_board_rejects_a_target_outside_its_limits_and_the_host_hears_it():
 
 def test_dropped_and_corrupted_replies_are_retried_then_reported():
     bus = make_bus()
-    with SerialMcuEmulator(4) as mcu, SerialLinkTransport(bus, port=mcu.port, retries=2) as t:
+    with SerialMcuEmulator(4) as mcu, link(bus, mcu.port, retries=2) as t:
         mcu.drop_replies(1)
         mcu.corrupt_replies(1)
         t.read_state()  # third try succeeds
@@ -209,7 +215,7 @@ def test_dropped_and_corrupted_replies_are_retried_then_reported():
 
 def test_stall_and_overheat_show_as_joint_errors_and_outputs_off():
     bus = make_bus()
-    with SerialMcuEmulator(4) as mcu, SerialLinkTransport(bus, port=mcu.port) as t:
+    with SerialMcuEmulator(4) as mcu, link(bus, mcu.port) as t:
         t.set_torque(True)
         mcu.stall(0)
         mcu.overheat(3)
@@ -237,7 +243,7 @@ def test_watchdog_switches_outputs_off_when_the_host_goes_quiet():
 def test_vanished_port_becomes_bridge_error_and_close_still_succeeds():
     bus = make_bus()
     mcu = SerialMcuEmulator(4).start()
-    t = SerialLinkTransport(bus, port=mcu.port, reply_timeout=0.02, retries=0)
+    t = link(bus, mcu.port, reply_timeout=0.02, retries=0)
     t.open()
     mcu.vanish()
     with pytest.raises(BridgeError, match="serial link"):
@@ -249,9 +255,9 @@ def test_vanished_port_becomes_bridge_error_and_close_still_succeeds():
 
 def test_port_is_exclusive_and_missing_port_is_a_clear_error():
     bus = make_bus()
-    with SerialMcuEmulator(4) as mcu, SerialLinkTransport(bus, port=mcu.port):
+    with SerialMcuEmulator(4) as mcu, link(bus, mcu.port):
         with pytest.raises(BridgeError, match="cannot open"):
-            SerialLinkTransport(bus, port=mcu.port).open()
+            link(bus, mcu.port).open()
     with pytest.raises(BridgeError, match="cannot open.*check the cable"):
         SerialLinkTransport(bus, port="/dev/does-not-exist").open()
 
@@ -260,4 +266,4 @@ def test_config_channel_beyond_board_is_refused():
     bus = make_bus(n=2, first=10)
     with SerialMcuEmulator(4) as mcu:
         with pytest.raises(BridgeError, match="has 4 channels but the config uses channel 11"):
-            SerialLinkTransport(bus, port=mcu.port).open()
+            link(bus, mcu.port).open()
