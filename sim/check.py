@@ -37,7 +37,7 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.errors import RetargetError
 from retarget.trajectory import RobotTrajectory
-from sim.contacts import ContactClassifier, min_distance, support_margin
+from sim.contacts import ContactClassifier, SupportMargin, min_distance
 from sim.errors import SimError
 from sim.human_figure import Placement
 from sim.scene import Scene, SceneConfig
@@ -231,56 +231,53 @@ class Checker:
         stand_h = sc.stand_root_height if free else np.nan
 
         K, n = n_ticks, r.n
-        q = np.full((K, n), np.nan)
-        qd = np.full((K, n), np.nan)
-        tau = np.full((K, n), np.nan)
-        root_h = np.full(K, np.nan)
-        tilt = np.full(K, np.nan)
-        com_xy = np.full((K, 2), np.nan)
-        self_min = np.full(K, np.inf)
-        floor_min = np.full(K, np.inf)
+        # -- record raw state per tick (cheap copies); analyse afterwards, vectorised
+        qpos = np.full((K, m.nq), np.nan)
+        qvel = np.full((K, m.nv), np.nan)
+        force = np.full((K, m.nu), np.nan)
+        xpos = np.full((K, 3), np.nan)  # root body position
+        xmat = np.full((K, 9), np.nan)  # root body orientation
+        com = np.full((K, 3), np.nan)  # robot centre of mass
+        sites = np.full((K, m.nsite, 3), np.nan)
+        feet = list(r.foot_sites)
         human_min = np.full(K, np.inf)
-        non_foot = np.zeros(K, bool)
-        support_pts: list[np.ndarray] = [np.zeros((0, 3))] * K
-        slip = np.zeros((K, len(r.foot_sites)))
-        self_pairs: set[tuple[str, str]] = set()
-        foot_prev = d.site_xpos[list(r.foot_sites)][:, :2].copy() if r.foot_sites else np.zeros((0, 2))
-        on_prev = [False] * len(r.foot_sites)
+        con_count = np.zeros(K, int)
+        con_geom, con_dist, con_pos = [], [], []
         actor = sc.actor
         stop_at = K
-        fall_k = None
+        fall_h = cfg.fall_height_frac * stand_h if free else -np.inf
+        cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg)) if free else -2.0
+        root = r.root_body
+        act = r.actuator_ids
+        a0 = int(act[0])
+        ctrl = d.ctrl[a0:a0 + len(act)] if np.array_equal(act, np.arange(a0, a0 + len(act))) else None
+        root_xpos, root_xmat, root_com = d.xpos[root], d.xmat[root], d.subtree_com[root]
 
         for k in range(K):
-            d.ctrl[r.actuator_ids] = q_cmd[k]
+            if ctrl is not None:
+                ctrl[:] = q_cmd[k]
+            else:
+                d.ctrl[act] = q_cmd[k]
             if actor is not None:
                 actor.pose_at(d, t[k])
             mujoco.mj_step(m, d, n_sub)
-            q[k] = d.qpos[r.qpos_adr]
-            qd[k] = d.qvel[r.dof_adr]
-            tau[k] = d.actuator_force[r.actuator_ids]
-            root_h[k] = d.xpos[r.root_body, 2]
-            tilt[k] = math.degrees(math.acos(max(-1.0, min(1.0, d.xmat[r.root_body, 8]))))
-            com_xy[k] = d.subtree_com[r.root_body, :2]
-            c = self.contacts.classify(d)
-            self_min[k] = c["self_min_dist"]
-            floor_min[k] = c["floor_min_dist"]
-            non_foot[k] = c["non_foot_on_floor"]
-            support_pts[k] = c["floor_points"]
-            for g1, g2 in c["self_pairs"]:
-                self_pairs.add(tuple(sorted((m.geom(g1).name, m.geom(g2).name))))
-            if r.foot_sites:
-                fxy = d.site_xpos[list(r.foot_sites)][:, :2]
-                for i, b in enumerate(self.foot_bodies):
-                    on = b in c["foot_bodies_on_floor"]
-                    if on and on_prev[i]:
-                        slip[k, i] = np.linalg.norm(fxy[i] - foot_prev[i])
-                    on_prev[i] = on
-                foot_prev = fxy.copy()
+            qpos[k] = d.qpos
+            qvel[k] = d.qvel
+            force[k] = d.actuator_force
+            xpos[k] = root_xpos
+            xmat[k] = root_xmat
+            com[k] = root_com
+            sites[k] = d.site_xpos
+            nc = d.ncon
+            if nc:
+                c = d.contact
+                con_count[k] = nc
+                con_geom.append(c.geom.copy())
+                con_dist.append(c.dist.copy())
+                con_pos.append(c.pos.copy())
             if actor is not None:
                 human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids, HUMAN_DISTANCE_CAP)
-            if free and fall_k is None and (root_h[k] < cfg.fall_height_frac * stand_h or tilt[k] > cfg.fall_tilt_deg
-                                            or non_foot[k]):
-                fall_k = k
+            if stop_at == K and (root_xpos[2] < fall_h or root_xmat[8] < cos_tilt):
                 stop_at = min(K, k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
             if on_tick is not None:
                 on_tick(float(t[k]))
@@ -288,10 +285,34 @@ class Checker:
                 break
         K_run = min(stop_at, K)
 
+        q = qpos[:, r.qpos_adr]
+        qd = qvel[:, r.dof_adr]
+        tau = force[:, act]
+        root_h = xpos[:, 2]
+        root_zz = xmat[:, 8]
+        com_xy = com[:, :2]
+        foot_xy = sites[:, feet, :2]
+        tilt = np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0)))
+        contacts = self.contacts.classify_many(K, con_count, con_geom, con_dist, con_pos)
+        self_min, floor_min, non_foot = contacts.self_min, contacts.floor_min, contacts.non_foot
+        self_pairs = {tuple(sorted((m.geom(a).name, m.geom(b).name))) for a, b in contacts.self_pairs}
+        fall_k = None
+        if free:
+            fell = (root_h[:K_run] < fall_h) | (root_zz[:K_run] < cos_tilt) | non_foot[:K_run]
+            fall_k = _first(fell)
+        slip = np.zeros((K, len(feet)))
+        if feet:
+            step = np.zeros((K, len(feet)))
+            step[1:] = np.linalg.norm(np.diff(foot_xy, axis=0), axis=2)
+            on = contacts.foot_on_floor(self.foot_bodies)  # (K, n_feet)
+            both = on.copy()
+            both[1:] &= on[:-1]
+            both[0] = False
+            slip = np.where(both, step, 0.0)
+
         margin = np.full(K, np.nan)
         if free:
-            for k in range(K_run):
-                margin[k] = support_margin(com_xy[k], support_pts[k][:, :2])
+            margin[:K_run] = SupportMargin().many(com_xy[:K_run], [contacts.floor_points(k) for k in range(K_run)])
 
         failures = self._judge(t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min,
                                slip, margin, K_run, fall_k, stand_h, dt, free, actor is not None, self_pairs)
@@ -403,14 +424,17 @@ def _first(mask: np.ndarray) -> int | None:
 
 
 def _first_sustained(mask: np.ndarray, window: int) -> int | None:
-    """Index where the first run of at least ``window`` consecutive True values starts."""
+    """Index where the first run of at least ``window`` consecutive True values starts.
+
+    With c the running count of True values, a run of ``window`` ends at i when
+    c[i] - c[i - window] == window."""
     window = max(1, window)
-    run = 0
-    for i, v in enumerate(mask):
-        run = run + 1 if v else 0
-        if run >= window:
-            return i - window + 1
-    return None
+    mask = np.asarray(mask, dtype=bool)
+    if len(mask) < window:
+        return None
+    c = np.concatenate([[0], np.cumsum(mask)])
+    full = np.flatnonzero(c[window:] - c[:-window] == window)
+    return int(full[0]) if len(full) else None
 
 
 def _per_joint(names, values) -> dict:

@@ -11,7 +11,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 
 class ContactClassifier:
-    """Splits the active contacts of one step into robot-self, robot-floor and others.
+    """Splits recorded contacts into robot-self, robot-floor and others.
 
     ``robot_geoms`` (k,) ids of the robot's geoms; ``foot_bodies`` ids of the bodies
     that may touch the floor without it counting as a fall.
@@ -25,33 +25,58 @@ class ContactClassifier:
         self.is_foot_body = np.zeros(model.nbody, bool)
         self.is_foot_body[list(foot_bodies)] = True
 
-    def classify(self, data: mujoco.MjData) -> dict:
-        """Returns self_min_dist (m, +inf if none), self_pairs [(g1, g2)], floor_points
-        (k, 3), floor_min_dist, non_foot_on_floor (bool), foot_bodies_on_floor (set)."""
-        n = data.ncon
-        out = {"self_min_dist": np.inf, "self_pairs": [], "floor_points": np.zeros((0, 3)),
-               "floor_min_dist": np.inf, "non_foot_on_floor": False, "foot_bodies_on_floor": set()}
-        if n == 0:
-            return out
-        con = data.contact
-        g = np.asarray(con.geom)[:n]
-        dist = np.asarray(con.dist)[:n]
-        pos = np.asarray(con.pos)[:n]
-        r1, r2 = self.is_robot[g[:, 0]], self.is_robot[g[:, 1]]
-        selfc = r1 & r2
-        if selfc.any():
-            out["self_min_dist"] = float(dist[selfc].min())
-            out["self_pairs"] = [tuple(p) for p in g[selfc][dist[selfc] < 0]]
-        floorc = ((g[:, 0] == self.floor) & r2) | ((g[:, 1] == self.floor) & r1)
-        if floorc.any():
-            out["floor_points"] = pos[floorc]
-            out["floor_min_dist"] = float(dist[floorc].min())
-            robot_g = np.where(g[floorc, 0] == self.floor, g[floorc, 1], g[floorc, 0])
-            bodies = self.geom_body[robot_g]
-            feet = self.is_foot_body[bodies]
-            out["non_foot_on_floor"] = bool((~feet).any())
-            out["foot_bodies_on_floor"] = set(bodies[feet].tolist())
+    def classify_many(self, n_ticks: int, counts: np.ndarray, geoms, dists, points) -> "ContactLog":
+        """All ticks at once: ``counts`` (K,) contacts per tick and, for the ticks with
+        contacts, lists of their arrays (geom (c, 2), dist (c,), pos (c, 3)), as
+        recorded by the checker."""
+        if geoms:
+            tick = np.repeat(np.arange(len(counts)), counts)
+            g = np.concatenate(geoms)
+            dist = np.concatenate(dists)
+            pos = np.concatenate(points)[:, :2]
+        else:
+            tick, g, dist, pos = np.zeros(0, int), np.zeros((0, 2), int), np.zeros(0), np.zeros((0, 2))
+        return ContactLog(self, n_ticks, tick, g, dist, pos)
+
+
+class ContactLog:
+    """The contacts of a whole run, split into robot-self and robot-floor per tick.
+
+    Attributes (K,): ``self_min`` (m, +inf when none), ``floor_min`` (m),
+    ``non_foot`` (a robot part other than a foot touches the floor); ``self_pairs``
+    the distinct penetrating geom pairs."""
+
+    def __init__(self, cls: ContactClassifier, n_ticks: int, tick, g, dist, pos):
+        robot = cls.is_robot[g] if len(g) else np.zeros((0, 2), bool)
+        selfc = robot[:, 0] & robot[:, 1]
+        is_floor = g == cls.floor
+        floorc = (is_floor[:, 0] & robot[:, 1]) | (is_floor[:, 1] & robot[:, 0])
+        self.self_min = np.full(n_ticks, np.inf)
+        np.minimum.at(self.self_min, tick[selfc], dist[selfc])
+        self.floor_min = np.full(n_ticks, np.inf)
+        np.minimum.at(self.floor_min, tick[floorc], dist[floorc])
+        pen = selfc & (dist < 0)
+        self.self_pairs = sorted({tuple(p) for p in np.sort(g[pen], axis=1).tolist()})
+        gf = g[floorc]
+        self._floor_tick = tick[floorc]
+        self._floor_body = cls.geom_body[np.where(is_floor[floorc, 0], gf[:, 1], gf[:, 0])] if len(gf) else np.zeros(0, int)
+        self._floor_pos = pos[floorc]
+        self.non_foot = np.zeros(n_ticks, bool)
+        np.logical_or.at(self.non_foot, self._floor_tick, ~cls.is_foot_body[self._floor_body])
+        self._n = n_ticks
+        self._starts = np.searchsorted(self._floor_tick, np.arange(n_ticks + 1))
+
+    def foot_on_floor(self, foot_bodies) -> np.ndarray:
+        """(K, len(foot_bodies)) bool: that foot touches the floor at that tick."""
+        out = np.zeros((self._n, len(foot_bodies)), bool)
+        for i, b in enumerate(foot_bodies):
+            sel = self._floor_body == b
+            out[self._floor_tick[sel], i] = True
         return out
+
+    def floor_points(self, k: int) -> np.ndarray:
+        """(c, 2) xy of the robot-floor contact points at tick k."""
+        return self._floor_pos[self._starts[k]:self._starts[k + 1]]
 
 
 def min_distance(model: mujoco.MjModel, data: mujoco.MjData, geoms_a: np.ndarray, geoms_b: np.ndarray,
@@ -68,6 +93,66 @@ def min_distance(model: mujoco.MjModel, data: mujoco.MjData, geoms_a: np.ndarray
     for i, j in np.argwhere(gap < distmax):
         best = min(best, mujoco.mj_geomDistance(model, data, int(geoms_a[i]), int(geoms_b[j]), distmax, None))
     return float(best)
+
+
+class SupportMargin:
+    """:func:`support_margin` with the polygon cached: feet resting flat give the same
+    contact points tick after tick, so the hull is rebuilt only when the points
+    (rounded to ``resolution`` m) change."""
+
+    def __init__(self, resolution: float = 0.001):
+        self.resolution = resolution
+        self._key: bytes | None = None
+        self._eq: np.ndarray | None = None
+        self._verts: np.ndarray | None = None
+        self._pts: np.ndarray | None = None
+
+    def many(self, points_xy: np.ndarray, contacts_xy: list[np.ndarray]) -> np.ndarray:
+        """Margins (K,) of points (K, 2) to the polygons of ``contacts_xy`` (K arrays
+        (c_k, 2)); runs of ticks with the same polygon are evaluated together."""
+        out = np.full(len(points_xy), np.nan)
+        keys = [np.round(c / self.resolution).astype(np.int64).tobytes() for c in contacts_xy]
+        start = 0
+        for k in range(1, len(keys) + 1):
+            if k < len(keys) and keys[k] == keys[start]:
+                continue
+            c = contacts_xy[start]
+            if len(c):
+                self(points_xy[start], c)  # builds and caches the polygon
+                if self._eq is not None:
+                    p = points_xy[start:k]
+                    sd = p @ self._eq[:, :2].T + self._eq[:, 2]  # (m, edges)
+                    inside = np.all(sd <= 0, axis=1)
+                    out[start:k][inside] = -sd[inside].max(axis=1)
+                    ring = np.vstack([self._verts, self._verts[:1]])
+                    for i in np.flatnonzero(~inside):
+                        out[start + i] = -_dist_to_polyline(p[i], ring)
+                else:
+                    for i in range(start, k):
+                        out[i] = support_margin(points_xy[i], c)
+            start = k
+        return out
+
+    def __call__(self, point_xy: np.ndarray, contact_xy: np.ndarray) -> float:
+        if len(contact_xy) == 0:
+            return float("nan")
+        key = np.round(np.asarray(contact_xy) / self.resolution).astype(np.int64).tobytes()
+        if key != self._key:
+            self._key = key
+            self._pts = np.asarray(contact_xy, dtype=np.float64)
+            try:
+                hull = ConvexHull(self._pts) if len(self._pts) >= 3 else None
+            except QhullError:
+                hull = None
+            self._eq = None if hull is None else hull.equations
+            self._verts = None if hull is None else self._pts[hull.vertices]
+        if self._eq is None:
+            return support_margin(point_xy, self._pts)
+        p = np.asarray(point_xy, dtype=np.float64)
+        sd = self._eq[:, :2] @ p + self._eq[:, 2]
+        if np.all(sd <= 0):
+            return float(-sd.max())
+        return -_dist_to_polyline(p, np.vstack([self._verts, self._verts[:1]]))
 
 
 def support_margin(point_xy: np.ndarray, contact_xy: np.ndarray) -> float:
