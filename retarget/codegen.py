@@ -33,6 +33,19 @@ def cache_dir() -> Path:
     return d
 
 
+def code_version() -> str:
+    """Hash of the retarget modules that build the compiled functions, so that a code change
+    never reuses a stale binary (part of every cache key)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for name in ("kinematics.py", "robot.py", "streaming.py", "offline.py", "codegen.py"):
+        h.update((here / name).read_bytes())
+    h.update(ca.__version__.encode())
+    return h.hexdigest()[:8]
+
+
 def find_compiler() -> str | None:
     cc = os.environ.get("CC")
     if cc and shutil.which(cc):
@@ -77,7 +90,7 @@ def compiled_function(fn: ca.Function, key: str, enable: bool = True) -> tuple[c
     if not enable:
         return fn, "not compiled (disabled)"
     name = fn.name()
-    so_file = cache_dir() / f"{name}_{key}.so"
+    so_file = cache_dir() / f"{name}_{key}_{code_version()}.so"
     if not so_file.exists():
         with tempfile.TemporaryDirectory() as tmp:
             c_name = f"{name}_{key}.c"
@@ -99,7 +112,7 @@ def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = T
     Jacobian and Lagrangian Hessian) are compiled C loaded from the cache, or the plain
     CasADi solver as fallback. Returns (solver, info)."""
     if enable:
-        so_file = cache_dir() / f"{name}_{key}.so"
+        so_file = cache_dir() / f"{name}_{key}_{code_version()}.so"
         if not so_file.exists():
             solver = ca.nlpsol(name, "ipopt", nlp, opts)
             with tempfile.TemporaryDirectory() as tmp:

@@ -106,9 +106,14 @@ class RetargetRobot:
         if unlimited:
             raise RetargetError(f"{kin.source or kin.name}: joints {unlimited} have no range; give them range= in the MJCF or joint_limits in {src}")
         self.x_lower, self.x_upper = lo, hi
-        vel = np.full(kin.n_joints, profile.velocity_default)
+        ceiling = self._mjcf_speed_limits()
+        vel = np.minimum(np.full(kin.n_joints, profile.velocity_default), ceiling)
         for jname, v in profile.velocity_limits.items():
-            vel[kin.joint_index(jname, f"{src}: field velocity_limits.{jname}")] = v
+            i = kin.joint_index(jname, f"{src}: field velocity_limits.{jname}")
+            if v > ceiling[i] + 1e-9:
+                raise RetargetError(f"{src}: field velocity_limits.{jname}: {v} rad/s is above the MJCF's servo no-load "
+                                    f"speed {ceiling[i]} rad/s; profile limits may only narrow the MJCF's")
+            vel[i] = v
         self.velocity_limits = vel
 
         # stand pose
@@ -146,6 +151,28 @@ class RetargetRobot:
         self._rest_scales()
 
     # -- construction helpers --------------------------------------------------
+    def _mjcf_speed_limits(self) -> np.ndarray:
+        """Per-joint speed ceiling (rad/s) from the MJCF's ``<numeric name="servo_no_load_speed">``
+        (one value for all joints, or one per actuator in actuator = joint order); +inf if absent."""
+        import mujoco
+
+        m, kin = self.kin.model, self.kin
+        nid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_NUMERIC, "servo_no_load_speed")
+        out = np.full(kin.n_joints, np.inf)
+        if nid < 0:
+            return out
+        adr, size = int(m.numeric_adr[nid]), int(m.numeric_size[nid])
+        data = np.array(m.numeric_data[adr:adr + size])
+        if size == 1:
+            return np.full(kin.n_joints, float(data[0]))
+        if size == m.nu == kin.n_joints:
+            for a in range(m.nu):
+                jadr = int(m.jnt_qposadr[m.actuator_trnid[a, 0]])
+                for h in kin.joints:
+                    if h.qpos_adr == jadr:
+                        out[h.index] = data[a]
+        return out
+
     def _stand_pose(self, src: str) -> np.ndarray:
         import mujoco
 

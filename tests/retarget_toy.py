@@ -111,3 +111,38 @@ TOY_XML = """
   </keyframe>
 </mujoco>
 """
+
+#: A retarget profile for the toy humanoid (the YAML mapping, as a dict).
+TOY_PROFILE = {
+    "robot": "toy",
+    "root": "pelvis",
+    "keypoints": {
+        "pelvis": {"site": "pelvis", "weight": 2.0},
+        "head": {"site": "head", "weight": 0.5},
+        "left_hip": {"site": "l_hip"}, "right_hip": {"site": "r_hip"},
+        "left_knee": {"site": "l_knee"}, "right_knee": {"site": "r_knee"},
+        "left_ankle": {"site": "l_ankle", "weight": 2.0}, "right_ankle": {"site": "r_ankle", "weight": 2.0},
+        "left_foot": {"site": "l_toe"}, "right_foot": {"site": "r_toe"},
+        "left_shoulder": {"site": "l_shoulder"}, "right_shoulder": {"site": "r_shoulder"},
+        "left_elbow": {"site": "l_elbow"}, "right_elbow": {"site": "r_elbow"},
+        "left_wrist": {"site": "l_hand", "weight": 1.5}, "right_wrist": {"site": "r_hand", "weight": 1.5},
+    },
+    "velocity_limits": {"default": 6.0},
+    "capsules": {
+        "torso": {"body": "torso", "from": [0, 0, 0.03], "to": [0, 0, 0.11], "radius": 0.05},
+        "l_forearm": {"geom": "l_forearm_g"}, "r_forearm": {"geom": "r_forearm_g"},
+        "l_shin": {"geom": "l_shin_g"}, "r_shin": {"geom": "r_shin_g"},
+    },
+    "collision_pairs": [["l_forearm", "torso"], ["r_forearm", "torso"], ["l_shin", "r_shin"]],
+    "feet": {"left": {"body": "l_foot", "geom": "l_foot_g"}, "right": {"body": "r_foot", "geom": "r_foot_g"}},
+    "posture_weight": 0.02,
+}
+
+
+def toy_robot(fixed_base: bool = False, **changes):
+    """The toy humanoid bound to TOY_PROFILE (with top-level ``changes``)."""
+    from retarget.profile import RetargetProfile
+    from retarget.robot import robot_from_xml_string
+
+    data = dict(TOY_PROFILE, **changes)
+    return robot_from_xml_string(TOY_XML, RetargetProfile.from_dict(data, source="toy.yaml"), fixed_base=fixed_base)
