@@ -434,3 +434,24 @@ def test_every_sdk_baud_rate_works_on_the_pty(baud):
     with bus([1], baud=baud) as (emu, port, ph):
         assert ph.ping(port, 1) == (1020, sdk.COMM_SUCCESS, 0)
         assert emu.read_register(1, "baud_rate") == load_servo_model("XM430-W350").baud_to_register(baud)
+
+
+def test_unthreaded_emulator_answers_only_when_pumped():
+    emu = DynamixelBusEmulator(servos=[1, 2]).start(threaded=False)
+    try:
+        port = sdk.PortHandler(emu.port_path)
+        assert port.openPort()
+        ph = sdk.PacketHandler(2.0)
+        assert ph.write1ByteTxOnly(port, dp.BROADCAST_ID, LED, 1) == sdk.COMM_SUCCESS
+        assert emu.read_register(1, "led") == 0      # nothing handled yet
+        assert emu.pump() == 1
+        assert emu.read_register(1, "led") == emu.read_register(2, "led") == 1
+        ph.readTx(port, 2, LED, 1)
+        emu.pump()
+        assert ph.readRx(port, 2, 1) == ([1], sdk.COMM_SUCCESS, 0)
+        port.closePort()
+    finally:
+        emu.stop()
+    with pytest.raises(BridgeError, match="threaded=False"):
+        with DynamixelBusEmulator(servos=[1]) as threaded:
+            threaded.pump()

@@ -57,7 +57,9 @@ rates up to 4 Mbps); pyserial's ``set_low_latency_mode`` raises ValueError on a 
 call as best-effort.
 
 Thread model: one reader thread per emulator; all servo state is guarded by
-``emu.lock``, which every public method takes.
+``emu.lock``, which every public method takes (hold it when touching ``emu.servo(id)``
+directly). ``start(threaded=False)`` + ``pump()`` instead handle packets in the caller's
+thread, for measuring host CPU time without a second thread.
 """
 
 from __future__ import annotations
@@ -175,8 +177,10 @@ class DynamixelBusEmulator:
         raise BridgeError(f"emulator servo entry must be an ID, (id, model) or ServoSpec, got {item!r}")
 
     # ------------------------------------------------------------------ life cycle
-    def start(self) -> "DynamixelBusEmulator":
-        if self._thread is not None:
+    def start(self, threaded: bool = True) -> "DynamixelBusEmulator":
+        """Open the pty and, with ``threaded``, start the reader thread. With
+        ``threaded=False`` nothing answers until the caller calls :meth:`pump`."""
+        if self._master is not None:
             return self
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
@@ -184,9 +188,36 @@ class DynamixelBusEmulator:
         os.set_blocking(self._master, False)
         self._port_path = os.ttyname(self._slave)
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="dxl-bus-emulator", daemon=True)
-        self._thread.start()
+        if threaded:
+            self._thread = threading.Thread(target=self._run, name="dxl-bus-emulator", daemon=True)
+            self._thread.start()
         return self
+
+    def pump(self) -> int:
+        """Handle every complete packet the host has written so far, in the calling thread
+        (for an emulator started with ``threaded=False``, e.g. to measure the host's CPU
+        time without a second thread). Returns the number of packets handled."""
+        if self._thread is not None:
+            raise BridgeError("pump() is for an emulator started with threaded=False; this one has a reader thread")
+        if self._master is None:
+            raise BridgeError("the emulator is not started (or its port vanished)")
+        handled = 0
+        while True:
+            t_first = self.clock()
+            try:
+                data = os.read(self._master, 65536)
+            except (BlockingIOError, InterruptedError):
+                return handled
+            except OSError as exc:
+                if exc.errno == errno.EIO:
+                    return handled
+                raise
+            if not data:
+                return handled
+            self.rx_bytes += len(data)
+            for frame in self._parser.feed(data):
+                self._handle(frame, t_first)
+                handled += 1
 
     def stop(self) -> None:
         """Stop the reader thread and close the pty (safe to call twice)."""
