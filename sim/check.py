@@ -348,7 +348,7 @@ class Checker:
         first = failures[0] if failures else None
         series = {"t": t[:K_run], "q": q[:K_run], "q_cmd": q_cmd[:K_run], "torque": tau[:K_run],
                   "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run]}
-        return CheckResult(sc.config.robot, cfg.mode, first is None, first.reason if first else "ok",
+        return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None, first.reason if first else "ok",
                            first.time if first else None, failures, metrics, r.joint_names, r.lower, r.upper,
                            series, cfg)
 

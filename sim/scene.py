@@ -22,7 +22,7 @@ from dualflow.motion import Motion
 from sim.errors import SimError
 from sim.human_figure import HumanFigure, Placement
 from sim.robot_index import RobotIndex
-from sim.robots import ROBOTS, mjcf_path
+from sim.robots import mjcf_path
 
 ROBOT_GROUP = 1
 ACTOR_GROUP = 3
@@ -202,7 +202,3 @@ class Scene:
                 z = c[2] - m.geom_rbound[g]
             zmin = min(zmin, float(z))
         return zmin
-
-
-def bundled_robot_names() -> list[str]:
-    return sorted(ROBOTS)

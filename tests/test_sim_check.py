@@ -214,3 +214,24 @@ def test_resample_linear_and_cubic_hit_the_samples():
     mid = resample(times, values, np.array([0.05, 1.0]), "linear")
     assert np.allclose(mid[0], (values[0] + values[1]) / 2)
     assert np.allclose(mid[1], values[-1])  # clamped past the end
+
+
+def test_cmu_actor_is_placed_and_measured(cmu_pair_paths, stand):
+    """Real two-person capture: the actor placed relative to the robot standing in for
+    the reactor is measured at a distance; moved onto the robot it is a penetration."""
+    from dualflow.motion.io import load_pair
+    from sim.human_figure import estimate_height
+
+    pair = load_pair(*cmu_pair_paths, fps=30)
+    actor, reactor = pair.actor.slice(0, 45), pair.reactor.slice(0, 45)
+    height = Scene(SceneConfig(robot="op3")).robot_height
+    scale = height / estimate_height(reactor)
+    assert 0.2 < scale < 0.4  # an adult scaled to a 0.51 m robot
+    pelvis = reactor.positions[0, 0]
+    apart = Placement(scale, (-scale * pelvis[0], -scale * pelvis[1], 0.0))
+    ok = check_trajectory(make(lambda tt: stand, 1.4), actor=actor, actor_placement=apart)
+    assert ok.passed, ok.failures
+    assert ok.metrics["min_human_distance_m"] == pytest.approx(HUMAN_DISTANCE_CAP)  # over 0.1 m away
+    on_top = Placement(scale, (-scale * actor.positions[0, 0, 0], -scale * actor.positions[0, 0, 1], 0.0))
+    hit = check_trajectory(make(lambda tt: stand, 1.4), actor=actor, actor_placement=on_top)
+    assert hit.reason == "human_penetration"
