@@ -192,7 +192,7 @@ def test_broadcast_write_reaches_every_servo_without_replies():
 # ---------------------------------------------------------------- reboot, reset, errors
 
 def test_hardware_alert_blocks_torque_until_reboot():
-    with bus([1], reboot_time_s=0.05) as (emu, port, ph):
+    with bus([1], reboot_time_s=0.5) as (emu, port, ph):
         emu.set_hardware_error(1, 0x20)  # overload, in the default Shutdown mask (52)
         assert ph.read1ByteTxRx(port, 1, HW_ERR) == (0x20, sdk.COMM_SUCCESS, 0x80)
         assert "Hardware error" in ph.getRxPacketError(0x80)

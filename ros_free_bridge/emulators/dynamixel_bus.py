@@ -29,7 +29,10 @@ What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
 - Status Return Level (PING always answered; level 1 adds reads; level 2 everything),
   broadcast ID 0xFE (no reply except PING and the group reads);
 - per-servo control tables, write rules (EEPROM lock while torque is on, access/range/limit
-  errors), motor model, hardware errors and alert bit: see :mod:`.emulated_servo`;
+  errors), motor model, hardware errors and alert bit, Bus Watchdog(98): see
+  :mod:`.emulated_servo`;
+- REBOOT: the servo answers, then stays silent for ``reboot_time_s`` (RAM back to factory
+  values, hardware errors cleared, torque off, goal = present);
 - baud: a servo only hears the host when the pty's baud setting (what the host set with
   termios) is within 3 % of its Baud Rate register's rate, as a wrong baud gives garbage
   on a real bus

@@ -176,13 +176,10 @@ class EmulatedServo:
         self._t0 = self._last
         self._factory_fill(keep=())
         self.set("id", servo_id)
-        self._sync_outputs(0.0, 0.0)
         self.set("goal_position", int(round(self._pos)))
+        self._sync_outputs(0.0, 0.0)
 
     # ------------------------------------------------------------------ raw access
-    def _reg(self, name: str) -> Register:
-        return self._regs[name]
-
     def has(self, name: str) -> bool:
         return name in self._regs
 
