@@ -179,3 +179,23 @@ def test_importing_sim_does_not_import_mujoco_or_torch():
     code = "import sys, sim, sim.robots; sim.robots.joint_limits('op3'); print('mujoco' in sys.modules, 'torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_servo_torque_speed_curve_caps_speed_at_no_load_speed():
+    """A big step on head_pan (vertical axis: no gravity load) saturates the servo; the
+    back-EMF term makes the torque fall with speed, so the joint settles near
+    (tau_s - friction) / b = (3.8 - 0.05) / 0.864 = 4.34 rad/s and never above 4.5."""
+    scene = Scene(SceneConfig(robot="op3", fixed_base=True, base_pos=(0, 0, 0.5)))
+    m, d, r = scene.model, scene.data, scene.robot
+    j = r.joint_names.index("head_pan")
+    d.ctrl[r.actuator_ids[j]] = 1.5
+    speeds, forces = [], []
+    for _ in range(150):  # 0.3 s
+        mujoco.mj_step(m, d)
+        speeds.append(d.qvel[r.dof_adr[j]])
+        forces.append(d.actuator_force[r.actuator_ids[j]])
+    speeds = np.array(speeds)
+    assert forces[0] == pytest.approx(3.8)  # saturated at the stall torque
+    assert 4.0 < speeds.max() <= 4.5
+    plateau = speeds[(speeds > 0.95 * speeds.max())]
+    assert len(plateau) > 20  # it runs at the no-load-limited speed for a while, not a spike
