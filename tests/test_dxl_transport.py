@@ -302,7 +302,7 @@ def test_register_settings_from_the_op3_config():
     lo, hi = regs["min_position_limit"], regs["max_position_limit"]
     assert XM.ticks_to_rad(lo) >= knee.lower - 1e-12 and XM.ticks_to_rad(hi) <= knee.upper + 1e-12
     assert XM.ticks_to_rad(lo - 1) < knee.lower and XM.ticks_to_rad(hi + 1) > knee.upper
-    assert regs["position_p_gain"] == 800 and regs["bus_watchdog"] == 0
+    assert regs["position_p_gain"] == 800 and regs["bus_watchdog"] == 5  # 100 ms in 20 ms units
 
 
 def test_communication_error_with_limp_policy_switches_every_servo_off():
@@ -373,5 +373,25 @@ def test_protocol_1_bus_ax12():
             emu.overheat(2)
             s = t.read_state()
             assert "overheating" in s.errors.get("b", "")
+    finally:
+        emu.stop()
+
+
+def test_bus_watchdog_stops_servos_when_the_host_goes_silent_and_is_recovered():
+    bus = small_bus(3, bus_watchdog_ms=100)
+    emu = guarded_emulator(bus)
+    try:
+        with make(bus, emu, slow_per_cycle=1) as t:
+            assert emu.read_register(2, "bus_watchdog") == 5
+            t.set_torque(True)
+            t.write_goal(np.array([0.8, 0.8, 0.8]))
+            time.sleep(0.35)  # the host "hangs": every servo stops where it is
+            assert all(emu.read_register(i, "bus_watchdog") in (-1, 255) for i in (1, 2, 3))
+            t.read_state()
+            assert t.stats.watchdog_trips == 3
+            assert [emu.read_register(i, "bus_watchdog") for i in (1, 2, 3)] == [5, 5, 5]
+            t.write_goal(np.array([0.1, 0.1, 0.1]))  # goals are accepted again
+            assert wait_for(lambda: np.allclose(t.read_state().position, 0.1, atol=3e-3))
+        assert emu.violations == []
     finally:
         emu.stop()

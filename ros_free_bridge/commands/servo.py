@@ -5,7 +5,9 @@ inspect Dynamixel servo buses.
 - ``provision CONFIG``: write each servo's EEPROM/RAM settings from the robot's hardware
   config with torque off, read them back and print the diff; refuses (writes nothing)
   when a servo's model differs from the config.
-- ``verify CONFIG``: compare models and settings with the config; exit 1 on a mismatch.
+- ``verify CONFIG``: compare models and EEPROM settings with the config, report hardware
+  errors; exit 1 on a mismatch. (RAM settings - gains, profiles, bus watchdog - reset at
+  power-off; the Dynamixel transport applies them whenever it opens the bus.)
 - ``calibrate CONFIG --out FILE``: with the robot held in its zero pose, record each
   servo's zero offset into a new config file.
 - ``monitor CONFIG``: a live table of positions, velocities, currents, temperatures,
@@ -179,11 +181,14 @@ def check_models(dxl, bus) -> list[tuple[object, object, int]]:
     return found
 
 
-def read_settings(dxl, servo, model) -> tuple[dict[str, int], dict[str, int]]:
-    """(wanted, present) register values for one servo."""
+def read_settings(dxl, servo, model, eeprom_only: bool = False) -> tuple[dict[str, int], dict[str, int]]:
+    """(wanted, present) register values for one servo (``eeprom_only``: the persistent
+    ones; RAM settings reset at power-off and the transport applies them at open)."""
     from ros_free_bridge.transports.dynamixel import servo_register_settings
 
     wanted = servo_register_settings(servo, model)
+    if eeprom_only:
+        wanted = {k: v for k, v in wanted.items() if model.register(k).eeprom}
     present = {name: dxl.read(servo.id, model.register(name))[0] for name in wanted}
     return wanted, present
 
@@ -325,7 +330,7 @@ def run_verify(args) -> int:
         servos = check_models(dxl, bus)
         rows, bad = [], 0
         for s, model, fw in servos:
-            wanted, present = read_settings(dxl, s, model)
+            wanted, present = read_settings(dxl, s, model, eeprom_only=True)
             diff = [f"{k}={present[k]} (want {v})" for k, v in wanted.items() if present[k] != v]
             hw = ""
             if model.has("hardware_error_status"):

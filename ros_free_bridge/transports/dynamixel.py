@@ -94,7 +94,7 @@ class RecoveryPolicy:
     reboot: bool = True
     reboot_on: frozenset[str] = frozenset({"overload", "electrical shock", "input voltage"})
     max_reboots: int = 3
-    reboot_wait_s: float = 0.6
+    reboot_wait_s: float = 2.0
 
 
 def set_latency_timer(port_name: str, ms: int = 1) -> tuple[int | None, str]:
@@ -393,6 +393,7 @@ class DynamixelStats:
     read_retries: int = 0
     alerts: int = 0
     reboots: int = 0
+    watchdog_trips: int = 0
     fast_sync_read: bool = True
     notes: list[str] = field(default_factory=list)
 
@@ -606,16 +607,19 @@ class DynamixelTransport:
         self.bus.reboot(sid)
         self.stats.reboots += 1
         sv.reboots += 1
-        deadline = time.monotonic() + self.recovery.reboot_wait_s + 2.0
-        time.sleep(self.recovery.reboot_wait_s)
+        # poll with PINGs rather than sleeping: every packet on the bus also feeds the other
+        # servos' Bus Watchdog, which a silent wait of this length would trip
+        deadline = time.monotonic() + self.recovery.reboot_wait_s
+        time.sleep(0.02)
         while True:
             try:
                 self.bus.ping(sid, retries=0)
                 break
             except BridgeError:
                 if time.monotonic() > deadline:
-                    raise BridgeError(f"{self.bus.label(sid)}: did not come back after REBOOT; power-cycle it") from None
-                time.sleep(0.05)
+                    raise BridgeError(f"{self.bus.label(sid)}: did not come back within "
+                                      f"{self.recovery.reboot_wait_s:.1f} s of REBOOT; power-cycle it") from None
+                time.sleep(0.01)
         if sv.model.has("hardware_error_status"):
             left = self.bus.read(sid, sv.model.register("hardware_error_status"))[0]
             if left:
@@ -721,6 +725,8 @@ class DynamixelTransport:
                 if m.has(name):
                     regs[key] = m.register(name)
                     break
+        if sv.settings.get("bus_watchdog", 0) > 0:
+            regs["watchdog"] = m.register("bus_watchdog")  # same READ, from address 98 on
         return regs
 
     def _read_slow(self, i: int) -> None:
@@ -742,6 +748,8 @@ class DynamixelTransport:
             self._state.voltage[i] = float(m.voltage_to_volts(val["voltage"]))
         if "temperature" in val:
             self._state.temperature[i] = float(m.temperature_to_celsius(val["temperature"]))
+        if val.get("watchdog", 0) in (-1, 255):
+            self._recover_bus_watchdog()
         if self.bus.protocol == 2.0:
             if error & ALERT_BIT:
                 self._on_alert(i)
@@ -785,7 +793,28 @@ class DynamixelTransport:
             reg = sv.model.register(name)
             if reg.eeprom:
                 continue
+            if name == "bus_watchdog":
+                self.bus.write(sv.cfg.id, reg, 0)  # clears a tripped watchdog (-1) before a new period
             self.bus.write(sv.cfg.id, reg, value)
+
+    def _recover_bus_watchdog(self) -> None:
+        """The host was silent for longer than a servo's Bus Watchdog(98) period: tripped
+        servos have stopped where they were and refuse goals. For every servo on the bus:
+        clear the watchdog (write 0), goal = present, set the period again."""
+        for i, sv in enumerate(self.servos):
+            period = sv.settings.get("bus_watchdog", 0)
+            if period <= 0:
+                continue
+            reg = sv.model.register("bus_watchdog")
+            if self.bus.read(sv.cfg.id, reg)[0] not in (-1, 255):
+                continue
+            self.bus.write(sv.cfg.id, reg, 0)
+            ticks = self.bus.read(sv.cfg.id, sv.present)[0]
+            self.bus.write(sv.cfg.id, sv.goal, int(np.clip(ticks, *servo_tick_limits(sv.cfg, sv.model))))
+            self.bus.write(sv.cfg.id, reg, period)
+            self.stats.watchdog_trips += 1
+            self.stats.notes.append(f"{self.bus.label(sv.cfg.id)}: bus watchdog had expired (host silent > "
+                                    f"{period * 20} ms); cleared, goal = present")
 
     def _broadcast_torque_off(self) -> None:
         """One SYNC_WRITE Torque Enable = 0 to every servo (no reply needed): the cheapest
