@@ -455,3 +455,16 @@ def test_unthreaded_emulator_answers_only_when_pumped():
     with pytest.raises(BridgeError, match="threaded=False"):
         with DynamixelBusEmulator(servos=[1]) as threaded:
             threaded.pump()
+
+
+def test_changing_an_id_is_answered_from_the_old_id():
+    with bus([1, 2]) as (emu, port, ph):
+        assert ph.write1ByteTxRx(port, 1, 7, 9) == (sdk.COMM_SUCCESS, 0)   # ID(7) := 9
+        assert ph.ping(port, 1)[1] == sdk.COMM_RX_TIMEOUT
+        assert ph.ping(port, 9) == (1020, sdk.COMM_SUCCESS, 0)
+        assert ph.write1ByteTxRx(port, 9, 7, 2)[1] == 0                      # a clash is accepted...
+        assert sorted(s.servo_id for s in emu.servos) == [2, 2]
+        assert ph.ping(port, 2)[1] == sdk.COMM_RX_CORRUPT                    # ...both answer at once
+        ph.write1ByteTxRx(port, 2, LED, 1)
+        assert [s.get("led") for s in emu.servos] == [1, 1]                  # and both obey
+        assert emu.instruction_counts["PING"] == 3

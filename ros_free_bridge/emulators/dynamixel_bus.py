@@ -31,6 +31,8 @@ What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
 - per-servo control tables, write rules (EEPROM lock while torque is on, access/range/limit
   errors), motor model, hardware errors and alert bit, Bus Watchdog(98): see
   :mod:`.emulated_servo`;
+- an ID written to clash with another servo's: both execute unicast instructions to it
+  and answer at once, which reaches the host as one packet with a broken CRC;
 - REBOOT: the servo answers, then stays silent for ``reboot_time_s`` (RAM back to factory
   values, hardware errors cleared, torque off, goal = present);
 - baud: a servo only hears the host when the pty's baud setting (what the host set with
@@ -419,18 +421,23 @@ class DynamixelBusEmulator:
                 return None
         return None
 
-    def _listeners(self, protocol: int, now: float) -> dict[int, EmulatedServo]:
-        """Servos that hear this packet: right protocol, connected, not booting, same baud."""
+    def _listeners(self, protocol: int, now: float) -> tuple[dict[int, EmulatedServo], list[EmulatedServo]]:
+        """Servos that hear this packet (right protocol, connected, not booting, same baud),
+        by ID; plus the servos whose ID another listener already has (an ID clash)."""
         host_baud = self._host_baud() if self.match_baud else None
-        out = {}
+        out: dict[int, EmulatedServo] = {}
+        twins: list[EmulatedServo] = []
         for s in self._servos:
             if s.protocol != protocol or s.faults.disconnected or now < s.booting_until:
                 continue
             servo_baud = s.baud()
             if host_baud is not None and (servo_baud is None or abs(servo_baud - host_baud) > BAUD_TOLERANCE * host_baud):
                 continue
-            out[s.servo_id] = s
-        return out
+            if s.servo_id in out:
+                twins.append(s)
+            else:
+                out[s.servo_id] = s
+        return out, twins
 
     def _handle(self, frame: dp.Frame, t_first: float) -> None:
         with self.lock:
@@ -439,14 +446,22 @@ class DynamixelBusEmulator:
             t_start = max(t_first, self._bus_free_at)
             t_end_in = t_start + 10.0 * len(frame.raw) / wire_baud
             self._bus_free_at = t_end_in
-            listeners = self._listeners(frame.protocol, now)
+            listeners, twins = self._listeners(frame.protocol, now)
             if frame.valid:
-                for s in listeners.values():
+                for s in list(listeners.values()) + twins:
                     s.heard(now)  # restarts each servo's Bus Watchdog interval
-            if frame.protocol == 2:
-                replies = self._dispatch2(frame, listeners)
-            else:
-                replies = self._dispatch1(frame, listeners)
+            dispatch = self._dispatch2 if frame.protocol == 2 else self._dispatch1
+            replies = dispatch(frame, listeners)
+            target = frame.raw[4] if frame.protocol == 2 else frame.raw[2]
+            clash = [t for t in twins if t.servo_id == target]
+            if clash:
+                # two servos with one ID: each executes the instruction and they answer at
+                # once; the host receives the overlap as one packet with a broken CRC
+                for twin in clash:
+                    replies += dispatch(frame, {**listeners, target: twin}, count=False)
+                if len(replies) > 1:
+                    first_servo, raw = replies[0]
+                    replies = [(first_servo, raw[:-1] + bytes((raw[-1] ^ 0xFF,)))]
             self._emit(replies, t_end_in, wire_baud)
 
     def _emit(self, replies: list[tuple[EmulatedServo, bytes]], t_end_in: float, baud: int) -> None:
@@ -467,20 +482,23 @@ class DynamixelBusEmulator:
         self.instruction_counts[name] = self.instruction_counts.get(name, 0) + 1
 
     # ------------------------------------------------------------------ protocol 2.0
-    def _status2(self, servo: EmulatedServo, error: int = 0, params: bytes = b"") -> tuple[EmulatedServo, bytes] | None:
-        """A status packet from ``servo`` unless a fault swallows it."""
+    def _status2(self, servo: EmulatedServo, error: int = 0, params: bytes = b"",
+                 reply_id: int | None = None) -> tuple[EmulatedServo, bytes] | None:
+        """A status packet from ``servo`` unless a fault swallows it. ``reply_id``: the ID
+        the instruction addressed (a write that changes the ID is answered from the old one)."""
         if servo.faults.take("drop_replies"):
             return None
-        raw = dp.encode_status(servo.servo_id, error | servo.status_error(), params)
+        sid = servo.servo_id if reply_id is None else reply_id
+        raw = dp.encode_status(sid, error | servo.status_error(), params)
         if servo.faults.take("corrupt_replies"):
             raw = raw[:-2] + bytes((raw[-2] ^ 0xFF, raw[-1] ^ 0xFF))
         return servo, raw
 
-    def _dispatch2(self, frame: dp.Frame, servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
+    def _dispatch2(self, frame: dp.Frame, servos: dict[int, EmulatedServo], count: bool = True) -> list[tuple[EmulatedServo, bytes]]:
         raw = frame.raw
         target = raw[4]
         if not frame.valid:
-            self.crc_errors += 1
+            self.crc_errors += count
             s = servos.get(target)
             rep = self._status2(s, dp.ERR_CRC) if s is not None else None
             return [rep] if rep else []
@@ -488,14 +506,15 @@ class DynamixelBusEmulator:
         if pkt.is_status:
             return []  # another device's reply (or our own echo): not for servos
         inst, params = pkt.instruction, pkt.params
-        self._count(inst)
+        if count:
+            self._count(inst)
         replies: list[tuple[EmulatedServo, bytes] | None] = []
         broadcast = target == dp.BROADCAST_ID
         unicast = servos.get(target)
 
         def reply_level(servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
             if not broadcast and servo.status_return_level() >= level:
-                replies.append(self._status2(servo, error, data))
+                replies.append(self._status2(servo, error, data, reply_id=target))
 
         def werr(result: WriteResult) -> int:
             return 0 if result.ok else _P2_WRITE_ERRORS[result.error]
@@ -611,31 +630,34 @@ class DynamixelBusEmulator:
         return [(owners[-1], bytes(raw))]
 
     # ------------------------------------------------------------------ protocol 1.0
-    def _status1(self, servo: EmulatedServo, error: int = 0, params: bytes = b"") -> tuple[EmulatedServo, bytes] | None:
+    def _status1(self, servo: EmulatedServo, error: int = 0, params: bytes = b"",
+                 reply_id: int | None = None) -> tuple[EmulatedServo, bytes] | None:
         if servo.faults.take("drop_replies"):
             return None
-        raw = dp.encode_status1(servo.servo_id, error | servo.status_error(), params)
+        sid = servo.servo_id if reply_id is None else reply_id
+        raw = dp.encode_status1(sid, error | servo.status_error(), params)
         if servo.faults.take("corrupt_replies"):
             raw = raw[:-1] + bytes((raw[-1] ^ 0xFF,))
         return servo, raw
 
-    def _dispatch1(self, frame: dp.Frame, servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
+    def _dispatch1(self, frame: dp.Frame, servos: dict[int, EmulatedServo], count: bool = True) -> list[tuple[EmulatedServo, bytes]]:
         raw = frame.raw
         target = raw[2]
         broadcast = target == dp.BROADCAST_ID
         unicast = servos.get(target)
         if not frame.valid:
-            self.crc_errors += 1
+            self.crc_errors += count
             rep = self._status1(unicast, dp.ERR1_CHECKSUM) if unicast is not None else None
             return [rep] if rep else []
         pkt = dp.decode_packet1(raw, status=False)
         inst, params = pkt.instruction, pkt.params
-        self._count(inst)
+        if count:
+            self._count(inst)
         replies: list[tuple[EmulatedServo, bytes] | None] = []
 
         def reply_level(servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
             if not broadcast and servo.status_return_level() >= level:
-                replies.append(self._status1(servo, error, data))
+                replies.append(self._status1(servo, error, data, reply_id=target))
 
         group = list(servos.values()) if broadcast else [unicast] if unicast else []
         if inst == dp.PING:
