@@ -37,8 +37,7 @@ What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
   values, hardware errors cleared, torque off, goal = present);
 - baud: a servo only hears the host when the pty's baud setting (what the host set with
   termios) is within 3 % of its Baud Rate register's rate, as a wrong baud gives garbage
-  on a real bus
-  (``match_baud=False`` turns this off); a pty itself ignores the baud rate;
+  on a real bus (``match_baud=False`` turns this off); a pty itself ignores the baud rate;
 - wire timing (``wire_timing=True``): each instruction occupies the bus for its bytes at
   10 bits per byte at the baud rate; each reply is written to the pty when its last byte
   would have arrived: ``t = end of previous traffic + Return Delay Time (2 µs units) +
@@ -55,11 +54,27 @@ current, overload after 1 s), ``push(id, ticks)`` (external displacement), and
 ``vanish()`` (the pty closes as when a USB adapter is unplugged: the host's next read or
 write fails with an OSError/SerialException).
 
+Inspection: ``servo(id)`` (the :class:`~.emulated_servo.EmulatedServo`),
+``read_register(id, name)`` / ``write_register(id, name, value)`` (behind the bus's back),
+``goal_history`` ({id: [GoalRecord(stamp, servo_id, ticks, accepted, instruction)]}, every
+Goal Position write that reached the servo, accepted or not), ``allowed_range(id, lo, hi)``
+and ``violations`` (goals outside it), ``instruction_counts``, ``rx_bytes``/``tx_bytes``,
+``crc_errors``.
+
 Setup notes for dynamixel-sdk on a pty: ``PortHandler.openPort``/``setBaudRate`` work
 unchanged (pyserial sets the baud with termios, which a pty accepts for the standard
 rates up to 4 Mbps); pyserial's ``set_low_latency_mode`` raises ValueError on a pty
 (there is no ASYNC_LOW_LATENCY on a pseudo-terminal), so a transport must treat that
-call as best-effort.
+call as best-effort. The SDK waits 2 x LATENCY_TIMER + 2 ms (34 ms) for a reply; on a
+heavily loaded machine the emulator's thread can be descheduled longer than that, so
+tests raise ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (a module setting) to 50.
+
+dynamixel-sdk 4.1.0 quirks met while testing against this emulator: it does not byte-stuff
+the packets it sends when stuffing would change their length (it computes the stuffed
+packet and drops it); its in-place unstuffing can drop a byte when ``FF FD FD`` follows a
+stuffed marker; ``GroupBulkRead`` fails for protocol 1.0 (it passes an extra argument to
+``bulkReadTx``); and an exception inside a transfer leaves ``port.is_using`` True, so the
+next call reports COMM_PORT_BUSY unless the caller resets it.
 
 Thread model: one reader thread per emulator; all servo state is guarded by
 ``emu.lock``, which every public method takes (hold it when touching ``emu.servo(id)``
