@@ -213,6 +213,7 @@ class ControlLoop:
             target = self.safety.last_command
             used = None
             now = time.monotonic()
+            ramping_out = self.state == State.RAMP_OUT  # a stop decided this tick ramps from the next one
             if self.state == State.RAMP_IN:
                 target = ramp.pop(0)
                 if not ramp:
@@ -240,6 +241,7 @@ class ControlLoop:
                     faults |= Fault.GENERATOR_ERROR
                     self._begin_stop(f"generator failed: {self.targets.error}")
                 elif sample.finished:
+                    target, used = sample.q, sample.newest  # play the last frame, then ramp to rest
                     self._begin_stop("the motion ended")
                 elif self._stop_reason is not None:
                     self._begin_stop(self._stop_reason)
@@ -268,7 +270,7 @@ class ControlLoop:
                         used = sample.newest
                         if not np.all(np.isfinite(target)):
                             faults |= Fault.NONFINITE
-            if self.state == State.RAMP_OUT:
+            if ramping_out:
                 if not self._ramp_out:
                     cur = self.safety.last_command
                     self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits, cfg.min_ramp), self.dt))

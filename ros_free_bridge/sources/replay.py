@@ -18,6 +18,8 @@ from ros_free_bridge.sources.udp import ActorFrame
 class MotionReplaySource:
     """Frames of ``motion`` at its own fps, once (``loop=False``) or repeatedly."""
 
+    live = False  #: frames exist before start(); nothing is lost by waiting
+
     def __init__(self, motion: Motion, loop: bool = False, clock=time.monotonic):
         self.motion = motion
         self.fps = motion.fps

@@ -42,6 +42,9 @@ class UdpStats:
 class UdpActorSource:
     """Receive actor frames (and e-stop requests) on ``host:port`` (port 0: any free port)."""
 
+    live = True  #: frames sent before start() are stale and dropped
+    finished = False  #: a live stream ends by a stop request, an e-stop or its watchdog
+
     def __init__(self, host: str = "127.0.0.1", port: int = 0, on_estop=None):
         self.stats = UdpStats()
         self._on_estop = on_estop
@@ -58,6 +61,9 @@ class UdpActorSource:
     @property
     def address(self) -> tuple[str, int]:
         return self._sock.getsockname()
+
+    def start(self) -> None:
+        """Nothing to start: the socket is already listening."""
 
     def poll(self, max_packets: int = 1000) -> list[ActorFrame]:
         frames: list[ActorFrame] = []

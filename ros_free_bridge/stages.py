@@ -1,0 +1,200 @@
+"""The slow stages between the actor and the control loop, and the thread that runs them.
+
+- :class:`ReactorStage`: DualFlow's reactive mode over world positions. Actor frames
+  (22, 3) m in, reactor frames (22, 3) m + foot contacts out, through
+  :class:`dualflow.streaming.ReactiveStreamer`. This is the one place outside
+  ``dualflow`` that imports torch (DESIGN.md).
+- :class:`RetargetStage`: :class:`retarget.streaming.StreamingRetargeter`, one frame at a
+  time, robot joint angles in the transport's joint order out.
+- :class:`PartnerPipeline`: a thread that polls the actor source, runs both stages and
+  pushes :class:`~ros_free_bridge.targets.TargetFrame` s to the control loop's buffer.
+  It never touches the transport, so a slow or failed stage can only starve the loop
+  (which then holds and stops, see :mod:`ros_free_bridge.loop`), never block it.
+
+Delay: an actor frame's 262-d feature row needs the next frame (its velocity), and the
+reactor frame i needs actor rows up to i + L; so reactor frame i is produced when actor
+frame i + L + 1 arrives (plus the streamer's hop - 1 frames and the compute time).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.targets import TargetBuffer, TargetFrame
+
+
+@dataclass(frozen=True)
+class ReactorFrame:
+    """One generated reactor pose: positions (22, 3) m (world, Z up), contacts (4,) bool."""
+
+    index: int
+    positions: np.ndarray
+    contacts: np.ndarray
+    source_arrival: float  #: monotonic arrival of the actor frame whose push produced it
+    actor_frame: int
+    latency: float  #: seconds the generator spent on the push that produced it
+
+
+class ReactorStage:
+    """Generate the partner (reactor) from actor world positions, causally, frame by frame.
+
+    checkpoint: a checkpoint directory (None: the bundled one). conditions: a
+    ``dualflow.model.Conditions`` with batch 1 (text, music over the whole run), or None.
+    """
+
+    def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, conditions=None, threads: int = 1):
+        import torch
+
+        from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
+        from dualflow.streaming import ReactiveStreamer, StreamConfig
+
+        torch.set_num_threads(max(1, int(threads)))  # leave a core to the control loop
+        ckpt = load_checkpoint(checkpoint or BUNDLED_CHECKPOINT)
+        self.stats = ckpt.stats
+        self.model = ckpt.build_model("cpu")
+        self.fps = float(fps)
+        self.streamer = ReactiveStreamer(self.model, stream_config or StreamConfig(), conditions)
+        self.look_ahead = self.streamer.look_ahead
+        self.delay_frames = self.streamer.delay_frames + 1  # + 1: a feature row needs the next frame
+        self._canonical = None
+        self._prev = None
+        self._n_out = 0
+        self._torch = torch
+
+    def push(self, actor_positions: np.ndarray, arrival: float, actor_index: int) -> list[ReactorFrame]:
+        from dualflow.motion import Motion
+        from dualflow.motion.features import canonical_frame, encode_person
+
+        pos = np.asarray(actor_positions, dtype=np.float64)
+        if self._prev is None:
+            self._canonical = canonical_frame(Motion(pos[None], self.fps))
+            self._prev = pos
+            return []
+        row = encode_person(Motion(np.stack([self._prev, pos]), self.fps), self._canonical)
+        self._prev = pos
+        t0 = time.perf_counter()
+        with self._torch.no_grad():
+            out = self.streamer.push(self.stats.normalize(row))
+        return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+
+    def flush(self, arrival: float, actor_index: int) -> list[ReactorFrame]:
+        t0 = time.perf_counter()
+        with self._torch.no_grad():
+            out = self.streamer.flush()
+        return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+
+    def _decode(self, rows, arrival: float, actor_index: int, latency: float) -> list[ReactorFrame]:
+        from dualflow.motion.features import decode_person
+
+        rows = rows.detach().cpu().numpy()
+        if rows.shape[0] == 0:
+            return []
+        motion = decode_person(self.stats.denormalize(rows), self.fps, self._canonical)
+        frames = []
+        for k in range(rows.shape[0]):
+            frames.append(ReactorFrame(self._n_out, motion.positions[k], motion.contacts[k], arrival, actor_index, latency))
+            self._n_out += 1
+        return frames
+
+
+class RetargetStage:
+    """Reactor world positions → robot joint angles (n,) rad in ``joint_names`` order."""
+
+    def __init__(self, robot, fps: float, joint_names=None):
+        from retarget.streaming import StreamingRetargeter
+        from retarget.targets import KeypointScaler
+
+        self.robot = robot
+        self.scaler = KeypointScaler(robot)  # REST_POSE proportions: a live stream has no clip to measure
+        self.streamer = StreamingRetargeter(robot, fps)
+        names = tuple(joint_names) if joint_names is not None else tuple(robot.joint_names)
+        missing = [n for n in names if n not in robot.joint_names]
+        if missing:
+            raise BridgeError(f"retarget stage: the robot model has no joints {missing}; the hardware config and the MJCF disagree")
+        self.joint_names = names
+        self._index = np.array([robot.joint_names.index(n) for n in names]) + robot.n_root
+
+    def step(self, positions: np.ndarray, contacts: np.ndarray | None = None) -> np.ndarray:
+        from retarget.targets import side_contacts
+
+        targets = self.scaler.targets(np.asarray(positions, dtype=np.float64)[None])[0]
+        side = (False, False) if contacts is None else tuple(bool(c) for c in side_contacts(np.asarray(contacts)[None])[0])
+        x = self.streamer.step(targets, side)
+        return x[self._index]
+
+
+class PartnerPipeline:
+    """Run source → reactor → retarget in a thread, feeding ``buffer``.
+
+    ``start_event``: wait for it (the loop's ``ready``) before starting the actor clock;
+    actor frames that arrive earlier (a live stream) are discarded. ``reactor`` None makes
+    the robot retarget the actor itself (imitation).
+    """
+
+    def __init__(self, source, reactor: ReactorStage | None, retarget: RetargetStage, buffer: TargetBuffer,
+                 start_event: threading.Event | None = None):
+        self.source = source
+        self.reactor = reactor
+        self.retarget = retarget
+        self.buffer = buffer
+        self.start_event = start_event
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="partner-pipeline", daemon=True)
+        self.frames_in = 0
+        self.frames_out = 0
+
+    def start(self) -> None:
+        # Short GIL slices so that the control-loop thread wakes on time while torch,
+        # numpy and CasADi work here.
+        sys.setswitchinterval(0.0005)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float | None = None) -> None:
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        try:
+            while self.start_event is not None and not self.start_event.wait(0.01):
+                if self._stop.is_set():
+                    return
+                if self.source.live:
+                    self.source.poll()  # drop what a live stream sends before the robot is ready
+            self.source.start()
+            last_arrival, last_index = time.monotonic(), -1
+            while not self._stop.is_set():
+                frames = self.source.poll()
+                for f in frames:
+                    self.frames_in += 1
+                    last_arrival, last_index = f.arrival, f.index
+                    if self.reactor is None:
+                        self._emit(f.positions, None, f.arrival, f.index, 0.0)
+                    else:
+                        for r in self.reactor.push(f.positions, f.arrival, f.index):
+                            self._emit(r.positions, r.contacts, r.source_arrival, r.actor_frame, r.latency)
+                if getattr(self.source, "finished", False):
+                    if self.reactor is not None:
+                        for r in self.reactor.flush(last_arrival, last_index):
+                            self._emit(r.positions, r.contacts, r.source_arrival, r.actor_frame, r.latency)
+                    break
+                if not frames:
+                    time.sleep(0.002)
+        except BaseException as exc:  # noqa: BLE001 - handed to the control loop, which stops safely
+            self.buffer.close(exc)
+            return
+        self.buffer.close()
+
+    def _emit(self, positions, contacts, arrival, actor_index, gen_latency) -> None:
+        t0 = time.perf_counter()
+        q = self.retarget.step(positions, contacts)
+        rt = time.perf_counter() - t0
+        self.buffer.push(TargetFrame(self.frames_out, q, arrival, actor_index, gen_latency, rt))
+        self.frames_out += 1

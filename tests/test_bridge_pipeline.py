@@ -1,0 +1,76 @@
+"""The partner pipeline: actor source → DualFlow reactor → streaming retarget → control loop.
+
+Real parts throughout: a real (tiny, untrained) DualFlow checkpoint on disk, the bundled
+op3 model's CasADi retargeter, the bridge's limits from the op3 hardware config, and the
+record-only transport (dry run).
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from dualflow.checkpoint import save_checkpoint
+from dualflow.model import DualFlow, DualFlowConfig
+from dualflow.motion.features import encode_pair
+from dualflow.motion.normalization import NormStats
+from dualflow.streaming import StreamConfig
+from dualflow.synthetic import make_duet, make_leader
+from ros_free_bridge.loop import ControlLoop, LoopConfig
+from ros_free_bridge.robots import bridge_limits, resolve_robot
+from ros_free_bridge.sources.replay import MotionReplaySource
+from ros_free_bridge.stages import PartnerPipeline, ReactorStage, RetargetStage
+from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.transports.record import RecordTransport
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    feats, _ = encode_pair(make_duet("mirror", 4.0, 30.0, 0))
+    path = tmp_path_factory.mktemp("ckpt") / "tiny"
+    save_checkpoint(path, model=DualFlow(DualFlowConfig.preset("tiny")), stats=NormStats.from_features(feats))
+    return path
+
+
+@pytest.fixture(scope="module")
+def op3():
+    from retarget.robot import load_robot
+
+    files = resolve_robot("op3")
+    limits = bridge_limits(files.hardware_config())
+    return load_robot(files.mjcf, files.profile), limits
+
+
+def _run(op3, reactor, seconds=1.5):
+    robot, limits = op3
+    retarget = RetargetStage(robot, 30.0, limits.names)
+    buf = TargetBuffer(30.0)
+    tr = RecordTransport(limits.names, initial=limits.clip(np.zeros(limits.n)))
+    loop = ControlLoop(tr, limits, buf, LoopConfig(handle_signals=False, min_ramp=0.3, rest_after=30.0))
+    leader = make_leader(seconds, 30.0, seed=2)
+    pipe = PartnerPipeline(MotionReplaySource(leader), reactor, retarget, buf, loop.ready)
+    pipe.start()
+    summary = loop.run()
+    pipe.join(5)
+    cmds = np.asarray(tr.commands)
+    assert np.all(cmds >= limits.lower - 1e-9) and np.all(cmds <= limits.upper + 1e-9)
+    assert np.all(np.abs(np.diff(cmds, axis=0)) <= limits.max_velocity * 0.01 + 1e-9)
+    return summary, pipe, leader
+
+
+def test_generated_partner_streams_every_frame_to_the_transport(op3, tiny_checkpoint):
+    reactor = ReactorStage(30.0, tiny_checkpoint, StreamConfig(window=16, steps=2))
+    summary, pipe, leader = _run(op3, reactor)
+    assert summary.end_state == "STOPPED" and summary.reason == "the motion ended"
+    assert pipe.frames_in == leader.n_frames
+    assert pipe.frames_out == leader.n_frames - 1  # feature rows: one per consecutive frame pair
+    # every frame is played unless a late tick jumped over it (this machine is shared)
+    assert pipe.frames_out - summary.deadline_misses <= summary.frames_played <= pipe.frames_out
+
+
+def test_imitation_retargets_the_actor_itself(op3):
+    summary, pipe, leader = _run(op3, None)
+    assert summary.end_state == "STOPPED"
+    assert pipe.frames_out == pipe.frames_in == leader.n_frames
