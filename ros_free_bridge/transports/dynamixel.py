@@ -32,8 +32,12 @@ in ``finally`` on any failure, so it is never left "in use".
 
 Safety: torque is switched on only after Goal Position = Present Position; ``close``,
 errors and interpreter exit apply the stop policy ('hold': keep the present position
-with torque on; 'limp': torque off). Every failure is a :class:`BridgeError` naming the
-servo ID, its joint and what happened.
+with torque on; 'limp': torque off). For a crash no hook survives (SIGKILL, a hung
+process), the config's ``bus_watchdog_ms`` arms each servo's Bus Watchdog(98): a servo
+that hears nothing for that long stops where it is. The transport clears a tripped
+watchdog (0, goal = present, period again) when its status reads find one, and at
+``open``. Every failure is a :class:`BridgeError` naming the servo ID, its joint and
+what happened.
 """
 
 from __future__ import annotations
