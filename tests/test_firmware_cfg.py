@@ -161,3 +161,14 @@ def test_file_level_errors(tmp_path):
     bad.write_text("robot: x\nbuses: []\n")
     with pytest.raises(ConfigError, match=r"bad\.yaml: buses: required"):
         load_config(bad)
+
+
+def test_firmware_cfg_imports_nothing_of_ours_and_no_torch():
+    import subprocess
+    import sys
+
+    code = ("import sys, firmware_cfg.config, firmware_cfg.serial_link, firmware_cfg.servo_models\n"
+            "ours = [m for m in sys.modules if m.split('.')[0] in ('ros_free_bridge', 'sim', 'retarget', 'dualflow', 'torch')]\n"
+            "assert not ours, ours\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
