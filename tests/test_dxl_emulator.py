@@ -468,3 +468,26 @@ def test_changing_an_id_is_answered_from_the_old_id():
         ph.write1ByteTxRx(port, 2, LED, 1)
         assert [s.get("led") for s in emu.servos] == [1, 1]                  # and both obey
         assert emu.instruction_counts["PING"] == 3
+
+
+def test_broadcast_ping_and_clear():
+    with bus([1, 5, (9, "XL330-M288")]) as (emu, port, ph):
+        found, result = ph.broadcastPing(port)   # the SDK listens for its full window (~0.8 s)
+        assert result == sdk.COMM_SUCCESS
+        assert {i: model for i, (model, _fw) in found.items()} == {1: 1020, 5: 1020, 9: 1200}
+        assert ph.clearMultiTurn(port, 1) == (sdk.COMM_SUCCESS, 0)
+
+
+def test_protocol1_reg_write_action_and_status_return_level():
+    with bus([(1, "AX-12A"), (2, "AX-12A")], protocol=1) as (emu, port, ph):
+        assert ph.regWriteTxRx(port, 1, 25, 1, [1]) == (sdk.COMM_SUCCESS, 0)   # LED, registered
+        assert ph.read1ByteTxRx(port, 1, 44)[0] == 1                           # Registered
+        assert ph.read1ByteTxRx(port, 1, 25)[0] == 0
+        assert ph.action(port, dp.BROADCAST_ID) == sdk.COMM_SUCCESS
+        wait_until(lambda: ph.read1ByteTxRx(port, 1, 25)[0] == 1)
+        assert ph.write1ByteTxRx(port, 2, 16, 1)[0] == sdk.COMM_RX_TIMEOUT      # level 1: writes unanswered
+        assert ph.read1ByteTxRx(port, 2, 16) == (1, sdk.COMM_SUCCESS, 0)
+        port.writePort(dp.encode_instruction1(1, 0x77))                          # unknown instruction
+        port.setPacketTimeout(6)
+        rx, result = ph.rxPacket(port)
+        assert result == sdk.COMM_SUCCESS and rx[4] == sdk.ERRBIT_INSTRUCTION
