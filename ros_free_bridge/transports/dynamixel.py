@@ -282,16 +282,14 @@ class DynamixelBus:
         OS-level failures (the port vanished) become BridgeError. With ``malformed`` given,
         an exception inside the SDK's reply parsing (e.g. an IndexError on a truncated
         fast-sync-read reply) returns ``malformed`` instead, so it counts as a failed try."""
-        import serial
-
         if self.port is None:
             raise BridgeError(f"Dynamixel bus {self.port_name}: not open; call open() first")
         try:
             return fn(self.port, *args)
         except BridgeError:
             raise
-        except (IndexError, KeyError, ValueError) as exc:
-            if malformed is not None and not isinstance(exc, serial.SerialException):
+        except (IndexError, KeyError) as exc:
+            if malformed is not None:
                 return malformed
             raise BridgeError(f"Dynamixel bus {self.port_name}: malformed reply during {getattr(fn, '__name__', 'a call')} "
                               f"({type(exc).__name__}: {exc}); check for noise or a wrong baud rate") from None
@@ -660,6 +658,10 @@ class DynamixelTransport:
         for sid in self._ids:
             self._reader.addParam(sid)
         self._writer = sdk.GroupSyncWrite(self.bus.port, self.bus.ph, first.goal.address, first.goal.size)
+        reader, writer = self._reader, self._writer
+        self._fast_op = lambda port: reader.fastSyncRead()
+        self._sync_op = lambda port: reader.txRxPacket()
+        self._write_op = lambda port: writer.txPacket()
         # decide once whether the servos answer FAST_SYNC_READ (firmware >= v45 on X series)
         if self.bus.call(lambda port: self._reader.fastSyncRead(), malformed=sdk.COMM_RX_CORRUPT) != sdk.COMM_SUCCESS:
             if self.bus.call(lambda port: self._reader.txRxPacket(), malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
@@ -677,21 +679,20 @@ class DynamixelTransport:
             data = list(raw[k * size:(k + 1) * size])
             if not self._writer.changeParam(sid, data):
                 self._writer.addParam(sid, data)
-        result = self.bus.call(lambda port: self._writer.txPacket())
+        result = self.bus.call(self._write_op)
         if result != sdk.COMM_SUCCESS:
             raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus._comm(result)})")
 
     def _read_positions(self) -> None:
-        n = len(self.servos)
-        ticks = np.empty(n)
         if self._reader is None:
+            ticks = np.empty(len(self.servos))
             for i, sv in enumerate(self.servos):
                 value, error = self.bus.read(sv.cfg.id, sv.present)
                 ticks[i] = value
                 if self.bus.protocol == 1.0:
                     self._note_p1_error(i, error)
         else:
-            op = (lambda port: self._reader.fastSyncRead()) if self.stats.fast_sync_read else (lambda port: self._reader.txRxPacket())
+            op = self._fast_op if self.stats.fast_sync_read else self._sync_op
             result = sdk.COMM_TX_FAIL
             for attempt in range(self.bus.retries + 1):
                 result = self.bus.call(op, malformed=sdk.COMM_RX_CORRUPT)
