@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "render",
     "view",
     "retarget",
+    "run",
 )
 
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)

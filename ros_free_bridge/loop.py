@@ -138,6 +138,12 @@ class ControlLoop:
         self._degraded = False
         self._ramp_out: list[np.ndarray] = []
         self._last_used: int | None = None  # index of the last target frame played
+        self._clock: FixedRateClock | None = None
+
+    @property
+    def deadline_misses(self) -> int:
+        """Ticks skipped so far because the loop was more than a period late."""
+        return 0 if self._clock is None else self._clock.missed
 
     # -- external requests (thread-safe: they only set flags) --------------
     def estop(self, reason: str = "e-stop") -> None:
@@ -166,8 +172,8 @@ class ControlLoop:
             finally:
                 atexit.unregister(self._atexit)
                 restore()
-                self.summary.deadline_misses = self._clock.missed if hasattr(self, "_clock") else 0
-                self.summary.late_ticks = self._clock.late if hasattr(self, "_clock") else 0
+                self.summary.deadline_misses = self.deadline_misses
+                self.summary.late_ticks = 0 if self._clock is None else self._clock.late
                 self.summary.end_state = self.state.name
                 self.summary.faults = int(self._faults)
                 if self.telemetry is not None:

@@ -134,11 +134,13 @@ class PartnerPipeline:
 
     ``start_event``: wait for it (the loop's ``ready``) before starting the actor clock;
     actor frames that arrive earlier (a live stream) are discarded. ``reactor`` None makes
-    the robot retarget the actor itself (imitation).
+    the robot retarget the actor itself (imitation). ``record``: keep every actor frame and
+    every partner pose given to the retargeter (``actor_positions``, ``partner_positions``,
+    lists of (22, 3) arrays) for videos and reports.
     """
 
     def __init__(self, source, reactor: ReactorStage | None, retarget: RetargetStage, buffer: TargetBuffer,
-                 start_event: threading.Event | None = None):
+                 start_event: threading.Event | None = None, record: bool = False):
         self.source = source
         self.reactor = reactor
         self.retarget = retarget
@@ -148,6 +150,9 @@ class PartnerPipeline:
         self._thread = threading.Thread(target=self._run, name="partner-pipeline", daemon=True)
         self.frames_in = 0
         self.frames_out = 0
+        self.record = record
+        self.actor_positions: list[np.ndarray] = []
+        self.partner_positions: list[np.ndarray] = []
 
     def start(self) -> None:
         # Short GIL slices so that the control-loop thread wakes on time while torch,
@@ -174,6 +179,8 @@ class PartnerPipeline:
                 frames = self.source.poll()
                 for f in frames:
                     self.frames_in += 1
+                    if self.record:
+                        self.actor_positions.append(f.positions)
                     last_arrival, last_index = f.arrival, f.index
                     if self.reactor is None:
                         self._emit(f.positions, None, f.arrival, f.index, 0.0)
@@ -193,6 +200,8 @@ class PartnerPipeline:
         self.buffer.close()
 
     def _emit(self, positions, contacts, arrival, actor_index, gen_latency) -> None:
+        if self.record:
+            self.partner_positions.append(np.asarray(positions))
         t0 = time.perf_counter()
         q = self.retarget.step(positions, contacts)
         rt = time.perf_counter() - t0

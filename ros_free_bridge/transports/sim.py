@@ -55,10 +55,10 @@ class SimTransport:
     def close(self) -> None:
         self.robot.close()
 
-    def recorded_trajectory(self) -> RobotTrajectory:
-        """The simulated robot's measured motion, one frame per command written."""
+    def recorded_trajectory(self) -> RobotTrajectory | None:
+        """The simulated robot's measured motion, one frame per command written (None if none)."""
         if not self._q:
-            raise ValueError("nothing was recorded: the transport received no commands")
+            return None
         return RobotTrajectory(self.joint_names, np.asarray(self._q), np.asarray(self._root_pos),
                                np.asarray(self._root_quat), self.control_hz, self.robot.config.robot,
                                {"source": "virtual robot, measured"})

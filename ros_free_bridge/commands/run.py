@@ -1,0 +1,149 @@
+"""``dualflow-bridge run``: a person moves, the robot partner answers, live.
+
+    dualflow-bridge run --robot op3 --actor synthetic --transport sim
+    dualflow-bridge run --actor udp://127.0.0.1:9870 --transport dynamixel --port /dev/ttyUSB0
+    dualflow-bridge run --actor dance.bvh --transport dynamixel --emulate   # no hardware
+
+Stop with Ctrl-C (or SIGTERM): an e-stop that applies the e-stop policy at once. On a
+terminal, q or the space bar does the same.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from pathlib import Path
+
+from ros_free_bridge.session import PARTNERS, TRANSPORTS
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="stream a robot partner from a live or recorded actor",
+                       description=__doc__.split("\n\n")[0])
+    p.add_argument("--robot", default="op3", help="bundled robot name or a hardware config .yaml (default: op3)")
+    p.add_argument("--actor", default="synthetic",
+                   help="motion file (BVH, npz, InterGen npy), udp://127.0.0.1:PORT (live), or 'synthetic' (default)")
+    p.add_argument("--seconds", type=float, default=10.0, help="length of the synthetic actor (default 10 s)")
+    p.add_argument("--seed", type=int, default=0, help="synthetic actor seed")
+    p.add_argument("--partner", choices=PARTNERS, default="dualflow",
+                   help="dualflow: generate the partner (default); imitate: the robot copies the actor")
+    p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
+    p.add_argument("--steps", type=int, default=10, help="ODE steps per generated window (default 10)")
+    p.add_argument("--transport", choices=TRANSPORTS, default="sim", help="where commands go (default: sim)")
+    p.add_argument("--port", help="serial port, overriding the hardware config's (e.g. /dev/ttyUSB0)")
+    p.add_argument("--emulate", action="store_true", help="dynamixel/serial: use the byte-level bus emulator, no hardware")
+    p.add_argument("--rate", type=float, default=100.0, help="control rate in Hz (default 100)")
+    p.add_argument("--max-duration", type=float, help="stop after this many seconds of streaming")
+    p.add_argument("--stop-policy", choices=("hold", "limp"), help="after the stop ramp (default: the hardware config's)")
+    p.add_argument("--estop-policy", choices=("hold", "limp"), default="limp", help="on e-stop and errors (default: limp)")
+    p.add_argument("--sim-clock", choices=("realtime", "lockstep"), default="realtime",
+                   help="sim transports: physics paced by the wall clock (default) or one control period per command")
+    p.add_argument("-o", "--out", default="runs/latest", help="output folder (telemetry, motions; default runs/latest)")
+    p.add_argument("--video", help="sim transports: render the run to this .mp4 afterwards")
+    p.add_argument("--quiet", action="store_true", help="no live status line")
+    p.set_defaults(func=run)
+
+
+class StatusLine:
+    """A one-line live status on stderr: state, rate, latency, interventions, faults."""
+
+    def __init__(self, stream=sys.stderr, every_s: float = 0.5):
+        self.stream = stream
+        self.every_s = every_s
+        self._last = 0.0
+        self._ticks0 = 0
+
+    def __call__(self, loop, tick, faults) -> None:
+        now = time.monotonic()
+        if now - self._last < self.every_s:
+            return
+        rate = (loop.summary.ticks - self._ticks0) / (now - self._last) if self._last else 0.0
+        self._last, self._ticks0 = now, loop.summary.ticks
+        lat = loop.summary.e2e_latency[-1] * 1e3 if loop.summary.e2e_latency else float("nan")
+        self.stream.write(
+            f"\r{loop.state.name:<8} {rate:6.1f} Hz  frame {loop.summary.frames_played:5d}  latency {lat:6.1f} ms  "
+            f"interventions {loop.summary.interventions:5d}  misses {loop.deadline_misses:3d}  "
+            f"faults {int(faults):#06x} "
+        )
+        self.stream.flush()
+
+
+def watch_keys(loop) -> None:
+    """On a terminal, q or space triggers the e-stop (a daemon thread; the terminal mode is restored)."""
+    if not sys.stdin.isatty():
+        return
+    import termios
+    import tty
+
+    fd = sys.stdin.fileno()
+    old = termios.tcgetattr(fd)
+
+    def reader():
+        try:
+            tty.setcbreak(fd)
+            while True:
+                ch = sys.stdin.read(1)
+                if ch in ("q", " ", "\x1b"):
+                    loop.estop(f"key {ch!r}")
+                    return
+        finally:
+            termios.tcsetattr(fd, termios.TCSADRAIN, old)
+
+    threading.Thread(target=reader, daemon=True).start()
+    import atexit
+
+    atexit.register(termios.tcsetattr, fd, termios.TCSADRAIN, old)
+
+
+def print_summary(result, stream=sys.stdout) -> None:
+    s = result.summary
+    lat = s.latency_percentiles()
+    lines = [
+        f"robot {result.files.name}: {s.end_state} ({s.reason})",
+        f"ticks {s.ticks}, deadline misses {s.deadline_misses}, late ticks {s.late_ticks}",
+        f"partner frames played {s.frames_played}",
+        "end-to-end latency " + (f"p50 {lat['p50'] * 1e3:.0f} ms, p99 {lat['p99'] * 1e3:.0f} ms" if lat else "n/a"),
+        f"safety interventions on {s.interventions} ticks, faults {s.faults:#06x}",
+    ]
+    for k, v in result.transport_info.items():
+        lines.append(f"{k}: {v}")
+    lines.append(f"outputs in {result.out}")
+    stream.write("\n".join(lines) + "\n")
+
+
+def run(args) -> int:
+    from ros_free_bridge.session import SessionOptions, run_session
+
+    opts = SessionOptions(
+        robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
+        model=args.model, steps=args.steps, transport=args.transport, port=args.port, emulate=args.emulate,
+        rate_hz=args.rate, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
+        max_duration=args.max_duration, sim_clock=args.sim_clock,
+    )
+    status = None if args.quiet else StatusLine()
+
+    def ready(loop, described):
+        print(f"actor: {described}", file=sys.stderr)
+        watch_keys(loop)
+
+    result = run_session(opts, on_status=status, on_ready=ready)
+    if status is not None:
+        sys.stderr.write("\n")
+    if args.video:
+        render_video(result, Path(args.video))
+    print_summary(result)
+    return 0 if result.summary.end_state == "STOPPED" else 1
+
+
+def render_video(result, path: Path) -> Path:
+    """Actor, generated partner and robot side by side, from the run's recorded motions."""
+    from ros_free_bridge.errors import BridgeError
+    from sim.render import RenderConfig, render_trajectory
+
+    if result.robot_motion is None:
+        raise BridgeError("--video needs a sim transport (sim or sim+dynamixel): only the virtual robot can be filmed")
+    out, _ = render_trajectory(result.robot_motion, path, RenderConfig(playback="kinematic", side_by_side=True),
+                               robot=result.files.name, actor=result.actor, reactor=result.partner)
+    print(f"video: {out}", file=sys.stderr)
+    return out

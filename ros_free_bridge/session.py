@@ -1,0 +1,225 @@
+"""One bridge session, assembled from options: robot, actor source, partner, transport,
+telemetry. The ``run`` and ``demo`` commands are thin layers over :func:`run_session`.
+
+Transports (``SessionOptions.transport``):
+
+- ``sim``: the MuJoCo virtual robot (physics in real time, or lock-step with ``sim_clock``);
+- ``record``: dry run, commands kept and saved, nothing moves;
+- ``dynamixel``: the robot's Dynamixel bus from its hardware config (``port`` overrides the
+  config's; ``emulate`` starts the byte-level bus emulator instead of opening hardware);
+- ``serial``: the robot's serial-link microcontroller bus (``emulate``: the board emulator);
+- ``sim+dynamixel``: both at once, the virtual robot as the primary (the demo).
+
+Outputs in ``out``: ``telemetry.dftl`` (+ ``.events.jsonl``), ``actor.npz`` and
+``partner.npz`` (the human motions, our npz format), ``robot.npz`` (the simulated robot's
+measured motion, sim transports) and ``commands.npz`` (record transport).
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.loop import ControlLoop, LoopConfig, RunSummary
+from ros_free_bridge.robots import RobotFiles, bridge_limits, resolve_robot
+from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.telemetry import TelemetryWriter
+
+TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
+PARTNERS = ("dualflow", "imitate")
+MOTION_FPS = 30.0
+
+
+@dataclass
+class SessionOptions:
+    robot: str = "op3"
+    actor: str = "synthetic"  #: a motion file, udp://HOST:PORT, or "synthetic"
+    seconds: float = 10.0  #: length of the synthetic actor
+    seed: int = 0
+    partner: str = "dualflow"
+    model: str | None = None  #: checkpoint directory (None: the bundled one)
+    steps: int = 10  #: ODE steps per streamed window
+    transport: str = "sim"
+    port: str | None = None
+    emulate: bool = False
+    rate_hz: float = 100.0
+    out: Path = Path("runs/latest")
+    stop_policy: str | None = None  #: None: the hardware config's
+    estop_policy: str = "limp"
+    max_duration: float | None = None
+    sim_clock: str = "realtime"
+    handle_signals: bool = True
+    conditions: object = None  #: dualflow.model.Conditions for the generator (text, music), or None
+
+
+@dataclass
+class SessionResult:
+    summary: RunSummary
+    out: Path
+    files: RobotFiles
+    actor: object = None  #: dualflow.motion.Motion of the actor frames received
+    partner: object = None  #: Motion of the partner poses sent to the retargeter
+    robot_motion: object = None  #: RobotTrajectory measured on the virtual robot (sim transports)
+    transport_info: dict = field(default_factory=dict)
+
+
+def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None):
+    """(source, description) for a file path, ``udp://HOST:PORT`` or ``synthetic``."""
+    from ros_free_bridge.sources.replay import MotionReplaySource
+
+    if spec == "synthetic":
+        from dualflow.synthetic import make_leader
+
+        return MotionReplaySource(make_leader(seconds, MOTION_FPS, seed)), f"synthetic leader ({seconds:g} s, seed {seed})"
+    if spec.startswith("udp://"):
+        from ros_free_bridge.sources.udp import UdpActorSource
+
+        host, _, port = spec[len("udp://"):].rpartition(":")
+        if not host or not port.isdigit():
+            raise BridgeError(f"actor {spec!r}: write a UDP source as udp://127.0.0.1:PORT")
+        src = UdpActorSource(host, int(port), on_estop=on_estop)
+        return src, f"UDP actor stream on {host}:{src.address[1]}"
+    from dualflow.motion import TwoPersonMotion
+    from dualflow.motion.io import load_any
+
+    if not Path(spec).exists():
+        raise BridgeError(f"actor {spec!r}: no such file; give a motion file, udp://127.0.0.1:PORT or 'synthetic'")
+    motion = load_any(spec)
+    if isinstance(motion, TwoPersonMotion):
+        motion = motion.actor
+    return MotionReplaySource(motion.resample(MOTION_FPS)), f"{spec} ({motion.n_frames} frames at {motion.fps:g} fps)"
+
+
+def _open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, rest, stack: ExitStack):
+    kind = opts.transport
+    info: dict = {"transport": kind}
+    stop_policy = opts.stop_policy or hardware.stop_policy
+    if kind not in TRANSPORTS:
+        raise BridgeError(f"transport {kind!r}: choose one of {', '.join(TRANSPORTS)}")
+
+    def sim():
+        from ros_free_bridge.transports.sim import SimTransport
+
+        t = SimTransport(files.name, control_hz=opts.rate_hz, clock=opts.sim_clock)
+        if tuple(t.joint_names) != tuple(names):
+            raise BridgeError(f"robot {files.name}: the MJCF's joint order {t.joint_names} differs from the hardware "
+                              f"config's {names}; list the servos in the MJCF's actuator order")
+        return t
+
+    def dynamixel():
+        from ros_free_bridge.transports.dynamixel import DynamixelTransport
+
+        bus = next((b for b in hardware.buses if b.protocol in ("1.0", "2.0")), None)
+        if bus is None:
+            raise BridgeError(f"{files.hardware}: no Dynamixel bus (protocol 1.0 or 2.0) in the hardware config")
+        port = opts.port
+        if opts.emulate:
+            from ros_free_bridge.commands.servo import start_emulator
+
+            emu = start_emulator(bus, provisioned=True)
+            stack.callback(emu.stop)
+            port = emu.port_path
+            info["emulator"] = emu
+        return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy)
+
+    def serial():
+        from ros_free_bridge.transports.serial_link import SerialLinkTransport
+
+        bus = next((b for b in hardware.buses if b.protocol == "serial-link"), None)
+        if bus is None:
+            raise BridgeError(f"{files.hardware}: no serial-link bus in the hardware config; add one with protocol: serial-link")
+        port = opts.port
+        if opts.emulate:
+            from ros_free_bridge.emulators.serial_mcu import SerialMcuEmulator
+
+            emu = SerialMcuEmulator(n_channels=len(bus.servos)).start()
+            stack.callback(emu.stop)
+            port = emu.port
+            info["emulator"] = emu
+        return SerialLinkTransport(bus, port=port, joint_names=names, stop_policy=stop_policy)
+
+    if kind == "sim":
+        return sim(), info
+    if kind == "record":
+        from ros_free_bridge.transports.record import RecordTransport
+
+        return RecordTransport(names, initial=rest), info
+    if kind == "dynamixel":
+        return dynamixel(), info
+    if kind == "serial":
+        return serial(), info
+    from ros_free_bridge.transports.tee import TeeTransport
+
+    return TeeTransport(sim(), dynamixel()), info
+
+
+def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionResult:
+    """Build everything, run the control loop until the motion ends or a stop, save outputs."""
+    from dualflow.motion import Motion
+    from retarget.robot import load_robot
+    from ros_free_bridge.stages import PartnerPipeline, ReactorStage, RetargetStage
+
+    if opts.partner not in PARTNERS:
+        raise BridgeError(f"partner {opts.partner!r}: choose one of {', '.join(PARTNERS)}")
+    files = resolve_robot(opts.robot)
+    hardware = files.hardware_config()
+    limits = bridge_limits(hardware)
+    names = limits.names
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    robot = load_robot(files.mjcf, files.profile)
+    retarget = RetargetStage(robot, MOTION_FPS, names)
+    stand = np.asarray(robot.x_stand)[robot.n_root:]
+    rest = limits.clip(stand[[robot.joint_names.index(n) for n in names]])
+    reactor = None
+    if opts.partner == "dualflow":
+        from dualflow.streaming import StreamConfig
+
+        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(steps=opts.steps), opts.conditions)
+    config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
+                        estop_policy=opts.estop_policy, max_duration=opts.max_duration,
+                        handle_signals=opts.handle_signals)
+    buffer = TargetBuffer(MOTION_FPS)
+    with ExitStack() as stack:
+        transport, info = _open_transport(opts, files, hardware, names, rest, stack)
+        telemetry = TelemetryWriter(out / "telemetry.dftl", names, opts.rate_hz,
+                                    meta={"robot": files.name, "actor": opts.actor, "partner": opts.partner,
+                                          "transport": opts.transport, "model": str(opts.model or "bundled")})
+        loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
+        source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop)
+        stack.callback(source.close)
+        telemetry.event("session", actor=described, delay_frames=None if reactor is None else reactor.delay_frames)
+        pipeline = PartnerPipeline(source, reactor, retarget, buffer, loop.ready, record=True)
+        pipeline.start()
+        stack.callback(pipeline.stop)
+        if on_ready is not None:
+            on_ready(loop, described)
+        summary = loop.run()
+        pipeline.stop()
+        pipeline.join(2.0)
+    result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
+    from dualflow.motion.io import save_motion
+
+    if pipeline.actor_positions:
+        result.actor = Motion(np.asarray(pipeline.actor_positions), MOTION_FPS, name="actor")
+        save_motion(result.actor, out / "actor.npz")
+    if pipeline.partner_positions:
+        result.partner = Motion(np.asarray(pipeline.partner_positions), MOTION_FPS, name="partner")
+        save_motion(result.partner, out / "partner.npz")
+    sim_transport = transport.transports[0] if hasattr(transport, "transports") else transport
+    if hasattr(sim_transport, "recorded_trajectory"):
+        result.robot_motion = sim_transport.recorded_trajectory()
+        if result.robot_motion is not None:
+            result.robot_motion.save_npz(out / "robot.npz")
+    if hasattr(transport, "save"):
+        transport.save(out / "commands.npz")
+    emu = info.get("emulator")
+    if emu is not None and hasattr(emu, "violations"):
+        result.transport_info["bus_violations"] = len(emu.violations)
+        result.transport_info["bus_goal_writes"] = sum(len(v) for v in emu.goal_history.values())
+    return result

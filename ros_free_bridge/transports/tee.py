@@ -1,0 +1,61 @@
+"""Drive several transports with the same commands (e.g. the virtual robot and a bus).
+
+The first transport is the primary: its readings are what the control loop sees. Every
+other one receives the same goals, torque switches and stops. Stopping and closing reach
+every transport even if one of them fails; the first failure is raised afterwards.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.transports.base import JointState
+
+
+class TeeTransport:
+    def __init__(self, primary, *others):
+        self.transports = (primary, *others)
+        for t in others:
+            if tuple(t.joint_names) != tuple(primary.joint_names):
+                raise BridgeError(f"tee transport: {type(t).__name__} has joints {t.joint_names}, the primary "
+                                  f"{primary.joint_names}; both must use the robot's joint order")
+        self.joint_names = tuple(primary.joint_names)
+
+    def open(self) -> None:
+        for t in self.transports:
+            t.open()
+
+    def read_state(self) -> JointState:
+        """The primary's reading, with every transport's servo errors and the hottest
+        temperature per joint merged in, so health checks see all of them."""
+        state = self.transports[0].read_state()
+        for t in self.transports[1:]:
+            other = t.read_state()
+            state.errors.update({j: f"{e} ({type(t).__name__})" for j, e in other.errors.items()})
+            state.temperature = np.fmax(state.temperature, other.temperature)
+        return state
+
+    def write_goal(self, positions) -> None:
+        for t in self.transports:
+            t.write_goal(positions)
+
+    def set_torque(self, enabled: bool) -> None:
+        for t in self.transports:
+            t.set_torque(enabled)
+
+    def safe_stop(self, policy: str = "hold") -> None:
+        self._all("safe_stop", policy)
+
+    def close(self) -> None:
+        self._all("close")
+
+    def _all(self, method: str, *args) -> None:
+        first = None
+        for t in self.transports:
+            try:
+                getattr(t, method)(*args)
+            except Exception as exc:  # noqa: BLE001 - reach every transport, then report
+                first = first or exc
+        if first is not None:
+            raise first
