@@ -13,6 +13,9 @@ Feature sets (``kind``)
                                                    onset peaks (one-hot) 1 | beats (one-hot) 1
 ``"duolando54"`` (Duolando/Bailando)         54 = MFCC 20 | ΔMFCC 20 | chroma (CQT) 12 |
                                                    onset envelope 1 | beats (one-hot) 1
+``"beats4"``                                 4 = the synthetic duets' beat track (beat impulse, sin/cos of
+                                                   the beat phase, downbeat) on the tracked beats, so a model
+                                                   trained with ``music: beats`` can hear a real song
 ``"jukebox"``                                4800, precomputed Jukebox activations read from
                                                    .npy files (:func:`load_jukebox`); never computed here.
 
@@ -33,8 +36,8 @@ import numpy as np
 from dualflow.errors import DualFlowError
 
 HOP = 512
-MUSIC_KINDS = ("edge35", "duolando54", "jukebox")
-MUSIC_DIMS = {"edge35": 35, "duolando54": 54, "jukebox": 4800}
+MUSIC_KINDS = ("edge35", "duolando54", "jukebox", "beats4")
+MUSIC_DIMS = {"edge35": 35, "duolando54": 54, "jukebox": 4800, "beats4": 4}
 EDGE35_LAYOUT = {"envelope": slice(0, 1), "mfcc": slice(1, 21), "chroma": slice(21, 33),
                  "peaks": slice(33, 34), "beats": slice(34, 35)}
 DUOLANDO54_LAYOUT = {"mfcc": slice(0, 20), "mfcc_delta": slice(20, 40), "chroma": slice(40, 52),
@@ -152,10 +155,30 @@ def analyse_waveform(y: np.ndarray, sr: int, kind: str = "edge35", fps: float = 
 def analyse_music(path: str | Path, kind: str = "edge35", fps: float = 30.0, n_frames: int | None = None,
                   offset_s: float = 0.0, duration_s: float | None = None) -> MusicAnalysis:
     """Load ``path`` and analyse it (see :func:`analyse_waveform`); the one entry point for audio."""
-    if kind not in MUSIC_KINDS:
-        raise DualFlowError(f"unknown music kind {kind!r}; choose one of {', '.join(MUSIC_KINDS)}")
+    if kind not in ("edge35", "duolando54"):
+        raise DualFlowError(f"music kind {kind!r} is not an audio analysis; choose 'edge35' or 'duolando54' "
+                            f"(all kinds: {', '.join(MUSIC_KINDS)}, see music_features)")
     sr = analysis_rate(fps)
     return analyse_waveform(load_audio(path, sr, offset_s, duration_s), sr, kind, fps, n_frames)
+
+
+def beat_track_features(beat_times_s: np.ndarray, n_frames: int, fps: float = 30.0) -> np.ndarray:
+    """The synthetic duets' (T, 4) beat track for tracked beats (see dualflow.synthetic.beat_features).
+
+    The tracked beats are replaced by a regular grid t_j = b_0 + j·P, P = median beat interval,
+    extended over the whole clip (the synthetic music is strictly periodic, so is the track the
+    model learnt); the downbeat is every 4th grid beat. Needs at least 2 beats.
+    """
+    from dualflow.synthetic import beat_features
+
+    b = np.asarray(beat_times_s, dtype=np.float64)
+    if b.size < 2:
+        raise DualFlowError(f"beat track: need at least 2 beats to know the tempo, found {b.size}; use longer music")
+    period = float(np.median(np.diff(b)))
+    first = b[0] - period * np.ceil(b[0] / period)  # the grid's first beat at or before t = 0
+    grid = first + period * np.arange(int(np.ceil((n_frames / fps - first) / period)) + 2)
+    feats, _ = beat_features(np.arange(int(n_frames)) / float(fps), grid, float(fps))
+    return feats.astype(np.float32)
 
 
 def music_features(path: str | Path, kind: str = "edge35", fps: float = 30.0, n_frames: int | None = None,
@@ -163,6 +186,9 @@ def music_features(path: str | Path, kind: str = "edge35", fps: float = 30.0, n_
     """(T, D) float32 per-motion-frame features of an audio file (``.npy`` → Jukebox features)."""
     if kind == "jukebox" or str(path).endswith(".npy"):
         return load_jukebox(path, n_frames)
+    if kind == "beats4":
+        a = analyse_music(path, "edge35", fps, None, **kw)
+        return beat_track_features(a.beat_times, n_frames or a.features.shape[0], fps)
     return analyse_music(path, kind, fps, n_frames, **kw).features
 
 

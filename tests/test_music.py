@@ -15,6 +15,7 @@ from dualflow.music import (
     analyse_music,
     analyse_waveform,
     analysis_rate,
+    beat_track_features,
     beat_times,
     load_jukebox,
     music_features,
@@ -133,9 +134,22 @@ def test_bad_audio_gives_one_clear_error(tmp_path):
     junk.write_bytes(b"this is not audio" * 100)
     with pytest.raises(DualFlowError, match="junk.ogg"):
         analyse_music(junk)
-    with pytest.raises(DualFlowError, match="unknown music kind"):
+    with pytest.raises(DualFlowError, match="not an audio analysis"):
         analyse_music(junk, kind="mel128")
     with pytest.raises(DualFlowError, match="Hz"):
         analyse_waveform(np.zeros(50000, np.float32), 22050, "edge35", FPS)
     with pytest.raises(DualFlowError, match="fps"):
         analysis_rate(0)
+
+
+def test_beat_track_in_the_synthetic_format(click_edge):
+    f = beat_track_features(click_edge.beat_times, 300, FPS)
+    assert f.shape == (300, 4) and f.dtype == np.float32
+    impulses = np.flatnonzero(f[:, 0])
+    assert np.all(np.abs(np.diff(impulses) - 15) <= 1)  # 120 bpm at 30 fps
+    assert _match_error(impulses / FPS, BEATS_S[BEATS_S < 9.9]).max() < 1.5 / FPS
+    np.testing.assert_allclose(f[impulses, 2], 1.0, atol=0.03)  # phase 0 on a beat
+    np.testing.assert_allclose(f[:, 1] ** 2 + f[:, 2] ** 2, 1.0, atol=1e-5)
+    assert abs(len(np.flatnonzero(f[:, 3])) - len(impulses) / 4) <= 1  # bars of 4
+    with pytest.raises(DualFlowError, match="at least 2 beats"):
+        beat_track_features(np.array([1.0]), 10)
