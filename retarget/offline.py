@@ -161,15 +161,17 @@ class OfflineRetargeter:
         return entry
 
     # -- solving ---------------------------------------------------------------------
-    def retarget(self, motion: Motion, contacts=None) -> RobotTrajectory:
-        """Retarget a clip; raises RetargetError if it is infeasible at its speed (see ``retime``)."""
+    def retarget(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
+        """Retarget a clip; raises RetargetError if it is infeasible at its speed (see ``retime``).
+        ``contacts`` (T, 4) or (T, 2) bool overrides the motion's; ``scaler`` a KeypointScaler
+        (default: fitted on this clip's own bone lengths)."""
         check_motion(motion, min_frames=2)
         cfg = self.config
         factors = [cfg.retime] + ([cfg.retime * f for f in (1.25, 1.5, 2.0)] if cfg.auto_retime else [])
         last = None
         for factor in factors:
             try:
-                return self._retarget_at(motion, contacts, factor)
+                return self._retarget_at(motion, contacts, factor, scaler)
             except _Infeasible as exc:
                 last = exc
         msg = (f"{motion.name or 'motion'}: infeasible at {'its speed' if factors[-1] == 1.0 else f'{factors[-1]:g}x slower'}: "
@@ -177,14 +179,14 @@ class OfflineRetargeter:
                "(auto_retime=True, CLI --auto-retime)")
         raise RetargetError(msg)
 
-    def _retarget_at(self, motion: Motion, contacts, factor: float) -> RobotTrajectory:
+    def _retarget_at(self, motion: Motion, contacts, factor: float, scaler=None) -> RobotTrajectory:
         fps = motion.fps
         if factor != 1.0:
             if contacts is not None:
                 contacts = None  # re-detected on the slowed clip
             slowed = Motion(motion.positions, fps=fps / factor, contacts=motion.contacts, name=motion.name)
             motion = slowed.resample(fps)
-        tg = make_targets(self.robot, motion, contacts)
+        tg = make_targets(self.robot, motion, contacts, scaler)
         t0 = time.perf_counter()
         stream = StreamingRetargeter(self.robot, fps, self.streaming_config)
         X0 = np.stack([stream.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
@@ -278,6 +280,7 @@ class _Infeasible(Exception):
     pass
 
 
-def retarget_offline(robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None) -> RobotTrajectory:
+def retarget_offline(robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None,
+                     scaler=None) -> RobotTrajectory:
     """One-call convenience: ``OfflineRetargeter(robot, config).retarget(motion)``."""
-    return OfflineRetargeter(robot, config).retarget(motion, contacts)
+    return OfflineRetargeter(robot, config).retarget(motion, contacts, scaler)

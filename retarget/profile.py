@@ -13,6 +13,9 @@ A profile says, in robot-independent terms:
   ``from``/``to`` (3,) m + ``radius`` m) and the pairs that must stay apart;
 - ``feet``: ``left``/``right`` foot ``body`` and either its sole ``geom`` (a box: the
   face lowest in the stand pose is the sole) or four sole ``corners`` (body frame, m);
+- ``rigid_offsets``: keypoints (default: hips and shoulders) placed at the robot's own rest
+  offset from their parent, turned by the human's pelvis or chest frame, instead of along the
+  scaled human bone (these short bones point differently on a person and on most robots);
 - ``posture_weight``: pull towards the ``stand_keyframe`` pose, which also seeds the solvers.
 
 Only positions are tracked, so no rotation offsets between human and robot frames
@@ -81,6 +84,7 @@ class RetargetProfile:
     feet: dict = field(default_factory=dict)
     posture_weight: float = 0.02
     stand_keyframe: str = "stand"
+    rigid_offsets: tuple = ("left_hip", "right_hip", "left_shoulder", "right_shoulder")
     source: str = ""
 
     # -- loading ----------------------------------------------------------------
@@ -100,7 +104,7 @@ class RetargetProfile:
         if not isinstance(data, dict):
             raise RetargetError(f"{source}: the profile must be a YAML mapping with keys robot, keypoints, feet, ...")
         known = {"robot", "root", "keypoints", "scale", "joint_limits", "velocity_limits", "capsules",
-                 "collision_pairs", "collision_margin", "feet", "posture_weight", "stand_keyframe"}
+                 "collision_pairs", "collision_margin", "feet", "posture_weight", "stand_keyframe", "rigid_offsets"}
         unknown = sorted(set(data) - known)
         if unknown:
             raise RetargetError(f"{source}: unknown field(s) {unknown}; known fields are {sorted(known)}")
@@ -197,8 +201,15 @@ class RetargetProfile:
                     corners = tuple(map(tuple, c))
                 feet[side] = FootSpec(side, str(spec["body"]), spec.get("geom"), corners)
 
+        rigid = data.get("rigid_offsets", ["left_hip", "right_hip", "left_shoulder", "right_shoulder"]) or []
+        allowed = ("left_hip", "right_hip", "left_shoulder", "right_shoulder")
+        for name in rigid:
+            if name not in allowed:
+                raise RetargetError(f"{where('rigid_offsets')}: {name!r} is not one of {', '.join(allowed)}")
+        rigid = tuple(n for n in rigid if n in kps)
+
         return cls(
-            robot=str(data.get("robot", "")), keypoints=tuple(keypoints), root_joint=root,
+            robot=str(data.get("robot", "")), rigid_offsets=rigid, keypoints=tuple(keypoints), root_joint=root,
             scale_overrides=overrides, root_scale=root_scale, joint_limits=joint_limits,
             velocity_default=vdefault, velocity_limits=vlimits, capsules=caps, collision_pairs=tuple(pairs),
             collision_margin=float(data.get("collision_margin", 0.005)), feet=feet,

@@ -258,12 +258,13 @@ class StreamingRetargeter:
         self._x1 = x
         return x
 
-    def run(self, motion: Motion, contacts=None) -> RobotTrajectory:
-        """Retarget a whole clip frame by frame (as the live bridge would)."""
+    def run(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
+        """Retarget a whole clip frame by frame (as the live bridge would). ``scaler``: a
+        :class:`retarget.targets.KeypointScaler` (default: fitted on this clip)."""
         check_motion(motion, min_frames=2)
         if abs(motion.fps - self.fps) > 1e-9:
             raise RetargetError(f"{motion.name or 'motion'}: is {motion.fps:g} fps but this retargeter runs at {self.fps:g}; resample the motion")
-        tg = make_targets(self.robot, motion, contacts)
+        tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()
         X = np.stack([self.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
         return trajectory_from_x(self.robot, X, motion.fps, {"mode": "streaming", "source": motion.name,

@@ -160,7 +160,8 @@ class KeypointScaler:
             p = rb.keypoint_parent[k]
             if p < 0:
                 continue
-            frame_of = _FRAME_BONES.get(rb.keypoint_names[k])
+            name = rb.keypoint_names[k]
+            frame_of = _FRAME_BONES.get(name) if name in rb.profile.rigid_offsets else None
             if frame_of is not None:
                 if frame_of not in frames:
                     frames[frame_of] = _body_frame(np.asarray(positions, dtype=np.float64), frame_of)
@@ -175,9 +176,10 @@ class KeypointScaler:
         return out
 
 
-#: Short bones across the pelvis and the chest whose direction differs between skeletons
-#: (human hips sit lower and wider than most robots'): their targets are the robot's own
-#: rest offset turned by the human's pelvis / chest frame instead of the scaled human bone.
+#: The frame each ``rigid_offsets`` keypoint of a profile turns with. These short bones across
+#: the pelvis and the chest point differently on a person and on most robots (human hips sit
+#: lower and wider), so their targets are the robot's own rest offset turned by the human's
+#: pelvis / chest frame instead of the scaled human bone.
 _FRAME_BONES = {"left_hip": "pelvis", "right_hip": "pelvis", "left_shoulder": "chest", "right_shoulder": "chest"}
 
 
@@ -265,7 +267,7 @@ def human_from_keypoints(robot, keypoints: np.ndarray, fps: float, name: str = "
         j, p = robot.human_index[k], robot.keypoint_parent[k]
         if p < 0:
             h[:, j] = kp[:, k] / sc.root_scale
-        elif robot.keypoint_names[k] in _FRAME_BONES:
+        elif robot.keypoint_names[k] in robot.profile.rigid_offsets:
             h[:, j] = h[:, robot.human_index[p]] + (kp[:, k] - kp[:, p]) * (
                 np.linalg.norm(REST_POSE[j] - REST_POSE[robot.human_index[p]]) / max(robot.bone_lengths[k], 1e-9))
         else:
