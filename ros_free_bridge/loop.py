@@ -136,7 +136,8 @@ class ControlLoop:
         self._active = False
         self._faults = Fault.NONE
         self._degraded = False
-        self._ramp_out: list[np.ndarray] = []
+        self._ramp_out: list[np.ndarray] | None = None  # the stop ramp, built when the stop begins
+        self._settle_ticks = 0
         self._last_used: int | None = None  # index of the last target frame played
         self._clock: FixedRateClock | None = None
 
@@ -184,6 +185,7 @@ class ControlLoop:
 
     def _main(self) -> None:
         cfg = self.config
+        self._adopt_transport_limits()
         present = self._read().position
         if not np.all(np.isfinite(present)):
             raise BridgeError(f"start: could not read every joint's present position ({present}); check the bus")
@@ -277,13 +279,22 @@ class ControlLoop:
                         if not np.all(np.isfinite(target)):
                             faults |= Fault.NONFINITE
             if ramping_out:
-                if not self._ramp_out:
+                if self._ramp_out is None:
                     cur = self.safety.last_command
                     self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits, cfg.min_ramp), self.dt))
-                target = self._ramp_out.pop(0)
-                if not self._ramp_out:
-                    self.state = State.STOPPED
+                    self._settle_ticks = 0
+                if self._ramp_out:
+                    target = self._ramp_out.pop(0)
+                else:  # ramp done; the filter may still be braking a joint that was moving fast
+                    target = self._rest
+                    self._settle_ticks += 1
             command, flags = self.safety.step(target)
+            if ramping_out and not self._ramp_out:
+                if np.max(np.abs(command - self._rest)) < 1e-6:
+                    self.state = State.STOPPED
+                elif self._settle_ticks * self.dt > 2.0:
+                    self._event("rest_not_reached", error=float(np.max(np.abs(command - self._rest))))
+                    self.state = State.STOPPED
             compute = time.monotonic() - tick.woke
             self.transport.write_goal(command)
             write_time = time.monotonic()
@@ -316,12 +327,27 @@ class ControlLoop:
                 return
 
     # -- helpers --------------------------------------------------------------
+    def _adopt_transport_limits(self) -> None:
+        if not hasattr(self.transport, "position_limits"):
+            return
+        found = self.transport.position_limits()
+        if found is None:
+            return
+        lo = np.maximum(self.limits.lower, found[0])
+        hi = np.minimum(self.limits.upper, found[1])
+        if np.array_equal(lo, self.limits.lower) and np.array_equal(hi, self.limits.upper):
+            return
+        narrowed = [n for n, a, b in zip(self.limits.names, lo != self.limits.lower, hi != self.limits.upper) if a or b]
+        self.limits = JointLimits(self.limits.names, lo, hi, self.limits.max_velocity, self.limits.max_acceleration)
+        self.safety = SafetyFilter(self.limits, self.dt)
+        self._event("limits_narrowed", joints=narrowed)
+
     def _begin_stop(self, reason: str) -> None:
         if self.state in (State.RAMP_OUT, State.STOPPED, State.ESTOP):
             return
         self.summary.reason = reason
         self._event("stopping", reason=reason)
-        self._ramp_out = []
+        self._ramp_out = None
         self.state = State.RAMP_OUT
 
     def _read(self):

@@ -121,8 +121,13 @@ def _open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, re
         if opts.emulate:
             from ros_free_bridge.commands.servo import start_emulator
 
+            from ros_free_bridge.transports.dynamixel import servo_tick_limits
+            from firmware_cfg.servo_models import load_servo_model
+
             emu = start_emulator(bus, provisioned=True)
             stack.callback(emu.stop)
+            for s in bus.servos:  # the emulator flags any goal outside the config's limits
+                emu.allowed_range(s.id, *servo_tick_limits(s, load_servo_model(s.model)))
             port = emu.port_path
             info["emulator"] = emu
         return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy)

@@ -9,6 +9,11 @@ Life cycle, enforced by the bridge's safety supervisor rather than by each trans
 (``write_goal`` / ``read_state`` each tick) → ``safe_stop(policy)`` → ``close()``.
 ``close()`` must leave the hardware in its safe state even when called after an error,
 and must be safe to call twice.
+
+A transport may also offer ``position_limits() -> (lower (n,), upper (n,))``: the limits it
+enforces after ``open()`` (e.g. narrowed to the servos' EEPROM limits). The control loop
+then adopts the intersection with its own, so it never asks for what the transport would
+refuse.
 """
 
 from __future__ import annotations

@@ -578,6 +578,10 @@ class DynamixelTransport:
     def upper(self) -> np.ndarray:
         return self._upper.copy()
 
+    def position_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) (n,) rad in force; the control loop adopts them after ``open``."""
+        return self.lower, self.upper
+
     def _narrow_to_eeprom(self, i: int) -> None:
         sv = self.servos[i]
         names = (("min_position_limit", "max_position_limit") if sv.model.has("min_position_limit")

@@ -44,6 +44,13 @@ class TeeTransport:
         for t in self.transports:
             t.set_torque(enabled)
 
+    def position_limits(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The tightest limits any transport enforces (None if none reports any)."""
+        found = [t.position_limits() for t in self.transports if hasattr(t, "position_limits")]
+        if not found:
+            return None
+        return (np.max([lo for lo, _ in found], axis=0), np.min([hi for _, hi in found], axis=0))
+
     def safe_stop(self, policy: str = "hold") -> None:
         self._all("safe_stop", policy)
 
