@@ -75,6 +75,11 @@ from dualflow.errors import DualFlowError
 
 MOTION_DIM = 262  # InterGen's per-person feature size (22 joints).
 MODES = ("interactive", "reactive")
+#: What the output linears predict (``DualFlowConfig.prediction``): the velocity v, or the
+#: clean motion x0 from which v is formed (see ``DualFlow._velocity``).
+PREDICTIONS = ("velocity", "x0")
+#: Smallest 1 - t used when forming v from an x0 prediction (caps the 1 / (1 - t) gain at 20).
+X0_MIN_GAP = 0.05
 
 
 # ---------------------------------------------------------------------------------------------
@@ -89,6 +94,8 @@ class DualFlowConfig:
     width: latent size of motion, conditions and attention; n_heads must divide it.
     conv_kernels: the multi-scale temporal convolution kernel sizes (odd).
     look_ahead: default L (frames) of the reactive causal cross-attention (paper: 10).
+    prediction: "velocity" (the output linears give v, as in the paper) or "x0" (they give the
+        clean motion and v is formed from it; use it when width < 262, see DualFlow._velocity).
     """
 
     motion_dim: int = MOTION_DIM
@@ -102,8 +109,13 @@ class DualFlowConfig:
     music_layers: int = 2
     conv_kernels: tuple[int, ...] = (7, 11, 21)
     look_ahead: int = 10
+    prediction: str = "velocity"
 
     def __post_init__(self) -> None:
+        if self.prediction not in PREDICTIONS:
+            raise DualFlowError(
+                f"DualFlowConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}"
+            )
         if self.width % self.n_heads:
             raise DualFlowError(
                 f"DualFlowConfig: width ({self.width}) must be divisible by n_heads ({self.n_heads})"
@@ -590,7 +602,7 @@ class DualFlow(nn.Module):
                 z2 = block.temporal(z, z_d, z_m, masks)
                 z3 = block.motion_cross(z2, z_d, keys, masks.cross_mask)
                 z = block.finish(z3, z_d, z_r)
-            return torch.zeros_like(x_a), self.out_b(self.out_norm(z))
+            return torch.zeros_like(x_a), self._velocity(self.out_b(self.out_norm(z)), x_b, t)
 
         # Interactive: both persons noised at the same t, stacked along the batch.
         z_d = (z_text + self.time_embedding(t)).repeat(2, 1)
@@ -602,7 +614,23 @@ class DualFlow(nn.Module):
         for block in self.blocks:
             z = block(z, z_d, z_m, z_r, masks)
         z = self.out_norm(z)
-        return self.out_a(z[:b]), self.out_b(z[b:])
+        return self._velocity(self.out_a(z[:b]), x_a, t), self._velocity(self.out_b(z[b:]), x_b, t)
+
+    def _velocity(self, out: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The output linear's result as a velocity (B, T, 262), per ``config.prediction``.
+
+        "velocity": the output is v itself (the paper's parameterisation).
+        "x0": the output is the clean motion x0_hat and v = (x0_hat - x_t) / max(1 - t, X0_MIN_GAP),
+        the straight-path velocity through x_t and x0_hat (so x_t + (1 - t) v = x0_hat). Needed when
+        width < 262: a velocity read from a width-d latent lies in a d-dimensional subspace and
+        cannot cancel the 262-d noise at t = 0 (samples keep noise in the other 262 - d
+        directions), whereas x0_hat only has to span the data, which is low-dimensional
+        (Li & He 2025, "Back to Basics: Let Denoising Generative Models Denoise").
+        """
+        if self.config.prediction == "velocity":
+            return out
+        gap = (1 - t).clamp_min(X0_MIN_GAP).to(out.dtype)[:, None, None]
+        return (out - x_t) / gap
 
 
 # ---------------------------------------------------------------------------------------------
