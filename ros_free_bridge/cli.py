@@ -31,6 +31,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "view",
     "retarget",
     "run",
+    "telemetry",
 )
 
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)

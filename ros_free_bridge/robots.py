@@ -22,8 +22,10 @@ from ros_free_bridge.safety import JointLimits
 #: Fraction of a servo's no-load speed the bridge may command (the rest is headroom
 #: for the position loop to catch up under load).
 VELOCITY_SCALE = 0.8
-#: Joint acceleration limit (rad/s²) when the hardware config sets no profile acceleration.
-DEFAULT_MAX_ACCELERATION = 40.0
+#: Joint acceleration limit (rad/s²) when the hardware config sets no profile acceleration:
+#: about what brisk human arm motion scaled to a 0.5 m robot asks for, and well within what
+#: an XM430 (4 N·m) gives a small robot's light links.
+DEFAULT_MAX_ACCELERATION = 80.0
 
 
 @dataclass(frozen=True)

@@ -95,7 +95,7 @@ def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None):
     return MotionReplaySource(motion.resample(MOTION_FPS)), f"{spec} ({motion.n_frames} frames at {motion.fps:g} fps)"
 
 
-def _open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, rest, stack: ExitStack):
+def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, rest, stack: ExitStack):
     kind = opts.transport
     info: dict = {"transport": kind}
     stop_policy = opts.stop_policy or hardware.stop_policy
@@ -189,9 +189,11 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)
-    buffer = TargetBuffer(MOTION_FPS)
+    # cubic (Catmull-Rom) interpolation: linear would jump in velocity at every 30 fps frame,
+    # which the safety filter's acceleration limit would then clip on every joint
+    buffer = TargetBuffer(MOTION_FPS, interpolation="cubic")
     with ExitStack() as stack:
-        transport, info = _open_transport(opts, files, hardware, names, rest, stack)
+        transport, info = open_transport(opts, files, hardware, names, rest, stack)
         telemetry = TelemetryWriter(out / "telemetry.dftl", names, opts.rate_hz,
                                     meta={"robot": files.name, "actor": opts.actor, "partner": opts.partner,
                                           "transport": opts.transport, "model": str(opts.model or "bundled")})

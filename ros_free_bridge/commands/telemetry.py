@@ -1,0 +1,102 @@
+"""``dualflow-bridge replay`` and ``dualflow-bridge plot``: use a run's telemetry afterwards.
+
+    dualflow-bridge plot runs/latest/telemetry.dftl -o runs/latest/plots
+    dualflow-bridge replay runs/latest/telemetry.dftl --video replay.mp4
+    dualflow-bridge replay runs/latest/telemetry.dftl --transport sim        # drive the virtual robot
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("plot", help="figures of a run from its telemetry file")
+    p.add_argument("telemetry", help="a telemetry.dftl file written by run or demo")
+    p.add_argument("-o", "--out", help="folder for the PNGs (default: beside the file, plots/)")
+    p.set_defaults(func=plot)
+
+    r = sub.add_parser("replay", help="replay a run's commands on a transport or as a video")
+    r.add_argument("telemetry", help="a telemetry.dftl file written by run or demo")
+    r.add_argument("--robot", help="robot name or hardware config (default: the one the run used)")
+    r.add_argument("--video", help="render the commands played through the simulated servos to this .mp4")
+    r.add_argument("--transport", choices=("sim", "record", "dynamixel", "serial"),
+                   help="drive a transport again through the control loop and its safety filter")
+    r.add_argument("--port", help="serial port for dynamixel/serial")
+    r.add_argument("--emulate", action="store_true", help="dynamixel/serial: use the bus emulator")
+    r.set_defaults(func=replay)
+
+
+def plot(args) -> int:
+    from ros_free_bridge.telemetry import read_telemetry
+    from ros_free_bridge.telemetry_plots import plot_all
+
+    tel = read_telemetry(args.telemetry)
+    out = Path(args.out) if args.out else Path(args.telemetry).parent / "plots"
+    for p in plot_all(tel, out):
+        print(p)
+    return 0
+
+
+def commands_trajectory(tel, robot: str):
+    """The commands the run sent, as a RobotTrajectory at the control rate (root: standing)."""
+    import numpy as np
+
+    from retarget import RobotTrajectory
+    from ros_free_bridge.errors import BridgeError
+
+    r = tel.records
+    if len(r) < 2:
+        raise BridgeError("replay: the telemetry holds fewer than 2 ticks; nothing to replay")
+    n = len(r)
+    return RobotTrajectory(tel.joint_names, r["command"].astype(float), np.zeros((n, 3)),
+                           np.tile([1.0, 0, 0, 0], (n, 1)), tel.rate_hz, robot, {"source": "telemetry commands"})
+
+
+def replay(args) -> int:
+    from ros_free_bridge.errors import BridgeError
+    from ros_free_bridge.telemetry import read_telemetry
+
+    tel = read_telemetry(args.telemetry)
+    robot = args.robot or tel.meta.get("robot", "op3")
+    if not args.video and not args.transport:
+        raise BridgeError("replay: give --video OUT.mp4 and/or --transport sim|record|dynamixel|serial")
+    traj = commands_trajectory(tel, robot)
+    if args.video:
+        from sim.render import render_trajectory
+
+        out, result = render_trajectory(traj, args.video, robot=robot)
+        print(f"video: {out}" + ("" if result is None else f" (check: {'pass' if result.passed else 'fail'})"))
+    if args.transport:
+        replay_on_transport(tel, traj, robot, args)
+    return 0
+
+
+def replay_on_transport(tel, traj, robot: str, args) -> None:
+    """Play the logged commands again through the control loop (ramps, limits, e-stop)."""
+    import time
+    from contextlib import ExitStack
+
+    from ros_free_bridge.loop import ControlLoop, LoopConfig
+    from ros_free_bridge.robots import bridge_limits, resolve_robot
+    from ros_free_bridge.session import SessionOptions, open_transport
+    from ros_free_bridge.targets import TargetBuffer, TargetFrame
+
+    files = resolve_robot(robot)
+    hardware = files.hardware_config()
+    limits = bridge_limits(hardware)
+    if tuple(limits.names) != tuple(tel.joint_names):
+        from ros_free_bridge.errors import BridgeError
+
+        raise BridgeError(f"replay: the telemetry's joints {tel.joint_names} are not robot {files.name}'s {limits.names}")
+    buf = TargetBuffer(tel.rate_hz, capacity=traj.n_frames + 1)
+    now = time.monotonic()
+    for k in range(traj.n_frames):
+        buf.push(TargetFrame(k, traj.joint_pos[k], now))
+    buf.close()
+    opts = SessionOptions(robot=robot, transport=args.transport, port=args.port, emulate=args.emulate, rate_hz=tel.rate_hz)
+    with ExitStack() as stack:
+        transport, _ = open_transport(opts, files, hardware, limits.names, traj.joint_pos[0], stack)
+        summary = ControlLoop(transport, limits, buf, LoopConfig(rate_hz=tel.rate_hz, rest_pose=traj.joint_pos[0])).run()
+    print(f"replayed {summary.frames_played} commands: {summary.end_state} ({summary.reason})", file=sys.stderr)
