@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import multiprocessing as mp
 import os
 import statistics
 import sys
@@ -54,28 +53,17 @@ def theory_ms(baud: int) -> tuple[float, float]:
 NICE = [0]
 
 
-def _emulator_child(baud: int, conn) -> None:
-    from ros_free_bridge.emulators import DynamixelBusEmulator
-
-    _renice()
-
-    emu = DynamixelBusEmulator(servos=range(1, N_SERVOS + 1), baud=baud, wire_timing=True, return_delay_us=0.0).start()
-    conn.send(emu.port_path)
-    conn.recv()  # wait for "stop"
-    emu.stop()
-
-
 class _Emulator:
+    """The bus emulator in a child process, at this bench's --nice."""
+
     def __init__(self, baud: int) -> None:
-        ctx = mp.get_context("fork")
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_emulator_child, args=(baud, child), daemon=True)
-        self.proc.start()
-        self.port = self.conn.recv()
+        from ros_free_bridge.emulators.process import EmulatorProcess
+
+        self._proc = EmulatorProcess(range(1, N_SERVOS + 1), baud, wire_timing=True, nice=NICE[0])
+        self.port = self._proc.port
 
     def stop(self) -> None:
-        self.conn.send("stop")
-        self.proc.join(timeout=5)
+        self._proc.stop()
 
 
 def _instrument(port) -> dict:

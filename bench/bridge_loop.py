@@ -1,0 +1,137 @@
+"""Bridge control-loop benchmark: tick jitter, deadline misses, loop CPU and end-to-end latency.
+
+1. Jitter at 100 Hz and 250 Hz: the control loop streams a smooth 30 fps motion to 20 emulated
+   XM430-W350 servos (the op3 hardware config, 2 Mbit/s, wire timing on, the emulator in its
+   own process) through the real Dynamixel transport and safety filter. Per tick it records
+   the lateness (wake-up minus deadline); reported as p50 / p99 next to the same loop on the
+   record-only transport (no bus: the baseline, same run). Target (ours): p99 lateness under
+   20 % of the period, no skipped ticks.
+2. Loop CPU: CPU seconds of the loop's thread per wall second (``time.thread_time``), target
+   under 50 % of one core at 100 Hz.
+3. End-to-end latency: the bundled DualFlow checkpoint in reactive mode on the synthetic
+   leader (record transport), from an actor frame's arrival to the bus write of the command
+   that first uses the partner frame it completed. The issue's target: look-ahead L frames
+   (plus the one frame a 262-d feature row waits for) + at most 50 ms of compute.
+
+    python bench/bridge_loop.py [--seconds 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def _producer(buf, loop, seconds: float, limits) -> None:
+    from ros_free_bridge.targets import TargetFrame
+
+    loop.ready.wait(30)
+    mid = 0.5 * (limits.lower + limits.upper)
+    amp = 0.2 * (limits.upper - limits.lower)
+    for k in range(int(seconds * 30)):
+        buf.push(TargetFrame(k, mid + amp * np.sin(2 * np.pi * 0.5 * k / 30.0), time.monotonic()))
+        time.sleep(1 / 30)
+    buf.close()
+
+
+def run_loop(transport, limits, rate_hz: float, seconds: float) -> dict:
+    from ros_free_bridge.loop import ControlLoop, LoopConfig
+    from ros_free_bridge.targets import TargetBuffer
+
+    buf = TargetBuffer(30.0, interpolation="cubic")
+    mid = 0.5 * (limits.lower + limits.upper)
+    lateness = []
+
+    def on_status(loop, tick, faults):
+        lateness.append(tick.lateness)
+
+    loop = ControlLoop(transport, limits, buf, LoopConfig(rate_hz=rate_hz, rest_pose=mid, min_ramp=0.5,
+                                                          handle_signals=False), on_status=on_status)
+    threading.Thread(target=_producer, args=(buf, loop, seconds, limits), daemon=True).start()
+    cpu0, wall0 = time.thread_time(), time.monotonic()
+    summary = loop.run()
+    cpu, wall = time.thread_time() - cpu0, time.monotonic() - wall0
+    lat = np.asarray(lateness) * 1e3
+    return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
+            "misses": summary.deadline_misses, "ticks": summary.ticks, "cpu": cpu / wall, "state": summary.end_state}
+
+
+def jitter(rate_hz: float, seconds: float) -> tuple[dict, dict]:
+    from ros_free_bridge.emulators.process import EmulatorProcess
+    from ros_free_bridge.robots import bridge_limits, resolve_robot
+    from ros_free_bridge.transports.dynamixel import DynamixelTransport
+    from ros_free_bridge.transports.record import RecordTransport
+
+    cfg = resolve_robot("op3").hardware_config()
+    limits = bridge_limits(cfg)
+    base = run_loop(RecordTransport(limits.names, initial=0.5 * (limits.lower + limits.upper)), limits, rate_hz, seconds)
+    bus = cfg.bus()
+    with EmulatorProcess(baud=bus.baud, wire_timing=True) as emu:
+        tr = DynamixelTransport(dataclasses.replace(bus), port=emu.port, joint_names=limits.names, latency_ms=20.0)
+        ours = run_loop(tr, limits, rate_hz, seconds)
+    return ours, base
+
+
+def end_to_end(seconds: float) -> dict:
+    from ros_free_bridge.session import SessionOptions, run_session
+
+    res = run_session(SessionOptions(actor="synthetic", seconds=seconds, transport="record", out=Path("/tmp/bench_e2e"),
+                                     handle_signals=False))
+    tel_delay = None
+    lat = res.summary.latency_percentiles()
+    from ros_free_bridge.telemetry import read_telemetry
+
+    tel = read_telemetry(res.out / "telemetry.dftl")
+    for e in tel.events:
+        if e["kind"] == "session":
+            tel_delay = e.get("delay_frames")
+    gen = tel.records["generator_latency"]
+    gen = gen[np.isfinite(gen)]
+    return {"lat": lat, "delay_frames": tel_delay, "gen_p50": float(np.median(gen)) if gen.size else float("nan"),
+            "frames": res.summary.frames_played}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=5.0, help="streaming time per run (default 5 s)")
+    ap.add_argument("--skip-e2e", action="store_true", help="skip the end-to-end run with the bundled model")
+    args = ap.parse_args(argv)
+    rows = []
+    for rate in (100.0, 250.0):
+        ours, base = jitter(rate, args.seconds)
+        period = 1e3 / rate
+        rows.append((f"jitter p50 @ {rate:.0f} Hz (ms)", f"{ours['p50']:.3f}", f"{base['p50']:.3f}", "-", ""))
+        ok = ours["p99"] < 0.2 * period and ours["misses"] == 0
+        rows.append((f"jitter p99 @ {rate:.0f} Hz (ms)", f"{ours['p99']:.3f}", f"{base['p99']:.3f}",
+                     f"< {0.2 * period:.1f}", "met" if ok else "not met"))
+        rows.append((f"skipped ticks @ {rate:.0f} Hz", f"{ours['misses']} / {ours['ticks']}",
+                     f"{base['misses']} / {base['ticks']}", "0", "met" if ours["misses"] == 0 else "not met"))
+        rows.append((f"loop CPU @ {rate:.0f} Hz (% of a core)", f"{100 * ours['cpu']:.0f}", f"{100 * base['cpu']:.0f}",
+                     "< 50" if rate == 100 else "-", ("met" if ours["cpu"] < 0.5 else "not met") if rate == 100 else ""))
+    if not args.skip_e2e:
+        e = end_to_end(args.seconds)
+        L = e["delay_frames"]
+        budget = (L / 30.0 + 0.050) * 1e3 if L is not None else float("nan")
+        p50 = e["lat"].get("p50", float("nan")) * 1e3
+        rows.append(("end-to-end latency p50 (ms)", f"{p50:.0f}", f"delay {L} frames = {L / 30 * 1e3:.0f} ms",
+                     f"<= {budget:.0f}", "met" if p50 <= budget else "not met"))
+        rows.append(("end-to-end latency p99 (ms)", f"{e['lat'].get('p99', float('nan')) * 1e3:.0f}", "", "", ""))
+        rows.append(("generator compute per push p50 (ms)", f"{e['gen_p50'] * 1e3:.1f}", "", "", ""))
+    width = [max(len(r[i]) for r in rows + [("figure", "ours", "baseline", "target", "verdict")]) for i in range(5)]
+    line = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, width))  # noqa: E731
+    print(line(("figure", "ours", "baseline (same run)", "target", "verdict")))
+    for r in rows:
+        print(line(r))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
