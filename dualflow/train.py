@@ -60,9 +60,13 @@ from dualflow.checkpoint import load_checkpoint, save_checkpoint
 from dualflow.data import TEXT_ENCODER_ID, SyntheticDataConfig, make_datasets
 from dualflow.errors import DualFlowError
 from dualflow.flow import TimeSampler, flow_training_step
+from dualflow.losses import LossWeights, step_losses
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, sample_condition_drop
 
 MUSIC_SOURCES = ("none", "beats")
+#: "paper": L_flow + triplet + geometric + interaction losses (dualflow.losses, eq. 10);
+#: "flow": L_flow alone.
+LOSS_SETS = ("paper", "flow")
 AMP_MODES = ("auto", "bf16", "off")
 
 
@@ -80,12 +84,18 @@ class TrainConfig:
     "beats" (the synthetic beat track as per-frame music features; needs model.music_dim = 4).
     steps, batch_size (per process), lr, weight_decay, warmup_steps, betas, grad_clip
     (0 = off), ema_decay (0 = off), reactive_prob, look_ahead (None = model default),
-    time_sampler ("uniform" | "logit_normal"), cfg_drop (classifier-free-guidance drops).
+    time_sampler ("uniform" | "logit_normal"), cfg_drop (classifier-free-guidance drops),
+    losses ("paper": flow + triplet + geometric + interaction terms of dualflow.losses with
+    the synthetic rule as the triplet label; "flow": the flow loss alone), loss_weights
+    (LossWeights overrides, e.g. {"sync": 0}).
     out_dir, log_every, ckpt_every (0 = only at the end), keep_last checkpoints,
     val_every (0 = off; validation flow loss on the val split), seed, device
     ("auto" | "cpu" | "cuda"), amp ("auto": bf16 autocast on CUDA only), threads
     (torch intra-op threads per process, 0 = leave the default), progress bar,
-    save_replicas, export_dtype ("float32" | "float16" for final/model.safetensors).
+    save_replicas, export_dtype ("float32" | "float16" for final/model.safetensors),
+    max_minutes (0 = no limit): stop after this much wall time (checked every step, agreed
+    across ranks), then checkpoint and export as at the end; the step reached is in the
+    checkpoint, so ``--steps`` reproduces the run.
     """
 
     preset: str = "small"
@@ -104,6 +114,8 @@ class TrainConfig:
     look_ahead: int | None = None
     time_sampler: str = "uniform"
     cfg_drop: bool = True
+    losses: str = "paper"
+    loss_weights: dict = field(default_factory=dict)
     out_dir: str = "runs/dualflow"
     log_every: int = 10
     ckpt_every: int = 500
@@ -115,12 +127,14 @@ class TrainConfig:
     threads: int = 0
     progress: bool = True
     save_replicas: bool = False
+    max_minutes: float = 0.0
     export_dtype: str = "float32"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
         object.__setattr__(self, "model", dict(self.model or {}))
         object.__setattr__(self, "data", dict(self.data or {}))
+        object.__setattr__(self, "loss_weights", dict(self.loss_weights or {}))
         checks = [
             (self.steps >= 1, "steps must be >= 1"),
             (self.batch_size >= 1, "batch_size must be >= 1"),
@@ -133,17 +147,20 @@ class TrainConfig:
             (0 <= self.reactive_prob <= 1, "reactive_prob must be in [0, 1]"),
             (self.look_ahead is None or self.look_ahead >= 0, "look_ahead must be >= 0 or null"),
             (self.music in MUSIC_SOURCES, f"music must be one of {MUSIC_SOURCES}"),
+            (self.losses in LOSS_SETS, f"losses must be one of {LOSS_SETS}"),
             (self.amp in AMP_MODES, f"amp must be one of {AMP_MODES}"),
             (self.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
             (self.log_every >= 1, "log_every must be >= 1"),
             (self.ckpt_every >= 0 and self.val_every >= 0, "ckpt_every and val_every must be >= 0"),
             (self.keep_last >= 1, "keep_last must be >= 1"),
+            (self.max_minutes >= 0, "max_minutes must be >= 0 (0 = no limit)"),
             (self.export_dtype in ("float32", "float16", "bfloat16"), "export_dtype must be float32, float16 or bfloat16"),
         ]
         for ok, message in checks:
             if not ok:
                 raise DualFlowError(f"train config: {message}")
         TimeSampler(self.time_sampler)
+        self.loss_weights_config()
         self.model_config()
         self.data_config()
 
@@ -155,6 +172,13 @@ class TrainConfig:
         if self.music == "beats" and cfg.music_dim != 4:
             raise DualFlowError("train config: music 'beats' feeds the 4-d beat track; set model.music_dim: 4")
         return cfg
+
+    def loss_weights_config(self) -> LossWeights:
+        try:
+            return LossWeights(**self.loss_weights)
+        except TypeError:
+            known = sorted(f.name for f in fields(LossWeights))
+            raise DualFlowError(f"train config: bad loss_weights {self.loss_weights}; valid keys: {known}") from None
 
     def data_config(self) -> SyntheticDataConfig:
         return SyntheticDataConfig.from_dict(self.data, "train config 'data'")
@@ -310,7 +334,8 @@ def step_seed(*parts: int) -> int:
 class CsvLog:
     """Append-only CSV of training metrics; on resume rows after the resumed step are dropped."""
 
-    COLUMNS = ("step", "mode", "loss", "lr", "grad_norm", "val_loss", "elapsed_s", "samples_per_s")
+    TERMS = ("flow", "triplet", "foot", "vel", "bone", "dm", "ro", "sync")
+    COLUMNS = ("step", "mode", "loss") + TERMS + ("lr", "grad_norm", "val_loss", "elapsed_s", "samples_per_s")
 
     def __init__(self, path: Path, resume_step: int | None):
         self.path = path
@@ -380,6 +405,9 @@ class Trainer:
             # (with music absent) the music encoder out of the graph.
             self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=True)
         self.time_sampler = TimeSampler(config.time_sampler)
+        self.loss_weights = config.loss_weights_config()
+        self.stats_mean = torch.tensor(self.stats.mean, dtype=torch.float32, device=self.ctx.device)
+        self.stats_std = torch.tensor(self.stats.std, dtype=torch.float32, device=self.ctx.device)
         use_amp = config.amp == "bf16" or (config.amp == "auto" and self.ctx.device.type == "cuda")
         self.autocast_dtype = torch.bfloat16 if use_amp else None
 
@@ -477,11 +505,17 @@ class Trainer:
         amp = (torch.autocast(ctx.device.type, dtype=self.autocast_dtype) if self.autocast_dtype is not None
                else contextlib.nullcontext())
         with amp:
-            out = flow_training_step(
-                self.ddp, batch["actor"].to(ctx.device), batch["reactor"].to(ctx.device), cond,
-                mode=mode, look_ahead=cfg.look_ahead, time_sampler=self.time_sampler, generator=gen,
-            )
-        loss = out.loss.float()
+            x_a, x_b = batch["actor"].to(ctx.device), batch["reactor"].to(ctx.device)
+            out = flow_training_step(self.ddp, x_a, x_b, cond, mode=mode, look_ahead=cfg.look_ahead,
+                                     time_sampler=self.time_sampler, generator=gen)
+            terms = {"flow": out.loss}
+            if cfg.losses == "paper":
+                terms = step_losses(out, x_a, x_b, self.stats_mean, self.stats_std, mode=mode,
+                                    text=cond.text, labels=batch["rule"].to(ctx.device), weights=self.loss_weights)
+                loss = terms.pop("total")
+            else:
+                loss = out.loss
+        loss = loss.float()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip > 0:
@@ -497,7 +531,9 @@ class Trainer:
         if ctx.distributed:
             dist.all_reduce(loss_value)
             loss_value /= ctx.world_size
-        return {"step": self.step, "mode": mode, "loss": float(loss_value), "lr": lr, "grad_norm": grad_norm}
+        row = {"step": self.step, "mode": mode, "loss": float(loss_value), "lr": lr, "grad_norm": grad_norm}
+        row.update({k: float(v.detach()) for k, v in terms.items()})  # this rank's terms (the loss is the rank mean)
+        return row
 
     @torch.no_grad()
     def validation_loss(self, n_batches: int = 4) -> float:
@@ -520,6 +556,16 @@ class Trainer:
                                      time_sampler=self.time_sampler, generator=gen)
             losses.append(float(out.loss))
         return sum(losses) / len(losses)
+
+    def _out_of_time(self, t0: float) -> bool:
+        """True once max_minutes of wall time have passed (rank 0's clock decides for all)."""
+        if self.config.max_minutes <= 0:
+            return False
+        flag = torch.tensor(float(time.perf_counter() - t0 > 60.0 * self.config.max_minutes))
+        if self.ctx.distributed:
+            flag = flag.to(self.ctx.device)
+            dist.broadcast(flag, src=0)
+        return bool(flag.item())
 
     def replica_max_abs_diff(self) -> float:
         """max |θ_rank − θ_rank0| over all parameters and ranks (0.0 in one process)."""
@@ -551,6 +597,8 @@ class Trainer:
         start_step = self.step
         last = {"loss": float("nan")}
         while self.step < cfg.steps:
+            if self._out_of_time(t0):
+                break
             last = self.train_step()
             if not math.isfinite(last["loss"]):
                 raise DualFlowError(
@@ -564,7 +612,9 @@ class Trainer:
             if ctx.is_main and (self.step % cfg.log_every == 0 or val is not None or self.step == cfg.steps):
                 elapsed = time.perf_counter() - t0
                 done = self.step - start_step
-                log.write({**last, "val_loss": "" if val is None else f"{val:.6f}",
+                log.write({**{k: f"{last[k]:.6f}" for k in CsvLog.TERMS if k in last},
+                           "step": last["step"], "mode": last["mode"],
+                           "val_loss": "" if val is None else f"{val:.6f}",
                            "loss": f"{last['loss']:.6f}", "lr": f"{last['lr']:.3e}",
                            "grad_norm": f"{last['grad_norm']:.4f}", "elapsed_s": f"{elapsed:.2f}",
                            "samples_per_s": f"{done * cfg.batch_size * ctx.world_size / max(elapsed, 1e-9):.2f}"})

@@ -205,6 +205,11 @@ def test_training_writes_log_checkpoints_and_ema_export(tmp_path):
     assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5, 6]
     assert float(rows[0]["lr"]) == pytest.approx(1e-3 / 4) and float(rows[5]["lr"]) == pytest.approx(1e-3)
     assert rows[2]["val_loss"] and not rows[1]["val_loss"]
+    # the paper's loss terms are logged and add up to the loss (one process: no averaging)
+    terms = ("flow", "triplet", "foot", "vel", "bone", "dm", "ro", "sync")
+    for r in rows:
+        assert float(r["loss"]) == pytest.approx(sum(float(r[k]) for k in terms), rel=1e-4)
+        assert float(r["flow"]) > 0 and float(r["bone"]) >= 0
     assert {r["mode"] for r in rows} <= {"reactive", "interactive"}
     assert json.loads((tmp_path / "latest.json").read_text())["step"] == 6
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["step_0000003", "step_0000006"]
@@ -280,3 +285,28 @@ def test_cli_trains(tmp_path, capsys):
     assert ck.meta["train"]["steps"] == 2 and ck.meta["data"]["frames"] == 12
     assert isinstance(model, DualFlow) and not model.training
     assert load_file(str(tmp_path / "out" / "final" / "model.safetensors"))
+
+
+def test_wall_clock_budget_stops_and_still_exports(tmp_path):
+    result = train(fast_config(tmp_path, "steps=1000", "max_minutes=1e-9"))
+    assert result.step == 0
+    assert load_checkpoint(tmp_path / "final").meta["step"] == 0
+    assert json.loads((tmp_path / "latest.json").read_text())["step"] == 0
+
+
+def test_x0_prediction_forms_the_straight_path_velocity():
+    from dualflow.flow import RectifiedPath
+
+    torch.manual_seed(0)
+    model = DualFlow(DualFlowConfig.preset("tiny", prediction="x0")).eval()
+    with torch.no_grad():
+        model.out_b.bias.normal_()
+    x_a, x_t = torch.randn(2, 6, 262), torch.randn(2, 6, 262)
+    t = torch.tensor([0.25, 0.999])
+    _, v = model(x_a, x_t, t, mode="reactive")
+    x0_hat = model.out_b.bias.expand_as(x_t)  # zero-initialised weights: the output is the bias
+    torch.testing.assert_close(v[0], (x0_hat[0] - x_t[0]) / 0.75)
+    torch.testing.assert_close(v[1], (x0_hat[1] - x_t[1]) / 0.05)  # 1 - t floored at 0.05
+    torch.testing.assert_close(RectifiedPath().x0_from_velocity(x_t[:1], t[:1], v[:1]), x0_hat[:1])
+    with pytest.raises(DualFlowError, match="prediction must be one of"):
+        DualFlowConfig.preset("tiny", prediction="eps")
