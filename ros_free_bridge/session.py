@@ -54,7 +54,8 @@ class SessionOptions:
     max_duration: float | None = None
     sim_clock: str = "realtime"
     handle_signals: bool = True
-    conditions: object = None  #: dualflow.model.Conditions for the generator (text, music), or None
+    text: str | None = None  #: a text cue for the generator
+    music: str | None = None  #: an audio file aligned with the actor clock
 
 
 @dataclass
@@ -185,7 +186,7 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
 
-        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(steps=opts.steps), opts.conditions)
+        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(steps=opts.steps), opts.text, opts.music)
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)

@@ -44,11 +44,14 @@ class ReactorFrame:
 class ReactorStage:
     """Generate the partner (reactor) from actor world positions, causally, frame by frame.
 
-    checkpoint: a checkpoint directory (None: the bundled one). conditions: a
-    ``dualflow.model.Conditions`` with batch 1 (text, music over the whole run), or None.
+    checkpoint: a checkpoint directory (None: the bundled one). text: a cue for the whole run.
+    music: an audio file (or a Jukebox .npy) whose features are aligned with the actor clock
+    (actor frame k ↔ music frame k); it loops when the run is longer than the track.
+    ``music_frames``: how many frames the run may last (the track is tiled to cover them).
     """
 
-    def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, conditions=None, threads: int = 1):
+    def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, text: str | None = None,
+                 music=None, music_frames: int = 30 * 60 * 30, threads: int = 1):
         import torch
 
         from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
@@ -59,6 +62,7 @@ class ReactorStage:
         self.stats = ckpt.stats
         self.model = ckpt.build_model("cpu")
         self.fps = float(fps)
+        conditions = self._conditions(ckpt, text, music, music_frames) if (text or music is not None) else None
         self.streamer = ReactiveStreamer(self.model, stream_config or StreamConfig(), conditions)
         self.look_ahead = self.streamer.look_ahead
         self.delay_frames = self.streamer.delay_frames + 1  # + 1: a feature row needs the next frame
@@ -66,6 +70,27 @@ class ReactorStage:
         self._prev = None
         self._n_out = 0
         self._torch = torch
+
+    @staticmethod
+    def _conditions(ckpt, text, music, music_frames: int):
+        import torch
+
+        from dualflow.conditioning import ConditionBuilder
+        from dualflow.model import Conditions
+
+        builder = ConditionBuilder.from_checkpoint(ckpt)
+        cond = Conditions()
+        if text:
+            if builder.text_encoder is None:
+                raise BridgeError(f"{ckpt.path}: this model was trained without text; drop --text or use another model")
+            cond.text = builder.text_condition(text)
+        if music is not None:
+            if builder.music_kind is None:
+                raise BridgeError(f"{ckpt.path}: this model was trained without music; drop --music or use another model")
+            track = builder.music_array(music, None)
+            reps = int(np.ceil(music_frames / len(track)))
+            cond.music = torch.from_numpy(np.tile(track, (reps, 1))[:music_frames])[None]
+        return cond
 
     def push(self, actor_positions: np.ndarray, arrival: float, actor_index: int) -> list[ReactorFrame]:
         from dualflow.motion import Motion

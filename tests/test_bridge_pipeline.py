@@ -74,3 +74,43 @@ def test_imitation_retargets_the_actor_itself(op3):
     summary, pipe, leader = _run(op3, None)
     assert summary.end_state == "STOPPED"
     assert pipe.frames_out == pipe.frames_in == leader.n_frames
+
+
+def test_text_and_music_reach_the_generator(tmp_path):
+    import soundfile as sf
+
+    torch.manual_seed(0)
+    feats, _ = encode_pair(make_duet("follow", 4.0, 30.0, 0))
+    ckpt = tmp_path / "tiny_cond"
+    model = DualFlow(DualFlowConfig.preset("tiny"))
+    with torch.no_grad():  # the condition paths start at zero (adaLN-zero); wake them up
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    save_checkpoint(ckpt, model=model, stats=NormStats.from_features(feats),
+                    meta={"text_encoder": "hashed_bag_of_words_v1/dim384/seed0", "music": "edge35"})
+    sr = 22050
+    clicks = np.zeros(sr * 2, np.float32)
+    for b in np.arange(0.25, 2.0, 0.5):  # 120 bpm
+        clicks[int(b * sr):int(b * sr) + 200] = 0.8
+    sf.write(tmp_path / "clicks.wav", clicks, sr)
+    leader = make_leader(1.0, 30.0, seed=5)
+
+    def stream(**cond):
+        stage = ReactorStage(30.0, ckpt, StreamConfig(window=16, steps=2), music_frames=100, **cond)
+        out = []
+        for k in range(leader.n_frames):
+            out += stage.push(leader.positions[k], 0.0, k)
+        return stage, np.stack([f.positions for f in out])
+
+    stage, with_cond = stream(text="the partner follows the leader", music=tmp_path / "clicks.wav")
+    assert tuple(stage.streamer.cond.text.shape) == (1, 384)
+    assert tuple(stage.streamer.cond.music.shape) == (1, 100, 35)  # 2 s track (60 frames) looped to 100
+    _, plain = stream()
+    assert np.abs(with_cond - plain).max() > 1e-4  # the conditions change what is generated
+
+
+def test_a_model_without_music_refuses_a_music_file(tiny_checkpoint, tmp_path):
+    from ros_free_bridge.errors import BridgeError
+
+    with pytest.raises(BridgeError, match="without music"):
+        ReactorStage(30.0, tiny_checkpoint, StreamConfig(window=16, steps=2), music=tmp_path / "x.wav")
