@@ -7,6 +7,9 @@ Prints, for the vectorised scorer (dualflow.retrieval: one matrix product + argp
 next to a baseline measured in the same run: a plain Python loop evaluating eq. 1 entry by entry
 (math.exp, numpy dot per entry) and sorting. Target: well under 10 ms for one query.
 
+Also printed: the cosine term through numpy's matmul instead of torch's (dualflow.retrieval uses
+torch: on a loaded 2-core machine OpenBLAS's threaded GEMV was ~10-20x slower).
+
 Run: python bench/retrieval_speed.py [--entries 10000] [--reps 200]
 """
 
@@ -68,6 +71,8 @@ def main() -> None:
     batch = np.arange(32)
     train = _time(lambda: db.query_training(batch, k=5), max(10, args.reps // 10))
     loop = _time(lambda: python_loop_query(db.embeddings["body"], db.lengths, q["body"], 120, 5), 3)
+    qb = q["body"] / np.linalg.norm(q["body"])
+    numpy_gemv = _time(lambda: top_k((db.embeddings["body"] @ qb)[None], 5), args.reps)
 
     # Same answer from both scorers.
     fast = top_k(similarity_scores(db.embeddings["body"], db.lengths, q["body"], 120), 5)[0][0].tolist()
@@ -78,6 +83,7 @@ def main() -> None:
     print(f"{'one cue, 384-d, eq.1 + top-5 (ms)':58s} {one:10.3f} {loop:12.1f} {TARGET_MS:9.1f}")
     print(f"{'full query: 3 text cues + music, top-5 each (ms)':58s} {full:10.3f} {4 * loop:12.1f} {TARGET_MS:9.1f}")
     print(f"{'training batch of 32, self excluded, 4 cues (ms/query)':58s} {train / 32:10.3f} {4 * loop:12.1f} {TARGET_MS:9.1f}")
+    print(f"{'one cue, same eq. via numpy matmul (OpenBLAS) + top-5 (ms)':58s} {numpy_gemv:10.3f} {loop:12.1f} {TARGET_MS:9.1f}")
     print(f"baseline = Python loop scorer measured here ({loop:.1f} ms per cue); speed-up {loop / one:.0f}x on one cue")
 
 
