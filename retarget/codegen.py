@@ -1,9 +1,9 @@
 """Compile CasADi functions and IPOPT problems to C once, and cache the shared objects on disk.
 
 Cache: ``$DUALFLOW_CACHE/retarget`` (default ``~/.cache/dualflow/retarget``); a file is
-named by the function's name and a key the caller derives from a hash of the robot
-model, its profile and the problem layout, so a changed MJCF or profile never reuses a
-stale binary. Files are written under a temporary name and renamed into place.
+named by the function's name, a key the caller derives from the robot model, its profile
+and the problem layout, and a hash of the expression graph itself, so a changed MJCF,
+profile or solver code never reuses a stale binary. Files are written under a temporary name and renamed into place.
 
 Compiler: ``$CC`` or ``cc``/``gcc``/``clang`` on PATH, ``-O1 -shared -fPIC``. Without one
 (or when compilation fails) the caller gets the uncompiled CasADi object back, which
@@ -33,17 +33,15 @@ def cache_dir() -> Path:
     return d
 
 
-def code_version() -> str:
-    """Hash of the retarget modules that build the compiled functions, so that a code change
-    never reuses a stale binary (part of every cache key)."""
+def graph_hash(*functions: ca.Function) -> str:
+    """Hash of the expression graphs (CasADi's serialisation) of ``functions``: part of every
+    cache key, so a change in the model, the profile or our code never reuses a stale binary."""
     import hashlib
 
-    h = hashlib.sha256()
-    here = Path(__file__).resolve().parent
-    for name in ("kinematics.py", "robot.py", "streaming.py", "offline.py", "codegen.py"):
-        h.update((here / name).read_bytes())
-    h.update(ca.__version__.encode())
-    return h.hexdigest()[:8]
+    h = hashlib.sha256(ca.__version__.encode())
+    for f in functions:
+        h.update(f.serialize().encode())
+    return h.hexdigest()[:12]
 
 
 def find_compiler() -> str | None:
@@ -90,7 +88,7 @@ def compiled_function(fn: ca.Function, key: str, enable: bool = True) -> tuple[c
     if not enable:
         return fn, "not compiled (disabled)"
     name = fn.name()
-    so_file = cache_dir() / f"{name}_{key}_{code_version()}.so"
+    so_file = cache_dir() / f"{name}_{key}_{graph_hash(fn)}.so"
     if not so_file.exists():
         with tempfile.TemporaryDirectory() as tmp:
             c_name = f"{name}_{key}.c"
@@ -107,29 +105,43 @@ def compiled_function(fn: ca.Function, key: str, enable: bool = True) -> tuple[c
         return fn, _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
 
 
-def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = True) -> tuple[ca.Function, str]:
-    """An IPOPT solver whose problem functions (objective, constraints, their gradient,
-    Jacobian and Lagrangian Hessian) are compiled C loaded from the cache, or the plain
-    CasADi solver as fallback. Returns (solver, info)."""
-    if enable:
-        so_file = cache_dir() / f"{name}_{key}_{code_version()}.so"
-        if not so_file.exists():
-            solver = ca.nlpsol(name, "ipopt", nlp, opts)
-            with tempfile.TemporaryDirectory() as tmp:
-                c_file = Path(tmp) / f"{name}_{key}.c"
-                cwd = os.getcwd()
-                try:
-                    os.chdir(tmp)
-                    solver.generate_dependencies(c_file.name)
-                finally:
-                    os.chdir(cwd)
-                err = _compile(c_file, so_file)
-            if err:
-                return solver, _fallback(err)
-        try:
-            return ca.nlpsol(name, "ipopt", str(so_file), opts), f"compiled ({so_file})"
-        except RuntimeError as exc:
-            so_file.unlink(missing_ok=True)
-            info = _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
-            return ca.nlpsol(name, "ipopt", nlp, opts), info
-    return ca.nlpsol(name, "ipopt", nlp, opts), "not compiled (disabled)"
+def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = True,
+                    hess_lag: ca.Function | None = None) -> tuple[ca.Function, str]:
+    """An IPOPT solver whose problem functions (objective, constraints, their gradient and
+    Jacobian, and the Lagrangian Hessian, or ``hess_lag`` when given) are compiled C loaded
+    from the cache, or the plain CasADi solver as fallback. Returns (solver, info)."""
+    opts = dict(opts)
+    if not enable:
+        if hess_lag is not None:
+            opts["hess_lag"] = hess_lag
+        return ca.nlpsol(name, "ipopt", nlp, opts), "not compiled (disabled)"
+    hess_info = ""
+    if hess_lag is not None:
+        compiled_hess, hess_info = compiled_function(hess_lag, f"{name}_{key}", enable=True)
+        opts["hess_lag"] = compiled_hess
+        if not hess_info.startswith("compiled"):
+            return ca.nlpsol(name, "ipopt", nlp, opts), hess_info
+    graph = ca.Function("nlp_graph", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
+    so_file = cache_dir() / f"{name}_{key}_{graph_hash(graph, *( [hess_lag] if hess_lag is not None else []))}.so"
+    if not so_file.exists():
+        gen_opts = dict(opts)
+        if hess_lag is not None:
+            gen_opts["hess_lag"] = hess_lag
+        solver = ca.nlpsol(name, "ipopt", nlp, gen_opts)
+        with tempfile.TemporaryDirectory() as tmp:
+            c_file = Path(tmp) / f"{name}_{key}.c"
+            cwd = os.getcwd()
+            try:
+                os.chdir(tmp)
+                solver.generate_dependencies(c_file.name)
+            finally:
+                os.chdir(cwd)
+            err = _compile(c_file, so_file)
+        if err:
+            return ca.nlpsol(name, "ipopt", nlp, opts), _fallback(err)
+    try:
+        return ca.nlpsol(name, "ipopt", str(so_file), opts), f"compiled ({so_file})"
+    except RuntimeError as exc:
+        so_file.unlink(missing_ok=True)
+        info = _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
+        return ca.nlpsol(name, "ipopt", nlp, opts), info

@@ -8,14 +8,16 @@ Per window of W frames, with X = [x_0 … x_{W−1}] (nx, W) and, with balance, 
        + w_j Σ_t ‖fps³ (x_{t+2} − 3x_{t+1} + 3x_t − x_{t−1})‖²          jerk
        + w_p Σ_t ‖q_t − q_stand‖²  + w_fix Σ_{t<n_fix} ‖x_t − x̄_t‖²     posture; continuity with the previous window
     s.t. lb ≤ x_t ≤ ub                                                    joint position limits (bounds)
-         |q_{t+1} − q_t| ≤ v_max / fps                                    joint velocity limits (linear)
+         |x_{t+1} − x_t| ≤ v_max / fps                                    joint and root velocity limits (linear)
          z_c(x_t) ≥ 0, and = 0 while that foot is in contact              no sole corner below the ground; contact
          xy_c(x_{t+1}) = xy_c(x_t) while the foot stays in contact        no foot sliding (two diagonal corners)
          com_xy(x_t) = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0            balance: CoM over the support polygon
               (λ_ti = 0 for corners of a foot in the air)                   shrunk by ``balance_margin``
          ‖seg_a − seg_b‖² ≥ (r_a + r_b + margin)²                         self-collision between capsule pairs
 
-f_t is 1 for real frames and 0 for padding, x̄ are the frames already fixed by the
+f_t is 1 for real frames and 0 for padding (also masking the acceleration and jerk terms
+that reach into the padding, so a padded window ends like the clip; f_t and w_fix enter as
+0/1 parameters), x̄ are the frames already fixed by the
 previous window (w_fix = 0 in the first), so consecutive windows share n_fix frames and
 the acceleration/jerk terms run across the seam: there is no seam to blend.
 
@@ -66,10 +68,12 @@ class OfflineConfig:
     self_collision: bool = True
     velocity_safety: float = 0.995
     compile: bool = True
-    max_iter: int = 200
-    tol: float = 1e-6
+    max_iter: int = 100
+    tol: float = 1e-5
     retime: float = 1.0
     auto_retime: bool = False
+    hessian: str = "gauss-newton"
+    ipopt_options: tuple = ()  # extra (name, value) pairs passed to IPOPT, e.g. (("print_level", 5),)
 
 
 class OfflineRetargeter:
@@ -119,17 +123,21 @@ class OfflineRetargeter:
         XF = ca.MX.sym("XF", nx, cfg.n_fix)
         WF = ca.MX.sym("WF", 1, 1)
         kp, sole, shr, com, coll = self._frame_fn.map(W, "serial")(X)
-        wk = np.repeat(rb.keypoint_weights, 3)[:, None]
-        err = ca.reshape(kp, 3 * K, W) - TGT
-        J = ca.sum2(ca.sum1(ca.repmat(ca.DM(wk), 1, W) * err ** 2) * FW)
+        # objective J = ‖R‖² with R the stacked weighted residuals (module docstring)
+        wk = np.sqrt(np.repeat(rb.keypoint_weights, 3))[:, None]
         wp = rb.profile.posture_weight if cfg.posture_weight is None else cfg.posture_weight
-        J += wp * ca.sumsqr(X[nr:, :] - ca.repmat(ca.DM(rb.x_stand[nr:]), 1, W))
         acc = (X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]) * fps ** 2
         jerk = (X[:, 3:] - 3 * X[:, 2:-1] + 3 * X[:, 1:-2] - X[:, :-3]) * fps ** 3
-        J += cfg.accel_weight * ca.sumsqr(acc) + cfg.jerk_weight * ca.sumsqr(jerk)
-        J += WF * cfg.fix_weight * ca.sumsqr(X[:, :cfg.n_fix] - XF)
-        g = [ca.vec(X[nr:, 1:] - X[nr:, :-1])]
-        layout = {"vel": nj * (W - 1)}
+        R = ca.vertcat(
+            ca.vec((ca.reshape(kp, 3 * K, W) - TGT) * ca.repmat(ca.DM(wk), 1, W) * ca.repmat(FW, 3 * K, 1)),
+            np.sqrt(wp) * ca.vec(X[nr:, :] - ca.repmat(ca.DM(rb.x_stand[nr:]), 1, W)),
+            np.sqrt(cfg.accel_weight) * ca.vec(acc * ca.repmat(FW[:, 2:], nx, 1)),
+            np.sqrt(cfg.jerk_weight) * ca.vec(jerk * ca.repmat(FW[:, 3:], nx, 1)),
+            WF * np.sqrt(cfg.fix_weight) * ca.vec(X[:, :cfg.n_fix] - XF),
+        )
+        J = ca.sumsqr(R)
+        g = [ca.vec(X[:, 1:] - X[:, :-1])]
+        layout = {"vel": nx * (W - 1)}
         if feet:
             g.append(ca.vec(ca.reshape(sole[2, :], 8, W)))
             layout["sole_z"] = 8 * W
@@ -149,13 +157,29 @@ class OfflineRetargeter:
             layout["collision"] = P * W
         nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(L)), "p": ca.vertcat(ca.vec(TGT), ca.vec(FW), ca.vec(XF), WF),
                "f": J, "g": ca.vertcat(*g)}
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
-                "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-4,
+        opts = {}
+        hess = None
+        if cfg.hessian == "gauss-newton":
+            # H ≈ 2 λ_f J_Rᵀ J_R: first derivatives only (smaller code, faster compile); the
+            # constraints' curvature is left out, as in generalised Gauss-Newton SQP
+            w = nlp["x"]
+            JR = ca.jacobian(R, w)
+            lam_f = ca.MX.sym("lam_f")
+            lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
+            H = ca.triu(2 * lam_f * ca.mtimes(JR.T, JR))
+            hess = ca.Function(f"rtw{W}_hess", [w, nlp["p"], lam_f, lam_g], [H],
+                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        elif cfg.hessian != "exact":
+            raise RetargetError(f"offline config: hessian must be 'gauss-newton' or 'exact', got {cfg.hessian!r}")
+        opts |= {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
+                "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-3,
+                "ipopt.acceptable_iter": 3, "ipopt.acceptable_constr_viol_tol": 1e-6,
                 "ipopt.mu_strategy": "adaptive", "ipopt.bound_relax_factor": 1e-10,
                 "ipopt.linear_solver": "mumps"}
+        opts |= {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
         name = f"rtw{W}"
-        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True))}_{int(round(fps * 1000))}"
-        solver, info = compiled_nlpsol(name, nlp, opts, ckey, enable=cfg.compile)
+        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=()))}_{int(round(fps * 1000))}"
+        solver, info = compiled_nlpsol(name, nlp, opts, ckey, enable=cfg.compile, hess_lag=hess)
         entry = (solver, layout, P, balance, feet, info)
         self._solvers[key] = entry
         return entry
@@ -229,7 +253,7 @@ class OfflineRetargeter:
         p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0]])
         contact = tg.contacts[idx]
         lbg, ubg = [], []
-        v = rb.velocity_limits[:, None] * cfg.velocity_safety / tg.fps
+        v = np.concatenate([rb.root_velocity_limits, rb.velocity_limits])[:, None] * cfg.velocity_safety / tg.fps
         lbg.append(np.tile(-v, (1, W - 1)).ravel(order="F"))
         ubg.append(np.tile(v, (1, W - 1)).ravel(order="F"))
         lam0 = np.zeros((0, W))

@@ -8,7 +8,9 @@ A profile says, in robot-independent terms:
   and ``root`` for the root translation scale. By default every scale is computed from the
   human's and the robot's rest-pose bone lengths (see :mod:`retarget.targets`);
 - ``joint_limits``: narrower position limits (rad) per joint, never wider than the MJCF;
-- ``velocity_limits``: ``default`` and per-joint speed limits (rad/s);
+- ``velocity_limits``: ``default`` and per-joint speed limits (rad/s), and for a free root
+  ``root_linear`` (m/s, default 2 standing root heights per second) and ``root_angular``
+  (rad/s of each root angle, default 2π): the root moves only as fast as a body could;
 - ``capsules`` and ``collision_pairs``: capsules (an MJCF ``geom``, or ``body`` +
   ``from``/``to`` (3,) m + ``radius`` m) and the pairs that must stay apart;
 - ``feet``: ``left``/``right`` foot ``body`` and either its sole ``geom`` (a box: the
@@ -78,6 +80,8 @@ class RetargetProfile:
     joint_limits: dict = field(default_factory=dict)
     velocity_default: float = 5.0
     velocity_limits: dict = field(default_factory=dict)
+    root_linear: float | None = None
+    root_angular: float = 2 * np.pi
     capsules: dict = field(default_factory=dict)
     collision_pairs: tuple = ()
     collision_margin: float = 0.005
@@ -160,7 +164,10 @@ class RetargetProfile:
         if not isinstance(vl, dict):
             raise RetargetError(f"{where('velocity_limits')}: give a mapping with default: rad/s and joint: rad/s")
         vdefault = _positive(vl.get("default", 5.0), where("velocity_limits.default"))
-        vlimits = {str(k): _positive(v, where(f"velocity_limits.{k}")) for k, v in vl.items() if k != "default"}
+        vlimits = {str(k): _positive(v, where(f"velocity_limits.{k}")) for k, v in vl.items()
+                   if k not in ("default", "root_linear", "root_angular")}
+        root_linear = _positive(vl["root_linear"], where("velocity_limits.root_linear")) if "root_linear" in vl else None
+        root_angular = _positive(vl.get("root_angular", 2 * np.pi), where("velocity_limits.root_angular"))
 
         caps = {}
         for name, spec in (data.get("capsules") or {}).items():
@@ -211,7 +218,7 @@ class RetargetProfile:
         return cls(
             robot=str(data.get("robot", "")), rigid_offsets=rigid, keypoints=tuple(keypoints), root_joint=root,
             scale_overrides=overrides, root_scale=root_scale, joint_limits=joint_limits,
-            velocity_default=vdefault, velocity_limits=vlimits, capsules=caps, collision_pairs=tuple(pairs),
+            velocity_default=vdefault, velocity_limits=vlimits, root_linear=root_linear, root_angular=root_angular, capsules=caps, collision_pairs=tuple(pairs),
             collision_margin=float(data.get("collision_margin", 0.005)), feet=feet,
             posture_weight=_positive(data.get("posture_weight", 0.02), where("posture_weight"), allow_zero=True),
             stand_keyframe=str(data.get("stand_keyframe", "stand")), source=source,

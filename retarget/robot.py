@@ -257,6 +257,9 @@ class RetargetRobot:
         ground = rest_sole[2].min() if rest_sole.size else rest_kp[2].min()
         #: height of the root keypoint above the lowest sole point at q = 0 (m)
         self.standing_root_height = float(rest_kp[2, self.root_keypoint] - ground)
+        lin = self.profile.root_linear if self.profile.root_linear is not None else 2.0 * self.standing_root_height
+        #: speed limits of the free root's (x, y, z) m/s and (yaw, pitch, roll) rad/s
+        self.root_velocity_limits = np.array([lin] * 3 + [self.profile.root_angular] * 3)[: self.n_root]
         #: height of each keypoint above the lowest sole point at q = 0 (m)
         self.standing_heights = rest_kp[2] - ground
 

@@ -11,7 +11,8 @@ x (nx,) (see :mod:`retarget.kinematics`):
           √w_c · c_s · (z_sole, xy_sole − xy_sole₋₁) a foot in contact stays on the ground and put
           √w_g · min(z_sole, 0) ]                   no sole corner below the ground
 
-    lb, ub = joint range ∩ [q₋₁ − v_max/fps, q₋₁ + v_max/fps]  (position and velocity limits)
+    lb, ub = joint range ∩ [x₋₁ − v_max/fps, x₋₁ + v_max/fps]  (position and velocity limits,
+                                                               the root's speed limits too)
 
 solved by a few projected Gauss-Newton steps from the previous frame: each step solves
 the box-constrained quadratic model (JᵀJ + μI) d = −Jᵀr with a primal active set (free
@@ -142,7 +143,7 @@ class StreamingRetargeter:
         self._p_anchor = slice(n_t + 2 * nx + 3, n_t + 2 * nx + 19)
         self._has_feet = rb.has_feet
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
-        self._vmax = rb.velocity_limits / self.fps
+        self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
         self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps ** 2
 
     def _residual(self, x: np.ndarray) -> float:
@@ -161,9 +162,8 @@ class StreamingRetargeter:
         """Position ∩ velocity bounds for the next frame."""
         lo, hi = self._lo_pos.copy(), self._hi_pos.copy()
         if self._x1 is not None:
-            nr = self.robot.n_root
-            lo[nr:] = np.maximum(lo[nr:], self._x1[nr:] - self._vmax)
-            hi[nr:] = np.minimum(hi[nr:], self._x1[nr:] + self._vmax)
+            lo = np.maximum(lo, self._x1 - self._vmax)
+            hi = np.minimum(hi, self._x1 + self._vmax)
         return lo, hi
 
     def _initial_guess(self, targets: np.ndarray) -> np.ndarray:
