@@ -395,3 +395,22 @@ def test_bus_watchdog_stops_servos_when_the_host_goes_silent_and_is_recovered():
         assert emu.violations == []
     finally:
         emu.stop()
+
+
+def test_a_goal_exactly_at_a_limit_never_rounds_past_it():
+    # 0.5π rad is 3071.9999 ticks from the centre: rounding alone would send 3072, one tick
+    # past the config limit rounded inwards (3071); the EEPROM is factory (not provisioned),
+    # so only the transport's own rounding stands between the goal and the bus
+    bus = small_bus(2, limits=[-0.9424778, 1.5707963], direction=1, zero_offset=0.0)
+    with start_emulator(bus) as emu:
+        for s in bus.servos:
+            emu.allowed_range(s.id, *servo_tick_limits(s, XM))
+        t = make(bus, emu)
+        t.open()
+        try:
+            t.set_torque(True)
+            t.write_goal(np.array([1.5707963, -0.9424778]))
+        finally:
+            t.close()
+        assert emu.violations == []
+        assert emu.goal_history[1][-1].ticks <= servo_tick_limits(bus.servos[0], XM)[1]

@@ -441,6 +441,8 @@ class DynamixelTransport:
         self._lower = np.array([s.cfg.lower for s in self.servos], float)
         self._upper = np.array([s.cfg.upper for s in self.servos], float)
         self._half_tick = np.array([0.5 / s.model.ticks_per_rad for s in self.servos])
+        tick_limits = np.array([servo_tick_limits(s.cfg, s.model) for s in self.servos], dtype=float)
+        self._tick_lo, self._tick_hi = tick_limits[:, 0], tick_limits[:, 1]
         self._center = np.array([s.model.position.center_tick for s in self.servos], float)
         self._tpr = np.array([s.model.ticks_per_rad for s in self.servos])
         self._dir = np.array([s.cfg.direction for s in self.servos], float)
@@ -600,6 +602,8 @@ class DynamixelTransport:
         if (lo, hi) != (self._lower[i], self._upper[i]):
             self.stats.notes.append(f"{self.bus.label(sv.cfg.id)}: limits narrowed to the EEPROM's [{lo:.4f}, {hi:.4f}] rad")
         self._lower[i], self._upper[i] = lo, hi
+        self._tick_lo[i] = max(self._tick_lo[i], lo_t)
+        self._tick_hi[i] = min(self._tick_hi[i], hi_t)
 
     # ------------------------------------------------------------------ recovery
     def recover(self, joint: str) -> str:
@@ -647,8 +651,11 @@ class DynamixelTransport:
 
     # ------------------------------------------------------------------ internals
     def _to_ticks(self, q: np.ndarray) -> list[int]:
-        """Joint rad (n,) → goal ticks: round(center + (direction · q + offset) · ticks_per_rad)."""
-        return np.rint(self._center + (self._dir * q + self._off) * self._tpr).astype(np.int64).tolist()
+        """Joint rad (n,) → goal ticks: round(center + (direction · q + offset) · ticks_per_rad),
+        then clipped to each servo's tick limits (the config's limits rounded inwards): a goal
+        exactly at a limit must not round one tick beyond it."""
+        ticks = np.rint(self._center + (self._dir * q + self._off) * self._tpr)
+        return np.clip(ticks, self._tick_lo, self._tick_hi).astype(np.int64).tolist()
 
     def _to_joint(self, ticks: np.ndarray) -> np.ndarray:
         """Present ticks (n,) → joint rad: direction · ((ticks − center) / ticks_per_rad − offset)."""
