@@ -55,8 +55,8 @@ _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
 class OfflineConfig:
     """Solver settings. ``window`` 0 means the whole clip in one problem."""
 
-    window: int = 64
-    overlap: int = 16
+    window: int = 40
+    overlap: int = 10
     n_fix: int = 3
     accel_weight: float = 1e-7
     jerk_weight: float = 1e-10
@@ -68,7 +68,7 @@ class OfflineConfig:
     self_collision: bool = True
     velocity_safety: float = 0.995
     compile: bool = True
-    max_iter: int = 100
+    max_iter: int = 300
     tol: float = 1e-5
     retime: float = 1.0
     auto_retime: bool = False

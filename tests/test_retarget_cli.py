@@ -1,0 +1,62 @@
+"""The ``dualflow-bridge retarget`` subcommand end to end (real files, real solver)."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
+from ros_free_bridge.cli import main
+from retarget import RobotTrajectory
+from retarget.robot import PROFILE_DIR, ROBOT_DIR
+
+pytestmark = pytest.mark.skipif(not (ROBOT_DIR / "op3" / "op3.xml").is_file(), reason="bundled op3 MJCF absent")
+
+
+def _clip(T=24, shift=0.0):
+    t = np.arange(T) / 30.0
+    pos = np.repeat(REST_POSE[None], T, axis=0).copy()
+    pos[:, :, 0] += shift
+    pos[:, [18, 20], 2] += 0.2 * np.sin(2 * np.pi * t)[:, None]
+    return pos
+
+
+def test_retarget_a_duet_file_writes_trajectory_report_and_figure(tmp_path, capsys):
+    from dualflow.motion.io import save_motion
+
+    duet = TwoPersonMotion(Motion(_clip(shift=1.0), 30.0, name="a"), Motion(_clip(), 30.0, name="b"), "wave")
+    src = tmp_path / "duet.npz"
+    save_motion(duet, src)
+    out = tmp_path / "out"
+    rc = main(["retarget", str(src), "--robot", "op3", "--no-compile", "--window", "0", "--out", str(out), "--strict"])
+    assert rc == 0, capsys.readouterr()
+    for suffix in (".npz", ".csv", ".report.json", ".report.md", ".joints.png"):
+        assert (out / f"duet{suffix}").is_file(), suffix
+    traj = RobotTrajectory.load_npz(out / "duet.npz")
+    assert traj.robot == "op3" and traj.n_frames == 24 and traj.joint_names[0] == "r_sho_pitch"
+    rep = json.loads((out / "duet.report.json").read_text())
+    assert rep["limit_violations"] == 0 and rep["velocity_violations"] == 0 and rep["passed"] is True
+    # the reactor (standing at x = 0) was retargeted, not the actor (at x = 1 m)
+    assert abs(traj.root_pos[:, 0].mean()) < 0.05
+    assert "PASS" in capsys.readouterr().out
+
+
+def test_user_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
+    from dualflow.motion.io import save_motion
+
+    src = tmp_path / "one.npz"
+    save_motion(Motion(_clip(), 30.0, name="one"), src)
+    assert main(["retarget", str(src), "--robot", "no_such_robot", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: robot 'no_such_robot'") and "\n" not in err
+    data = yaml.safe_load((PROFILE_DIR / "op3.yaml").read_text())
+    data["keypoints"]["left_knee"] = {"body": "l_knee_bone"}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    assert main(["retarget", str(src), "--robot", "op3", "--profile", str(bad), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "keypoints.left_knee.body" in err and "l_knee_bone" in err
+    save_motion(Motion(REST_POSE[None], 30.0, name="single"), tmp_path / "single.npz")
+    assert main(["retarget", str(tmp_path / "single.npz"), "--no-compile", "--out", str(tmp_path)]) == 2
+    assert "at least 2" in capsys.readouterr().err
