@@ -25,6 +25,7 @@ from sim.errors import SimError
 COMMAND_MODULES: tuple[str, ...] = (
     "motion",
     "train",
+    "eval",
     "servo",
     "check",
     "render",
