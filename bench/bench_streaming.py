@@ -13,7 +13,8 @@ and the issue's target:
 2. seam continuity: the mean velocity jump ||p[i] - 2 p[i-1] + p[i-2]|| (mm/frame^2, joints
    averaged) at window seams vs inside windows (ratio about 1 = invisible seams), for the
    streamer with inpainted context and for the baseline without it (windows independent);
-   the follower's own ground-truth jump gives the natural scale.
+   the follower's own ground-truth jump gives the natural scale; and for the streamer without
+   per-window canonical frames (``WindowFrame``), i.e. every window in the stream's one frame.
 3. reactor MPJPE (m) of the stream against the rule follower, and of the no-context baseline.
 """
 
@@ -26,7 +27,7 @@ import time
 import numpy as np
 import torch
 
-from dualflow.checkpoint import load_model
+from dualflow.checkpoint import bundled_checkpoint, load_checkpoint
 from dualflow.data import positions_from_normalized, template_text_embedding
 from dualflow.flow import generate
 from dualflow.model import Conditions
@@ -37,8 +38,8 @@ from dualflow.synthetic import make_duet
 REALTIME_MS = 1000.0 / 30.0
 
 
-def stream(model, actor, cond, **cfg) -> ReactiveStreamer:
-    s = ReactiveStreamer(model, StreamConfig(**cfg), cond)
+def stream(model, actor, cond, stats=None, **cfg) -> ReactiveStreamer:
+    s = ReactiveStreamer(model, StreamConfig(**cfg), cond, stats=stats)
     for frame in actor:
         s.push(frame)
     s.flush()
@@ -56,10 +57,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--no-ema", action="store_true", help="use the raw weights of a training checkpoint, not its EMA")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    model, ckpt = load_model(args.checkpoint, device=args.device)
+    ckpt = load_checkpoint(bundled_checkpoint() if args.checkpoint is None else args.checkpoint)
+    model = ckpt.build_model(args.device, use_ema=not args.no_ema)
     stats = ckpt.stats
     pair = make_duet(args.rule, seconds=args.seconds + 1 / 30, fps=30.0, seed=args.seed)
     feats, _ = encode_pair(pair)
@@ -67,7 +70,10 @@ def main(argv=None) -> int:
     actor = torch.from_numpy(norm[:, 0]).to(args.device)
     truth = positions_from_normalized(norm[:, 1], stats)
     text = torch.from_numpy(template_text_embedding([pair.text], model.config.text_dim)).to(args.device)
-    cond = Conditions(text=text)
+    music = None
+    if ckpt.meta.get("music") == "beats":  # trained with the synthetic beat track as music
+        music = torch.from_numpy(np.asarray(pair.meta["beats"][: len(feats)], dtype=np.float32))[None].to(args.device)
+    cond = Conditions(text=text, music=music)
     n = actor.shape[0]
     L = model.config.look_ahead
     print(f"model: {ckpt.path} ({sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params), L = {L} frames, "
@@ -76,12 +82,13 @@ def main(argv=None) -> int:
 
     # 1. timing --------------------------------------------------------------------------
     with torch.no_grad():
-        generate(model, args.window, cond, mode="reactive", x_actor=actor[None, : args.window], steps=2)  # warm-up
+        first = cond.slice_frames(0, args.window)
+        generate(model, args.window, first, mode="reactive", x_actor=actor[None, : args.window], steps=2)  # warm-up
         tic = time.perf_counter()
-        generate(model, args.window, cond, mode="reactive", x_actor=actor[None, : args.window], steps=args.steps)
+        generate(model, args.window, first, mode="reactive", x_actor=actor[None, : args.window], steps=args.steps)
         offline_ms = (time.perf_counter() - tic) * 1000 / args.window
-    s1 = stream(model, actor, cond, window=args.window, hop=1, steps=args.steps)
-    sh = stream(model, actor, cond, window=args.window, hop=args.hop, steps=args.steps)
+    s1 = stream(model, actor, cond, stats, window=args.window, hop=1, steps=args.steps)
+    sh = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps)
     print("\ncompute time per emitted frame (ms):")
     print(f"  baseline: one offline {args.window}-frame window / {args.window} frames   {offline_ms:8.2f}")
     print(f"  streamer hop 1  (delay L = {L} frames + compute)      {s1.timing.per_frame_s * 1000:8.2f}"
@@ -91,10 +98,12 @@ def main(argv=None) -> int:
     print(f"  target: < {REALTIME_MS:.1f} ms per frame for 30 fps real time")
 
     # 2. seams ---------------------------------------------------------------------------
-    sn = stream(model, actor, cond, window=args.window, hop=args.hop, steps=args.steps, inpaint=False)
+    sn = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps, inpaint=False)
+    sg = stream(model, actor, cond, None, window=args.window, hop=args.hop, steps=args.steps)  # one global frame
     starts = [w[0] for w in sh.timing.windows]
     pos_h = positions_from_normalized(sh.emitted, stats)
     pos_n = positions_from_normalized(sn.emitted, stats)
+    pos_g = positions_from_normalized(sg.emitted, stats)
     r_h = seam_report(pos_h, starts)
     r_n = seam_report(pos_n, [w[0] for w in sn.timing.windows])
     r_gt = seam_report(truth, starts)
@@ -102,6 +111,8 @@ def main(argv=None) -> int:
     print(f"  {'':34s} {'at seams':>9s} {'inside':>9s} {'ratio':>7s}")
     print(f"  ground-truth follower (scale)      {r_gt.seam_mean * 1000:9.2f} {r_gt.within_mean * 1000:9.2f} {r_gt.ratio:7.2f}")
     print(f"  baseline: windows without context  {r_n.seam_mean * 1000:9.2f} {r_n.within_mean * 1000:9.2f} {r_n.ratio:7.2f}")
+    r_g = seam_report(pos_g, [w[0] for w in sg.timing.windows])
+    print(f"  streamer, no window frames         {r_g.seam_mean * 1000:9.2f} {r_g.within_mean * 1000:9.2f} {r_g.ratio:7.2f}")
     print(f"  streamer (inpainted context)       {r_h.seam_mean * 1000:9.2f} {r_h.within_mean * 1000:9.2f} {r_h.ratio:7.2f}")
     print("  target: seam jump about the within-window jump (ratio about 1)")
 
@@ -112,6 +123,7 @@ def main(argv=None) -> int:
     pos_1 = positions_from_normalized(s1.emitted, stats)
     print("\nreactor MPJPE against the rule follower (m):")
     print(f"  baseline: windows without context  {mpjpe(pos_n):.3f}")
+    print(f"  streamer hop {args.hop:<2d}, no window frames   {mpjpe(pos_g):.3f}")
     print(f"  streamer hop {args.hop:<2d}                    {mpjpe(pos_h):.3f}")
     print(f"  streamer hop 1                     {mpjpe(pos_1):.3f}")
     return 0

@@ -14,8 +14,10 @@ Inputs and outputs
 * ``flush()`` at the end of the stream emits the last L frames with whatever look-ahead
   remains (the actor has stopped).
 * ``emitted`` (N, 262): everything emitted so far; ``timing``: compute time per emitted frame.
-* All frames of one stream share one canonical frame (the actor's first frame), as one long
-  clip of the training data would.
+* Input and output share one frame (e.g. the actor's canonical frame at the stream's first
+  frame). Given the normalisation statistics (``stats=``), every window is generated in its
+  own canonical frame and moved back (``WindowFrame``), so the model always sees what it was
+  trained on: clips that start at the origin facing +Z.
 
 How a window is generated (inpainting with a causal network)
 -----------------------------------------------------------
@@ -57,6 +59,62 @@ import torch
 from dualflow.errors import DualFlowError
 from dualflow.flow import RectifiedPath, guided_velocity, ode_solve
 from dualflow.model import Conditions, DualFlow
+from dualflow.motion.features import FEATURE_SLICES
+from dualflow.motion.skeleton import FACE_JOINTS, N_JOINTS
+
+
+class WindowFrame:
+    """The ground-plane frame of one window, from the actor's first frame of the window.
+
+    Training clips are canonicalised at their first frame (``dualflow.motion.features``: the
+    actor's root over the origin, facing +Z, Y-up), so a window deep into a stream -- the actor
+    metres away, turned -- would be out of distribution. Each window is therefore moved into
+    its own canonical frame before generation and the result moved back:
+
+        local = R (p - o),  p = R^T local + o    for joint positions (metres),
+        local = R v,        v = R^T local        for joint velocities (metres per frame),
+
+    with o = (root_x, 0, root_z) of the actor's first window frame and R the yaw about +Y
+    taking its facing (up x across, across = (r_hip - l_hip) + (r_sho - l_sho)) to +Z. The
+    6D rotations are parent-relative and the contacts scalar, so they do not change. Only the
+    window's first actor frame is used, so the reactive causality is kept.
+    raw: de-normalised features (T, 262).
+    """
+
+    def __init__(self, first_actor_raw: torch.Tensor):
+        p = first_actor_raw[FEATURE_SLICES["positions"]].double().reshape(N_JOINTS, 3)
+        r_hip, l_hip, r_sho, l_sho = FACE_JOINTS
+        across = (p[r_hip] - p[l_hip]) + (p[r_sho] - p[l_sho])
+        up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+        forward = torch.linalg.cross(up, across)
+        forward[1] = 0.0
+        norm = torch.linalg.vector_norm(forward)
+        if norm < 1e-9:
+            self.rotation = torch.eye(3, dtype=torch.float64)
+        else:
+            f = forward / norm
+            self.rotation = torch.stack([torch.linalg.cross(up, f), up, f])  # rows: x', y, z'
+        self.origin = torch.tensor([float(p[0, 0]), 0.0, float(p[0, 2])], dtype=torch.float64)
+
+    def _apply(self, raw: torch.Tensor, inverse: bool) -> torch.Tensor:
+        out = raw.double().clone()
+        pos = out[..., FEATURE_SLICES["positions"]].reshape(*out.shape[:-1], N_JOINTS, 3)
+        vel = out[..., FEATURE_SLICES["velocities"]].reshape(*out.shape[:-1], N_JOINTS, 3)
+        if inverse:
+            pos = pos @ self.rotation + self.origin
+            vel = vel @ self.rotation
+        else:
+            pos = (pos - self.origin) @ self.rotation.T
+            vel = vel @ self.rotation.T
+        out[..., FEATURE_SLICES["positions"]] = pos.reshape(*out.shape[:-1], 3 * N_JOINTS)
+        out[..., FEATURE_SLICES["velocities"]] = vel.reshape(*out.shape[:-1], 3 * N_JOINTS)
+        return out.to(raw.dtype)
+
+    def to_local(self, raw: torch.Tensor) -> torch.Tensor:
+        return self._apply(raw, inverse=False)
+
+    def to_global(self, raw: torch.Tensor) -> torch.Tensor:
+        return self._apply(raw, inverse=True)
 
 
 @dataclass(frozen=True)
@@ -72,6 +130,7 @@ class StreamConfig:
 
     window: int = 60
     hop: int = 1
+    recanonicalize: bool = True
     max_new: int | None = None
     steps: int = 20
     method: str = "euler"
@@ -113,6 +172,8 @@ class ReactiveStreamer:
     text (1, D_text), music (1, T_track, D_music) covering every frame the stream will reach
     (sliced per window; a live track must be known L frames ahead too), retrieval (1, R, width).
     on_frame(index, frame (262,) tensor): called for each emitted frame, in order.
+    stats: the normalisation statistics of the model's training data (a ``NormStats`` or any
+    object with ``mean`` and ``std`` (262,)); needed for ``config.recanonicalize``.
     """
 
     def __init__(
@@ -121,6 +182,7 @@ class ReactiveStreamer:
         config: StreamConfig = StreamConfig(),
         cond: Conditions | None = None,
         on_frame: Callable[[int, torch.Tensor], None] | None = None,
+        stats=None,
     ):
         self.model = model
         self.config = config
@@ -149,6 +211,12 @@ class ReactiveStreamer:
         self._generator = torch.Generator().manual_seed(int(config.seed))
         self.timing = StreamTiming()
         self.path = RectifiedPath()
+        self._mean = self._std = None
+        if stats is not None and config.recanonicalize:
+            self._mean = torch.tensor(np.array(stats.mean), dtype=self.dtype, device=self.device)
+            self._std = torch.tensor(np.array(stats.std), dtype=self.dtype, device=self.device)
+            if self._mean.shape != (self.dim,) or self._std.shape != (self.dim,):
+                raise DualFlowError(f"streaming stats: mean and std must have shape ({self.dim},)")
 
     # -- state ---------------------------------------------------------------------------
 
@@ -187,6 +255,12 @@ class ReactiveStreamer:
         return self._drain(final=True)
 
     # -- generation ----------------------------------------------------------------------
+
+    def _denorm(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self._std + self._mean
+
+    def _norm(self, raw: torch.Tensor) -> torch.Tensor:
+        return (raw - self._mean) / self._std
 
     def _drain(self, final: bool) -> torch.Tensor:
         out = []
@@ -227,9 +301,15 @@ class ReactiveStreamer:
         stop = max(stop, upto)
         start = max(0, stop - self.config.window)
         n_ctx = first_new - start  # already-emitted frames kept as context
-        actor = self._actor[start:stop][None]
+        actor = self._actor[start:stop]
         eps = self._noise_rows(stop)[start:stop].to(self.device, self.dtype)[None]
-        known = self._emitted[start:first_new][None]
+        known = self._emitted[start:first_new]
+        frame = None
+        if self._mean is not None:  # move the window into its own canonical frame
+            frame = WindowFrame(self._denorm(actor[0]))
+            actor = self._norm(frame.to_local(self._denorm(actor)))
+            known = self._norm(frame.to_local(self._denorm(known)))
+        actor, known = actor[None], known[None]
 
         def project(x: torch.Tensor, t: float) -> torch.Tensor:
             if n_ctx == 0 or not self.config.inpaint:
@@ -253,6 +333,8 @@ class ReactiveStreamer:
         finally:
             self.model.train(was_training)
         new = x[0, n_ctx: n_ctx + (upto - first_new)]
+        if frame is not None:
+            new = self._norm(frame.to_global(self._denorm(new)))
         self._emitted = torch.cat([self._emitted, new], 0)
         self.timing.windows.append((first_new, new.shape[0], time.perf_counter() - tic))
         if self.on_frame is not None:

@@ -151,3 +151,89 @@ def test_bad_input_raises_clear_errors(model):
     short = ReactiveStreamer(model, StreamConfig(window=16, steps=1), Conditions(music=torch.zeros(1, 5, 35)))
     with pytest.raises(DualFlowError, match="music track"):
         short.push(_actor(n=10))
+
+
+# -- per-window canonical frames ---------------------------------------------------------------
+
+from dualflow.motion import REST_POSE  # noqa: E402
+from dualflow.motion.features import FEATURE_SLICES  # noqa: E402
+from dualflow.motion.normalization import NormStats  # noqa: E402
+from dualflow.streaming import WindowFrame  # noqa: E402
+
+REST_YUP = torch.tensor(np.asarray(REST_POSE)[:, [1, 2, 0]], dtype=torch.float64)
+POS, VEL = FEATURE_SLICES["positions"], FEATURE_SLICES["velocities"]
+
+
+def _yaw_shift(raw: torch.Tensor, angle: float, shift) -> torch.Tensor:
+    """Rigid ground-plane motion of raw features: positions R p + s, velocities R v (Y-up)."""
+    c, s_ = np.cos(angle), np.sin(angle)
+    rot = torch.tensor([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]], dtype=raw.dtype)
+    out = raw.clone()
+    p = out[..., POS].reshape(*out.shape[:-1], 22, 3) @ rot.T + torch.tensor(shift, dtype=raw.dtype)
+    v = out[..., VEL].reshape(*out.shape[:-1], 22, 3) @ rot.T
+    out[..., POS] = p.reshape(*out.shape[:-1], 66)
+    out[..., VEL] = v.reshape(*out.shape[:-1], 66)
+    return out
+
+
+def _raw_actor(n=N, seed=0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    raw = 0.3 * torch.randn(n, 262, generator=g, dtype=torch.float64)
+    raw[:, POS] += REST_YUP.reshape(66)
+    return raw
+
+
+def test_window_frame_maps_a_turned_displaced_person_to_the_origin_facing_plus_z():
+    rest = torch.zeros(262, dtype=torch.float64)
+    rest[POS] = REST_YUP.reshape(66)
+    rest[VEL] = torch.linspace(-0.1, 0.1, 66, dtype=torch.float64)
+    moved = _yaw_shift(rest, 1.1, [2.0, 0.0, -3.0])
+    frame = WindowFrame(moved)
+    local = frame.to_local(moved)
+    expected = rest.clone()
+    expected[POS] = (REST_YUP - torch.tensor([REST_YUP[0, 0], 0.0, REST_YUP[0, 2]])).reshape(66)
+    torch.testing.assert_close(local, expected)
+    torch.testing.assert_close(frame.to_global(local), moved)
+
+
+def test_streaming_with_window_frames_is_equivariant_to_moving_the_whole_scene(model):
+    """Turning and shifting the actor's whole stream turns and shifts the reactor the same way."""
+    g = torch.Generator().manual_seed(3)
+    stats = NormStats(mean=0.1 * torch.randn(262, generator=g).double().numpy(),
+                      std=(0.5 + torch.rand(262, generator=g)).double().numpy())
+    raw = _raw_actor()
+    moved = _yaw_shift(raw, 2.0, [1.5, 0.0, -0.7])
+
+    def run(raw_actor):
+        s = ReactiveStreamer(model, StreamConfig(window=16, steps=3, hop=4), stats=stats)
+        s.push(torch.from_numpy(stats.normalize(raw_actor.numpy())).float())
+        s.flush()
+        return torch.from_numpy(stats.denormalize(s.emitted.double().numpy()))
+
+    out, out_moved = run(raw), run(moved)
+    torch.testing.assert_close(out_moved, _yaw_shift(out, 2.0, [1.5, 0.0, -0.7]), atol=2e-4, rtol=1e-4)
+    # Without window frames, the same streams are not related by the motion (the test can fail).
+    plain = ReactiveStreamer(model, StreamConfig(window=16, steps=3, hop=4))
+    plain.push(torch.from_numpy(stats.normalize(moved.numpy())).float())
+    plain.flush()
+    assert not torch.allclose(torch.from_numpy(stats.denormalize(plain.emitted.double().numpy())),
+                              _yaw_shift(out, 2.0, [1.5, 0.0, -0.7]), atol=1e-2)
+
+
+def test_causality_holds_with_window_frames(model):
+    stats = NormStats(mean=np.zeros(262), std=np.ones(262))
+    actor = _raw_actor().float()
+
+    def run(a):
+        s = ReactiveStreamer(model, StreamConfig(window=16, steps=3), stats=stats)
+        for frame in a:
+            s.push(frame)
+        s.flush()
+        return s.emitted
+
+    ref = run(actor)
+    changed = actor.clone()
+    changed[14:] = _raw_actor(N - 14, seed=4).float()
+    out = run(changed)
+    assert torch.equal(out[: 14 - L], ref[: 14 - L])
+    assert not torch.allclose(out[14 - L:], ref[14 - L:])
