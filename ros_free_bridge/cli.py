@@ -23,6 +23,7 @@ from sim.errors import SimError
 
 #: Subcommand modules, in the order ``--help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
+    "demo",
     "motion",
     "train",
     "eval",

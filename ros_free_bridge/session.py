@@ -44,6 +44,7 @@ class SessionOptions:
     partner: str = "dualflow"
     model: str | None = None  #: checkpoint directory (None: the bundled one)
     steps: int = 10  #: ODE steps per streamed window
+    hop: int = 3  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -120,16 +121,17 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
             raise BridgeError(f"{files.hardware}: no Dynamixel bus (protocol 1.0 or 2.0) in the hardware config")
         port = opts.port
         if opts.emulate:
-            from ros_free_bridge.commands.servo import start_emulator
-
-            from ros_free_bridge.transports.dynamixel import servo_tick_limits
+            # In its own process, like real hardware: its Python must not compete with the
+            # control loop for the GIL. It counts any goal outside the config's limits.
             from firmware_cfg.servo_models import load_servo_model
+            from ros_free_bridge.emulators.process import EmulatorProcess
+            from ros_free_bridge.transports.dynamixel import servo_tick_limits
 
-            emu = start_emulator(bus, provisioned=True)
+            allowed = {s.id: servo_tick_limits(s, load_servo_model(s.model)) for s in bus.servos}
+            emu = EmulatorProcess([(s.id, s.model) for s in bus.servos], bus.baud, int(float(bus.protocol)),
+                                  wire_timing=False, allowed=allowed)
             stack.callback(emu.stop)
-            for s in bus.servos:  # the emulator flags any goal outside the config's limits
-                emu.allowed_range(s.id, *servo_tick_limits(s, load_servo_model(s.model)))
-            port = emu.port_path
+            port = emu.port
             info["emulator"] = emu
         return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy)
 
@@ -186,7 +188,7 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
 
-        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(steps=opts.steps), opts.text, opts.music)
+        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(steps=opts.steps, hop=opts.hop), opts.text, opts.music)
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)
@@ -227,7 +229,7 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     if hasattr(transport, "save"):
         transport.save(out / "commands.npz")
     emu = info.get("emulator")
-    if emu is not None and hasattr(emu, "violations"):
-        result.transport_info["bus_violations"] = len(emu.violations)
-        result.transport_info["bus_goal_writes"] = sum(len(v) for v in emu.goal_history.values())
+    if emu is not None and getattr(emu, "stats", None):
+        result.transport_info["bus_violations"] = emu.stats["violations"]
+        result.transport_info["bus_goal_writes"] = emu.stats["goal_writes"]
     return result

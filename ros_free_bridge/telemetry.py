@@ -131,6 +131,18 @@ class Telemetry:
     events: list[dict]
     truncated_bytes: int  #: bytes of a partial last record (a crash mid-write), ignored
 
+    def commands_trajectory(self, robot: str = ""):
+        """The commands the run sent, as a RobotTrajectory at the control rate. The root is
+        left at the origin, upright: a free robot is placed on the ground by whoever plays it."""
+        from retarget import RobotTrajectory
+
+        n = len(self.records)
+        if n < 2:
+            raise BridgeError("telemetry: fewer than 2 ticks were recorded; nothing to replay or check")
+        return RobotTrajectory(self.joint_names, self.records["command"].astype(np.float64), np.zeros((n, 3)),
+                               np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), self.rate_hz, robot,
+                               {"source": "telemetry commands"})
+
 
 def read_telemetry(path) -> Telemetry:
     path = Path(path)

@@ -30,6 +30,8 @@ def register(sub) -> None:
                    help="dualflow: generate the partner (default); imitate: the robot copies the actor")
     p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
     p.add_argument("--steps", type=int, default=10, help="ODE steps per generated window (default 10)")
+    p.add_argument("--hop", type=int, default=3,
+                   help="generate the partner every HOP frames (default 3; 1 = lowest delay, most compute)")
     p.add_argument("--text", help="a text cue for the generated partner, e.g. 'the partner mirrors the leader'")
     p.add_argument("--music", help="an audio file (wav/ogg/mp3) aligned with the actor's clock (loops if shorter)")
     p.add_argument("--transport", choices=TRANSPORTS, default="sim", help="where commands go (default: sim)")
@@ -119,7 +121,7 @@ def run(args) -> int:
 
     opts = SessionOptions(
         robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
-        model=args.model, steps=args.steps, transport=args.transport, port=args.port, emulate=args.emulate,
+        model=args.model, steps=args.steps, hop=args.hop, transport=args.transport, port=args.port, emulate=args.emulate,
         rate_hz=args.rate, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
     )

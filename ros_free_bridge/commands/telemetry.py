@@ -39,21 +39,6 @@ def plot(args) -> int:
     return 0
 
 
-def commands_trajectory(tel, robot: str):
-    """The commands the run sent, as a RobotTrajectory at the control rate (root: standing)."""
-    import numpy as np
-
-    from retarget import RobotTrajectory
-    from ros_free_bridge.errors import BridgeError
-
-    r = tel.records
-    if len(r) < 2:
-        raise BridgeError("replay: the telemetry holds fewer than 2 ticks; nothing to replay")
-    n = len(r)
-    return RobotTrajectory(tel.joint_names, r["command"].astype(float), np.zeros((n, 3)),
-                           np.tile([1.0, 0, 0, 0], (n, 1)), tel.rate_hz, robot, {"source": "telemetry commands"})
-
-
 def replay(args) -> int:
     from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.telemetry import read_telemetry
@@ -62,7 +47,7 @@ def replay(args) -> int:
     robot = args.robot or tel.meta.get("robot", "op3")
     if not args.video and not args.transport:
         raise BridgeError("replay: give --video OUT.mp4 and/or --transport sim|record|dynamixel|serial")
-    traj = commands_trajectory(tel, robot)
+    traj = tel.commands_trajectory(robot)
     if args.video:
         from sim.render import render_trajectory
 

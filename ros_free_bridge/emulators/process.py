@@ -7,8 +7,10 @@ hardware run it here instead::
     with EmulatorProcess(baud=2_000_000, wire_timing=True) as emu:
         transport = DynamixelTransport(bus, port=emu.port)
 
-Only the port path crosses the process boundary; fault injection and goal records need the
-in-process :class:`~ros_free_bridge.emulators.DynamixelBusEmulator`.
+Only the port path, the allowed goal ranges and, on :meth:`EmulatorProcess.stop`, the counts
+of goal writes and of goals outside the allowed ranges cross the process boundary; fault
+injection and full goal records need the in-process
+:class:`~ros_free_bridge.emulators.DynamixelBusEmulator`.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import multiprocessing as mp
 import os
 
 
-def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, conn) -> None:
+def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allowed, conn) -> None:
     from ros_free_bridge.emulators import DynamixelBusEmulator
 
     if nice:
@@ -27,29 +29,38 @@ def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, conn)
             pass  # raising priority needs privileges; run at the default
     emu = DynamixelBusEmulator(servos=servos, baud=baud, protocol=protocol, wire_timing=wire_timing,
                                return_delay_us=0.0).start()
+    for servo_id, (lo, hi) in (allowed or {}).items():
+        emu.allowed_range(servo_id, lo, hi)
     conn.send(emu.port_path)
     conn.recv()  # wait for "stop"
     emu.stop()
+    conn.send({"goal_writes": sum(len(v) for v in emu.goal_history.values()), "violations": len(emu.violations)})
 
 
 class EmulatorProcess:
-    """``servos``: IDs or (id, model) pairs (default IDs 1-20, XM430-W350)."""
+    """``servos``: IDs or (id, model) pairs (default IDs 1-20, XM430-W350). ``allowed``:
+    {servo id: (lo, hi) ticks}; goals outside are counted as violations."""
 
     def __init__(self, servos=range(1, 21), baud: int = 2_000_000, protocol: int = 2, wire_timing: bool = True,
-                 nice: int = 0):
+                 nice: int = 0, allowed: dict | None = None):
         ctx = mp.get_context("fork")
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_child, args=(list(servos), baud, protocol, wire_timing, nice, child),
+        self._proc = ctx.Process(target=_child, args=(list(servos), baud, protocol, wire_timing, nice, allowed, child),
                                  daemon=True)
         self._proc.start()
         self.port: str = self._conn.recv()
+        self.stats: dict = {}
 
-    def stop(self) -> None:
+    def stop(self) -> dict:
+        """Stop the emulator; returns (and keeps in ``stats``) its goal-write and violation counts."""
         if self._proc.is_alive():
             self._conn.send("stop")
+            if self._conn.poll(5):
+                self.stats = self._conn.recv()
             self._proc.join(timeout=5)
             if self._proc.is_alive():
                 self._proc.kill()
+        return self.stats
 
     def __enter__(self) -> "EmulatorProcess":
         return self
