@@ -15,9 +15,10 @@ Inputs and outputs
   remains (the actor has stopped).
 * ``emitted`` (N, 262): everything emitted so far; ``timing``: compute time per emitted frame.
 * Input and output share one frame (e.g. the actor's canonical frame at the stream's first
-  frame). Given the normalisation statistics (``stats=``), every window is generated in its
-  own canonical frame and moved back (``WindowFrame``), so the model always sees what it was
-  trained on: clips that start at the origin facing +Z.
+  frame). With ``StreamConfig(recanonicalize=True)`` and the normalisation statistics
+  (``stats=``), every window is generated in its own canonical frame and moved back
+  (``WindowFrame``), so the model sees what it was trained on: clips that start at the
+  origin facing +Z (opt-in; see ``StreamConfig``).
 
 How a window is generated (inpainting with a causal network)
 -----------------------------------------------------------
@@ -130,7 +131,7 @@ class StreamConfig:
 
     window: int = 60
     hop: int = 1
-    recanonicalize: bool = True
+    recanonicalize: bool = False
     max_new: int | None = None
     steps: int = 20
     method: str = "euler"

@@ -205,7 +205,7 @@ def test_streaming_with_window_frames_is_equivariant_to_moving_the_whole_scene(m
     moved = _yaw_shift(raw, 2.0, [1.5, 0.0, -0.7])
 
     def run(raw_actor):
-        s = ReactiveStreamer(model, StreamConfig(window=16, steps=3, hop=4), stats=stats)
+        s = ReactiveStreamer(model, StreamConfig(window=16, steps=3, hop=4, recanonicalize=True), stats=stats)
         s.push(torch.from_numpy(stats.normalize(raw_actor.numpy())).float())
         s.flush()
         return torch.from_numpy(stats.denormalize(s.emitted.double().numpy()))
@@ -225,7 +225,7 @@ def test_causality_holds_with_window_frames(model):
     actor = _raw_actor().float()
 
     def run(a):
-        s = ReactiveStreamer(model, StreamConfig(window=16, steps=3), stats=stats)
+        s = ReactiveStreamer(model, StreamConfig(window=16, steps=3, recanonicalize=True), stats=stats)
         for frame in a:
             s.push(frame)
         s.flush()
