@@ -32,6 +32,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "render",
     "view",
     "retarget",
+    "retarget_check",
     "run",
     "telemetry",
 )

@@ -1,0 +1,236 @@
+"""Offline retarget-and-check over a folder: can the robot do each clip, and if not, why.
+
+Each motion file (BVH, our npz, InterGen / HumanML3D npy; for two-person files the reactor,
+the robot's role) goes through:
+
+1. load, resample to 30 fps;
+2. offline retargeting (CasADi/IPOPT: limits, foot contacts, self-collision, balance), which
+   may find the clip infeasible at its speed and say how much slower it would have to be;
+3. the physics check in MuJoCo (falls, torque saturation, speed limits, collisions, balance).
+
+One row per clip: ``status`` is ``pass``, ``fail`` (with the stage, the reason and the time of
+the first failure) or ``error`` (a file that could not be read, with the message). A clip that
+fails or crashes never stops the batch. Clips run in parallel processes, each loading the
+robot (and its compiled CasADi functions) once.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+MOTION_SUFFIXES = (".bvh", ".npz", ".npy")
+COLUMNS = ("clip", "status", "stage", "reason", "first_failure_s", "frames", "duration_s", "retime",
+           "keypoint_error_mm", "skate_share", "jerk_ratio", "limit_violations", "check_reason", "seconds")
+
+
+@dataclass
+class ClipResult:
+    clip: str
+    status: str = "error"  #: pass | fail | error
+    stage: str = ""  #: load | retarget | check
+    reason: str = ""
+    first_failure_s: float | None = None
+    frames: int = 0
+    duration_s: float = 0.0
+    retime: float = 1.0
+    keypoint_error_mm: float | None = None
+    skate_share: float | None = None
+    jerk_ratio: float | None = None
+    limit_violations: int | None = None
+    check_reason: str = ""
+    seconds: float = 0.0
+    files: dict = field(default_factory=dict)
+
+    def row(self) -> dict:
+        d = asdict(self)
+        return {k: d[k] for k in COLUMNS}
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    robot: str = "op3"
+    out: Path = Path("out/retarget_check")
+    fps: float = 30.0
+    balance: bool = True
+    auto_retime: bool = False
+    fixed_base: bool | None = None  #: None: the robot's own (fixed for upper-body robots)
+    compile: bool = True
+
+
+def find_motion_files(folder) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        from ros_free_bridge.errors import BridgeError
+
+        raise BridgeError(f"{folder}: not a folder; give a folder of motion files (BVH, npz, npy)")
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MOTION_SUFFIXES)
+
+
+_ROBOT = {}
+
+
+def _robot(cfg: BatchConfig):
+    """The retarget robot and the retargeter, built once per worker process."""
+    key = (cfg.robot, cfg.fixed_base, cfg.balance, cfg.auto_retime, cfg.compile)
+    if key not in _ROBOT:
+        from retarget.offline import OfflineConfig, OfflineRetargeter
+        from retarget.robot import load_robot
+        from sim.robots import ROBOTS
+
+        fixed = cfg.fixed_base if cfg.fixed_base is not None else (ROBOTS[cfg.robot].fixed_base if cfg.robot in ROBOTS else False)
+        robot = load_robot(cfg.robot, fixed_base=fixed)
+        retargeter = OfflineRetargeter(robot, OfflineConfig(balance=cfg.balance and not fixed, auto_retime=cfg.auto_retime,
+                                                            compile=cfg.compile))
+        _ROBOT[key] = (robot, retargeter, fixed)
+    return _ROBOT[key]
+
+
+def check_clip(path, cfg: BatchConfig) -> ClipResult:
+    """Retarget and check one file; never raises (an unexpected error becomes an 'error' row
+    with its traceback written beside the clip's outputs)."""
+    import time
+
+    from dualflow.errors import DualFlowError
+    from retarget.errors import RetargetError
+    from sim.errors import SimError
+
+    path = Path(path)
+    res = ClipResult(path.name)
+    out = Path(cfg.out) / "clips" / path.stem
+    t0 = time.monotonic()
+    try:
+        res.stage = "load"
+        motion = _load(path, cfg.fps)
+        res.frames, res.duration_s = motion.n_frames, round(motion.duration, 3)
+        res.stage = "retarget"
+        robot, retargeter, fixed = _robot(cfg)
+        traj = retargeter.retarget(motion)
+        res.retime = float(traj.meta.get("retime", 1.0))
+        _retarget_report(robot, traj, motion, res, out)
+        res.stage = "check"
+        _physics_check(traj, cfg, fixed, res, out)
+    except (DualFlowError, RetargetError, SimError) as exc:
+        res.status, res.reason = ("error" if res.stage == "load" else "fail"), str(exc)
+    except Exception as exc:  # noqa: BLE001 - one broken clip must not stop the batch
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "traceback.txt").write_text(traceback.format_exc())
+        res.status, res.reason = "error", f"unexpected {type(exc).__name__}: {exc} (traceback in {out / 'traceback.txt'})"
+    res.seconds = round(time.monotonic() - t0, 2)
+    return res
+
+
+def _load(path: Path, fps: float):
+    from dualflow.motion import TwoPersonMotion
+    from dualflow.motion.io import load_any
+
+    motion = load_any(path)
+    if isinstance(motion, TwoPersonMotion):
+        motion = motion.reactor
+    motion = motion.resample(fps)
+    return motion.replace(name=path.stem)
+
+
+def _retarget_report(robot, traj, motion, res: ClipResult, out: Path) -> None:
+    from retarget.report import evaluate
+    from retarget.targets import make_targets
+
+    src = motion
+    if res.retime != 1.0:
+        from dualflow.motion import Motion
+
+        src = Motion(motion.positions, motion.fps / res.retime, name=motion.name).resample(motion.fps)
+    report = evaluate(robot, traj, make_targets(robot, src), clip=motion.name)
+    out.mkdir(parents=True, exist_ok=True)
+    traj.save_npz(out / "trajectory.npz")
+    report.save(out, "retarget")
+    res.keypoint_error_mm = round(report.keypoint_error_mean_mm, 1)
+    res.skate_share = round(report.skate_share, 4)
+    res.jerk_ratio = round(report.jerk_ratio, 3)
+    res.limit_violations = report.limit_violations + report.velocity_violations
+    res.files["trajectory"] = str(out / "trajectory.npz")
+    if not report.passed:
+        res.status, res.stage = "fail", "retarget"
+        res.reason = (f"retarget report: {report.limit_violations} limit / {report.velocity_violations} velocity "
+                      f"violations, skate {100 * report.skate_share:.1f}% of contact frames, "
+                      f"penetration {report.penetration_mm:.1f} mm")
+
+
+def _physics_check(traj, cfg: BatchConfig, fixed: bool, res: ClipResult, out: Path) -> None:
+    from sim.check import CheckConfig, check_trajectory
+    from sim.report import write_report
+
+    check = check_trajectory(traj, CheckConfig(mode="fixed" if fixed else "free"), robot=cfg.robot)
+    write_report(check, out, "check")
+    res.check_reason = "" if check.passed else check.reason
+    if res.status == "fail":  # the retarget report already failed: keep that as the reason
+        return
+    if check.passed:
+        res.status, res.stage = "pass", ""
+    else:
+        res.status, res.reason = "fail", check.reason
+        res.first_failure_s = check.first_failure_time
+
+
+def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool = True) -> list[ClipResult]:
+    """Check every file; ``jobs`` worker processes (default: all cores). Rows in file order."""
+    import multiprocessing as mp
+
+    from tqdm import tqdm
+
+    files = [Path(f) for f in files]
+    jobs = max(1, min(jobs or os.cpu_count() or 1, len(files) or 1))
+    bar = tqdm(total=len(files), desc="retarget-check", unit="clip", disable=not progress)
+    results: dict[str, ClipResult] = {}
+    if jobs == 1:
+        for f in files:
+            results[str(f)] = check_clip(f, cfg)
+            bar.update()
+    else:
+        with mp.get_context("fork").Pool(jobs) as pool:
+            for f, res in zip(files, pool.imap(_check_star, [(f, cfg) for f in files])):
+                results[str(f)] = res
+                bar.update()
+    bar.close()
+    return [results[str(f)] for f in files]
+
+
+def _check_star(args):
+    return check_clip(*args)
+
+
+def write_results(results: list[ClipResult], out: Path) -> dict[str, Path]:
+    """results.csv and results.md (complete or absent: written under a temporary name)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path, md_path = out / "results.csv", out / "results.md"
+    tmp = csv_path.with_name(csv_path.name + ".partial")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        for r in results:
+            w.writerow(r.row())
+    tmp.replace(csv_path)
+    tmp = md_path.with_name(md_path.name + ".partial")
+    tmp.write_text(markdown_table(results))
+    tmp.replace(md_path)
+    return {"csv": csv_path, "markdown": md_path}
+
+
+def markdown_table(results: list[ClipResult]) -> str:
+    n_pass = sum(r.status == "pass" for r in results)
+    lines = [f"# Retarget-and-check: {n_pass} of {len(results)} clips pass", "",
+             "| clip | status | stage | first failure (s) | frames | retime | kp err (mm) | skate | jerk ratio | reason |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        cells = [r.clip, r.status.upper(), r.stage or "-", _fmt(r.first_failure_s), str(r.frames), _fmt(r.retime),
+                 _fmt(r.keypoint_error_mm), _fmt(r.skate_share), _fmt(r.jerk_ratio), (r.reason or "-").replace("|", "/")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:g}" if isinstance(v, float) else str(v)
