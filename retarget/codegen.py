@@ -121,7 +121,8 @@ def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = T
         opts["hess_lag"] = compiled_hess
         if not hess_info.startswith("compiled"):
             return ca.nlpsol(name, "ipopt", nlp, opts), hess_info
-    graph = ca.Function("nlp_graph", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
+    sym = type(nlp["x"])
+    graph = ca.Function("nlp_graph", [nlp["x"], nlp.get("p", sym(0, 1))], [nlp["f"], nlp.get("g", sym(0, 1))])
     so_file = cache_dir() / f"{name}_{key}_{graph_hash(graph, *( [hess_lag] if hess_lag is not None else []))}.so"
     if not so_file.exists():
         gen_opts = dict(opts)

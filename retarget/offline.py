@@ -59,7 +59,7 @@ class OfflineConfig:
     overlap: int = 10
     n_fix: int = 3
     accel_weight: float = 1e-7
-    jerk_weight: float = 1e-10
+    jerk_weight: float = 1e-9
     posture_weight: float | None = None
     fix_weight: float = 1e4
     contacts: bool = True

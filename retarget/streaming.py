@@ -41,7 +41,7 @@ from retarget.trajectory import RobotTrajectory
 class StreamingConfig:
     """Weights (see the module docstring) and iteration counts."""
 
-    accel_weight: float = 2e-7
+    accel_weight: float = 1e-6
     posture_weight: float | None = None  # None: the profile's
     contact_weight: float = 30.0
     ground_weight: float = 30.0
