@@ -57,7 +57,7 @@ Design choices where the paper is silent (see also the issue notes)
 * Motion cross-attention keys/values (eq. 13) come from the other person's latent passed
   through a plain LayerNorm (the paper writes the raw latent; normalising keeps attention
   logits bounded over 20 blocks). A final LayerNorm precedes each output linear; the output
-  linears are zero-initialised so the untrained field is v = 0.
+  linears are zero-initialised (with velocity prediction the untrained field is v = 0).
 * Gates gamma_k of the convolutions start at 0.1 each.
 """
 
