@@ -33,7 +33,7 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
-from retarget.targets import check_motion, make_targets
+from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
 
@@ -91,6 +91,9 @@ class StreamingRetargeter:
         self.config = config
         self._build()
         self.reset()
+        #: scales human frames in :meth:`step_human`; REST_POSE proportions until replaced by
+        #: one fitted on the person (``KeypointScaler(robot, first_second_of_positions)``)
+        self.scaler = KeypointScaler(robot)
 
     def _build(self) -> None:
         rb, cfg = self.robot, self.config
@@ -257,6 +260,19 @@ class StreamingRetargeter:
         self._x2 = self._x1 if not first else x
         self._x1 = x
         return x
+
+    def step_human(self, positions: np.ndarray, contact=(False, False)) -> np.ndarray:
+        """One human frame (22, 3) m (SMPL-22, Z up) → configuration x (nx,), via ``self.scaler``."""
+        positions = np.asarray(positions, dtype=np.float64)
+        if positions.shape != (22, 3) or not np.all(np.isfinite(positions)):
+            raise RetargetError(f"streaming step_human: positions must be finite with shape (22, 3), got {positions.shape}")
+        return self.step(self.scaler.targets(positions[None])[0], contact)
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x (nx,) → joint angles (n,) rad in the robot's joint order, root position (3,) m,
+        root quaternion (4,) w, x, y, z."""
+        pos, quat = self.robot.kin.root_pose(np.asarray(x)[None])
+        return np.array(x[self.robot.n_root:]), pos[0], quat[0]
 
     def run(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
         """Retarget a whole clip frame by frame (as the live bridge would). ``scaler``: a

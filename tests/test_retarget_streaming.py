@@ -140,3 +140,14 @@ def test_bad_input_is_a_clear_error():
         s.run(Motion(np.repeat(REST_POSE[None], 4, axis=0), fps=60.0))
     with pytest.raises(RetargetError, match="targets must be finite"):
         s.step(np.full((rb.n_keypoints, 3), np.nan))
+
+
+def test_live_frames_go_straight_from_human_positions():
+    rb = toy_robot()
+    s = StreamingRetargeter(rb, 30.0, StreamingConfig(compile=False))
+    x = s.step_human(REST_POSE)
+    q, root_pos, root_quat = s.split(x)
+    assert q.shape == (rb.kin.n_joints,) and root_pos.shape == (3,) and np.isclose(np.linalg.norm(root_quat), 1.0)
+    assert abs(root_pos[2] - rb.standing_root_height) < 0.03
+    with pytest.raises(RetargetError, match=r"\(22, 3\)"):
+        s.step_human(np.zeros((21, 3)))
