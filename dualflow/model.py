@@ -454,11 +454,19 @@ class DualFlow(nn.Module):
         return self.time_mlp(sinusoidal_encoding(t * 1000.0, self.config.width))
 
     def text_latent(self, cond: Conditions, batch: int, device) -> torch.Tensor:
-        """(B, W): MLP(text), or the learned null where text is absent or dropped."""
+        """(B, W): MLP(sqrt(D_text) text / |text|), or the learned null where text is absent or dropped.
+
+        Sentence encoders return unit-norm vectors (MiniLM, CLIP after normalising), whose
+        components are ~1/sqrt(D_text) = 0.05: fed as they are, the text latent is ~20x smaller
+        than the time embedding it is added to, and a small model learns text-dependent motion
+        (e.g. which follower rule a prompt names) only very slowly. Rescaling to unit RMS per
+        component fixes the scale whatever the encoder's norm (a zero vector stays zero).
+        """
         null = self.null_text.expand(batch, -1)
         if cond.text is None:
             return null
-        z = self.text_mlp(cond.text)
+        text = F.normalize(cond.text, dim=-1) * math.sqrt(cond.text.shape[-1])
+        z = self.text_mlp(text)
         if cond.drop_text is not None:
             z = torch.where(cond.drop_text.to(device)[:, None], null, z)
         return z
