@@ -133,25 +133,23 @@ class RetargetStage:
 
     def __init__(self, robot, fps: float, joint_names=None):
         from retarget.streaming import StreamingRetargeter
-        from retarget.targets import KeypointScaler
 
         self.robot = robot
-        self.scaler = KeypointScaler(robot)  # REST_POSE proportions: a live stream has no clip to measure
+        # its default keypoint scaler uses REST_POSE proportions: a live stream has no clip to measure
         self.streamer = StreamingRetargeter(robot, fps)
         names = tuple(joint_names) if joint_names is not None else tuple(robot.joint_names)
         missing = [n for n in names if n not in robot.joint_names]
         if missing:
             raise BridgeError(f"retarget stage: the robot model has no joints {missing}; the hardware config and the MJCF disagree")
         self.joint_names = names
-        self._index = np.array([robot.joint_names.index(n) for n in names]) + robot.n_root
+        self._index = np.array([robot.joint_names.index(n) for n in names])
 
     def step(self, positions: np.ndarray, contacts: np.ndarray | None = None) -> np.ndarray:
         from retarget.targets import side_contacts
 
-        targets = self.scaler.targets(np.asarray(positions, dtype=np.float64)[None])[0]
         side = (False, False) if contacts is None else tuple(bool(c) for c in side_contacts(np.asarray(contacts)[None])[0])
-        x = self.streamer.step(targets, side)
-        return x[self._index]
+        q, _, _ = self.streamer.split(self.streamer.step_human(positions, side))
+        return q[self._index]
 
 
 class PartnerPipeline:
