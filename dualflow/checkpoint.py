@@ -73,7 +73,12 @@ class Checkpoint:
 
     @property
     def text_encoder(self) -> str:
+        """Id of the text encoder the model was trained with (config.json "text_encoder")."""
         return str(self.meta.get("text_encoder", ""))
+
+    def make_text_encoder(self, cache_dir: str | os.PathLike | None = None):
+        """That encoder, ready to embed prompts: ``encode(texts) -> (N, text_dim)``."""
+        return checkpoint_text_encoder(self.meta, self.config.text_dim, cache_dir)
 
     def build_model(self, device: str | torch.device = "cpu", use_ema: bool = True) -> DualFlow:
         """The network in eval mode on ``device``, float32, EMA weights when present and asked."""
@@ -88,6 +93,19 @@ class Checkpoint:
                 f"(missing {missing[:3]}, unexpected {unexpected[:3]}); the checkpoint is from another model version"
             )
         return model.to(device).eval()
+
+
+def checkpoint_text_encoder(meta: dict, dim: int, cache_dir: str | os.PathLike | None = None):
+    """The text encoder a checkpoint was trained with (``dualflow.text.TextEncoder``).
+
+    meta["text_encoder_name"]: "minilm" or "hashed" (checkpoints without the field used the
+    hashed bag-of-words stand-in); dim: the model's text_dim; cache_dir: embedding cache.
+    Embed prompts for this checkpoint's model with ``encoder.encode(texts)``.
+    """
+    from dualflow.text import make_text_encoder
+
+    name = str(meta.get("text_encoder_name", "hashed"))
+    return make_text_encoder(name, dim=int(dim), cache_dir=cache_dir)
 
 
 def ema_module_state(ema_state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -34,8 +34,11 @@ encoder replaces this one function and gets a new id.
 from __future__ import annotations
 
 import hashlib
+import json
+import os
 import re
 from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -152,8 +155,36 @@ def clip_seed(config: SyntheticDataConfig, split: str, index: int) -> int:
     return int(config.seed) * 1_000_000 + (500_000 if split == "val" else 0) + int(index)
 
 
-def build_split(config: SyntheticDataConfig, split: str = "train") -> SyntheticSplit:
-    """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core)."""
+def _cache_file(config: SyntheticDataConfig, split: str, cache_dir: Path) -> Path:
+    """Cache name from the config, the split and the source of the generator and encoder
+    (editing either invalidates the cache)."""
+    import dualflow.motion.features as features_module
+    import dualflow.synthetic as synthetic_module
+
+    h = hashlib.sha1(json.dumps([config.to_dict(), split], sort_keys=True).encode())
+    for module in (synthetic_module, features_module):
+        h.update(Path(module.__file__).read_bytes())
+    return cache_dir / f"synthetic_{split}_{h.hexdigest()[:16]}.npz"
+
+
+def build_split(config: SyntheticDataConfig, split: str = "train", cache_dir: str | os.PathLike | None = None) -> SyntheticSplit:
+    """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core).
+
+    cache_dir: when given, the split is read from / written to an npz there (no pickle:
+    texts are stored as a unicode array), keyed by the config and the generator's source.
+    """
+    if cache_dir is not None:
+        path = _cache_file(config, split, Path(cache_dir))
+        if path.is_file():
+            with np.load(path, allow_pickle=False) as z:
+                return SyntheticSplit(z["features"], [str(t) for t in z["texts"]], z["beats"], z["rules"], z["seeds"])
+        out = build_split(config, split)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".partial.npz")
+        np.savez(tmp, features=out.features, texts=np.array(out.texts, dtype=np.str_), beats=out.beats,
+                 rules=out.rules, seeds=out.seeds)
+        os.replace(tmp, path)
+        return out
     n = int(config.n_clips if split == "train" else config.val_clips)
     frames = int(config.frames)
     seconds = (frames + 1) / float(config.fps)
@@ -221,15 +252,18 @@ class DuetDataset(torch.utils.data.Dataset):
 
 
 def make_datasets(
-    config: SyntheticDataConfig, text_dim: int, text_embedder: TextEmbedder = template_text_embedding
+    config: SyntheticDataConfig,
+    text_dim: int,
+    text_embedder: TextEmbedder = template_text_embedding,
+    cache_dir: str | os.PathLike | None = None,
 ) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
-    """(train, val or None, NormStats fitted on the train split's raw features)."""
-    train = build_split(config, "train")
+    """(train, val or None, NormStats fitted on the train split's raw features); cache_dir: see build_split."""
+    train = build_split(config, "train", cache_dir)
     stats = NormStats.from_features(train.features)
     train_ds = DuetDataset(train, stats, text_dim, text_embedder)
     val_ds = None
     if int(config.val_clips) > 0:
-        val_ds = DuetDataset(build_split(config, "val"), stats, text_dim, text_embedder)
+        val_ds = DuetDataset(build_split(config, "val", cache_dir), stats, text_dim, text_embedder)
     return train_ds, val_ds, stats
 
 

@@ -56,12 +56,13 @@ from safetensors.torch import save_file
 from torch.nn.parallel import DistributedDataParallel
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from dualflow.checkpoint import load_checkpoint, save_checkpoint
-from dualflow.data import TEXT_ENCODER_ID, SyntheticDataConfig, make_datasets
+from dualflow.checkpoint import checkpoint_text_encoder, load_checkpoint, save_checkpoint
+from dualflow.data import SyntheticDataConfig, make_datasets
 from dualflow.errors import DualFlowError
 from dualflow.flow import TimeSampler, flow_training_step
 from dualflow.losses import LossWeights, step_losses
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, sample_condition_drop
+from dualflow.text import as_text_embedder
 
 MUSIC_SOURCES = ("none", "beats")
 #: "paper": L_flow + triplet + geometric + interaction losses (dualflow.losses, eq. 10);
@@ -84,7 +85,8 @@ class TrainConfig:
     "beats" (the synthetic beat track as per-frame music features; needs model.music_dim = 4).
     steps, batch_size (per process), lr, weight_decay, warmup_steps, betas, grad_clip
     (0 = off), ema_decay (0 = off), reactive_prob, look_ahead (None = model default),
-    time_sampler ("uniform" | "logit_normal"), cfg_drop (classifier-free-guidance drops),
+    time_sampler ("uniform" | "logit_normal" with time_mean, time_std: t = sigmoid(N(mean, std));
+    a negative mean shifts training towards the noise end, t = 0), cfg_drop (classifier-free-guidance drops),
     losses ("paper": flow + triplet + geometric + interaction terms of dualflow.losses with
     the synthetic rule as the triplet label; "flow": the flow loss alone), loss_weights
     (LossWeights overrides, e.g. {"sync": 0}).
@@ -95,7 +97,10 @@ class TrainConfig:
     save_replicas, export_dtype ("float32" | "float16" for final/model.safetensors),
     max_minutes (0 = no limit): stop after this much wall time (checked every step, agreed
     across ranks), then checkpoint and export as at the end; the step reached is in the
-    checkpoint, so ``--steps`` reproduces the run.
+    checkpoint, so ``--steps`` reproduces the run. data_cache: a directory where the generated
+    synthetic splits are kept as npz (empty = regenerate every run). text_encoder: "hashed"
+    (the bag-of-words stand-in, dualflow.data.template_text_embedding) or "minilm"
+    (dualflow.text, 384-d; model.text_dim must match); text_cache: its embedding cache dir.
     """
 
     preset: str = "small"
@@ -113,6 +118,8 @@ class TrainConfig:
     reactive_prob: float = 0.5
     look_ahead: int | None = None
     time_sampler: str = "uniform"
+    time_mean: float = 0.0
+    time_std: float = 1.0
     cfg_drop: bool = True
     losses: str = "paper"
     loss_weights: dict = field(default_factory=dict)
@@ -128,6 +135,9 @@ class TrainConfig:
     progress: bool = True
     save_replicas: bool = False
     max_minutes: float = 0.0
+    data_cache: str = ""
+    text_encoder: str = "hashed"
+    text_cache: str = ""
     export_dtype: str = "float32"
 
     def __post_init__(self) -> None:
@@ -154,12 +164,13 @@ class TrainConfig:
             (self.ckpt_every >= 0 and self.val_every >= 0, "ckpt_every and val_every must be >= 0"),
             (self.keep_last >= 1, "keep_last must be >= 1"),
             (self.max_minutes >= 0, "max_minutes must be >= 0 (0 = no limit)"),
+            (self.text_encoder in ("hashed", "minilm"), "text_encoder must be 'hashed' or 'minilm'"),
             (self.export_dtype in ("float32", "float16", "bfloat16"), "export_dtype must be float32, float16 or bfloat16"),
         ]
         for ok, message in checks:
             if not ok:
                 raise DualFlowError(f"train config: {message}")
-        TimeSampler(self.time_sampler)
+        TimeSampler(self.time_sampler, self.time_mean, self.time_std)
         self.loss_weights_config()
         self.model_config()
         self.data_config()
@@ -384,7 +395,11 @@ class Trainer:
         self.out_dir = Path(config.out_dir)
         self.model_config = config.model_config()
         self.data_config = config.data_config()
-        self.train_set, self.val_set, self.stats = make_datasets(self.data_config, self.model_config.text_dim)
+        self.text_encoder = checkpoint_text_encoder(
+            {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None)
+        self.train_set, self.val_set, self.stats = make_datasets(
+            self.data_config, self.model_config.text_dim, as_text_embedder(self.text_encoder),
+            cache_dir=config.data_cache or None)
 
         torch.manual_seed(step_seed(config.seed, 0xA11CE))  # identical initial weights on every rank
         self.model = DualFlow(self.model_config).to(self.ctx.device)
@@ -404,7 +419,7 @@ class Trainer:
             # find_unused_parameters: a reactive step leaves the actor's output head and
             # (with music absent) the music encoder out of the graph.
             self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=True)
-        self.time_sampler = TimeSampler(config.time_sampler)
+        self.time_sampler = TimeSampler(config.time_sampler, config.time_mean, config.time_std)
         self.loss_weights = config.loss_weights_config()
         self.stats_mean = torch.tensor(self.stats.mean, dtype=torch.float32, device=self.ctx.device)
         self.stats_std = torch.tensor(self.stats.std, dtype=torch.float32, device=self.ctx.device)
@@ -415,7 +430,8 @@ class Trainer:
 
     def _meta(self) -> dict:
         return {
-            "text_encoder": TEXT_ENCODER_ID,
+            "text_encoder": self.text_encoder.encoder_id,
+            "text_encoder_name": self.config.text_encoder,
             "music": self.config.music,
             "step": self.step,
             "train": self.config.to_dict(),
@@ -657,6 +673,12 @@ def run_from_args(args: argparse.Namespace) -> int:
         from dualflow.model import parameter_report
 
         print(parameter_report())
+        return 0
+    if args.evaluate:
+        from dualflow.evaluation.reactor import evaluate_checkpoint
+
+        errors = evaluate_checkpoint(None if args.evaluate == "bundled" else args.evaluate, n_clips=args.eval_clips)
+        print(errors.summary())
         return 0
     overrides = list(args.overrides)
     if args.out_dir:

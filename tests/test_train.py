@@ -120,6 +120,20 @@ def test_dataset_is_normalised_with_training_stats():
     assert [int(r) for r in train_ds.rule] == [0, 1, 2, 3, 0, 1, 2, 3]
 
 
+def test_split_cache_round_trips_without_pickle(tmp_path):
+    cfg = SyntheticDataConfig(n_clips=5, frames=12)
+    fresh = build_split(cfg, "train", tmp_path)
+    (cache,) = tmp_path.glob("synthetic_train_*.npz")
+    with np.load(cache, allow_pickle=False) as z:
+        assert z["texts"].dtype.kind == "U"
+    again = build_split(cfg, "train", tmp_path)
+    np.testing.assert_array_equal(fresh.features, again.features)
+    np.testing.assert_array_equal(fresh.beats, again.beats)
+    assert fresh.texts == again.texts and list(fresh.seeds) == list(again.seeds)
+    build_split(SyntheticDataConfig(n_clips=5, frames=12, seed=1), "train", tmp_path)
+    assert len(list(tmp_path.glob("synthetic_train_*.npz"))) == 2  # another config, another file
+
+
 # -- checkpoints ----------------------------------------------------------------------------
 
 
@@ -285,6 +299,9 @@ def test_cli_trains(tmp_path, capsys):
     assert ck.meta["train"]["steps"] == 2 and ck.meta["data"]["frames"] == 12
     assert isinstance(model, DualFlow) and not model.training
     assert load_file(str(tmp_path / "out" / "final" / "model.safetensors"))
+    assert main(["train", "--evaluate", str(tmp_path / "out" / "final"), "--eval-clips", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "reactor MPJPE over 2 clips" in out and "actor masked" in out and "static mean pose" in out
 
 
 def test_wall_clock_budget_stops_and_still_exports(tmp_path):
@@ -310,3 +327,15 @@ def test_x0_prediction_forms_the_straight_path_velocity():
     torch.testing.assert_close(RectifiedPath().x0_from_velocity(x_t[:1], t[:1], v[:1]), x0_hat[:1])
     with pytest.raises(DualFlowError, match="prediction must be one of"):
         DualFlowConfig.preset("tiny", prediction="eps")
+
+
+@pytest.mark.parametrize("name", ["hashed", "minilm"])
+def test_the_text_encoder_is_recorded_and_rebuilt_from_the_checkpoint(tmp_path, name):
+    trainer = Trainer(fast_config(tmp_path, "steps=1", "model.text_dim=384", f"text_encoder={name}"))
+    trainer.run()
+    ck = load_checkpoint(tmp_path / "final")
+    assert ck.meta["text_encoder_name"] == name and ck.text_encoder == trainer.text_encoder.encoder_id
+    encoder = ck.make_text_encoder()
+    assert encoder.encoder_id == ck.text_encoder
+    # the training data was embedded by exactly this encoder
+    np.testing.assert_allclose(encoder.encode(trainer.train_set.texts[:3]), trainer.train_set.text[:3].numpy(), atol=1e-5)

@@ -99,3 +99,28 @@ def reactor_errors(
         errors[masked] = mpjpe(np.concatenate(preds), truth)
     static = mpjpe(np.broadcast_to(mean_pose, truth.shape), truth)
     return ReactorErrors(errors[False], errors[True], static, len(dataset), steps)
+
+
+def evaluate_checkpoint(path=None, *, n_clips: int = 32, steps: int = 20, seed: int = 0) -> ReactorErrors:
+    """Reactor errors of a checkpoint (default: the bundled one) on ``n_clips`` synthetic
+    validation clips of the checkpoint's own data config (seeds disjoint from training),
+    normalised with the checkpoint's statistics; the static pose is the mean reactor pose of
+    as many training clips. Music is the beat track when the checkpoint was trained with it."""
+    from dataclasses import replace
+
+    from dualflow.checkpoint import load_model
+    from dualflow.data import DuetDataset, SyntheticDataConfig, build_split
+
+    model, ck = load_model(path)
+    data = ck.meta.get("data")
+    if not isinstance(data, dict):
+        from dualflow.errors import DualFlowError
+
+        raise DualFlowError(f"{ck.path}: config.json has no 'data' section; it was not trained on synthetic duets")
+    cfg = replace(SyntheticDataConfig.from_dict(data), n_clips=n_clips, val_clips=n_clips)
+    from dualflow.text import as_text_embedder
+
+    embed = as_text_embedder(ck.make_text_encoder())
+    val = DuetDataset(build_split(cfg, "val"), ck.stats, model.config.text_dim, embed)
+    train = DuetDataset(build_split(cfg, "train"), ck.stats, model.config.text_dim, embed)
+    return reactor_errors(model, val, train, steps=steps, seed=seed, music=ck.meta.get("music") == "beats")
