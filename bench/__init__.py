@@ -1,0 +1,1 @@
+"""Benchmark scripts (not installed with the package): one per issue, and ``run_all`` for all of them."""
