@@ -10,7 +10,7 @@
    3D axes (the usual ``Axes3D`` approach), writing to the same encoder. The issue's
    target: "a person can look at any motion in seconds".
 
-    python bench/motion_io.py [--seconds 10]
+    python bench/motion_io.py [--seconds 10] [--quick]
 """
 
 from __future__ import annotations
@@ -25,12 +25,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.table import NA, Row, parse_args, script_main  # noqa: E402
 from dualflow.motion import PARENTS  # noqa: E402
 from dualflow.motion.io import motion_to_bvh, read_bvh  # noqa: E402
 from dualflow.motion.preview import PreviewConfig, render_preview  # noqa: E402
 from dualflow.synthetic import make_duet  # noqa: E402
 
 CMU = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap" / "cmu" / "18_01.bvh"
+QUICK = ["--seconds", "2"]
 
 
 def loop_fk(clip) -> np.ndarray:
@@ -97,10 +99,10 @@ def baseline_preview(pair, path: Path, cfg: PreviewConfig) -> None:
     writer.close()
 
 
-def main() -> None:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="preview clip length (s)")
-    args = parser.parse_args()
+    args = parse_args(parser, argv, quick, QUICK)
 
     if CMU.exists():
         clip, what = read_bvh(CMU), f"CMU 18_01 ({CMU.name})"
@@ -112,6 +114,8 @@ def main() -> None:
     print(f"BVH FK, {what}: {clip.n_frames} frames x {len(clip.joints)} joints")
     print(f"  vectorised  {ours * 1e3:8.1f} ms   ({clip.n_frames / ours:,.0f} frames/s)")
     print(f"  baseline    {base * 1e3:8.1f} ms   per-frame scipy loop   -> {base / ours:.0f}x faster")
+    out = [Row(f"BVH forward kinematics, {clip.n_frames} frames x {len(clip.joints)} joints (ms; baseline per-frame "
+               "scipy loop)", ours * 1e3, base * 1e3, "", NA)]
 
     pair = make_duet("hand_hold", args.seconds, 30.0, 0)
     cfg = PreviewConfig()
@@ -125,7 +129,14 @@ def main() -> None:
     print(f"preview, {args.seconds:g} s two-person clip, {pair.n_frames} frames, {cfg.width}x{cfg.height} mp4")
     print(f"  ours        {ours:8.2f} s    ({pair.n_frames / ours:.0f} frames/s)   target: seconds")
     print(f"  baseline    {base:8.2f} s    Axes3D full redraw     -> {base / ours:.1f}x faster")
+    out.append(Row(f"stick-figure preview, {args.seconds:g} s two-person clip, 640x480 mp4 (s; baseline Axes3D "
+                   "full redraw)", ours, base, "seconds (no number given)", NA))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -10,7 +10,7 @@ next to a baseline measured in the same run: a plain Python loop evaluating eq. 
 Also printed: the cosine term through numpy's matmul instead of torch's (dualflow.retrieval uses
 torch: on a loaded 2-core machine OpenBLAS's threaded GEMV was ~10-20x slower).
 
-Run: python bench/retrieval_speed.py [--entries 10000] [--reps 200]
+Run: python bench/retrieval_speed.py [--entries 10000] [--reps 200] [--quick]
 """
 
 from __future__ import annotations
@@ -18,13 +18,19 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from dualflow.retrieval import DEFAULT_LAMBDA, RetrievalDatabase, similarity_scores, top_k
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
+from dualflow.retrieval import DEFAULT_LAMBDA, RetrievalDatabase, similarity_scores, top_k  # noqa: E402
 
 TARGET_MS = 10.0
+QUICK = ["--reps", "20"]
 
 
 def _time(fn, reps: int) -> float:
@@ -50,11 +56,11 @@ def python_loop_query(emb: np.ndarray, lengths: np.ndarray, q: np.ndarray, lq: i
     return [i for _, i in scores[:k]]
 
 
-def main() -> None:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--entries", type=int, default=10_000)
     ap.add_argument("--reps", type=int, default=200)
-    args = ap.parse_args()
+    args = parse_args(ap, argv, quick, QUICK)
     n = args.entries
     rng = np.random.default_rng(0)
     emb = {c: rng.standard_normal((n, 384)).astype(np.float32) for c in ("spatial", "body", "rhythm")}
@@ -78,14 +84,23 @@ def main() -> None:
     fast = top_k(similarity_scores(db.embeddings["body"], db.lengths, q["body"], 120), 5)[0][0].tolist()
     assert fast == python_loop_query(db.embeddings["body"], db.lengths, q["body"], 120, 5), "scorers disagree"
 
-    print(f"retrieval query against {n:,} entries (CPU, median of repeats)")
-    print(f"{'figure':58s} {'value':>10s} {'baseline':>12s} {'target':>9s}")
-    print(f"{'one cue, 384-d, eq.1 + top-5 (ms)':58s} {one:10.3f} {loop:12.1f} {TARGET_MS:9.1f}")
-    print(f"{'full query: 3 text cues + music, top-5 each (ms)':58s} {full:10.3f} {4 * loop:12.1f} {TARGET_MS:9.1f}")
-    print(f"{'training batch of 32, self excluded, 4 cues (ms/query)':58s} {train / 32:10.3f} {4 * loop:12.1f} {TARGET_MS:9.1f}")
-    print(f"{'one cue, same eq. via numpy matmul (OpenBLAS) + top-5 (ms)':58s} {numpy_gemv:10.3f} {loop:12.1f} {TARGET_MS:9.1f}")
-    print(f"baseline = Python loop scorer measured here ({loop:.1f} ms per cue); speed-up {loop / one:.0f}x on one cue")
+    print(f"retrieval query against {n:,} entries (CPU, median of repeats); baseline = Python loop scorer "
+          f"({loop:.1f} ms per cue, x4 for four cues); speed-up {loop / one:.0f}x on one cue")
+    target = f"< {TARGET_MS:g}"
+    return [
+        Row("retrieval: one cue, 384-d, eq.1 + top-5 (ms)", one, loop, target, verdict(one < TARGET_MS)),
+        Row("retrieval: full query, 3 text cues + music, top-5 each (ms)", full, 4 * loop, target,
+            verdict(full < TARGET_MS)),
+        Row("retrieval: training batch of 32, self excluded, 4 cues (ms/query)", train / 32, 4 * loop, target,
+            verdict(train / 32 < TARGET_MS)),
+        Row("retrieval: one cue via numpy matmul (OpenBLAS; not used, for comparison) (ms)", numpy_gemv, loop,
+            "", NA),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -12,16 +12,23 @@ next to a baseline of mj_forward + scene update alone.
 Times are CPU seconds of this process (time.process_time), so that other
 programs competing for the core do not count; wall-clock figures are printed too.
 
-Usage: python bench/sim_speed.py [--seconds 10] [--repeats 3] [--no-render]
+Usage: python bench/sim_speed.py [--seconds 10] [--repeats 3] [--no-render] [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
 
 TARGET_X_REALTIME = 50.0
+QUICK = ["--seconds", "3", "--repeats", "1", "--frames", "5"]
 
 
 def pin_one_core() -> str:
@@ -52,7 +59,7 @@ def dance(seconds: float):
     return RobotTrajectory(names, q, np.tile([0, 0, 0.27], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), fps, "op3")
 
 
-def bench_check(seconds: float, repeats: int) -> None:
+def bench_check(seconds: float, repeats: int) -> list[Row]:
     import mujoco
 
     from sim.check import CheckConfig, Checker, resample, scene_for
@@ -96,9 +103,18 @@ def bench_check(seconds: float, repeats: int) -> None:
     print(f"  scene build (compile, once):   {best_build:6.3f} CPU s")
     with_build = best_check + best_build
     print(f"  validation incl. scene build:  {with_build:6.3f} CPU s = {sim_s / with_build:7.1f} x real time")
+    clip = f"{traj.duration:.0f} s clip, physics {cfg.physics_hz:g} Hz"
+    target = f">= {TARGET_X_REALTIME:g}"
+    return [
+        Row(f"check speed, {clip} (x real time, CPU; baseline raw mj_step)", sim_s / best_check, sim_s / best_raw,
+            target, verdict(sim_s / best_check >= TARGET_X_REALTIME)),
+        Row(f"check speed incl. scene build, {clip} (x real time, CPU)", sim_s / with_build, sim_s / best_raw,
+            target, verdict(sim_s / with_build >= TARGET_X_REALTIME)),
+        Row(f"check speed, {clip} (x real time, wall)", sim_s / wall_check, sim_s / wall_raw, "", NA),
+    ]
 
 
-def bench_render(frames: int) -> None:
+def bench_render(frames: int) -> list[Row]:
     import mujoco
 
     from sim.render import Filmer, RenderConfig
@@ -117,6 +133,7 @@ def bench_render(frames: int) -> None:
         mujoco.mjv_updateScene(scene.model, scene.data, opt, pert, cam, mujoco.mjtCatBit.mjCAT_ALL, vscene)
     base = (time.process_time() - t0) / frames
     print(f"  baseline forward + scene update: {1.0 / base:8.1f} frames/s")
+    rows = []
     for quality in ("fast", "full"):
         filmer = Filmer(scene, RenderConfig(quality=quality))
         filmer.grab()  # warm up the GL context
@@ -128,22 +145,30 @@ def bench_render(frames: int) -> None:
         wall = (time.perf_counter() - w0) / frames
         filmer.close()
         print(f"  offscreen render ({quality:4s}):         {1.0 / dt:8.1f} frames/s per CPU s   (wall {1.0 / wall:.1f} frames/s)")
+        rows.append(Row(f"offscreen render 640x480, {quality} quality (frames/s per CPU s; baseline forward + "
+                        "scene update)", 1.0 / dt, 1.0 / base, "", NA))
+    return rows
 
 
-def main() -> None:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--no-render", action="store_true")
-    args = ap.parse_args()
+    args = parse_args(ap, argv, quick, QUICK)
     print(pin_one_core(), f"| load average {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else "")
     import sim  # noqa: F401  (sets MUJOCO_GL=egl on a headless machine before mujoco loads)
 
-    bench_check(args.seconds, args.repeats)
+    out = bench_check(args.seconds, args.repeats)
     if not args.no_render:
-        bench_render(args.frames)
+        out += bench_render(args.frames)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -17,10 +17,11 @@ import csv
 import io
 import math
 import os
+import sys
 import tempfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Callable, Sequence, Union
 
 Cell = Union[str, int, float, None]
 
@@ -137,6 +138,12 @@ def write_table(rows: Sequence[Row], path: str | os.PathLike, preamble: str = ""
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def script_main(rows: Callable[..., list[Row]], argv: Sequence[str] | None = None) -> int:
+    """A bench script's ``main``: run ``rows(argv=...)`` with the command line and print the table."""
+    print_table(rows(argv=sys.argv[1:] if argv is None else list(argv)))
+    return 0
 
 
 def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str], quick: bool,
