@@ -1,6 +1,6 @@
 """Retarget speed and quality on one core, next to a GMR-style per-frame differential-IK baseline.
 
-    python bench/retarget_speed.py [--robot op3] [--clip cmu|synthetic] [--seconds 20]
+    python bench/retarget_speed.py [--robot op3] [--clip cmu|synthetic] [--seconds 20] [--quick]
 
 The clip is the CMU two-person capture (../shared/data/mocap/cmu, both people, 30 fps) when
 present, else a synthetic duet (dualflow.synthetic.make_duet). Each figure is printed next to
@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
 from dualflow.motion import Motion  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter  # noqa: E402
 from retarget.report import evaluate  # noqa: E402
@@ -46,6 +47,9 @@ from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_
 from retarget.targets import KeypointScaler, make_targets  # noqa: E402
 
 CMU = ROOT.parent / "shared" / "data" / "mocap" / "cmu"
+# The CMU pair is 152 frames at 30 fps: short enough for a smoke run as it is. (A 3 s synthetic
+# clip is no shortcut: the offline solver calls its first window infeasible at that speed.)
+QUICK: list[str] = []
 
 
 def load_clips(kind: str, seconds: float) -> list[Motion]:
@@ -108,23 +112,13 @@ def gmr_style(rb, xml: Path, tg) -> np.ndarray:
     return X
 
 
-def row(name, ours, base, target, better="higher"):
-    def fmt(v):
-        return "-" if v is None else (f"{v:.3g}" if isinstance(v, float) else str(v))
-
-    ratio = "-"
-    if isinstance(ours, (int, float)) and isinstance(base, (int, float)) and base not in (0, None):
-        ratio = f"{ours / base:.2f}x"
-    print(f"{name:<44} {fmt(ours):>12} {fmt(base):>12} {target:>16} {ratio:>9}")
-
-
-def main(argv=None) -> int:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robot", default="op3")
     ap.add_argument("--clip", choices=("cmu", "synthetic"), default="cmu")
     ap.add_argument("--seconds", type=float, default=20.0, help="synthetic clip length")
     ap.add_argument("--no-balance", action="store_true")
-    args = ap.parse_args(argv)
+    args = parse_args(ap, argv, quick, QUICK)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
 
@@ -189,29 +183,48 @@ def main(argv=None) -> int:
     def vs_clean(key):
         return float(np.mean([r.jerk_robot / jerk_clean[r.clip.replace("+1cm", "")] for r in reports[key]]))
 
-    print()
-    print(f"{'figure':<44} {'ours':>12} {'baseline':>12} {'target':>16} {'ratio':>9}")
-    row("streaming frames/s (CPU time, 1 core)", fps("ours_stream", 0), fps("base", 0), ">=1000, >=4x base")
-    row("streaming frames/s (wall)", fps("ours_stream", 1), fps("base", 1), "")
-    row(f"offline frames/s (CPU time; contacts{'' if args.no_balance else '+balance'})", fps("ours_off", 0), fps("base", 0), ">=250")
-    row("offline frames/s (wall)", fps("ours_off", 1), fps("base", 1), "")
-    row("jerk ratio, clean capture: offline", agg("ours_off", "jerk_ratio"), agg("base", "jerk_ratio"), "<=1.0")
-    row("jerk ratio, clean capture: streaming", agg("ours_stream", "jerk_ratio"), agg("base", "jerk_ratio"), "")
-    row("jerk ratio, 1 cm noise (vs noisy source): offline", agg("off_noisy", "jerk_ratio"), agg("base_noisy", "jerk_ratio"), "<=1.0")
-    row("jerk ratio, 1 cm noise (vs clean source): offline", vs_clean("off_noisy"), vs_clean("base_noisy"), "")
-    row("jerk ratio, 1 cm noise (vs clean source): streaming", vs_clean("stream_noisy"), vs_clean("base_noisy"), "")
+    def r(name, ours, base, target="", ok=None):
+        return Row(name, ours, base, target, verdict(ok) if target else NA)
+
+    stream_fps, base_fps = fps("ours_stream", 0), fps("base", 0)
+    off_fps = fps("ours_off", 0)
+    jerk = {k: agg(k, "jerk_ratio") for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy")}
+    out = [
+        r("retarget streaming frames/s (CPU time, 1 core)", stream_fps, base_fps, ">= 1000 and >= 4x baseline",
+          stream_fps >= 1000 and stream_fps >= 4 * base_fps),
+        r("retarget streaming frames/s (wall)", fps("ours_stream", 1), fps("base", 1)),
+        r(f"retarget offline frames/s (CPU time; contacts{'' if args.no_balance else '+balance'})", off_fps, base_fps,
+          ">= 250", off_fps >= 250),
+        r("retarget offline frames/s (wall)", fps("ours_off", 1), fps("base", 1)),
+        r("jerk ratio, clean capture: offline", jerk["ours_off"], jerk["base"], "<= 1.0", jerk["ours_off"] <= 1.0),
+        r("jerk ratio, clean capture: streaming", jerk["ours_stream"], jerk["base"]),
+        r("jerk ratio, 1 cm noise (vs noisy source): offline", jerk["off_noisy"], jerk["base_noisy"], "<= 1.0",
+          jerk["off_noisy"] <= 1.0),
+        r("jerk ratio, 1 cm noise (vs clean source): offline", vs_clean("off_noisy"), vs_clean("base_noisy")),
+        r("jerk ratio, 1 cm noise (vs clean source): streaming", vs_clean("stream_noisy"), vs_clean("base_noisy")),
+    ]
     for key, label in (("ours_off", "offline"), ("ours_stream", "streaming")):
-        row(f"joint-limit violations ({label})", int(agg(key, "limit_violations", np.sum)),
-            int(agg("base", "limit_violations", np.sum)), "0")
-        row(f"velocity-limit violations ({label})", int(agg(key, "velocity_violations", np.sum)),
-            int(agg("base", "velocity_violations", np.sum)), "0")
-    row("foot skate share of contact frames (offline)", agg("ours_off", "skate_share"), agg("base", "skate_share"), "<0.02")
-    row("worst slide mm/frame (offline)", agg("ours_off", "worst_slide_mm", np.max), agg("base", "worst_slide_mm", np.max), "")
-    row("worst ground penetration mm (offline)", agg("ours_off", "penetration_mm", np.max), agg("base", "penetration_mm", np.max), "<=5")
-    row("self-collisions (offline)", int(agg("ours_off", "self_collisions", np.sum)), int(agg("base", "self_collisions", np.sum)), "0")
-    row("keypoint error mean mm (offline)", agg("ours_off", "keypoint_error_mean_mm"), agg("base", "keypoint_error_mean_mm"), "")
-    row("keypoint error mean mm (streaming)", agg("ours_stream", "keypoint_error_mean_mm"), agg("base", "keypoint_error_mean_mm"), "")
-    return 0
+        for field, what in (("limit_violations", "joint-limit"), ("velocity_violations", "velocity-limit")):
+            n = int(agg(key, field, np.sum))
+            out.append(r(f"{what} violations ({label})", n, int(agg("base", field, np.sum)), "0", n == 0))
+    skate, pen = agg("ours_off", "skate_share"), agg("ours_off", "penetration_mm", np.max)
+    n_self = int(agg("ours_off", "self_collisions", np.sum))
+    out += [
+        r("foot skate share of contact frames (offline)", skate, agg("base", "skate_share"), "< 0.02", skate < 0.02),
+        r("worst slide mm/frame (offline)", agg("ours_off", "worst_slide_mm", np.max),
+          agg("base", "worst_slide_mm", np.max)),
+        r("worst ground penetration mm (offline)", pen, agg("base", "penetration_mm", np.max), "<= 5", pen <= 5),
+        r("self-collisions (offline)", n_self, int(agg("base", "self_collisions", np.sum)), "0", n_self == 0),
+        r("keypoint error mean mm (offline)", agg("ours_off", "keypoint_error_mean_mm"),
+          agg("base", "keypoint_error_mean_mm")),
+        r("keypoint error mean mm (streaming)", agg("ours_stream", "keypoint_error_mean_mm"),
+          agg("base", "keypoint_error_mean_mm")),
+    ]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
