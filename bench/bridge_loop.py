@@ -13,7 +13,7 @@
    that first uses the partner frame it completed. The issue's target: look-ahead L frames
    (plus the one frame a 262-d feature row waits for) + at most 50 ms of compute.
 
-    python bench/bridge_loop.py [--seconds 5]
+    python bench/bridge_loop.py [--seconds 5] [--skip-e2e] [--quick]
 """
 
 from __future__ import annotations
@@ -28,6 +28,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
+
+QUICK = ["--seconds", "2"]
 
 
 def _producer(buf, loop, seconds: float, limits) -> None:
@@ -99,38 +103,39 @@ def end_to_end(seconds: float) -> dict:
             "frames": res.summary.frames_played}
 
 
-def main(argv=None) -> int:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="streaming time per run (default 5 s)")
     ap.add_argument("--skip-e2e", action="store_true", help="skip the end-to-end run with the bundled model")
-    args = ap.parse_args(argv)
-    rows = []
+    args = parse_args(ap, argv, quick, QUICK)
+    out = []
     for rate in (100.0, 250.0):
         ours, base = jitter(rate, args.seconds)
         period = 1e3 / rate
-        rows.append((f"jitter p50 @ {rate:.0f} Hz (ms)", f"{ours['p50']:.3f}", f"{base['p50']:.3f}", "-", ""))
-        ok = ours["p99"] < 0.2 * period and ours["misses"] == 0
-        rows.append((f"jitter p99 @ {rate:.0f} Hz (ms)", f"{ours['p99']:.3f}", f"{base['p99']:.3f}",
-                     f"< {0.2 * period:.1f}", "met" if ok else "not met"))
-        rows.append((f"skipped ticks @ {rate:.0f} Hz", f"{ours['misses']} / {ours['ticks']}",
-                     f"{base['misses']} / {base['ticks']}", "0", "met" if ours["misses"] == 0 else "not met"))
-        rows.append((f"loop CPU @ {rate:.0f} Hz (% of a core)", f"{100 * ours['cpu']:.0f}", f"{100 * base['cpu']:.0f}",
-                     "< 50" if rate == 100 else "-", ("met" if ours["cpu"] < 0.5 else "not met") if rate == 100 else ""))
+        out.append(Row(f"loop jitter p50 @ {rate:.0f} Hz, 20 emulated servos (ms; baseline record-only)",
+                       ours["p50"], base["p50"]))
+        out.append(Row(f"loop jitter p99 @ {rate:.0f} Hz, 20 emulated servos (ms; baseline record-only)",
+                       ours["p99"], base["p99"], f"< {0.2 * period:.1f}",
+                       verdict(ours["p99"] < 0.2 * period and ours["misses"] == 0)))
+        out.append(Row(f"skipped ticks @ {rate:.0f} Hz", f"{ours['misses']} / {ours['ticks']}",
+                       f"{base['misses']} / {base['ticks']}", "0", verdict(ours["misses"] == 0)))
+        out.append(Row(f"loop CPU @ {rate:.0f} Hz (% of a core)", 100 * ours["cpu"], 100 * base["cpu"],
+                       "< 50" if rate == 100 else "", verdict(ours["cpu"] < 0.5) if rate == 100 else NA))
     if not args.skip_e2e:
         e = end_to_end(args.seconds)
         L = e["delay_frames"]
         budget = (L / 30.0 + 0.050) * 1e3 if L is not None else float("nan")
         p50 = e["lat"].get("p50", float("nan")) * 1e3
-        rows.append(("end-to-end latency p50 (ms)", f"{p50:.0f}", f"delay {L} frames = {L / 30 * 1e3:.0f} ms",
-                     f"<= {budget:.0f}", "met" if p50 <= budget else "not met"))
-        rows.append(("end-to-end latency p99 (ms)", f"{e['lat'].get('p99', float('nan')) * 1e3:.0f}", "", "", ""))
-        rows.append(("generator compute per push p50 (ms)", f"{e['gen_p50'] * 1e3:.1f}", "", "", ""))
-    width = [max(len(r[i]) for r in rows + [("figure", "ours", "baseline", "target", "verdict")]) for i in range(5)]
-    line = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, width))  # noqa: E731
-    print(line(("figure", "ours", "baseline (same run)", "target", "verdict")))
-    for r in rows:
-        print(line(r))
-    return 0
+        out.append(Row("end-to-end latency p50, bundled model (ms; baseline: the model's delay alone)", p50,
+                       f"delay {L} frames = {L / 30 * 1e3:.0f} ms" if L is not None else "-",
+                       f"<= {budget:.0f}", verdict(p50 <= budget)))
+        out.append(Row("end-to-end latency p99, bundled model (ms)", e["lat"].get("p99", float("nan")) * 1e3))
+        out.append(Row("generator compute per push p50 (ms)", e["gen_p50"] * 1e3))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
