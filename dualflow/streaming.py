@@ -28,15 +28,24 @@ generated over the frames [s, s + W), s = max(0, u + L - W), where u (<= e + 1) 
 the frames to emit:
 
 * actor: the received frames [s, u + L), clean (reactive mode);
-* reactor: frames [s, n_emitted) are already emitted and are kept fixed as context. At every
-  ODE grid time t they are overwritten with their point on the rectified path,
-  x_t = (1 - t) eps + t x_known (``project`` of ``dualflow.flow.ode_solve``), with the same
-  eps used to start them; frames [n_emitted, u) are generated and emitted; the frames
+* reactor: frames [s, n_emitted) are already emitted and are kept fixed as context: at every
+  ODE grid time t_k their state is overwritten (``project`` of ``dualflow.flow.ode_solve``)
+  with either
+    - ``context="trajectory"`` (default): the state x_{t_k} they had at that grid time when
+      they were generated. The reactor stream is causal, so while the stream fits in one
+      window (s = 0) this reproduces *exactly* the single-pass generation of the whole
+      sequence: no seam at all (tests/test_streaming.py checks it). Once the window slides,
+      the context is the model's own trajectory, shifted by the window start;
+    - ``context="path"``: their point on the straight rectified path,
+      x_t = (1 - t) eps + t x_known, with the eps that started them (classic inpainting;
+      used with ``recanonicalize``, where stored noisy states cannot be moved rigidly);
+  frames [n_emitted, u) are generated and emitted; the frames
   [u, u + L) are generated too but discarded: they exist only because both streams of the
   network have one length, and by the causality of the reactive network (see
   ``dualflow.model``) they cannot influence the frames before them.
-* noise: eps of absolute frame i is the i-th row drawn from one ``torch.Generator`` seeded
-  with ``seed``, so a stream is reproducible and a frame's noise does not depend on windows.
+* noise: eps of absolute frame i is row i of ``stream_noise(seed, ...)`` (blocks of 64 frames
+  from generators seeded with (seed, block)), so a stream is reproducible and a frame's noise
+  depends neither on the windows nor on how the actor frames were pushed.
 
 Causality: the emitted frame i is computed from actor frames <= i + L, the already-emitted
 reactor frames (< i, themselves causal by induction) and noise; actor frames > i + L are not
@@ -118,6 +127,22 @@ class WindowFrame:
         return self._apply(raw, inverse=True)
 
 
+#: Frames per noise block: the noise of frames [64 b, 64 b + 64) comes from one generator
+#: seeded with (seed, b), so a frame's noise never depends on how the stream was pushed.
+NOISE_BLOCK = 64
+
+
+def _noise_block(seed: int, block: int, dim: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(block))
+    return torch.randn((NOISE_BLOCK, dim), generator=gen)
+
+
+def stream_noise(seed: int, n_frames: int, dim: int = 262) -> torch.Tensor:
+    """The initial noise eps (n_frames, dim) a ``ReactiveStreamer`` with this seed uses."""
+    blocks = [_noise_block(seed, b, dim) for b in range(-(-n_frames // NOISE_BLOCK))]
+    return torch.cat(blocks, 0)[:n_frames] if blocks else torch.zeros(0, dim)
+
+
 @dataclass(frozen=True)
 class StreamConfig:
     """window: frames per generation window W (actor and reactor); must exceed L + hop.
@@ -126,7 +151,9 @@ class StreamConfig:
     up to hop - 1 frames of delay). max_new: cap on frames emitted by one window (chunks).
     steps / method / cfg_scale: the ODE sampler (``dualflow.flow``). look_ahead: L (None =
     the model's). inpaint: keep emitted frames as context (False only for ablations: each
-    window then starts from noise everywhere and the seams jump). seed: noise seed.
+    window then starts from noise everywhere and the seams jump). context: "trajectory"
+    (replay the emitted frames' own ODE states) or "path" (straight-line re-noising); see the
+    module docstring. seed: noise seed.
     """
 
     window: int = 60
@@ -138,6 +165,7 @@ class StreamConfig:
     cfg_scale: float = 1.0
     look_ahead: int | None = None
     inpaint: bool = True
+    context: str = "trajectory"
     seed: int = 0
 
 
@@ -191,6 +219,8 @@ class ReactiveStreamer:
         self.on_frame = on_frame
         self.look_ahead = model.config.look_ahead if config.look_ahead is None else int(config.look_ahead)
         self.max_new = config.max_new or max(config.hop, (config.window - self.look_ahead) // 2)
+        if config.context not in ("trajectory", "path"):
+            raise DualFlowError(f"StreamConfig.context must be 'trajectory' or 'path', got {config.context!r}")
         if config.hop < 1:
             raise DualFlowError(f"StreamConfig.hop must be >= 1 frame, got {config.hop}")
         if config.window < self.look_ahead + self.max_new + 1:
@@ -209,9 +239,12 @@ class ReactiveStreamer:
         self._actor = torch.zeros(0, self.dim, dtype=self.dtype, device=self.device)
         self._emitted = torch.zeros(0, self.dim, dtype=self.dtype, device=self.device)
         self._noise = torch.zeros(0, self.dim)
-        self._generator = torch.Generator().manual_seed(int(config.seed))
         self.timing = StreamTiming()
         self.path = RectifiedPath()
+        # ODE states of the last emitted frames at every grid time: (n, steps + 1, 262), frame
+        # index of row 0 = self._traj_start (only the last `window` frames are kept).
+        self._traj = torch.zeros(0, config.steps + 1, self.dim, dtype=self.dtype, device=self.device)
+        self._traj_start = 0
         self._mean = self._std = None
         if stats is not None and config.recanonicalize:
             self._mean = torch.tensor(np.array(stats.mean), dtype=self.dtype, device=self.device)
@@ -278,11 +311,13 @@ class ReactiveStreamer:
         return torch.cat(out, 0)
 
     def _noise_rows(self, stop: int) -> torch.Tensor:
-        """eps of absolute frames [0, stop), drawn in frame order from the seeded generator."""
+        """eps of absolute frames [0, stop) (``stream_noise``), extended block by block."""
         have = self._noise.shape[0]
         if stop > have:
-            fresh = torch.randn((stop - have, self.dim), generator=self._generator)
-            self._noise = torch.cat([self._noise, fresh], 0)
+            n_blocks = -(-stop // NOISE_BLOCK)
+            first = have // NOISE_BLOCK
+            fresh = [_noise_block(self.config.seed, b, self.dim) for b in range(first, n_blocks)]
+            self._noise = torch.cat([self._noise[: first * NOISE_BLOCK]] + fresh, 0)
         return self._noise[:stop]
 
     def _window_conditions(self, start: int, stop: int) -> Conditions:
@@ -312,11 +347,23 @@ class ReactiveStreamer:
             known = self._norm(frame.to_local(self._denorm(known)))
         actor, known = actor[None], known[None]
 
+        n_new = upto - first_new
+        steps = self.config.steps
+        use_traj = self.config.context == "trajectory" and frame is None
+        ctx_traj = None
+        if use_traj and n_ctx > 0:
+            ctx_traj = self._traj[start - self._traj_start: first_new - self._traj_start]  # (n_ctx, S+1, D)
+        record = torch.zeros(n_new, steps + 1, self.dim, dtype=self.dtype, device=self.device)
+
         def project(x: torch.Tensor, t: float) -> torch.Tensor:
-            if n_ctx == 0 or not self.config.inpaint:
-                return x
-            x = x.clone()
-            x[:, :n_ctx] = (1 - t) * eps[:, :n_ctx] + t * known  # x_t of the known frames
+            k = int(round(t * steps))
+            if n_ctx > 0 and self.config.inpaint:
+                x = x.clone()
+                if ctx_traj is not None:
+                    x[:, :n_ctx] = ctx_traj[:, k]  # the context's own state at t_k
+                else:
+                    x[:, :n_ctx] = (1 - t) * eps[:, :n_ctx] + t * known  # x_t on the straight path
+            record[:, k] = x[0, n_ctx: n_ctx + n_new]  # the last write at t_k is the state
             return x
 
         velocity = guided_velocity(
@@ -333,7 +380,11 @@ class ReactiveStreamer:
             x = ode_solve(velocity, eps, steps=self.config.steps, method=self.config.method, project=project)
         finally:
             self.model.train(was_training)
-        new = x[0, n_ctx: n_ctx + (upto - first_new)]
+        new = x[0, n_ctx: n_ctx + n_new]
+        if use_traj:
+            self._traj = torch.cat([self._traj, record], 0)
+            drop = max(0, self._traj.shape[0] - self.config.window)
+            self._traj, self._traj_start = self._traj[drop:], self._traj_start + drop
         if frame is not None:
             new = self._norm(frame.to_global(self._denorm(new)))
         self._emitted = torch.cat([self._emitted, new], 0)

@@ -9,7 +9,7 @@ import torch
 from dualflow import DualFlowError
 from dualflow.flow import generate
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
-from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report
+from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report, stream_noise
 
 L = 3
 N = 24
@@ -100,9 +100,38 @@ def test_first_window_equals_the_offline_reactive_sampler(model):
     s = ReactiveStreamer(model, StreamConfig(window=16, steps=3, seed=9, max_new=5, hop=5))
     s.push(actor[: 5 + L])
     assert s.emitted.shape[0] == 5
-    eps = torch.randn((5 + L, 262), generator=torch.Generator().manual_seed(9))
+    eps = stream_noise(9, 5 + L)
     _, offline = generate(model, 5 + L, mode="reactive", x_actor=actor[None, : 5 + L], steps=3, noise=eps[None])
     torch.testing.assert_close(s.emitted, offline[0, :5])
+
+
+@pytest.mark.parametrize("hop,chunks", [(1, 1), (4, 1), (2, 7)])
+def test_stream_equals_single_pass_generation_while_it_fits_in_one_window(model, hop, chunks):
+    """Trajectory context + the causal reactor: no seam at all, the stream is the offline sample."""
+    actor = _actor()
+    s = ReactiveStreamer(model, StreamConfig(window=N + 4, steps=3, seed=4, hop=hop))
+    for k in range(0, N, chunks):
+        s.push(actor[k:k + chunks])
+    s.flush()
+    assert len(s.timing.windows) > 2  # several windows, each with its own context
+    _, offline = generate(model, N, mode="reactive", x_actor=actor[None], steps=3, noise=stream_noise(4, N)[None])
+    torch.testing.assert_close(s.emitted, offline[0], atol=1e-5, rtol=1e-5)
+    # Straight-path re-noising of the context (classic inpainting) is only approximately so.
+    p = ReactiveStreamer(model, StreamConfig(window=N + 4, steps=3, seed=4, hop=hop, context="path"))
+    for k in range(0, N, chunks):
+        p.push(actor[k:k + chunks])
+    p.flush()
+    assert not torch.allclose(p.emitted, offline[0], atol=1e-3)
+
+
+def test_noise_does_not_depend_on_how_frames_are_pushed(model):
+    a = ReactiveStreamer(model, StreamConfig(window=16, steps=1))
+    a.push(_actor(n=70))
+    b = ReactiveStreamer(model, StreamConfig(window=16, steps=1))
+    for frame in _actor(n=70):
+        b.push(frame)
+    assert torch.equal(a._noise[:70], b._noise[:70])
+    assert torch.equal(a._noise[:70], stream_noise(0, 70))
 
 
 def test_context_frames_are_kept_fixed_inside_later_windows(model):
