@@ -133,7 +133,10 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
             stack.callback(emu.stop)
             port = emu.port
             info["emulator"] = emu
-        return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy)
+        # An emulator is a process on a possibly busy machine, not a servo: allow it 50 ms to
+        # answer (a real bus answers within the latency timer, 16 ms at worst).
+        return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy,
+                                  latency_ms=50.0 if opts.emulate else 16.0)
 
     def serial():
         from ros_free_bridge.transports.serial_link import SerialLinkTransport
