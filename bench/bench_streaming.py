@@ -12,7 +12,8 @@ and the issue's target:
    same length divided by its frames; target: below 33.3 ms per frame (30 fps real time).
 2. seam continuity: the mean velocity jump ||p[i] - 2 p[i-1] + p[i-2]|| (mm/frame^2, joints
    averaged) at window seams vs inside windows (ratio about 1 = invisible seams), for the
-   streamer with inpainted context and for the baseline without it (windows independent);
+   streamer (default: the emitted frames' own ODE states as context; and straight-path
+   re-noised context) and for the baseline without context (windows independent);
    the follower's own ground-truth jump gives the natural scale; and for the streamer with the
    opt-in per-window canonical frames (``StreamConfig(recanonicalize=True)``, ``WindowFrame``).
 3. reactor MPJPE (m) of the stream against the rule follower, and of the no-context baseline.
@@ -100,20 +101,22 @@ def main(argv=None) -> int:
     # 2. seams ---------------------------------------------------------------------------
     sn = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps, inpaint=False)
     sg = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps, recanonicalize=True)
+    sp = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps, context="path")
     starts = [w[0] for w in sh.timing.windows]
     pos_h = positions_from_normalized(sh.emitted, stats)
     pos_n = positions_from_normalized(sn.emitted, stats)
     pos_g = positions_from_normalized(sg.emitted, stats)
     r_h = seam_report(pos_h, starts)
     r_n = seam_report(pos_n, [w[0] for w in sn.timing.windows])
+    r_g = seam_report(pos_g, [w[0] for w in sg.timing.windows])
     r_gt = seam_report(truth, starts)
     print(f"\nvelocity jump (mm/frame^2, mean over joints), windows of {args.hop} new frames:")
-    print(f"  {'':34s} {'at seams':>9s} {'inside':>9s} {'ratio':>7s}")
-    print(f"  ground-truth follower (scale)      {r_gt.seam_mean * 1000:9.2f} {r_gt.within_mean * 1000:9.2f} {r_gt.ratio:7.2f}")
-    print(f"  baseline: windows without context  {r_n.seam_mean * 1000:9.2f} {r_n.within_mean * 1000:9.2f} {r_n.ratio:7.2f}")
-    r_g = seam_report(pos_g, [w[0] for w in sg.timing.windows])
-    print(f"  streamer + window frames (opt-in)  {r_g.seam_mean * 1000:9.2f} {r_g.within_mean * 1000:9.2f} {r_g.ratio:7.2f}")
-    print(f"  streamer (inpainted context)       {r_h.seam_mean * 1000:9.2f} {r_h.within_mean * 1000:9.2f} {r_h.ratio:7.2f}")
+    print(f"  {'':40s} {'at seams':>9s} {'inside':>9s} {'ratio':>7s}")
+    r_p = seam_report(positions_from_normalized(sp.emitted, stats), [w[0] for w in sp.timing.windows])
+    for label, r in (("ground-truth follower (scale)", r_gt), ("baseline: windows without context", r_n),
+                     ("streamer + window frames (opt-in)", r_g), ("streamer, straight-path context", r_p),
+                     ("streamer, trajectory context (default)", r_h)):
+        print(f"  {label:40s} {r.seam_mean * 1000:9.2f} {r.within_mean * 1000:9.2f} {r.ratio:7.2f}")
     print("  target: seam jump about the within-window jump (ratio about 1)")
 
     # 3. accuracy ------------------------------------------------------------------------
@@ -124,6 +127,7 @@ def main(argv=None) -> int:
     print("\nreactor MPJPE against the rule follower (m):")
     print(f"  baseline: windows without context  {mpjpe(pos_n):.3f}")
     print(f"  streamer hop {args.hop:<2d} + window frames    {mpjpe(pos_g):.3f}")
+    print(f"  streamer hop {args.hop:<2d}, straight-path ctx {mpjpe(positions_from_normalized(sp.emitted, stats)):.3f}")
     print(f"  streamer hop {args.hop:<2d}                    {mpjpe(pos_h):.3f}")
     print(f"  streamer hop 1                     {mpjpe(pos_1):.3f}")
     return 0
