@@ -52,9 +52,9 @@ reactor frames (< i, themselves causal by induction) and noise; actor frames > i
 in the window or are masked by the network (tests/test_streaming.py checks it end to end).
 
 Continuity: the new frames attend (causal self-attention, causal convolutions) to the context
-frames, which sit on the data side of the path at t = 1, so the motion continues across
-window seams. ``seam_report`` measures the velocity jump at seams against the jump inside
-windows (bench/bench_streaming.py prints the figures).
+frames at every ODE step, so the motion continues across window seams. ``seam_report``
+measures the velocity jump at seams against the jump inside windows; bench/bench_streaming.py
+prints it for trajectory context, straight-path context, per-window frames and no context.
 """
 
 from __future__ import annotations
