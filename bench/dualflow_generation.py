@@ -2,6 +2,7 @@
 
     python bench/dualflow_generation.py                      # small preset, bundled weights, CPU
     python bench/dualflow_generation.py --preset paper --device cuda   (where a GPU is lent)
+    python bench/dualflow_generation.py --quick                        (smoke run: 2 s clip, 5 steps, 1 repeat)
 
 Figures printed, each measured in this run (median of ``--repeats``):
 
@@ -32,6 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
 from dualflow.data import template_text_embedding  # noqa: E402
 from dualflow.flow import generate  # noqa: E402
 from dualflow.model import Conditions, DualFlow, DualFlowConfig  # noqa: E402
@@ -40,6 +42,8 @@ from dualflow.streaming import ReactiveStreamer, StreamConfig  # noqa: E402
 from dualflow.synthetic import make_leader  # noqa: E402
 
 PAPER_AITS_S = {"DualFlow, 20 RF steps, RTX 5090": 1.24, "InterGen, 50 DDIM steps, RTX 5090": 1.92}
+# Smoke run only: 5 Euler steps instead of 20 (the rows say how many), a 2 s clip, 1 repeat.
+QUICK = ["--seconds", "2", "--repeats", "1", "--stream-frames", "4", "--steps", "5"]
 
 
 def build(args) -> tuple[DualFlow, np.ndarray | None, np.ndarray | None, str]:
@@ -69,7 +73,7 @@ def timed(fn, repeats: int, device: str) -> float:
     return statistics.median(times)
 
 
-def main(argv=None) -> int:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
     p.add_argument("--checkpoint", default=None, help="checkpoint dir (default: the bundled one)")
@@ -81,7 +85,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--stream-frames", type=int, default=45, help="emitted frames timed per streaming setting")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = default)")
-    args = p.parse_args(argv)
+    args = parse_args(p, argv, quick, QUICK)
     if args.threads:
         torch.set_num_threads(args.threads)
 
@@ -118,15 +122,21 @@ def main(argv=None) -> int:
     inter = timed(offline(args.steps, "interactive"), args.repeats, args.device)
     print()
     print(f"{'offline generation of the clip':52s} {'seconds':>9s} {'x real time':>11s}")
-    rows = [
+    timings = [
         (f"reactive, {args.steps} Euler steps (AITS setting)", aits),
         ("baseline: reactive, 1 Euler step", one),
         (f"baseline: interactive (both persons), {args.steps} steps", inter),
     ]
-    for name, s in rows:
+    for name, s in timings:
         print(f"{name:52s} {s:9.3f} {args.seconds / s:11.1f}")
     for name, s in PAPER_AITS_S.items():
         print(f"{'paper: ' + name:52s} {s:9.3f} {args.seconds / s:11.1f}")
+
+    paper = PAPER_AITS_S["DualFlow, 20 RF steps, RTX 5090"]
+    out = [Row(f"reactive generation, {args.seconds:g} s clip, {args.steps} Euler steps, {args.device} (s; baseline "
+               f"interactive, both persons, {args.steps} steps)", aits, inter,
+               f"ref. {paper:g} (paper, RTX 5090, 20-block model)", NA),
+           Row(f"reactive generation, {args.seconds:g} s clip, 1 Euler step (s; one network call over the clip)", one)]
 
     print()
     period_ms = 1000.0 / args.fps
@@ -142,8 +152,15 @@ def main(argv=None) -> int:
             t = streamer.timing
             print(f"{'hop ' + str(hop):40s} {1000 * t.per_frame_s:9.1f} {1000 * t.max_window_s:14.1f} "
                   f"{streamer.delay_frames:>5d} frames + compute   ({t.frames} frames timed)")
+            out.append(Row(f"streaming compute per emitted frame, hop {hop}, window 60, {args.steps} steps, "
+                           f"{torch.get_num_threads()} threads (ms)", 1000 * t.per_frame_s, "",
+                           f"< {period_ms:.1f} (real time)", verdict(1000 * t.per_frame_s < period_ms)))
     print(f"{'real time needs':40s} {period_ms:9.1f}")
-    return 0
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
