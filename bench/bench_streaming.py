@@ -1,6 +1,6 @@
 """Streaming reactive inference: compute time per emitted frame and seam continuity.
 
-    python bench/bench_streaming.py [--checkpoint DIR] [--seconds 10] [--steps 20] [--hop 8]
+    python bench/bench_streaming.py [--checkpoint DIR] [--seconds 10] [--steps 20] [--hop 8] [--quick]
 
 Uses a trained checkpoint (default: the bundled synthetic one, ``dualflow.checkpoint``) and
 one synthetic duet (``dualflow.synthetic``, SYNTHETIC data: a procedural leader and a rule
@@ -24,19 +24,25 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from dualflow.checkpoint import bundled_checkpoint, load_checkpoint
-from dualflow.data import positions_from_normalized, template_text_embedding
-from dualflow.flow import generate
-from dualflow.model import Conditions
-from dualflow.motion.features import encode_pair
-from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report
-from dualflow.synthetic import make_duet
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
+from dualflow.checkpoint import bundled_checkpoint, load_checkpoint  # noqa: E402
+from dualflow.data import positions_from_normalized, template_text_embedding  # noqa: E402
+from dualflow.flow import generate  # noqa: E402
+from dualflow.model import Conditions  # noqa: E402
+from dualflow.motion.features import encode_pair  # noqa: E402
+from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report  # noqa: E402
+from dualflow.synthetic import make_duet  # noqa: E402
 
 REALTIME_MS = 1000.0 / 30.0
+# Smoke run only: a 3 s clip and 5 Euler steps instead of 20 (the rows say how many).
+QUICK = ["--seconds", "3", "--steps", "5"]
 
 
 def stream(model, actor, cond, stats=None, **cfg) -> ReactiveStreamer:
@@ -47,7 +53,7 @@ def stream(model, actor, cond, stats=None, **cfg) -> ReactiveStreamer:
     return s
 
 
-def main(argv=None) -> int:
+def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--checkpoint", default=None, help="checkpoint directory (default: the bundled one)")
     ap.add_argument("--seconds", type=float, default=10.0)
@@ -59,7 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--no-ema", action="store_true", help="use the raw weights of a training checkpoint, not its EMA")
-    args = ap.parse_args(argv)
+    args = parse_args(ap, argv, quick, QUICK)
     torch.set_num_threads(args.threads)
 
     ckpt = load_checkpoint(bundled_checkpoint() if args.checkpoint is None else args.checkpoint)
@@ -130,7 +136,37 @@ def main(argv=None) -> int:
     print(f"  streamer hop {args.hop:<2d}, straight-path ctx {mpjpe(positions_from_normalized(sp.emitted, stats)):.3f}")
     print(f"  streamer hop {args.hop:<2d}                    {mpjpe(pos_h):.3f}")
     print(f"  streamer hop 1                     {mpjpe(pos_1):.3f}")
-    return 0
+
+    setting = f"{args.steps} steps, {torch.get_num_threads()} thread(s)"
+    base_ms = f"{offline_ms:.4g} (offline window / frames)"
+    rt = f"< {REALTIME_MS:.1f} (real time)"
+    no_ctx = "no-context windows"
+    out = []
+    for hop, st in ((1, s1), (args.hop, sh)):
+        ms = st.timing.per_frame_s * 1000
+        out.append(Row(f"streamer compute per emitted frame, hop {hop}, {setting} (ms)", ms, base_ms, rt,
+                       verdict(ms < REALTIME_MS)))
+    out += [
+        Row(f"seam / inside velocity-jump ratio, streamer hop {args.hop}, trajectory context (baseline {no_ctx})",
+            r_h.ratio, r_n.ratio, "about 1"),
+        Row(f"seam / inside velocity-jump ratio, streamer, straight-path context (baseline {no_ctx})", r_p.ratio,
+            r_n.ratio, "about 1"),
+        Row(f"seam / inside velocity-jump ratio, streamer + window frames (baseline {no_ctx})", r_g.ratio,
+            r_n.ratio, "about 1"),
+        Row("seam / inside velocity-jump ratio, ground-truth follower (the natural scale)", r_gt.ratio),
+        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop} (m; baseline {no_ctx})", mpjpe(pos_h),
+            mpjpe(pos_n)),
+        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop}, straight-path context (m)",
+            mpjpe(positions_from_normalized(sp.emitted, stats)), mpjpe(pos_n)),
+        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop} + window frames (m)", mpjpe(pos_g),
+            mpjpe(pos_n)),
+        Row("reactor MPJPE vs rule follower, streamer hop 1 (m)", mpjpe(pos_1), mpjpe(pos_n)),
+    ]
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    return script_main(rows, argv)
 
 
 if __name__ == "__main__":
