@@ -67,7 +67,8 @@ BENCHES: tuple[tuple[str, int], ...] = (
 DEFAULT_TIMEOUT_S = 1800.0
 QUICK_TIMEOUT_S = 600.0
 TAIL_LINES = 30
-DID_NOT_FINISH = "did not finish"
+DID_NOT_FINISH = "benchmark did not finish"
+FAILURE_CHARS = 100
 
 
 def short_name(module: str) -> str:
@@ -82,15 +83,18 @@ def _child(module: str, quick: bool, out: Path) -> int:
 
 
 def _failure_row(name: str, what: str, tail: Sequence[str]) -> Row:
+    """The row standing for a benchmark that crashed or timed out: what happened and its last
+    output line (shortened; the full tail goes to stderr)."""
     last = next((line.strip() for line in reversed(tail) if line.strip()), "")
-    detail = f": {last}" if last else ""
-    return Row(figure=f"{name} {DID_NOT_FINISH}", value=f"{what}{detail}", baseline="", target="runs to the end",
-               verdict=NOT_MET, bench=name)
+    if len(last) > FAILURE_CHARS:
+        last = last[: FAILURE_CHARS - 3] + "..."
+    return Row(figure=DID_NOT_FINISH, value=f"{what}: {last}" if last else what, baseline="",
+               target="runs to the end", verdict=NOT_MET, bench=name)
 
 
 def is_failure(row: Row) -> bool:
     """Whether ``row`` is the one row standing for a benchmark that crashed or timed out."""
-    return row.figure.endswith(DID_NOT_FINISH) and row.verdict == NOT_MET
+    return row.figure == DID_NOT_FINISH and row.verdict == NOT_MET
 
 
 def run_bench(module: str, quick: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S, *, label: str | None = None,

@@ -145,7 +145,8 @@ def test_main_writes_the_table_and_reports_failure_in_exit_code(fakes, tmp_path,
     out = tmp_path / "res.csv"
     assert run_all.main(["--quick", "--out", str(out), "--timeout", "60"]) == 1
     printed = capsys.readouterr().out
-    assert "#1 fake_ok" in printed and "#2 fake_raises did not finish" in printed
+    assert "#1 fake_ok" in printed and "benchmark did not finish" in printed
     parsed = list(csv.DictReader(out.open()))
     assert [p["bench"] for p in parsed] == ["#1 fake_ok", "#2 fake_raises"]
+    assert parsed[1]["figure"] == "benchmark did not finish" and parsed[1]["verdict"] == "not met"
     assert run_all.main(["--only", "fake_ok", "--timeout", "60"]) == 0
