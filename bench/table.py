@@ -110,11 +110,12 @@ def format_markdown(rows: Sequence[Row]) -> str:
 
 
 def format_csv(rows: Sequence[Row]) -> str:
-    """CSV with a header of the column names in COLUMNS (always all six)."""
+    """CSV with a header of the column names in COLUMNS (always all six); numbers at full
+    precision (for other programs), a missing value as an empty field."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(COLUMNS)
-    w.writerows(_cells(rows, COLUMNS))
+    w.writerows([["" if v is None else v for v in (getattr(r, c) for c in COLUMNS)] for r in rows])
     return buf.getvalue()
 
 
