@@ -205,6 +205,7 @@ def save_checkpoint(
                 save_file(tensors, str(tmp / OPTIMIZER_FILE), metadata={"format": FORMAT})
                 state["optimizer_param_groups"] = groups
             _write_json(tmp / TRAINER_STATE_FILE, state)
+        _publish_permissions(tmp)
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
@@ -216,6 +217,16 @@ def save_checkpoint(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return path
+
+
+def _publish_permissions(directory: Path) -> None:
+    """mkdtemp makes a 0700 directory and safetensors writes 0600 files; give the checkpoint
+    the usual permissions (0755 directory, 0644 files, minus the process umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(directory, 0o755 & ~umask)
+    for f in directory.iterdir():
+        os.chmod(f, 0o644 & ~umask)
 
 
 def _load_tensors(file: Path) -> dict[str, torch.Tensor]:
