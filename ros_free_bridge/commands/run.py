@@ -52,8 +52,8 @@ def register(sub) -> None:
 class StatusLine:
     """A one-line live status on stderr: state, rate, latency, interventions, faults."""
 
-    def __init__(self, stream=sys.stderr, every_s: float = 0.5):
-        self.stream = stream
+    def __init__(self, stream=None, every_s: float = 0.5):
+        self._stream = stream  # None: whatever sys.stderr is when writing
         self.every_s = every_s
         self._last = 0.0
         self._ticks0 = 0
@@ -65,12 +65,13 @@ class StatusLine:
         rate = (loop.summary.ticks - self._ticks0) / (now - self._last) if self._last else 0.0
         self._last, self._ticks0 = now, loop.summary.ticks
         lat = loop.summary.e2e_latency[-1] * 1e3 if loop.summary.e2e_latency else float("nan")
-        self.stream.write(
+        stream = self._stream or sys.stderr
+        stream.write(
             f"\r{loop.state.name:<8} {rate:6.1f} Hz  frame {loop.summary.frames_played:5d}  latency {lat:6.1f} ms  "
             f"interventions {loop.summary.interventions:5d}  misses {loop.deadline_misses:3d}  "
             f"faults {int(faults):#06x} "
         )
-        self.stream.flush()
+        stream.flush()
 
 
 def watch_keys(loop) -> None:
@@ -100,7 +101,8 @@ def watch_keys(loop) -> None:
     atexit.register(termios.tcsetattr, fd, termios.TCSADRAIN, old)
 
 
-def print_summary(result, stream=sys.stdout) -> None:
+def print_summary(result, stream=None) -> None:
+    stream = stream or sys.stdout
     s = result.summary
     lat = s.latency_percentiles()
     lines = [
