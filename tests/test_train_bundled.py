@@ -53,7 +53,7 @@ def test_bundled_model_places_the_follower_where_the_rule_says():
     """The bundled model (605 steps) learned the rules from the prompt: its reactor is far closer to
     the rule's follower than the best static pose. It uses the actor's motion only weakly (the
     actor-masked error is about the same, see its README), so that is printed, not asserted;
-    tests/test_train_learning.py asserts actor use for a model trained to convergence."""
+    tests/test_train_learning.py asserts actor use for a tiny model trained on 1 s windows."""
     from dualflow.evaluation.reactor import evaluate_checkpoint
 
     errors = evaluate_checkpoint(n_clips=16, steps=10)
