@@ -43,8 +43,11 @@ class SessionOptions:
     seed: int = 0
     partner: str = "dualflow"
     model: str | None = None  #: checkpoint directory (None: the bundled one)
-    steps: int = 10  #: ODE steps per streamed window
-    hop: int = 3  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
+    # Streaming generation on a 2-core CPU: 5 Euler steps over 30-frame windows every 5 frames
+    # keeps the bundled small model faster than real time (bench/bridge_loop.py).
+    steps: int = 5  #: ODE steps per streamed window
+    hop: int = 5  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
+    window: int = 30  #: frames per generation window (context + new frames + look-ahead)
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -191,7 +194,7 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
 
-        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(steps=opts.steps, hop=opts.hop), opts.text, opts.music)
+        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop), opts.text, opts.music)
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)
@@ -212,9 +215,12 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         stack.callback(pipeline.stop)
         if on_ready is not None:
             on_ready(loop, described)
-        summary = loop.run()
-        pipeline.stop()
-        pipeline.join(2.0)
+        try:
+            summary = loop.run()
+        finally:
+            # never leave the generator thread inside torch while the process exits
+            pipeline.stop()
+            pipeline.join(30.0)
     result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
     from dualflow.motion.io import save_motion
 

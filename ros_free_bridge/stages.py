@@ -67,7 +67,7 @@ class ReactorStage:
         self.look_ahead = self.streamer.look_ahead
         self.delay_frames = self.streamer.delay_frames + 1  # + 1: a feature row needs the next frame
         self._canonical = None
-        self._prev = None
+        self._pending: list[np.ndarray] = []  # actor frames not yet encoded, plus the last encoded one
         self._n_out = 0
         self._torch = torch
 
@@ -93,25 +93,41 @@ class ReactorStage:
         return cond
 
     def push(self, actor_positions: np.ndarray, arrival: float, actor_index: int) -> list[ReactorFrame]:
+        """Add one actor frame (22, 3) m; returns the partner frames this completed (often none).
+
+        Feature rows are encoded in chunks of the streamer's hop (the inverse kinematics of
+        the 262-d rotation part costs mostly per call, not per frame); the streamer would not
+        generate before a hop's worth of rows anyway, so chunking adds no delay.
+        """
         from dualflow.motion import Motion
-        from dualflow.motion.features import canonical_frame, encode_person
+        from dualflow.motion.features import canonical_frame
 
         pos = np.asarray(actor_positions, dtype=np.float64)
-        if self._prev is None:
+        if self._canonical is None:
             self._canonical = canonical_frame(Motion(pos[None], self.fps))
-            self._prev = pos
+        self._pending.append(pos)
+        if len(self._pending) - 1 < self.streamer.config.hop:
             return []
-        row = encode_person(Motion(np.stack([self._prev, pos]), self.fps), self._canonical)
-        self._prev = pos
-        t0 = time.perf_counter()
-        with self._torch.no_grad():
-            out = self.streamer.push(self.stats.normalize(row))
-        return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+        return self._encode_and_push(arrival, actor_index)
 
     def flush(self, arrival: float, actor_index: int) -> list[ReactorFrame]:
+        """End of the actor stream: generate the remaining partner frames."""
+        frames = self._encode_and_push(arrival, actor_index) if len(self._pending) > 1 else []
         t0 = time.perf_counter()
         with self._torch.no_grad():
             out = self.streamer.flush()
+        return frames + self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+
+    def _encode_and_push(self, arrival: float, actor_index: int) -> list[ReactorFrame]:
+        """Rows for every pending frame but the last (a row needs the next frame's position)."""
+        from dualflow.motion import Motion
+        from dualflow.motion.features import encode_person
+
+        rows = encode_person(Motion(np.stack(self._pending), self.fps), self._canonical)
+        self._pending = self._pending[-1:]
+        t0 = time.perf_counter()
+        with self._torch.no_grad():
+            out = self.streamer.push(self.stats.normalize(rows))
         return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
 
     def _decode(self, rows, arrival: float, actor_index: int, latency: float) -> list[ReactorFrame]:

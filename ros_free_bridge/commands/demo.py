@@ -32,9 +32,10 @@ def register(sub) -> None:
     p.add_argument("--seconds", type=float, default=8.0, help="length of the synthetic leader (default 8 s)")
     p.add_argument("--seed", type=int, default=0, help="synthetic leader seed")
     p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
-    p.add_argument("--steps", type=int, default=10, help="ODE steps per generated window (default 10)")
-    p.add_argument("--hop", type=int, default=3,
-                   help="generate the partner every HOP frames (default 3; 1 = lowest delay, most compute)")
+    p.add_argument("--steps", type=int, default=5, help="ODE steps per generated window (default 5)")
+    p.add_argument("--hop", type=int, default=5,
+                   help="generate the partner every HOP frames (default 5; 1 = lowest delay, most compute)")
+    p.add_argument("--window", type=int, default=30, help="frames per generation window (default 30)")
     p.add_argument("--no-bus", action="store_true", help="drive the virtual robot only, without the emulated bus")
     p.add_argument("--no-video", action="store_true", help="skip the video")
     p.add_argument("-o", "--out", default="demo_out", help="output folder (default demo_out)")
@@ -82,7 +83,7 @@ def demo(args) -> int:
 
     print(f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
           f"{'' if args.no_bus else ' + emulated Dynamixel bus'}", file=sys.stderr)
-    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, model=args.model, steps=args.steps, hop=args.hop,
+    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, model=args.model, steps=args.steps, hop=args.hop, window=args.window,
                           transport="sim" if args.no_bus else "sim+dynamixel", emulate=not args.no_bus, out=out,
                           text=args.text, music=music)
     result = run_session(opts, on_status=StatusLine())

@@ -29,9 +29,10 @@ def register(sub) -> None:
     p.add_argument("--partner", choices=PARTNERS, default="dualflow",
                    help="dualflow: generate the partner (default); imitate: the robot copies the actor")
     p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
-    p.add_argument("--steps", type=int, default=10, help="ODE steps per generated window (default 10)")
-    p.add_argument("--hop", type=int, default=3,
-                   help="generate the partner every HOP frames (default 3; 1 = lowest delay, most compute)")
+    p.add_argument("--steps", type=int, default=5, help="ODE steps per generated window (default 5)")
+    p.add_argument("--hop", type=int, default=5,
+                   help="generate the partner every HOP frames (default 5; 1 = lowest delay, most compute)")
+    p.add_argument("--window", type=int, default=30, help="frames per generation window (default 30)")
     p.add_argument("--text", help="a text cue for the generated partner, e.g. 'the partner mirrors the leader'")
     p.add_argument("--music", help="an audio file (wav/ogg/mp3) aligned with the actor's clock (loops if shorter)")
     p.add_argument("--transport", choices=TRANSPORTS, default="sim", help="where commands go (default: sim)")
@@ -123,7 +124,7 @@ def run(args) -> int:
 
     opts = SessionOptions(
         robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
-        model=args.model, steps=args.steps, hop=args.hop, transport=args.transport, port=args.port, emulate=args.emulate,
+        model=args.model, steps=args.steps, hop=args.hop, window=args.window, transport=args.transport, port=args.port, emulate=args.emulate,
         rate_hz=args.rate, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
     )
@@ -142,6 +143,27 @@ def run(args) -> int:
     return 0 if result.summary.end_state == "STOPPED" else 1
 
 
+def actor_placement_for_robot(partner, robot_motion):
+    """Where to draw the actor in the robot's scene: the rigid transform (and scale) that takes
+    the generated partner's first-frame pelvis and heading onto the robot's root, so the actor
+    stands relative to the robot as it stood relative to its partner."""
+    import numpy as np
+
+    from sim.human_figure import Placement
+
+    p0 = partner.positions[0]
+    left = p0[1] - p0[2]  # right hip -> left hip
+    partner_yaw = np.arctan2(-left[0], left[1])  # facing is the hips' left vector turned by -90°
+    w, x, y, z = robot_motion.root_quat[0]
+    robot_yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    scale = float(robot_motion.root_pos[0, 2] / max(p0[0, 2], 1e-3))
+    yaw = robot_yaw - partner_yaw
+    c, s = np.cos(yaw), np.sin(yaw)
+    moved = scale * np.array([c * p0[0, 0] - s * p0[0, 1], s * p0[0, 0] + c * p0[0, 1]])
+    offset = (robot_motion.root_pos[0, 0] - moved[0], robot_motion.root_pos[0, 1] - moved[1], 0.0)
+    return Placement(scale=scale, offset=offset, yaw_deg=float(np.degrees(yaw)))
+
+
 def render_video(result, path: Path) -> Path:
     """Actor, generated partner and robot side by side, from the run's recorded motions."""
     from ros_free_bridge.errors import BridgeError
@@ -149,7 +171,9 @@ def render_video(result, path: Path) -> Path:
 
     if result.robot_motion is None:
         raise BridgeError("--video needs a sim transport (sim or sim+dynamixel): only the virtual robot can be filmed")
+    placement = None if result.partner is None else actor_placement_for_robot(result.partner, result.robot_motion)
     out, _ = render_trajectory(result.robot_motion, path, RenderConfig(playback="kinematic", side_by_side=True),
-                               robot=result.files.name, actor=result.actor, reactor=result.partner)
+                               robot=result.files.name, actor=result.actor, actor_placement=placement,
+                               reactor=result.partner)
     print(f"video: {out}", file=sys.stderr)
     return out

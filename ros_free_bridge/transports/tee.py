@@ -14,13 +14,19 @@ from ros_free_bridge.transports.base import JointState
 
 
 class TeeTransport:
-    def __init__(self, primary, *others):
+    """``read_every``: read the other transports on every Nth ``read_state`` only (default 10,
+    i.e. 10 Hz at a 100 Hz loop): they receive every goal, but their readings only feed the
+    health checks, and each read of a bus costs a round trip the loop waits for."""
+
+    def __init__(self, primary, *others, read_every: int = 10):
         self.transports = (primary, *others)
         for t in others:
             if tuple(t.joint_names) != tuple(primary.joint_names):
                 raise BridgeError(f"tee transport: {type(t).__name__} has joints {t.joint_names}, the primary "
                                   f"{primary.joint_names}; both must use the robot's joint order")
         self.joint_names = tuple(primary.joint_names)
+        self.read_every = max(1, int(read_every))
+        self._reads = 0
 
     def open(self) -> None:
         for t in self.transports:
@@ -30,6 +36,9 @@ class TeeTransport:
         """The primary's reading, with every transport's servo errors and the hottest
         temperature per joint merged in, so health checks see all of them."""
         state = self.transports[0].read_state()
+        self._reads += 1
+        if (self._reads - 1) % self.read_every:
+            return state
         for t in self.transports[1:]:
             other = t.read_state()
             state.errors.update({j: f"{e} ({type(t).__name__})" for j, e in other.errors.items()})
