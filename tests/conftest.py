@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -28,3 +29,18 @@ def cmu_pair_paths() -> tuple[Path, Path]:
 @pytest.fixture
 def music_dir() -> Path:
     return _require(MUSIC_DIR)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """One torch thread in tests that use torch: on a shared 2-core machine two threads
+    contend and run many times slower. Tests that never import torch are left alone (some
+    check that importing a package does not import it)."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        yield
+        return
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

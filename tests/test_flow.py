@@ -19,15 +19,6 @@ from dualflow.flow import (
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine, two threads contend and run ~20x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _tiny(randomise: bool = True) -> DualFlow:
     torch.manual_seed(0)
     m = DualFlow(DualFlowConfig.preset("tiny"))

@@ -33,15 +33,6 @@ from dualflow.motion.features import FEATURE_SLICES
 T = 6
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine, two threads contend and run ~20x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 REST_YUP = torch.tensor(np.asarray(REST_POSE)[:, [1, 2, 0]], dtype=torch.float64)  # (22, 3)
 
 

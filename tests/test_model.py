@@ -22,15 +22,6 @@ from dualflow.model import (
 B, T = 3, 16
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine, two threads contend and run ~20x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def randomise_zero_inits(m: DualFlow) -> DualFlow:
     """The output linears and adaLN modulations start at zero; give them weights for testing."""
     for name, p in m.named_parameters():

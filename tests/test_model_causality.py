@@ -13,15 +13,6 @@ from dualflow.model import Conditions, DualFlow, DualFlowConfig
 T = 24
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One torch thread: on a shared 2-core machine, two threads contend and run ~20x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _model(look_ahead: int = 3) -> DualFlow:
     torch.manual_seed(0)
     model = DualFlow(DualFlowConfig.preset("tiny", look_ahead=look_ahead)).eval()
