@@ -539,7 +539,6 @@ class DualFlow(nn.Module):
         sits at flow time 1, so it does not change over the ODE steps of a sample: samplers
         compute it once per conditioning (``forward(..., actor_context=...)``).
         """
-        cfg = self.config
         cond = cond or Conditions()
         self._check(x_a, x_a, cond, "reactive", 0, frame_mask)
         b, n_frames = x_a.shape[:2]

@@ -17,7 +17,6 @@ measured motion, sim transports) and ``commands.npz`` (record transport).
 
 from __future__ import annotations
 
-import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path

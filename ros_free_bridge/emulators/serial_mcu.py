@@ -25,7 +25,7 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from firmware_cfg import serial_link as sl
 
