@@ -21,12 +21,8 @@ FPS = 30.0
 
 @pytest.fixture(scope="module")
 def setup():
-    from dualflow.text import MiniLMEncoder, minilm_model_dir
+    from dualflow.text import MiniLMEncoder
 
-    try:
-        minilm_model_dir()
-    except DualFlowError as exc:
-        pytest.skip(str(exc))
     pairs = [make_duet(r, seconds=41 / FPS, fps=FPS, seed=7 + i) for i, r in enumerate(("mirror", "follow", "orbit"))]
     feats = np.stack([encode_pair(p)[0] for p in pairs])
     stats = NormStats.from_features(feats)

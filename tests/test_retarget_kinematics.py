@@ -1,6 +1,5 @@
 """Symbolic CasADi kinematics against MuJoCo's own forward kinematics, and the geometry helpers."""
 
-from pathlib import Path
 
 import casadi as ca
 import mujoco
@@ -63,8 +62,7 @@ def test_bundled_robot_fk_matches_mujoco_to_1e9(path):
 
 
 def test_joint_order_follows_the_actuators():
-    if not ROBOTS:
-        pytest.skip("bundled robot MJCF absent")
+    assert ROBOTS, "the bundled robot MJCFs are missing from the package"
     kin = RobotKinematics.from_xml(ROBOTS[0])
     m = kin.model
     assert kin.joint_names == tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a) for a in range(m.nu))
