@@ -99,13 +99,15 @@ class ConditionBuilder:
     text_encoder: a TextEncoder with ``dim == text_dim`` (None: text is ignored with a note);
     music_kind: a dualflow.music kind with ``MUSIC_DIMS[kind] == music_dim``, or None (music
     ignored); fps: the model's frame rate; retrieval_db / retrieval_encoder / decomposer / k /
-    lam: optional RAG (both db and encoder, or neither).
+    lam: optional RAG (both db and encoder, or neither); k: one depth for both tasks, a
+    {mode: depth} dict, or None (5 interactive, 3 reactive). :meth:`from_checkpoint` loads a
+    RAG checkpoint's database, encoder and depths (:func:`dualflow.rag.load_rag`).
     """
 
     def __init__(self, model_config: DualFlowConfig, stats: NormStats, *, text_encoder=None,
                  music_kind: str | None = "edge35", fps: float = 30.0,
                  retrieval_db: RetrievalDatabase | None = None, retrieval_encoder=None, decomposer=None,
-                 k: int | None = None, lam: float = DEFAULT_LAMBDA):
+                 k: int | dict | None = None, lam: float = DEFAULT_LAMBDA):
         self.config = model_config
         self.stats = stats
         self.text_encoder = text_encoder
@@ -140,6 +142,13 @@ class ConditionBuilder:
         kw = {"music_kind": MUSIC_FROM_META[music_meta], "fps": float(data.get("fps", 30.0))}
         if "text_encoder" not in overrides:
             kw["text_encoder"] = text_encoder_for(ckpt.text_encoder, ckpt.config.text_dim)
+        if "retrieval_db" not in overrides and "retrieval_encoder" not in overrides:
+            from dualflow.rag import load_rag
+
+            rag = load_rag(ckpt)
+            if rag is not None:
+                kw.update(retrieval_db=rag.db, retrieval_encoder=rag.encoder, lam=rag.config.lam,
+                          k={m: rag.config.depth(m) for m in ("interactive", "reactive")})
         kw.update(overrides)
         return cls(ckpt.config, ckpt.stats, **kw)
 
@@ -187,7 +196,8 @@ class ConditionBuilder:
             queries["music"] = db.music_query(music, n_frames)
         if not queries:
             return None, []
-        res = db.query(queries, n_frames, k=self.k or DEFAULT_K[mode], lam=self.lam)
+        depth = self.k.get(mode, DEFAULT_K[mode]) if isinstance(self.k, dict) else (self.k or DEFAULT_K[mode])
+        res = db.query(queries, n_frames, k=int(depth), lam=self.lam)
         idx, cue_ids = res.flat()
         motions, lengths = db.gather(idx)
         param = next(self.retrieval_encoder.parameters())

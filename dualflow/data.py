@@ -90,12 +90,26 @@ def template_text_embedding(texts: Sequence[str], dim: int, seed: int = 0) -> np
     return out.astype(np.float32)
 
 
+#: data.dataset value of the built-in synthetic duets (the default); any other name is a
+#: :data:`dualflow.datasets.LOADERS` entry read from ``data.root``.
+SYNTHETIC = "synthetic"
+#: The fields that describe the synthetic clips (the data cache key uses only these).
+SYNTHETIC_FIELDS = ("n_clips", "val_clips", "frames", "fps", "rules", "seed")
+
+
 @dataclass(frozen=True)
 class SyntheticDataConfig:
-    """How many synthetic clips, how long, which rules.
+    """Which training data: the synthetic duets (default) or a dataset by name.
 
-    n_clips: training clips; val_clips: validation clips (disjoint seeds);
-    frames: feature rows per clip (the model's window, T); fps: frame rate;
+    dataset: "synthetic" (generated here) or a loader of :mod:`dualflow.datasets`
+    ("interhuman", "interhuman_as", "dd100", "mdd", "bvh_pairs"); root: that dataset's
+    folder (required for every dataset but "synthetic"); splits: [train split] or
+    [train split, validation split] (default: ["train"], for bvh_pairs ["all"]);
+    stride: frames between window starts (default: frames, no overlap); options: keyword
+    options of the loader (e.g. {music: jukebox} for MDD, {limit: 100}).
+
+    Synthetic clips: n_clips training clips; val_clips validation clips (disjoint seeds);
+    frames: feature rows per clip or window (the model's window, T); fps: frame rate;
     rules: follower rules to cycle through; seed: base seed of the split seeds.
     """
 
@@ -105,9 +119,15 @@ class SyntheticDataConfig:
     fps: float = 30.0
     rules: tuple[str, ...] = RULES
     seed: int = 0
+    dataset: str = SYNTHETIC
+    root: str | None = None
+    splits: tuple[str, ...] | None = None
+    stride: int | None = None
+    options: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rules", tuple(self.rules))
+        object.__setattr__(self, "options", dict(self.options or {}))
         bad = [r for r in self.rules if r not in RULES]
         if bad or not self.rules:
             raise DualFlowError(f"data.rules: unknown or empty rules {bad or '[]'}; choose from {', '.join(RULES)}")
@@ -118,11 +138,51 @@ class SyntheticDataConfig:
             raise DualFlowError(f"data.val_clips must be >= 0, got {self.val_clips!r}")
         if not float(self.fps) > 0:
             raise DualFlowError(f"data.fps must be > 0, got {self.fps!r}")
+        self._check_dataset()
+
+    def _check_dataset(self) -> None:
+        from dualflow.datasets import LOADERS
+
+        if self.dataset not in LOADERS:
+            raise DualFlowError(f"data.dataset: unknown dataset {self.dataset!r}; choose one of {', '.join(LOADERS)}")
+        if self.splits is not None:
+            splits = (self.splits,) if isinstance(self.splits, str) else tuple(self.splits)
+            if not 1 <= len(splits) <= 2 or not all(isinstance(x, str) and x for x in splits):
+                raise DualFlowError(f"data.splits must be [train] or [train, validation] split names, got {self.splits!r}")
+            object.__setattr__(self, "splits", splits)
+        if self.stride is not None and int(self.stride) < 1:
+            raise DualFlowError(f"data.stride must be >= 1 frames (or null = data.frames), got {self.stride!r}")
+        if self.dataset == SYNTHETIC:
+            if self.root is not None or self.splits is not None or self.options:
+                raise DualFlowError("data.dataset 'synthetic' is generated (n_clips, val_clips, rules, seed); "
+                                    "data.root, data.splits and data.options are for a real dataset")
+            return
+        if self.root is None or not str(self.root).strip():
+            raise DualFlowError(f"data.root: dataset {self.dataset!r} needs its folder; set data.root: /path/to/{self.dataset}")
+        if not Path(self.root).expanduser().is_dir():
+            raise DualFlowError(f"data.root: {self.root} is not a folder (dataset {self.dataset!r}); "
+                                "point data.root at the dataset's top folder")
+
+    @property
+    def is_synthetic(self) -> bool:
+        return self.dataset == SYNTHETIC
+
+    def split_names(self) -> tuple[str, str | None]:
+        """(train split, validation split or None) of a real dataset."""
+        default = ("all",) if self.dataset == "bvh_pairs" else ("train",)
+        splits = self.splits or default
+        return splits[0], (splits[1] if len(splits) > 1 else None)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["rules"] = list(self.rules)
+        d["splits"] = None if self.splits is None else list(self.splits)
         return d
+
+    def synthetic_dict(self) -> dict:
+        """The synthetic-clip fields only (the data cache key)."""
+        d = self.to_dict()
+        return {k: d[k] for k in SYNTHETIC_FIELDS}
 
     @staticmethod
     def from_dict(d: dict, where: str = "data") -> "SyntheticDataConfig":
@@ -133,12 +193,17 @@ class SyntheticDataConfig:
         return SyntheticDataConfig(**d)
 
 
+#: The training-data config under its general name (it describes any dataset, not only synthetic clips).
+DataConfig = SyntheticDataConfig
+
+
 @dataclass
 class SyntheticSplit:
     """Raw (un-normalised) features of one split.
 
     features (N, T, 2, 262) float32; texts: N sentences; beats (N, T, 4) float32;
-    rules (N,) int64 index into the config's rules; seeds (N,) int64.
+    rules (N,) int64 index into the config's rules; seeds (N,) int64; music (N, T, D)
+    float32 per-frame music features of kind ``music_kind`` (dualflow.music) or None.
     """
 
     features: np.ndarray
@@ -146,6 +211,8 @@ class SyntheticSplit:
     beats: np.ndarray
     rules: np.ndarray
     seeds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    music: np.ndarray | None = None
+    music_kind: str | None = None
 
 
 def clip_seed(config: SyntheticDataConfig, split: str, index: int) -> int:
@@ -161,7 +228,7 @@ def _cache_file(config: SyntheticDataConfig, split: str, cache_dir: Path) -> Pat
     import dualflow.motion.features as features_module
     import dualflow.synthetic as synthetic_module
 
-    h = hashlib.sha1(json.dumps([config.to_dict(), split], sort_keys=True).encode())
+    h = hashlib.sha1(json.dumps([config.synthetic_dict(), split], sort_keys=True).encode())
     for module in (synthetic_module, features_module):
         h.update(Path(module.__file__).read_bytes())
     return cache_dir / f"synthetic_{split}_{h.hexdigest()[:16]}.npz"
@@ -214,6 +281,10 @@ class DuetDataset(torch.utils.data.Dataset):
     features (N, T, 2, 262) raw; texts N sentences; beats (N, T, 4); rules (N,);
     stats: the training split's NormStats; text_dim: D_text of the model;
     text_embedder(texts, dim) -> (N, dim): default :func:`template_text_embedding`.
+
+    Also kept: ``music`` (N, T, D) float32 tensor of the split's per-frame music features
+    (``music_kind``) or None; ``groups`` (N,) int64: windows cut from the same clip share a
+    group (retrieval never returns a window of the query's own clip); ``sources``: names.
     """
 
     def __init__(
@@ -231,6 +302,14 @@ class DuetDataset(torch.utils.data.Dataset):
         self.beats = torch.from_numpy(split.beats)
         self.rule = torch.from_numpy(split.rules)
         self.texts = list(split.texts)
+        music = getattr(split, "music", None)
+        self.music = None if music is None else torch.from_numpy(np.ascontiguousarray(music, dtype=np.float32))
+        self.music_kind = getattr(split, "music_kind", None) if music is not None else None
+        sources = getattr(split, "sources", None)
+        self.sources = list(sources) if sources is not None else [f"clip{i:06d}" for i in range(len(self.texts))]
+        groups = getattr(split, "groups", None)
+        self.groups = (np.arange(len(self.texts), dtype=np.int64) if groups is None
+                       else np.asarray(groups, dtype=np.int64))
         if self.text.shape != (len(self.texts), int(text_dim)):
             raise DualFlowError(f"text embedder returned {tuple(self.text.shape)}, expected ({len(self.texts)}, {text_dim})")
 
@@ -242,13 +321,30 @@ class DuetDataset(torch.utils.data.Dataset):
         return int(self.actor.shape[1])
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        return {"actor": self.actor[i], "reactor": self.reactor[i], "text": self.text[i],
-                "beats": self.beats[i], "rule": self.rule[i]}
+        out = {"actor": self.actor[i], "reactor": self.reactor[i], "text": self.text[i],
+               "beats": self.beats[i], "rule": self.rule[i]}
+        if self.music is not None:
+            out["music"] = self.music[i]
+        return out
 
     def batch(self, indices: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Stacked samples for a (B,) index tensor (no DataLoader overhead)."""
-        return {"actor": self.actor[indices], "reactor": self.reactor[indices], "text": self.text[indices],
-                "beats": self.beats[indices], "rule": self.rule[indices]}
+        """Stacked samples for a (B,) index tensor (no DataLoader overhead); "index" is ``indices``."""
+        out = {"actor": self.actor[indices], "reactor": self.reactor[indices], "text": self.text[indices],
+               "beats": self.beats[indices], "rule": self.rule[indices], "index": indices}
+        if self.music is not None:
+            out["music"] = self.music[indices]
+        return out
+
+    def music_of(self, kind: str) -> torch.Tensor:
+        """(N, T, D) per-frame music of ``kind`` ("beats4": the beat track), or a DualFlowError
+        naming what the data has."""
+        if kind == "beats4":
+            return self.beats
+        if self.music is None or self.music_kind != kind:
+            have = self.music_kind or "only the beat track"
+            raise DualFlowError(f"music {kind!r}: this training data has {have}; set music to what the data has "
+                                "(beats, or the dataset's own feature kind)")
+        return self.music
 
 
 def make_datasets(
@@ -256,15 +352,75 @@ def make_datasets(
     text_dim: int,
     text_embedder: TextEmbedder = template_text_embedding,
     cache_dir: str | os.PathLike | None = None,
+    music_kind: str | None = None,
 ) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
-    """(train, val or None, NormStats fitted on the train split's raw features); cache_dir: see build_split."""
-    train = build_split(config, "train", cache_dir)
+    """(train, val or None, NormStats fitted on the train split's raw features); cache_dir: see build_split.
+
+    ``config.dataset`` other than "synthetic": the named dataset read from ``config.root``
+    (:func:`dualflow.datasets.windows.make_training_sets`). music_kind "edge35" / "duolando54"
+    on the synthetic duets: spectral features of a rendered click track (:func:`click_track_music`).
+    """
+    if not config.is_synthetic:
+        from dualflow.datasets.windows import make_training_sets
+
+        train_split, val_split = config.split_names()
+        return make_training_sets(config.dataset, config.root, frames=int(config.frames), text_dim=text_dim,
+                                  text_embedder=text_embedder, train_split=train_split, val_split=val_split,
+                                  stride=config.stride, **config.options)
+    if music_kind == "jukebox":
+        raise DualFlowError("music 'jukebox': Jukebox features are precomputed 4800-d .npy files from the audio; "
+                            "the synthetic duets have no audio to run Jukebox on (only beat times). Use a dataset "
+                            "that ships them (e.g. data.dataset: mdd with data.options: {music: jukebox}) or, here, "
+                            "music: beats / edge35 / duolando54")
+
+    def split_of(name: str) -> SyntheticSplit:
+        out = build_split(config, name, cache_dir)
+        return with_click_music(out, music_kind, float(config.fps)) if music_kind in ("edge35", "duolando54") else out
+
+    train = split_of("train")
     stats = NormStats.from_features(train.features)
     train_ds = DuetDataset(train, stats, text_dim, text_embedder)
     val_ds = None
     if int(config.val_clips) > 0:
-        val_ds = DuetDataset(build_split(config, "val", cache_dir), stats, text_dim, text_embedder)
+        val_ds = DuetDataset(split_of("val"), stats, text_dim, text_embedder)
     return train_ds, val_ds, stats
+
+
+def click_track_music(beats: np.ndarray, kind: str = "edge35", fps: float = 30.0) -> np.ndarray:
+    """Spectral music features (T, D) of a click track rendered from a (T, 4) beat track.
+
+    The synthetic duets have no audio, only beat times; to train and evaluate the *spectral*
+    music path (EDGE 35-d / Duolando 54-d, :func:`dualflow.music.analyse_waveform`) on them,
+    each beat impulse (column 0) becomes a 1 kHz click (librosa.clicks, 0.1 s), downbeats
+    (column 3) a louder 1.5 kHz click, at sr = fps · 512, and the audio is analysed like a song.
+    """
+    import librosa
+
+    from dualflow.music import analyse_waveform, analysis_rate
+
+    b = np.asarray(beats, dtype=np.float64)
+    if b.ndim != 2 or b.shape[1] != 4:
+        raise DualFlowError(f"click_track_music: expected a (T, 4) beat track, got {b.shape}")
+    sr = analysis_rate(fps)
+    n = len(b)
+    length = int(round(n / fps * sr))
+    times = np.flatnonzero(b[:, 0] > 0.5) / float(fps)
+    down = np.flatnonzero(b[:, 3] > 0.5) / float(fps)
+    y = librosa.clicks(times=times, sr=sr, length=length, click_freq=1000.0) if len(times) else np.zeros(length)
+    if len(down):
+        y = y + librosa.clicks(times=down, sr=sr, length=length, click_freq=1500.0)
+    y = y + 1e-4 * np.random.default_rng(n).standard_normal(length)  # a noise floor keeps chroma/MFCC finite
+    import warnings
+
+    with warnings.catch_warnings():  # librosa warns about its low CQT octaves on clips of a few seconds
+        warnings.filterwarnings("ignore", message="n_fft=.*is too large", category=UserWarning)
+        return analyse_waveform(y.astype(np.float32), sr, kind, fps, n_frames=n).features
+
+
+def with_click_music(split: SyntheticSplit, kind: str, fps: float) -> SyntheticSplit:
+    """The same split with ``music`` = :func:`click_track_music` of every clip's beat track."""
+    music = np.stack([click_track_music(b, kind, fps) for b in split.beats]).astype(np.float32)
+    return SyntheticSplit(split.features, split.texts, split.beats, split.rules, split.seeds, music, kind)
 
 
 def positions_from_normalized(x: torch.Tensor | np.ndarray, stats: NormStats) -> np.ndarray:

@@ -62,9 +62,15 @@ from dualflow.errors import DualFlowError
 from dualflow.flow import TimeSampler, flow_training_step
 from dualflow.losses import LossWeights, step_losses
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, sample_condition_drop
+from dualflow.rag import RagConfig
 from dualflow.text import as_text_embedder
 
-MUSIC_SOURCES = ("none", "beats")
+#: music condition: none; beats (the 4-d beat track, any dataset); edge35 / duolando54 (spectral
+#: features: the dataset's own, or on the synthetic duets those of a rendered click track);
+#: jukebox (4800-d precomputed features the dataset ships, e.g. MDD with data.options.music: jukebox).
+MUSIC_SOURCES = ("none", "beats", "edge35", "duolando54", "jukebox")
+#: music setting -> dualflow.music kind of the per-frame features
+MUSIC_KIND = {"beats": "beats4", "edge35": "edge35", "duolando54": "duolando54", "jukebox": "jukebox"}
 #: "paper": L_flow + triplet + geometric + interaction losses (dualflow.losses, eq. 10);
 #: "flow": L_flow alone.
 LOSS_SETS = ("paper", "flow")
@@ -81,8 +87,11 @@ class TrainConfig:
     """Everything a training run needs; loadable from yaml/json (:func:`load_train_config`).
 
     preset / model: the DualFlowConfig preset and field overrides (e.g. {"width": 64}).
-    data: SyntheticDataConfig fields. music: "none" (music absent, learned null) or
-    "beats" (the synthetic beat track as per-frame music features; needs model.music_dim = 4).
+    data: :class:`dualflow.data.DataConfig` fields: the synthetic duets (default) or any dataset
+    by name (``dataset``, ``root``, ``splits``, ``stride``, ``options``). music: "none" (music
+    absent, learned null), "beats" (the 4-d beat track; model.music_dim = 4), "edge35" /
+    "duolando54" (spectral features, music_dim 35 / 54) or "jukebox" (precomputed, 4800).
+    retrieval: :class:`dualflow.rag.RagConfig` fields ({enabled: true} trains with RAG).
     steps, batch_size (per process), lr, weight_decay, warmup_steps, betas, grad_clip
     (0 = off), ema_decay (0 = off), reactive_prob, look_ahead (None = model default),
     time_sampler ("uniform" | "logit_normal" with time_mean, time_std: t = sigmoid(N(mean, std));
@@ -107,6 +116,7 @@ class TrainConfig:
     model: dict = field(default_factory=dict)
     data: dict = field(default_factory=dict)
     music: str = "none"
+    retrieval: dict = field(default_factory=dict)
     steps: int = 2000
     batch_size: int = 16
     lr: float = 2e-4
@@ -145,6 +155,7 @@ class TrainConfig:
         object.__setattr__(self, "model", dict(self.model or {}))
         object.__setattr__(self, "data", dict(self.data or {}))
         object.__setattr__(self, "loss_weights", dict(self.loss_weights or {}))
+        object.__setattr__(self, "retrieval", dict(self.retrieval or {}))
         checks = [
             (self.steps >= 1, "steps must be >= 1"),
             (self.batch_size >= 1, "batch_size must be >= 1"),
@@ -174,6 +185,7 @@ class TrainConfig:
         self.loss_weights_config()
         self.model_config()
         self.data_config()
+        self.rag_config()
 
     def model_config(self) -> DualFlowConfig:
         try:
@@ -182,7 +194,16 @@ class TrainConfig:
             raise DualFlowError(f"train config: bad 'model' overrides {self.model}: {exc}") from None
         if self.music == "beats" and cfg.music_dim != 4:
             raise DualFlowError("train config: music 'beats' feeds the 4-d beat track; set model.music_dim: 4")
+        if self.music in MUSIC_KIND:
+            from dualflow.music import MUSIC_DIMS
+
+            want = MUSIC_DIMS[MUSIC_KIND[self.music]]
+            if cfg.music_dim != want:
+                raise DualFlowError(f"train config: music {self.music!r} gives {want}-d features; set model.music_dim: {want}")
         return cfg
+
+    def rag_config(self) -> RagConfig:
+        return RagConfig.from_dict(self.retrieval, "train config 'retrieval'")
 
     def loss_weights_config(self) -> LossWeights:
         try:
@@ -192,7 +213,10 @@ class TrainConfig:
             raise DualFlowError(f"train config: bad loss_weights {self.loss_weights}; valid keys: {known}") from None
 
     def data_config(self) -> SyntheticDataConfig:
-        return SyntheticDataConfig.from_dict(self.data, "train config 'data'")
+        try:
+            return SyntheticDataConfig.from_dict(self.data, "train config 'data'")
+        except TypeError as exc:
+            raise DualFlowError(f"train config 'data': {exc}") from None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -399,32 +423,112 @@ class Trainer:
             {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None)
         self.train_set, self.val_set, self.stats = make_datasets(
             self.data_config, self.model_config.text_dim, as_text_embedder(self.text_encoder),
-            cache_dir=config.data_cache or None)
+            cache_dir=config.data_cache or None, music_kind=MUSIC_KIND.get(config.music))
+        self.music_kind = MUSIC_KIND.get(config.music)
+        if self.music_kind is not None:
+            self.train_set.music_of(self.music_kind)  # a clear error now when the data lacks that music
 
         torch.manual_seed(step_seed(config.seed, 0xA11CE))  # identical initial weights on every rank
         self.model = DualFlow(self.model_config).to(self.ctx.device)
+        self.rag = config.rag_config()
+        self.retrieval_encoder = self.retriever = self.val_retriever = None
+        if self.rag.enabled:
+            self._build_retrieval()
         self.optimizer = torch.optim.AdamW(
-            self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay, betas=config.betas
+            self._parameters(), lr=config.lr, weight_decay=config.weight_decay, betas=config.betas
         )
-        self.ema = None
+        self.ema = self.retrieval_ema = None
         if config.ema_decay > 0:
             self.ema = AveragedModel(self.model, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
+            if self.retrieval_encoder is not None:
+                self.retrieval_ema = AveragedModel(self.retrieval_encoder,
+                                                   multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
         self.step = 0
         self.resumed_from: Path | None = None
         if resume:
             self._resume()
         self.ddp = self.model
+        self.retrieval_ddp = self.retrieval_encoder
         if self.ctx.distributed:
             ids = [self.ctx.device.index] if self.ctx.device.type == "cuda" else None
             # find_unused_parameters: a reactive step leaves the actor's output head and
             # (with music absent) the music encoder out of the graph.
             self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=True)
+            if self.retrieval_encoder is not None:
+                self.retrieval_ddp = DistributedDataParallel(self.retrieval_encoder, device_ids=ids,
+                                                             find_unused_parameters=True)
         self.time_sampler = TimeSampler(config.time_sampler, config.time_mean, config.time_std)
         self.loss_weights = config.loss_weights_config()
         self.stats_mean = torch.tensor(self.stats.mean, dtype=torch.float32, device=self.ctx.device)
         self.stats_std = torch.tensor(self.stats.std, dtype=torch.float32, device=self.ctx.device)
         use_amp = config.amp == "bf16" or (config.amp == "auto" and self.ctx.device.type == "cuda")
         self.autocast_dtype = torch.bfloat16 if use_amp else None
+
+    # -- retrieval ------------------------------------------------------------------------
+
+    def _build_retrieval(self) -> None:
+        """Database of the training windows, neighbours of every training (and validation) window
+        with its own clip excluded, and the retrieval encoder (dualflow.rag)."""
+        from dualflow.rag import NeighbourTable, RetrievalConditioner, build_training_database, cue_queries
+
+        def music_of(ds):
+            return None if self.music_kind is None else ds.music_of(self.music_kind).numpy()
+
+        db = build_training_database(self.train_set, self.rag, self.text_encoder, music_of(self.train_set))
+        groups = self.train_set.groups
+        queries = {c: db.embeddings[c] for c in db.cues}
+        table = NeighbourTable.compute(db, queries, db.lengths, self.rag.max_depth, self.rag.lam, groups, groups)
+        self.retriever = RetrievalConditioner(db, table, self.rag)
+        if self.val_set is not None:
+            vq = cue_queries(db, self.val_set.texts, music_of(self.val_set), self.text_encoder)
+            vt = NeighbourTable.compute(db, vq, self.val_set.n_frames, self.rag.max_depth, self.rag.lam)
+            self.val_retriever = RetrievalConditioner(db, vt, self.rag)
+        torch.manual_seed(step_seed(self.config.seed, 0xBEEF))
+        self.retrieval_encoder = self.rag.encoder(self.model_config.width, self.model_config.n_heads).to(self.ctx.device)
+
+    def _parameters(self) -> list[torch.nn.Parameter]:
+        params = list(self.model.parameters())
+        if self.retrieval_encoder is not None:
+            params += list(self.retrieval_encoder.parameters())
+        return params
+
+    def _retrieval_tokens(self, batch: dict, mode: str, drop_text=None, drop_music=None, validation: bool = False):
+        """z_R (B, 2K, width) of the batch's windows, or None without RAG (dualflow.rag)."""
+        if self.retrieval_encoder is None:
+            return None
+        if validation:
+            if self.val_retriever is None:
+                return None
+            encoder = self.retrieval_ema.module if self.retrieval_ema is not None else self.retrieval_encoder
+            return self.val_retriever.tokens(encoder, batch["index"].numpy(), mode, self.ctx.device)
+        return self.retriever.tokens(self.retrieval_ddp, batch["index"].numpy(), mode, self.ctx.device,
+                                     null=self.model.null_retrieval, drop_text=drop_text, drop_music=drop_music)
+
+    def _publish(self, write) -> Path:
+        """Run ``write(directory) -> Path`` (a checkpoint writer) into a temporary sibling, add the
+        retrieval files, then rename it into place: a checkpoint is complete or absent."""
+        def with_rag(path: Path) -> Path:
+            if self.retrieval_encoder is None:
+                return write(path)
+            from dualflow.rag import save_rag_files
+
+            tmp = path.with_name(f".{path.name}.rag-{os.getpid()}")
+            write(tmp)
+            final = path.name == "final"
+            encoder = self.retrieval_ema.module if (final and self.retrieval_ema is not None) else self.retrieval_encoder
+            save_rag_files(tmp, encoder.state_dict(), db=self.retriever.db if final else None,
+                           ema_state=None if final or self.retrieval_ema is None else self.retrieval_ema.state_dict())
+            if path.exists():
+                old = path.with_name(f".{path.name}.old-rag-{os.getpid()}")
+                os.replace(path, old)
+                os.replace(tmp, path)
+                import shutil
+
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+            return path
+        return with_rag
 
     # -- checkpoints ----------------------------------------------------------------------
 
@@ -433,10 +537,11 @@ class Trainer:
             "text_encoder": self.text_encoder.encoder_id,
             "text_encoder_name": self.config.text_encoder,
             "music": self.config.music,
+            "retrieval": self.rag.to_dict(),
             "step": self.step,
             "train": self.config.to_dict(),
             "data": self.data_config.to_dict(),
-            "synthetic": True,
+            "synthetic": self.data_config.is_synthetic,
             "world_size": self.ctx.world_size,
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "torch": torch.__version__,
@@ -455,6 +560,17 @@ class Trainer:
             self.optimizer.load_state_dict(ckpt.optimizer_state)
         if self.ema is not None and ckpt.ema_state is not None:
             self.ema.load_state_dict(ckpt.ema_state)
+        if self.retrieval_encoder is not None:
+            from safetensors.torch import load_file
+
+            from dualflow.rag import ENCODER_EMA_FILE, ENCODER_FILE
+
+            if not (ckpt.path / ENCODER_FILE).is_file():
+                raise DualFlowError(f"{ckpt.path}: lacks {ENCODER_FILE}; it was trained without retrieval, "
+                                    "resume with retrieval.enabled: false")
+            self.retrieval_encoder.load_state_dict(load_file(str(ckpt.path / ENCODER_FILE)))
+            if self.retrieval_ema is not None and (ckpt.path / ENCODER_EMA_FILE).is_file():
+                self.retrieval_ema.load_state_dict(load_file(str(ckpt.path / ENCODER_EMA_FILE)))
         self.step = int(ckpt.trainer_state["step"])
         self.resumed_from = ckpt.path
 
@@ -462,15 +578,15 @@ class Trainer:
         """Write checkpoints/step_XXXXXXX (rank 0), update latest.json, prune old ones."""
         root = self.out_dir / "checkpoints"
         path = root / f"step_{self.step:07d}"
-        save_checkpoint(
-            path,
+        self._publish(lambda p: save_checkpoint(
+            p,
             model=self.model,
             stats=self.stats,
             meta=self._meta(),
             ema_state=None if self.ema is None else self.ema.state_dict(),
             optimizer=self.optimizer,
             trainer_state={"step": self.step},
-        )
+        ))(path)
         tmp = self.out_dir / "latest.json.partial"
         tmp.write_text(json.dumps({"step": self.step, "path": str(path.relative_to(self.out_dir))}) + "\n")
         os.replace(tmp, self.out_dir / "latest.json")
@@ -490,19 +606,26 @@ class Trainer:
         meta = self._meta()
         meta["weights"] = "ema" if self.ema is not None else "raw"
         dtype = getattr(torch, self.config.export_dtype)
-        return save_checkpoint(self.out_dir / "final", model=model, stats=self.stats, meta=meta,
-                               weights_dtype=None if dtype == torch.float32 else dtype)
+        return self._publish(lambda p: save_checkpoint(p, model=model, stats=self.stats, meta=meta,
+                                                       weights_dtype=None if dtype == torch.float32 else dtype))(
+            self.out_dir / "final")
 
     # -- one step -------------------------------------------------------------------------
 
-    def _conditions(self, batch: dict, gen: torch.Generator) -> Conditions:
+    def _music(self, batch: dict) -> torch.Tensor | None:
+        if self.music_kind is None:
+            return None
+        return (batch["beats"] if self.music_kind == "beats4" else batch["music"]).to(self.ctx.device)
+
+    def _conditions(self, batch: dict, gen: torch.Generator, mode: str = "interactive") -> Conditions:
         dev = self.ctx.device
         b = batch["text"].shape[0]
-        music = batch["beats"].to(dev) if self.config.music == "beats" else None
+        music = self._music(batch)
         drop_text = drop_music = None
         if self.config.cfg_drop:
             drop_text, drop_music = sample_condition_drop(b, gen, dev)
-        return Conditions(text=batch["text"].to(dev), music=music, drop_text=drop_text,
+        retrieval = self._retrieval_tokens(batch, mode, drop_text, drop_music)
+        return Conditions(text=batch["text"].to(dev), music=music, retrieval=retrieval, drop_text=drop_text,
                           drop_music=drop_music if music is not None else None)
 
     def train_step(self) -> dict:
@@ -513,14 +636,16 @@ class Trainer:
         torch.manual_seed(step_seed(cfg.seed, self.step, ctx.rank + 1, 7))  # dropout masks
         idx = torch.randint(len(self.train_set), (cfg.batch_size,), generator=gen)
         batch = self.train_set.batch(idx)
-        cond = self._conditions(batch, gen)
         lr = warmup_lr(cfg.lr, self.step, cfg.warmup_steps)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         self.ddp.train()
+        if self.retrieval_ddp is not None:
+            self.retrieval_ddp.train()
         amp = (torch.autocast(ctx.device.type, dtype=self.autocast_dtype) if self.autocast_dtype is not None
                else contextlib.nullcontext())
         with amp:
+            cond = self._conditions(batch, gen, mode)
             x_a, x_b = batch["actor"].to(ctx.device), batch["reactor"].to(ctx.device)
             out = flow_training_step(self.ddp, x_a, x_b, cond, mode=mode, look_ahead=cfg.look_ahead,
                                      time_sampler=self.time_sampler, generator=gen)
@@ -534,14 +659,17 @@ class Trainer:
         loss = loss.float()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        params = self._parameters()
         if cfg.grad_clip > 0:
-            grad_norm = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip))
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip))
         else:
             grad_norm = float(torch.linalg.vector_norm(torch.stack(
-                [p.grad.norm() for p in self.model.parameters() if p.grad is not None])))
+                [p.grad.norm() for p in params if p.grad is not None])))
         self.optimizer.step()
         if self.ema is not None:
             self.ema.update_parameters(self.model)
+        if self.retrieval_ema is not None:
+            self.retrieval_ema.update_parameters(self.retrieval_encoder)
         self.step += 1
         loss_value = loss.detach()
         if ctx.distributed:
@@ -565,8 +693,10 @@ class Trainer:
         for start in range(0, min(n, bs * n_batches), bs):
             idx = torch.arange(start, min(start + bs, n))
             batch = self.val_set.batch(idx)
-            cond = Conditions(text=batch["text"].to(self.ctx.device),
-                              music=batch["beats"].to(self.ctx.device) if self.config.music == "beats" else None)
+            if self.retrieval_encoder is not None:
+                (self.retrieval_ema.module if self.retrieval_ema is not None else self.retrieval_encoder).eval()
+            cond = Conditions(text=batch["text"].to(self.ctx.device), music=self._music(batch),
+                              retrieval=self._retrieval_tokens(batch, "reactive", validation=True))
             out = flow_training_step(model, batch["actor"].to(self.ctx.device), batch["reactor"].to(self.ctx.device),
                                      cond, mode="reactive", look_ahead=self.config.look_ahead,
                                      time_sampler=self.time_sampler, generator=gen)

@@ -13,6 +13,10 @@ fills the other arrays:
   (column 34) features, :func:`beat_track`; zeros when the clip has no beats.
 * label: the index of the sample's style, else its genre, in the sorted set of
   labels over the DuetSet (0 for all when neither exists), for the triplet loss.
+* music: the window's rows of the sample's per-frame music features when every
+  clip of the split carries the same kind (``music_kind``), else None.
+* groups: the index of the source clip of each window (retrieval at training
+  time excludes every window of the query's own clip).
 
 :func:`make_training_sets` loads a dataset by name, windows the train and
 validation splits and returns what :func:`dualflow.data.make_datasets` returns,
@@ -68,6 +72,9 @@ class WindowSplit:
     seeds: np.ndarray
     sources: list[str]
     labels: tuple[str, ...]
+    music: np.ndarray | None = None
+    music_kind: str | None = None
+    groups: np.ndarray | None = None
 
 
 def _sample_beats(sample, n: int) -> np.ndarray:
@@ -90,23 +97,31 @@ def window_split(dset: DuetSet, frames: int, stride: int | None = None, labels: 
         raise DualFlowError(f"windows: frames and stride must be >= 1, got {frames}, {stride}")
     if labels is None:
         labels = tuple(sorted({s.style or s.genre for s in dset if (s.style or s.genre)}))
-    feats, texts, beats, rules, sources = [], [], [], [], []
-    for sample in dset:
+    kinds = {s.music_kind for s in dset}
+    music_kind = kinds.pop() if len(kinds) == 1 else None
+    feats, texts, beats, rules, sources, music, groups = [], [], [], [], [], [], []
+    for clip, sample in enumerate(dset):
         if sample.n_frames < frames + 1:
             continue
+        rows = sample.music_rows(sample.n_frames) if music_kind is not None else None
         for start in range(0, sample.n_frames - frames, stride):
             w = sample.window(start, frames + 1)
             feats.append(w.features())
             texts.append(w.text)
             beats.append(_sample_beats(sample, sample.n_frames)[start:start + frames])
+            if rows is not None:
+                music.append(rows[start:start + frames])
             label = sample.style or sample.genre
             rules.append(labels.index(label) if label in labels else 0)
             sources.append(w.name)
+            groups.append(clip)
     if not feats:
         raise DualFlowError(f"{dset.name}/{dset.split}: no clip has the {frames + 1} frames a window needs; "
                             "lower data.frames")
     return WindowSplit(np.stack(feats).astype(np.float32), texts, np.stack(beats).astype(np.float32),
-                       np.asarray(rules, dtype=np.int64), np.arange(len(feats), dtype=np.int64), sources, labels)
+                       np.asarray(rules, dtype=np.int64), np.arange(len(feats), dtype=np.int64), sources, labels,
+                       np.stack(music).astype(np.float32) if music else None, music_kind if music else None,
+                       np.asarray(groups, dtype=np.int64))
 
 
 def make_training_sets(name: str, root=None, *, frames: int = 60, text_dim: int, text_embedder=None,
@@ -120,7 +135,12 @@ def make_training_sets(name: str, root=None, *, frames: int = 60, text_dim: int,
     from dualflow.motion.normalization import NormStats
 
     embed = text_embedder or template_text_embedding
-    train = window_split(load_dataset(name, root, train_split, **options), frames, stride)
+    train_set = load_dataset(name, root, train_split, **options)
+    if len(train_set) == 0:
+        raise DualFlowError(f"dataset {name!r} at {root}: split {train_split!r} has no usable clips "
+                            f"({len(train_set.skipped)} skipped, e.g. {dict(list(train_set.skipped.items())[:2])}); "
+                            "check data.root and data.splits")
+    train = window_split(train_set, frames, stride)
     stats = NormStats.from_features(train.features)
     train_ds = DuetDataset(train, stats, text_dim, embed)
     val_ds = None

@@ -44,7 +44,8 @@ Generator = Callable[[np.ndarray, int], np.ndarray]
 @dataclass
 class EvalSet:
     """Ground truth of an evaluation (module docstring). beats (N, T, 4) is the per-frame
-    beat track used as the music condition of beat-conditioned checkpoints."""
+    beat track used as the music condition of beat-conditioned checkpoints; music (N, T, D)
+    the windows' own per-frame music features of kind ``music_kind`` (None when absent)."""
 
     features: np.ndarray
     texts: list[str]
@@ -52,6 +53,8 @@ class EvalSet:
     beats: np.ndarray
     fps: float = 30.0
     names: list[str] = field(default_factory=list)
+    music: np.ndarray | None = None
+    music_kind: str | None = None
 
     def __len__(self) -> int:
         return len(self.features)
@@ -61,7 +64,26 @@ class EvalSet:
         ws = window_split(dset, frames, stride)
         beat_frames = [np.flatnonzero(b[:, 0] > 0.5) for b in ws.beats]
         fps = dset[0].fps if len(dset) else 30.0
-        return EvalSet(ws.features, list(ws.texts), beat_frames, ws.beats, fps, list(ws.sources))
+        return EvalSet(ws.features, list(ws.texts), beat_frames, ws.beats, fps, list(ws.sources),
+                       ws.music, ws.music_kind)
+
+    def music_for(self, kind: str) -> np.ndarray:
+        """(N, T, D) music condition of ``kind`` for every window: the beat track ("beats4"), the
+        windows' own features, or, where the data has only a beat track (the synthetic duets),
+        the spectral features of its rendered click track (:func:`dualflow.data.click_track_music`,
+        as in training)."""
+        if kind == "beats4":
+            return self.beats
+        if self.music is not None and self.music_kind == kind:
+            return self.music
+        if kind in ("edge35", "duolando54") and self.music_kind in (None, "beats4"):
+            from dualflow.data import click_track_music
+
+            self.music = np.stack([click_track_music(b, kind, self.fps) for b in self.beats]).astype(np.float32)
+            self.music_kind = kind
+            return self.music
+        raise DualFlowError(f"the checkpoint was trained with {kind!r} music but this evaluation data has "
+                            f"{self.music_kind or 'only a beat track'}; evaluate on data that has it")
 
 
 @dataclass(frozen=True)
@@ -158,11 +180,27 @@ class CheckpointGenerator:
         self.data, self.mode, self.steps, self.cfg_scale, self.look_ahead = data, mode, steps, cfg_scale, look_ahead
         self.stats = self.ckpt.stats
         self.text = torch.from_numpy(text_embedding(self.ckpt.text_encoder, data.texts, self.ckpt.config.text_dim))
-        self.music = None
-        if self.ckpt.meta.get("music") == "beats":
-            self.music = torch.from_numpy(np.ascontiguousarray(data.beats, dtype=np.float32))
+        from dualflow.conditioning import MUSIC_FROM_META
+
+        music_kind = MUSIC_FROM_META.get(str(self.ckpt.meta.get("music", "none")))
+        music = None if music_kind is None else np.ascontiguousarray(data.music_for(music_kind), dtype=np.float32)
+        self.music = None if music is None else torch.from_numpy(music)
         actor = self.stats.normalize(data.features[:, :, 0].astype(np.float64)).astype(np.float32)
         self.actor = torch.from_numpy(actor)
+        self.retriever = self.retrieval_encoder = None
+        from dualflow.rag import load_rag
+
+        rag = load_rag(self.ckpt, device)
+        if rag is not None:
+            from dualflow.conditioning import text_encoder_for
+            from dualflow.rag import NeighbourTable, RetrievalConditioner, cue_queries
+
+            encoder = text_encoder_for(self.ckpt.text_encoder, self.ckpt.config.text_dim)
+            queries = cue_queries(rag.db, data.texts, music, encoder)
+            table = NeighbourTable.compute(rag.db, queries, data.features.shape[1], rag.config.max_depth,
+                                           rag.config.lam)
+            self.retriever = RetrievalConditioner(rag.db, table, rag.config)
+            self.retrieval_encoder = rag.encoder
 
     def __call__(self, indices: np.ndarray, seed: int) -> np.ndarray:
         from dualflow.flow import generate
@@ -170,10 +208,14 @@ class CheckpointGenerator:
 
         torch = self.torch
         idx = torch.as_tensor(np.asarray(indices))
-        cond = Conditions(text=self.text[idx].to(self.device),
-                          music=None if self.music is None else self.music[idx].to(self.device))
         t = self.data.features.shape[1]
         with torch.no_grad():
+            retrieval = None
+            if self.retriever is not None:
+                retrieval = self.retriever.tokens(self.retrieval_encoder, np.asarray(indices), self.mode, self.device)
+            cond = Conditions(text=self.text[idx].to(self.device),
+                              music=None if self.music is None else self.music[idx].to(self.device),
+                              retrieval=retrieval)
             if self.mode == "reactive":
                 xa, xb = generate(self.model, t, cond, mode="reactive", x_actor=self.actor[idx], steps=self.steps,
                                   cfg_scale=self.cfg_scale, look_ahead=self.look_ahead, seed=seed)
