@@ -59,7 +59,8 @@ Inspection: ``servo(id)`` (the :class:`~.emulated_servo.EmulatedServo`),
 ``goal_history`` ({id: [GoalRecord(stamp, servo_id, ticks, accepted, instruction)]}, every
 Goal Position write that reached the servo, accepted or not), ``allowed_range(id, lo, hi)``
 and ``violations`` (goals outside it), ``instruction_counts``, ``rx_bytes``/``tx_bytes``,
-``crc_errors``.
+``crc_errors``, ``received`` (the raw bytes of the last 64 packets heard, valid or not,
+as the host sent them: for comparing packet builders byte for byte).
 
 Setup notes for dynamixel-sdk on a pty: ``PortHandler.openPort``/``setBaudRate`` work
 unchanged (pyserial sets the baud with termios, which a pty accepts for the standard
@@ -84,6 +85,7 @@ thread, for measuring host CPU time without a second thread.
 
 from __future__ import annotations
 
+import collections
 import errno
 import fcntl
 import os
@@ -182,6 +184,7 @@ class DynamixelBusEmulator:
         self._parser = dp.StreamParser(protocol=None)
         self._bus_free_at = 0.0
         self.instruction_counts: dict[str, int] = {}
+        self.received: collections.deque[bytes] = collections.deque(maxlen=64)
         self.rx_bytes = 0
         self.tx_bytes = 0
         self.crc_errors = 0
@@ -456,6 +459,7 @@ class DynamixelBusEmulator:
 
     def _handle(self, frame: dp.Frame, t_first: float) -> None:
         with self.lock:
+            self.received.append(frame.raw)
             now = self.clock()
             wire_baud = self._host_baud() or self.baud
             t_start = max(t_first, self._bus_free_at)
@@ -623,11 +627,9 @@ class DynamixelBusEmulator:
         """FAST_SYNC_READ / FAST_BULK_READ: one packet built servo by servo. A silent
         servo breaks the chain: the reply is cut where its part should begin."""
         parts, owners = [], []
-        broken = False
         for i, addr, length in items:
             s = servos.get(i)
             if s is None or s.status_return_level() < 1 or s.faults.take("drop_replies"):
-                broken = True
                 break
             data = s.read(addr, length)
             parts.append((s.status_error() | (dp.ERR_ACCESS if data is None else 0), i, data or bytes(length)))

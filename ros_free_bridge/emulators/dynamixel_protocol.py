@@ -1,8 +1,9 @@
 """Dynamixel packet codec: protocol 2.0 (CRC-16, byte stuffing) and protocol 1.0 (checksum).
 
 Pure functions over ``bytes``; no I/O. The emulator (:mod:`.dynamixel_bus`) and the tests
-use it; the Dynamixel transport itself talks through dynamixel-sdk, and the tests check
-that both produce the same bytes.
+use it. CRC-16, stuffing and instruction framing live in :mod:`ros_free_bridge.dynamixel_codec`
+(shared with the transport, whose hot-path packets are built there) and are re-exported here;
+the tests check that these bytes equal dynamixel-sdk's.
 
 Protocol 2.0 packet (ROBOTIS e-Manual, "Protocol 2.0", https://emanual.robotis.com/docs/en/dxl/protocol2/)::
 
@@ -32,12 +33,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ros_free_bridge.errors import BridgeError
+# CRC-16, stuffing and instruction framing are shared with the transport's hot path
+from ros_free_bridge.dynamixel_codec import (
+    BROADCAST_ID, CRC_TABLE, FAST_SYNC_READ, HEADER2, STATUS, SYNC_READ, SYNC_WRITE, PacketError, crc16,
+    encode_instruction, frame2 as _frame2, stuff, unstuff,
+)
 
-HEADER2 = b"\xff\xff\xfd\x00"
 HEADER1 = b"\xff\xff"
-BROADCAST_ID = 0xFE
-STATUS = 0x55
 
 # Instructions (protocol 2.0; the 1.0 subset uses the same numbers).
 PING = 0x01
@@ -48,9 +50,6 @@ ACTION = 0x05
 FACTORY_RESET = 0x06
 REBOOT = 0x08
 CLEAR = 0x10
-SYNC_READ = 0x82
-SYNC_WRITE = 0x83
-FAST_SYNC_READ = 0x8A
 BULK_READ = 0x92
 BULK_WRITE = 0x93
 FAST_BULK_READ = 0x9A
@@ -80,62 +79,6 @@ ERR1_RANGE = 0x08
 ERR1_CHECKSUM = 0x10
 ERR1_OVERLOAD = 0x20
 ERR1_INSTRUCTION = 0x40
-
-
-class PacketError(BridgeError):
-    """A malformed packet: wrong header, length, CRC or checksum. Says which and why."""
-
-
-def _make_crc_table(poly: int = 0x8005) -> tuple[int, ...]:
-    """Table for the MSB-first CRC-16: entry i is the remainder of (i << 8) / poly."""
-    table = []
-    for i in range(256):
-        crc = i << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ poly) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return tuple(table)
-
-
-CRC_TABLE = _make_crc_table()
-
-
-def crc16(data: bytes | bytearray, crc: int = 0) -> int:
-    """CRC-16 (poly 0x8005, init 0, MSB first): crc <- (crc << 8) ^ T[(crc >> 8) ^ byte].
-
-    ``crc`` continues a running CRC, so ``crc16(b, crc16(a)) == crc16(a + b)``.
-    """
-    table = CRC_TABLE
-    for byte in data:
-        crc = ((crc << 8) ^ table[((crc >> 8) ^ byte) & 0xFF]) & 0xFFFF
-    return crc
-
-
-def stuff(body: bytes) -> bytes:
-    """Insert ``FD`` after every ``FF FF FD`` in the INST..PARAM bytes."""
-    if b"\xff\xff\xfd" not in body:
-        return bytes(body)
-    return bytes(body).replace(b"\xff\xff\xfd", b"\xff\xff\xfd\xfd")
-
-
-def unstuff(body: bytes) -> bytes:
-    """Inverse of :func:`stuff`: ``FF FF FD FD`` becomes ``FF FF FD``."""
-    if b"\xff\xff\xfd\xfd" not in body:
-        return bytes(body)
-    return bytes(body).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
-
-
-def _frame2(packet_id: int, body: bytes) -> bytes:
-    """Header + ID + LEN + body (already stuffed) + CRC."""
-    length = len(body) + 2
-    head = HEADER2 + bytes((packet_id & 0xFF, length & 0xFF, length >> 8))
-    crc = crc16(body, crc16(head))
-    return head + body + bytes((crc & 0xFF, crc >> 8))
-
-
-def encode_instruction(packet_id: int, instruction: int, params: bytes = b"") -> bytes:
-    """A protocol 2.0 instruction packet, stuffed and with its CRC."""
-    return _frame2(packet_id, stuff(bytes((instruction,)) + bytes(params)))
 
 
 def encode_status(packet_id: int, error: int, params: bytes = b"", *, stuffing: bool = True) -> bytes:
@@ -342,3 +285,14 @@ class StreamParser:
                 out.append(Frame(raw, checksum1(raw[2:-1]) == raw[-1], 1))
             else:
                 del buf[0]
+
+
+__all__ = [
+    "HEADER1", "HEADER2", "BROADCAST_ID", "STATUS", "PING", "READ", "WRITE", "REG_WRITE", "ACTION", "FACTORY_RESET",
+    "REBOOT", "CLEAR", "SYNC_READ", "SYNC_WRITE", "FAST_SYNC_READ", "BULK_READ", "BULK_WRITE", "FAST_BULK_READ",
+    "INSTRUCTION_NAMES", "ERR_RESULT_FAIL", "ERR_INSTRUCTION", "ERR_CRC", "ERR_DATA_RANGE", "ERR_DATA_LENGTH",
+    "ERR_DATA_LIMIT", "ERR_ACCESS", "ERR_ALERT", "ERR1_VOLTAGE", "ERR1_ANGLE", "ERR1_OVERHEAT", "ERR1_RANGE",
+    "ERR1_CHECKSUM", "ERR1_OVERLOAD", "ERR1_INSTRUCTION", "PacketError", "CRC_TABLE", "crc16", "stuff", "unstuff",
+    "encode_instruction", "encode_status", "encode_fast_status", "Packet", "decode_packet", "decode_fast_status",
+    "checksum1", "encode_instruction1", "encode_status1", "decode_packet1", "Frame", "StreamParser",
+]

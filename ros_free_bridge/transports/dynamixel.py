@@ -2,14 +2,21 @@
 
 Per control tick (protocol 2.0):
 
-- ``write_goal``: one GroupSyncWrite of Goal Position to every servo (broadcast, no reply);
-- ``read_state``: one GroupFastSyncRead of Present Position (falls back to GroupSyncRead
-  when the servos do not answer the fast form), then the *slow* fields of
+- ``write_goal``: one SYNC_WRITE of Goal Position to every servo (broadcast, no reply);
+- ``read_state``: one FAST_SYNC_READ of Present Position (falls back to the SDK's
+  GroupSyncRead when the servos do not answer the fast form), then the *slow* fields of
   ``slow_per_cycle`` servos, round robin: one individual READ of the contiguous block
   Present Current .. Present Temperature. Individual reads, because the SDK's group reads
   drop each servo's status error byte and with it the hardware-alert bit (0x80); when
   that bit is set the transport reads Hardware Error Status (register 70), decodes it and
   recovers by policy (:class:`RecoveryPolicy`).
+
+Hot path (protocol 2.0, every tick): the SYNC_WRITE packet is built with numpy in one go and
+the FAST_SYNC_READ reply parsed in one numpy pass (:mod:`ros_free_bridge.dynamixel_codec`,
+byte for byte the packets of the SDK's GroupSyncWrite / GroupSyncRead.fastSyncRead, which
+build them byte by byte in Python); both go through the SDK's ``PortHandler``. The fast
+reply also keeps each servo's status error byte, so a hardware alert is seen the same
+tick. Everything else (PING, READ, WRITE, REBOOT, the SYNC_READ fallback) is the SDK's.
 
 Protocol 1.0 buses (AX/MX) have no sync read: positions are read servo by servo, and the
 status error byte itself carries the hardware bits.
@@ -27,6 +34,8 @@ untouched) to open the device with ``exclusive=True`` (pyserial ``flock``) plus
 ``/sys/bus/usb-serial/devices/<tty>/latency_timer`` when writable (needs root or a udev
 rule, e.g. ``ACTION=="add", SUBSYSTEM=="usb-serial", DRIVERS=="ftdi_sio",
 ATTR{latency_timer}="1"``); a pty or a CDC-ACM device has no such file and is skipped.
+While a reply is on the wire, ``readPort`` sleeps in ``poll`` instead of returning nothing at
+once (the SDK's reply loops would otherwise spin a core).
 Every SDK call resets the SDK's ``is_using`` flag in ``finally``, and the port is closed
 in ``finally`` on any failure, so it is never left "in use".
 
@@ -46,6 +55,7 @@ import atexit
 import fcntl
 import math
 import os
+import select
 import termios
 import time
 import weakref
@@ -57,6 +67,7 @@ import numpy as np
 
 from firmware_cfg.config import BusConfig, ServoConfig
 from firmware_cfg.servo_models import Register, ServoModel, load_servo_model
+from ros_free_bridge.dynamixel_codec import FastSyncReadDecoder, PacketError, SyncWriteEncoder
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.transports.base import STOP_POLICIES, JointState
 
@@ -134,6 +145,7 @@ class ExclusivePortHandler(sdk.PortHandler):
         super().__init__(port_name)
         self.latency_ms = latency_ms
         self.margin_ms = margin_ms
+        self._poll: select.poll | None = None
 
     def setupPort(self, cflag_baud):  # noqa: N802 - SDK naming
         import serial
@@ -153,11 +165,31 @@ class ExclusivePortHandler(sdk.PortHandler):
         self.is_open = True
         self.ser.reset_input_buffer()
         self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        self._poll = select.poll()
+        self._poll.register(self.ser.fileno(), select.POLLIN)
         return True
+
+    def closePort(self):  # noqa: N802 - SDK naming
+        self._poll = None
+        super().closePort()
 
     def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK naming
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + 2.0 * self.latency_ms + self.margin_ms
+
+    def readPort(self, length):  # noqa: N802 - SDK naming
+        """What has arrived, up to ``length`` bytes; when nothing has, first sleep in
+        ``poll`` until a byte arrives or the packet timeout ends. The SDK's reply loops call
+        this back to back: with the port's read timeout of 0 they would spin a whole core
+        while the reply is on the wire, a core the rest of the machine (on a 2-core host:
+        an emulator, the motion generator) needs."""
+        data = self.ser.read(length)
+        if data or self._poll is None:
+            return data
+        left_ms = self.packet_timeout - self.getTimeSinceStart()
+        if left_ms > 0 and self._poll.poll(left_ms):
+            data = self.ser.read(length)
+        return data
 
 
 def servo_register_settings(servo: ServoConfig, model: ServoModel) -> dict[str, int]:
@@ -449,8 +481,11 @@ class DynamixelTransport:
         self._off = np.array([s.cfg.zero_offset for s in self.servos])
         self._slow_next = 0
         self._state = JointState.unknown(len(self.servos))
-        self._reader = None
-        self._writer = None
+        self._reader = None  # SDK GroupSyncRead: the SYNC_READ fallback (protocol 2.0)
+        self._writer: SyncWriteEncoder | None = None
+        self._fast: FastSyncReadDecoder | None = None
+        self._fast_values = np.zeros(len(self.servos), np.int64)
+        self._fast_errors = np.zeros(len(self.servos), np.uint8)
         self._torque_on = np.zeros(len(self.servos), bool)   # last known state on the servo
         self._torque_cmd = np.zeros(len(self.servos), bool)  # what the host asked for
         self._atexit = None
@@ -650,51 +685,93 @@ class DynamixelTransport:
         return done
 
     # ------------------------------------------------------------------ internals
-    def _to_ticks(self, q: np.ndarray) -> list[int]:
-        """Joint rad (n,) → goal ticks: round(center + (direction · q + offset) · ticks_per_rad),
-        then clipped to each servo's tick limits (the config's limits rounded inwards): a goal
-        exactly at a limit must not round one tick beyond it."""
+    def _to_ticks(self, q: np.ndarray) -> np.ndarray:
+        """Joint rad (n,) → goal ticks (n,) int64: round(center + (direction · q + offset) ·
+        ticks_per_rad), then clipped to each servo's tick limits (the config's limits rounded
+        inwards): a goal exactly at a limit must not round one tick beyond it."""
         ticks = np.rint(self._center + (self._dir * q + self._off) * self._tpr)
-        return np.clip(ticks, self._tick_lo, self._tick_hi).astype(np.int64).tolist()
+        return np.clip(ticks, self._tick_lo, self._tick_hi).astype(np.int64)
 
     def _to_joint(self, ticks: np.ndarray) -> np.ndarray:
         """Present ticks (n,) → joint rad: direction · ((ticks − center) / ticks_per_rad − offset)."""
         return self._dir * ((ticks - self._center) / self._tpr - self._off)
 
     def _make_groups(self) -> None:
+        """Protocol 2.0: the hot path's SYNC_WRITE encoder and FAST_SYNC_READ decoder (ours,
+        numpy; the same bytes as the SDK's groups), and the SDK's GroupSyncRead for buses
+        whose servos do not answer FAST_SYNC_READ (firmware < v45 on X series)."""
         if self.bus.protocol != 2.0:
             return
         first = self.servos[0]
+        self._writer = SyncWriteEncoder(first.goal.address, first.goal.size, self._ids, first.goal.signed)
+        self._fast = FastSyncReadDecoder(first.present.address, first.present.size, self._ids, first.present.signed)
         self._reader = sdk.GroupSyncRead(self.bus.port, self.bus.ph, first.present.address, first.present.size)
         for sid in self._ids:
             self._reader.addParam(sid)
-        self._writer = sdk.GroupSyncWrite(self.bus.port, self.bus.ph, first.goal.address, first.goal.size)
-        reader, writer = self._reader, self._writer
-        self._fast_op = lambda port: reader.fastSyncRead()
+        reader = self._reader
         self._sync_op = lambda port: reader.txRxPacket()
-        self._write_op = lambda port: writer.txPacket()
-        # decide once whether the servos answer FAST_SYNC_READ (firmware >= v45 on X series)
-        if self.bus.call(lambda port: self._reader.fastSyncRead(), malformed=sdk.COMM_RX_CORRUPT) != sdk.COMM_SUCCESS:
-            if self.bus.call(lambda port: self._reader.txRxPacket(), malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
+        # decide once whether the servos answer FAST_SYNC_READ
+        if self.bus.call(self._fast_read_op) != sdk.COMM_SUCCESS:
+            if self.bus.call(self._sync_op, malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
                 self.stats.fast_sync_read = False
                 self.stats.notes.append("servos did not answer FAST_SYNC_READ; using SYNC_READ")
 
-    def _send_goal_ticks(self, ticks: list[int]) -> None:
+    @staticmethod
+    def _tx_op(port, packet: bytes) -> int:
+        """Send one instruction packet through the SDK's port as its ``txPacket`` does
+        (busy flag, ``clearPort``, ``writePort``); no reply is awaited."""
+        if port.is_using:
+            return sdk.COMM_PORT_BUSY
+        port.is_using = True
+        port.clearPort()
+        return sdk.COMM_SUCCESS if port.writePort(packet) == len(packet) else sdk.COMM_TX_FAIL
+
+    def _fast_read_op(self, port) -> int:
+        """One FAST_SYNC_READ of Present Position: send the prebuilt request, collect the
+        reply's known number of bytes through ``port.readPort`` (which sleeps while the
+        reply is on the wire) within the SDK's sync-read timeout, and parse it in one numpy
+        pass into ``self._fast_values`` / ``self._fast_errors``. Stale input (a reply that
+        came after an earlier timeout) is discarded first, so it cannot be taken for this
+        one. Returns an SDK COMM_* code."""
+        fast = self._fast
+        if port.is_using:
+            return sdk.COMM_PORT_BUSY
+        port.ser.reset_input_buffer()
+        result = self._tx_op(port, fast.request)
+        if result != sdk.COMM_SUCCESS:
+            return result
+        port.setPacketTimeout((11 + fast.size) * fast.n)  # the SDK's sync-read timeout
+        need = fast.reply_length
+        head = fast.head[:5]
+        buf = b""
+        while True:
+            chunk = port.readPort(need - len(buf))
+            if chunk:
+                buf += chunk
+                if not buf.startswith(head):  # garbage before the header: resync
+                    at = buf.find(head)
+                    buf = buf[at:] if at >= 0 else buf[-4:]
+                if len(buf) >= need:
+                    break
+            elif port.isPacketTimeout():
+                return sdk.COMM_RX_TIMEOUT if not buf else sdk.COMM_RX_CORRUPT
+        try:
+            self._fast_values, self._fast_errors = fast.decode(buf[:need])
+        except PacketError:
+            return sdk.COMM_RX_CORRUPT
+        return sdk.COMM_SUCCESS
+
+    def _send_goal_ticks(self, ticks: np.ndarray) -> None:
         if self._writer is None:  # protocol 1.0: SYNC_WRITE exists there too
             first = self.servos[0]
-            self.bus.sync_write(first.goal, dict(zip(self._ids, ticks)))
+            self.bus.sync_write(first.goal, dict(zip(self._ids, np.asarray(ticks).tolist())))
             return
-        size = self.servos[0].goal.size
-        raw = b"".join(int(t).to_bytes(size, "little", signed=True) for t in ticks)
-        for k, sid in enumerate(self._ids):
-            data = list(raw[k * size:(k + 1) * size])
-            if not self._writer.changeParam(sid, data):
-                self._writer.addParam(sid, data)
-        result = self.bus.call(self._write_op)
+        result = self.bus.call(self._tx_op, self._writer.encode(ticks))
         if result != sdk.COMM_SUCCESS:
             raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus._comm(result)})")
 
     def _read_positions(self) -> None:
+        fast = self._reader is not None and self.stats.fast_sync_read
         if self._reader is None:
             ticks = np.empty(len(self.servos))
             for i, sv in enumerate(self.servos):
@@ -703,7 +780,7 @@ class DynamixelTransport:
                 if self.bus.protocol == 1.0:
                     self._note_p1_error(i, error)
         else:
-            op = self._fast_op if self.stats.fast_sync_read else self._sync_op
+            op = self._fast_read_op if fast else self._sync_op
             result = sdk.COMM_TX_FAIL
             for attempt in range(self.bus.retries + 1):
                 result = self.bus.call(op, malformed=sdk.COMM_RX_CORRUPT)
@@ -712,13 +789,27 @@ class DynamixelTransport:
                 self.stats.read_retries += 1
             if result != sdk.COMM_SUCCESS:
                 self._raise_missing("present position", result)
-            reg = self.servos[0].present
-            get = self._reader.getData
-            ticks = np.array([get(sid, reg.address, reg.size) for sid in self._ids], dtype=np.int64)
-            if reg.signed:
-                ticks[ticks >= 1 << (8 * reg.size - 1)] -= 1 << (8 * reg.size)
+            if fast:
+                ticks = self._fast_values
+            else:
+                reg = self.servos[0].present
+                get = self._reader.getData
+                ticks = np.array([get(sid, reg.address, reg.size) for sid in self._ids], dtype=np.int64)
+                if reg.signed:
+                    ticks[ticks >= 1 << (8 * reg.size - 1)] -= 1 << (8 * reg.size)
         self._state.position = self._to_joint(ticks)
         self._state.stamp = time.monotonic()
+        if fast and self._fast_errors.any():
+            self._on_fast_read_errors(self._fast_errors)
+
+    def _on_fast_read_errors(self, errors: np.ndarray) -> None:
+        """The fast reply keeps every servo's status error byte (the SDK's group reads drop
+        it): a hardware alert (bit 0x80) is handled at once rather than when the round-robin
+        status read next reaches that servo. A servo already reported stays with the status
+        read (which clears the report once the alert is gone)."""
+        for i in np.flatnonzero(errors & ALERT_BIT):
+            if self.joint_names[i] not in self._state.errors:
+                self._on_alert(int(i))
 
     def _raise_missing(self, what: str, result: int) -> None:
         """A group read failed: find which servo is silent, to name it."""
