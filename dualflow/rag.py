@@ -54,7 +54,8 @@ class RagConfig:
     enabled: train with retrieval (False = the paper's "w/o RAG"); k: retrieval depth for both
     tasks (None = k_interactive / k_reactive, the paper's 5 / 3); lam: λ of eq. 1; cues: which
     databases to retrieve from (spatial, body, rhythm, music); layers / heads / dropout: the
-    retrieval encoder (heads None = the model's n_heads).
+    retrieval encoder (heads None = the model's n_heads); frame_stride: the encoder reads every
+    s-th frame of a retrieved clip (1 = all; a compute saving for CPU runs).
     """
 
     enabled: bool = False
@@ -66,13 +67,14 @@ class RagConfig:
     layers: int = 2
     heads: int | None = None
     dropout: float = 0.1
+    frame_stride: int = 1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cues", tuple(self.cues))
         bad = [c for c in self.cues if c not in CUES]
         if bad or not self.cues:
             raise DualFlowError(f"retrieval.cues: unknown or empty {bad or '[]'}; choose from {', '.join(CUES)}")
-        for name in ("k_interactive", "k_reactive", "layers"):
+        for name in ("k_interactive", "k_reactive", "layers", "frame_stride"):
             if int(getattr(self, name)) < 1:
                 raise DualFlowError(f"retrieval.{name} must be >= 1, got {getattr(self, name)!r}")
         if self.k is not None and int(self.k) < 1:
@@ -94,7 +96,7 @@ class RagConfig:
 
     def encoder(self, width: int, model_heads: int) -> RetrievalEncoder:
         return RetrievalEncoder(int(width), n_layers=int(self.layers), n_heads=int(self.heads or model_heads),
-                                dropout=float(self.dropout))
+                                dropout=float(self.dropout), frame_stride=int(self.frame_stride))
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -290,13 +290,18 @@ class RetrievalEncoder(nn.Module):
     transformer encoder over the clip's 2T tokens (padded frames masked out as keys); then a
     masked mean over each person's valid frames gives one token per (clip, person), and a
     final LayerNorm. K = 0 (nothing retrieved) gives None, which the model reads as absent.
+    frame_stride s >= 1: encode every s-th frame of the retrieved clips (positions keep the
+    original frame index t·s), which divides the encoder's tokens by s and its attention by s².
     """
 
     def __init__(self, width: int, n_layers: int = 2, n_heads: int = 4, ff_dim: int | None = None,
-                 dropout: float = 0.1, motion_dim: int = 262):
+                 dropout: float = 0.1, motion_dim: int = 262, frame_stride: int = 1):
         super().__init__()
         if width % n_heads:
             raise DualFlowError(f"RetrievalEncoder: width ({width}) must be divisible by n_heads ({n_heads})")
+        if int(frame_stride) < 1:
+            raise DualFlowError(f"RetrievalEncoder: frame_stride must be >= 1, got {frame_stride}")
+        self.frame_stride = int(frame_stride)
         self.width = int(width)
         self.proj = nn.Linear(motion_dim, width)
         self.person = nn.Embedding(2, width)
@@ -309,14 +314,18 @@ class RetrievalEncoder(nn.Module):
     def forward(self, motions: torch.Tensor, lengths: torch.Tensor, cue_ids: torch.Tensor):
         if motions.ndim != 5 or motions.shape[3] != 2:
             raise DualFlowError(f"retrieved motions must be (B, K, T, 2, 262), got {tuple(motions.shape)}")
-        b, k, t = motions.shape[:3]
-        if k == 0:
+        if motions.shape[1] == 0:
             return None
+        s = self.frame_stride
+        if s > 1:
+            motions = motions[:, :, ::s]
+            lengths = torch.div(torch.as_tensor(lengths) + (s - 1), s, rounding_mode="floor")
+        b, k, t = motions.shape[:3]
         dev = motions.device
         cue_ids = torch.as_tensor(cue_ids, device=dev).long().expand(b, k)
         valid = torch.arange(t, device=dev)[None, None, :] < lengths.to(dev)[..., None]  # (B, K, T)
         h = self.proj(motions)  # (B, K, T, 2, W)
-        h = (h + sinusoidal_encoding(torch.arange(t, device=dev), self.width)[:, None, :]
+        h = (h + sinusoidal_encoding(torch.arange(t, device=dev) * s, self.width)[:, None, :]
              + self.person.weight + self.cue(cue_ids)[:, :, None, None, :])
         h = h.transpose(2, 3).reshape(b * k, 2 * t, self.width)  # person-major tokens
         key_valid = valid[:, :, None, :].expand(b, k, 2, t).reshape(b * k, 2 * t)

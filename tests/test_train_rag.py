@@ -13,6 +13,8 @@ from test_datasets import make_interhuman
 from dualflow import DualFlowError
 from dualflow.conditioning import ConditionBuilder
 from dualflow.checkpoint import load_checkpoint
+from dualflow.datasets import load_dataset
+from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
 from dualflow.rag import (DB_FILE, ENCODER_FILE, NeighbourTable, RagConfig, drop_retrieval_tokens, load_rag)
 from dualflow.retrieval import CUES, RetrievalDatabase
@@ -149,6 +151,12 @@ def test_rag_checkpoint_resumes_exports_and_generates(tmp_path):
     inputs = builder.build(text="two people mirror each other, moving fast", n_frames=12)
     assert inputs.cond.retrieval.shape == (1, 2 * 3 * 5, ckpt.config.width) and len(inputs.retrieved) == 15
     assert set(inputs.retrieved) <= set(rag.db.ids)
+    # the evaluation's generator retrieves for every test window too (depth by task)
+    data = EvalSet.from_duet_set(load_dataset("synthetic", None, "test", n_clips=3, frames=12), 12)
+    gen = CheckpointGenerator(final, data, mode="reactive", steps=2)
+    assert gen.retriever.retrieved(np.arange(3), "reactive")[0].shape == (3, 4 * 3)
+    out = gen(np.arange(3), 0)
+    assert out.shape == (3, 12, 2, 262) and np.isfinite(out).all()
     # a checkpoint without retrieval has no RAG parts
     plain = Trainer(load_train_config(None, FAST[:-1] + ["steps=1", f"out_dir={tmp_path / 'c'}"]))
     plain.run()
@@ -156,3 +164,21 @@ def test_rag_checkpoint_resumes_exports_and_generates(tmp_path):
     (final / ENCODER_FILE).unlink()
     with pytest.raises(DualFlowError, match="lacks retrieval_encoder.safetensors"):
         load_rag(load_checkpoint(final))
+
+
+def test_encoder_frame_stride_reads_every_sth_frame():
+    torch.manual_seed(0)
+    enc = RagConfig(frame_stride=4, dropout=0.0).encoder(32, 2).eval()
+    motions = torch.randn(2, 3, 12, 2, 262)
+    lengths = torch.tensor([[12, 5, 9], [1, 12, 8]])
+    cue_ids = torch.tensor([0, 1, 3])
+    z = enc(motions, lengths, cue_ids)
+    off = motions.clone()
+    off[:, :, 1::4] += 5.0  # frames the stride skips
+    torch.testing.assert_close(enc(off, lengths, cue_ids), z)
+    on = motions.clone()
+    on[0, 0, 8] += 5.0  # a frame it reads (clip 0 of sample 0 is 12 frames long)
+    assert not torch.allclose(enc(on, lengths, cue_ids)[0, :2], z[0, :2])
+    late = motions.clone()
+    late[0, 1, 8] += 5.0  # frame 8 of a 5-frame clip is padding, read or not
+    torch.testing.assert_close(enc(late, lengths, cue_ids), z)
