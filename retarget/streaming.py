@@ -9,7 +9,9 @@ x (nx,) (see :mod:`retarget.kinematics`):
           √w_a · fps² (x − 2 x₋₁ + x₋₂)             acceleration against the two frames already emitted
           √w_p (q − q_stand)                        posture
           √w_c · c_s · (z_sole, xy_sole − xy_sole₋₁) a foot in contact stays on the ground and put
-          √w_g · min(z_sole, 0) ]                   no sole corner below the ground
+          √w_g · min(z_sole, 0)                     no sole corner below the ground
+          √w_b · max(0, A c_xy(x) − b)              balance (optional): CoM over the support polygon
+          √w_z · (h/g) fps² (c_xy(x) − 2c₋₁ + c₋₂) ] balance: the CoM's acceleration as a ZMP offset
 
     lb, ub = joint range ∩ [x₋₁ − v_max/fps, x₋₁ + v_max/fps]  (position and velocity limits,
                                                                the root's speed limits too)
@@ -21,6 +23,24 @@ release), then accepts the step if the cost falls (else halves it). r and J come
 CasADi function, compiled to C and cached (:mod:`retarget.codegen`). Every iterate stays
 in the box, so no emitted frame can violate a position or velocity limit; a final clip
 makes that exact in floating point.
+
+Balance (``StreamingConfig.balance``, free-base robots with feet; a fixed base ignores it).
+The optional rows keep a free-standing robot on its feet while it plays the frames open loop:
+
+- Feet the robot has *planted* are held, with the strong ``balance_contact_weight``, on their
+  level footprint: the sole's own rectangle flat on the ground (z = 0) at the centre and
+  heading the foot had when it touched down (:func:`retarget.support.level_footprint`), until
+  the foot lifts. (Without balance the anchor is the previous frame's sole, re-taken each frame.)
+- The CoM ground projection c_xy stays inside the convex hull of the planted footprints, each
+  shrunk by ``balance_margin``: half-planes A c ≤ b (:mod:`retarget.support`), a one-sided
+  penalty with weight ``balance_weight``. The ZMP row penalises the CoM's acceleration, with
+  h the standing CoM height, so that the CoM moves quasi-statically.
+- Contacts come from the human (the motion's labels or detected ones). A foot touches down
+  when the human's does. A foot lifts only when the human's lifts *and* the CoM of the last
+  emitted frame lies over the other planted foot's shrunk footprint; until then the robot
+  shifts its weight: the CoM's region is the hull of the stance footprint and one point
+  p = c₋₁ moved towards it by ``shift_speed`` / fps, so the CoM travels to the stance foot at
+  that speed. The last planted foot never lifts (a jump is played with both feet down).
 """
 
 from __future__ import annotations
@@ -33,6 +53,8 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
+from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint, margin,
+                              shrink_footprint, support_polygon)
 from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
@@ -49,6 +71,21 @@ class StreamingConfig:
     first_iterations: int = 60
     damping: float = 1e-4  # Levenberg-Marquardt: H + λ(I + diag H), λ adapted per step
     compile: bool = True
+    balance: bool = False  # free-base robots with feet only (see the module docstring)
+    balance_margin: float = 0.015  # m, footprints shrunk by this before the CoM must lie inside
+    balance_weight: float = 1e4  # per m² of CoM outside the shrunk support polygon
+    balance_contact_weight: float = 1e3  # replaces contact_weight for planted feet with balance on
+    zmp_weight: float = 0.3  # per m² of ZMP offset (h/g)·CoM acceleration
+    dcm_weight: float = 1e3  # per m² of DCM (capture point) outside the shrunk support polygon
+    zmp_limit_weight: float = 30.0  # per m² of ZMP outside the shrunk support polygon
+    collision_weight: float = 1e3  # balance: per m² of capsule-pair penetration (the profile's pairs)
+    shift_speed: float = 0.15  # m/s, CoM travel towards the stance foot before the other lifts
+    shift_accel: float = 1.0  # m/s², how fast the CoM's speed towards the stance foot may grow
+    release_tolerance: float = 0.002  # m, CoM this far outside the stance footprint still lets a foot lift
+    lift_height: float = 0.01  # m, a human foot lifts when its ankle target rises this far above the other's
+    step_distance: float = 0.03  # m, ... or its target moves this far from where the foot was put down
+    double_support_inset: float = 0.01  # m, the CoM stays this far inside the feet's centre lines on two feet
+    anchor_time: float = 0.1  # s, time constant of the stance-foot anchoring of the human's translation
 
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
@@ -81,6 +118,11 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, m
     return d
 
 
+#: half-planes of the balance region passed to the compiled function: the hull of two
+#: footprints (8 corners) and the weight-shift point has at most 9 edges; unused rows are 0·c ≤ 1
+_N_EDGES = 10
+
+
 class StreamingRetargeter:
     """Call :meth:`step` once per frame with the frame's robot-scale keypoint targets (K, 3)
     and side contacts (2,); it returns the configuration x (nx,) to emit."""
@@ -99,6 +141,8 @@ class StreamingRetargeter:
         rb, cfg = self.robot, self.config
         x = rb.kin.x_sym
         K, nx, nr = rb.n_keypoints, rb.nx, rb.n_root
+        #: balance rows are built only where they mean something: a free base with feet
+        self.balance = bool(cfg.balance and rb.floating and rb.has_feet)
         tgt = ca.SX.sym("tgt", 3, K)
         x1, x2 = ca.SX.sym("x1", nx), ca.SX.sym("x2", nx)
         acc_scale = ca.SX.sym("acc_scale")  # √w_a · fps² (0 without history)
@@ -111,17 +155,39 @@ class StreamingRetargeter:
         res.append(np.sqrt(wp) * (x[nr:] - ca.DM(rb.x_stand[nr:])))
         if rb.has_feet:
             sole = rb.sole_expr
+            w_contact = cfg.balance_contact_weight if self.balance else cfg.contact_weight
             for s in range(2):
                 cols = slice(4 * s, 4 * s + 4)
-                wc = np.sqrt(cfg.contact_weight) * contact[s]
+                wc = np.sqrt(w_contact) * contact[s]
                 res.append(wc * ca.reshape(sole[2, cols], -1, 1))
                 res.append(wc * ca.reshape(sole[0:2, cols] - anchor[:, cols], -1, 1))
             res.append(np.sqrt(cfg.ground_weight) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
+        p_parts = [ca.reshape(tgt, -1, 1), x1, x2, acc_scale, contact, ca.reshape(anchor, -1, 1)]
+        com = ca.SX.zeros(3, 1)
+        if self.balance:
+            edges = ca.SX.sym("edges", 3, _N_EDGES)  # rows a_x, a_y, b: inside ⇔ a·c ≤ b
+            # the CoM, the DCM and the ZMP, each an affine map α c_xy + β of the CoM (columns α, β_x, β_y)
+            points = ca.SX.sym("points", 3, 3)
+            point_w = ca.SX.sym("point_w", 3)  # their √weights (0 turns one off)
+            c_pred = ca.SX.sym("c_pred", 2)  # 2 c₋₁ − c₋₂
+            zmp_scale = ca.SX.sym("zmp_scale")  # √w_z (h/g) fps² (0 without history)
+            com = rb.com_expr
+            for i in range(3):
+                pt = points[0, i] * com[0:2] + points[1:3, i]
+                outside = edges[0, :].T * pt[0] + edges[1, :].T * pt[1] - edges[2, :].T
+                res.append(point_w[i] * ca.fmax(outside, 0))
+            res.append(zmp_scale * (com[0:2] - c_pred))
+            if rb.collision_pairs and cfg.collision_weight > 0:
+                # (d² − r²) / 2r ≈ d − r (m) for the profile's capsule pairs, penalised below 0
+                r2 = np.array([2 * (rb.capsules[a].radius + rb.capsules[b].radius + rb.profile.collision_margin)
+                               for a, b in rb.collision_pairs])
+                res.append(np.sqrt(cfg.collision_weight) * ca.fmin(rb.collision_expr / ca.DM(r2), 0))
+            p_parts += [ca.reshape(edges, -1, 1), ca.reshape(points, -1, 1), point_w, c_pred, zmp_scale]
         r = ca.vertcat(*res)
         J = ca.jacobian(r, x)
-        p = ca.vertcat(ca.reshape(tgt, -1, 1), x1, x2, acc_scale, contact, ca.reshape(anchor, -1, 1))
+        p = ca.vertcat(*p_parts)
         sole = rb.sole_expr if rb.has_feet else ca.SX.zeros(3, 0)
-        fn = ca.Function("stream_rj", [x, p], [ca.densify(r), ca.densify(J), ca.densify(sole)])
+        fn = ca.Function("stream_rj", [x, p], [ca.densify(r), ca.densify(J), ca.densify(sole), ca.densify(com)])
         key = f"{rb.fingerprint()}_{hash_config(cfg)}"
         self._fn, self.compile_info = compiled_function(fn, key, enable=cfg.compile)
         # zero-copy evaluation: bind numpy buffers once (CasADi reads/writes column-major)
@@ -130,12 +196,14 @@ class StreamingRetargeter:
         self._rbuf = np.zeros(r.numel())
         self._Jbuf = np.zeros((r.numel(), nx), order="F")
         self._solebuf = np.zeros((3, sole.shape[1]), order="F")
+        self._combuf = np.zeros(3)
         buf, self._eval = self._fn.buffer()
         buf.set_arg(0, memoryview(self._xbuf))
         buf.set_arg(1, memoryview(self._pbuf))
         buf.set_res(0, memoryview(self._rbuf))
         buf.set_res(1, memoryview(self._Jbuf.reshape(-1, order="F")))
         buf.set_res(2, memoryview(self._solebuf.reshape(-1, order="F")))
+        buf.set_res(3, memoryview(self._combuf))
         self._buffer = buf  # keep alive
         n_t = 3 * K
         self._p_tgt = slice(0, n_t)
@@ -144,10 +212,29 @@ class StreamingRetargeter:
         self._p_acc = n_t + 2 * nx
         self._p_contact = slice(n_t + 2 * nx + 1, n_t + 2 * nx + 3)
         self._p_anchor = slice(n_t + 2 * nx + 3, n_t + 2 * nx + 19)
+        n_b = n_t + 2 * nx + 19
+        self._p_edges = slice(n_b, n_b + 3 * _N_EDGES)
+        n_b += 3 * _N_EDGES
+        self._p_points = slice(n_b, n_b + 9)
+        self._p_point_w = slice(n_b + 9, n_b + 12)
+        self._p_cpred = slice(n_b + 12, n_b + 14)
+        self._p_zmp = n_b + 14
         self._has_feet = rb.has_feet
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
         self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps ** 2
+        if self.balance:
+            h = float(rb.evaluate(rb.x_stand[None])["com"][0, 2] - rb.evaluate(rb.x_stand[None])["sole"][0, :, 2].min())
+            self._zmp_k = h / 9.81 * self.fps ** 2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
+            self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
+            self._zmp_scale = np.sqrt(cfg.zmp_weight) * self._zmp_k
+            self._sole_local = [f.corners for f in rb.feet]
+        names = rb.keypoint_names
+        self._ankles = ([names.index("left_ankle"), names.index("right_ankle")]
+                        if "left_ankle" in names and "right_ankle" in names else None)
+        if self.balance and self._ankles is None:
+            raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
+                                "and right_ankle keypoints (it follows the person's feet); add them or turn balance off")
 
     def _residual(self, x: np.ndarray) -> float:
         """Evaluate r, J (and the sole corners) at x into the bound buffers; returns ½‖r‖²."""
@@ -160,6 +247,22 @@ class StreamingRetargeter:
         self._x1 = None
         self._x2 = None
         self._anchor = np.zeros((2, 8))
+        #: balance state: feet planted (left, right), their level footprints (4, 2) m, the CoM
+        #: xy of the last two emitted frames, and the last frame's sole corners (3, 8)
+        self.planted = np.zeros(2, dtype=bool)
+        self._prints: list = [None, None]
+        self._stance: list = [None, None]  # per planted foot: its shrunk footprint's (hull, A, b)
+        self._region_key = None
+        self._c1 = self._c2 = None
+        self._sole1 = None
+        self.shifting = False
+        #: horizontal offset (2,) m added to the targets (balance: the stance foot anchors the
+        #: human's translation) and the ankle targets (2, 2) recorded when each foot touched down
+        self.offset = np.zeros(2)
+        self._ankle_ref = np.zeros((2, 2))
+        if self.balance:  # no balance rows until the first frame has planted the feet
+            self._pbuf[self._p_edges] = np.tile([0.0, 0.0, 1.0], _N_EDGES)
+            self._pbuf[self._p_points.start:] = 0.0
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Position ∩ velocity bounds for the next frame."""
@@ -231,7 +334,9 @@ class StreamingRetargeter:
         return best
 
     def step(self, targets: np.ndarray, contact=(False, False)) -> np.ndarray:
-        """targets (K, 3) m, contact (2,) bool → configuration x (nx,) within all limits."""
+        """targets (K, 3) m, contact (2,) bool (the human's left, right foot) → configuration
+        x (nx,) within all limits. With balance the robot's own foot contacts are in
+        :attr:`planted` afterwards (see the module docstring)."""
         targets = np.asarray(targets, dtype=np.float64)
         if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
             raise RetargetError(f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}")
@@ -252,14 +357,132 @@ class StreamingRetargeter:
             acc = self._sqrt_wa_fps2
             iters = cfg.iterations
         lo, hi = self.bounds()
+        if self.balance:
+            targets = self._anchor_targets(targets, contact, first)
+            if first:
+                # the stream starts standing: both feet put down flat where the fit left them
+                self._residual(x)
+                self._sole1 = self._solebuf.copy()
+                self._c1 = self._c2 = self._combuf[0:2].copy()
+                contact = self._plan_balance((True, True))
+            else:
+                contact = self._plan_balance(contact)
+            self._pbuf[self._p_zmp] = 0.0 if first else self._zmp_scale
+            self._set_points(first)
         x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi)
         x = np.clip(x, lo, hi)
         if self._has_feet:
             self._residual(x)
-            self._anchor = self._solebuf[0:2, :].copy()
+            if self.balance:
+                self._sole1 = self._solebuf.copy()
+                self._c2 = self._c1
+                self._c1 = self._combuf[0:2].copy()
+            else:
+                self._anchor = self._solebuf[0:2, :].copy()
         self._x2 = self._x1 if not first else x
         self._x1 = x
         return x
+
+    def _anchor_targets(self, targets: np.ndarray, contact, first: bool) -> np.ndarray:
+        """Shift the targets horizontally so that the human's feet that are down, and that the
+        robot also has planted, stay where their ankle targets were when the robot's foot
+        touched down: o ← o + α (mean_s (ref_s − ankle_s) − o), α = 1 − exp(−1 / (fps τ)),
+        τ = ``anchor_time``. The robot then follows the person's steps, not their drift or
+        skating (generated motion often slides its feet), which it could not do standing."""
+        ankles = targets[self._ankles, 0:2]  # (2, 2) human ankle targets, before the offset
+        if not first:
+            ref = [s for s in range(2) if contact[s] and self.planted[s]]
+            if ref:
+                raw = np.mean([self._ankle_ref[s] - ankles[s] for s in ref], axis=0)
+                alpha = 1.0 - np.exp(-1.0 / (self.fps * self.config.anchor_time))
+                self.offset = self.offset + alpha * (raw - self.offset)
+        self._ankles_now = ankles + self.offset
+        self._ankle_z = targets[self._ankles, 2]
+        out = targets.copy()
+        out[:, 0:2] += self.offset
+        return out
+
+    def _set_points(self, first: bool) -> None:
+        """Parameters of the CoM, DCM and ZMP rows (see the module docstring)."""
+        cfg = self.config
+        pred = 2 * self._c1 - self._c2
+        kd, kz = self._dcm_k, self._zmp_k
+        pts = np.array([[1.0, 0.0, 0.0],
+                        [1.0 + kd, *(-kd * self._c1)],
+                        [1.0 + kz, *(-kz * pred)]])  # rows: com, dcm, zmp; columns α, β
+        w = np.sqrt([cfg.balance_weight, 0.0 if first else cfg.dcm_weight, 0.0 if first else cfg.zmp_limit_weight])
+        self._pbuf[self._p_points] = pts.reshape(-1)  # (3, 3) column-major = rows of pts
+        self._pbuf[self._p_point_w] = w
+
+    def _plan_balance(self, human_contact) -> tuple[bool, bool]:
+        """Update :attr:`planted` from the human's contacts and the last frame's CoM, and set
+        the anchors, the balance region and the CoM prediction in the parameter buffer.
+        Returns the contacts (left, right) the solver holds on the ground this frame."""
+        cfg = self.config
+        contact = np.asarray(human_contact, dtype=bool)
+        # the human's feet: a lift counts only when the foot really leaves (rises above the other
+        # by lift_height, or moves step_distance from where it was put down); a near-standing
+        # person's contact flicker then never makes the robot stand on one leg
+        dz = self._ankle_z - self._ankle_z[::-1]
+        moved = np.linalg.norm(self._ankles_now - self._ankle_ref, axis=1)
+        lifted = ~contact & ((dz > cfg.lift_height) | (self.planted & (moved > cfg.step_distance)))
+        down = contact | (dz < 0.5 * cfg.lift_height)
+        for s in range(2):
+            if down[s] and not lifted[s] and not self.planted[s]:  # touch down: flat, where the foot is now
+                self._touch_down(s)
+        want = ~lifted
+        c1 = self._c1
+        shift_point = None
+        self.shifting = False
+        for s in range(2):
+            other = 1 - s
+            if want[s] or not self.planted[s] or not self.planted[other]:
+                continue
+            hull, A, b = self._stance[other]
+            if margin(c1, A, b) >= -cfg.release_tolerance:
+                self.planted[s] = False  # the weight is on the other foot: lift
+                self._prints[s] = None
+                self._region_key = None
+            else:  # shift the weight first: the CoM's region is the stance foot and a point on the way
+                self.shifting = True
+                gap = closest_point(c1, hull) - c1
+                dist = float(np.linalg.norm(gap))
+                # at most shift_speed, reached with at most shift_accel from the CoM's speed towards it
+                toward = max(0.0, float((self._c1 - self._c2) @ gap) / max(dist, 1e-12))
+                step = min(cfg.shift_speed / self.fps, toward + cfg.shift_accel / self.fps ** 2, dist)
+                shift_point = c1 + gap * (step / max(dist, 1e-12))
+                self._region_key = None
+                self._set_region(np.concatenate([hull, shift_point[None]]))
+            break  # one foot at a time
+        key = (bool(self.planted[0]), bool(self.planted[1]))
+        if shift_point is None and self._region_key != key:
+            self._region_key = key
+            if key == (True, True):
+                self._set_region(double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset))
+            else:
+                self._set_region(np.concatenate([self._stance[f][0] for f in range(2) if self.planted[f]]))
+        self._pbuf[self._p_cpred] = 2 * self._c1 - self._c2
+        return key
+
+    def _touch_down(self, s: int) -> None:
+        """Plant foot s flat where it is now: its level footprint, the shrunk footprint's
+        half-planes, the anchor of the contact rows and the ankle target it pins."""
+        self.planted[s] = True
+        fp = level_footprint(self._sole1[:, 4 * s:4 * s + 4].T, self._sole_local[s])
+        self._prints[s] = fp
+        self._stance[s] = support_polygon([shrink_footprint(fp, self.config.balance_margin)])
+        self._anchor[:, 4 * s:4 * s + 4] = fp.T
+        self._ankle_ref[s] = self._ankles_now[s]
+        self._region_key = None
+
+    def _set_region(self, points: np.ndarray) -> None:
+        """The balance region: the convex hull of ``points`` (m, 2), as half-planes in the buffer."""
+        hull = convex_hull(points)
+        edges = np.tile([0.0, 0.0, 1.0], (_N_EDGES, 1))
+        if len(hull) >= 3:
+            A, b = halfplanes(hull)
+            edges[:len(b), 0:2], edges[:len(b), 2] = A, b
+        self._pbuf[self._p_edges] = edges.reshape(-1)  # (3, E) column-major = rows of (E, 3)
 
     def step_human(self, positions: np.ndarray, contact=(False, False)) -> np.ndarray:
         """One human frame (22, 3) m (SMPL-22, Z up) → configuration x (nx,), via ``self.scaler``."""
