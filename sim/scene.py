@@ -83,6 +83,10 @@ class Scene:
             if config.base_quat is not None:
                 root.quat = list(config.base_quat)
         spec.option.timestep = config.timestep
+        # Island discovery pays off with several independent bodies; a scene holds one
+        # robot (the human figures are mocap bodies without dofs), so it only costs time
+        # (~9 % of a check's mj_step). The constraint solution is the same either way.
+        spec.option.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ISLAND)
         self._add_world(spec, config)
 
         # robot height and standing figures from a first compile (before the humans)
