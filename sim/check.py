@@ -37,7 +37,7 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.errors import RetargetError
 from retarget.trajectory import RobotTrajectory
-from sim.contacts import ContactClassifier, SupportMargin, min_distance
+from sim.contacts import ContactClassifier, min_distance
 from sim.errors import SimError
 from sim.human_figure import Placement
 from sim.scene import Scene, SceneConfig
@@ -231,12 +231,11 @@ class Checker:
         stand_h = sc.stand_root_height if free else np.nan
 
         K, n = n_ticks, r.n
-        # -- record raw state per tick (cheap copies); analyse afterwards, vectorised
+        # -- record raw state per control tick into preallocated arrays (a few plain
+        # copies from views bound once); everything is analysed afterwards, vectorised.
         qpos = np.full((K, m.nq), np.nan)
         qvel = np.full((K, m.nv), np.nan)
         force = np.full((K, m.nu), np.nan)
-        xpos = np.full((K, 3), np.nan)  # root body position
-        xmat = np.full((K, 9), np.nan)  # root body orientation
         com = np.full((K, 3), np.nan)  # robot centre of mass
         sites = np.full((K, m.nsite, 3), np.nan)
         feet = list(r.foot_sites)
@@ -252,6 +251,8 @@ class Checker:
         a0 = int(act[0])
         ctrl = d.ctrl[a0:a0 + len(act)] if np.array_equal(act, np.arange(a0, a0 + len(act))) else None
         root_xpos, root_xmat, root_com = d.xpos[root], d.xmat[root], d.subtree_com[root]
+        d_qpos, d_qvel, d_force, d_sites = d.qpos, d.qvel, d.actuator_force, d.site_xpos
+        step = mujoco.mj_step
 
         for k in range(K):
             if ctrl is not None:
@@ -260,14 +261,12 @@ class Checker:
                 d.ctrl[act] = q_cmd[k]
             if actor is not None:
                 actor.pose_at(d, t[k])
-            mujoco.mj_step(m, d, n_sub)
-            qpos[k] = d.qpos
-            qvel[k] = d.qvel
-            force[k] = d.actuator_force
-            xpos[k] = root_xpos
-            xmat[k] = root_xmat
+            step(m, d, n_sub)
+            qpos[k] = d_qpos
+            qvel[k] = d_qvel
+            force[k] = d_force
             com[k] = root_com
-            sites[k] = d.site_xpos
+            sites[k] = d_sites
             nc = d.ncon
             if nc:
                 c = d.contact
@@ -284,12 +283,12 @@ class Checker:
             if k + 1 >= stop_at:
                 break
         K_run = min(stop_at, K)
+        xpos, root_zz = _root_pose_series(qpos, r.free_qpos, root_xpos, root_xmat, K_run)
 
         q = qpos[:, r.qpos_adr]
         qd = qvel[:, r.dof_adr]
         tau = force[:, act]
         root_h = xpos[:, 2]
-        root_zz = xmat[:, 8]
         com_xy = com[:, :2]
         foot_xy = sites[:, feet, :2]
         tilt = np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0)))
@@ -312,7 +311,7 @@ class Checker:
 
         margin = np.full(K, np.nan)
         if free:
-            margin[:K_run] = SupportMargin().many(com_xy[:K_run], [contacts.floor_points(k) for k in range(K_run)])
+            margin[:K_run] = contacts.support_margins(com_xy[:K_run])
 
         failures = self._judge(t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min,
                                slip, margin, K_run, fall_k, stand_h, dt, free, actor is not None, self_pairs)
@@ -416,6 +415,28 @@ class Checker:
             out.append(Failure("tracking_error", float(t[k]), f"{names[j]} lags its command by over "
                                f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s"))
         return out
+
+
+def _root_pose_series(qpos: np.ndarray, free_qpos: int, xpos_now: np.ndarray, xmat_now: np.ndarray,
+                        k_run: int) -> tuple[np.ndarray, np.ndarray]:
+    """Root body position (K, 3) and the z-z entry of its rotation matrix (K,) (the
+    cosine of the torso tilt) per tick, NaN after ``k_run``.
+
+    A free base reads them from its freejoint's qpos: position p = qpos[a:a+3] and,
+    for the quaternion (w, x, y, z) normalised by s = w^2 + x^2 + y^2 + z^2,
+    R_zz = (w^2 - x^2 - y^2 + z^2) / s. A fixed base never moves: its current pose
+    ``xpos_now`` (3,) / ``xmat_now`` (9,) holds for every tick."""
+    K = len(qpos)
+    if free_qpos >= 0:
+        pos = qpos[:, free_qpos:free_qpos + 3].copy()
+        w, x, y, z = qpos[:, free_qpos + 3:free_qpos + 7].T
+        zz = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
+    else:
+        pos = np.tile(xpos_now, (K, 1))
+        zz = np.full(K, xmat_now[8])
+    pos[k_run:] = np.nan
+    zz[k_run:] = np.nan
+    return pos, zz
 
 
 def _first(mask: np.ndarray) -> int | None:

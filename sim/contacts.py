@@ -78,6 +78,11 @@ class ContactLog:
         """(c, 2) xy of the robot-floor contact points at tick k."""
         return self._floor_pos[self._starts[k]:self._starts[k + 1]]
 
+    def support_margins(self, com_xy: np.ndarray) -> np.ndarray:
+        """(K',) margin (m) of the centre of mass ``com_xy`` (K', 2), K' <= K, to the
+        support polygon of each tick's floor contacts; NaN with no floor contact."""
+        return SupportMargin().many_flat(com_xy, self._floor_pos, self._starts[:len(com_xy) + 1])
+
 
 def min_distance(model: mujoco.MjModel, data: mujoco.MjData, geoms_a: np.ndarray, geoms_b: np.ndarray,
                  distmax: float = 0.05) -> float:
@@ -96,63 +101,99 @@ def min_distance(model: mujoco.MjModel, data: mujoco.MjData, geoms_a: np.ndarray
 
 
 class SupportMargin:
-    """:func:`support_margin` with the polygon cached: feet resting flat give the same
-    contact points tick after tick, so the hull is rebuilt only when the points
-    (rounded to ``resolution`` m) change."""
+    """:func:`support_margin` for many ticks at once, the polygon built once per run.
+
+    Feet resting flat give the same contact points tick after tick, so the hull is
+    rebuilt only when a tick's points (rounded to ``resolution`` m) differ from the
+    previous tick's; the margins of a run of ticks sharing one polygon are evaluated
+    together, vectorised.
+    """
 
     def __init__(self, resolution: float = 0.001):
         self.resolution = resolution
-        self._key: bytes | None = None
-        self._eq: np.ndarray | None = None
-        self._verts: np.ndarray | None = None
-        self._pts: np.ndarray | None = None
 
     def many(self, points_xy: np.ndarray, contacts_xy: list[np.ndarray]) -> np.ndarray:
         """Margins (K,) of points (K, 2) to the polygons of ``contacts_xy`` (K arrays
-        (c_k, 2)); runs of ticks with the same polygon are evaluated together."""
-        out = np.full(len(points_xy), np.nan)
-        keys = [np.round(c / self.resolution).astype(np.int64).tobytes() for c in contacts_xy]
-        start = 0
-        for k in range(1, len(keys) + 1):
-            if k < len(keys) and keys[k] == keys[start]:
-                continue
-            c = contacts_xy[start]
+        (c_k, 2)); NaN where a tick has no contact."""
+        counts = np.array([len(c) for c in contacts_xy], dtype=np.int64)
+        flat = np.concatenate([np.asarray(c, np.float64).reshape(-1, 2) for c in contacts_xy]) if len(contacts_xy) \
+            else np.zeros((0, 2))
+        return self.many_flat(points_xy, flat, np.concatenate([[0], np.cumsum(counts)]))
+
+    def many_flat(self, points_xy: np.ndarray, contact_xy: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """As :meth:`many`, with the contacts of all ticks concatenated: tick k's
+        points are ``contact_xy[starts[k]:starts[k + 1]]`` (``starts`` (K+1,))."""
+        points_xy = np.asarray(points_xy, np.float64)
+        K = len(points_xy)
+        out = np.full(K, np.nan)
+        if K == 0:
+            return out
+        runs = np.flatnonzero(~self._same_as_previous(contact_xy, starts[:K + 1]))
+        bounds = np.append(runs, K)
+        for s, e in zip(bounds[:-1], bounds[1:]):
+            c = contact_xy[starts[s]:starts[s + 1]]
             if len(c):
-                self(points_xy[start], c)  # builds and caches the polygon
-                if self._eq is not None:
-                    p = points_xy[start:k]
-                    sd = p @ self._eq[:, :2].T + self._eq[:, 2]  # (m, edges)
-                    inside = np.all(sd <= 0, axis=1)
-                    out[start:k][inside] = -sd[inside].max(axis=1)
-                    ring = np.vstack([self._verts, self._verts[:1]])
-                    for i in np.flatnonzero(~inside):
-                        out[start + i] = -_dist_to_polyline(p[i], ring)
-                else:
-                    for i in range(start, k):
-                        out[i] = support_margin(points_xy[i], c)
-            start = k
+                out[s:e] = _margins_to(points_xy[s:e], c)
         return out
 
+    def _same_as_previous(self, xy: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        """(K,) bool: tick k has exactly tick k-1's points (same count, same order,
+        equal after rounding to ``resolution``); False at k = 0.
+
+        Ticks are stored back to back, so when counts match, tick k's i-th point sits
+        exactly ``count`` rows after tick k-1's i-th point."""
+        counts = np.diff(starts)
+        K = len(counts)
+        same = np.zeros(K, bool)
+        same[1:] = counts[1:] == counts[:-1]
+        if not len(xy):
+            return same
+        r = np.round(np.asarray(xy, np.float64) / self.resolution).astype(np.int64)
+        tick = np.repeat(np.arange(K), counts)
+        i = np.flatnonzero(same[tick])
+        differs = np.any(r[i] != r[i - counts[tick[i]]], axis=1)
+        same[np.unique(tick[i[differs]])] = False
+        return same
+
     def __call__(self, point_xy: np.ndarray, contact_xy: np.ndarray) -> float:
-        if len(contact_xy) == 0:
-            return float("nan")
-        key = np.round(np.asarray(contact_xy) / self.resolution).astype(np.int64).tobytes()
-        if key != self._key:
-            self._key = key
-            self._pts = np.asarray(contact_xy, dtype=np.float64)
-            try:
-                hull = ConvexHull(self._pts) if len(self._pts) >= 3 else None
-            except QhullError:
-                hull = None
-            self._eq = None if hull is None else hull.equations
-            self._verts = None if hull is None else self._pts[hull.vertices]
-        if self._eq is None:
-            return support_margin(point_xy, self._pts)
-        p = np.asarray(point_xy, dtype=np.float64)
-        sd = self._eq[:, :2] @ p + self._eq[:, 2]
-        if np.all(sd <= 0):
-            return float(-sd.max())
-        return -_dist_to_polyline(p, np.vstack([self._verts, self._verts[:1]]))
+        """Margin (m) of one point (2,) to the polygon of ``contact_xy`` (c, 2)."""
+        return support_margin(point_xy, contact_xy)
+
+
+def _margins_to(points: np.ndarray, contact_xy: np.ndarray) -> np.ndarray:
+    """Margins (m,) of points (m, 2) to the convex hull of ``contact_xy`` (c >= 1, 2):
+    the hull's inequalities n . x + b <= 0 give the inside distance -max(n . p + b);
+    outside (or for a degenerate hull, a segment or a point, as in
+    :func:`support_margin`) it is minus the distance to the hull's boundary."""
+    pts = np.asarray(contact_xy, dtype=np.float64)
+    hull = None
+    if len(pts) >= 3:
+        try:
+            hull = ConvexHull(pts)
+        except QhullError:
+            hull = None
+    if hull is None:
+        return -_dist_to_polyline_many(points, _degenerate_support(pts))
+    sd = points @ hull.equations[:, :2].T + hull.equations[:, 2]  # (m, edges)
+    inside = np.all(sd <= 0, axis=1)
+    out = np.empty(len(points))
+    out[inside] = -sd[inside].max(axis=1)
+    if not inside.all():
+        verts = pts[hull.vertices]
+        out[~inside] = -_dist_to_polyline_many(points[~inside], np.vstack([verts, verts[:1]]))
+    return out
+
+
+def _degenerate_support(contact_xy: np.ndarray) -> np.ndarray:
+    """The support of points without a 2-D hull, as a polyline (2, 2): the segment
+    spanning them (collinear points), or a point repeated."""
+    pts = np.unique(np.round(contact_xy, 5), axis=0)
+    if len(pts) == 1:
+        return np.vstack([pts, pts])
+    d = pts - pts[0]
+    axis = d[np.argmax(np.linalg.norm(d, axis=1))]
+    proj = d @ axis / (axis @ axis)
+    return np.vstack([pts[np.argmin(proj)], pts[np.argmax(proj)]])
 
 
 def support_margin(point_xy: np.ndarray, contact_xy: np.ndarray) -> float:
@@ -163,35 +204,15 @@ def support_margin(point_xy: np.ndarray, contact_xy: np.ndarray) -> float:
     (a segment or a point): the margin is then minus the distance to it. No points
     at all gives NaN (no support: airborne).
     """
-    pts = np.unique(np.round(np.asarray(contact_xy, dtype=np.float64), 5), axis=0)
-    p = np.asarray(point_xy, dtype=np.float64)
-    if len(pts) == 0:
+    if len(contact_xy) == 0:
         return float("nan")
-    if len(pts) >= 3:
-        try:
-            hull = ConvexHull(pts)
-        except QhullError:
-            hull = None
-        if hull is not None:
-            # equations: n . x + b <= 0 inside, n unit-length
-            s = hull.equations[:, :2] @ p + hull.equations[:, 2]
-            if np.all(s <= 0):
-                return float(-s.max())
-            verts = pts[hull.vertices]
-            return -_dist_to_polyline(p, np.vstack([verts, verts[:1]]))
-    if len(pts) == 1:
-        return -float(np.linalg.norm(p - pts[0]))
-    # degenerate: distance to the segment spanning the points
-    d = pts - pts[0]
-    axis = d[np.argmax(np.linalg.norm(d, axis=1))]
-    proj = d @ axis / (axis @ axis)
-    seg = np.vstack([pts[np.argmin(proj)], pts[np.argmax(proj)]])
-    return -_dist_to_polyline(p, seg)
+    return float(_margins_to(np.asarray(point_xy, np.float64).reshape(1, 2), contact_xy)[0])
 
 
-def _dist_to_polyline(p: np.ndarray, verts: np.ndarray) -> float:
-    a, b = verts[:-1], verts[1:]
-    ab = b - a
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18), 0.0, 1.0)
-    closest = a + t[:, None] * ab
-    return float(np.min(np.linalg.norm(p - closest, axis=1)))
+def _dist_to_polyline_many(p: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """Distances (m,) from points (m, 2) to the polyline ``verts`` (v, 2): for each
+    segment a -> b the closest point is a + clip((p - a).(b - a) / |b - a|^2, 0, 1) (b - a)."""
+    a, ab = verts[:-1], verts[1:] - verts[:-1]  # (s, 2)
+    ap = p[:, None, :] - a[None]  # (m, s, 2)
+    t = np.clip(np.einsum("msj,sj->ms", ap, ab) / np.maximum(np.einsum("sj,sj->s", ab, ab), 1e-18), 0.0, 1.0)
+    return np.linalg.norm(ap - t[..., None] * ab[None], axis=2).min(axis=1)
