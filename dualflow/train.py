@@ -16,7 +16,10 @@ What one optimisation step does (rank r of W processes, step s):
 2. the task — reactive with probability ``reactive_prob``, else interactive — drawn
    from (seed, s), the same on every rank (one set of weights, both tasks);
 3. classifier-free-guidance drop masks (text and music: both 10 %, text 20 %,
-   music 20 %; :func:`dualflow.model.sample_condition_drop`);
+   music 20 %; :func:`dualflow.model.sample_condition_drop`); with ``retrieval.enabled``
+   the batch's precomputed neighbours (k per cue by task, own clip excluded) are encoded
+   into z_R by the jointly trained retrieval encoder and dropped per cue with the same
+   masks (:mod:`dualflow.rag`);
 4. :func:`dualflow.flow.flow_training_step`: t ~ U(0, 1) (or logit-normal),
    x_t = (1 − t) ε + t x0, loss = ‖v_θ − (x0 − ε)‖²; under ``torch.autocast``
    with bfloat16 on CUDA (``amp``), float32 on the CPU;
@@ -25,6 +28,11 @@ What one optimisation step does (rank r of W processes, step s):
    with linear warm-up: lr_s = lr · min(1, (s + 1) / warmup_steps);
 6. EMA of the weights: θ_ema ← d θ_ema + (1 − d) θ (``ema_decay`` d; 0 = off),
    via ``torch.optim.swa_utils.AveragedModel``.
+
+Data: ``data.dataset`` picks the synthetic duets (default) or any loader of
+:mod:`dualflow.datasets` by name, read from ``data.root`` and cut into ``data.frames``-row
+windows (``data.splits``: [train] or [train, validation]); ``music`` picks the per-frame
+music condition (beat track, spectral EDGE/Duolando features, or precomputed Jukebox).
 
 Every random draw is seeded from (seed, step, rank), so a run resumed from a
 checkpoint continues exactly as the uninterrupted run (same batches, noise,
