@@ -12,7 +12,7 @@ next to a baseline of mj_forward + scene update alone.
 Times are CPU seconds of this process (time.process_time), so that other
 programs competing for the core do not count; wall-clock figures are printed too.
 
-Usage: python bench/sim_speed.py [--seconds 10] [--repeats 3] [--no-render] [--quick]
+Usage: python bench/sim_speed.py [--seconds 10] [--repeats 5] [--no-render] [--quick]
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ def dance(seconds: float):
 
 def bench_check(seconds: float, repeats: int) -> list[Row]:
     import mujoco
+    import numpy as np
 
     from sim.check import CheckConfig, Checker, resample, scene_for
 
@@ -78,11 +79,12 @@ def bench_check(seconds: float, repeats: int) -> list[Row]:
         wall_check = min(wall_check, time.perf_counter() - w0)
         assert result.passed, result.failures
 
-        # baseline: the same physics and control updates, nothing measured
-        scene.reset()
+        # baseline: the same physics and control updates from the same start (first
+        # frame, feet on the floor), nothing measured
         m, d, r = scene.model, scene.data, scene.robot
         ticks = int(traj.duration * cfg.control_hz) + 1
-        q_cmd = resample(traj.times, traj.joint_pos, __import__("numpy").arange(ticks) / cfg.control_hz, "linear")
+        q_cmd = resample(traj.times, traj.joint_pos, np.arange(ticks) / cfg.control_hz, "linear")
+        scene.set_robot_pose(q_cmd[0], traj.root_pos[0], traj.root_quat[0], ground=True)
         n_sub = int(cfg.physics_hz / cfg.control_hz)
         settle = int(cfg.settle_s * cfg.physics_hz)
         t0, w0 = time.process_time(), time.perf_counter()
@@ -153,7 +155,7 @@ def bench_render(frames: int) -> list[Row]:
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=10.0)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--no-render", action="store_true")
     args = parse_args(ap, argv, quick, QUICK)
