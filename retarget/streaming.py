@@ -10,8 +10,7 @@ x (nx,) (see :mod:`retarget.kinematics`):
           √w_p (q − q_stand)                        posture
           √w_c · c_s · (z_sole, xy_sole − xy_sole₋₁) a foot in contact stays on the ground and put
           √w_g · min(z_sole, 0)                     no sole corner below the ground
-          √w_b · max(0, A c_xy(x) − b)              balance (optional): CoM over the support polygon
-          √w_z · (h/g) fps² (c_xy(x) − 2c₋₁ + c₋₂) ] balance: the CoM's acceleration as a ZMP offset
+          balance rows (optional, below) ]
 
     lb, ub = joint range ∩ [x₋₁ − v_max/fps, x₋₁ + v_max/fps]  (position and velocity limits,
                                                                the root's speed limits too)
@@ -24,27 +23,43 @@ CasADi function, compiled to C and cached (:mod:`retarget.codegen`). Every itera
 in the box, so no emitted frame can violate a position or velocity limit; a final clip
 makes that exact in floating point.
 
-Balance (``StreamingConfig.balance``, free-base robots with feet; a fixed base ignores it).
-The optional rows keep a free-standing robot on its feet while it plays the frames open loop:
+Balance (``StreamingConfig.balance``; free-base robots with feet, a fixed base ignores it)
+keeps a free-standing robot on its feet while it plays the frames open loop (weights w_* are
+the config's; c(x) is the CoM, h its standing height, ω = √(g/h)):
 
-- Feet the robot has *planted* are held, with the strong ``balance_contact_weight``, on their
-  level footprint: the sole's own rectangle flat on the ground (z = 0) at the centre and
-  heading the foot had when it touched down (:func:`retarget.support.level_footprint`), until
-  the foot lifts. (Without balance the anchor is the previous frame's sole, re-taken each frame.)
-- The CoM ground projection c_xy stays inside the convex hull of the planted footprints, each
-  shrunk by ``balance_margin``: half-planes A c ≤ b (:mod:`retarget.support`), a one-sided
-  penalty with weight ``balance_weight``. The ZMP row penalises the CoM's acceleration, with
-  h the standing CoM height, so that the CoM moves quasi-statically.
-- Contacts come from the human (the motion's labels or detected ones). A foot touches down
-  when the human's does. A foot lifts only when the human's lifts *and* the CoM of the last
-  emitted frame lies over the other planted foot's shrunk footprint; until then the robot
-  shifts its weight: the CoM's region is the hull of the stance footprint and one point
-  p = c₋₁ moved towards it by ``shift_speed`` / fps, so the CoM travels to the stance foot at
-  that speed. The last planted foot never lifts (a jump is played with both feet down).
+    √w_b · max(0, A c_xy(x) − b)                          CoM inside the support region A c ≤ b
+    √w_dcm · max(0, A ξ(x) − b),  ξ = c + (c − c₋₁) fps/ω   capture point (DCM) inside it: the
+                                                          robot could still stop where it is
+    √w_zl · max(0, A z(x) − b),   z = c − (h/g) c̈         ZMP inside it, c̈ = fps² (c − 2c₋₁ + c₋₂)
+    √w_z · (h/g) fps² (c_xy − 2c₋₁ + c₋₂)                  ZMP offset: the CoM moves smoothly
+    √w_pl · (z_sole, xy_sole − footprint)  (planted feet)  flat on their level footprint
+    √w_lv · (z_corner − mean z_corner)  (each foot)        soles level, lifted ones too
+    √w_col · min(0, (d² − r²) / 2r)  (profile pairs)       capsules apart (feet, arms and legs)
+
+- *Planted* feet are held on their level footprint: the sole's rectangle flat on the ground
+  (z = 0), at the centre and heading the foot had when it touched down
+  (:func:`retarget.support.level_footprint`). (Without balance the anchor is the previous
+  frame's sole, re-taken every frame.) The ground row gets the planted weight too.
+- The support region (:mod:`retarget.support`): on two feet, the hull of the feet's long centre
+  lines, ``balance_margin`` in from toe and heel and ``double_support_inset`` towards each
+  other (a compliant servo robot with its CoM over one foot unloads the other and sags over);
+  on one foot, its footprint shrunk by ``balance_margin``.
+- Contacts come from the person (the motion's labels, or detected). A robot foot lifts only
+  when the person's leaves (rises ``lift_height`` above the other, or moves ``step_distance`` /
+  turns ``step_turn`` from where the robot's was put down) while the person's other foot is
+  down, after ``min_stance``; and only once the CoM of the last frame is over the other
+  foot's shrunk footprint. Until then the robot shifts its weight: the region becomes the
+  stance footprint plus one point p = c₋₁ moved towards it (at most ``shift_speed``, speeding up
+  by at most ``shift_accel``). A lifted foot's targets stay within ``swing_height`` of standing
+  height; it touches down (flat, where it is) when the person's foot is down, or after
+  ``max_swing``. The last planted foot never lifts: a jump or a glide is played on both feet.
+- The person's translation and heading are anchored to the planted feet
+  (:meth:`StreamingRetargeter._anchor_targets`): the robot follows steps, not sliding.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import casadi as ca
@@ -53,7 +68,7 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
-from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint, margin,
+from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint,
                               shrink_footprint, support_polygon)
 from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
@@ -71,22 +86,28 @@ class StreamingConfig:
     first_iterations: int = 60
     damping: float = 1e-4  # Levenberg-Marquardt: H + λ(I + diag H), λ adapted per step
     compile: bool = True
-    balance: bool = False  # free-base robots with feet only (see the module docstring)
-    balance_margin: float = 0.015  # m, footprints shrunk by this before the CoM must lie inside
-    balance_weight: float = 1e4  # per m² of CoM outside the shrunk support polygon
-    balance_contact_weight: float = 1e3  # replaces contact_weight for planted feet with balance on
-    zmp_weight: float = 0.3  # per m² of ZMP offset (h/g)·CoM acceleration
-    dcm_weight: float = 1e3  # per m² of DCM (capture point) outside the shrunk support polygon
-    zmp_limit_weight: float = 30.0  # per m² of ZMP outside the shrunk support polygon
-    collision_weight: float = 1e3  # balance: per m² of capsule-pair penetration (the profile's pairs)
+    # balance (free-base robots with feet; see the module docstring). Weights are per m² of
+    # the residual named; lengths m, times s.
+    balance: bool = False
+    balance_margin: float = 0.02  # footprints shrunk by this; the CoM, DCM and ZMP stay inside
+    balance_weight: float = 1e4  # CoM outside the support region
+    dcm_weight: float = 1e3  # capture point outside it
+    zmp_limit_weight: float = 300.0  # ZMP outside it
+    zmp_weight: float = 30.0  # ZMP offset (h/g)·CoM acceleration (smooth CoM motion)
+    balance_contact_weight: float = 1e3  # planted feet off their footprint (replaces contact_weight)
+    level_weight: float = 30.0  # sole corner heights differing within a foot
+    collision_weight: float = 1e5  # the profile's capsule pairs penetrating
+    double_support_inset: float = 0.01  # on two feet the CoM stays this far inside the feet's centre lines
     shift_speed: float = 0.15  # m/s, CoM travel towards the stance foot before the other lifts
-    shift_accel: float = 1.0  # m/s², how fast the CoM's speed towards the stance foot may grow
-    release_tolerance: float = 0.002  # m, CoM this far outside the stance footprint still lets a foot lift
-    lift_height: float = 0.01  # m, a human foot lifts when its ankle target rises this far above the other's
-    step_distance: float = 0.03  # m, ... or its target moves this far from where the foot was put down
-    double_support_inset: float = 0.01  # m, the CoM stays this far inside the feet's centre lines on two feet
-    anchor_time: float = 0.1  # s, time constant of the stance-foot anchoring of the human's translation
-
+    shift_accel: float = 1.0  # m/s², how fast that speed may grow
+    release_tolerance: float = 0.002  # CoM this far outside the stance footprint still lets the other lift
+    lift_height: float = 0.01  # a person's foot leaves when its ankle target rises this far above the other's,
+    step_distance: float = 0.03  # ... or moves this far from where the robot's foot was put down,
+    step_turn: float = 0.35  # rad, ... or turns this far
+    min_stance: float = 0.2  # a foot stands this long before it may lift again
+    max_swing: float = 0.6  # a lifted foot comes down after this long even if the person's does not
+    swing_height: float = 0.02  # a lifted foot's ankle and toe targets stay this close above standing height
+    anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
     """min_d ½ dᵀHd + gᵀd  s.t. lo ≤ d ≤ hi, H positive definite (n ≤ ~50), by a primal active set.
@@ -161,7 +182,12 @@ class StreamingRetargeter:
                 wc = np.sqrt(w_contact) * contact[s]
                 res.append(wc * ca.reshape(sole[2, cols], -1, 1))
                 res.append(wc * ca.reshape(sole[0:2, cols] - anchor[:, cols], -1, 1))
-            res.append(np.sqrt(cfg.ground_weight) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
+            w_ground = max(cfg.ground_weight, cfg.balance_contact_weight) if self.balance else cfg.ground_weight
+            res.append(np.sqrt(w_ground) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
+            if self.balance and cfg.level_weight > 0:  # soles level, in the air too (a foot lands flat)
+                for s in range(2):
+                    z = sole[2, 4 * s:4 * s + 4]
+                    res.append(np.sqrt(cfg.level_weight) * ca.reshape(z - ca.sum2(z) / 4, -1, 1))
         p_parts = [ca.reshape(tgt, -1, 1), x1, x2, acc_scale, contact, ca.reshape(anchor, -1, 1)]
         com = ca.SX.zeros(3, 1)
         if self.balance:
@@ -223,18 +249,33 @@ class StreamingRetargeter:
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
         self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps ** 2
+        self._min_stance_frames = round(cfg.min_stance * self.fps)
+        self._max_swing_frames = round(cfg.max_swing * self.fps)
         if self.balance:
             h = float(rb.evaluate(rb.x_stand[None])["com"][0, 2] - rb.evaluate(rb.x_stand[None])["sole"][0, :, 2].min())
             self._zmp_k = h / 9.81 * self.fps ** 2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
             self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
             self._zmp_scale = np.sqrt(cfg.zmp_weight) * self._zmp_k
+            self._point_w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
+            self._point_w0 = np.sqrt([cfg.balance_weight, 0.0, 0.0])
             self._sole_local = [f.corners for f in rb.feet]
         names = rb.keypoint_names
         self._ankles = ([names.index("left_ankle"), names.index("right_ankle")]
                         if "left_ankle" in names and "right_ankle" in names else None)
-        if self.balance and self._ankles is None:
+        self._toes = ([names.index("left_foot"), names.index("right_foot")]
+                      if "left_foot" in names and "right_foot" in names else None)
+        self._hips = ([names.index("left_hip"), names.index("right_hip")]
+                      if "left_hip" in names and "right_hip" in names else None)
+        if self._ankles is not None:
+            self._foot_kps = [[k for k in (self._ankles[s], self._toes[s] if self._toes else None) if k is not None]
+                              for s in range(2)]
+            self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
+            self._feet_idx = list(self._ankles) + list(self._toes if self._toes is not None else (self._hips or []))
+        self._anchor_alpha = 1.0 - np.exp(-1.0 / (self.fps * cfg.anchor_time))
+        if self.balance and (self._ankles is None or (self._toes is None and self._hips is None)):
             raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
-                                "and right_ankle keypoints (it follows the person's feet); add them or turn balance off")
+                                "and right_ankle keypoints, and left/right_foot or left/right_hip ones (it follows the person's "
+                                "feet); add them or turn balance off")
 
     def _residual(self, x: np.ndarray) -> float:
         """Evaluate r, J (and the sole corners) at x into the bound buffers; returns ½‖r‖²."""
@@ -259,7 +300,10 @@ class StreamingRetargeter:
         #: horizontal offset (2,) m added to the targets (balance: the stance foot anchors the
         #: human's translation) and the ankle targets (2, 2) recorded when each foot touched down
         self.offset = np.zeros(2)
-        self._ankle_ref = np.zeros((2, 2))
+        self._psi = 0.0
+        self._ankle_ref = [(0.0, 0.0), (0.0, 0.0)]
+        self._head_ref = [0.0, 0.0]
+        self._since = np.zeros(2, dtype=int)  # frames since each foot last touched down or lifted
         if self.balance:  # no balance rows until the first frame has planted the feet
             self._pbuf[self._p_edges] = np.tile([0.0, 0.0, 1.0], _N_EDGES)
             self._pbuf[self._p_points.start:] = 0.0
@@ -367,6 +411,10 @@ class StreamingRetargeter:
                 contact = self._plan_balance((True, True))
             else:
                 contact = self._plan_balance(contact)
+                for s in range(2):
+                    if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
+                        k = self._foot_kps[s]
+                        targets[k, 2] = np.clip(targets[k, 2], self._foot_kp_h[s], self._foot_kp_h[s] + cfg.swing_height)
             self._pbuf[self._p_zmp] = 0.0 if first else self._zmp_scale
             self._set_points(first)
         x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi)
@@ -384,53 +432,91 @@ class StreamingRetargeter:
         return x
 
     def _anchor_targets(self, targets: np.ndarray, contact, first: bool) -> np.ndarray:
-        """Shift the targets horizontally so that the human's feet that are down, and that the
-        robot also has planted, stay where their ankle targets were when the robot's foot
-        touched down: o ← o + α (mean_s (ref_s − ankle_s) − o), α = 1 − exp(−1 / (fps τ)),
-        τ = ``anchor_time``. The robot then follows the person's steps, not their drift or
-        skating (generated motion often slides its feet), which it could not do standing."""
-        ankles = targets[self._ankles, 0:2]  # (2, 2) human ankle targets, before the offset
+        """Move the targets by a horizontal rigid transform T(p) = R(ψ) p + o so that the
+        person's feet that are down, where the robot's are planted too, stay where (and
+        turned as) their targets were when the robot's foot touched down.
+
+        With a_s, θ_s the person's ankle target (xy) and foot heading (ankle → toe; the hips'
+        facing direction for a profile without toe keypoints) of each such foot and r_s, φ_s their values under T at touch-down, the raw transform is
+        ψ* = mean_s (φ_s − θ_s), o* = mean_s r_s − R(ψ*) mean_s a_s; ψ and the image of the
+        pivot p = mean_s a_s move towards it by α = 1 − exp(−1 / (fps τ)), τ = ``anchor_time``.
+        The robot then follows the person's steps (and turns step by step), not the drift,
+        turning on the spot or skating of the feet (generated motion often slides them),
+        which it could not do standing."""
+        feet = targets[self._feet_idx, 0:3].tolist()  # left/right ankle, then left/right toe or hip
+        (lx, ly, lz), (rx, ry, rz) = feet[0], feet[1]
+        if self._toes is not None:
+            heads = [math.atan2(feet[2][1] - ly, feet[2][0] - lx), math.atan2(feet[3][1] - ry, feet[3][0] - rx)]
+        else:
+            h = math.atan2(-(feet[2][0] - feet[3][0]), feet[2][1] - feet[3][1])
+            heads = [h, h]
+        ankles = ((lx, ly), (rx, ry))
         if not first:
             ref = [s for s in range(2) if contact[s] and self.planted[s]]
             if ref:
-                raw = np.mean([self._ankle_ref[s] - ankles[s] for s in ref], axis=0)
-                alpha = 1.0 - np.exp(-1.0 / (self.fps * self.config.anchor_time))
-                self.offset = self.offset + alpha * (raw - self.offset)
-        self._ankles_now = ankles + self.offset
-        self._ankle_z = targets[self._ankles, 2]
+                n = len(ref)
+                sx = sum(math.cos(self._head_ref[s] - heads[s]) for s in ref)
+                sy = sum(math.sin(self._head_ref[s] - heads[s]) for s in ref)
+                psi_raw = math.atan2(sy, sx)
+                px, py = sum(ankles[s][0] for s in ref) / n, sum(ankles[s][1] for s in ref) / n
+                qx, qy = sum(self._ankle_ref[s][0] for s in ref) / n, sum(self._ankle_ref[s][1] for s in ref) / n
+                c, sn = math.cos(self._psi), math.sin(self._psi)
+                ox, oy = self.offset
+                al = self._anchor_alpha
+                # the pivot's image moves from T(p) towards T*(p) = mean r_s
+                tx = (1 - al) * (c * px - sn * py + ox) + al * qx
+                ty = (1 - al) * (sn * px + c * py + oy) + al * qy
+                d = (psi_raw - self._psi + math.pi) % (2 * math.pi) - math.pi
+                self._psi += al * d
+                c, sn = math.cos(self._psi), math.sin(self._psi)
+                self.offset = np.array([tx - (c * px - sn * py), ty - (sn * px + c * py)])
+        c, sn = math.cos(self._psi), math.sin(self._psi)
+        ox, oy = self.offset
+        self._ankles_now = [(c * x - sn * y + ox, sn * x + c * y + oy) for x, y in ankles]
+        self._heads_now = [heads[0] + self._psi, heads[1] + self._psi]
+        self._ankle_z = (lz, rz)
         out = targets.copy()
-        out[:, 0:2] += self.offset
+        out[:, 0] = c * targets[:, 0] - sn * targets[:, 1] + ox
+        out[:, 1] = sn * targets[:, 0] + c * targets[:, 1] + oy
         return out
 
     def _set_points(self, first: bool) -> None:
-        """Parameters of the CoM, DCM and ZMP rows (see the module docstring)."""
-        cfg = self.config
-        pred = 2 * self._c1 - self._c2
+        """Parameters of the CoM, DCM and ZMP rows and the CoM prediction (module docstring)."""
+        (c1x, c1y), (c2x, c2y) = self._c1, self._c2
+        px, py = 2 * c1x - c2x, 2 * c1y - c2y
         kd, kz = self._dcm_k, self._zmp_k
-        pts = np.array([[1.0, 0.0, 0.0],
-                        [1.0 + kd, *(-kd * self._c1)],
-                        [1.0 + kz, *(-kz * pred)]])  # rows: com, dcm, zmp; columns α, β
-        w = np.sqrt([cfg.balance_weight, 0.0 if first else cfg.dcm_weight, 0.0 if first else cfg.zmp_limit_weight])
-        self._pbuf[self._p_points] = pts.reshape(-1)  # (3, 3) column-major = rows of pts
-        self._pbuf[self._p_point_w] = w
+        pb = self._pbuf
+        # (3, 3) column-major: columns com, dcm, zmp of rows α, β_x, β_y
+        pb[self._p_points] = (1.0, 0.0, 0.0, 1.0 + kd, -kd * c1x, -kd * c1y, 1.0 + kz, -kz * px, -kz * py)
+        pb[self._p_point_w] = self._point_w0 if first else self._point_w
+        pb[self._p_cpred] = (px, py)
 
     def _plan_balance(self, human_contact) -> tuple[bool, bool]:
         """Update :attr:`planted` from the human's contacts and the last frame's CoM, and set
         the anchors, the balance region and the CoM prediction in the parameter buffer.
         Returns the contacts (left, right) the solver holds on the ground this frame."""
         cfg = self.config
-        contact = np.asarray(human_contact, dtype=bool)
-        # the human's feet: a lift counts only when the foot really leaves (rises above the other
-        # by lift_height, or moves step_distance from where it was put down); a near-standing
-        # person's contact flicker then never makes the robot stand on one leg
-        dz = self._ankle_z - self._ankle_z[::-1]
-        moved = np.linalg.norm(self._ankles_now - self._ankle_ref, axis=1)
-        lifted = ~contact & ((dz > cfg.lift_height) | (self.planted & (moved > cfg.step_distance)))
-        down = contact | (dz < 0.5 * cfg.lift_height)
+        contact = (bool(human_contact[0]), bool(human_contact[1]))
+        # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
+        # the other, or its target moves step_distance or turns step_turn from where the robot put
+        # it down) and the robot's foot has stood min_stance frames; a near-standing person's contact
+        # flicker then never makes the robot stand on one leg. A step stands on the other foot: with
+        # no foot down (a jump, a glide) both stay. A lifted foot comes down when the person's does,
+        # or after max_swing seconds.
+        self._since += 1
+        want = [True, True]
         for s in range(2):
-            if down[s] and not lifted[s] and not self.planted[s]:  # touch down: flat, where the foot is now
+            planted, other = bool(self.planted[s]), 1 - s
+            if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
                 self._touch_down(s)
-        want = ~lifted
+                continue
+            if contact[s] or not contact[other] or (planted and self._since[s] < self._min_stance_frames):
+                continue
+            dz = self._ankle_z[s] - self._ankle_z[other]
+            (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
+            turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
+            want[s] = not (dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance
+                           or turn > cfg.step_turn)
         c1 = self._c1
         shift_point = None
         self.shifting = False
@@ -439,9 +525,10 @@ class StreamingRetargeter:
             if want[s] or not self.planted[s] or not self.planted[other]:
                 continue
             hull, A, b = self._stance[other]
-            if margin(c1, A, b) >= -cfg.release_tolerance:
+            if float(np.min(b - A @ c1)) >= -cfg.release_tolerance:
                 self.planted[s] = False  # the weight is on the other foot: lift
                 self._prints[s] = None
+                self._since[s] = 0
                 self._region_key = None
             else:  # shift the weight first: the CoM's region is the stance foot and a point on the way
                 self.shifting = True
@@ -461,7 +548,6 @@ class StreamingRetargeter:
                 self._set_region(double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset))
             else:
                 self._set_region(np.concatenate([self._stance[f][0] for f in range(2) if self.planted[f]]))
-        self._pbuf[self._p_cpred] = 2 * self._c1 - self._c2
         return key
 
     def _touch_down(self, s: int) -> None:
@@ -473,6 +559,8 @@ class StreamingRetargeter:
         self._stance[s] = support_polygon([shrink_footprint(fp, self.config.balance_margin)])
         self._anchor[:, 4 * s:4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
+        self._head_ref[s] = self._heads_now[s]
+        self._since[s] = 0
         self._region_key = None
 
     def _set_region(self, points: np.ndarray) -> None:
