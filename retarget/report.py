@@ -13,8 +13,9 @@ Definitions (all at robot scale, i.e. against the scaled targets of :mod:`retarg
 - jerk: mean absolute third difference of position, |Δ³p|·fps³ (m/s³), over every keypoint
   coordinate. The robot's is taken on its forward-kinematics keypoints, the source's on the
   scaled targets, so both are the same quantity at the same scale and ``jerk_ratio`` =
-  robot / source (≤ 1 means the robot moves no less smoothly than the person). The mean
-  absolute joint jerk |Δ³q|·fps³ (rad/s³) is reported too;
+  robot / source (≤ 1 means the robot moves no less smoothly than the person). For a
+  motionless source (jerk 0) the ratio is undefined: ``None`` (JSON null, 'n/a' in the
+  markdown), never NaN. The mean absolute joint jerk |Δ³q|·fps³ (rad/s³) is reported too;
 - self-collisions: (frame, capsule pair) with the capsules overlapping (distance of their
   axes below the sum of radii, no margin).
 """
@@ -52,7 +53,7 @@ class RetargetReport:
     velocity_violations: int
     jerk_robot: float
     jerk_source: float
-    jerk_ratio: float
+    jerk_ratio: float | None  # None when the source does not move (0/0)
     joint_jerk_mean: float
     self_collisions: int
     solver: dict
@@ -76,7 +77,7 @@ class RetargetReport:
             ("ground penetration", f"{self.penetration_mm:.2f} mm"),
             ("joint-limit violations", str(self.limit_violations)),
             ("velocity-limit violations", str(self.velocity_violations)),
-            ("keypoint jerk robot / source", f"{self.jerk_robot:.2f} / {self.jerk_source:.2f} m/s³ (ratio {self.jerk_ratio:.2f})"),
+            ("keypoint jerk robot / source", f"{self.jerk_robot:.2f} / {self.jerk_source:.2f} m/s³ (ratio {_ratio_text(self.jerk_ratio)})"),
             ("mean abs joint jerk", f"{self.joint_jerk_mean:.1f} rad/s³"),
             ("self-collisions", str(self.self_collisions)),
         ]
@@ -93,6 +94,15 @@ class RetargetReport:
         _atomic_text(paths["json"], json.dumps(self.to_dict(), indent=2, default=_jsonable))
         _atomic_text(paths["md"], self.to_markdown())
         return paths
+
+
+def _ratio_text(r: float | None) -> str:
+    return "n/a" if r is None else f"{r:.2f}"
+
+
+def jerk_ratio(robot_jerk: float, source_jerk: float) -> float | None:
+    """robot / source jerk, or None when the source's is 0 (a motionless clip: 0/0 is undefined)."""
+    return float(robot_jerk / source_jerk) if source_jerk > 0 else None
 
 
 def _jsonable(o):
@@ -164,7 +174,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         contact_frames=contact_frames, skate_share=float(np.mean(slides > SKATE_MM_PER_FRAME)) if slides.size else 0.0,
         worst_slide_mm=float(slides.max()) if slides.size else 0.0, penetration_mm=penetration,
         limit_violations=limit_v, velocity_violations=vel_v, jerk_robot=jr, jerk_source=js,
-        jerk_ratio=float(jr / js) if js > 0 else float("nan"), joint_jerk_mean=_jerk(q, fps),
+        jerk_ratio=jerk_ratio(jr, js), joint_jerk_mean=_jerk(q, fps),
         self_collisions=coll, solver={k: v for k, v in meta.items() if k not in ("source",)},
     )
 

@@ -149,7 +149,7 @@ def _retarget_report(robot, traj, motion, res: ClipResult, out: Path) -> None:
     report.save(out, "retarget")
     res.keypoint_error_mm = round(report.keypoint_error_mean_mm, 1)
     res.skate_share = round(report.skate_share, 4)
-    res.jerk_ratio = round(report.jerk_ratio, 3)
+    res.jerk_ratio = None if report.jerk_ratio is None else round(report.jerk_ratio, 3)
     res.limit_violations = report.limit_violations + report.velocity_violations
     res.files["trajectory"] = str(out / "trajectory.npz")
     if not report.passed:

@@ -1,0 +1,41 @@
+"""The retarget report's figures on hand-made trajectories (no solver): jerk ratio edge cases."""
+
+import json
+
+import numpy as np
+
+from dualflow.motion import REST_POSE, Motion
+from retarget.report import evaluate, jerk_ratio
+from retarget.streaming import trajectory_from_x
+from retarget.targets import make_targets
+from retarget_toy import toy_robot
+
+
+def _standing(rb, T=12):
+    return trajectory_from_x(rb, np.tile(rb.x_stand, (T, 1)), 30.0, {"mode": "test"})
+
+
+def test_jerk_ratio_of_a_motionless_source_is_undefined_not_nan(tmp_path):
+    rb = toy_robot()
+    still = Motion(np.repeat(REST_POSE[None], 12, axis=0), fps=30.0, name="still")
+    rep = evaluate(rb, _standing(rb), make_targets(rb, still))
+    assert rep.jerk_source == 0.0 and rep.jerk_robot == 0.0
+    assert rep.jerk_ratio is None
+    assert rep.to_dict()["jerk_ratio"] is None
+    assert "ratio n/a" in rep.to_markdown() and "nan" not in rep.to_markdown().lower()
+    paths = rep.save(tmp_path, "still")
+    text = paths["json"].read_text()
+    data = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))  # no NaN/Infinity
+    assert data["jerk_ratio"] is None
+
+
+def test_jerk_ratio_of_a_moving_source_is_robot_over_source():
+    rb = toy_robot()
+    t = np.arange(12) / 30.0
+    pos = np.repeat(REST_POSE[None], 12, axis=0).copy()
+    pos[:, 20:, 2] += 0.2 * np.sin(2 * np.pi * 1.5 * t)[:, None] ** 3  # wrists move with non-zero jerk
+    rep = evaluate(rb, _standing(rb), make_targets(rb, Motion(pos, fps=30.0, name="wave")))
+    assert rep.jerk_source > 0 and rep.jerk_robot == 0.0
+    assert rep.jerk_ratio == 0.0
+    assert "ratio 0.00" in rep.to_markdown()
+    assert jerk_ratio(3.0, 2.0) == 1.5 and jerk_ratio(1.0, 0.0) is None
