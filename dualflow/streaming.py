@@ -270,8 +270,18 @@ class ReactiveStreamer:
 
     # -- input ---------------------------------------------------------------------------
 
-    def push(self, frames) -> torch.Tensor:
-        """Append actor frames (262,) or (n, 262) and return the newly emitted reactor frames (m, 262)."""
+    @property
+    def pending(self) -> int:
+        """Reactor frames whose look-ahead has arrived but that are not generated yet."""
+        return max(0, self.n_actor - self.look_ahead - self._emitted.shape[0])
+
+    def push(self, frames, max_windows: int | None = None) -> torch.Tensor:
+        """Append actor frames (262,) or (n, 262) and return the newly emitted reactor frames (m, 262).
+
+        ``max_windows``: generate at most this many windows now (None: every window that is
+        due). A real-time caller passes 1 and pushes again (possibly zero frames, shape
+        (0, 262)) while ``pending >= hop``, so that it can look at newer input between windows.
+        """
         x = torch.as_tensor(np.asarray(frames) if not torch.is_tensor(frames) else frames)
         if x.ndim == 1:
             x = x[None]
@@ -282,11 +292,12 @@ class ReactiveStreamer:
         if not torch.isfinite(x).all():
             raise DualFlowError("actor frames contain NaN or inf; drop or repair those frames before pushing")
         self._actor = torch.cat([self._actor, x.to(self.device, self.dtype)], 0)
-        return self._drain(final=False)
+        return self._drain(final=False, max_windows=max_windows)
 
-    def flush(self) -> torch.Tensor:
-        """End of stream: emit the remaining frames (their look-ahead is cut at the last actor frame)."""
-        return self._drain(final=True)
+    def flush(self, max_windows: int | None = None) -> torch.Tensor:
+        """End of stream: emit the remaining frames (their look-ahead is cut at the last actor frame);
+        ``max_windows`` as in ``push`` (call again until it returns no frames)."""
+        return self._drain(final=True, max_windows=max_windows)
 
     # -- generation ----------------------------------------------------------------------
 
@@ -296,9 +307,9 @@ class ReactiveStreamer:
     def _norm(self, raw: torch.Tensor) -> torch.Tensor:
         return (raw - self._mean) / self._std
 
-    def _drain(self, final: bool) -> torch.Tensor:
+    def _drain(self, final: bool, max_windows: int | None = None) -> torch.Tensor:
         out = []
-        while True:
+        while max_windows is None or len(out) < max_windows:
             n_done = self._emitted.shape[0]
             limit = self.n_actor if final else self.n_actor - self.look_ahead  # frames [0, limit) emittable
             pending = limit - n_done

@@ -31,6 +31,7 @@ from ros_free_bridge.telemetry import TelemetryWriter
 
 TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
 PARTNERS = ("dualflow", "imitate")
+GENERATORS = ("process", "thread")
 MOTION_FPS = 30.0
 
 
@@ -42,11 +43,17 @@ class SessionOptions:
     seed: int = 0
     partner: str = "dualflow"
     model: str | None = None  #: checkpoint directory (None: the bundled one)
-    # Streaming generation on a 2-core CPU: 5 Euler steps over 30-frame windows every 5 frames
-    # keeps the bundled small model faster than real time (bench/bridge_loop.py).
+    # Streaming generation on a 2-core CPU: 5 Euler steps over 60-frame windows (the training
+    # clip length) every 5 frames. A window's compute hardly depends on how many new frames it
+    # holds, so when the generator falls behind it catches up with wider steps (up to
+    # (window - L) / 2 = 25 new frames per window); see stages.PartnerCore.
     steps: int = 5  #: ODE steps per streamed window
     hop: int = 5  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
-    window: int = 30  #: frames per generation window (context + new frames + look-ahead)
+    window: int = 60  #: frames per generation window (context + new frames + look-ahead)
+    #: "process": DualFlow + retarget in a child process (default: its Python never competes
+    #: with the control loop for the GIL); "thread": in a thread of this process
+    generator: str = "process"
+    max_lag: int | None = None  #: frames of generator backlog before dropping to the newest actor frames (None: 2 x hop)
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -70,6 +77,9 @@ class SessionResult:
     partner: object = None  #: Motion of the partner poses sent to the retargeter
     robot_motion: object = None  #: RobotTrajectory measured on the virtual robot (sim transports)
     transport_info: dict = field(default_factory=dict)
+    #: generator: where it ran; frames_dropped: partner frames skipped to keep up (held);
+    #: warmup_window_ms: one generation window's compute measured at start (process only)
+    pipeline_info: dict = field(default_factory=dict)
 
 
 def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None):
@@ -172,31 +182,58 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
 
 
 def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionResult:
-    """Build everything, run the control loop until the motion ends or a stop, save outputs."""
-    from dualflow.motion import Motion
-    from retarget.robot import load_robot
-    from ros_free_bridge.stages import PartnerPipeline, ReactorStage, RetargetStage
+    """Build everything, run the control loop until the motion ends or a stop, save outputs.
 
+    The generator starts first (a process that loads the model and answers ready, or a core
+    in this process), so a bad checkpoint or condition fails before the robot moves."""
     if opts.partner not in PARTNERS:
         raise BridgeError(f"partner {opts.partner!r}: choose one of {', '.join(PARTNERS)}")
+    if opts.generator not in GENERATORS:
+        raise BridgeError(f"generator {opts.generator!r}: choose one of {', '.join(GENERATORS)}")
     files = resolve_robot(opts.robot)
     hardware = files.hardware_config()
     limits = bridge_limits(hardware)
     names = limits.names
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
+    with ExitStack() as stack:
+        core, rest = _partner_core(opts, files, names, limits, stack)
+        return _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready)
+
+
+def _partner_core(opts: SessionOptions, files: RobotFiles, names, limits, stack: ExitStack):
+    """(core, rest pose): a PartnerCore here, or the generator process (started, model loaded)."""
+    from retarget.robot import load_robot
+    from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
+
     robot = load_robot(files.mjcf, files.profile)
-    retarget = RetargetStage(robot, MOTION_FPS, names)
     stand = np.asarray(robot.x_stand)[robot.n_root:]
     rest = limits.clip(stand[[robot.joint_names.index(n) for n in names]])
+    if opts.partner == "dualflow" and opts.generator == "process":
+        from ros_free_bridge.generator_process import GeneratorConfig, GeneratorProcess
+
+        gen = GeneratorProcess(GeneratorConfig(
+            robot=opts.robot, joint_names=list(names), fps=MOTION_FPS, checkpoint=opts.model, window=opts.window,
+            steps=opts.steps, hop=opts.hop, text=opts.text, music=opts.music, max_lag=opts.max_lag))
+        stack.callback(gen.close)
+        return gen.start(), rest
+    retarget = RetargetStage(robot, MOTION_FPS, names)
     reactor = None
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
 
         reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop), opts.text, opts.music)
+    return PartnerCore(reactor, retarget, opts.max_lag), rest
+
+
+def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready) -> SessionResult:
+    from dualflow.motion import Motion
+    from ros_free_bridge.stages import PartnerPipeline
+
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)
+    config.playback_margin = playback_margin(config.playback_margin, core)
     # cubic (Catmull-Rom) interpolation: linear would jump in velocity at every 30 fps frame,
     # which the safety filter's acceleration limit would then clip on every joint
     buffer = TargetBuffer(MOTION_FPS, interpolation="cubic")
@@ -208,8 +245,8 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
         source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop)
         stack.callback(source.close)
-        telemetry.event("session", actor=described, delay_frames=None if reactor is None else reactor.delay_frames)
-        pipeline = PartnerPipeline(source, reactor, retarget, buffer, loop.ready, record=True)
+        telemetry.event("session", actor=described, delay_frames=core.delay_frames, generator=_generator_info(opts, core))
+        pipeline = PartnerPipeline(source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core)
         pipeline.start()
         stack.callback(pipeline.stop)
         if on_ready is not None:
@@ -217,10 +254,12 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         try:
             summary = loop.run()
         finally:
-            # never leave the generator thread inside torch while the process exits
+            # never leave the pipeline thread (or the generator in it) running while the process exits
             pipeline.stop()
             pipeline.join(30.0)
     result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
+    result.pipeline_info = {**_generator_info(opts, core), "frames_dropped": pipeline.frames_dropped,
+                            "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events)}
     from dualflow.motion.io import save_motion
 
     if pipeline.actor_positions:
@@ -241,3 +280,27 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         result.transport_info["bus_violations"] = emu.stats["violations"]
         result.transport_info["bus_goal_writes"] = emu.stats["goal_writes"]
     return result
+
+
+def playback_margin(default: float, core) -> float:
+    """Seconds the loop waits after the first partner frame before playing it (LoopConfig).
+
+    The loop plays frame k at t0 + k / fps, with t0 fixed by the first frame, so a later
+    frame is late (the loop holds, then jumps) whenever its window took longer than the first
+    one by more than the margin. The first window is the shortest (no context yet), so the
+    margin adds the compute of a full-width window, measured by the generator process at
+    start: w = warm-up window time, margin = default + w. Latency grows by w, once, and
+    stays flat instead of stuttering.
+    """
+    w = getattr(core, "ready_info", {}).get("warmup_window_s")
+    return default + w if w is not None and np.isfinite(w) else default
+
+
+def _generator_info(opts: SessionOptions, core) -> dict:
+    if opts.partner != "dualflow":
+        return {"generator": "none (imitation)"}
+    info = {"generator": opts.generator, "steps": opts.steps, "hop": opts.hop, "window": opts.window}
+    ready = getattr(core, "ready_info", {})
+    if "warmup_window_s" in ready:
+        info["warmup_window_ms"] = round(1e3 * ready["warmup_window_s"], 1)
+    return info

@@ -6,10 +6,18 @@
   ``dualflow`` that imports torch (DESIGN.md).
 - :class:`RetargetStage`: :class:`retarget.streaming.StreamingRetargeter`, one frame at a
   time, robot joint angles in the transport's joint order out.
-- :class:`PartnerPipeline`: a thread that polls the actor source, runs both stages and
-  pushes :class:`~ros_free_bridge.targets.TargetFrame` s to the control loop's buffer.
-  It never touches the transport, so a slow or failed stage can only starve the loop
-  (which then holds and stops, see :mod:`ros_free_bridge.loop`), never block it.
+- :class:`PartnerCore`: both stages behind one call, ``feed(new actor frames) -> targets``,
+  with the real-time policy: when the partner frames already due pile up beyond
+  ``max_lag`` frames (the generator fell behind the actor's clock), the stale work is
+  dropped, the stream restarts at the newest actor frames and the skipped frames hold the
+  last pose; a ``generator_behind`` event says so. Latency stays bounded instead of growing.
+- :class:`PartnerPipeline`: a thread that polls the actor source, runs a
+  :class:`PartnerCore` and pushes :class:`~ros_free_bridge.targets.TargetFrame` s to the
+  control loop's buffer. It never touches the transport, so a slow or failed stage can only
+  starve the loop (which then holds and stops, see :mod:`ros_free_bridge.loop`), never
+  block it. :mod:`ros_free_bridge.generator_process` runs the same core in its own process
+  (the default for generated partners: torch's Python then never competes with the
+  control loop for the GIL).
 
 Delay: an actor frame's 262-d feature row needs the next frame (its velocity), and the
 reactor frame i needs actor rows up to i + L; so reactor frame i is produced when actor
@@ -21,6 +29,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +48,13 @@ class ReactorFrame:
     source_arrival: float  #: monotonic arrival of the actor frame whose push produced it
     actor_frame: int
     latency: float  #: seconds the generator spent on the push that produced it
+
+
+@dataclass(frozen=True)
+class _Frame:
+    index: int
+    positions: np.ndarray
+    arrival: float
 
 
 class ReactorStage:
@@ -62,12 +78,15 @@ class ReactorStage:
         self.stats = ckpt.stats
         self.model = ckpt.build_model("cpu")
         self.fps = float(fps)
-        conditions = self._conditions(ckpt, text, music, music_frames) if (text or music is not None) else None
-        self.streamer = ReactiveStreamer(self.model, stream_config or StreamConfig(), conditions)
+        self._cond = self._conditions(ckpt, text, music, music_frames) if (text or music is not None) else None
+        self._stream_config = stream_config or StreamConfig()
+        self._streamer_type = ReactiveStreamer
+        self.streamer = ReactiveStreamer(self.model, self._stream_config, self._cond)
         self.look_ahead = self.streamer.look_ahead
         self.delay_frames = self.streamer.delay_frames + 1  # + 1: a feature row needs the next frame
         self._canonical = None
         self._pending: list[np.ndarray] = []  # actor frames not yet encoded, plus the last encoded one
+        self._last_in = (0.0, -1)  # arrival and index of the newest actor frame pushed
         self._n_out = 0
         self._torch = torch
 
@@ -99,36 +118,81 @@ class ReactorStage:
         the 262-d rotation part costs mostly per call, not per frame); the streamer would not
         generate before a hop's worth of rows anyway, so chunking adds no delay.
         """
-        from dualflow.motion import Motion
-        from dualflow.motion.features import canonical_frame
+        return self.push_many([_Frame(actor_index, actor_positions, arrival)])
 
-        pos = np.asarray(actor_positions, dtype=np.float64)
-        if self._canonical is None:
-            self._canonical = canonical_frame(Motion(pos[None], self.fps))
-        self._pending.append(pos)
-        if len(self._pending) - 1 < self.streamer.config.hop:
+    def push_many(self, frames, max_windows: int | None = None) -> list[ReactorFrame]:
+        """Add several actor frames at once (objects with ``positions`` (22, 3) m, ``arrival``,
+        ``index``; may be empty); one feature encoding, and the streamer generates the backlog
+        in windows of up to ``max_new`` frames (a window costs about the same for 1 or
+        ``max_new`` new frames). ``max_windows``: generate at most this many windows now; call
+        again (with no frames) while ``backlog``."""
+        for f in frames:
+            pos = np.asarray(f.positions, dtype=np.float64)
+            if self._canonical is None:
+                from dualflow.motion import Motion
+                from dualflow.motion.features import canonical_frame
+
+                self._canonical = canonical_frame(Motion(pos[None], self.fps))
+            self._pending.append(pos)
+            self._last_in = (f.arrival, f.index)
+        hop = self.streamer.config.hop
+        if len(self._pending) - 1 >= hop:
+            rows = self._encode_pending()
+        elif self.streamer.pending >= hop:
+            rows = np.zeros((0, self.streamer.dim), np.float32)
+        else:
             return []
-        return self._encode_and_push(arrival, actor_index)
-
-    def flush(self, arrival: float, actor_index: int) -> list[ReactorFrame]:
-        """End of the actor stream: generate the remaining partner frames."""
-        frames = self._encode_and_push(arrival, actor_index) if len(self._pending) > 1 else []
         t0 = time.perf_counter()
         with self._torch.no_grad():
-            out = self.streamer.flush()
-        return frames + self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+            out = self.streamer.push(rows, max_windows)
+        return self._decode(out, *self._last_in, time.perf_counter() - t0)
 
-    def _encode_and_push(self, arrival: float, actor_index: int) -> list[ReactorFrame]:
-        """Rows for every pending frame but the last (a row needs the next frame's position)."""
+    @property
+    def backlog(self) -> bool:
+        """True when a window could be generated now (at least ``hop`` frames are due)."""
+        return self.streamer.pending >= self.streamer.config.hop
+
+    @property
+    def next_index(self) -> int:
+        """Index of the next partner frame this stage will emit (= its actor frame's index)."""
+        return self._n_out
+
+    def restart(self, first_index: int) -> None:
+        """Drop the stream and start a new one whose frame 0 is actor frame ``first_index``.
+
+        For catching up with the actor's clock: the frames before ``first_index`` are never
+        generated. The canonical frame and the conditions stay (music is per actor frame, so
+        the new stream's music starts at ``first_index``); the new stream has no partner
+        context, like the start of a run.
+        """
+        cond = self._cond
+        if cond is not None and cond.music is not None:
+            from dataclasses import replace
+
+            cond = replace(cond, music=cond.music[:, first_index:])
+        self.streamer = self._streamer_type(self.model, self._stream_config, cond)
+        self._pending = []
+        self._n_out = int(first_index)
+
+    def flush(self, arrival: float, actor_index: int, max_windows: int | None = None) -> list[ReactorFrame]:
+        """End of the actor stream: generate the remaining partner frames (``max_windows`` at a
+        time: call again until it returns nothing)."""
+        if len(self._pending) > 1:
+            with self._torch.no_grad():
+                self.streamer.push(self._encode_pending(), max_windows=0)
+        t0 = time.perf_counter()
+        with self._torch.no_grad():
+            out = self.streamer.flush(max_windows)
+        return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+
+    def _encode_pending(self) -> np.ndarray:
+        """Normalised rows for every pending frame but the last (a row needs the next frame's position)."""
         from dualflow.motion import Motion
         from dualflow.motion.features import encode_person
 
         rows = encode_person(Motion(np.stack(self._pending), self.fps), self._canonical)
         self._pending = self._pending[-1:]
-        t0 = time.perf_counter()
-        with self._torch.no_grad():
-            out = self.streamer.push(self.stats.normalize(rows))
-        return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
+        return self.stats.normalize(rows)
 
     def _decode(self, rows, arrival: float, actor_index: int, latency: float) -> list[ReactorFrame]:
         from dualflow.motion.features import decode_person
@@ -167,36 +231,204 @@ class RetargetStage:
         q, _, _ = self.streamer.split(self.streamer.step_human(positions, side))
         return q[self._index]
 
+@dataclass(frozen=True)
+class PartnerTarget:
+    """One robot target from :class:`PartnerCore`: q (n,) rad, the partner pose (22, 3) m it
+    came from, and its timing. ``held``: a stand-in that repeats the previous pose for a frame
+    the generator skipped to catch up (``gen_latency`` is NaN then)."""
+
+    index: int
+    q: np.ndarray
+    positions: np.ndarray
+    arrival: float
+    actor_frame: int
+    gen_latency: float
+    rt_latency: float
+    held: bool = False
+
+
+class PartnerCore:
+    """Actor frames in, robot targets out, keeping up with the actor's clock.
+
+    ``feed(frames)`` takes every actor frame that arrived since the last call (objects with
+    ``index``, ``positions`` (22, 3) m, ``arrival``) and returns the targets they completed
+    and any events. ``reactor`` None: the robot retargets the actor itself (imitation).
+
+    Timing stamp: partner frame i depends on actor frames up to c(i) = i + L + 1 (the
+    look-ahead, and the next frame for the last feature row), so its target carries
+    ``arrival`` = the arrival of actor frame c(i) and ``actor_frame`` = c(i). The control loop's
+    end-to-end latency (bus write minus that arrival) is then the time the bridge adds on top
+    of the look-ahead: batching (up to hop - 1 frames), compute, queueing and the loop's
+    playback margin. Actor frame i to partner frame i on the bus takes (L + 1) / fps more.
+
+    Real-time policy. When actor frame N has arrived, the partner frames due are those up to
+    N - L - 1 and
+
+        overdue = N - L - next_index   (frames whose inputs are all here but not generated yet)
+
+    is at most ``hop`` while the generator keeps up. A backlog is worked off in wider
+    windows (``push_many``: up to the streamer's ``max_new`` frames per window, for about
+    the cost of one: a window's compute hardly depends on its length on a CPU). If
+    ``overdue`` still exceeds ``max_lag`` frames, queueing the stale frames would only make the
+    latency grow, so the stream restarts at a = N - L - hop (the newest actor frames, so one hop
+    is generated at once), frames [next_index, a) repeat the last pose (the loop holds within
+    its limits), and a ``generator_behind`` event reports the frames dropped. The latency is
+    then bounded by the model's delay + ``max_lag`` frames + one window's compute.
+    """
+
+    def __init__(self, reactor: ReactorStage | None, retarget: RetargetStage, max_lag: int | None = None):
+        self.reactor = reactor
+        self.retarget = retarget
+        if reactor is not None:
+            hop = reactor.streamer.config.hop
+            self.max_lag = max(int(max_lag) if max_lag is not None else self.default_max_lag(reactor), hop + 1)
+            self._recent: deque = deque(maxlen=reactor.look_ahead + hop + 2)
+        self.frames_dropped = 0
+        self._arrivals: dict[int, float] = {}  # actor index -> arrival, for frames not yet used as c(i)
+        self._last_q: np.ndarray | None = None
+        self._last_pos: np.ndarray | None = None
+        self._last: tuple[float, int] = (0.0, -1)
+
+    @staticmethod
+    def default_max_lag(reactor: ReactorStage) -> int:
+        """hop + the streamer's max_new: one wide window can still clear such a backlog."""
+        return reactor.streamer.config.hop + reactor.streamer.max_new
+
+    @property
+    def delay_frames(self) -> int | None:
+        return None if self.reactor is None else self.reactor.delay_frames
+
+    @property
+    def backlog(self) -> bool:
+        """True when ``feed([])`` would generate (frames are due): call it again before waiting."""
+        return self.reactor is not None and self.reactor.backlog
+
+    def feed(self, frames) -> tuple[list[PartnerTarget], list[dict]]:
+        """New actor frames (may be empty) → (targets, events). Generates at most one window per
+        call, so that the lag is checked against the newest input between windows."""
+        if frames:
+            self._last = (frames[-1].arrival, frames[-1].index)
+        if self.reactor is None:
+            return [self._target(f.index, f.positions, None, f.arrival, f.index, 0.0) for f in frames], []
+        self._recent.extend(frames)
+        for f in frames:
+            self._arrivals[f.index] = f.arrival
+        out, events = self._catch_up()
+        if events:
+            frames = [f for f in self._recent if f.index >= self.reactor.next_index]
+        out += self._targets(self.reactor.push_many(frames, max_windows=1))
+        return out, events
+
+    def _catch_up(self) -> tuple[list[PartnerTarget], list[dict]]:
+        """The drop-to-newest policy (class docstring): held targets and an event, or nothing."""
+        r = self.reactor
+        arrival, newest = self._last
+        overdue = newest - r.look_ahead - r.next_index
+        restart_at = newest - r.look_ahead - r.streamer.config.hop
+        if not (overdue > self.max_lag and restart_at > r.next_index and self._recent
+                and restart_at >= self._recent[0].index):
+            return [], []
+        skipped = restart_at - r.next_index
+        held = []
+        if self._last_q is not None:
+            held = [PartnerTarget(k, self._last_q, self._last_pos, arrival, newest, float("nan"), 0.0, True)
+                    for k in range(r.next_index, restart_at)]
+        self.frames_dropped += skipped
+        event = {"kind": "generator_behind", "overdue_frames": int(overdue), "dropped_frames": int(skipped),
+                 "restart_frame": int(restart_at), "max_lag": self.max_lag}
+        r.restart(restart_at)
+        return held, [event]
+
+    def finish(self) -> list[PartnerTarget]:
+        """End of the actor stream: the remaining partner frames (none for imitation)."""
+        return [t for targets, _ in self.finish_stream() for t in targets]
+
+    def finish_stream(self):
+        """End of the actor stream: yield (targets, events) batches, one window at a time (so
+        the loop plays them while the rest is generated), the catch-up policy first."""
+        if self.reactor is None or self._last[1] < 0:
+            return
+        held, events = self._catch_up()
+        if events:  # the restarted stream needs its actor frames again
+            self.reactor.push_many([f for f in self._recent if f.index >= self.reactor.next_index], max_windows=0)
+        if held or events:
+            yield held, events
+        while True:
+            batch = self._targets(self.reactor.flush(*self._last, max_windows=1))
+            if not batch:
+                return
+            yield batch, []
+
+    def _targets(self, reactor_frames) -> list[PartnerTarget]:
+        out = []
+        for p in reactor_frames:
+            c = p.index + self.reactor.look_ahead + 1  # the last actor frame partner frame i depends on
+            if c in self._arrivals:
+                arrival, actor = self._arrivals[c], c
+            else:  # the stream's end: the look-ahead was cut at the last actor frame
+                arrival, actor = p.source_arrival, p.actor_frame
+            out.append(self._target(p.index, p.positions, p.contacts, arrival, actor, p.latency))
+        if out:
+            done = out[-1].index + self.reactor.look_ahead + 1
+            for k in [k for k in self._arrivals if k < done]:
+                del self._arrivals[k]
+        return out
+
+    def idle(self, seconds: float) -> None:
+        """Nothing arrived: wait a little (the process variant waits on its pipe instead)."""
+        time.sleep(seconds)
+
+    def close(self) -> None:
+        """Nothing to release in-process (the process variant ends its worker)."""
+
+    def _target(self, index, positions, contacts, arrival, actor_frame, gen_latency) -> PartnerTarget:
+        t0 = time.perf_counter()
+        q = self.retarget.step(positions, contacts)
+        rt = time.perf_counter() - t0
+        self._last_q, self._last_pos = q, np.asarray(positions)
+        return PartnerTarget(index, q, np.asarray(positions), arrival, actor_frame, gen_latency, rt)
+
 
 class PartnerPipeline:
-    """Run source → reactor → retarget in a thread, feeding ``buffer``.
+    """Run source → :class:`PartnerCore` in a thread, feeding ``buffer``.
 
     ``start_event``: wait for it (the loop's ``ready``) before starting the actor clock;
     actor frames that arrive earlier (a live stream) are discarded. ``reactor`` None makes
-    the robot retarget the actor itself (imitation). ``record``: keep every actor frame and
-    every partner pose given to the retargeter (``actor_positions``, ``partner_positions``,
-    lists of (22, 3) arrays) for videos and reports.
+    the robot retarget the actor itself (imitation). ``core``: anything with the core's
+    ``feed`` / ``finish_stream`` / ``idle`` / ``close`` (e.g.
+    :class:`ros_free_bridge.generator_process.GeneratorProcess`) instead of a core built from
+    ``reactor`` and ``retarget``. ``record``: keep every actor frame and every partner pose
+    given to the retargeter (``actor_positions``, ``partner_positions``, lists of (22, 3)
+    arrays) for videos and reports. ``on_event(kind, **info)``: the core's events (e.g.
+    ``generator_behind``), for telemetry.
     """
 
-    def __init__(self, source, reactor: ReactorStage | None, retarget: RetargetStage, buffer: TargetBuffer,
-                 start_event: threading.Event | None = None, record: bool = False):
+    def __init__(self, source, reactor: ReactorStage | None, retarget: RetargetStage | None, buffer: TargetBuffer,
+                 start_event: threading.Event | None = None, record: bool = False, on_event=None, core=None):
         self.source = source
-        self.reactor = reactor
-        self.retarget = retarget
+        self.core = core if core is not None else PartnerCore(reactor, retarget)
         self.buffer = buffer
         self.start_event = start_event
+        self.on_event = on_event
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="partner-pipeline", daemon=True)
         self.frames_in = 0
         self.frames_out = 0
+        self.events: list[dict] = []
         self.record = record
         self.actor_positions: list[np.ndarray] = []
         self.partner_positions: list[np.ndarray] = []
 
+    @property
+    def frames_dropped(self) -> int:
+        """Partner frames skipped (held) to keep up with the actor's clock."""
+        return self.core.frames_dropped
+
     def start(self) -> None:
-        # Short GIL slices so that the control-loop thread wakes on time while torch,
-        # numpy and CasADi work here.
-        sys.setswitchinterval(0.0005)
+        if isinstance(self.core, PartnerCore) and self.core.reactor is not None:
+            # torch runs in this thread: short GIL slices so that the control-loop thread
+            # wakes on time while torch, numpy and CasADi work here
+            sys.setswitchinterval(0.0005)
         self._thread.start()
 
     def stop(self) -> None:
@@ -204,6 +436,10 @@ class PartnerPipeline:
 
     def join(self, timeout: float | None = None) -> None:
         self._thread.join(timeout)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
 
     def _run(self) -> None:
         try:
@@ -213,36 +449,35 @@ class PartnerPipeline:
                 if self.source.live:
                     self.source.poll()  # drop what a live stream sends before the robot is ready
             self.source.start()
-            last_arrival, last_index = time.monotonic(), -1
             while not self._stop.is_set():
                 frames = self.source.poll()
-                for f in frames:
-                    self.frames_in += 1
-                    if self.record:
-                        self.actor_positions.append(f.positions)
-                    last_arrival, last_index = f.arrival, f.index
-                    if self.reactor is None:
-                        self._emit(f.positions, None, f.arrival, f.index, 0.0)
-                    else:
-                        for r in self.reactor.push(f.positions, f.arrival, f.index):
-                            self._emit(r.positions, r.contacts, r.source_arrival, r.actor_frame, r.latency)
+                self.frames_in += len(frames)
+                if self.record:
+                    self.actor_positions += [f.positions for f in frames]
+                targets, events = self.core.feed(frames)
+                self._emit(targets, events)
                 if getattr(self.source, "finished", False):
-                    if self.reactor is not None:
-                        for r in self.reactor.flush(last_arrival, last_index):
-                            self._emit(r.positions, r.contacts, r.source_arrival, r.actor_frame, r.latency)
+                    for targets, events in self.core.finish_stream():
+                        self._emit(targets, events)
+                        if self._stop.is_set():
+                            break
                     break
-                if not frames:
-                    time.sleep(0.002)
+                if not frames and not getattr(self.core, "backlog", False):
+                    self.core.idle(0.002)
         except BaseException as exc:  # noqa: BLE001 - handed to the control loop, which stops safely
             self.buffer.close(exc)
             return
+        finally:
+            self.core.close()
         self.buffer.close()
 
-    def _emit(self, positions, contacts, arrival, actor_index, gen_latency) -> None:
-        if self.record:
-            self.partner_positions.append(np.asarray(positions))
-        t0 = time.perf_counter()
-        q = self.retarget.step(positions, contacts)
-        rt = time.perf_counter() - t0
-        self.buffer.push(TargetFrame(self.frames_out, q, arrival, actor_index, gen_latency, rt))
-        self.frames_out += 1
+    def _emit(self, targets: list[PartnerTarget], events: list[dict]) -> None:
+        for e in events:
+            self.events.append(e)
+            if self.on_event is not None:
+                self.on_event(**e)
+        for t in targets:
+            if self.record:
+                self.partner_positions.append(t.positions)
+            self.buffer.push(TargetFrame(t.index, t.q, t.arrival, t.actor_frame, t.gen_latency, t.rt_latency))
+            self.frames_out += 1

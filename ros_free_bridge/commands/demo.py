@@ -35,7 +35,9 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=5, help="ODE steps per generated window (default 5)")
     p.add_argument("--hop", type=int, default=5,
                    help="generate the partner every HOP frames (default 5; 1 = lowest delay, most compute)")
-    p.add_argument("--window", type=int, default=30, help="frames per generation window (default 30)")
+    p.add_argument("--window", type=int, default=60, help="frames per generation window (default 60, the training clip length)")
+    p.add_argument("--generator", choices=("process", "thread"), default="process",
+                   help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
     p.add_argument("--no-bus", action="store_true", help="drive the virtual robot only, without the emulated bus")
     p.add_argument("--no-video", action="store_true", help="skip the video")
     p.add_argument("-o", "--out", default="demo_out", help="output folder (default demo_out)")
@@ -83,7 +85,7 @@ def demo(args) -> int:
 
     print(f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
           f"{'' if args.no_bus else ' + emulated Dynamixel bus'}", file=sys.stderr)
-    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, model=args.model, steps=args.steps, hop=args.hop, window=args.window,
+    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator,
                           transport="sim" if args.no_bus else "sim+dynamixel", emulate=not args.no_bus, out=out,
                           text=args.text, music=music)
     result = run_session(opts, on_status=StatusLine())

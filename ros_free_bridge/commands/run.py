@@ -32,7 +32,9 @@ def register(sub) -> None:
     p.add_argument("--steps", type=int, default=5, help="ODE steps per generated window (default 5)")
     p.add_argument("--hop", type=int, default=5,
                    help="generate the partner every HOP frames (default 5; 1 = lowest delay, most compute)")
-    p.add_argument("--window", type=int, default=30, help="frames per generation window (default 30)")
+    p.add_argument("--window", type=int, default=60, help="frames per generation window (default 60, the training clip length)")
+    p.add_argument("--generator", choices=("process", "thread"), default="process",
+                   help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
     p.add_argument("--text", help="a text cue for the generated partner, e.g. 'the partner mirrors the leader'")
     p.add_argument("--music", help="an audio file (wav/ogg/mp3) aligned with the actor's clock (loops if shorter)")
     p.add_argument("--transport", choices=TRANSPORTS, default="sim", help="where commands go (default: sim)")
@@ -113,6 +115,11 @@ def print_summary(result, stream=None) -> None:
         "end-to-end latency " + (f"p50 {lat['p50'] * 1e3:.0f} ms, p99 {lat['p99'] * 1e3:.0f} ms" if lat else "n/a"),
         f"safety interventions on {s.interventions} ticks, faults {s.faults:#06x}",
     ]
+    g = getattr(result, "pipeline_info", {})
+    if g.get("generator") in ("process", "thread"):
+        warm = f"; a full window took {g['warmup_window_ms']:.0f} ms at start" if "warmup_window_ms" in g else ""
+        lines.append(f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}), "
+                     f"partner frames dropped to keep up: {g['frames_dropped']} in {g['catch_ups']} catch-ups")
     for k, v in result.transport_info.items():
         lines.append(f"{k}: {v}")
     lines.append(f"outputs in {result.out}")
@@ -124,7 +131,7 @@ def run(args) -> int:
 
     opts = SessionOptions(
         robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
-        model=args.model, steps=args.steps, hop=args.hop, window=args.window, transport=args.transport, port=args.port, emulate=args.emulate,
+        model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator, transport=args.transport, port=args.port, emulate=args.emulate,
         rate_hz=args.rate, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
     )
