@@ -23,6 +23,7 @@ import atexit
 import signal
 import threading
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 
@@ -30,6 +31,7 @@ import numpy as np
 
 from ros_free_bridge.clock import FixedRateClock
 from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
 from ros_free_bridge.targets import TargetBuffer
 from ros_free_bridge.telemetry import TelemetryWriter
@@ -82,6 +84,9 @@ class LoopConfig:
     voltage_max: float = 16.0
     degrade_factor: float = 0.5  #: velocity-limit scale while degraded
     handle_signals: bool = True  #: SIGINT / SIGTERM → e-stop (main thread only)
+    gc_in_slack: bool = True  #: freeze the heap, collect young objects only in a tick's slack (realtime.LoopGc)
+    switch_interval_s: float = 0.0005  #: GIL switch interval while running (the default 5 ms exceeds a 250 Hz period)
+    realtime_priority: int = 0  #: SCHED_FIFO priority of the loop thread (1-99; needs privileges); 0: normal
 
     def __post_init__(self) -> None:
         for name in ("stop_policy", "estop_policy"):
@@ -140,6 +145,8 @@ class ControlLoop:
         self._settle_ticks = 0
         self._last_used: int | None = None  # index of the last target frame played
         self._clock: FixedRateClock | None = None
+        self._realtime = ExitStack()  # GC, GIL and scheduling settings while ticking; closed by run()
+        self.gc: LoopGc | None = None
 
     @property
     def deadline_misses(self) -> int:
@@ -168,6 +175,7 @@ class ControlLoop:
             raise
         finally:
             self._active = False
+            self._realtime.close()
             try:
                 self.transport.close()
             finally:
@@ -177,6 +185,8 @@ class ControlLoop:
                 self.summary.late_ticks = 0 if self._clock is None else self._clock.late
                 self.summary.end_state = self.state.name
                 self.summary.faults = int(self._faults)
+                if self.gc is not None:
+                    self._event("gc", **self.gc.stats.__dict__)
                 if self.telemetry is not None:
                     self.telemetry.event("end", state=self.state.name, reason=self.summary.reason,
                                          summary={k: v for k, v in self.summary.__dict__.items() if k != "e2e_latency"})
@@ -199,6 +209,7 @@ class ControlLoop:
         self._event("torque_on")
         rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
         self._rest = rest
+        self._enter_realtime()
         self._clock = FixedRateClock(cfg.rate_hz)
         self._clock.start()
         self._t_start = time.monotonic()
@@ -321,12 +332,25 @@ class ControlLoop:
                 )
             if self.on_status is not None:
                 self.on_status(self, tick, faults)
+            if self.gc is not None:
+                self.gc.collect_in_slack(tick.due + self.dt - time.monotonic())
             if self.state == State.STOPPED:
                 self.transport.safe_stop(cfg.stop_policy)
                 self._event("stopped", policy=cfg.stop_policy, reason=self.summary.reason)
                 return
 
     # -- helpers --------------------------------------------------------------
+    def _enter_realtime(self) -> None:
+        """GC in the ticks' slack, a short GIL switch interval and (if configured and
+        permitted) SCHED_FIFO for this thread, until run() ends (ros_free_bridge.realtime)."""
+        cfg = self.config
+        if cfg.gc_in_slack:
+            self.gc = self._realtime.enter_context(LoopGc())
+        if cfg.switch_interval_s > 0:
+            self._realtime.enter_context(switch_interval(cfg.switch_interval_s))
+        note = self._realtime.enter_context(realtime_priority(cfg.realtime_priority))
+        self._event("realtime", scheduling=note, gc_in_slack=cfg.gc_in_slack, switch_interval_s=cfg.switch_interval_s)
+
     def _adopt_transport_limits(self) -> None:
         if not hasattr(self.transport, "position_limits"):
             return

@@ -109,6 +109,7 @@ class SafetyFilter:
         self.dt = float(dt)
         self._q: np.ndarray | None = None  # last command
         self._v = np.zeros(limits.n)  # last command's per-tick step (rad/tick)
+        self._per_tick_for: JointLimits | None = None  # limits the per-tick bounds below were made from
 
     @property
     def last_command(self) -> np.ndarray:
@@ -128,40 +129,54 @@ class SafetyFilter:
         self._v = np.zeros(self.limits.n)
         return self._q.copy()
 
-    def step(self, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Filter one tick's targets (n,) rad. Returns (command (n,), interventions (n,) uint8)."""
-        q_prev = self.last_command
-        lim = self.limits
-        flags = np.zeros(lim.n, dtype=np.uint8)
-        NONFINITE, ACCEL, VEL, POS = (np.uint8(f) for f in (Intervention.NONFINITE, Intervention.ACCELERATION,
-                                                            Intervention.VELOCITY, Intervention.POSITION))
-        target = np.asarray(target, dtype=np.float64)
-        if target.shape != (lim.n,) or not np.all(np.isfinite(target)):
-            # Hold: decelerate to a stop as fast as the acceleration limit allows.
-            flags[:] = NONFINITE
-            target = q_prev + self._brake_step()
+    def _per_tick(self, lim: JointLimits) -> None:
+        """Per-tick bounds of ``lim`` (recomputed when the limits object changes, e.g. degraded):
+        a = a_max·dt², a², 8a and v = v_max·dt, all (n,) rad per tick."""
         dt = self.dt
+        self._a_step = lim.max_acceleration * dt * dt
+        self._a_sq = self._a_step * self._a_step
+        self._a_8 = 8.0 * self._a_step
+        self._v_step = lim.max_velocity * dt
+        self._per_tick_for = lim
+
+    def step(self, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filter one tick's targets (n,) rad. Returns (command (n,), interventions (n,) uint8).
+
+        Written as bare ufuncs (no ``np.clip``/boolean-index wrappers, bounds cached per
+        limits): it runs every tick of a 250 Hz loop."""
+        q_prev = self._q
+        if q_prev is None:
+            raise BridgeError("safety filter: reset() with the present positions before stepping")
+        lim = self.limits
+        if lim is not self._per_tick_for:
+            self._per_tick(lim)
+        a_step = self._a_step
+        minimum, maximum = np.minimum, np.maximum
+        target = np.asarray(target, dtype=np.float64)
+        nonfinite = target.shape != (lim.n,) or not np.isfinite(target).all()
+        if nonfinite:
+            # Hold: decelerate to a stop as fast as the acceleration limit allows.
+            target = q_prev + self._brake_step()
         step = target - q_prev
         in_pos = (target < lim.lower) | (target > lim.upper)
         # acceleration: the step may change by at most a_max·dt² from the previous step
-        a_step = lim.max_acceleration * dt * dt
-        lo, hi = self._v - a_step, self._v + a_step
-        clipped = np.clip(step, lo, hi)
-        flags[clipped != step] |= ACCEL
+        clipped = minimum(maximum(step, self._v - a_step), self._v + a_step)
+        accel = clipped != step
         step = clipped
         # velocity, including the braking speed towards whichever limit we are heading to
-        v_step = lim.max_velocity * dt
         dist = np.where(step > 0, lim.upper - q_prev, q_prev - lim.lower)
         # largest step s from which steps s, s - a, s - 2a, ... stop within dist:
         # s (s + a) / (2 a) <= dist  (the discrete form of v <= sqrt(2 a d))
-        brake = 0.5 * (-a_step + np.sqrt(a_step * a_step + 8.0 * a_step * np.maximum(dist, 0.0)))
-        cap = np.minimum(v_step, np.maximum(brake, a_step))
-        clipped = np.clip(step, -cap, cap)
-        flags[clipped != step] |= VEL
-        step = clipped
-        q = q_prev + step
-        q_clipped = lim.clip(q)
-        flags[(q_clipped != q) | in_pos] |= POS
+        brake = 0.5 * (-a_step + np.sqrt(self._a_sq + self._a_8 * maximum(dist, 0.0)))
+        cap = minimum(self._v_step, maximum(brake, a_step))
+        clipped = minimum(maximum(step, -cap), cap)
+        vel = clipped != step
+        q = q_prev + clipped
+        q_clipped = minimum(maximum(q, lim.lower), lim.upper)
+        pos = (q_clipped != q) | in_pos
+        flags = (accel.view(np.uint8) * _ACCEL) | (vel.view(np.uint8) * _VEL) | (pos.view(np.uint8) * _POS)
+        if nonfinite:
+            flags |= _NONFINITE
         self._v = q_clipped - q_prev
         self._q = q_clipped
         return q_clipped.copy(), flags
@@ -169,6 +184,10 @@ class SafetyFilter:
     def _brake_step(self) -> np.ndarray:
         a_step = self.limits.max_acceleration * self.dt * self.dt
         return np.sign(self._v) * np.maximum(np.abs(self._v) - a_step, 0.0)
+
+
+_NONFINITE, _ACCEL, _VEL, _POS = (np.uint8(f) for f in (Intervention.NONFINITE, Intervention.ACCELERATION,
+                                                         Intervention.VELOCITY, Intervention.POSITION))
 
 
 def min_jerk(q0: np.ndarray, q1: np.ndarray, duration: float, dt: float) -> np.ndarray:

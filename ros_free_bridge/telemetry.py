@@ -71,6 +71,8 @@ class TelemetryWriter:
         self._fh.flush()
         self._events = open(self.path.with_name(self.path.name + ".events.jsonl"), "a", buffering=1)
         self._buf = np.zeros(1, dtype=self.dtype)
+        self._raw = self._buf.view(np.uint8)  # the record's bytes, zeroed before each tick
+        self._fields = {name: self._buf[name] for name in self.dtype.names}  # views made once, not per tick
         self._flush_every = max(1, int(flush_every))
         self._pending = 0
         self.records = 0
@@ -80,11 +82,12 @@ class TelemetryWriter:
         return Path(self._events.name)
 
     def record(self, **fields) -> None:
-        buf = self._buf
-        buf[...] = np.zeros((), dtype=self.dtype)
+        """Append one tick; fields not given are zero. Unknown names are a KeyError."""
+        self._raw[:] = 0
+        views = self._fields
         for key, value in fields.items():
-            buf[key][0] = value
-        self._fh.write(self._buf.tobytes())
+            views[key][0] = value
+        self._fh.write(self._raw)
         self.records += 1
         self._pending += 1
         if self._pending >= self._flush_every:
