@@ -351,26 +351,30 @@ def build_core(cfg: GeneratorConfig):
     from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
 
     torch.set_num_threads(max(1, int(cfg.threads)))
+    stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed)
+    # the model first: a bad checkpoint or condition fails before the slower retargeter build
+    reactor = ReactorStage(cfg.fps, cfg.checkpoint, stream, cfg.text, cfg.music, cfg.music_frames, threads=cfg.threads)
     files = resolve_robot(cfg.robot)
     retarget = RetargetStage(load_robot(files.mjcf, files.profile), cfg.fps, cfg.joint_names)
-    stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed)
-    reactor = ReactorStage(cfg.fps, cfg.checkpoint, stream, cfg.text, cfg.music, cfg.music_frames, threads=cfg.threads)
     return PartnerCore(reactor, retarget, cfg.max_lag)
 
 
-def warm_up(core) -> float:
-    """Generate two throw-away windows (allocator, kernels) on a separate stream; returns the
-    second window's seconds, a measure of this machine's generation speed right now."""
+def warm_up(core) -> tuple[float, float]:
+    """Generate throw-away windows (allocator, kernels) on a separate stream, as a run starts:
+    the first window (no context, L + hop frames) and then full-width ones. Returns the seconds
+    of the first and of the last (full) window: this machine's generation speed right now."""
     import torch
 
     from dualflow.streaming import ReactiveStreamer
 
     r = core.reactor
     streamer = ReactiveStreamer(r.model, r.streamer.config, r.streamer.cond)
+    cfg = streamer.config
     with torch.no_grad():
-        streamer.push(torch.zeros(r.look_ahead + 2 * streamer.max_new, streamer.dim))
+        streamer.push(torch.zeros(r.look_ahead + cfg.hop, streamer.dim))
+        streamer.push(torch.zeros(cfg.window, streamer.dim))
     windows = streamer.timing.windows
-    return windows[-1][2] if windows else float("nan")
+    return windows[0][2], windows[-1][2]
 
 
 def child_main(rfd: int, wfd: int) -> int:
@@ -385,9 +389,10 @@ def child_main(rfd: int, wfd: int) -> int:
             return 2
         cfg = GeneratorConfig(**json.loads(msgs[0][1]))
         core = build_core(cfg)
-        window_s = warm_up(core) if cfg.warmup else float("nan")
+        first_s, window_s = warm_up(core) if cfg.warmup else (float("nan"), float("nan"))
         chan.send_json(b"R", {"delay_frames": core.delay_frames, "look_ahead": core.reactor.look_ahead,
-                              "max_lag": core.max_lag, "warmup_window_s": window_s, "pid": os.getpid()})
+                              "max_lag": core.max_lag, "warmup_first_window_s": first_s,
+                              "warmup_window_s": window_s, "pid": os.getpid()})
         while True:
             msgs = chan.receive(0.0 if core.backlog else None)  # more windows due: do not wait
             if chan.eof and not msgs:

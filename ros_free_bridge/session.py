@@ -288,12 +288,15 @@ def playback_margin(default: float, core) -> float:
     The loop plays frame k at t0 + k / fps, with t0 fixed by the first frame, so a later
     frame is late (the loop holds, then jumps) whenever its window took longer than the first
     one by more than the margin. The first window is the shortest (no context yet), so the
-    margin adds the compute of a full-width window, measured by the generator process at
-    start: w = warm-up window time, margin = default + w. Latency grows by w, once, and
-    stays flat instead of stuttering.
+    margin adds the difference, measured by the generator process at start on the same
+    windows: margin = default + max(0, full window - first window). Latency grows by that
+    once and stays flat instead of stuttering.
     """
-    w = getattr(core, "ready_info", {}).get("warmup_window_s")
-    return default + w if w is not None and np.isfinite(w) else default
+    info = getattr(core, "ready_info", {})
+    full, first = info.get("warmup_window_s"), info.get("warmup_first_window_s")
+    if full is None or first is None or not (np.isfinite(full) and np.isfinite(first)):
+        return default
+    return default + max(0.0, full - first)
 
 
 def _generator_info(opts: SessionOptions, core) -> dict:

@@ -466,10 +466,10 @@ class PartnerPipeline:
                     self.core.idle(0.002)
         except BaseException as exc:  # noqa: BLE001 - handed to the control loop, which stops safely
             self.buffer.close(exc)
-            return
+        else:
+            self.buffer.close()  # before the core's close, which may wait for a process to exit
         finally:
             self.core.close()
-        self.buffer.close()
 
     def _emit(self, targets: list[PartnerTarget], events: list[dict]) -> None:
         for e in events:

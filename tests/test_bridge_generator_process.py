@@ -105,6 +105,7 @@ def _framed(kind: bytes, payload: bytes) -> bytes:
 # -- the catch-up policy (deterministic: driven by frame indices, not by time) ------------
 
 
+@pytest.mark.slow
 def test_a_backlog_beyond_max_lag_is_dropped_held_and_reported(tiny_checkpoint):
     from retarget.robot import load_robot
 
