@@ -448,13 +448,15 @@ class DynamixelBusEmulator:
         for s in self._servos:
             if s.protocol != protocol or s.faults.disconnected or now < s.booting_until:
                 continue
-            servo_baud = s.baud()
-            if host_baud is not None and (servo_baud is None or abs(servo_baud - host_baud) > BAUD_TOLERANCE * host_baud):
-                continue
-            if s.servo_id in out:
+            if host_baud is not None:
+                servo_baud = s.baud()
+                if servo_baud is None or abs(servo_baud - host_baud) > BAUD_TOLERANCE * host_baud:
+                    continue
+            sid = s.servo_id
+            if sid in out:
                 twins.append(s)
             else:
-                out[s.servo_id] = s
+                out[sid] = s
         return out, twins
 
     def _handle(self, frame: dp.Frame, t_first: float) -> None:

@@ -49,7 +49,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from firmware_cfg.servo_models import Register, ServoModel
+from firmware_cfg.servo_models import ServoModel
 
 #: Hardware Error Status bits (X series, e-Manual "Shutdown(63)").
 HW_INPUT_VOLTAGE = 0x01
@@ -149,6 +149,7 @@ class EmulatedServo:
             for r in model.registers.values()
         }
         self._registered: tuple[int, bytes] | None = None
+        self._baud_memo: tuple[int | None, int | None] = (None, None)
         has = model.registers.__contains__
         self._vel_name = "present_velocity" if has("present_velocity") else "present_speed"
         self._volt_name = model.first_register("present_input_voltage", "present_voltage").name
@@ -236,11 +237,15 @@ class EmulatedServo:
         return self._g("status_return_level") if self.has("status_return_level") else 2
 
     def baud(self) -> int | None:
-        """The baud rate this servo listens at, from its Baud Rate register."""
-        try:
-            return self.model.register_to_baud(self._g("baud_rate"))
-        except Exception:
-            return None
+        """The baud rate this servo listens at, from its Baud Rate register (the decoded
+        value is kept until the register changes: the bus asks for every packet)."""
+        raw = self._g("baud_rate")
+        if raw != self._baud_memo[0]:
+            try:
+                self._baud_memo = (raw, self.model.register_to_baud(raw))
+            except Exception:
+                self._baud_memo = (raw, None)
+        return self._baud_memo[1]
 
     def _factory_fill(self, keep: tuple[str, ...]) -> None:
         kept = {name: self._g(name) for name in keep if name in self._regs}
@@ -391,9 +396,15 @@ class EmulatedServo:
 
     # ------------------------------------------------------------------ bus watchdog
     def heard(self, now: float | None = None) -> None:
-        """The servo heard an instruction packet: restart its Bus Watchdog interval."""
+        """The servo heard an instruction packet: restart its Bus Watchdog interval. If the
+        watchdog had already expired, the motor model is first brought to ``now`` (so it
+        trips at its deadline); otherwise the model moves on at the servo's next read or
+        write: every packet reaches every servo, and stepping all of them for a packet
+        addressed to one made the emulator, not the bus, set the pace at 250 Hz."""
         now = self.clock() if now is None else now
-        self.advance(now)
+        deadline = self._watchdog_deadline()
+        if deadline is not None and deadline <= now:
+            self.advance(now)
         self._last_heard = now
 
     def _watchdog_deadline(self) -> float | None:
