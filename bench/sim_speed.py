@@ -18,6 +18,7 @@ Usage: python bench/sim_speed.py [--seconds 10] [--repeats 5] [--no-render] [--q
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 import time
@@ -160,7 +161,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap.add_argument("--no-render", action="store_true")
     args = parse_args(ap, argv, quick, QUICK)
     print(pin_one_core(), f"| load average {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else "")
-    import sim  # noqa: F401  (sets MUJOCO_GL=egl on a headless machine before mujoco loads)
+    importlib.import_module("sim")  # sets MUJOCO_GL=egl on a headless machine before mujoco loads
 
     out = bench_check(args.seconds, args.repeats)
     if not args.no_render:
