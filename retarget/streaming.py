@@ -34,7 +34,8 @@ the config's; c(x) is the CoM, h its standing height, ω = √(g/h)):
     √w_z · (h/g) fps² (c_xy − 2c₋₁ + c₋₂)                  ZMP offset: the CoM moves smoothly
     √w_pl · (z_sole, xy_sole − footprint)  (planted feet)  flat on their level footprint
     √w_lv · (z_corner − mean z_corner)  (each foot)        soles level, lifted ones too
-    √w_col · min(0, (d² − r²) / 2r)  (profile pairs)       capsules apart (feet, arms and legs)
+    √w_col · min(0, (d² − r²) / 2r)  (profile pairs)       capsules apart (feet, arms and legs;
+                                                          the feet by ``feet_clearance`` more)
 
 - *Planted* feet are held on their level footprint: the sole's rectangle flat on the ground
   (z = 0), at the centre and heading the foot had when it touched down
@@ -43,12 +44,18 @@ the config's; c(x) is the CoM, h its standing height, ω = √(g/h)):
 - The support region (:mod:`retarget.support`): on two feet, the hull of the feet's long centre
   lines, ``balance_margin`` in from toe and heel and ``double_support_inset`` towards each
   other (a compliant servo robot with its CoM over one foot unloads the other and sags over);
-  on one foot, its footprint shrunk by ``balance_margin``.
-- Contacts come from the person (the motion's labels, or detected). A robot foot lifts only
+  on one foot, the inner half (towards the lifted foot) of its footprint shrunk by
+  ``stance_margin``: a servo leg alone sags outwards, so the CoM stays on the inner side.
+- Steps (``steps``, off by default): without them both feet stay planted whatever the person
+  does. The bundled op3's position servos (kp 17.5 N m/rad) make one leg a soft spring: ankle
+  roll and hip roll in series give ≈ 8.8 N m/rad against the m g h ≈ 8 N m/rad a 3.4 kg body
+  at 0.24 m asks, so the robot survives standing on one leg but not the sway of getting there
+  open loop (sim's check topples it), while on two feet it is stiff. With steps on, contacts
+  come from the person (the motion's labels, or detected). A robot foot lifts only
   when the person's leaves (rises ``lift_height`` above the other, or moves ``step_distance`` /
   turns ``step_turn`` from where the robot's was put down) while the person's other foot is
-  down, after ``min_stance``; and only once the CoM of the last frame is over the other
-  foot's shrunk footprint. Until then the robot shifts its weight: the region becomes the
+  down, after ``min_stance``; and only once the CoM has been over the other foot's stance
+  region for ``settle``. Until then the robot shifts its weight: the region becomes the
   stance footprint plus one point p = c₋₁ moved towards it (at most ``shift_speed``, speeding up
   by at most ``shift_accel``). A lifted foot's targets stay within ``swing_height`` of standing
   height; it touches down (flat, where it is) when the person's foot is down, or after
@@ -68,8 +75,9 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
+from retarget.robot import segment_distance_sq
 from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint,
-                              shrink_footprint, support_polygon)
+                              stance_points, support_polygon)
 from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
@@ -89,6 +97,7 @@ class StreamingConfig:
     # balance (free-base robots with feet; see the module docstring). Weights are per m² of
     # the residual named; lengths m, times s.
     balance: bool = False
+    steps: bool = False  # let a foot lift when the person steps (off: both feet stay planted)
     balance_margin: float = 0.02  # footprints shrunk by this; the CoM, DCM and ZMP stay inside
     balance_weight: float = 1e4  # CoM outside the support region
     dcm_weight: float = 1e3  # capture point outside it
@@ -97,10 +106,13 @@ class StreamingConfig:
     balance_contact_weight: float = 1e3  # planted feet off their footprint (replaces contact_weight)
     level_weight: float = 30.0  # sole corner heights differing within a foot
     collision_weight: float = 1e5  # the profile's capsule pairs penetrating
+    stance_margin: float = 0.03  # on one foot the CoM stays in the inner half of its footprint shrunk by this
+    feet_clearance: float = 0.015  # extra distance kept between the two feet's capsules
     double_support_inset: float = 0.01  # on two feet the CoM stays this far inside the feet's centre lines
     shift_speed: float = 0.15  # m/s, CoM travel towards the stance foot before the other lifts
     shift_accel: float = 1.0  # m/s², how fast that speed may grow
     release_tolerance: float = 0.002  # CoM this far outside the stance footprint still lets the other lift
+    settle: float = 0.2  # ... once it has stayed there this long (the servos catch up with the shift)
     lift_height: float = 0.01  # a person's foot leaves when its ankle target rises this far above the other's,
     step_distance: float = 0.03  # ... or moves this far from where the robot's foot was put down,
     step_turn: float = 0.35  # rad, ... or turns this far
@@ -204,17 +216,40 @@ class StreamingRetargeter:
                 res.append(point_w[i] * ca.fmax(outside, 0))
             res.append(zmp_scale * (com[0:2] - c_pred))
             if rb.collision_pairs and cfg.collision_weight > 0:
-                # (d² − r²) / 2r ≈ d − r (m) for the profile's capsule pairs, penalised below 0
-                r2 = np.array([2 * (rb.capsules[a].radius + rb.capsules[b].radius + rb.profile.collision_margin)
-                               for a, b in rb.collision_pairs])
-                res.append(np.sqrt(cfg.collision_weight) * ca.fmin(rb.collision_expr / ca.DM(r2), 0))
+                # (d² − r²) / 2r ≈ d − r (m) for the profile's capsule pairs, penalised below 0;
+                # two feet keep feet_clearance more (a servo leg sags, a lifted foot swings in)
+                feet = {f.body for f in rb.feet}
+                for a, b in rb.collision_pairs:
+                    cap_a, cap_b = rb.capsules[a], rb.capsules[b]
+                    rr = cap_a.radius + cap_b.radius + rb.profile.collision_margin
+                    if cap_a.body in feet and cap_b.body in feet:
+                        rr += cfg.feet_clearance
+                    d2 = segment_distance_sq(*rb.kin.capsule_segment(cap_a), *rb.kin.capsule_segment(cap_b))
+                    res.append(np.sqrt(cfg.collision_weight) * ca.fmin((d2 - rr * rr) / (2 * rr), 0))
             p_parts += [ca.reshape(edges, -1, 1), ca.reshape(points, -1, 1), point_w, c_pred, zmp_scale]
+        names = rb.keypoint_names
+        self._ankles = ([names.index("left_ankle"), names.index("right_ankle")]
+                        if "left_ankle" in names and "right_ankle" in names else None)
+        self._toes = ([names.index("left_foot"), names.index("right_foot")]
+                      if "left_foot" in names and "right_foot" in names else None)
+        self._hips = ([names.index("left_hip"), names.index("right_hip")]
+                      if "left_hip" in names and "right_hip" in names else None)
+        if self._ankles is not None:
+            self._foot_kps = [[k for k in (self._ankles[s], self._toes[s] if self._toes else None) if k is not None]
+                              for s in range(2)]
+            self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
+            self._feet_idx = list(self._ankles) + list(self._toes if self._toes is not None else (self._hips or []))
         r = ca.vertcat(*res)
         J = ca.jacobian(r, x)
         p = ca.vertcat(*p_parts)
         sole = rb.sole_expr if rb.has_feet else ca.SX.zeros(3, 0)
         fn = ca.Function("stream_rj", [x, p], [ca.densify(r), ca.densify(J), ca.densify(sole), ca.densify(com)])
-        key = f"{rb.fingerprint()}_{hash_config(cfg)}"
+        # the cache key names only what shapes the expression graph (weights that enter as
+        # parameters, iteration counts and the step rules do not), so configs share binaries
+        shape = (wp, cfg.contact_weight, cfg.ground_weight, self.balance)
+        if self.balance:
+            shape += (cfg.balance_contact_weight, cfg.level_weight, cfg.collision_weight, cfg.feet_clearance)
+        key = f"{rb.fingerprint()}_{hash_config(shape)}"
         self._fn, self.compile_info = compiled_function(fn, key, enable=cfg.compile)
         # zero-copy evaluation: bind numpy buffers once (CasADi reads/writes column-major)
         self._xbuf = np.zeros(nx)
@@ -250,6 +285,7 @@ class StreamingRetargeter:
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
         self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps ** 2
         self._min_stance_frames = round(cfg.min_stance * self.fps)
+        self._settle_frames = round(cfg.settle * self.fps)
         self._max_swing_frames = round(cfg.max_swing * self.fps)
         if self.balance:
             h = float(rb.evaluate(rb.x_stand[None])["com"][0, 2] - rb.evaluate(rb.x_stand[None])["sole"][0, :, 2].min())
@@ -259,18 +295,6 @@ class StreamingRetargeter:
             self._point_w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
             self._point_w0 = np.sqrt([cfg.balance_weight, 0.0, 0.0])
             self._sole_local = [f.corners for f in rb.feet]
-        names = rb.keypoint_names
-        self._ankles = ([names.index("left_ankle"), names.index("right_ankle")]
-                        if "left_ankle" in names and "right_ankle" in names else None)
-        self._toes = ([names.index("left_foot"), names.index("right_foot")]
-                      if "left_foot" in names and "right_foot" in names else None)
-        self._hips = ([names.index("left_hip"), names.index("right_hip")]
-                      if "left_hip" in names and "right_hip" in names else None)
-        if self._ankles is not None:
-            self._foot_kps = [[k for k in (self._ankles[s], self._toes[s] if self._toes else None) if k is not None]
-                              for s in range(2)]
-            self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
-            self._feet_idx = list(self._ankles) + list(self._toes if self._toes is not None else (self._hips or []))
         self._anchor_alpha = 1.0 - np.exp(-1.0 / (self.fps * cfg.anchor_time))
         if self.balance and (self._ankles is None or (self._toes is None and self._hips is None)):
             raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
@@ -292,7 +316,8 @@ class StreamingRetargeter:
         #: xy of the last two emitted frames, and the last frame's sole corners (3, 8)
         self.planted = np.zeros(2, dtype=bool)
         self._prints: list = [None, None]
-        self._stance: list = [None, None]  # per planted foot: its shrunk footprint's (hull, A, b)
+        self._settled = 0  # frames the CoM has been over the stance foot while the other waits to lift
+        self._stance: list = [None, None]  # per planted foot: (hull, A, b) of its region when it stands alone
         self._region_key = None
         self._c1 = self._c2 = None
         self._sole1 = None
@@ -510,7 +535,8 @@ class StreamingRetargeter:
             if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
                 self._touch_down(s)
                 continue
-            if contact[s] or not contact[other] or (planted and self._since[s] < self._min_stance_frames):
+            if (not cfg.steps or contact[s] or not contact[other]
+                    or (planted and self._since[s] < self._min_stance_frames)):
                 continue
             dz = self._ankle_z[s] - self._ankle_z[other]
             (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
@@ -524,8 +550,13 @@ class StreamingRetargeter:
             other = 1 - s
             if want[s] or not self.planted[s] or not self.planted[other]:
                 continue
+            if self._stance[other] is None:
+                self._stance[other] = support_polygon([stance_points(self._prints[other], self._prints[s],
+                                                                     cfg.stance_margin)])
             hull, A, b = self._stance[other]
-            if float(np.min(b - A @ c1)) >= -cfg.release_tolerance:
+            inside = float(np.min(b - A @ c1)) >= -cfg.release_tolerance
+            self._settled = self._settled + 1 if inside else 0
+            if self._settled > self._settle_frames:
                 self.planted[s] = False  # the weight is on the other foot: lift
                 self._prints[s] = None
                 self._since[s] = 0
@@ -541,6 +572,8 @@ class StreamingRetargeter:
                 self._region_key = None
                 self._set_region(np.concatenate([hull, shift_point[None]]))
             break  # one foot at a time
+        if not self.shifting:
+            self._settled = 0
         key = (bool(self.planted[0]), bool(self.planted[1]))
         if shift_point is None and self._region_key != key:
             self._region_key = key
@@ -556,7 +589,7 @@ class StreamingRetargeter:
         self.planted[s] = True
         fp = level_footprint(self._sole1[:, 4 * s:4 * s + 4].T, self._sole_local[s])
         self._prints[s] = fp
-        self._stance[s] = support_polygon([shrink_footprint(fp, self.config.balance_margin)])
+        self._stance = [None, None]
         self._anchor[:, 4 * s:4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
         self._head_ref[s] = self._heads_now[s]

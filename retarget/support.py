@@ -159,6 +159,19 @@ def double_support_points(footprints: list[np.ndarray], shrink: float, inset: fl
     return np.concatenate(out)
 
 
+def stance_points(footprint: np.ndarray, other: np.ndarray, shrink: float) -> np.ndarray:
+    """Points (4, 2) whose hull is the CoM's region while one foot stands alone: the half of its
+    ``footprint`` (4, 2), shrunk by ``shrink`` (m), on the side of the ``other`` (lifted) foot's
+    footprint, down to the long centre line. A servo leg carrying the robot alone sags outwards;
+    a CoM on the inner half leans against that."""
+    small = shrink_footprint(footprint, shrink)
+    line = centre_line(footprint, shrink)
+    towards = np.asarray(other, dtype=np.float64).mean(axis=0) - small.mean(axis=0)
+    side = (small - small.mean(axis=0)) @ towards
+    inner = small[np.argsort(side)[-2:]]
+    return np.concatenate([line, inner])
+
+
 def support_polygon(footprints: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Convex hull of the feet's footprints (each (4, 2)) → (hull (m, 2), A (m, 2), b (m,))."""
     hull = convex_hull(np.concatenate(footprints, axis=0))

@@ -1,0 +1,227 @@
+"""Balance-aware streaming retargeting (StreamingConfig.balance) and the support-polygon helpers.
+
+The clips are built here from the SMPL rest pose: a person standing with arms down who
+sways, waves, leans, or steps in place; they go through StreamingRetargeter.run (scaling,
+ground calibration, contacts detected) onto the bundled op3, and the free-standing result is
+played in MuJoCo by sim's check.
+"""
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from dualflow.motion import REST_POSE, Motion
+from dualflow.motion.skeleton import JOINT_NAMES
+from retarget import RetargetError
+from retarget.robot import load_robot
+from retarget.streaming import StreamingConfig, StreamingRetargeter
+from retarget.support import (closest_point, com_margins, convex_hull, double_support_points, halfplanes,
+                              level_footprint, margin, shrink_footprint)
+
+FPS = 30.0
+J = {n: i for i, n in enumerate(JOINT_NAMES)}
+UPPER = [J[n] for n in ("pelvis", "left_hip", "right_hip", "spine1", "spine2", "spine3", "neck", "left_collar",
+                        "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+                        "left_wrist", "right_wrist")]
+
+
+def _rot_x(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def person(seconds=4.0, sway=0.0, lean=(0.0, 0.0), wave=0.0, lift=None, seed=0) -> Motion:
+    """A standing person (T, 22, 3), arms down: the upper body ``sway``s sideways (m, 0.6 Hz),
+    ``lean``s by (x, y) m (ramped in over the first second), the arms ``wave`` (rad, 0.8 Hz);
+    ``lift`` = (t0, t1) s lifts the left foot 8 cm off the ground, weight on the right."""
+    rng = np.random.default_rng(seed)
+    T = int(seconds * FPS)
+    t = np.arange(T) / FPS
+    pos = np.repeat(REST_POSE[None].astype(np.float64), T, axis=0)
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        sh = J[f"{side}_shoulder"]
+        angle = sign * (1.25 + wave * np.sin(2 * np.pi * 0.8 * t + rng.uniform(0, 6)))
+        for name in ("elbow", "wrist"):
+            k = J[f"{side}_{name}"]
+            rel = REST_POSE[k] - REST_POSE[sh]
+            pos[:, k] = REST_POSE[sh] + np.einsum("tij,j->ti", np.stack([_rot_x(-a) for a in angle]), rel)
+    ramp = np.clip(t, 0.0, 1.0)[:, None]
+    shift = np.zeros((T, 3))
+    shift[:, 0:2] = ramp * np.asarray(lean)[None]
+    shift[:, 1] += sway * np.sin(2 * np.pi * 0.6 * t)
+    if lift is not None:  # weight over the right foot while the left is up
+        w = np.clip(np.minimum(t - lift[0] + 0.5, lift[1] + 0.5 - t) / 0.5, 0.0, 1.0)
+        shift[:, 1] -= 0.09 * w
+    pos[:, UPPER] += shift[:, None, :]
+    pos[:, [J["left_knee"], J["right_knee"]]] += 0.5 * shift[:, None, :]
+    if lift is not None:
+        up = ((t >= lift[0]) & (t < lift[1])).astype(float)
+        up = np.convolve(up, np.ones(5) / 5, mode="same")
+        for name, h in (("left_ankle", 0.08), ("left_foot", 0.08), ("left_knee", 0.05)):
+            pos[:, J[name], 2] += h * up
+    return Motion(pos, fps=FPS, name="standing person")
+
+
+@pytest.fixture(scope="module")
+def op3():
+    return load_robot("op3")
+
+
+def stream(robot, motion, balance=True, **kw):
+    s = StreamingRetargeter(robot, FPS, StreamingConfig(balance=balance, **kw))
+    planted = []
+    traj_x = []
+    from retarget.targets import make_targets
+
+    tg = make_targets(robot, motion)
+    s.reset()
+    for t in range(motion.n_frames):
+        traj_x.append(s.step(tg.keypoints[t], tg.contacts[t]))
+        planted.append(s.planted.copy() if s.balance else tg.contacts[t])
+    return s, np.stack(traj_x), np.array(planted)
+
+
+def feet_local(robot):
+    return [f.corners for f in robot.feet]
+
+
+# -- the support-polygon helpers --------------------------------------------------
+def test_hull_and_halfplanes_match_scipy():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        pts = rng.normal(size=(9, 2))
+        hull = convex_hull(pts)
+        ref = ConvexHull(pts)
+        assert len(hull) == len(ref.vertices)
+        assert np.isclose(abs(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])) / 2,
+                          ref.volume)
+        A, b = halfplanes(hull)
+        for q in rng.normal(size=(30, 2)) * 1.5:
+            inside = np.all(ref.equations[:, :2] @ q + ref.equations[:, 2] <= 0)
+            m = margin(q, A, b)
+            assert (m >= 0) == inside
+            if inside:  # inside, the margin is the distance to the nearest edge
+                assert np.isclose(m, -np.max(ref.equations[:, :2] @ q + ref.equations[:, 2]))
+            else:  # outside, the closest point of the polygon is on its boundary
+                c = closest_point(q, hull)
+                assert abs(margin(c, A, b)) < 1e-9 and np.linalg.norm(c - q) >= -m - 1e-9
+
+
+def test_level_footprint_keeps_size_centre_and_heading_of_a_tilted_sole(op3):
+    local = op3.feet[0].corners
+    x = op3.x_stand.copy()
+    x[3], x[4], x[5] = 0.4, 0.15, -0.1  # yaw, and a pitched and rolled body: the sole is tilted
+    world = op3.evaluate(x[None])["sole"][0, 0:4]
+    fp = level_footprint(world, local)
+    side = [np.linalg.norm(local[i] - local[(i + 1) % 4]) for i in range(4)]
+    assert np.allclose([np.linalg.norm(fp[i] - fp[(i + 1) % 4]) for i in range(4)], side)
+    assert np.allclose(fp.mean(axis=0), world[:, :2].mean(axis=0))
+    d = fp[0] - fp[1]
+    w = world[0, :2] - world[1, :2]
+    assert abs(np.arctan2(d[1], d[0]) - np.arctan2(w[1], w[0])) < 1e-9
+    small = shrink_footprint(fp, 0.01)
+    assert np.allclose([np.linalg.norm(small[i] - small[(i + 1) % 4]) for i in range(4)], np.array(side) - 0.02)
+
+
+def test_double_support_region_lies_between_the_feet(op3):
+    sole = op3.evaluate(op3.x_stand[None])["sole"][0]
+    prints = [level_footprint(sole[4 * f:4 * f + 4], op3.feet[f].corners) for f in range(2)]
+    pts = double_support_points(prints, 0.02, 0.01)
+    centres = [p.mean(axis=0) for p in prints]
+    # laterally inside the feet's centres by the inset; lengthwise inside toe and heel by the margin
+    assert np.all(pts[:, 1] <= centres[0][1] - 0.01 + 1e-12) and np.all(pts[:, 1] >= centres[1][1] + 0.01 - 1e-12)
+    assert pts[:, 0].max() <= sole[:, 0].max() - 0.02 + 1e-12 and pts[:, 0].min() >= sole[:, 0].min() + 0.02 - 1e-12
+
+
+# -- balance in the streaming retargeter --------------------------------------------
+@pytest.mark.slow
+def test_near_standing_person_keeps_op3_on_its_feet_in_physics(op3):
+    """Arms waving, the body swaying: streamed with balance, the free-standing op3 passes sim's check."""
+    from sim.check import CheckConfig, check_trajectory
+
+    motion = person(seconds=4.0, sway=0.05, wave=0.5)
+    s = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
+    traj = s.run(motion)
+    result = check_trajectory(traj, CheckConfig(mode="free"))
+    reasons = [f.reason for f in result.failures]
+    assert "fall" not in reasons and "balance" not in reasons, result.failures
+    assert result.passed, result.failures
+    # it really played the motion: the arms moved by tens of degrees
+    arm = [op3.joint_names.index(n) for n in ("l_sho_roll", "r_sho_roll", "l_sho_pitch", "r_sho_pitch")]
+    assert np.ptp(traj.joint_pos[:, arm], axis=0).max() > 0.3
+
+
+def test_leaning_person_keeps_the_com_inside_the_support_polygon(op3):
+    """A lean far past the toes: without balance the CoM leaves the feet; with it, it stays
+    inside the planted footprints' hull by about the margin, feet flat and put."""
+    motion = person(seconds=2.5, lean=(0.45, 0.15))
+    cfg = StreamingConfig(balance=True)
+    _, X_off, on_off = stream(op3, motion, balance=False)
+    ev = op3.evaluate(X_off)
+    off = com_margins(ev["com"][:, :2], ev["sole"], feet_local(op3), np.ones_like(on_off, bool))
+    assert np.nanmin(off) < -0.01  # the clip does lean past the feet
+
+    s, X, planted = stream(op3, motion)
+    assert planted.all()  # a lean is no step: both feet stay down
+    ev = op3.evaluate(X)
+    m = com_margins(ev["com"][:, :2], ev["sole"], feet_local(op3), planted)
+    assert np.nanmin(m) > 0.5 * cfg.balance_margin, np.nanmin(m)
+    sole = ev["sole"]
+    assert np.abs(sole[..., 2]).max() < 1e-3  # soles flat on the ground
+    assert np.abs(sole[:, :, 0:2] - sole[:1, :, 0:2]).max() < 2e-3  # and where they were put
+
+
+def test_a_step_lifts_the_foot_only_once_the_weight_is_on_the_other(op3):
+    motion = person(seconds=4.0, lift=(1.2, 2.6))
+    cfg = StreamingConfig(balance=True, steps=True)
+    s, X, planted = stream(op3, motion, steps=True)
+    assert (~planted[:, 0]).sum() >= 5 and planted[:, 1].all()  # the left foot stepped, the right stood
+    ev = op3.evaluate(X)
+    up = ~planted[:, 0]
+    assert ev["sole"][up, 0:4, 2].max() > 0.005  # it did leave the ground
+    # while it is up, the CoM is over the right foot's footprint (shrunk by the stance margin,
+    # less the release tolerance) and on its inner half (at most the margin past its centre line)
+    on_right = np.stack([np.zeros(len(X), bool), np.ones(len(X), bool)], axis=1)
+    m = com_margins(ev["com"][:, :2], ev["sole"], feet_local(op3), on_right)
+    assert m[up].min() > cfg.stance_margin - cfg.release_tolerance - 1e-3, m[up].min()
+    centre_y = ev["sole"][up, 4:8, 1].mean(axis=1)
+    assert np.all(ev["com"][up, 1] > centre_y - 2e-3)
+    # and it came back down flat
+    assert np.abs(ev["sole"][-1, :, 2]).max() < 1e-3
+
+
+@pytest.mark.slow
+def test_without_steps_a_person_stepping_in_place_leaves_op3_standing_in_physics(op3):
+    """The default keeps both feet down when the person steps; the free-standing op3 passes sim's check."""
+    from sim.check import CheckConfig, check_trajectory
+
+    s = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
+    traj = s.run(person(seconds=3.5, lift=(1.2, 2.2)))
+    assert s.planted.all()
+    result = check_trajectory(traj, CheckConfig(mode="free"))
+    assert result.passed, result.failures
+
+
+def test_fixed_base_robots_ignore_balance():
+    motion = person(seconds=1.0, wave=0.5)
+    for name, fixed in (("ub14", False), ("op3", True)):
+        rb = load_robot(name, fixed_base=fixed)
+        runs = [StreamingRetargeter(rb, FPS, StreamingConfig(balance=b, compile=False)) for b in (False, True)]
+        assert not runs[1].balance
+        a, b = (r.run(motion).joint_pos for r in runs)
+        assert np.array_equal(a, b)
+
+
+def test_balance_needs_ankle_keypoints():
+    import yaml
+
+    from retarget.kinematics import RobotKinematics
+    from retarget.profile import RetargetProfile
+    from retarget.robot import PROFILE_DIR, ROBOT_DIR, RetargetRobot
+
+    data = yaml.safe_load((PROFILE_DIR / "op3.yaml").read_text())
+    del data["keypoints"]["left_ankle"]
+    rb = RetargetRobot(RobotKinematics.from_xml(ROBOT_DIR / "op3" / "op3.xml"), RetargetProfile.from_dict(data, "op3.yaml"))
+    StreamingRetargeter(rb, FPS, StreamingConfig(balance=False))  # fine without balance
+    with pytest.raises(RetargetError, match="left_ankle"):
+        StreamingRetargeter(rb, FPS, StreamingConfig(balance=True))
