@@ -167,7 +167,10 @@ class GeneratorConfig:
     retarget profile are resolved from it); ``joint_names``: the transport's order.
     ``threads``: torch threads in the child (1 leaves the other core to the control loop and
     the bus; more threads only spin against each other on a busy 2-core machine).
-    ``max_lag``: frames of backlog before dropping to the newest actor frames (None: 2 × hop)."""
+    ``max_lag``: frames of backlog before dropping to the newest actor frames (None: hop +
+    the streamer's max_new). ``nice``: how much lower the child's CPU priority is than the
+    parent's: when the CPU is short, the control loop and the bus (emulator) must win; a
+    generator that falls behind is caught up or dropped, a late bus write is a fault."""
 
     robot: str
     joint_names: list
@@ -183,6 +186,7 @@ class GeneratorConfig:
     threads: int = 1
     max_lag: int | None = None
     warmup: bool = True
+    nice: int = 5
 
 
 class GeneratorProcess:
@@ -388,6 +392,8 @@ def child_main(rfd: int, wfd: int) -> int:
         if not msgs or msgs[0][0] != b"C":
             return 2
         cfg = GeneratorConfig(**json.loads(msgs[0][1]))
+        if cfg.nice > 0:
+            os.nice(int(cfg.nice))
         core = build_core(cfg)
         first_s, window_s = warm_up(core) if cfg.warmup else (float("nan"), float("nan"))
         chan.send_json(b"R", {"delay_frames": core.delay_frames, "look_ahead": core.reactor.look_ahead,

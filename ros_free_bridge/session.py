@@ -53,7 +53,7 @@ class SessionOptions:
     #: "process": DualFlow + retarget in a child process (default: its Python never competes
     #: with the control loop for the GIL); "thread": in a thread of this process
     generator: str = "process"
-    max_lag: int | None = None  #: frames of generator backlog before dropping to the newest actor frames (None: 2 x hop)
+    max_lag: int | None = None  #: frames of generator backlog before dropping to the newest actor frames (None: hop + max_new)
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
