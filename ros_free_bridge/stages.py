@@ -212,11 +212,12 @@ class RetargetStage:
     """Reactor world positions → robot joint angles (n,) rad in ``joint_names`` order."""
 
     def __init__(self, robot, fps: float, joint_names=None):
-        from retarget.streaming import StreamingRetargeter
+        from retarget.streaming import StreamingConfig, StreamingRetargeter
 
         self.robot = robot
-        # its default keypoint scaler uses REST_POSE proportions: a live stream has no clip to measure
-        self.streamer = StreamingRetargeter(robot, fps)
+        # its default keypoint scaler uses REST_POSE proportions: a live stream has no clip to measure;
+        # a free-standing robot keeps its feet planted and its CoM over them (fixed bases ignore it)
+        self.streamer = StreamingRetargeter(robot, fps, StreamingConfig(balance=True))
         names = tuple(joint_names) if joint_names is not None else tuple(robot.joint_names)
         missing = [n for n in names if n not in robot.joint_names]
         if missing:
