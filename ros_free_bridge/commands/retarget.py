@@ -30,7 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("--ground", action="store_true", help="shift the motion so its lowest foot joint is at z = 0")
     p.add_argument("--window", type=int, default=40, help="offline window length in frames (0 = whole clip)")
     p.add_argument("--overlap", type=int, default=10, help="frames shared by consecutive windows")
-    p.add_argument("--balance", action="store_true", help="keep the CoM over the support polygon while feet touch")
+    p.add_argument("--balance", action="store_true", help="keep the CoM over the support polygon while feet touch (streaming: "
+                   "feet planted, CoM, capture point and ZMP over them; retarget.streaming)")
     p.add_argument("--balance-margin", type=float, default=0.01, help="support polygon shrink (m, default 0.01)")
     p.add_argument("--no-contacts", action="store_true", help="do not hold feet in contact on the ground")
     p.add_argument("--no-collision", action="store_true", help="do not keep the profile's capsule pairs apart")
@@ -78,7 +79,7 @@ def run(args) -> int:
     motion, stem = _load(args)
     robot = load_robot(args.robot, args.profile, fixed_base=args.fixed_base)
     if args.mode == "streaming":
-        traj = StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile)).run(motion)
+        traj = StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile, balance=args.balance)).run(motion)
     else:
         cfg = OfflineConfig(window=args.window, overlap=args.overlap, balance=args.balance,
                             balance_margin=args.balance_margin, contacts=not args.no_contacts,
