@@ -13,6 +13,8 @@ from test_datasets import make_dd100, make_interhuman, make_mdd
 
 from dualflow import DualFlowError
 from dualflow.checkpoint import load_checkpoint
+from dualflow.data import click_track_music
+from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.datasets import load_dataset
 from dualflow.datasets.windows import window_split
 from dualflow.motion.io import write_bvh_motion
@@ -117,3 +119,11 @@ def test_spectral_music_on_synthetic_duets_is_a_click_track(tmp_path):
             if 1 <= b < FRAMES - 2:
                 assert m[b:b + 3, 0].max() > 2 * np.median(m[:, 0]) + 1e-6
     assert np.isfinite(trainer.run().loss)
+    # the evaluation feeds such a checkpoint the same click-track features of the test windows
+    data = EvalSet.from_duet_set(load_dataset("synthetic", None, "test", n_clips=2, frames=FRAMES), FRAMES)
+    gen = CheckpointGenerator(tmp_path / "final", data, mode="interactive", steps=2)
+    assert tuple(gen.music.shape) == (2, FRAMES, 35) and data.music_kind == "edge35"
+    np.testing.assert_allclose(gen.music.numpy()[0], click_track_music(data.beats[0], "edge35"), atol=1e-6)
+    assert np.isfinite(gen(np.arange(2), 0)).all()
+    with pytest.raises(DualFlowError, match="trained with 'jukebox' music but this evaluation data has edge35"):
+        data.music_for("jukebox")
