@@ -151,9 +151,9 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, m
     return d
 
 
-#: half-planes of the balance region passed to the compiled function: the hull of two
-#: footprints (8 corners) and the weight-shift point has at most 9 edges; unused rows are 0·c ≤ 1
-_N_EDGES = 10
+#: half-planes of the balance region passed to the compiled function: the two-foot region has
+#: 4 corners, the stance region 4 plus the weight-shift point; unused rows are 0·c ≤ 1
+_N_EDGES = 6
 
 
 class StreamingRetargeter:
@@ -295,7 +295,7 @@ class StreamingRetargeter:
             self._point_w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
             self._point_w0 = np.sqrt([cfg.balance_weight, 0.0, 0.0])
             self._sole_local = [f.corners for f in rb.feet]
-        self._anchor_alpha = 1.0 - np.exp(-1.0 / (self.fps * cfg.anchor_time))
+        self._anchor_alpha = 1.0 - math.exp(-1.0 / (self.fps * cfg.anchor_time))
         if self.balance and (self._ankles is None or (self._toes is None and self._hips is None)):
             raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
                                 "and right_ankle keypoints, and left/right_foot or left/right_hip ones (it follows the person's "
@@ -322,9 +322,9 @@ class StreamingRetargeter:
         self._c1 = self._c2 = None
         self._sole1 = None
         self.shifting = False
-        #: horizontal offset (2,) m added to the targets (balance: the stance foot anchors the
+        #: horizontal offset (x, y) m added to the targets (balance: the stance foot anchors the
         #: human's translation) and the ankle targets (2, 2) recorded when each foot touched down
-        self.offset = np.zeros(2)
+        self.offset = (0.0, 0.0)
         self._psi = 0.0
         self._ankle_ref = [(0.0, 0.0), (0.0, 0.0)]
         self._head_ref = [0.0, 0.0]
@@ -462,7 +462,8 @@ class StreamingRetargeter:
         turned as) their targets were when the robot's foot touched down.
 
         With a_s, θ_s the person's ankle target (xy) and foot heading (ankle → toe; the hips'
-        facing direction for a profile without toe keypoints) of each such foot and r_s, φ_s their values under T at touch-down, the raw transform is
+        facing direction for a profile without toe keypoints) of each such foot and r_s, φ_s
+        their values under T at touch-down, the raw transform is
         ψ* = mean_s (φ_s − θ_s), o* = mean_s r_s − R(ψ*) mean_s a_s; ψ and the image of the
         pivot p = mean_s a_s move towards it by α = 1 − exp(−1 / (fps τ)), τ = ``anchor_time``.
         The robot then follows the person's steps (and turns step by step), not the drift,
@@ -494,16 +495,13 @@ class StreamingRetargeter:
                 d = (psi_raw - self._psi + math.pi) % (2 * math.pi) - math.pi
                 self._psi += al * d
                 c, sn = math.cos(self._psi), math.sin(self._psi)
-                self.offset = np.array([tx - (c * px - sn * py), ty - (sn * px + c * py)])
+                self.offset = (tx - (c * px - sn * py), ty - (sn * px + c * py))
         c, sn = math.cos(self._psi), math.sin(self._psi)
         ox, oy = self.offset
         self._ankles_now = [(c * x - sn * y + ox, sn * x + c * y + oy) for x, y in ankles]
         self._heads_now = [heads[0] + self._psi, heads[1] + self._psi]
         self._ankle_z = (lz, rz)
-        out = targets.copy()
-        out[:, 0] = c * targets[:, 0] - sn * targets[:, 1] + ox
-        out[:, 1] = sn * targets[:, 0] + c * targets[:, 1] + oy
-        return out
+        return targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
 
     def _set_points(self, first: bool) -> None:
         """Parameters of the CoM, DCM and ZMP rows and the CoM prediction (module docstring)."""
