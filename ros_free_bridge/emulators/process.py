@@ -19,7 +19,7 @@ import multiprocessing as mp
 import os
 
 
-def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allowed, conn) -> None:
+def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allowed, conn, realtime: int = 0) -> None:
     from ros_free_bridge.emulators import DynamixelBusEmulator
 
     if nice:
@@ -27,6 +27,11 @@ def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allow
             os.setpriority(os.PRIO_PROCESS, 0, nice)
         except OSError:
             pass  # raising priority needs privileges; run at the default
+    if realtime:
+        try:  # before the reader thread starts, which inherits the policy
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(realtime))
+        except (OSError, AttributeError):
+            pass  # needs CAP_SYS_NICE; run at normal priority
     emu = DynamixelBusEmulator(servos=servos, baud=baud, protocol=protocol, wire_timing=wire_timing,
                                return_delay_us=0.0).start()
     for servo_id, (lo, hi) in (allowed or {}).items():
@@ -39,14 +44,16 @@ def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allow
 
 class EmulatorProcess:
     """``servos``: IDs or (id, model) pairs (default IDs 1-20, XM430-W350). ``allowed``:
-    {servo id: (lo, hi) ticks}; goals outside are counted as violations."""
+    {servo id: (lo, hi) ticks}; goals outside are counted as violations. ``realtime``: a
+    SCHED_FIFO priority for the emulator (1-99; needs privileges, else ignored), so that on
+    a busy machine it answers like hardware, which no scheduler delays; 0: normal."""
 
     def __init__(self, servos=range(1, 21), baud: int = 2_000_000, protocol: int = 2, wire_timing: bool = True,
-                 nice: int = 0, allowed: dict | None = None):
+                 nice: int = 0, allowed: dict | None = None, realtime: int = 0):
         ctx = mp.get_context("fork")
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_child, args=(list(servos), baud, protocol, wire_timing, nice, allowed, child),
-                                 daemon=True)
+        self._proc = ctx.Process(target=_child, args=(list(servos), baud, protocol, wire_timing, nice, allowed, child,
+                                                      realtime), daemon=True)
         self._proc.start()
         self.port: str = self._conn.recv()
         self.stats: dict = {}
