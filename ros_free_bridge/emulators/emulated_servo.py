@@ -150,6 +150,7 @@ class EmulatedServo:
         }
         self._registered: tuple[int, bytes] | None = None
         self._baud_memo: tuple[int | None, int | None] = (None, None)
+        self._spans: dict[tuple[int, int], tuple] = {}  # (start, end) -> registers in it (the table never changes)
         has = model.registers.__contains__
         self._vel_name = "present_velocity" if has("present_velocity") else "present_speed"
         self._volt_name = model.first_register("present_input_voltage", "present_voltage").name
@@ -442,10 +443,16 @@ class EmulatedServo:
             return None
         return bytes(self._mem[address:address + length])
 
+    def _registers_in(self, start: int, end: int) -> tuple:
+        span = self._spans.get((start, end))
+        if span is None:
+            span = self._spans[(start, end)] = tuple(self.model.registers_in(start, end))
+        return span
+
     def check_write(self, address: int, data: bytes) -> WriteResult:
         """Whether a write of ``data`` at ``address`` would be accepted (no side effects)."""
         end = address + len(data)
-        regs = self.model.registers_in(address, end)
+        regs = self._registers_in(address, end)
         if not regs or end > len(self._mem):
             return WriteResult("access")
         for r in regs:
@@ -504,7 +511,7 @@ class EmulatedServo:
             return result
         was_on = self.torque_enabled
         old_offset = self._g("homing_offset") if self.has("homing_offset") else 0
-        for r in self.model.registers_in(address, address + len(data)):
+        for r in self._registers_in(address, address + len(data)):
             self._mem[r.address:r.end] = data[r.address - address:r.end - address]
         if self.has("homing_offset"):
             self._pos += self._g("homing_offset") - old_offset
