@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import fcntl
 import json
+import math
 import os
 import select
 import signal
@@ -51,6 +52,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -176,7 +178,7 @@ class GeneratorConfig:
     joint_names: list
     fps: float = 30.0
     checkpoint: str | None = None
-    window: int = 30
+    window: int = 60
     steps: int = 5
     hop: int = 5
     seed: int = 0
@@ -205,6 +207,8 @@ class GeneratorProcess:
         self.done = False
         self._targets: list = []
         self._events: list[dict] = []
+        self._cpu_at_ready = float("nan")
+        self.streaming_cpu_s = float("nan")  #: CPU seconds the child used from ready to close
 
     # -- life cycle ------------------------------------------------------------------------
     def start(self) -> "GeneratorProcess":
@@ -234,6 +238,7 @@ class GeneratorProcess:
             for kind, payload in self._chan.receive(min(left, 0.5)):
                 if kind == b"R":
                     self.ready_info = json.loads(payload)
+                    self._cpu_at_ready = self.cpu_seconds()
                     return self
                 if kind == b"X":
                     self.close()
@@ -251,8 +256,20 @@ class GeneratorProcess:
     def delay_frames(self) -> int | None:
         return self.ready_info.get("delay_frames")
 
+    def cpu_seconds(self) -> float:
+        """CPU seconds (user + system) the child has used so far (Linux /proc; NaN elsewhere or
+        once it has been reaped)."""
+        try:
+            fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError, TypeError):
+            return float("nan")
+
     def close(self, timeout: float = 5.0) -> None:
-        """End the child: EOF on its input, then wait, then kill. Idempotent."""
+        """End the child: EOF on its input, then wait, then kill. Idempotent. Records
+        ``streaming_cpu_s``: the child's CPU seconds from ready to close."""
+        if self.process is not None and self.process.poll() is None and math.isfinite(self._cpu_at_ready):
+            self.streaming_cpu_s = self.cpu_seconds() - self._cpu_at_ready
         if self._chan is not None:
             self._chan.close()
             self._chan = None

@@ -260,6 +260,10 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
     result.pipeline_info = {**_generator_info(opts, core), "frames_dropped": pipeline.frames_dropped,
                             "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events)}
+    cpu = getattr(core, "streaming_cpu_s", float("nan"))
+    if np.isfinite(cpu) and len(pipeline.actor_positions):
+        # CPU seconds the generator process used per second of actor motion: < 1 fits one core
+        result.pipeline_info["generator_cpu_per_s"] = round(cpu / (len(pipeline.actor_positions) / MOTION_FPS), 3)
     from dualflow.motion.io import save_motion
 
     if pipeline.actor_positions:

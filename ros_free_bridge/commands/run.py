@@ -118,7 +118,8 @@ def print_summary(result, stream=None) -> None:
     g = getattr(result, "pipeline_info", {})
     if g.get("generator") in ("process", "thread"):
         warm = f"; a full window took {g['warmup_window_ms']:.0f} ms at start" if "warmup_window_ms" in g else ""
-        lines.append(f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}), "
+        cpu = f"; it used {g['generator_cpu_per_s']:.2f} CPU s per s of motion" if "generator_cpu_per_s" in g else ""
+        lines.append(f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}{cpu}), "
                      f"partner frames dropped to keep up: {g['frames_dropped']} in {g['catch_ups']} catch-ups")
     for k, v in result.transport_info.items():
         lines.append(f"{k}: {v}")
