@@ -89,7 +89,7 @@ class LoopGc:
                 self._last_full = now
         elif pending >= self.hard_limit:
             t0 = time.perf_counter()
-            gc.collect(0)
+            gc.collect(1 if gc.get_count()[1] >= 10 else 0)  # the middle generation too, now and then
             self._note(time.perf_counter() - t0)
             self.stats.forced += 1
 
