@@ -34,6 +34,7 @@ the config's; c(x) is the CoM, h its standing height, ω = √(g/h)):
     √w_z · (h/g) fps² (c_xy − 2c₋₁ + c₋₂)                  ZMP offset: the CoM moves smoothly
     √w_pl · (z_sole, xy_sole − footprint)  (planted feet)  flat on their level footprint
     √w_lv · (z_corner − mean z_corner)  (each foot)        soles level, lifted ones too
+    √w_up · (root pitch, root roll)                        trunk upright
     √w_col · min(0, (d² − r²) / 2r)  (profile pairs)       capsules apart (feet, arms and legs;
                                                           the feet by ``feet_clearance`` more)
 
@@ -105,6 +106,7 @@ class StreamingConfig:
     zmp_weight: float = 30.0  # ZMP offset (h/g)·CoM acceleration (smooth CoM motion)
     balance_contact_weight: float = 1e3  # planted feet off their footprint (replaces contact_weight)
     level_weight: float = 30.0  # sole corner heights differing within a foot
+    upright_weight: float = 0.3  # per rad² of root pitch and roll (a leaning servo robot sags further)
     collision_weight: float = 1e5  # the profile's capsule pairs penetrating
     stance_margin: float = 0.03  # on one foot the CoM stays in the inner half of its footprint shrunk by this
     feet_clearance: float = 0.015  # extra distance kept between the two feet's capsules
@@ -196,6 +198,8 @@ class StreamingRetargeter:
                 res.append(wc * ca.reshape(sole[0:2, cols] - anchor[:, cols], -1, 1))
             w_ground = max(cfg.ground_weight, cfg.balance_contact_weight) if self.balance else cfg.ground_weight
             res.append(np.sqrt(w_ground) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
+            if self.balance and cfg.upright_weight > 0 and nr:  # trunk upright: root pitch and roll
+                res.append(np.sqrt(cfg.upright_weight) * x[4:6])
             if self.balance and cfg.level_weight > 0:  # soles level, in the air too (a foot lands flat)
                 for s in range(2):
                     z = sole[2, 4 * s:4 * s + 4]
@@ -239,6 +243,7 @@ class StreamingRetargeter:
                               for s in range(2)]
             self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
             self._feet_idx = list(self._ankles) + list(self._toes if self._toes is not None else (self._hips or []))
+            self._stand_kp = rb.evaluate(rb.x_stand[None])["keypoints"][0]
         r = ca.vertcat(*res)
         J = ca.jacobian(r, x)
         p = ca.vertcat(*p_parts)
@@ -248,7 +253,8 @@ class StreamingRetargeter:
         # parameters, iteration counts and the step rules do not), so configs share binaries
         shape = (wp, cfg.contact_weight, cfg.ground_weight, self.balance)
         if self.balance:
-            shape += (cfg.balance_contact_weight, cfg.level_weight, cfg.collision_weight, cfg.feet_clearance)
+            shape += (cfg.balance_contact_weight, cfg.level_weight, cfg.collision_weight, cfg.feet_clearance,
+                      cfg.upright_weight)
         key = f"{rb.fingerprint()}_{hash_config(shape)}"
         self._fn, self.compile_info = compiled_function(fn, key, enable=cfg.compile)
         # zero-copy evaluation: bind numpy buffers once (CasADi reads/writes column-major)
@@ -411,6 +417,10 @@ class StreamingRetargeter:
             raise RetargetError(f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}")
         cfg = self.config
         first = self._x1 is None
+        if self.balance:
+            targets = self._anchor_targets(targets, contact, first)
+            if first:  # start standing: feet at the robot's own stance under the person's pelvis
+                targets = self._neutral_stance(targets)
         if first:
             x = self._initial_guess(targets)
             x1 = x2 = x
@@ -427,7 +437,6 @@ class StreamingRetargeter:
             iters = cfg.iterations
         lo, hi = self.bounds()
         if self.balance:
-            targets = self._anchor_targets(targets, contact, first)
             if first:
                 # the stream starts standing: both feet put down flat where the fit left them
                 self._residual(x)
@@ -478,7 +487,9 @@ class StreamingRetargeter:
             heads = [h, h]
         ankles = ((lx, ly), (rx, ry))
         if not first:
-            ref = [s for s in range(2) if contact[s] and self.planted[s]]
+            # without steps both feet stay planted: the person's two feet (down or not) anchor
+            # their midpoint, so a walking person's pelvis stays over the robot's feet
+            ref = [s for s in range(2) if (contact[s] or not self.config.steps) and self.planted[s]]
             if ref:
                 n = len(ref)
                 sx = sum(math.cos(self._head_ref[s] - heads[s]) for s in ref)
@@ -502,6 +513,25 @@ class StreamingRetargeter:
         self._heads_now = [heads[0] + self._psi, heads[1] + self._psi]
         self._ankle_z = (lz, rz)
         return targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
+
+    def _neutral_stance(self, targets: np.ndarray) -> np.ndarray:
+        """``targets`` (K, 3) with the ankle and toe targets moved to where the robot's stand
+        pose puts them relative to its pelvis, turned to the person's hip heading and placed
+        under the pelvis target (a person caught mid-stride would otherwise plant the robot's
+        feet in a stride it cannot balance on)."""
+        if self._hips is None:
+            return targets
+        out = targets.copy()
+        across = targets[self._hips[0], 0:2] - targets[self._hips[1], 0:2]
+        yaw = math.atan2(-across[0], across[1])
+        c, sn = math.cos(yaw), math.sin(yaw)
+        root = self.robot.root_keypoint
+        for k in self._foot_kps[0] + self._foot_kps[1]:
+            dx, dy = self._stand_kp[k, 0:2] - self._stand_kp[root, 0:2]
+            out[k, 0] = targets[root, 0] + c * dx - sn * dy
+            out[k, 1] = targets[root, 1] + sn * dx + c * dy
+            out[k, 2] = self.robot.standing_heights[k]
+        return out
 
     def _set_points(self, first: bool) -> None:
         """Parameters of the CoM, DCM and ZMP rows and the CoM prediction (module docstring)."""
