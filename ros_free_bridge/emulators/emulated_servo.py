@@ -151,6 +151,10 @@ class EmulatedServo:
         self._registered: tuple[int, bytes] | None = None
         self._baud_memo: tuple[int | None, int | None] = (None, None)
         self._spans: dict[tuple[int, int], tuple] = {}  # (start, end) -> registers in it (the table never changes)
+        present, goal = model.registers["present_position"], model.registers["goal_position"]
+        self._present_span = (present.address, present.end)
+        self._goal_span = (goal.address, goal.end)
+        self._has_mode = "operating_mode" in model.registers
         has = model.registers.__contains__
         self._vel_name = "present_velocity" if has("present_velocity") else "present_speed"
         self._volt_name = model.first_register("present_input_voltage", "present_voltage").name
@@ -303,8 +307,9 @@ class EmulatedServo:
         m = self.model
         velocity_ticks_s = 0.0
         current_a = 0.0
-        if self.torque_enabled and not self.faults.disconnected:
-            mode = self._g("operating_mode") if self.has("operating_mode") else 3
+        torque = self._g("torque_enable") == 1
+        if torque and not self.faults.disconnected:
+            mode = self._g("operating_mode") if self._has_mode else 3
             v_cap = self._max_speed_ticks_s()
             if mode == 1 and self.has("goal_velocity"):
                 target_v = max(-v_cap, min(v_cap, self._g("goal_velocity") * m.velocity_rpm * m.position.ticks_per_turn / 60.0))
@@ -336,7 +341,7 @@ class EmulatedServo:
             ratio = current_a / m.ratings.stall_current_a
             t_ss = self.ambient_c + THERMAL_RISE_AT_STALL_K * ratio * ratio
             self._temp = t_ss + (self._temp - t_ss) * math.exp(-dt / THERMAL_TAU_S)
-        if self.torque_enabled and self._shutdown_active():
+        if torque and self._shutdown_active():
             self.set("torque_enable", 0)
         self._vel, self._cur, self._stale = velocity_ticks_s, current_a, True
 
@@ -438,7 +443,13 @@ class EmulatedServo:
         """Raw bytes of the control table, or None if the span leaves the table."""
         self.advance()
         if self._stale:
-            self._sync_outputs(self._vel, self._cur, self._last)
+            pos = self._present_span
+            if pos[0] <= address and address + length <= pos[1]:
+                # only Present Position is read (a sync read's usual span): refresh just it;
+                # the other outputs stay stale until something reads them
+                self.set("present_position", int(round(self._pos)))
+            else:
+                self._sync_outputs(self._vel, self._cur, self._last)
         if address < 0 or length < 0 or address + length > len(self._mem):
             return None
         return bytes(self._mem[address:address + length])
@@ -500,22 +511,31 @@ class EmulatedServo:
         data = bytes(data)
         result = self.check_write(address, data)
         goal_reg = self._regs["goal_position"]
-        if address < goal_reg.end and goal_reg.address < address + len(data):
+        g0, g1 = self._goal_span
+        if address < g1 and g0 < address + len(data):
             # record any write touching Goal Position; a partial one as the bytes it
             # would have left in the register (it is refused with a length error)
-            merged = bytearray(self._mem[goal_reg.address:goal_reg.end])
-            for k in range(max(address, goal_reg.address), min(address + len(data), goal_reg.end)):
-                merged[k - goal_reg.address] = data[k - address]
-            self._record_goal(goal_reg.decode(bytes(merged)), result.ok, instruction)
+            if address <= g0 and g1 <= address + len(data):
+                ticks = goal_reg.decode(data[g0 - address:g1 - address])
+            else:
+                merged = bytearray(self._mem[g0:g1])
+                for k in range(max(address, g0), min(address + len(data), g1)):
+                    merged[k - g0] = data[k - address]
+                ticks = goal_reg.decode(bytes(merged))
+            self._record_goal(ticks, result.ok, instruction)
         if not result.ok:
             return result
-        was_on = self.torque_enabled
-        old_offset = self._g("homing_offset") if self.has("homing_offset") else 0
-        for r in self._registers_in(address, address + len(data)):
+        regs = self._registers_in(address, address + len(data))
+        names = {r.name for r in regs}
+        torque = "torque_enable" in names  # only these writes can switch torque or move the home
+        homing = "homing_offset" in names
+        was_on = self.torque_enabled if torque else True
+        old_offset = self._g("homing_offset") if homing else 0
+        for r in regs:
             self._mem[r.address:r.end] = data[r.address - address:r.end - address]
-        if self.has("homing_offset"):
+        if homing:
             self._pos += self._g("homing_offset") - old_offset
-        if self.torque_enabled and not was_on:
+        if torque and self.torque_enabled and not was_on:
             self._torque_on_at = self.clock()
             if self._shutdown_active():
                 self.set("torque_enable", 0)  # shutdown holds torque off until REBOOT
