@@ -452,9 +452,10 @@ class StreamingRetargeter:
             self._pbuf[self._p_zmp] = 0.0 if first else self._zmp_scale
             self._set_points(first)
         x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi)
-        x = np.clip(x, lo, hi)
+        x = np.clip(x, lo, hi)  # a no-op (every iterate is in the box) but exact in floating point
         if self._has_feet:
-            self._residual(x)
+            # the buffers hold r, J, the soles and the CoM at the returned x: _solve evaluates
+            # each accepted iterate last (or re-evaluates x after a rejected step)
             if self.balance:
                 self._sole1 = self._solebuf.copy()
                 self._c2 = self._c1
