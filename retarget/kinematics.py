@@ -333,8 +333,10 @@ class RobotKinematics:
         return Capsule(name or f"geom{geom}", int(m.geom_bodyid[geom]), c - half * axis, c + half * axis, float(radius))
 
     def capsule_segment(self, cap: Capsule) -> tuple[ca.SX, ca.SX]:
-        """World end points (3,1), (3,1) of the capsule's axis segment."""
-        return self.point(cap.body, cap.p0), self.point(cap.body, cap.p1)
+        """World end points (3,1), (3,1) of the capsule's axis segment; for a sphere (p0 = p1)
+        both are the same object, so distance functions can use the point formulas."""
+        p0 = self.point(cap.body, cap.p0)
+        return (p0, p0) if np.array_equal(cap.p0, cap.p1) else (p0, self.point(cap.body, cap.p1))
 
     # -- numeric helpers ------------------------------------------------------
     def function(self, name: str, outputs: list, labels: list[str] | None = None) -> ca.Function:

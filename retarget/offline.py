@@ -116,7 +116,7 @@ class OfflineRetargeter:
         if key in self._solvers:
             return self._solvers[key]
         rb, cfg = self.robot, self.config
-        nx, nr, nj, K = rb.nx, rb.n_root, rb.kin.n_joints, rb.n_keypoints
+        nx, nr, K = rb.nx, rb.n_root, rb.n_keypoints
         feet = rb.has_feet and rb.floating and cfg.contacts
         balance = feet and cfg.balance
         X = ca.MX.sym("X", nx, W)
@@ -222,7 +222,8 @@ class OfflineRetargeter:
         tg = make_targets(self.robot, motion, contacts, scaler)
         t0 = time.perf_counter()
         stream = StreamingRetargeter(self.robot, fps, self.streaming_config)
-        X0 = np.stack([stream.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
+        ws = feet_apart(self.robot, tg.keypoints, 0.02) if self.config.self_collision else tg.keypoints
+        X0 = np.stack([stream.step(ws[t], tg.contacts[t]) for t in range(motion.n_frames)])
         X, stats = self.solve(tg, X0)
         stats["seconds"] = time.perf_counter() - t0
         stats["retime"] = factor
@@ -253,7 +254,7 @@ class OfflineRetargeter:
     def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool):
         cfg, rb = self.config, self.robot
         solver, layout, P, balance, feet, info = self._solver(W, tg.fps)
-        T, nx, nr = X.shape[0], rb.nx, rb.n_root
+        T, nx = X.shape[0], rb.nx
         idx = np.minimum(np.arange(s, s + W), T - 1)
         real = (np.arange(s, s + W) < T).astype(float)
         tgt = tg.keypoints[idx].reshape(W, -1).T  # (3K, W): column t = (k0x k0y k0z k1x …)
@@ -305,13 +306,83 @@ class OfflineRetargeter:
         g = np.array(sol["g"]).ravel()
         viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
         if status not in _OK and viol > 1e-5:
-            raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g})")
+            worst = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s)
+            raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
+                              f"worst: {worst})")
         Xw = xs[:nx * W].reshape(W, nx)
         return Xw, int(st.get("iter_count", 0)), info
 
 
+    def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int, s: int) -> str:
+        """Name the most violated constraint: its block (velocity, sole_z, slide, balance, collision
+        pair) and the clip frame, e.g. ``collision l_sole_in/r_sole_in at frame 12``."""
+        v = np.maximum(lbg - g, 0) + np.maximum(g - ubg, 0)
+        i = int(np.argmax(v))
+        start = 0
+        for name, size in layout.items():
+            if i < start + size:
+                rows = size // (W - 1) if name in ("vel", "slide") else size // W
+                j, frame = (i - start) % rows, s + (i - start) // rows
+                what = name
+                if name == "collision":
+                    a, b = self.robot.collision_pairs[j]
+                    what = f"collision {a}/{b}"
+                elif name == "vel":
+                    what = f"velocity of {self._x_name(j)}"
+                return f"{what} at frame {frame}"
+            start += size
+        return "unknown"
+
+    def _x_name(self, i: int) -> str:
+        rb = self.robot
+        root = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")
+        return root[i] if i < rb.n_root else rb.joint_names[i - rb.n_root]
+
+
 class _Infeasible(Exception):
     pass
+
+
+#: keypoints moved with each foot by :func:`feet_apart` (share of the foot's shift)
+_FOOT_CHAIN = {"ankle": 1.0, "foot": 1.0, "knee": 0.5}
+
+
+def feet_apart(robot, keypoints: np.ndarray, extra: float = 0.0) -> np.ndarray:
+    """Keypoint targets (T, K, 3) with the feet at least as far apart sideways as the robot's
+    standing feet: the warm start for the offline solver, so that it starts with the feet on
+    their own sides (a start with the soles crossed can leave IPOPT stuck on the wrong side of
+    the foot-foot collision constraint). The streaming solver tracks these targets only
+    approximately (planted feet stay where they landed), so this makes overlapping soles in
+    the warm start rarer, not impossible; IPOPT's hard constraints do the rest.
+
+    Per frame, with l = the horizontal unit vector from the right to the left hip target,
+    s = min over (ankle, toe) of (p_left − p_right)·l and s₀ the same in the robot's stand
+    pose plus ``extra`` (m): if s < s₀, the left foot's ankle and toe move by +(s₀ − s)/2 · l, the right's by
+    −(s₀ − s)/2 · l, and the knees by half that. Other keypoints are unchanged."""
+    names = robot.keypoint_names
+    need = [f"{side}_{j}" for side in ("left", "right") for j in ("hip", "ankle", "foot")]
+    if not all(n in names for n in need):
+        return keypoints
+    idx = {n: names.index(n) for n in names}
+    stand = robot.evaluate(robot.x_stand[None])["keypoints"][0]
+
+    def sep(kp):  # kp (T, K, 3) -> (T,) and the lateral axis (T, 3)
+        across = kp[:, idx["left_hip"]] - kp[:, idx["right_hip"]]
+        across[:, 2] = 0.0
+        lat = across / np.maximum(np.linalg.norm(across, axis=-1, keepdims=True), 1e-9)
+        d = [np.sum((kp[:, idx[f"left_{j}"]] - kp[:, idx[f"right_{j}"]]) * lat, axis=-1) for j in ("ankle", "foot")]
+        return np.minimum(*d), lat
+
+    s0 = float(sep(stand[None])[0][0]) + extra
+    s, lat = sep(keypoints)
+    push = np.maximum(s0 - s, 0.0)[:, None] / 2 * lat  # (T, 3)
+    out = np.array(keypoints, dtype=np.float64, copy=True)
+    for j, share in _FOOT_CHAIN.items():
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            name = f"{side}_{j}"
+            if name in idx:
+                out[:, idx[name]] += sign * share * push
+    return out
 
 
 def retarget_offline(robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None,

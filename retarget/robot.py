@@ -23,7 +23,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from dualflow.motion.skeleton import JOINT_NAMES, PARENTS, REST_POSE
+from dualflow.motion.skeleton import JOINT_NAMES, PARENTS
 from retarget.errors import RetargetError
 from retarget.kinematics import Capsule, RobotKinematics, quat_to_mat
 from retarget.profile import RetargetProfile
@@ -40,9 +40,23 @@ def segment_distance_sq(p0, p1, q0, q1, eps: float = 1e-12):
     With u = p1 − p0, v = q1 − q0, w = p0 − q0, a = u·u, b = u·v, c = v·v, d = u·w, e = v·w:
     s = clamp((b e − c d) / (a c − b²)), t = clamp((b s + e) / c), s = clamp((b t − d) / a);
     the closest points are p0 + s u and q0 + t v (Ericson, Real-Time Collision Detection §5.1.9).
+    A sphere is a segment whose end points are the same object (``p0 is p1``, as
+    :meth:`RobotKinematics.capsule_segment` returns for a capsule with p0 = p1); a sphere's
+    centre q against a segment uses s = clamp((q − p0)·u / u·u).
     """
     lib = ca if isinstance(p0, (ca.SX, ca.MX)) else np
     dot = (lambda x, y: ca.dot(x, y)) if lib is ca else (lambda x, y: float(np.dot(np.ravel(x), np.ravel(y))))
+    if p0 is p1 and q0 is not q1:  # a sphere's centre against a segment
+        p0, p1, q0, q1 = q0, q1, p0, p1
+    if q0 is q1:
+        # point q0 against segment p0p1: s = clamp((q0 − p0)·u / u·u), well conditioned whatever
+        # the directions (the general formula below divides by a c − b², which vanishes for
+        # parallel segments such as two feet side by side)
+        u = p1 - p0
+        clamp = (lambda x: ca.fmin(ca.fmax(x, 0), 1)) if lib is ca else (lambda x: min(max(x, 0.0), 1.0))
+        s = clamp(dot(q0 - p0, u) / (dot(u, u) + eps)) if p0 is not p1 else 0.0
+        diff = p0 + s * u - q0
+        return dot(diff, diff)
     u, v, w = p1 - p0, q1 - q0, p0 - q0
     a, b, c, d, e = dot(u, u) + eps, dot(u, v), dot(v, v) + eps, dot(u, w), dot(v, w)
     den = a * c - b * b
