@@ -9,6 +9,12 @@ One tick (default 100 Hz), never blocking on the slow stages:
 4. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
 5. record the tick in telemetry.
 
+While ticking, :mod:`ros_free_bridge.realtime` keeps the loop on time: the heap is frozen
+and young objects are collected only in a tick's slack after the bus write (no collector
+pause inside a tick), the GIL switch interval is 0.5 ms (a generator thread cannot hold the
+loop off for the default 5 ms), and ``LoopConfig.realtime_priority`` puts the loop thread in
+SCHED_FIFO where permitted. All of it is undone when :meth:`ControlLoop.run` returns.
+
 Life cycle: open → read present → goal = present → torque on → minimum-jerk ramp to the
 rest pose → ``ready`` is set (actor replay may start) → stream → minimum-jerk ramp back
 to the rest pose → stop policy (``hold`` or ``limp``) → close. An e-stop (SIGINT,
