@@ -14,8 +14,10 @@ Per window of W frames, with X = [x_0 … x_{W−1}] (nx, W) and, with balance, 
               (d = xy_2 − xy_0, the sole diagonal). Exactly 6 equations fix a planted foot's 6 DOF:
               the redundant 8 + 8 of fixing all four corners break the constraint qualification
               (rank-deficient Jacobian), which slowed IPOPT (≈21 → ≈15 iterations per window on CMU)
-         com_xy(x_t) = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0            balance: CoM over the support polygon
+         b_t = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0                     balance: the point b over the support polygon
               (λ_ti = 0 for corners of a foot in the air)                   shrunk by ``balance_margin``
+              b_t = zmp_t = c_xy,t − (c_z,t / g) fps² (c_xy,t+1 − 2 c_xy,t + c_xy,t−1)   (``zmp``, default; the
+              cart-table ZMP, one-sided at window ends), or the static CoM b_t = c_xy,t
          ‖seg_a − seg_b‖² ≥ (r_a + r_b + margin)²                         self-collision between capsule pairs
 
 f_t is 1 for real frames and 0 for padding (also masking the acceleration and jerk terms
@@ -52,6 +54,7 @@ from retarget.targets import Targets, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
 _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+GRAVITY = 9.81  # m/s²
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,7 @@ class OfflineConfig:
     contacts: bool = True
     balance: bool = False
     balance_margin: float = 0.01
+    zmp: bool = True  # balance keeps the ZMP (CoM with its acceleration term), not only the CoM, over the polygon
     self_collision: bool = True
     velocity_safety: float = 0.995
     compile: bool = True
@@ -157,7 +161,14 @@ class OfflineRetargeter:
         if balance:
             s = ca.reshape(shr, 16, W)
             sx, sy = s[0::2, :], s[1::2, :]
-            comxy = ca.reshape(com, 3, W)[0:2, :]
+            c3 = ca.reshape(com, 3, W)
+            comxy = c3[0:2, :]
+            if cfg.zmp and W >= 3:
+                # ZMP of the cart-table model: p = c_xy − (c_z / g) · c̈_xy, with c̈ the central
+                # second difference (one-sided at the window's ends)
+                acc = (c3[0:2, 2:] - 2 * c3[0:2, 1:-1] + c3[0:2, :-2]) * fps ** 2
+                acc = ca.horzcat(acc[:, 0], acc, acc[:, -1])
+                comxy = comxy - ca.repmat(c3[2, :] / GRAVITY, 2, 1) * acc
             g.append(ca.vec(ca.vertcat(comxy[0, :] - ca.sum1(L * sx), comxy[1, :] - ca.sum1(L * sy), ca.sum1(L) - 1)))
             layout["balance"] = 3 * W
         P = coll.shape[0]
