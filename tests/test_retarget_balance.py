@@ -225,3 +225,16 @@ def test_balance_needs_ankle_keypoints():
     StreamingRetargeter(rb, FPS, StreamingConfig(balance=False))  # fine without balance
     with pytest.raises(RetargetError, match="left_ankle"):
         StreamingRetargeter(rb, FPS, StreamingConfig(balance=True))
+
+
+def test_bridge_retarget_stage_balances_free_standing_robots_only(op3):
+    from ros_free_bridge.stages import RetargetStage
+
+    assert RetargetStage(op3, FPS).streamer.balance
+    assert not RetargetStage(load_robot("ub14"), FPS).streamer.balance
+    # a live stream with no contact labels still starts with both feet planted
+    stage = RetargetStage(op3, FPS)
+    motion = person(seconds=0.5, sway=0.03)
+    for t in range(motion.n_frames):
+        stage.step(motion.positions[t], None)
+    assert stage.streamer.planted.all()
