@@ -375,7 +375,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         mbit = f"{baud / 1e6:g} Mbit/s"
         out.append(Row(f"bus cycle, sync write + fast sync read, 20 servos @ {mbit} (ms median; theory {th:.2f}; "
                        "baseline bare SDK)", m(r["cycle"]), m(r["sdk"]), "", NA))
-        out.append(Row(f"host-side time per bus cycle @ {mbit}, wall clock: cycle minus reply wait (ms median; load shows here)", m(r["host"]), "", host_target,
+        out.append(Row(f"host-side time per bus cycle @ {mbit}, wall clock: cycle minus reply wait "
+                       "(ms median; load shows here)", m(r["host"]), "", host_target,
                        verdict(m(r["host"]) < TARGET_HOST_MS)))
     hc = host_cpu(2_000_000, args.cycles)
     m = statistics.median

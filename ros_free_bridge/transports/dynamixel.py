@@ -184,7 +184,7 @@ class ExclusivePortHandler(sdk.PortHandler):
         while the reply is on the wire, a core the rest of the machine (on a 2-core host:
         an emulator, the motion generator) needs."""
         data = self.ser.read(length)
-        if data or self._poll is None:
+        if data or self._poll is None or length <= 0:  # nothing asked for: nothing to wait for
             return data
         left_ms = self.packet_timeout - self.getTimeSinceStart()
         if left_ms > 0 and self._poll.poll(left_ms):
