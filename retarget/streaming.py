@@ -38,36 +38,12 @@ the config's; c(x) is the CoM, h its standing height, ω = √(g/h)):
     √w_col · min(0, (d² − r²) / 2r)  (profile pairs)       capsules apart (feet, arms and legs;
                                                           the feet by ``feet_clearance`` more)
 
-- *Planted* feet are held on their level footprint: the sole's rectangle flat on the ground
-  (z = 0), at the centre and heading the foot had when it touched down
-  (:func:`retarget.support.level_footprint`). (Without balance the anchor is the previous
-  frame's sole, re-taken every frame.) The ground row gets the planted weight too.
-- The support region (:mod:`retarget.support`): on two feet, the hull of the feet's long centre
-  lines, ``balance_margin`` in from toe and heel and ``double_support_inset`` towards each
-  other (a compliant servo robot with its CoM over one foot unloads the other and sags over);
-  on one foot, the inner half (towards the lifted foot) of its footprint shrunk by
-  ``stance_margin``: a servo leg alone sags outwards, so the CoM stays on the inner side.
-- Steps (``steps``, off by default): without them both feet stay planted whatever the person
-  does. The bundled op3's position servos (kp 17.5 N m/rad) make one leg a soft spring: ankle
-  roll and hip roll in series give ≈ 8.8 N m/rad against the m g h ≈ 8 N m/rad a 3.4 kg body
-  at 0.24 m asks, so the robot survives standing on one leg but not the sway of getting there
-  open loop (sim's check topples it), while on two feet it is stiff. With steps on, contacts
-  come from the person (the motion's labels, or detected). A robot foot lifts only
-  when the person's leaves (rises ``lift_height`` above the other, or moves ``step_distance`` /
-  turns ``step_turn`` from where the robot's was put down) while the person's other foot is
-  down, after ``min_stance``; and only once the CoM has been over the other foot's stance
-  region for ``settle``. Until then the robot shifts its weight: the region becomes the
-  stance footprint plus one point p = c₋₁ moved towards it (at most ``shift_speed``, speeding up
-  by at most ``shift_accel``). A lifted foot's targets stay within ``swing_height`` of standing
-  height; it touches down (flat, where it is) when the person's foot is down, or after
-  ``max_swing``. The last planted foot never lifts: a jump or a glide is played on both feet.
-- The person's translation and heading are anchored to the planted feet
-  (:meth:`StreamingRetargeter._anchor_targets`): the robot follows steps, not sliding.
+Which feet are planted (and where), the support region A c ≤ b and the anchoring of the
+person's translation to the planted feet come from :class:`retarget.balance.BalancePlanner`.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import casadi as ca
@@ -77,8 +53,7 @@ from dualflow.motion import Motion
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
 from retarget.robot import segment_distance_sq
-from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint,
-                              stance_points, support_polygon)
+from retarget.balance import N_EDGES, BalancePlanner
 from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
@@ -153,9 +128,6 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, m
     return d
 
 
-#: half-planes of the balance region passed to the compiled function: the two-foot region has
-#: 4 corners, the stance region 4 plus the weight-shift point; unused rows are 0·c ≤ 1
-_N_EDGES = 6
 
 
 class StreamingRetargeter:
@@ -207,7 +179,7 @@ class StreamingRetargeter:
         p_parts = [ca.reshape(tgt, -1, 1), x1, x2, acc_scale, contact, ca.reshape(anchor, -1, 1)]
         com = ca.SX.zeros(3, 1)
         if self.balance:
-            edges = ca.SX.sym("edges", 3, _N_EDGES)  # rows a_x, a_y, b: inside ⇔ a·c ≤ b
+            edges = ca.SX.sym("edges", 3, N_EDGES)  # rows a_x, a_y, b: inside ⇔ a·c ≤ b
             # the CoM, the DCM and the ZMP, each an affine map α c_xy + β of the CoM (columns α, β_x, β_y)
             points = ca.SX.sym("points", 3, 3)
             point_w = ca.SX.sym("point_w", 3)  # their √weights (0 turns one off)
@@ -231,19 +203,6 @@ class StreamingRetargeter:
                     d2 = segment_distance_sq(*rb.kin.capsule_segment(cap_a), *rb.kin.capsule_segment(cap_b))
                     res.append(np.sqrt(cfg.collision_weight) * ca.fmin((d2 - rr * rr) / (2 * rr), 0))
             p_parts += [ca.reshape(edges, -1, 1), ca.reshape(points, -1, 1), point_w, c_pred, zmp_scale]
-        names = rb.keypoint_names
-        self._ankles = ([names.index("left_ankle"), names.index("right_ankle")]
-                        if "left_ankle" in names and "right_ankle" in names else None)
-        self._toes = ([names.index("left_foot"), names.index("right_foot")]
-                      if "left_foot" in names and "right_foot" in names else None)
-        self._hips = ([names.index("left_hip"), names.index("right_hip")]
-                      if "left_hip" in names and "right_hip" in names else None)
-        if self._ankles is not None:
-            self._foot_kps = [[k for k in (self._ankles[s], self._toes[s] if self._toes else None) if k is not None]
-                              for s in range(2)]
-            self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
-            self._feet_idx = list(self._ankles) + list(self._toes if self._toes is not None else (self._hips or []))
-            self._stand_kp = rb.evaluate(rb.x_stand[None])["keypoints"][0]
         r = ca.vertcat(*res)
         J = ca.jacobian(r, x)
         p = ca.vertcat(*p_parts)
@@ -280,8 +239,8 @@ class StreamingRetargeter:
         self._p_contact = slice(n_t + 2 * nx + 1, n_t + 2 * nx + 3)
         self._p_anchor = slice(n_t + 2 * nx + 3, n_t + 2 * nx + 19)
         n_b = n_t + 2 * nx + 19
-        self._p_edges = slice(n_b, n_b + 3 * _N_EDGES)
-        n_b += 3 * _N_EDGES
+        self._p_edges = slice(n_b, n_b + 3 * N_EDGES)
+        n_b += 3 * N_EDGES
         self._p_points = slice(n_b, n_b + 9)
         self._p_point_w = slice(n_b + 9, n_b + 12)
         self._p_cpred = slice(n_b + 12, n_b + 14)
@@ -293,19 +252,13 @@ class StreamingRetargeter:
         self._min_stance_frames = round(cfg.min_stance * self.fps)
         self._settle_frames = round(cfg.settle * self.fps)
         self._max_swing_frames = round(cfg.max_swing * self.fps)
+        self._anchor = np.zeros((2, 8))
+        self.planner = None
         if self.balance:
-            h = float(rb.evaluate(rb.x_stand[None])["com"][0, 2] - rb.evaluate(rb.x_stand[None])["sole"][0, :, 2].min())
-            self._zmp_k = h / 9.81 * self.fps ** 2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
-            self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
-            self._zmp_scale = np.sqrt(cfg.zmp_weight) * self._zmp_k
-            self._point_w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
-            self._point_w0 = np.sqrt([cfg.balance_weight, 0.0, 0.0])
-            self._sole_local = [f.corners for f in rb.feet]
-        self._anchor_alpha = 1.0 - math.exp(-1.0 / (self.fps * cfg.anchor_time))
-        if self.balance and (self._ankles is None or (self._toes is None and self._hips is None)):
-            raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
-                                "and right_ankle keypoints, and left/right_foot or left/right_hip ones (it follows the person's "
-                                "feet); add them or turn balance off")
+            self.planner = BalancePlanner(rb, cfg, self.fps)
+            pb = self._pbuf
+            self.planner.bind(self._anchor, pb[self._p_edges], pb[self._p_points], pb[self._p_point_w],
+                              pb[self._p_cpred], pb[self._p_zmp:self._p_zmp + 1])
 
     def _residual(self, x: np.ndarray) -> float:
         """Evaluate r, J (and the sole corners) at x into the bound buffers; returns ½‖r‖²."""
@@ -317,27 +270,16 @@ class StreamingRetargeter:
         """Forget the history (the next frame is solved from the stand pose)."""
         self._x1 = None
         self._x2 = None
-        self._anchor = np.zeros((2, 8))
-        #: balance state: feet planted (left, right), their level footprints (4, 2) m, the CoM
-        #: xy of the last two emitted frames, and the last frame's sole corners (3, 8)
-        self.planted = np.zeros(2, dtype=bool)
-        self._prints: list = [None, None]
-        self._settled = 0  # frames the CoM has been over the stance foot while the other waits to lift
-        self._stance: list = [None, None]  # per planted foot: (hull, A, b) of its region when it stands alone
-        self._region_key = None
-        self._c1 = self._c2 = None
-        self._sole1 = None
-        self.shifting = False
-        #: horizontal offset (x, y) m added to the targets (balance: the stance foot anchors the
-        #: human's translation) and the ankle targets (2, 2) recorded when each foot touched down
-        self.offset = (0.0, 0.0)
-        self._psi = 0.0
-        self._ankle_ref = [(0.0, 0.0), (0.0, 0.0)]
-        self._head_ref = [0.0, 0.0]
-        self._since = np.zeros(2, dtype=int)  # frames since each foot last touched down or lifted
-        if self.balance:  # no balance rows until the first frame has planted the feet
-            self._pbuf[self._p_edges] = np.tile([0.0, 0.0, 1.0], _N_EDGES)
-            self._pbuf[self._p_points.start:] = 0.0
+        self._anchor[:] = 0.0
+        self._contact = np.zeros(2, dtype=bool)
+        if self.planner is not None:
+            self.planner.reset()
+
+    @property
+    def planted(self) -> np.ndarray:
+        """(2,) bool: the robot's feet held on the ground in the last frame (balance; else the
+        contacts given)."""
+        return self.planner.planted if self.planner is not None else self._contact
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Position ∩ velocity bounds for the next frame."""
@@ -418,9 +360,9 @@ class StreamingRetargeter:
         cfg = self.config
         first = self._x1 is None
         if self.balance:
-            targets = self._anchor_targets(targets, contact, first)
+            targets = self.planner.anchor(targets, contact, first)
             if first:  # start standing: feet at the robot's own stance under the person's pelvis
-                targets = self._neutral_stance(targets)
+                targets = self.planner.neutral_stance(targets)
         if first:
             x = self._initial_guess(targets)
             x1 = x2 = x
@@ -437,202 +379,24 @@ class StreamingRetargeter:
             iters = cfg.iterations
         lo, hi = self.bounds()
         if self.balance:
-            if first:
-                # the stream starts standing: both feet put down flat where the fit left them
+            if first:  # the stream starts standing: both feet put down flat where the fit left them
                 self._residual(x)
-                self._sole1 = self._solebuf.copy()
-                self._c1 = self._c2 = self._combuf[0:2].copy()
-                contact = self._plan_balance((True, True))
+                contact = self.planner.start(self._solebuf, self._combuf[0:2])
             else:
-                contact = self._plan_balance(contact)
-                for s in range(2):
-                    if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
-                        k = self._foot_kps[s]
-                        targets[k, 2] = np.clip(targets[k, 2], self._foot_kp_h[s], self._foot_kp_h[s] + cfg.swing_height)
-            self._pbuf[self._p_zmp] = 0.0 if first else self._zmp_scale
-            self._set_points(first)
+                contact = self.planner.next(contact, targets)
+        self._contact = np.array(contact, dtype=bool)
         x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi)
         x = np.clip(x, lo, hi)  # a no-op (every iterate is in the box) but exact in floating point
         if self._has_feet:
             # the buffers hold r, J, the soles and the CoM at the returned x: _solve evaluates
             # each accepted iterate last (or re-evaluates x after a rejected step)
             if self.balance:
-                self._sole1 = self._solebuf.copy()
-                self._c2 = self._c1
-                self._c1 = self._combuf[0:2].copy()
+                self.planner.record(self._solebuf, self._combuf[0:2])
             else:
-                self._anchor = self._solebuf[0:2, :].copy()
+                self._anchor[:] = self._solebuf[0:2, :]
         self._x2 = self._x1 if not first else x
         self._x1 = x
         return x
-
-    def _anchor_targets(self, targets: np.ndarray, contact, first: bool) -> np.ndarray:
-        """Move the targets by a horizontal rigid transform T(p) = R(ψ) p + o so that the
-        person's feet that are down, where the robot's are planted too, stay where (and
-        turned as) their targets were when the robot's foot touched down.
-
-        With a_s, θ_s the person's ankle target (xy) and foot heading (ankle → toe; the hips'
-        facing direction for a profile without toe keypoints) of each such foot and r_s, φ_s
-        their values under T at touch-down, the raw transform is
-        ψ* = mean_s (φ_s − θ_s), o* = mean_s r_s − R(ψ*) mean_s a_s; ψ and the image of the
-        pivot p = mean_s a_s move towards it by α = 1 − exp(−1 / (fps τ)), τ = ``anchor_time``.
-        The robot then follows the person's steps (and turns step by step), not the drift,
-        turning on the spot or skating of the feet (generated motion often slides them),
-        which it could not do standing."""
-        feet = targets[self._feet_idx, 0:3].tolist()  # left/right ankle, then left/right toe or hip
-        (lx, ly, lz), (rx, ry, rz) = feet[0], feet[1]
-        if self._toes is not None:
-            heads = [math.atan2(feet[2][1] - ly, feet[2][0] - lx), math.atan2(feet[3][1] - ry, feet[3][0] - rx)]
-        else:
-            h = math.atan2(-(feet[2][0] - feet[3][0]), feet[2][1] - feet[3][1])
-            heads = [h, h]
-        ankles = ((lx, ly), (rx, ry))
-        if not first:
-            # without steps both feet stay planted: the person's two feet (down or not) anchor
-            # their midpoint, so a walking person's pelvis stays over the robot's feet
-            ref = [s for s in range(2) if (contact[s] or not self.config.steps) and self.planted[s]]
-            if ref:
-                n = len(ref)
-                sx = sum(math.cos(self._head_ref[s] - heads[s]) for s in ref)
-                sy = sum(math.sin(self._head_ref[s] - heads[s]) for s in ref)
-                psi_raw = math.atan2(sy, sx)
-                px, py = sum(ankles[s][0] for s in ref) / n, sum(ankles[s][1] for s in ref) / n
-                qx, qy = sum(self._ankle_ref[s][0] for s in ref) / n, sum(self._ankle_ref[s][1] for s in ref) / n
-                c, sn = math.cos(self._psi), math.sin(self._psi)
-                ox, oy = self.offset
-                al = self._anchor_alpha
-                # the pivot's image moves from T(p) towards T*(p) = mean r_s
-                tx = (1 - al) * (c * px - sn * py + ox) + al * qx
-                ty = (1 - al) * (sn * px + c * py + oy) + al * qy
-                d = (psi_raw - self._psi + math.pi) % (2 * math.pi) - math.pi
-                self._psi += al * d
-                c, sn = math.cos(self._psi), math.sin(self._psi)
-                self.offset = (tx - (c * px - sn * py), ty - (sn * px + c * py))
-        c, sn = math.cos(self._psi), math.sin(self._psi)
-        ox, oy = self.offset
-        self._ankles_now = [(c * x - sn * y + ox, sn * x + c * y + oy) for x, y in ankles]
-        self._heads_now = [heads[0] + self._psi, heads[1] + self._psi]
-        self._ankle_z = (lz, rz)
-        return targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
-
-    def _neutral_stance(self, targets: np.ndarray) -> np.ndarray:
-        """``targets`` (K, 3) with the ankle and toe targets moved to where the robot's stand
-        pose puts them relative to its pelvis, turned to the person's hip heading and placed
-        under the pelvis target (a person caught mid-stride would otherwise plant the robot's
-        feet in a stride it cannot balance on)."""
-        if self._hips is None:
-            return targets
-        out = targets.copy()
-        across = targets[self._hips[0], 0:2] - targets[self._hips[1], 0:2]
-        yaw = math.atan2(-across[0], across[1])
-        c, sn = math.cos(yaw), math.sin(yaw)
-        root = self.robot.root_keypoint
-        for k in self._foot_kps[0] + self._foot_kps[1]:
-            dx, dy = self._stand_kp[k, 0:2] - self._stand_kp[root, 0:2]
-            out[k, 0] = targets[root, 0] + c * dx - sn * dy
-            out[k, 1] = targets[root, 1] + sn * dx + c * dy
-            out[k, 2] = self.robot.standing_heights[k]
-        return out
-
-    def _set_points(self, first: bool) -> None:
-        """Parameters of the CoM, DCM and ZMP rows and the CoM prediction (module docstring)."""
-        (c1x, c1y), (c2x, c2y) = self._c1, self._c2
-        px, py = 2 * c1x - c2x, 2 * c1y - c2y
-        kd, kz = self._dcm_k, self._zmp_k
-        pb = self._pbuf
-        # (3, 3) column-major: columns com, dcm, zmp of rows α, β_x, β_y
-        pb[self._p_points] = (1.0, 0.0, 0.0, 1.0 + kd, -kd * c1x, -kd * c1y, 1.0 + kz, -kz * px, -kz * py)
-        pb[self._p_point_w] = self._point_w0 if first else self._point_w
-        pb[self._p_cpred] = (px, py)
-
-    def _plan_balance(self, human_contact) -> tuple[bool, bool]:
-        """Update :attr:`planted` from the human's contacts and the last frame's CoM, and set
-        the anchors, the balance region and the CoM prediction in the parameter buffer.
-        Returns the contacts (left, right) the solver holds on the ground this frame."""
-        cfg = self.config
-        contact = (bool(human_contact[0]), bool(human_contact[1]))
-        # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
-        # the other, or its target moves step_distance or turns step_turn from where the robot put
-        # it down) and the robot's foot has stood min_stance frames; a near-standing person's contact
-        # flicker then never makes the robot stand on one leg. A step stands on the other foot: with
-        # no foot down (a jump, a glide) both stay. A lifted foot comes down when the person's does,
-        # or after max_swing seconds.
-        self._since += 1
-        want = [True, True]
-        for s in range(2):
-            planted, other = bool(self.planted[s]), 1 - s
-            if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
-                self._touch_down(s)
-                continue
-            if (not cfg.steps or contact[s] or not contact[other]
-                    or (planted and self._since[s] < self._min_stance_frames)):
-                continue
-            dz = self._ankle_z[s] - self._ankle_z[other]
-            (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
-            turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
-            want[s] = not (dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance
-                           or turn > cfg.step_turn)
-        c1 = self._c1
-        shift_point = None
-        self.shifting = False
-        for s in range(2):
-            other = 1 - s
-            if want[s] or not self.planted[s] or not self.planted[other]:
-                continue
-            if self._stance[other] is None:
-                self._stance[other] = support_polygon([stance_points(self._prints[other], self._prints[s],
-                                                                     cfg.stance_margin)])
-            hull, A, b = self._stance[other]
-            inside = float(np.min(b - A @ c1)) >= -cfg.release_tolerance
-            self._settled = self._settled + 1 if inside else 0
-            if self._settled > self._settle_frames:
-                self.planted[s] = False  # the weight is on the other foot: lift
-                self._prints[s] = None
-                self._since[s] = 0
-                self._region_key = None
-            else:  # shift the weight first: the CoM's region is the stance foot and a point on the way
-                self.shifting = True
-                gap = closest_point(c1, hull) - c1
-                dist = float(np.linalg.norm(gap))
-                # at most shift_speed, reached with at most shift_accel from the CoM's speed towards it
-                toward = max(0.0, float((self._c1 - self._c2) @ gap) / max(dist, 1e-12))
-                step = min(cfg.shift_speed / self.fps, toward + cfg.shift_accel / self.fps ** 2, dist)
-                shift_point = c1 + gap * (step / max(dist, 1e-12))
-                self._region_key = None
-                self._set_region(np.concatenate([hull, shift_point[None]]))
-            break  # one foot at a time
-        if not self.shifting:
-            self._settled = 0
-        key = (bool(self.planted[0]), bool(self.planted[1]))
-        if shift_point is None and self._region_key != key:
-            self._region_key = key
-            if key == (True, True):
-                self._set_region(double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset))
-            else:
-                self._set_region(np.concatenate([self._stance[f][0] for f in range(2) if self.planted[f]]))
-        return key
-
-    def _touch_down(self, s: int) -> None:
-        """Plant foot s flat where it is now: its level footprint, the shrunk footprint's
-        half-planes, the anchor of the contact rows and the ankle target it pins."""
-        self.planted[s] = True
-        fp = level_footprint(self._sole1[:, 4 * s:4 * s + 4].T, self._sole_local[s])
-        self._prints[s] = fp
-        self._stance = [None, None]
-        self._anchor[:, 4 * s:4 * s + 4] = fp.T
-        self._ankle_ref[s] = self._ankles_now[s]
-        self._head_ref[s] = self._heads_now[s]
-        self._since[s] = 0
-        self._region_key = None
-
-    def _set_region(self, points: np.ndarray) -> None:
-        """The balance region: the convex hull of ``points`` (m, 2), as half-planes in the buffer."""
-        hull = convex_hull(points)
-        edges = np.tile([0.0, 0.0, 1.0], (_N_EDGES, 1))
-        if len(hull) >= 3:
-            A, b = halfplanes(hull)
-            edges[:len(b), 0:2], edges[:len(b), 2] = A, b
-        self._pbuf[self._p_edges] = edges.reshape(-1)  # (3, E) column-major = rows of (E, 3)
 
     def step_human(self, positions: np.ndarray, contact=(False, False)) -> np.ndarray:
         """One human frame (22, 3) m (SMPL-22, Z up) → configuration x (nx,), via ``self.scaler``."""

@@ -1,0 +1,316 @@
+"""The balance planner of the streaming retargeter: which feet are planted, where, the
+support region the CoM, capture point and ZMP must stay in, and the targets' anchoring.
+
+:class:`retarget.streaming.StreamingRetargeter` owns the per-frame least squares; with
+``StreamingConfig.balance`` it asks a :class:`BalancePlanner`, once per frame, for
+
+- the targets moved by the anchoring transform (:meth:`BalancePlanner.anchor`; on the first
+  frame also with the feet at the robot's own stance, :meth:`BalancePlanner.neutral_stance`);
+- the feet held on the ground this frame (:meth:`BalancePlanner.plan`), writing the planted
+  feet's level footprints into the contact rows' anchor and the support region's half-planes
+  and the CoM/DCM/ZMP row parameters into the compiled function's parameter buffer (numpy
+  views bound once, :meth:`BalancePlanner.bind`).
+
+Rules (lengths m, times s, the fields of :class:`retarget.streaming.StreamingConfig`):
+
+- *Planted* feet are held on their level footprint: the sole's rectangle flat on the ground
+  (z = 0), at the centre and heading the foot had when it touched down
+  (:func:`retarget.support.level_footprint`).
+- The support region (:mod:`retarget.support`): on two feet, the hull of the feet's long centre
+  lines, ``balance_margin`` in from toe and heel and ``double_support_inset`` towards each
+  other (a compliant servo robot with its CoM over one foot unloads the other and sags over);
+  on one foot, the inner half (towards the lifted foot) of its footprint shrunk by
+  ``stance_margin``: a servo leg alone sags outwards, so the CoM stays on the inner side.
+- Steps (``steps``, off by default): without them both feet stay planted whatever the person
+  does. The bundled op3's position servos (kp 17.5 N m/rad) make one leg a soft spring: ankle
+  roll and hip roll in series give ≈ 8.8 N m/rad against the m g h ≈ 8 N m/rad a 3.4 kg body
+  at 0.24 m asks, so the robot survives standing on one leg but not the sway of getting there
+  open loop (sim's check topples it), while on two feet it is stiff. With steps on, contacts
+  come from the person (the motion's labels, or detected). A robot foot lifts only when the
+  person's leaves (rises ``lift_height`` above the other, or moves ``step_distance`` / turns
+  ``step_turn`` from where the robot's was put down) while the person's other foot is down,
+  after ``min_stance``; and only once the CoM has been over the other foot's stance region
+  for ``settle``. Until then the robot shifts its weight: the region becomes the stance
+  region plus one point p = c₋₁ moved towards it (at most ``shift_speed``, speeding up by at
+  most ``shift_accel``). A lifted foot's targets stay within ``swing_height`` of standing
+  height; it touches down (flat, where it is) when the person's foot is down, or after
+  ``max_swing``. The last planted foot never lifts: a jump or a glide is played on both feet.
+- The person's translation and heading are anchored to the planted feet
+  (:meth:`BalancePlanner.anchor`): the robot follows steps, not sliding.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from retarget.errors import RetargetError
+from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint,
+                              stance_points, support_polygon)
+
+#: half-planes of the balance region passed to the compiled function: the two-foot region has
+#: 4 corners, the stance region 4 plus the weight-shift point; unused rows are 0·c ≤ 1
+N_EDGES = 6
+
+
+class BalancePlanner:
+    """Planted feet, support region and target anchoring for one free-standing robot (see the
+    module docstring). ``planted`` (2,) bool, ``shifting``, ``offset`` (x, y) m and the heading
+    turn ``psi`` rad of the anchoring are public state."""
+
+    def __init__(self, robot, config, fps: float):
+        rb, cfg = robot, config
+        self.robot, self.config, self.fps = robot, config, float(fps)
+        names = rb.keypoint_names
+        index = {n: names.index(n) for n in names}
+        self._ankles = [index[n] for n in ("left_ankle", "right_ankle") if n in index]
+        self._toes = [index[n] for n in ("left_foot", "right_foot") if n in index]
+        self._hips = [index[n] for n in ("left_hip", "right_hip") if n in index]
+        if len(self._ankles) < 2 or (len(self._toes) < 2 and len(self._hips) < 2):
+            raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
+                                "and right_ankle keypoints, and left/right_foot or left/right_hip ones (it follows the "
+                                "person's feet); add them or turn balance off")
+        self._toes = self._toes if len(self._toes) == 2 else None
+        self._hips = self._hips if len(self._hips) == 2 else None
+        self._foot_kps = [[self._ankles[s]] + ([self._toes[s]] if self._toes else []) for s in range(2)]
+        self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
+        self._feet_idx = self._ankles + (self._toes if self._toes is not None else self._hips)
+        stand = rb.evaluate(rb.x_stand[None])
+        self._stand_kp = stand["keypoints"][0]
+        h = float(stand["com"][0, 2] - stand["sole"][0, :, 2].min())
+        self._zmp_k = h / 9.81 * self.fps ** 2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
+        self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
+        self._zmp_scale = np.sqrt(cfg.zmp_weight) * self._zmp_k
+        self._w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
+        self._w0 = np.sqrt([cfg.balance_weight, 0.0, 0.0])
+        self._sole_local = [f.corners for f in rb.feet]
+        self._anchor_alpha = 1.0 - math.exp(-1.0 / (self.fps * cfg.anchor_time))
+        self._min_stance_frames = round(cfg.min_stance * self.fps)
+        self._max_swing_frames = round(cfg.max_swing * self.fps)
+        self._settle_frames = round(cfg.settle * self.fps)
+
+    def bind(self, anchor: np.ndarray, edges, points, point_w, cpred, zmp) -> None:
+        """Where to write: the contact rows' anchor (2, 8) and views into the parameter buffer
+        for the region's half-planes (3·N_EDGES), the rows' (3, 3) points, their √weights (3),
+        the CoM prediction (2) and the ZMP-offset scale (1)."""
+        self._anchor, self._edges, self._points, self._point_w, self._cpred, self._zmp = \
+            anchor, edges, points, point_w, cpred, zmp
+
+    def reset(self) -> None:
+        """No feet planted, no history; no balance rows until :meth:`start` plants the feet."""
+        self.planted = np.zeros(2, dtype=bool)
+        self._prints: list = [None, None]  # level footprints (4, 2) of the planted feet
+        self._settled = 0  # frames the CoM has been over the stance foot while the other waits to lift
+        self._stance: list = [None, None]  # per planted foot: (hull, A, b) of its region when it stands alone
+        self._region_key = None
+        self._c1 = self._c2 = None  # CoM xy of the last two emitted frames
+        self._sole1 = None  # the last frame's sole corners (3, 8)
+        self.shifting = False
+        #: the anchoring transform: offset (x, y) m and turn psi rad; the ankle targets and foot
+        #: headings recorded when each foot touched down
+        self.offset = (0.0, 0.0)
+        self.psi = 0.0
+        self._ankle_ref = [(0.0, 0.0), (0.0, 0.0)]
+        self._head_ref = [0.0, 0.0]
+        self._since = np.zeros(2, dtype=int)  # frames since each foot last touched down or lifted
+        self._edges[:] = np.tile([0.0, 0.0, 1.0], N_EDGES)
+        self._points[:] = 0.0
+        self._point_w[:] = 0.0
+        self._cpred[:] = 0.0
+        self._zmp[:] = 0.0
+
+    def start(self, sole: np.ndarray, com_xy: np.ndarray) -> tuple[bool, bool]:
+        """First frame: both feet put down flat where the fit left them (``sole`` (3, 8), CoM
+        xy (2,)); returns the feet to hold."""
+        self._sole1 = sole.copy()
+        self._c1 = self._c2 = com_xy.copy()
+        held = self.plan((True, True))
+        self.set_points(True)
+        return held
+
+    def next(self, human_contact, targets: np.ndarray) -> tuple[bool, bool]:
+        """Any later frame: plan the feet, keep a lifted foot's targets low (``targets`` changed
+        in place), set the row parameters; returns the feet to hold."""
+        held = self.plan(human_contact)
+        cfg = self.config
+        for s in range(2):
+            if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
+                k = self._foot_kps[s]
+                targets[k, 2] = np.clip(targets[k, 2], self._foot_kp_h[s], self._foot_kp_h[s] + cfg.swing_height)
+        self.set_points(False)
+        return held
+
+    def record(self, sole: np.ndarray, com_xy: np.ndarray) -> None:
+        """The emitted frame's sole corners (3, 8) and CoM xy (2,)."""
+        self._sole1 = sole.copy()
+        self._c2 = self._c1
+        self._c1 = com_xy.copy()
+
+    def anchor(self, targets: np.ndarray, contact, first: bool) -> np.ndarray:
+        """Move the targets by a horizontal rigid transform T(p) = R(ψ) p + o so that the
+        person's feet that are down, where the robot's are planted too, stay where (and
+        turned as) their targets were when the robot's foot touched down.
+
+        With a_s, θ_s the person's ankle target (xy) and foot heading (ankle → toe; the hips'
+        facing direction for a profile without toe keypoints) of each such foot and r_s, φ_s
+        their values under T at touch-down, the raw transform is
+        ψ* = mean_s (φ_s − θ_s), o* = mean_s r_s − R(ψ*) mean_s a_s; ψ and the image of the
+        pivot p = mean_s a_s move towards it by α = 1 − exp(−1 / (fps τ)), τ = ``anchor_time``.
+        The robot then follows the person's steps (and turns step by step), not the drift,
+        turning on the spot or skating of the feet (generated motion often slides them),
+        which it could not do standing."""
+        feet = targets[self._feet_idx, 0:3].tolist()  # left/right ankle, then left/right toe or hip
+        (lx, ly, lz), (rx, ry, rz) = feet[0], feet[1]
+        if self._toes is not None:
+            heads = [math.atan2(feet[2][1] - ly, feet[2][0] - lx), math.atan2(feet[3][1] - ry, feet[3][0] - rx)]
+        else:
+            h = math.atan2(-(feet[2][0] - feet[3][0]), feet[2][1] - feet[3][1])
+            heads = [h, h]
+        ankles = ((lx, ly), (rx, ry))
+        if not first:
+            # without steps both feet stay planted: the person's two feet (down or not) anchor
+            # their midpoint, so a walking person's pelvis stays over the robot's feet
+            ref = [s for s in range(2) if (contact[s] or not self.config.steps) and self.planted[s]]
+            if ref:
+                n = len(ref)
+                sx = sum(math.cos(self._head_ref[s] - heads[s]) for s in ref)
+                sy = sum(math.sin(self._head_ref[s] - heads[s]) for s in ref)
+                psi_raw = math.atan2(sy, sx)
+                px, py = sum(ankles[s][0] for s in ref) / n, sum(ankles[s][1] for s in ref) / n
+                qx, qy = sum(self._ankle_ref[s][0] for s in ref) / n, sum(self._ankle_ref[s][1] for s in ref) / n
+                c, sn = math.cos(self.psi), math.sin(self.psi)
+                ox, oy = self.offset
+                al = self._anchor_alpha
+                # the pivot's image moves from T(p) towards T*(p) = mean r_s
+                tx = (1 - al) * (c * px - sn * py + ox) + al * qx
+                ty = (1 - al) * (sn * px + c * py + oy) + al * qy
+                d = (psi_raw - self.psi + math.pi) % (2 * math.pi) - math.pi
+                self.psi += al * d
+                c, sn = math.cos(self.psi), math.sin(self.psi)
+                self.offset = (tx - (c * px - sn * py), ty - (sn * px + c * py))
+        c, sn = math.cos(self.psi), math.sin(self.psi)
+        ox, oy = self.offset
+        self._ankles_now = [(c * x - sn * y + ox, sn * x + c * y + oy) for x, y in ankles]
+        self._heads_now = [heads[0] + self.psi, heads[1] + self.psi]
+        self._ankle_z = (lz, rz)
+        return targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
+
+    def neutral_stance(self, targets: np.ndarray) -> np.ndarray:
+        """``targets`` (K, 3) with the ankle and toe targets moved to where the robot's stand
+        pose puts them relative to its pelvis, turned to the person's hip heading and placed
+        under the pelvis target (a person caught mid-stride would otherwise plant the robot's
+        feet in a stride it cannot balance on)."""
+        if self._hips is None:
+            return targets
+        out = targets.copy()
+        across = targets[self._hips[0], 0:2] - targets[self._hips[1], 0:2]
+        yaw = math.atan2(-across[0], across[1])
+        c, sn = math.cos(yaw), math.sin(yaw)
+        root = self.robot.root_keypoint
+        for k in self._foot_kps[0] + self._foot_kps[1]:
+            dx, dy = self._stand_kp[k, 0:2] - self._stand_kp[root, 0:2]
+            out[k, 0] = targets[root, 0] + c * dx - sn * dy
+            out[k, 1] = targets[root, 1] + sn * dx + c * dy
+            out[k, 2] = self.robot.standing_heights[k]
+        return out
+
+    def set_points(self, first: bool) -> None:
+        """Parameters of the CoM, DCM and ZMP rows and the CoM prediction (module docstring)."""
+        (c1x, c1y), (c2x, c2y) = self._c1, self._c2
+        px, py = 2 * c1x - c2x, 2 * c1y - c2y
+        kd, kz = self._dcm_k, self._zmp_k
+        # (3, 3) column-major: columns com, dcm, zmp of rows α, β_x, β_y
+        self._points[:] = (1.0, 0.0, 0.0, 1.0 + kd, -kd * c1x, -kd * c1y, 1.0 + kz, -kz * px, -kz * py)
+        self._point_w[:] = self._w0 if first else self._w
+        self._cpred[:] = (px, py)
+        self._zmp[:] = 0.0 if first else self._zmp_scale
+
+    def plan(self, human_contact) -> tuple[bool, bool]:
+        """Update :attr:`planted` from the human's contacts and the last frame's CoM, and set
+        the anchors, the balance region and the CoM prediction in the parameter buffer.
+        Returns the contacts (left, right) the solver holds on the ground this frame."""
+        cfg = self.config
+        contact = (bool(human_contact[0]), bool(human_contact[1]))
+        # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
+        # the other, or its target moves step_distance or turns step_turn from where the robot put
+        # it down) and the robot's foot has stood min_stance frames; a near-standing person's contact
+        # flicker then never makes the robot stand on one leg. A step stands on the other foot: with
+        # no foot down (a jump, a glide) both stay. A lifted foot comes down when the person's does,
+        # or after max_swing seconds.
+        self._since += 1
+        want = [True, True]
+        for s in range(2):
+            planted, other = bool(self.planted[s]), 1 - s
+            if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
+                self.touch_down(s)
+                continue
+            if (not cfg.steps or contact[s] or not contact[other]
+                    or (planted and self._since[s] < self._min_stance_frames)):
+                continue
+            dz = self._ankle_z[s] - self._ankle_z[other]
+            (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
+            turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
+            want[s] = not (dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance
+                           or turn > cfg.step_turn)
+        c1 = self._c1
+        shift_point = None
+        self.shifting = False
+        for s in range(2):
+            other = 1 - s
+            if want[s] or not self.planted[s] or not self.planted[other]:
+                continue
+            if self._stance[other] is None:
+                self._stance[other] = support_polygon([stance_points(self._prints[other], self._prints[s],
+                                                                     cfg.stance_margin)])
+            hull, A, b = self._stance[other]
+            inside = float(np.min(b - A @ c1)) >= -cfg.release_tolerance
+            self._settled = self._settled + 1 if inside else 0
+            if self._settled > self._settle_frames:
+                self.planted[s] = False  # the weight is on the other foot: lift
+                self._prints[s] = None
+                self._since[s] = 0
+                self._region_key = None
+            else:  # shift the weight first: the CoM's region is the stance foot and a point on the way
+                self.shifting = True
+                gap = closest_point(c1, hull) - c1
+                dist = float(np.linalg.norm(gap))
+                # at most shift_speed, reached with at most shift_accel from the CoM's speed towards it
+                toward = max(0.0, float((self._c1 - self._c2) @ gap) / max(dist, 1e-12))
+                step = min(cfg.shift_speed / self.fps, toward + cfg.shift_accel / self.fps ** 2, dist)
+                shift_point = c1 + gap * (step / max(dist, 1e-12))
+                self._region_key = None
+                self.set_region(np.concatenate([hull, shift_point[None]]))
+            break  # one foot at a time
+        if not self.shifting:
+            self._settled = 0
+        key = (bool(self.planted[0]), bool(self.planted[1]))
+        if shift_point is None and self._region_key != key:
+            self._region_key = key
+            if key == (True, True):
+                self.set_region(double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset))
+            else:
+                self.set_region(np.concatenate([self._stance[f][0] for f in range(2) if self.planted[f]]))
+        return key
+
+    def touch_down(self, s: int) -> None:
+        """Plant foot s flat where it is now: its level footprint, the shrunk footprint's
+        half-planes, the anchor of the contact rows and the ankle target it pins."""
+        self.planted[s] = True
+        fp = level_footprint(self._sole1[:, 4 * s:4 * s + 4].T, self._sole_local[s])
+        self._prints[s] = fp
+        self._stance = [None, None]
+        self._anchor[:, 4 * s:4 * s + 4] = fp.T
+        self._ankle_ref[s] = self._ankles_now[s]
+        self._head_ref[s] = self._heads_now[s]
+        self._since[s] = 0
+        self._region_key = None
+
+    def set_region(self, points: np.ndarray) -> None:
+        """The balance region: the convex hull of ``points`` (m, 2), as half-planes in the buffer."""
+        hull = convex_hull(points)
+        edges = np.tile([0.0, 0.0, 1.0], (N_EDGES, 1))
+        if len(hull) >= 3:
+            A, b = halfplanes(hull)
+            edges[:len(b), 0:2], edges[:len(b), 2] = A, b
+        self._edges[:] = edges.reshape(-1)  # (3, E) column-major = rows of (E, 3)
