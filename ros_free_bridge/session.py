@@ -10,6 +10,12 @@ Transports (``SessionOptions.transport``):
 - ``serial``: the robot's serial-link microcontroller bus (``emulate``: the board emulator);
 - ``sim+dynamixel``: both at once, the virtual robot as the primary (the demo).
 
+Generator (``SessionOptions.generator``): ``process`` (default) runs DualFlow and the
+retargeter in a child process (:mod:`ros_free_bridge.generator_process`), ``thread`` in a
+thread of this one; either way :class:`~ros_free_bridge.stages.PartnerCore` keeps it up with
+the actor's clock (wide catch-up windows, then drop to the newest actor frames, reported as
+``generator_behind`` events and ``SessionResult.pipeline_info``).
+
 Outputs in ``out``: ``telemetry.dftl`` (+ ``.events.jsonl``), ``actor.npz`` and
 ``partner.npz`` (the human motions, our npz format), ``robot.npz`` (the simulated robot's
 measured motion, sim transports) and ``commands.npz`` (record transport).
