@@ -23,6 +23,8 @@ type  direction     payload
 C     parent→child  JSON config (checkpoint, stream settings, text, music, robot, joints)
 A     parent→child  actor frame: <q index><d arrival> + 66 float64 (22 × 3 positions, m)
 E     parent→child  end of the actor stream: generate the rest, then answer D
+Q     parent→child  quit now (EOF means the same, but a process forked from the parent
+                    after the child started holds a copy of the write end)
 R     child→parent  JSON: ready (delay_frames, look_ahead, warm-up window time)
 T     child→parent  target: <q index><q actor frame><d arrival><d gen s><d retarget s><B held>
                     + n float64 q (rad) + 66 float64 partner positions (m)
@@ -31,8 +33,8 @@ X     child→parent  JSON error {type, message}; the child exits
 D     child→parent  done (after E): every target was sent
 ====  ============  =================================================================
 
-Shutdown: the parent closes its write end (the child reads EOF and exits), waits, then
-kills. The child exits on EOF too, so it never outlives a parent that died. A child that
+Shutdown: the parent sends Q and closes its write end, waits, then kills. The child also
+exits on EOF, so it does not outlive a parent that died. A child that
 dies (or is killed) is seen as EOF on the parent's read end: ``feed`` raises
 :class:`~ros_free_bridge.errors.BridgeError`, the pipeline closes the target buffer with
 it, and the control loop ramps to rest and applies its stop policy.
@@ -271,6 +273,10 @@ class GeneratorProcess:
         if self.process is not None and self.process.poll() is None and math.isfinite(self._cpu_at_ready):
             self.streaming_cpu_s = self.cpu_seconds() - self._cpu_at_ready
         if self._chan is not None:
+            try:  # say so: a process forked from ours since (the bus emulator) holds a copy of
+                self._chan.send(b"Q")  # our write end, so the child may never read EOF
+            except OSError:
+                pass
             self._chan.close()
             self._chan = None
         if self.process is not None and self.process.poll() is None:
@@ -418,7 +424,7 @@ def child_main(rfd: int, wfd: int) -> int:
                               "warmup_window_s": window_s, "pid": os.getpid()})
         while True:
             msgs = chan.receive(0.0 if core.backlog else None)  # more windows due: do not wait
-            if chan.eof and not msgs:
+            if (chan.eof and not msgs) or any(k == b"Q" for k, _ in msgs):
                 return 0
             frames = [decode_actor(p) for k, p in msgs if k == b"A"]
             targets, events = core.feed(frames)

@@ -207,3 +207,20 @@ def test_a_bad_checkpoint_fails_before_the_robot_moves(tmp_path, limits):
     with pytest.raises(BridgeError, match="nothing"):
         gen.start()
     assert gen.process.poll() is not None  # the child is gone, not left behind
+
+
+@pytest.mark.slow
+def test_close_ends_the_child_cleanly_while_a_forked_process_holds_our_pipe(tiny_checkpoint, limits):
+    import multiprocessing as mp
+
+    gen = _generator(tiny_checkpoint, limits).start()
+    # like the bus emulator: forked after the generator started, so it holds a copy of our
+    # write end and the child would never read EOF from it
+    holder = mp.get_context("fork").Process(target=time.sleep, args=(60,), daemon=True)
+    holder.start()
+    try:
+        gen.close(timeout=30)
+        assert gen.process.returncode == 0  # it quit when told to (a kill would read -9)
+    finally:
+        holder.kill()
+        holder.join()
