@@ -61,7 +61,7 @@ GRAVITY = 9.81  # m/s²
 class OfflineConfig:
     """Solver settings. ``window`` 0 means the whole clip in one problem."""
 
-    window: int = 40
+    window: int = 80
     overlap: int = 10
     n_fix: int = 3
     accel_weight: float = 1e-7
@@ -244,7 +244,9 @@ class OfflineRetargeter:
         """Solve all windows; X0 (T, nx) is the initial guess. Returns X (T, nx) and solver stats."""
         cfg, rb = self.config, self.robot
         T = tg.keypoints.shape[0]
-        W = T if cfg.window <= 0 or cfg.window >= T else cfg.window
+        # a clip shorter than the window is padded to it (padding is masked out), so one compiled
+        # problem per robot serves every clip length; window 0 solves the clip as one problem of T frames
+        W = T if cfg.window <= 0 else cfg.window
         if W < 4:
             W = 4
         hop = max(W - cfg.overlap, cfg.n_fix + 1)
