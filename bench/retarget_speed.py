@@ -31,6 +31,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -43,7 +44,7 @@ from dualflow.motion import Motion  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter  # noqa: E402
 from retarget.report import evaluate  # noqa: E402
 from retarget.robot import load_robot, resolve_paths  # noqa: E402
-from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x  # noqa: E402
+from retarget.streaming import StreamingRetargeter, trajectory_from_x  # noqa: E402
 from retarget.targets import KeypointScaler, make_targets  # noqa: E402
 
 CMU = ROOT.parent / "shared" / "data" / "mocap" / "cmu"
@@ -130,15 +131,19 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
 
     offline_cfg = OfflineConfig(balance=not args.no_balance)
     off = OfflineRetargeter(rb, offline_cfg)
+    # the dynamic variant: the ZMP (CoM with its acceleration term) over the support polygon
+    off_zmp = None if args.no_balance else OfflineRetargeter(rb, replace(offline_cfg, zmp=True))
     with Clock() as c_build:
         off._solver(offline_cfg.window, 30.0)
+        if off_zmp is not None:
+            off_zmp._solver(offline_cfg.window, 30.0)
         stream = StreamingRetargeter(rb, 30.0)
     print(f"compile/load: {c_build.wall:.1f} s wall ({off._solver(offline_cfg.window, 30.0)[-1]}; streaming {stream.compile_info})")
 
     noise_rng = np.random.default_rng(0)
-    results = {"ours_stream": [], "ours_off": [], "base": []}
+    results = {"ours_stream": [], "ours_off": [], "base": [], "ours_zmp": []}
     times = {k: [0.0, 0.0] for k in results}
-    reports = {k: [] for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy", "stream_noisy")}
+    reports = {k: [] for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy", "stream_noisy", "ours_zmp")}
     jerk_clean = {}
     for clip in clips:
         tg = make_targets(rb, clip)
@@ -157,6 +162,12 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         times["ours_off"][0] += ck.cpu
         times["ours_off"][1] += ck.wall
         reports["ours_off"].append(evaluate(rb, tr_o, tg, clip.name))
+        if off_zmp is not None:
+            with Clock() as ck:
+                tr_z = off_zmp.retarget(clip, scaler=scaler)
+            times["ours_zmp"][0] += ck.cpu
+            times["ours_zmp"][1] += ck.wall
+            reports["ours_zmp"].append(evaluate(rb, tr_z, tg, clip.name))
         # baseline
         with Clock() as ck:
             Xb = gmr_style(rb, xml, tg)
@@ -196,6 +207,12 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         r(f"retarget offline frames/s (CPU time; contacts{'' if args.no_balance else '+balance'})", off_fps, base_fps,
           ">= 250", off_fps >= 250),
         r("retarget offline frames/s (wall)", fps("ours_off", 1), fps("base", 1)),
+    ]
+    if off_zmp is not None:
+        zj = agg("ours_zmp", "jerk_ratio")
+        out += [r("retarget offline frames/s (CPU time; contacts+ZMP balance)", fps("ours_zmp", 0), base_fps),
+                r("jerk ratio, clean capture: offline ZMP balance", zj, jerk["base"], "<= 1.0", zj <= 1.0)]
+    out += [
         r("jerk ratio, clean capture: offline", jerk["ours_off"], jerk["base"], "<= 1.0", jerk["ours_off"] <= 1.0),
         r("jerk ratio, clean capture: streaming", jerk["ours_stream"], jerk["base"]),
         r("jerk ratio, 1 cm noise (vs noisy source): offline", jerk["off_noisy"], jerk["base_noisy"], "<= 1.0",

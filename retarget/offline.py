@@ -71,7 +71,7 @@ class OfflineConfig:
     contacts: bool = True
     balance: bool = False
     balance_margin: float = 0.01
-    zmp: bool = True  # balance keeps the ZMP (CoM with its acceleration term), not only the CoM, over the polygon
+    zmp: bool = False  # True: balance keeps the ZMP (CoM with its acceleration term) over the polygon, not the CoM
     self_collision: bool = True
     velocity_safety: float = 0.995
     compile: bool = True

@@ -83,7 +83,7 @@ def _robot(cfg: BatchConfig):
 
         fixed = cfg.fixed_base if cfg.fixed_base is not None else (ROBOTS[cfg.robot].fixed_base if cfg.robot in ROBOTS else False)
         robot = load_robot(cfg.robot, fixed_base=fixed)
-        retargeter = OfflineRetargeter(robot, OfflineConfig(balance=cfg.balance and not fixed, auto_retime=cfg.auto_retime,
+        retargeter = OfflineRetargeter(robot, OfflineConfig(balance=cfg.balance and not fixed, zmp=True, auto_retime=cfg.auto_retime,
                                                             compile=cfg.compile))
         _ROBOT[key] = (robot, retargeter, fixed)
     return _ROBOT[key]

@@ -119,7 +119,7 @@ def test_zmp_balance_keeps_the_zmp_over_the_shrunk_support_polygon():
     rb = toy_robot()
     motion = _noisy_walk(T=30, seed=2)
     margin = 0.005
-    traj = OfflineRetargeter(rb, OfflineConfig(window=0, balance=True, balance_margin=margin, **FAST)).retarget(motion)
+    traj = OfflineRetargeter(rb, OfflineConfig(window=0, balance=True, balance_margin=margin, zmp=True, **FAST)).retarget(motion)
     tg = make_targets(rb, motion)
     ev = rb.evaluate(configurations(rb, traj))
     com = ev["com"]
