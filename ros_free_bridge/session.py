@@ -251,7 +251,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
         source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop)
         stack.callback(source.close)
-        telemetry.event("session", actor=described, delay_frames=core.delay_frames, generator=_generator_info(opts, core))
+        telemetry.event("session", actor=described, delay_frames=core.delay_frames, generator=_generator_info(opts, core),
+                        playback_margin_s=round(config.playback_margin, 4))
         pipeline = PartnerPipeline(source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core)
         pipeline.start()
         stack.callback(pipeline.stop)
@@ -264,7 +265,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
             pipeline.stop()
             pipeline.join(30.0)
     result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
-    result.pipeline_info = {**_generator_info(opts, core), "frames_dropped": pipeline.frames_dropped,
+    result.pipeline_info = {**_generator_info(opts, core), "playback_margin_ms": round(1e3 * config.playback_margin, 1),
+                            "frames_dropped": pipeline.frames_dropped,
                             "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events)}
     cpu = getattr(core, "streaming_cpu_s", float("nan"))
     if np.isfinite(cpu) and len(pipeline.actor_positions):

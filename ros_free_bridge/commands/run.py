@@ -119,6 +119,7 @@ def print_summary(result, stream=None) -> None:
     if g.get("generator") in ("process", "thread"):
         warm = f"; a full window took {g['warmup_window_ms']:.0f} ms at start" if "warmup_window_ms" in g else ""
         cpu = f"; it used {g['generator_cpu_per_s']:.2f} CPU s per s of motion" if "generator_cpu_per_s" in g else ""
+        cpu += f"; playback margin {g['playback_margin_ms']:.0f} ms" if "playback_margin_ms" in g else ""
         lines.append(f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}{cpu}), "
                      f"partner frames dropped to keep up: {g['frames_dropped']} in {g['catch_ups']} catch-ups")
     for k, v in result.transport_info.items():
