@@ -7,7 +7,8 @@
 - :class:`RetargetStage`: :class:`retarget.streaming.StreamingRetargeter`, one frame at a
   time, robot joint angles in the transport's joint order out.
 - :class:`PartnerCore`: both stages behind one call, ``feed(new actor frames) -> targets``,
-  with the real-time policy: when the partner frames already due pile up beyond
+  with the real-time policy: a backlog of due partner frames is generated in wider windows
+  (one window per call, so the lag is checked between windows); if it still grows beyond
   ``max_lag`` frames (the generator fell behind the actor's clock), the stale work is
   dropped, the stream restarts at the newest actor frames and the skipped frames hold the
   last pose; a ``generator_behind`` event says so. Latency stays bounded instead of growing.
@@ -21,7 +22,8 @@
 
 Delay: an actor frame's 262-d feature row needs the next frame (its velocity), and the
 reactor frame i needs actor rows up to i + L; so reactor frame i is produced when actor
-frame i + L + 1 arrives (plus the streamer's hop - 1 frames and the compute time).
+frame i + L + 1 arrives (plus the streamer's hop - 1 frames and the compute time). Its
+target is stamped with that frame's arrival (:class:`PartnerCore`).
 """
 
 from __future__ import annotations
