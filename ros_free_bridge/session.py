@@ -151,10 +151,11 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
             stack.callback(emu.stop)
             port = emu.port
             info["emulator"] = emu
-        # An emulator is a process on a possibly busy machine, not a servo: allow it 50 ms to
-        # answer (a real bus answers within the latency timer, 16 ms at worst).
+        # An emulator is a process on a possibly busy machine, not a servo: allow it 100 ms to
+        # answer (a real bus answers within the latency timer, 16 ms at worst). At 50 ms, demos
+        # on a machine loaded to 5 and more ended in "no status packet" errors.
         return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy,
-                                  latency_ms=50.0 if opts.emulate else 16.0)
+                                  latency_ms=100.0 if opts.emulate else 16.0)
 
     def serial():
         from ros_free_bridge.transports.serial_link import SerialLinkTransport
