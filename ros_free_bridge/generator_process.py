@@ -197,7 +197,7 @@ class GeneratorProcess:
     """Parent-side handle of the generator child (module docstring). ``start()`` blocks until
     the child has loaded the model and answered ready, or raises its error."""
 
-    def __init__(self, config: GeneratorConfig, start_timeout: float = 120.0):
+    def __init__(self, config: GeneratorConfig, start_timeout: float = 600.0):
         self.config = config
         self.start_timeout = start_timeout
         self.n_joints = len(config.joint_names)
