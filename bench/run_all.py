@@ -8,6 +8,7 @@ The benchmarks, each defined by an issue (its targets are the issue's):
     #2 motion_io            BVH forward kinematics and stick-figure preview speed
     #3 sim_speed            MuJoCo check speed (x real time) and offscreen rendering
     #4 retarget_speed       CasADi retargeting speed and quality vs a GMR-style mink/daqp IK
+    #4 retarget_balance     balance-aware streaming retargeting: speed, CoM over the feet, sim check
     #5 servo_bus            Dynamixel sync write + fast sync read cycles, sustained 250 Hz
     #6 dualflow_generation  10 s reactive generation (the paper's AITS setting), streaming
     #6 bench_streaming      streaming compute per frame, seam continuity, reactor error
@@ -57,6 +58,7 @@ BENCHES: tuple[tuple[str, int], ...] = (
     ("bench.motion_io", 2),
     ("bench.sim_speed", 3),
     ("bench.retarget_speed", 4),
+    ("bench.retarget_balance", 4),
     ("bench.servo_bus", 5),
     ("bench.dualflow_generation", 6),
     ("bench.bench_streaming", 6),
