@@ -190,8 +190,10 @@ class Conditions:
     drop_music: torch.Tensor | None = None
 
     def unconditional(self) -> "Conditions":
-        """The classifier-free-guidance null: text and music dropped (retrieval kept)."""
-        return Conditions(retrieval=self.retrieval)
+        """The classifier-free-guidance null: text, music and retrieval dropped, as training drops
+        them together (dualflow/rag.py: a sample with both cues dropped equals one without
+        retrieval)."""
+        return Conditions()
 
     def slice_frames(self, start: int, stop: int) -> "Conditions":
         """The same conditions restricted to motion frames [start, stop) (music is per frame)."""

@@ -164,3 +164,11 @@ def test_classifier_free_guidance_combines_conditional_and_unconditional_fields(
         v_g = guided_velocity(m, cond, mode="interactive", cfg_scale=3.0)(x, t)
     assert not torch.allclose(v_c, v_u)
     torch.testing.assert_close(v_g, v_u + 3.0 * (v_c - v_u))
+
+
+def test_guidance_null_drops_retrieval_like_training_does():
+    # training drops the retrieval tokens together with text and music (dualflow/rag.py), so the
+    # guidance null must not keep them
+    cond = Conditions(text=torch.randn(2, 384), music=torch.randn(2, 6, 35), retrieval=torch.randn(2, 4, 32))
+    null = cond.unconditional()
+    assert null.text is None and null.music is None and null.retrieval is None
