@@ -70,5 +70,10 @@ def test_eval_user_errors(tmp_path, capsys):
 def test_print_ablation_recipes(capsys):
     assert main(["eval", "--print-ablation-recipes"]) == 0
     out = capsys.readouterr().out
-    assert "--no-triplet" in out and "--set loss_weights.triplet=0" in out and "--set look_ahead=N" in out
-    assert "{v}" not in out and "--no-rag" in out and "needs: retrieval depth k=N" in out
+    assert "--no-triplet" in out and "--set loss_weights.triplet=0" in out and "--set model.look_ahead=N" in out
+    assert "{v}" not in out and "--set retrieval.enabled=false" in out and "--set retrieval.k=N" in out
+    # every recipe is the trainer's own ablation switch (one table, dualflow.evaluation.ablations)
+    from dualflow.evaluation.ablations import ABLATION_SWITCHES
+
+    for label, sets in ABLATION_SWITCHES.values():
+        assert repr(label.format(v="N")) in out and " ".join(f"--set {s.format(v='N')}" for s in sets) in out

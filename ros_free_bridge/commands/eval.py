@@ -22,18 +22,6 @@ import json
 import os
 from pathlib import Path
 
-#: ablation switch -> (row label, `train --set` overrides, what the trainer must support)
-ABLATIONS = {
-    "full": ("DualFlow", [], ""),
-    "no_rag": ("DualFlow (w/o RAG)", [], "retrieval conditioning off (train without a retrieval database)"),
-    "no_triplet": ("DualFlow (w/o L_triplet)", ["loss_weights.triplet=0"], ""),
-    "no_sync": ("DualFlow (w/o L_sync)", ["loss_weights.sync=0"], ""),
-    "spectral": ("DualFlow (Spectral)", [], "music features: EDGE 35-d / Duolando 54-d spectral set"),
-    "jukebox": ("DualFlow (Jukebox)", [], "music features: 4800-d Jukebox .npy"),
-    "look_ahead": ("DualFlow (L={v})", ["look_ahead={v}"], ""),
-    "retrieval_k": ("DualFlow (k={v})", [], "retrieval depth k={v}"),
-}
-
 QUICK = {"replications": 2, "batch_size": 32, "diversity_times": 100, "mm_samples": 10, "mm_repeats": 5, "mm_times": 5}
 
 
@@ -133,6 +121,7 @@ def run_train_evaluator(args: argparse.Namespace) -> int:
 def _rows(args) -> list[tuple[str, str]]:
     """(label, checkpoint path) in table order."""
     from dualflow.errors import DualFlowError
+    from dualflow.evaluation.ablations import ABLATION_SWITCHES
 
     rows = []
     for item in args.checkpoint:
@@ -141,13 +130,13 @@ def _rows(args) -> list[tuple[str, str]]:
     for key in ("full", "no_rag", "no_triplet", "no_sync", "spectral", "jukebox"):
         path = getattr(args, key)
         if path:
-            rows.append((ABLATIONS[key][0], path))
+            rows.append((ABLATION_SWITCHES[key][0], path))
     for key in ("look_ahead", "retrieval_k"):
         for item in getattr(args, key):
             value, sep, path = item.partition("=")
             if not sep or not value.strip().isdigit():
                 raise DualFlowError(f"--{key.replace('_', '-')} {item!r}: expected N=PATH with a whole number N")
-            rows.append((ABLATIONS[key][0].format(v=int(value)), path))
+            rows.append((ABLATION_SWITCHES[key][0].format(v=int(value)), path))
     for label, path in rows:
         if not Path(path).is_dir():
             raise DualFlowError(f"{path}: checkpoint folder not found (row {label!r})")
@@ -155,12 +144,15 @@ def _rows(args) -> list[tuple[str, str]]:
 
 
 def print_recipes() -> None:
+    from dualflow.evaluation.ablations import ABLATION_SWITCHES
+
     print("Ablation switches and how to train each checkpoint (dualflow-bridge train --config FILE --set ...):")
-    for key, (label, sets, needs) in ABLATIONS.items():
+    for key, (label, sets) in ABLATION_SWITCHES.items():
         flag = "--" + key.replace("_", "-") + (" N=PATH" if "{v}" in label else " PATH")
-        recipe = " ".join(f"--set {s.format(v='N')}" for s in sets) or "(no override)"
-        note = f"  [needs: {needs.format(v='N')}]" if needs else ""
-        print(f"  {flag:24s} row {label.format(v='N')!r:28s} {recipe}{note}")
+        recipe = " ".join(f"--set {s.format(v='N')}" for s in sets)
+        print(f"  {flag:24s} row {label.format(v='N')!r:28s} {recipe}")
+    print("Jukebox features (4800-d) are precomputed .npy files (e.g. MDD's, with --set data.options.music=jukebox);"
+          " the synthetic duets have no audio to compute them from.")
 
 
 def run_eval(args: argparse.Namespace) -> int:
