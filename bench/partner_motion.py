@@ -1,0 +1,146 @@
+"""How much the streamed partner moves, and how close it stays to the rule, as the demo runs it.
+
+    python bench/partner_motion.py [CHECKPOINT ...] [--seeds 0,1] [--seconds 8] [--window 60]
+                                   [--texts none,rule] [--json out.json]
+
+A quality check, not a speed benchmark (the figures do not depend on the machine's load).
+For each leader seed: the SYNTHETIC leader of ``dualflow.synthetic.make_leader_clip`` (8 s,
+30 fps; the demo's default actor), the demo's click track on its beats
+(``ros_free_bridge.commands.demo.click_track``), streamed frame by frame through the bridge's
+``ReactorStage`` with the demo's stream settings (window 60, hop 5, 5 Euler steps; change
+with ``--window``). Text: ``none`` (the demo's default, no cue) and/or ``rule``: each rule's
+template sentence of ``make_duet(rule, 8 s, seed)``, whose leader is the same clip, so its
+follower is the right answer. Default checkpoint: the bundled one.
+
+Figures per stream (world frame, Z up, metres; partner frame k pairs with actor frame k):
+
+* speed: mean joint speed of the partner, mean over t, j of |p[t+1, j] - p[t, j]| * fps (m/s);
+  smooth: the same after a 9-frame moving average (jitter removed); excursion: mean over
+  joints of the RMS distance from the joint's mean position (how far the partner travels);
+  each next to the rule follower's own value, the baseline of the same run;
+* err: MPJPE of the partner against the rule follower (text none: against the nearest rule),
+  also over the first second and after it; root and arms (elbows, wrists) alone;
+  the follower's own mean pose gives the error of the best pose that does not move.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ARM_JOINTS = [18, 19, 20, 21]  # SMPL-22 elbows and wrists
+
+
+def joint_speed(p: np.ndarray, fps: float = 30.0) -> float:
+    """Mean joint speed (m/s) of positions (T, 22, 3)."""
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=-1).mean() * fps)
+
+
+def smooth_speed(p: np.ndarray, fps: float = 30.0, k: int = 9) -> float:
+    """Mean joint speed (m/s) of the k-frame moving average of (T, 22, 3) positions."""
+    c = np.cumsum(np.concatenate([np.zeros((1,) + p.shape[1:]), p]), axis=0)
+    return joint_speed((c[k:] - c[:-k]) / k, fps)
+
+
+def excursion(p: np.ndarray) -> float:
+    """Mean over joints of the RMS distance (m) from the joint's mean position; p (T, 22, 3)."""
+    return float(np.sqrt(((p - p.mean(0)) ** 2).sum(-1).mean(0)).mean())
+
+
+def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None, window: int) -> np.ndarray:
+    """Partner positions (N, 22, 3) streamed by the bridge's ReactorStage (demo settings)."""
+    from dualflow.streaming import StreamConfig
+    from ros_free_bridge.stages import ReactorStage
+
+    stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=5, hop=5), text, music,
+                         music_frames=len(leader) + 60)
+    out = []
+    for k, p in enumerate(leader):
+        out += stage.push(p, 0.0, k)
+    out += stage.flush(0.0, len(leader) - 1)
+    return np.stack([f.positions for f in sorted(out, key=lambda f: f.index)])
+
+
+def _mpjpe(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(a - b, axis=-1).mean())
+
+
+def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: int, tmp: Path) -> list[dict]:
+    from dualflow.synthetic import RULES, make_duet, make_leader_clip
+    from ros_free_bridge.commands.demo import click_track
+
+    clip = make_leader_clip(seconds, 30.0, seed)
+    leader = clip.body.positions
+    music = str(click_track(clip.beat_times, seconds, tmp / f"click_{seed}.wav"))
+    followers = {r: make_duet(r, seconds, 30.0, seed).reactor.positions for r in RULES}
+    prompts = {r: make_duet(r, seconds, 30.0, seed).text for r in RULES}
+    cases = ([("none", None, None)] if "none" in texts else []) + \
+        ([("rule", r, prompts[r]) for r in RULES] if "rule" in texts else [])
+    rows = []
+    for mode, rule, text in cases:
+        pos = stream_partner(checkpoint, leader, music, text, window)
+        n = min(len(pos), len(leader))
+        errs = {r: _mpjpe(pos[:n], f[:n]) for r, f in followers.items()}
+        target = rule or min(errs, key=errs.get)
+        truth = followers[target][:n]
+        rows.append(dict(
+            checkpoint=str(checkpoint or "bundled"), seed=seed, text=mode, rule=target,
+            speed=joint_speed(pos[:n]), rule_speed=joint_speed(truth), smooth=smooth_speed(pos[:n]),
+            rule_smooth=smooth_speed(truth), excursion=excursion(pos[:n]), rule_excursion=excursion(truth),
+            err=errs[target], err_first_s=_mpjpe(pos[:30], truth[:30]), err_after=_mpjpe(pos[30:n], truth[30:]),
+            root_err=_mpjpe(pos[:n, 0], truth[:, 0]), arm_err=_mpjpe(pos[:n, ARM_JOINTS], truth[:, ARM_JOINTS]),
+            still_err=_mpjpe(np.broadcast_to(truth.mean(0), truth.shape), truth)))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tempfile
+
+    import torch
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("checkpoints", nargs="*", help="checkpoint directories (default: the bundled one)")
+    ap.add_argument("--seeds", default="0", help="leader seeds, comma separated (default 0, the demo's)")
+    ap.add_argument("--seconds", type=float, default=8.0, help="leader length (default 8 s, the demo's)")
+    ap.add_argument("--window", type=int, default=60, help="frames per streamed window (default 60, the demo's)")
+    ap.add_argument("--texts", default="none,rule", help="none (no cue), rule (each rule's sentence), or both")
+    ap.add_argument("--json", help="also write every row to this json file")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    texts = [t for t in args.texts.split(",") if t]
+    if not texts or set(texts) - {"none", "rule"}:
+        print(f"error: --texts must list none and/or rule, got {args.texts!r}", file=sys.stderr)
+        return 2
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in (int(s) for s in args.seeds.split(",")):
+            for ck in args.checkpoints or [None]:
+                for r in evaluate(ck, seed, args.seconds, texts, args.window, Path(tmp)):
+                    rows.append(r)
+                    print(f"{Path(r['checkpoint']).name} seed {seed} text {r['text']:4s} rule {r['rule']:9s} "
+                          f"speed {r['speed']:.3f} (rule {r['rule_speed']:.3f}) smooth {r['smooth']:.3f} "
+                          f"({r['rule_smooth']:.3f}) excursion {r['excursion']:.3f} ({r['rule_excursion']:.3f}) | "
+                          f"err {r['err']:.3f} [first s {r['err_first_s']:.3f}, after {r['err_after']:.3f}] "
+                          f"root {r['root_err']:.3f} arms {r['arm_err']:.3f} (still at the rule's mean pose "
+                          f"{r['still_err']:.3f})", flush=True)
+    print("\nmean over seeds and rules (partner | rule follower):")
+    keys = ("speed", "smooth", "excursion", "err", "err_first_s", "err_after", "still_err")
+    for ck in args.checkpoints or [None]:
+        for mode in texts:
+            sel = [r for r in rows if r["checkpoint"] == str(ck or "bundled") and r["text"] == mode]
+            m = {k: float(np.mean([r[k] for r in sel])) for k in keys + ("rule_speed", "rule_smooth", "rule_excursion")}
+            print(f"  {ck or 'bundled'} text {mode}: speed {m['speed']:.3f} | {m['rule_speed']:.3f} m/s, smooth "
+                  f"{m['smooth']:.3f} | {m['rule_smooth']:.3f} m/s, excursion {m['excursion']:.3f} | "
+                  f"{m['rule_excursion']:.3f} m; err {m['err']:.3f} m (first s {m['err_first_s']:.3f}, after "
+                  f"{m['err_after']:.3f}; still {m['still_err']:.3f})")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
