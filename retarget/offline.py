@@ -194,7 +194,7 @@ class OfflineRetargeter:
         opts |= {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
                 "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-3,
                 "ipopt.acceptable_iter": 3, "ipopt.acceptable_constr_viol_tol": 1e-6,
-                "ipopt.mu_strategy": "adaptive", "ipopt.bound_relax_factor": 1e-10,
+                "ipopt.mu_strategy": "adaptive", "ipopt.mu_oracle": "probing", "ipopt.bound_relax_factor": 1e-10,
                 "ipopt.linear_solver": "mumps"}
         opts |= {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
         name = f"rtw{W}"
