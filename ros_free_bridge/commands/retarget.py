@@ -28,10 +28,13 @@ def register(subparsers) -> None:
     p.add_argument("--mode", choices=("offline", "streaming"), default="offline")
     p.add_argument("--fps", type=float, default=30.0, help="resample the motion to this rate first (default 30)")
     p.add_argument("--ground", action="store_true", help="shift the motion so its lowest foot joint is at z = 0")
-    p.add_argument("--window", type=int, default=40, help="offline window length in frames (0 = whole clip)")
-    p.add_argument("--overlap", type=int, default=10, help="frames shared by consecutive windows")
+    p.add_argument("--window", type=int, default=None,
+                   help="offline window length in frames (0 = whole clip; default: retarget.offline.OfflineConfig's, 80)")
+    p.add_argument("--overlap", type=int, default=None, help="frames shared by consecutive windows (default 10)")
     p.add_argument("--balance", action="store_true", help="keep the CoM over the support polygon while feet touch (streaming: "
                    "feet planted, CoM, capture point and ZMP over them; retarget.streaming)")
+    p.add_argument("--zmp", action="store_true", help="offline --balance: keep the ZMP (CoM minus (z/g) times its "
+                   "acceleration) over the support polygon instead of the static CoM; what a dynamic clip needs to pass `check`")
     p.add_argument("--balance-margin", type=float, default=0.01, help="support polygon shrink (m, default 0.01)")
     p.add_argument("--no-contacts", action="store_true", help="do not hold feet in contact on the ground")
     p.add_argument("--no-collision", action="store_true", help="do not keep the profile's capsule pairs apart")
@@ -81,7 +84,8 @@ def run(args) -> int:
     if args.mode == "streaming":
         traj = StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile, balance=args.balance)).run(motion)
     else:
-        cfg = OfflineConfig(window=args.window, overlap=args.overlap, balance=args.balance,
+        sizes = {k: v for k, v in (("window", args.window), ("overlap", args.overlap)) if v is not None}
+        cfg = OfflineConfig(**sizes, balance=args.balance, zmp=args.zmp,
                             balance_margin=args.balance_margin, contacts=not args.no_contacts,
                             self_collision=not args.no_collision, retime=args.retime, auto_retime=args.auto_retime,
                             compile=not args.no_compile)
