@@ -206,17 +206,24 @@ def save_checkpoint(
                 state["optimizer_param_groups"] = groups
             _write_json(tmp / TRAINER_STATE_FILE, state)
         _publish_permissions(tmp)
-        old = None
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            os.replace(path, old)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        replace_directory(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return path
+
+
+def replace_directory(tmp: Path, path: Path) -> None:
+    """Put the finished directory ``tmp`` at ``path``, replacing what is there, so that a reader
+    sees the old directory or the new one, never a half-written one (two renames on one file
+    system; the old copy is removed afterwards)."""
+    old = None
+    if path.exists():
+        old = path.with_name(f".{path.name}.old-{os.getpid()}")
+        os.replace(path, old)
+    os.replace(tmp, path)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def _publish_permissions(directory: Path) -> None:

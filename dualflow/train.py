@@ -64,7 +64,7 @@ from safetensors.torch import save_file
 from torch.nn.parallel import DistributedDataParallel
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from dualflow.checkpoint import checkpoint_text_encoder, load_checkpoint, save_checkpoint
+from dualflow.checkpoint import checkpoint_text_encoder, load_checkpoint, replace_directory, save_checkpoint
 from dualflow.data import SyntheticDataConfig, make_datasets
 from dualflow.errors import DualFlowError
 from dualflow.flow import TimeSampler, flow_training_step
@@ -526,15 +526,7 @@ class Trainer:
             encoder = self.retrieval_ema.module if (final and self.retrieval_ema is not None) else self.retrieval_encoder
             save_rag_files(tmp, encoder.state_dict(), db=self.retriever.db if final else None,
                            ema_state=None if final or self.retrieval_ema is None else self.retrieval_ema.state_dict())
-            if path.exists():
-                old = path.with_name(f".{path.name}.old-rag-{os.getpid()}")
-                os.replace(path, old)
-                os.replace(tmp, path)
-                import shutil
-
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, path)
+            replace_directory(tmp, path)
             return path
         return with_rag
 

@@ -44,3 +44,22 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory):
+    """An untrained `tiny` DualFlow checkpoint (seeded) with statistics of a synthetic mirror duet:
+    real weights and files for the bridge's pipeline tests, cheap to run."""
+    import torch
+
+    from dualflow.checkpoint import save_checkpoint
+    from dualflow.model import DualFlow, DualFlowConfig
+    from dualflow.motion.features import encode_pair
+    from dualflow.motion.normalization import NormStats
+    from dualflow.synthetic import make_duet
+
+    torch.manual_seed(0)
+    feats, _ = encode_pair(make_duet("mirror", 4.0, 30.0, 0))
+    path = tmp_path_factory.mktemp("ckpt") / "tiny"
+    save_checkpoint(path, model=DualFlow(DualFlowConfig.preset("tiny")), stats=NormStats.from_features(feats))
+    return path

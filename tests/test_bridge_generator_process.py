@@ -12,14 +12,9 @@ import time
 
 import numpy as np
 import pytest
-import torch
 
-from dualflow.checkpoint import save_checkpoint
-from dualflow.model import DualFlow, DualFlowConfig
-from dualflow.motion.features import encode_pair
-from dualflow.motion.normalization import NormStats
 from dualflow.streaming import StreamConfig
-from dualflow.synthetic import make_duet, make_leader
+from dualflow.synthetic import make_leader
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.generator_process import (
     Channel, GeneratorConfig, GeneratorProcess, decode_actor, decode_target, encode_actor, encode_target,
@@ -31,15 +26,6 @@ from ros_free_bridge.sources.udp import ActorFrame
 from ros_free_bridge.stages import PartnerCore, PartnerPipeline, PartnerTarget, ReactorStage, RetargetStage
 from ros_free_bridge.targets import TargetBuffer
 from ros_free_bridge.transports.record import RecordTransport
-
-
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    torch.manual_seed(0)
-    feats, _ = encode_pair(make_duet("mirror", 4.0, 30.0, 0))
-    path = tmp_path_factory.mktemp("ckpt") / "tiny"
-    save_checkpoint(path, model=DualFlow(DualFlowConfig.preset("tiny")), stats=NormStats.from_features(feats))
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -26,15 +26,6 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    torch.manual_seed(0)
-    feats, _ = encode_pair(make_duet("mirror", 4.0, 30.0, 0))
-    path = tmp_path_factory.mktemp("ckpt") / "tiny"
-    save_checkpoint(path, model=DualFlow(DualFlowConfig.preset("tiny")), stats=NormStats.from_features(feats))
-    return path
-
-
-@pytest.fixture(scope="module")
 def op3():
     from retarget.robot import load_robot
 

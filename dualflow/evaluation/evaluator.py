@@ -195,15 +195,9 @@ class MotionTextEvaluator(nn.Module):
         (tmp / CONFIG_FILE).write_text(json.dumps({"format": FORMAT, "config": asdict(self.config),
                                                    "summary": summary or {}}, indent=2))
         self.stats.save(tmp / STATS_FILE)
-        if path.exists():
-            old = path.with_name(f".{path.name}.old{os.getpid()}")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            import shutil
+        from dualflow.checkpoint import replace_directory
 
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
+        replace_directory(tmp, path)
         return path
 
     @staticmethod
