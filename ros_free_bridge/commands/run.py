@@ -152,13 +152,21 @@ def run(args) -> int:
     return 0 if result.summary.end_state == "STOPPED" else 1
 
 
-def actor_placement_for_robot(partner, robot_motion):
+#: Closest the drawn actor's pelvis may come to the robot's root in the video (m, scene units).
+#: The robot keeps its feet planted while the generated partner may travel, so the actor,
+#: placed relative to the partner's first frame, can otherwise walk into the robot.
+VIDEO_MIN_GAP_M = 0.35
+
+
+def actor_placement_for_robot(partner, robot_motion, actor=None, min_gap: float = VIDEO_MIN_GAP_M):
     """Where to draw the actor in the robot's scene: the rigid transform (and scale) that takes
     the generated partner's first-frame pelvis and heading onto the robot's root, so the actor
-    stands relative to the robot as it stood relative to its partner."""
+    stands relative to the robot as it stood relative to its partner. With ``actor`` (a Motion),
+    the placement is then moved straight away from the robot until the actor's pelvis stays at
+    least ``min_gap`` from the robot's root in every frame they share."""
     import numpy as np
 
-    from sim.human_figure import Placement
+    from sim.human_figure import Placement, place
 
     p0 = partner.positions[0]
     left = p0[1] - p0[2]  # right hip -> left hip
@@ -169,8 +177,24 @@ def actor_placement_for_robot(partner, robot_motion):
     yaw = robot_yaw - partner_yaw
     c, s = np.cos(yaw), np.sin(yaw)
     moved = scale * np.array([c * p0[0, 0] - s * p0[0, 1], s * p0[0, 0] + c * p0[0, 1]])
-    offset = (robot_motion.root_pos[0, 0] - moved[0], robot_motion.root_pos[0, 1] - moved[1], 0.0)
-    return Placement(scale=scale, offset=offset, yaw_deg=float(np.degrees(yaw)))
+    offset = np.array([robot_motion.root_pos[0, 0] - moved[0], robot_motion.root_pos[0, 1] - moved[1], 0.0])
+    placement = Placement(scale=scale, offset=tuple(offset), yaw_deg=float(np.degrees(yaw)))
+    if actor is None:
+        return placement
+    n = min(actor.n_frames, len(robot_motion.root_pos))
+    root = np.asarray(robot_motion.root_pos[:n, :2])
+    pelvis = place(actor.positions[:n], scale, placement)[:, 0, :2]
+    away = pelvis[0] - root[0]
+    if np.linalg.norm(away) < 1e-6:  # the actor starts on the robot: step back along the robot's facing
+        away = np.array([np.cos(robot_yaw), np.sin(robot_yaw)])
+    away /= np.linalg.norm(away)
+    for _ in range(8):  # each step closes the worst frame's shortfall (exact for motion along `away`)
+        shortfall = min_gap - float(np.min(np.linalg.norm(pelvis - root, axis=1)))
+        if shortfall <= 1e-4:
+            break
+        offset[:2] += shortfall * away
+        pelvis = pelvis + shortfall * away
+    return Placement(scale=scale, offset=tuple(float(v) for v in offset), yaw_deg=placement.yaw_deg)
 
 
 def render_video(result, path: Path) -> Path:
@@ -180,7 +204,8 @@ def render_video(result, path: Path) -> Path:
 
     if result.robot_motion is None:
         raise BridgeError("--video needs a sim transport (sim or sim+dynamixel): only the virtual robot can be filmed")
-    placement = None if result.partner is None else actor_placement_for_robot(result.partner, result.robot_motion)
+    placement = (None if result.partner is None
+                 else actor_placement_for_robot(result.partner, result.robot_motion, result.actor))
     out, _ = render_trajectory(result.robot_motion, path, RenderConfig(playback="kinematic", side_by_side=True),
                                robot=result.files.name, actor=result.actor, actor_placement=placement,
                                reactor=result.partner)
