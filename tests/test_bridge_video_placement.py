@@ -1,6 +1,7 @@
 """Where the run video draws the actor next to the robot (ros_free_bridge.commands.run)."""
 
 import numpy as np
+import pytest
 
 from dualflow.motion import Motion
 from dualflow.motion.skeleton import REST_POSE
@@ -52,3 +53,22 @@ def test_an_actor_walking_into_the_robot_is_kept_at_the_minimum_gap():
     assert gap(kept).min() >= 0.35 - 1e-6
     assert gap(kept).min() <= 0.35 + 1e-3  # moved just enough, straight away from the robot
     assert kept.yaw_deg == plain.yaw_deg and kept.scale == plain.scale
+
+
+def test_the_video_camera_looks_across_the_robot_actor_line_not_along_it():
+    from sim.render import CameraConfig
+
+    from ros_free_bridge.commands.run import side_view
+
+    n = 30
+    partner = _person(np.zeros((n, 2)), 0.0)
+    for ax, ay in ((2.0, 0.0), (0.0, 2.0), (-1.5, -1.5)):
+        actor = _person(np.tile([ax, ay], (n, 1)), np.arctan2(-ay, -ax))
+        robot = _robot(n)
+        pl = actor_placement_for_robot(partner, robot, actor)
+        cam = side_view(robot, actor, pl, CameraConfig())
+        d = place(actor.positions, pl.scale, pl)[:, 0, :2].mean(axis=0) - robot.root_pos[:, :2].mean(axis=0)
+        view = np.array([np.cos(np.radians(cam.azimuth)), np.sin(np.radians(cam.azimuth))])  # MuJoCo: viewing direction
+        # 120° from robot -> actor: mostly across the line, never along it toward the robot
+        assert np.dot(view, d / np.linalg.norm(d)) == pytest.approx(np.cos(np.radians(120.0)), abs=1e-9)
+        np.testing.assert_allclose(cam.lookat[:2], 0.4 * d, atol=1e-9)  # aimed between the two

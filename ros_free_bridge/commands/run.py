@@ -13,6 +13,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from ros_free_bridge.session import PARTNERS, TRANSPORTS
@@ -197,6 +198,23 @@ def actor_placement_for_robot(partner, robot_motion, actor=None, min_gap: float 
     return Placement(scale=scale, offset=tuple(float(v) for v in offset), yaw_deg=placement.yaw_deg)
 
 
+def side_view(robot_motion, actor, placement, camera):
+    """The render camera turned so that it looks across the robot-actor line (120° from the
+    direction robot -> actor, so the robot's front stays in view) instead of along it, where
+    the actor would stand between the camera and the robot, and aimed between the two."""
+    import numpy as np
+
+    from sim.human_figure import place
+
+    pelvis = place(actor.positions, placement.scale, placement)[:, 0, :2].mean(axis=0)
+    d = pelvis - np.asarray(robot_motion.root_pos[:, :2]).mean(axis=0)
+    if np.linalg.norm(d) < 1e-6:
+        return camera
+    # aim between the two (the camera tracks each panel's figure; this offset is relative to it)
+    aim = (0.4 * float(d[0]), 0.4 * float(d[1]), float(np.mean(robot_motion.root_pos[:, 2])))
+    return replace(camera, azimuth=float(np.degrees(np.arctan2(d[1], d[0]))) + 120.0, lookat=aim)
+
+
 def render_video(result, path: Path) -> Path:
     """Actor, generated partner and robot side by side, from the run's recorded motions."""
     from ros_free_bridge.errors import BridgeError
@@ -206,7 +224,10 @@ def render_video(result, path: Path) -> Path:
         raise BridgeError("--video needs a sim transport (sim or sim+dynamixel): only the virtual robot can be filmed")
     placement = (None if result.partner is None
                  else actor_placement_for_robot(result.partner, result.robot_motion, result.actor))
-    out, _ = render_trajectory(result.robot_motion, path, RenderConfig(playback="kinematic", side_by_side=True),
+    config = RenderConfig(playback="kinematic", side_by_side=True)
+    if placement is not None and result.actor is not None:
+        config = replace(config, camera=side_view(result.robot_motion, result.actor, placement, config.camera))
+    out, _ = render_trajectory(result.robot_motion, path, config,
                                robot=result.files.name, actor=result.actor, actor_placement=placement,
                                reactor=result.partner)
     print(f"video: {out}", file=sys.stderr)
