@@ -13,11 +13,9 @@ ROBOTS = [n for n in ("op3", "ub14") if (ROBOT_DIR / n / f"{n}.xml").is_file()]
 
 @pytest.fixture(scope="module")
 def cmu_people(request):
-    from conftest import CMU_DIR
+    from conftest import CMU_DIR, _require
 
-    a, b = CMU_DIR / "18_01.bvh", CMU_DIR / "19_01.bvh"
-    if not (a.is_file() and b.is_file()):
-        pytest.skip(f"real test data not found at {CMU_DIR}")
+    a, b = _require(CMU_DIR / "18_01.bvh"), _require(CMU_DIR / "19_01.bvh")  # skips where ../shared/data is absent
     from dualflow.motion.io import load_pair, put_on_ground
 
     pair = put_on_ground(load_pair(a, b, fps=30.0))
