@@ -23,6 +23,13 @@ def _pyplot():
     return plt
 
 
+def _save(plt, fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def plot_joints(tel: Telemetry, path: Path) -> Path:
     """One panel per joint: target (upstream), command (sent) and measured angle, rad."""
     plt = _pyplot()
@@ -42,10 +49,7 @@ def plot_joints(tel: Telemetry, path: Path) -> Path:
     axes[0][0].legend(fontsize=7)
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def plot_timing(tel: Telemetry, path: Path) -> Path:
@@ -66,10 +70,7 @@ def plot_timing(tel: Telemetry, path: Path) -> Path:
     b.set_ylabel("ms")
     b.set_xlabel("time (s)")
     b.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def plot_safety(tel: Telemetry, path: Path) -> Path:
@@ -89,10 +90,7 @@ def plot_safety(tel: Telemetry, path: Path) -> Path:
             c.plot(r["t"][hit], np.full(hit.sum(), k), "|", ms=8, label=flag.name.lower())
     c.set_yticks([k for k, f in enumerate(f for f in Fault if f)], [f.name.lower() for f in Fault if f], fontsize=6)
     c.set_xlabel("time (s)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def plot_all(tel: Telemetry, out_dir: Path) -> list[Path]:

@@ -97,19 +97,24 @@ def _inside(p, poly):
     return np.all(hull.equations[:, :2] @ p + hull.equations[:, 2] <= 1e-6)
 
 
+def _shrunk_soles(ev, contacts, t, margin):
+    """Corners (k, 2) of the soles in contact at frame ``t``, each shrunk by ``margin`` (m)."""
+    pts = []
+    for side in range(2):
+        if contacts[t, side]:
+            c = ev["sole"][t, 4 * side:4 * side + 4, :2]
+            centre = c.mean(axis=0)
+            pts.append(centre + (c - centre) * (1 - 2 * margin / np.ptp(c, axis=0).max()))
+    return np.concatenate(pts)
+
+
 def test_balance_keeps_the_com_over_the_shrunk_support_polygon(toy_with_contacts):
     rb, motion, traj = toy_with_contacts
     tg = make_targets(rb, motion)
     ev = rb.evaluate(configurations(rb, traj))
     margin = 0.005
     for t in np.flatnonzero(tg.contacts.any(axis=1)):
-        pts = []
-        for side in range(2):
-            if tg.contacts[t, side]:
-                c = ev["sole"][t, 4 * side:4 * side + 4, :2]
-                centre = c.mean(axis=0)
-                pts.append(centre + (c - centre) * (1 - 2 * margin / np.ptp(c, axis=0).max()))
-        poly = np.concatenate(pts)
+        poly = _shrunk_soles(ev, tg.contacts, t, margin)
         assert _inside(ev["com"][t, :2], np.concatenate([poly, poly + 1e-9])), t
 
 
@@ -129,13 +134,7 @@ def test_zmp_balance_keeps_the_zmp_over_the_shrunk_support_polygon():
     for t in range(1, len(com) - 1):
         if not tg.contacts[t].any():
             continue
-        pts = []
-        for side in range(2):
-            if tg.contacts[t, side]:
-                c = ev["sole"][t, 4 * side:4 * side + 4, :2]
-                centre = c.mean(axis=0)
-                pts.append(centre + (c - centre) * (1 - 2 * margin / np.ptp(c, axis=0).max()))
-        poly = np.concatenate(pts)
+        poly = _shrunk_soles(ev, tg.contacts, t, margin)
         assert _inside(zmp[t - 1], np.concatenate([poly, poly + 1e-9])), t
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from dualflow.datasets.collection import DuetSet
-from dualflow.datasets.files import load_array, require_dir
+from dualflow.datasets.files import load_array, load_features, require_dir
 from dualflow.datasets.sample import DuetSample, positions_motion
 from dualflow.errors import DualFlowError
 from dualflow.motion.container import TwoPersonMotion
@@ -88,9 +88,7 @@ def load_dd100(root: str | Path, split: str = "train", *, music: bool = True, up
         n = min(p.n_frames for p in people)
         feats = None
         if music:
-            feats = load_array(music_path, ndim=(2,), min_rows=1).astype(np.float32)
-            if feats.shape[1] != MUSIC_DIM:
-                raise DualFlowError(f"{music_path}: expected Duolando's {MUSIC_DIM}-d music features, got {feats.shape[1]} columns")
+            feats = load_features(music_path, MUSIC_DIM, "Duolando music features")
             n = min(n, len(feats))
             feats = feats[:n]
         if n < 2:

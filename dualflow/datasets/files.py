@@ -49,6 +49,14 @@ def read_name_list(path: Path) -> list[str]:
     return names
 
 
+def load_features(path: Path, width: int, what: str) -> np.ndarray:
+    """Per-frame features (T, ``width``) as float32 from a .npy; ``what`` names them in errors."""
+    feats = load_array(path, ndim=(2,), min_rows=1).astype(np.float32)
+    if feats.shape[1] != width:
+        raise DualFlowError(f"{path}: expected {width}-d {what}, got {feats.shape[1]} columns")
+    return feats
+
+
 def load_array(path: Path, *, ndim: tuple[int, ...] = (2,), min_rows: int = 1) -> np.ndarray:
     """A finite numeric .npy array with ``ndim`` dimensions and >= ``min_rows`` rows."""
     try:

@@ -28,11 +28,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 
 from dualflow.datasets.collection import DuetSet
 from dualflow.datasets.dd100 import check_up_axis
-from dualflow.datasets.files import load_array, read_lines, require_dir
+from dualflow.datasets.files import load_array, load_features, read_lines, require_dir
 from dualflow.datasets.sample import DuetSample, positions_motion
 from dualflow.decompose import FocusedDescriptions
 from dualflow.errors import DualFlowError
@@ -97,9 +96,7 @@ def load_mdd(root: str | Path, split: str = "train", *, music: str | None = "fea
         feats = None
         if music_path is not None:
             _, kind, width = MUSIC_FOLDERS[music]
-            feats = load_array(music_path, ndim=(2,), min_rows=1).astype(np.float32)
-            if feats.shape[1] != width:
-                raise DualFlowError(f"{music_path}: expected {width}-d {kind} features, got {feats.shape[1]} columns")
+            feats = load_features(music_path, width, f"{kind} features")
             n = min(n, len(feats))
             feats = feats[:n]
         if n < 2:

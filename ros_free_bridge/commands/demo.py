@@ -24,6 +24,8 @@ import numpy as np
 
 
 def register(sub) -> None:
+    from ros_free_bridge.commands.run import add_generator_options
+
     p = sub.add_parser("demo", help="the main job: a dancing leader, a generated robot partner, video and reports",
                        description=__doc__.split("\n\n")[0])
     p.add_argument("--actor", default="synthetic", help="a motion file for the leader (default: the synthetic leader)")
@@ -31,13 +33,7 @@ def register(sub) -> None:
     p.add_argument("--text", help="a text cue for the partner (default: none)")
     p.add_argument("--seconds", type=float, default=8.0, help="length of the synthetic leader (default 8 s)")
     p.add_argument("--seed", type=int, default=0, help="synthetic leader seed")
-    p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
-    p.add_argument("--steps", type=int, default=5, help="ODE steps per generated window (default 5)")
-    p.add_argument("--hop", type=int, default=5,
-                   help="generate the partner every HOP frames (default 5; 1 = lowest delay, most compute)")
-    p.add_argument("--window", type=int, default=60, help="frames per generation window (default 60, the training clip length)")
-    p.add_argument("--generator", choices=("process", "thread"), default="process",
-                   help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
+    add_generator_options(p)
     p.add_argument("--no-bus", action="store_true", help="drive the virtual robot only, without the emulated bus")
     p.add_argument("--no-video", action="store_true", help="skip the video")
     p.add_argument("-o", "--out", default="demo_out", help="output folder (default demo_out)")

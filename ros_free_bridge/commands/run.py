@@ -16,7 +16,20 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from ros_free_bridge.session import PARTNERS, TRANSPORTS
+from ros_free_bridge.session import PARTNERS, TRANSPORTS, SessionOptions
+
+
+def add_generator_options(p) -> None:
+    """The partner generator's options, shared by ``run`` and ``demo``; defaults are SessionOptions'."""
+    d = SessionOptions()
+    p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
+    p.add_argument("--steps", type=int, default=d.steps, help=f"ODE steps per generated window (default {d.steps})")
+    p.add_argument("--hop", type=int, default=d.hop,
+                   help=f"generate the partner every HOP frames (default {d.hop}; 1 = lowest delay, most compute)")
+    p.add_argument("--window", type=int, default=d.window,
+                   help=f"frames per generation window (default {d.window}, the training clip length)")
+    p.add_argument("--generator", choices=("process", "thread"), default=d.generator,
+                   help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
 
 
 def register(sub) -> None:
@@ -29,13 +42,7 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="synthetic actor seed")
     p.add_argument("--partner", choices=PARTNERS, default="dualflow",
                    help="dualflow: generate the partner (default); imitate: the robot copies the actor")
-    p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
-    p.add_argument("--steps", type=int, default=5, help="ODE steps per generated window (default 5)")
-    p.add_argument("--hop", type=int, default=5,
-                   help="generate the partner every HOP frames (default 5; 1 = lowest delay, most compute)")
-    p.add_argument("--window", type=int, default=60, help="frames per generation window (default 60, the training clip length)")
-    p.add_argument("--generator", choices=("process", "thread"), default="process",
-                   help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
+    add_generator_options(p)
     p.add_argument("--text", help="a text cue for the generated partner, e.g. 'the partner mirrors the leader'")
     p.add_argument("--music", help="an audio file (wav/ogg/mp3) aligned with the actor's clock (loops if shorter)")
     p.add_argument("--transport", choices=TRANSPORTS, default="sim", help="where commands go (default: sim)")
@@ -130,7 +137,7 @@ def print_summary(result, stream=None) -> None:
 
 
 def run(args) -> int:
-    from ros_free_bridge.session import SessionOptions, run_session
+    from ros_free_bridge.session import run_session
 
     opts = SessionOptions(
         robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
