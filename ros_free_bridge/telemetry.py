@@ -69,7 +69,8 @@ class TelemetryWriter:
         self._fh = open(self.path, "wb")
         self._fh.write(MAGIC + json.dumps(header).encode() + b"\n")
         self._fh.flush()
-        self._events = open(self.path.with_name(self.path.name + ".events.jsonl"), "a", buffering=1)
+        # the events belong to this run's tick file, which was just truncated: start them afresh too
+        self._events = open(self.path.with_name(self.path.name + ".events.jsonl"), "w", buffering=1)
         self._buf = np.zeros(1, dtype=self.dtype)
         self._raw = self._buf.view(np.uint8)  # the record's bytes, zeroed before each tick
         self._fields = {name: self._buf[name] for name in self.dtype.names}  # views made once, not per tick
