@@ -9,6 +9,11 @@ One tick (default 100 Hz), never blocking on the slow stages:
 4. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
 5. record the tick in telemetry.
 
+With a transport that offers it (``pipeline``: the Dynamixel transport), the bus cycle is
+split: step 4's write also sends the position read request, whose reply step 2 of the next
+tick takes without waiting (``LoopConfig.split_phase_bus``); the measured positions in
+telemetry are then those sampled one tick earlier.
+
 While ticking, :mod:`ros_free_bridge.realtime` keeps the loop on time: the heap is frozen
 and young objects are collected only in a tick's slack after the bus write (no collector
 pause inside a tick), the GIL switch interval is 0.5 ms (a generator thread cannot hold the
@@ -93,6 +98,10 @@ class LoopConfig:
     gc_in_slack: bool = True  #: freeze the heap, collect young objects only in a tick's slack (realtime.LoopGc)
     switch_interval_s: float = 0.0005  #: GIL switch interval while running (the default 5 ms exceeds a 250 Hz period)
     realtime_priority: int = 0  #: SCHED_FIFO priority of the loop thread (1-99; needs privileges); 0: normal
+    #: split-phase bus cycle where the transport offers one (``pipeline(True)``, the Dynamixel
+    #: transport): a tick's write also sends the position read and the next tick takes its
+    #: reply, so no tick waits for the bus; measured positions are then one tick old
+    split_phase_bus: bool = True
 
     def __post_init__(self) -> None:
         for name in ("stop_policy", "estop_policy"):
@@ -213,6 +222,10 @@ class ControlLoop:
         self.transport.write_goal(start)  # goal = present before torque on: no jump
         self.transport.set_torque(True)
         self._event("torque_on")
+        pipeline = getattr(self.transport, "pipeline", None)
+        if cfg.split_phase_bus and callable(pipeline) and pipeline(True):
+            self._event("split_phase_bus", measured="the reply to the previous tick's read request",
+                        stamp="JointState.stamp = when that request left")
         rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
         self._rest = rest
         self._enter_realtime()

@@ -18,6 +18,12 @@ build them byte by byte in Python); both go through the SDK's ``PortHandler``. T
 reply also keeps each servo's status error byte, so a hardware alert is seen the same
 tick. Everything else (PING, READ, WRITE, REBOOT, the SYNC_READ fallback) is the SDK's.
 
+Split-phase cycle (:meth:`DynamixelTransport.pipeline`, switched on by the control loop):
+``write_goal`` sends SYNC_WRITE and the FAST_SYNC_READ request and returns; the next
+``read_state`` takes the reply that arrived meanwhile, and sends the round-robin status READ
+whose reply is collected before the next packet goes out. A loop tick then never waits for
+the bus; the positions it reads were sampled one tick earlier (``JointState.stamp``).
+
 Protocol 1.0 buses (AX/MX) have no sync read: positions are read servo by servo, and the
 status error byte itself carries the hardware bits.
 
@@ -262,6 +268,10 @@ class DynamixelBus:
         self._latency_ms = latency_ms
         self.port: ExclusivePortHandler | None = None
         self.ph = sdk.PacketHandler(self.protocol)
+        #: Called (once, then cleared) before the next transfer: a transport that left a
+        #: request's reply on the wire sets it, so nothing is sent over that reply (the bus
+        #: is half duplex). See DynamixelTransport.pipeline.
+        self.before_io = None
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -289,6 +299,7 @@ class DynamixelBus:
 
     def close(self) -> None:
         port, self.port = self.port, None
+        self.before_io = None
         if port is not None:
             try:
                 port.is_using = False
@@ -316,6 +327,9 @@ class DynamixelBus:
         fast-sync-read reply) returns ``malformed`` instead, so it counts as a failed try."""
         if self.port is None:
             raise BridgeError(f"Dynamixel bus {self.port_name}: not open; call open() first")
+        if self.before_io is not None:
+            settle, self.before_io = self.before_io, None
+            settle()
         try:
             return fn(self.port, *args)
         except BridgeError:
@@ -489,6 +503,13 @@ class DynamixelTransport:
         self._torque_on = np.zeros(len(self.servos), bool)   # last known state on the servo
         self._torque_cmd = np.zeros(len(self.servos), bool)  # what the host asked for
         self._atexit = None
+        # split-phase bus cycle (see pipeline())
+        self._pipelined = False
+        self._pending: tuple[str, int] | None = None  # ("fast", -1) or ("slow", i): a reply still on the wire
+        self._fast_sent = 0.0  # monotonic second the pending FAST_SYNC_READ request left
+        self._fast_ready: tuple[int, float] | None = None  # (COMM code, request time) of a collected fast read
+        self._slow_ready: tuple[int, list, int, int] | None = None  # (servo index, data, COMM code, error byte)
+        self._slow_blocks: dict[int, tuple[dict[str, Register], int, int]] = {}
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -532,6 +553,7 @@ class DynamixelTransport:
                 self._broadcast_torque_off()
         finally:
             self.bus.close()
+            self._pending = self._fast_ready = self._slow_ready = None
             if self._atexit is not None:
                 atexit.unregister(self._atexit)
                 self._atexit = None
@@ -545,11 +567,28 @@ class DynamixelTransport:
 
     # ------------------------------------------------------------------ Transport
     def read_state(self) -> JointState:
+        """Present positions of every servo, plus the status block of ``slow_per_cycle``
+        servos (round robin). In the split-phase cycle (:meth:`pipeline`) the positions are
+        the reply to the request that ``write_goal`` sent on the previous tick, collected
+        without waiting when it has arrived, and ``stamp`` is when that request left; the
+        last status READ of the call is sent but collected on the next bus transfer."""
         try:
-            self._read_positions()
-            for _ in range(min(self.slow_per_cycle, len(self.servos))):
-                self._read_slow(self._slow_next)
-                self._slow_next = (self._slow_next + 1) % len(self.servos)
+            if self._pending is not None:
+                self._settle()
+            if self._fast_ready is not None:
+                self._finish_fast()
+            else:
+                self._read_positions()
+            if self._slow_ready is not None:
+                self._finish_slow()
+            k = min(self.slow_per_cycle, len(self.servos))
+            for j in range(k):
+                i = self._slow_next
+                self._slow_next = (i + 1) % len(self.servos)
+                if self._pipelined and j == k - 1:
+                    self._send_slow(i)
+                else:
+                    self._read_slow(i)
         except BridgeError:
             self._on_error()
             raise
@@ -571,9 +610,40 @@ class DynamixelTransport:
         q = np.clip(q, self._lower, self._upper)
         try:
             self._send_goal_ticks(self._to_ticks(q))
+            if self._pipelined:
+                self._send_fast()
         except BridgeError:
             self._on_error()
             raise
+
+    def pipeline(self, enabled: bool = True) -> bool:
+        """Switch the split-phase bus cycle on or off; returns whether it is on.
+
+        On (protocol 2.0 buses whose servos answer FAST_SYNC_READ; elsewhere this returns
+        False and nothing changes): ``write_goal`` sends SYNC_WRITE and then the
+        FAST_SYNC_READ request and returns without waiting; the next ``read_state`` takes
+        the reply that arrived meanwhile (it waits, up to the reply timeout, only for bytes
+        still missing). A control loop then never blocks for the bus time of a cycle
+        (1.6 ms at 2 Mbit/s for 20 servos); the price is that the positions it reads are
+        those sampled when the previous tick's request reached the servos (``stamp``).
+        The round-robin status READ is split the same way: sent by ``read_state``,
+        collected before the next packet goes out.
+
+        Faults keep the blocking path's policy: a reply that is missing, short or garbled
+        counts as a retry and is read again at once with the usual bounded retries (then
+        the error names the silent servo); a port that vanished is a BridgeError. The bus
+        is half duplex, so any transfer (a write, an e-stop, recovery) first collects a
+        reply still on the wire (``DynamixelBus.before_io``)."""
+        if self.bus.port is not None:
+            self._settle()
+        self._fast_ready = None
+        self._pipelined = bool(enabled) and self._fast is not None and self.stats.fast_sync_read
+        return self._pipelined
+
+    @property
+    def pipelined(self) -> bool:
+        """Whether the split-phase bus cycle is on (:meth:`pipeline`)."""
+        return self._pipelined
 
     def set_torque(self, enabled: bool) -> None:
         if enabled:
@@ -727,20 +797,31 @@ class DynamixelTransport:
         return sdk.COMM_SUCCESS if port.writePort(packet) == len(packet) else sdk.COMM_TX_FAIL
 
     def _fast_read_op(self, port) -> int:
-        """One FAST_SYNC_READ of Present Position: send the prebuilt request, collect the
-        reply's known number of bytes through ``port.readPort`` (which sleeps while the
-        reply is on the wire) within the SDK's sync-read timeout, and parse it in one numpy
-        pass into ``self._fast_values`` / ``self._fast_errors``. Stale input (a reply that
-        came after an earlier timeout) is discarded first, so it cannot be taken for this
-        one. Returns an SDK COMM_* code."""
-        fast = self._fast
+        """One FAST_SYNC_READ of Present Position, blocking: :meth:`_fast_send_op` then
+        :meth:`_fast_collect_op`. Returns an SDK COMM_* code."""
+        result = self._fast_send_op(port)
+        if result != sdk.COMM_SUCCESS:
+            return result
+        return self._fast_collect_op(port)
+
+    def _fast_send_op(self, port) -> int:
+        """Send the prebuilt FAST_SYNC_READ request and start the SDK's sync-read timeout.
+        Stale input (a reply that came after an earlier timeout) is discarded first, so it
+        cannot be taken for this one's."""
         if port.is_using:
             return sdk.COMM_PORT_BUSY
         port.ser.reset_input_buffer()
-        result = self._tx_op(port, fast.request)
-        if result != sdk.COMM_SUCCESS:
-            return result
-        port.setPacketTimeout((11 + fast.size) * fast.n)  # the SDK's sync-read timeout
+        result = self._tx_op(port, self._fast.request)
+        if result == sdk.COMM_SUCCESS:
+            port.setPacketTimeout((11 + self._fast.size) * self._fast.n)  # the SDK's sync-read timeout
+        return result
+
+    def _fast_collect_op(self, port) -> int:
+        """Collect the FAST_SYNC_READ reply's known number of bytes through
+        ``port.readPort`` (which sleeps while the reply is on the wire) until the timeout
+        started by :meth:`_fast_send_op`, and parse it in one numpy pass into
+        ``self._fast_values`` / ``self._fast_errors``. Returns an SDK COMM_* code."""
+        fast = self._fast
         need = fast.reply_length
         head = fast.head[:5]
         buf = b""
@@ -769,6 +850,76 @@ class DynamixelTransport:
         result = self.bus.call(self._tx_op, self._writer.encode(ticks))
         if result != sdk.COMM_SUCCESS:
             raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus._comm(result)})")
+
+    def _send_fast(self) -> None:
+        """Split phase: send the FAST_SYNC_READ request and leave its reply on the wire
+        (collected by :meth:`_settle`). A failed send leaves nothing pending: the next
+        ``read_state`` then reads the blocking way, with its retries and errors."""
+        if self.bus.call(self._fast_send_op) != sdk.COMM_SUCCESS:
+            self.stats.read_retries += 1
+            return
+        self._fast_sent = time.monotonic()
+        self._pending = ("fast", -1)
+        self.bus.before_io = self._settle
+
+    def _send_slow(self, i: int) -> None:
+        """Split phase: send servo ``i``'s status-block READ, leave its reply on the wire."""
+        _, start, length = self._slow_block(i)
+        sid, ph = self.servos[i].cfg.id, self.bus.ph
+
+        def op(port) -> int:
+            port.ser.reset_input_buffer()
+            return ph.readTx(port, sid, start, length)
+
+        if self.bus.call(op) != sdk.COMM_SUCCESS:
+            self._read_slow(i)  # blocking, with the usual retries
+            return
+        self._pending = ("slow", i)
+        self.bus.before_io = self._settle
+
+    def _settle(self) -> None:
+        """Collect the reply of the split-phase request still on the wire, if any, into
+        ``_fast_ready`` / ``_slow_ready`` (for ``read_state`` to use). Waits only for bytes
+        not yet arrived, at most until the request's reply timeout. Never raises for a
+        missing or garbled reply (that is recorded as the COMM code); a dead port raises."""
+        pending, self._pending = self._pending, None
+        self.bus.before_io = None
+        if pending is None:
+            return
+        kind, i = pending
+        if kind == "fast":
+            result = self.bus.call(self._fast_collect_op, malformed=sdk.COMM_RX_CORRUPT)
+            self._fast_ready = (result, self._fast_sent)
+        else:
+            _, _, length = self._slow_block(i)
+            data, result, error = self.bus.call(self.bus.ph.readRx, self.servos[i].cfg.id, length,
+                                                malformed=([], sdk.COMM_RX_CORRUPT, 0))
+            self._slow_ready = (i, data, result, error)
+        if result != sdk.COMM_SUCCESS:
+            self.stats.read_retries += 1  # counted here: a newer request may supersede it before it is used
+
+    def _finish_fast(self) -> None:
+        """Use a collected split-phase FAST_SYNC_READ; a failed one counts as a retry and
+        is replaced by a blocking read (bounded retries, then an error naming the servo)."""
+        (result, sent), self._fast_ready = self._fast_ready, None
+        if result != sdk.COMM_SUCCESS:
+            self._read_positions()
+            return
+        self._state.position = self._to_joint(self._fast_values)
+        self._state.stamp = sent
+        if self._fast_errors.any():
+            self._on_fast_read_errors(self._fast_errors)
+
+    def _finish_slow(self) -> None:
+        """Use a collected split-phase status READ; a failed or refused one is read again
+        the blocking way (which retries, and raises on a refusal)."""
+        (i, data, result, error), self._slow_ready = self._slow_ready, None
+        _, _, length = self._slow_block(i)
+        if result == sdk.COMM_SUCCESS and len(data) == length and not error & 0x7F:
+            self._apply_slow(i, bytes(data), error)
+        else:
+            self.stats.read_retries += result == sdk.COMM_SUCCESS  # a short or refused reply (failures: _settle)
+            self._read_slow(i)
 
     def _read_positions(self) -> None:
         fast = self._reader is not None and self.stats.fast_sync_read
@@ -799,6 +950,7 @@ class DynamixelTransport:
                     ticks[ticks >= 1 << (8 * reg.size - 1)] -= 1 << (8 * reg.size)
         self._state.position = self._to_joint(ticks)
         self._state.stamp = time.monotonic()
+        self._fast_ready = None  # a split-phase reply collected meanwhile is older than this
         if fast and self._fast_errors.any():
             self._on_fast_read_errors(self._fast_errors)
 
@@ -836,12 +988,25 @@ class DynamixelTransport:
             regs["watchdog"] = m.register("bus_watchdog")  # same READ, from address 98 on
         return regs
 
+    def _slow_block(self, i: int) -> tuple[dict[str, Register], int, int]:
+        """(registers by field, start address, length) of servo ``i``'s status block."""
+        block = self._slow_blocks.get(i)
+        if block is None:
+            regs = self._slow_registers(self.servos[i])
+            start = min(r.address for r in regs.values())
+            block = self._slow_blocks[i] = (regs, start, max(r.end for r in regs.values()) - start)
+        return block
+
     def _read_slow(self, i: int) -> None:
+        _, start, length = self._slow_block(i)
+        data, error = self.bus.read_raw(self.servos[i].cfg.id, start, length, "status block")
+        self._apply_slow(i, data, error)
+
+    def _apply_slow(self, i: int, data: bytes, error: int) -> None:
+        """Decode servo ``i``'s status block (velocity, effort, voltage, temperature, bus
+        watchdog) into the state; act on its status error byte (alert → register 70)."""
         sv = self.servos[i]
-        regs = self._slow_registers(sv)
-        start = min(r.address for r in regs.values())
-        end = max(r.end for r in regs.values())
-        data, error = self.bus.read_raw(sv.cfg.id, start, end - start, "status block")
+        regs, start, _ = self._slow_block(i)
         val = {k: r.decode(data[r.address - start:r.end - start]) for k, r in regs.items()}
         m, d = sv.model, sv.cfg.direction
         if "velocity" in val:
