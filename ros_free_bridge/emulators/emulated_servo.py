@@ -98,6 +98,11 @@ class WriteResult:
         return self.error is None
 
 
+_WRITE_OK = WriteResult(None)
+_WRITE_RANGE = WriteResult("range")
+_WRITE_LIMIT = WriteResult("limit")
+
+
 @dataclass
 class Faults:
     """Injected faults of one servo (see the bus emulator's fault API)."""
@@ -509,9 +514,11 @@ class EmulatedServo:
         """Apply a write under the rules above; records every Goal Position it carries."""
         self.advance()
         data = bytes(data)
+        g0, g1 = self._goal_span
+        if address == g0 and len(data) == g1 - g0:
+            return self._write_goal(data, instruction)
         result = self.check_write(address, data)
         goal_reg = self._regs["goal_position"]
-        g0, g1 = self._goal_span
         if address < g1 and g0 < address + len(data):
             # record any write touching Goal Position; a partial one as the bytes it
             # would have left in the register (it is refused with a length error)
@@ -540,6 +547,27 @@ class EmulatedServo:
             if self._shutdown_active():
                 self.set("torque_enable", 0)  # shutdown holds torque off until REBOOT
         self._stale = True
+        return result
+
+    def _write_goal(self, data: bytes, instruction: str) -> WriteResult:
+        """A write of exactly Goal Position (every control tick's SYNC_WRITE): the checks
+        :meth:`check_write` makes for that one register (a RAM register, always writable),
+        without its generic span analysis: read-only after a Bus Watchdog error, the
+        register's range on protocol 1.0, the position limits in position mode."""
+        g0, g1 = self._goal_span
+        reg = self._regs["goal_position"]
+        ticks = reg.decode(data)
+        if self._has_watchdog and self._g("bus_watchdog") == -1:
+            result = _WRITE_RANGE
+        elif self.model.protocol == 1 and not reg.in_range(ticks):
+            result = _WRITE_RANGE
+        else:
+            lo, hi = self._goal_limits()
+            result = _WRITE_LIMIT if lo is not None and not lo <= ticks <= hi else _WRITE_OK
+        self._record_goal(ticks, result.ok, instruction)
+        if result.ok:
+            self._mem[g0:g1] = data
+            self._stale = True
         return result
 
     def _record_goal(self, ticks: int, accepted: bool, instruction: str) -> None:
