@@ -12,6 +12,9 @@ For 1, 2 and 4 Mbit/s it prints, per cycle (median and 99th percentile over the 
 - ``host``: host-side time per cycle = cycle − time spent waiting for the reply's bytes
   (from the end of the read instruction's write to the arrival of the reply's last byte),
   i.e. Python, the SDK's packet code and our code; target < 0.3 ms;
+- ``split``: the split-phase cycle the control loop runs (``DynamixelTransport.pipeline``):
+  wall time of ``write_goal`` (goals + read request out) plus ``read_state`` called once the
+  reply is there: the host's time per cycle with nothing waited for; target < 0.3 ms;
 
 then the host CPU per cycle measured with no emulator running (a recorded reply is written
 into the pty as the request leaves), ours next to the same work with the bare SDK's groups,
@@ -141,6 +144,28 @@ def bench_baud(baud: int, cycles: int) -> dict:
             retries = t.stats.read_retries
             fast = t.stats.fast_sync_read
 
+            # split phase (what the control loop runs): write_goal sends the goals and the read
+            # request and returns; read_state, called once the reply is surely there, takes it.
+            # Their wall time together is the host's time per cycle, with nothing waited for.
+            split_ms, split_cpu, late = [], [], 0
+            t.pipeline(True)
+            need = t._fast.reply_length
+            settle = (sum(theory_ms(baud)) + 3.0) * 1e-3
+            for k in range(cycles + 20):
+                goal = np.clip(q + amp * np.sin(0.05 * k), t.lower, t.upper)
+                c0, t0 = time.thread_time(), time.perf_counter()
+                t.write_goal(goal)
+                c1, t1 = time.thread_time(), time.perf_counter()
+                time.sleep(settle)
+                late += t.bus.port.ser.in_waiting < need
+                c2, t2 = time.thread_time(), time.perf_counter()
+                t.read_state()
+                c3, t3 = time.thread_time(), time.perf_counter()
+                if k >= 20:
+                    split_ms.append((t1 - t0 + t3 - t2) * 1e3)
+                    split_cpu.append((c1 - c0 + c3 - c2) * 1e3)
+            t.pipeline(False)
+
             # baseline: the same packets with bare SDK calls on the same open port
             port, ph = t.bus.port, t.bus.ph
             w = sdk.GroupSyncWrite(port, ph, 116, 4)
@@ -163,7 +188,7 @@ def bench_baud(baud: int, cycles: int) -> dict:
         emu.stop()
     sw, fsr = theory_ms(baud)
     return {"baud": baud, "theory_sw": sw, "theory_fsr": fsr, "cycle": cycle_ms, "sdk": sdk_ms, "host": host_ms,
-            "wait": wait_ms, "retries": retries, "fast": fast}
+            "wait": wait_ms, "retries": retries, "fast": fast, "split": split_ms, "split_cpu": split_cpu, "late": late}
 
 
 def host_cpu(baud: int, cycles: int) -> dict:
@@ -282,12 +307,14 @@ def _sdk_loop_baseline(port_name: str, baud: int):
     return tick, port.closePort
 
 
-def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False) -> dict:
+def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split: bool = True) -> dict:
     """A bus-only fixed-rate loop at ``hz``: per tick, goals out and a full ``read_state``
     (positions + one servo's status block). Ours: the transport on ros_free_bridge's
     clock (sleep, then spin the last 0.5 ms) with GC in the slack and a short GIL switch
-    interval (ros_free_bridge.realtime). ``use_sdk``: the same ticks through the bare SDK
-    (:func:`_sdk_loop_baseline`) on the same clock, without the GC measures."""
+    interval (ros_free_bridge.realtime), with the split-phase cycle the control loop uses
+    (``split``; positions are then the reply to the previous tick's request).
+    ``use_sdk``: the same ticks through the bare SDK (:func:`_sdk_loop_baseline`, blocking)
+    on the same clock, without the GC measures."""
     from firmware_cfg.config import load_config, robot_config_path
     from ros_free_bridge.clock import FixedRateClock
     from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
@@ -311,10 +338,11 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False) -> di
             t.open()
             close = t.close
             q = t.read_state().position
+            t.pipeline(split)
 
-            def step(k: int) -> None:
-                t.write_goal(np.clip(q + 0.1 * np.sin(2 * np.pi * 0.5 * k / hz), t.lower, t.upper))
+            def step(k: int) -> None:  # as the control loop: read (the reply to the last request), then write
                 t.read_state()
+                t.write_goal(np.clip(q + 0.1 * np.sin(2 * np.pi * 0.5 * k / hz), t.lower, t.upper))
             gc_ctx, si_ctx = LoopGc(), switch_interval()
         try:
             # the stock SDK polls the port without sleeping: at SCHED_FIFO it would hold a core, so the
@@ -359,7 +387,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, nice {args.nice}, "
           f"{'SCHED_FIFO ' + str(args.rt) if args.rt else 'normal scheduling'}")
     print("times in ms per cycle, median / p99; theory = packet bytes × 10 bits / baud")
-    hdr = f"{'baud':>8} {'theory sw+fsr':>15} {'sdk baseline':>14} {'transport':>14} {'reply wait':>12} {'host (target <0.3)':>20} retries"
+    hdr = (f"{'baud':>8} {'theory sw+fsr':>15} {'sdk baseline':>14} {'transport':>14} {'reply wait':>12} "
+           f"{'host (target <0.3)':>20} {'split phase':>14} retries")
     print(hdr)
     out = []
     host_target = f"< {TARGET_HOST_MS:g}"
@@ -370,14 +399,19 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         print(f"{baud:>8} {r['theory_sw']:6.2f}+{r['theory_fsr']:.2f}={th:4.2f} "
               f"{m(r['sdk']):6.2f}/{_pct(r['sdk'], 99):5.2f} {m(r['cycle']):6.2f}/{_pct(r['cycle'], 99):5.2f} "
               f"{m(r['wait']):5.2f}/{_pct(r['wait'], 99):5.2f} {m(r['host']):9.3f}/{_pct(r['host'], 99):6.3f}"
-              f"{' ok' if m(r['host']) < TARGET_HOST_MS else ' OVER':>5} {r['retries']:>5}"
-              + ("" if r["fast"] else "  (SYNC_READ fallback)"))
+              f"{' ok' if m(r['host']) < TARGET_HOST_MS else ' OVER':>5} {m(r['split']):7.3f}/{_pct(r['split'], 99):6.3f}"
+              f" (CPU {m(r['split_cpu']):.3f})"
+              f" {r['retries']:>5}" + ("" if r["fast"] else "  (SYNC_READ fallback)")
+              + (f"  ({r['late']} split-phase replies not complete after theory + 3 ms)" if r["late"] else ""))
         mbit = f"{baud / 1e6:g} Mbit/s"
         out.append(Row(f"bus cycle, sync write + fast sync read, 20 servos @ {mbit} (ms median; theory {th:.2f}; "
                        "baseline bare SDK)", m(r["cycle"]), m(r["sdk"]), "", NA))
         out.append(Row(f"host-side time per bus cycle @ {mbit}, wall clock: cycle minus reply wait "
                        "(ms median; load shows here)", m(r["host"]), "", host_target,
                        verdict(m(r["host"]) < TARGET_HOST_MS)))
+        out.append(Row(f"host-side time per split-phase bus cycle @ {mbit}, wall clock: write_goal + read_state "
+                       f"with the reply already there (ms median; its CPU {m(r['split_cpu']):.3f}; load "
+                       f"{os.getloadavg()[0]:.1f})", m(r["split"]), "", host_target, verdict(m(r["split"]) < TARGET_HOST_MS)))
     hc = host_cpu(2_000_000, args.cycles)
     m = statistics.median
     print(f"host CPU per cycle at 2 Mbit/s (reply injected, no emulator running, nothing waited for): ours median "
@@ -385,22 +419,25 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
           f"(p99 {_pct(hc['sdk'], 99):.3f}); target < {TARGET_HOST_MS} ms")
     out.append(Row("host CPU per bus cycle @ 2 Mbit/s, write goals + fast sync read + convert (ms median; baseline bare SDK)",
                    m(hc["ours"]), m(hc["sdk"]), host_target, verdict(m(hc["ours"]) < TARGET_HOST_MS)))
-    for name, use_sdk in (("ours", False), ("bare SDK", True)):
-        r = sustained(2_000_000, TARGET_HZ, args.seconds, use_sdk=use_sdk)
+    runs = {}
+    for name, use_sdk, split in (("ours, split phase", False, True), ("ours, blocking cycle", False, False),
+                                 ("bare SDK", True, False)):
+        r = runs[name] = sustained(2_000_000, TARGET_HZ, args.seconds, use_sdk=use_sdk, split=split)
         print(f"sustained {TARGET_HZ:.0f} Hz at 2 Mbit/s, {name}: {r['hz']:.1f} Hz; {r['overruns']}/{r['n']} ticks overran, "
               f"{r['skipped']} skipped; lateness p50 {m(r['lateness']):.3f} / p99 {_pct(r['lateness'], 99):.3f} ms; "
               f"busy per tick p50 {m(r['busy']):.2f} / p99 {_pct(r['busy'], 99):.2f} ms of {1e3 / TARGET_HZ:.1f}; "
               f"load {os.getloadavg()[0]:.2f}")
-        if use_sdk:
-            base = r
-        else:
-            mine = r
+    mine, blocking, base = runs.values()
     sched = f"; --rt {RT[0]}: emulator and our loop SCHED_FIFO" if RT[0] else ""
+    sched += f"; load {os.getloadavg()[0]:.1f}"
     out.append(Row(f"sustained bus loop @ 2 Mbit/s, {TARGET_HZ:.0f} Hz asked (Hz achieved; ROBOTIS OP3 framework "
                    f"{OP3_FRAMEWORK_HZ:.0f} Hz; baseline bare SDK{sched})", mine["hz"], base["hz"], "", NA))
     out.append(Row(f"ticks overrun + skipped in the sustained {TARGET_HZ:.0f} Hz bus loop (baseline bare SDK{sched})",
                    f"{mine['overruns']} + {mine['skipped']} / {mine['n']}", f"{base['overruns']} + {base['skipped']} / {base['n']}",
                    f"{TARGET_HZ:.0f} Hz sustained: 0", verdict(mine["overruns"] + mine["skipped"] == 0)))
+    out.append(Row(f"the same, ours with the blocking cycle (write, then wait for the read's reply; baseline bare SDK{sched})",
+                   f"{blocking['overruns']} + {blocking['skipped']} / {blocking['n']}",
+                   f"{base['overruns']} + {base['skipped']} / {base['n']}", "", NA))
     out.append(Row(f"bus loop lateness p99 @ {TARGET_HZ:.0f} Hz (ms; baseline bare SDK{sched})", _pct(mine["lateness"], 99),
                    _pct(base["lateness"], 99), f"< {0.2e3 / TARGET_HZ:.1f}", verdict(_pct(mine["lateness"], 99) < 0.2e3 / TARGET_HZ)))
     return out
