@@ -3,9 +3,10 @@
 - scalar pieces: CRC-16, byte stuffing, instruction framing (the emulator's codec,
   :mod:`ros_free_bridge.emulators.dynamixel_protocol`, re-exports them);
 - the control loop's hot path, vectorised with numpy: :class:`SyncWriteEncoder` (one
-  SYNC_WRITE of a register to a fixed set of servos) and :class:`FastSyncReadDecoder` (the
-  FAST_SYNC_READ request and the one-pass parse of its reply), both over
-  :class:`LinearCrc`. The transport writes and reads these bytes through dynamixel-sdk's
+  SYNC_WRITE of a register to a fixed set of servos), :class:`FastSyncReadDecoder` (the
+  FAST_SYNC_READ request and the one-pass parse of its reply) and
+  :class:`FastBulkReadDecoder` (the same for FAST_BULK_READ: each servo its own span), all
+  over :class:`LinearCrc`. The transport writes and reads these bytes through dynamixel-sdk's
   ``PortHandler``.
 
 Protocol 2.0 instruction packet (ROBOTIS e-Manual, "Protocol 2.0")::
@@ -19,6 +20,8 @@ Byte stuffing: after every ``FF FF FD`` inside INST..PARAM one ``FD`` is inserte
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from ros_free_bridge.errors import BridgeError
@@ -29,6 +32,7 @@ STATUS = 0x55
 SYNC_READ = 0x82
 SYNC_WRITE = 0x83
 FAST_SYNC_READ = 0x8A
+FAST_BULK_READ = 0x9A
 ALERT_BIT = 0x80
 
 
@@ -230,3 +234,68 @@ class FastSyncReadDecoder:
             if crc16(raw[:end]) != raw[end] | (raw[end + 1] << 8):
                 return f" in the part for servo ID {self.ids[k]}"
         return ""
+
+
+@lru_cache(maxsize=16)
+def linear_crc(length: int) -> LinearCrc:
+    """A shared :class:`LinearCrc` per message length (its table is 512 bytes per byte)."""
+    return LinearCrc(length)
+
+
+class FastBulkReadDecoder:
+    """FAST_BULK_READ of one span per servo, ``items`` = [(id, address, size)]: the request
+    bytes and the one-pass check of its single reply.
+
+    Request (broadcast; equal to dynamixel-sdk's ``GroupBulkRead.fastBulkReadTxPacket``,
+    tested)::
+
+        FF FF FD 00 FE LEN_L LEN_H 9A {ID ADDR_L ADDR_H SIZE_L SIZE_H} × n CRC_L CRC_H
+
+    Reply, as for FAST_SYNC_READ but each part of its own size::
+
+        FF FF FD 00 FE LEN_L LEN_H 55 {ERR ID DATA[size_k] CRC_L CRC_H} × n
+
+    ``data_starts[k]``: where item k's data begins in the reply; ``timeout_bytes``: the
+    SDK's reply-timeout size for it, Σ (size_k + 10)."""
+
+    def __init__(self, items) -> None:
+        items = [(int(i), int(a), int(n)) for i, a, n in items]
+        if not items or any(not 0 <= i <= 252 or n < 1 for i, _, n in items):
+            raise PacketError(f"FAST_BULK_READ needs items (servo ID 0..252, address, size >= 1), got {items}")
+        if len({i for i, _, _ in items}) != len(items):
+            raise PacketError(f"FAST_BULK_READ lists a servo twice: {[i for i, _, _ in items]}")
+        self.items = tuple(items)
+        self.ids = tuple(i for i, _, _ in items)
+        self.n = len(items)
+        params = b"".join(bytes((i, a & 0xFF, a >> 8, n & 0xFF, n >> 8)) for i, a, n in items)
+        self.request = encode_instruction(BROADCAST_ID, FAST_BULK_READ, params)
+        sizes = np.array([n for _, _, n in items])
+        self.reply_length = 8 + int((sizes + 4).sum())
+        length = self.reply_length - 7
+        self.head = HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS))
+        starts = 8 + np.concatenate(([0], np.cumsum(sizes + 4)[:-1])).astype(np.int64)
+        self.data_starts = starts + 2
+        self._err_index = starts
+        self._id_index = starts + 1
+        self._part_ends = starts + 2 + sizes
+        self._id_bytes = np.array(self.ids, dtype=np.uint8)
+        self._crc = linear_crc(self.reply_length - 2)
+        self.timeout_bytes = int((sizes + 10).sum())
+
+    def decode(self, raw: bytes) -> tuple[np.ndarray, np.ndarray]:
+        """One reply → (its bytes as a (reply_length,) uint8 array, status error bytes (n,)
+        in ``items`` order). A wrong length, header, CRC or ID is a :class:`PacketError`."""
+        if len(raw) != self.reply_length:
+            raise PacketError(f"fast-bulk-read reply is {len(raw)} bytes, expected {self.reply_length} for {self.n} servos")
+        if raw[:8] != self.head:
+            raise PacketError(f"fast-bulk-read reply header {raw[:8].hex(' ')} is not {self.head.hex(' ')}")
+        a = np.frombuffer(raw, dtype=np.uint8)
+        if self._crc(a[:-2]) != raw[-2] | (raw[-1] << 8):
+            bad = next((self.ids[k] for k, end in enumerate(self._part_ends)
+                        if crc16(raw[:end]) != raw[end] | (raw[end + 1] << 8)), None)
+            raise PacketError("fast-bulk-read CRC mismatch" + ("" if bad is None else f" in the part for servo ID {bad}"))
+        got = a[self._id_index]
+        if not np.array_equal(got, self._id_bytes):
+            k = int(np.flatnonzero(got != self._id_bytes)[0])
+            raise PacketError(f"fast-bulk-read part {k} carries servo ID {got[k]}, expected {self.ids[k]}")
+        return a, a[self._err_index]

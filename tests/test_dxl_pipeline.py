@@ -41,6 +41,33 @@ def watch_writes(t):
     return sent
 
 
+def test_codec_fast_bulk_read_request_equals_the_sdk_packet(bus_and_emu):
+    import dynamixel_sdk as sdk
+
+    from ros_free_bridge.dynamixel_codec import FastBulkReadDecoder, PacketError
+
+    bus, emu = bus_and_emu
+    items = [(1, 132, 4), (2, 98, 49), (3, 132, 4), (4, 132, 4)]
+    with make(bus, emu, slow_per_cycle=0) as t:
+        group = sdk.GroupBulkRead(t.bus.port, t.bus.ph)
+        for sid, addr, size in items:
+            group.addParam(sid, addr, size)
+        t.bus.call(lambda port: group.fastBulkReadTxPacket())
+        assert wait_for(lambda: emu.received[-1][7] == dp.FAST_BULK_READ)
+        dec = FastBulkReadDecoder(items)
+        assert emu.received[-1] == dec.request
+        # the emulator's reply parses; a flipped data byte is a CRC error naming its servo
+        reply = dp.encode_fast_status([(0, sid, bytes(range(size))) for sid, _, size in items])
+        a, errors = dec.decode(reply)
+        assert a[dec.data_starts[1]:dec.data_starts[1] + 49].tobytes() == bytes(range(49)) and not errors.any()
+        bad = bytearray(reply)
+        bad[dec.data_starts[2]] ^= 0xFF
+        with pytest.raises(PacketError, match="servo ID 3"):
+            dec.decode(bytes(bad))
+    with pytest.raises(PacketError, match="twice"):
+        FastBulkReadDecoder([(1, 132, 4), (1, 98, 4)])
+
+
 def test_write_sends_the_read_request_and_the_next_read_takes_its_reply(bus_and_emu):
     bus, emu = bus_and_emu
     with make(bus, emu, slow_per_cycle=0) as t:
@@ -67,23 +94,64 @@ def test_write_sends_the_read_request_and_the_next_read_takes_its_reply(bus_and_
         assert t.stats.read_retries == 0
 
 
-def test_status_reads_are_split_too_and_fill_every_servo(bus_and_emu):
+def test_one_fast_bulk_read_per_cycle_brings_positions_and_a_status_block(bus_and_emu):
     bus, emu = bus_and_emu
+    emu.overheat(3, 80.0)
+    emu.push(2, 2048 + 300)
+    with make(bus, emu, slow_per_cycle=1) as t:
+        assert t.pipeline(True)
+        sent = watch_writes(t)
+        for _ in range(8):
+            t.write_goal(t.lower * 0)  # torque off: the servos stay where they are
+            s = t.read_state()
+        # per cycle one SYNC_WRITE and one FAST_BULK_READ; the reported alert of servo 3 is read
+        # again (register 70, torque: two READs) each time its status block comes round (twice)
+        cycle = [inst for inst, _ in sent if inst != dp.READ]
+        assert cycle == [dp.SYNC_WRITE, dp.FAST_BULK_READ] * 8
+        assert [inst for inst, _ in sent].count(dp.READ) == 4
+        assert not any(pending for _, pending in sent)
+        # every servo's status block came round; the positions are every servo's
+        assert np.all(np.isfinite(s.temperature)) and np.all(np.isfinite(s.voltage))
+        assert s.temperature[2] == pytest.approx(80.0, abs=1.0) and s.temperature[0] == pytest.approx(25.0, abs=1.0)
+        assert "overheating" in s.errors["j3"] and "policy does not reboot" in s.errors["j3"]
+        assert s.position[1] == pytest.approx(t._to_joint(np.array([0, 2348, 0, 0]))[1], abs=1e-9)
+        # a new alert in the reply that also carries that servo's status block is handled once
+        j = t._slow_next
+        emu.overheat(j + 1, 80.0)
+        alerts = t.stats.alerts
+        t.write_goal(t.lower * 0)
+        s = t.read_state()
+        assert t.stats.alerts == alerts + 1 and "overheating" in s.errors[f"j{j + 1}"]
+
+
+def test_firmware_without_fast_bulk_read_gets_a_split_status_read(bus_and_emu):
+    bus, emu = bus_and_emu
+    emu.unsupported = frozenset({"FAST_BULK_READ"})
     emu.overheat(3, 80.0)
     with make(bus, emu, slow_per_cycle=1) as t:
         t.set_torque(True)
-        t.pipeline(True)
+        assert t.pipeline(True) and any("FAST_BULK_READ" in n for n in t.stats.notes)
         sent = watch_writes(t)
-        q = np.zeros(4)
         for _ in range(10):
-            t.write_goal(q)
+            t.write_goal(np.zeros(4))
             s = t.read_state()
-        reads = [inst for inst, _ in sent if inst == dp.READ]
-        assert len(reads) >= 9  # one status READ per cycle, sent without waiting for its reply
+        insts = [inst for inst, _ in sent]
+        assert insts.count(dp.FAST_SYNC_READ) == 10 and dp.FAST_BULK_READ not in insts
+        assert insts.count(dp.READ) >= 9  # one status READ per cycle, sent without waiting for its reply
         assert not any(pending for _, pending in sent)
         assert np.all(np.isfinite(s.temperature)) and np.all(np.isfinite(s.voltage))
         assert "overheating" in s.errors["j3"]
         assert s.temperature[2] == pytest.approx(80.0, abs=1.0)
+
+
+def test_firmware_without_fast_group_reads_stays_blocking(bus_and_emu):
+    bus, emu = bus_and_emu
+    emu.unsupported = frozenset({"FAST_SYNC_READ", "FAST_BULK_READ"})
+    with make(bus, emu, slow_per_cycle=1) as t:
+        assert not t.stats.fast_sync_read  # SYNC_READ fallback
+        assert t.pipeline(True) is False
+        t.write_goal(np.zeros(4))
+        assert t._pending is None and np.all(np.isfinite(t.read_state().position))
 
 
 def test_a_dropped_or_corrupted_reply_is_retried_then_the_silent_servo_is_named(bus_and_emu):

@@ -44,6 +44,9 @@ What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
   10 * n_bytes / baud``. Replies of a SYNC/BULK read follow one another in ID order.
   Without it, replies are written as soon as they are computed (fast tests).
 
+Older firmware: ``unsupported={"FAST_SYNC_READ", ...}`` makes the servos treat those
+instructions as unknown, as X-series firmware before v45 does with the fast group reads.
+
 Fault injection (all take effect on the next packet; ``clear_faults`` undoes them):
 ``drop_replies(id, n)`` (the servo acts but its reply is lost), ``corrupt_replies(id, n)``
 (reply sent with a broken CRC), ``disconnect(id)`` (the servo neither hears nor
@@ -148,9 +151,13 @@ class DynamixelBusEmulator:
         reboot_time_s: float = 0.05,
         match_baud: bool = True,
         clock: Callable[[], float] = time.monotonic,
+        unsupported: Iterable[str] = (),
     ) -> None:
         """``return_delay_us`` sets every servo's Return Delay Time register (None keeps the
-        factory 250 = 500 µs); ``reboot_time_s`` is how long a rebooted servo stays silent."""
+        factory 250 = 500 µs); ``reboot_time_s`` is how long a rebooted servo stays silent;
+        ``unsupported``: protocol 2.0 instruction names the servos' firmware lacks (e.g.
+        ``{"FAST_SYNC_READ", "FAST_BULK_READ"}`` for X series firmware before v45): they
+        answer those like an unknown instruction (broadcast: silence)."""
         if protocol not in (1, 2):
             raise BridgeError(f"emulator protocol must be 1 or 2, got {protocol!r}")
         self.baud = int(baud)
@@ -159,6 +166,11 @@ class DynamixelBusEmulator:
         self.reboot_time_s = reboot_time_s
         self.match_baud = match_baud
         self.clock = clock
+        unknown = set(unsupported) - set(dp.INSTRUCTION_NAMES.values())
+        if unknown:
+            raise BridgeError(f"emulator unsupported={sorted(unknown)}: not instruction names; "
+                              f"use names from {sorted(dp.INSTRUCTION_NAMES.values())}")
+        self.unsupported = frozenset(unsupported)
         self.lock = threading.RLock()
         self._servos: list[EmulatedServo] = []
         for item in servos:
@@ -536,6 +548,11 @@ class DynamixelBusEmulator:
         def reply_level(servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
             if not broadcast and servo.status_return_level() >= level:
                 replies.append(self._status2(servo, error, data, reply_id=target))
+
+        if self.unsupported and dp.INSTRUCTION_NAMES.get(inst) in self.unsupported:
+            if unicast is not None:
+                reply_level(unicast, 0, dp.ERR_INSTRUCTION)
+            return [r for r in replies if r is not None]
 
         def werr(result: WriteResult) -> int:
             return 0 if result.ok else _P2_WRITE_ERRORS[result.error]

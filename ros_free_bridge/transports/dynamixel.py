@@ -73,7 +73,7 @@ import numpy as np
 
 from firmware_cfg.config import BusConfig, ServoConfig
 from firmware_cfg.servo_models import Register, ServoModel, load_servo_model
-from ros_free_bridge.dynamixel_codec import FastSyncReadDecoder, PacketError, SyncWriteEncoder
+from ros_free_bridge.dynamixel_codec import FastBulkReadDecoder, FastSyncReadDecoder, PacketError, SyncWriteEncoder
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.transports.base import STOP_POLICIES, JointState
 
@@ -510,6 +510,12 @@ class DynamixelTransport:
         self._fast_ready: tuple[int, float] | None = None  # (COMM code, request time) of a collected fast read
         self._slow_ready: tuple[int, list, int, int] | None = None  # (servo index, data, COMM code, error byte)
         self._slow_blocks: dict[int, tuple[dict[str, Register], int, int]] = {}
+        # per status servo j: (FAST_BULK_READ of all positions + j's status block, gather index of the
+        # positions in its reply, where j's status block starts in it); None: FSR + a status READ
+        self._bulk: list[tuple[FastBulkReadDecoder, np.ndarray, int]] | None = None
+        self._bulk_refused = False  # the servos did not answer FAST_BULK_READ
+        self._bulk_status: tuple[int, bytes, int] | None = None  # (servo index, status block, error byte)
+        self._alerted: frozenset[int] = frozenset()  # servos whose alert the last fast reply handled
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -553,7 +559,7 @@ class DynamixelTransport:
                 self._broadcast_torque_off()
         finally:
             self.bus.close()
-            self._pending = self._fast_ready = self._slow_ready = None
+            self._pending = self._fast_ready = self._slow_ready = self._bulk_status = None
             if self._atexit is not None:
                 atexit.unregister(self._atexit)
                 self._atexit = None
@@ -581,11 +587,15 @@ class DynamixelTransport:
                 self._read_positions()
             if self._slow_ready is not None:
                 self._finish_slow()
-            k = min(self.slow_per_cycle, len(self.servos))
+            if self._bulk_status is not None:
+                (i, block, error), self._bulk_status = self._bulk_status, None
+                self._apply_slow(i, block, error, alert_handled=i in self._alerted)
+            bulk = self._pipelined and self._bulk is not None
+            k = min(self.slow_per_cycle, len(self.servos)) - bulk  # one status block rides with each bulk read
             for j in range(k):
                 i = self._slow_next
                 self._slow_next = (i + 1) % len(self.servos)
-                if self._pipelined and j == k - 1:
+                if self._pipelined and not bulk and j == k - 1:
                     self._send_slow(i)
                 else:
                     self._read_slow(i)
@@ -626,8 +636,11 @@ class DynamixelTransport:
         still missing). A control loop then never blocks for the bus time of a cycle
         (1.6 ms at 2 Mbit/s for 20 servos); the price is that the positions it reads are
         those sampled when the previous tick's request reached the servos (``stamp``).
-        The round-robin status READ is split the same way: sent by ``read_state``,
-        collected before the next packet goes out.
+        With ``slow_per_cycle`` > 0 the read request is a FAST_BULK_READ that brings, with
+        every servo's Present Position, one servo's status block (round robin), so a cycle
+        is one request and one reply; servos that do not answer FAST_BULK_READ get the
+        FAST_SYNC_READ and a status READ split the same way (sent by ``read_state``,
+        collected before the next packet goes out).
 
         Faults keep the blocking path's policy: a reply that is missing, short or garbled
         counts as a retry and is read again at once with the usual bounded retries (then
@@ -638,6 +651,8 @@ class DynamixelTransport:
             self._settle()
         self._fast_ready = None
         self._pipelined = bool(enabled) and self._fast is not None and self.stats.fast_sync_read
+        if self._pipelined and self.slow_per_cycle > 0 and self._bulk is None and not self._bulk_refused:
+            self._make_bulk()
         return self._pipelined
 
     @property
@@ -823,9 +838,20 @@ class DynamixelTransport:
         ``port.readPort`` (which sleeps while the reply is on the wire) until the timeout
         started by :meth:`_fast_send_op`, and parse it in one numpy pass into
         ``self._fast_values`` / ``self._fast_errors``. Returns an SDK COMM_* code."""
-        fast = self._fast
-        need = fast.reply_length
-        head = fast.head[:5]
+        result, buf = self._collect_reply(port, self._fast.reply_length, self._fast.head)
+        if result != sdk.COMM_SUCCESS:
+            return result
+        try:
+            self._fast_values, self._fast_errors = self._fast.decode(buf)
+        except PacketError:
+            return sdk.COMM_RX_CORRUPT
+        return sdk.COMM_SUCCESS
+
+    @staticmethod
+    def _collect_reply(port, need: int, head: bytes) -> tuple[int, bytes]:
+        """(COMM code, the reply's ``need`` bytes) read through ``port.readPort`` until the
+        packet timeout; bytes before the header are skipped (resync)."""
+        head = head[:5]
         buf = b""
         while True:
             chunk = port.readPort(need - len(buf))
@@ -835,13 +861,60 @@ class DynamixelTransport:
                     at = buf.find(head)
                     buf = buf[at:] if at >= 0 else buf[-4:]
                 if len(buf) >= need:
-                    break
+                    return sdk.COMM_SUCCESS, buf[:need]
             elif port.isPacketTimeout():
-                return sdk.COMM_RX_TIMEOUT if not buf else sdk.COMM_RX_CORRUPT
+                return (sdk.COMM_RX_TIMEOUT if not buf else sdk.COMM_RX_CORRUPT), buf
+
+    def _make_bulk(self) -> None:
+        """Build the FAST_BULK_READ of every position + servo j's status block, for each j,
+        and check once that the servos answer it (firmware without FAST_BULK_READ: keep the
+        FAST_SYNC_READ and a separate status READ)."""
+        pres = self.servos[0].present
+        dtype = np.dtype(f"<{'i' if pres.signed else 'u'}{pres.size}")
+        bulk = []
+        for j in range(len(self.servos)):
+            _, start, length = self._slow_block(j)
+            b0, b1 = min(start, pres.address), max(start + length, pres.end)  # j's span holds its position too
+            dec = FastBulkReadDecoder([(sv.cfg.id, b0, b1 - b0) if k == j else (sv.cfg.id, pres.address, pres.size)
+                                       for k, sv in enumerate(self.servos)])
+            at = dec.data_starts.copy()
+            at[j] += pres.address - b0
+            bulk.append((dec, (at[:, None] + np.arange(pres.size)[None, :]).ravel(), int(dec.data_starts[j] + start - b0)))
+        self._bulk, self._bulk_dtype = bulk, dtype
+        for _ in range(self.bus.retries + 1):
+            if self.bus.call(lambda port: self._bulk_send_op(port, 0) or self._bulk_collect_op(port, 0),
+                             malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
+                self._bulk_status = None  # a probe, not a status reading to act on
+                return
+        self._bulk, self._bulk_refused = None, True
+        self.stats.notes.append("servos did not answer FAST_BULK_READ; split phase uses FAST_SYNC_READ + a status READ")
+
+    def _bulk_send_op(self, port, j: int) -> int:
+        """Send servo j's FAST_BULK_READ (see :meth:`_make_bulk`), start the SDK's bulk-read timeout."""
+        if port.is_using:
+            return sdk.COMM_PORT_BUSY
+        port.ser.reset_input_buffer()
+        dec = self._bulk[j][0]
+        result = self._tx_op(port, dec.request)
+        if result == sdk.COMM_SUCCESS:
+            port.setPacketTimeout(dec.timeout_bytes)
+        return result
+
+    def _bulk_collect_op(self, port, j: int) -> int:
+        """Collect servo j's FAST_BULK_READ reply: every position into ``_fast_values`` /
+        ``_fast_errors`` (as a fast sync read), j's status block into ``_bulk_status``."""
+        dec, pos_index, block_at = self._bulk[j]
+        result, buf = self._collect_reply(port, dec.reply_length, dec.head)
+        if result != sdk.COMM_SUCCESS:
+            return result
         try:
-            self._fast_values, self._fast_errors = fast.decode(buf[:need])
+            a, errors = dec.decode(buf)
         except PacketError:
             return sdk.COMM_RX_CORRUPT
+        self._fast_values = a[pos_index].view(self._bulk_dtype).astype(np.int64)
+        self._fast_errors = errors.copy()
+        length = self._slow_block(j)[2]
+        self._bulk_status = (j, a[block_at:block_at + length].tobytes(), int(errors[j]))
         return sdk.COMM_SUCCESS
 
     def _send_goal_ticks(self, ticks: np.ndarray) -> None:
@@ -857,11 +930,17 @@ class DynamixelTransport:
         """Split phase: send the FAST_SYNC_READ request and leave its reply on the wire
         (collected by :meth:`_settle`). A failed send leaves nothing pending: the next
         ``read_state`` then reads the blocking way, with its retries and errors."""
-        if self.bus.call(self._fast_send_op) != sdk.COMM_SUCCESS:
+        if self._bulk is not None:
+            j = self._slow_next
+            self._slow_next = (j + 1) % len(self.servos)
+            op, pending = (lambda port: self._bulk_send_op(port, j)), ("bulk", j)
+        else:
+            op, pending = self._fast_send_op, ("fast", -1)
+        if self.bus.call(op) != sdk.COMM_SUCCESS:
             self.stats.read_retries += 1
             return
         self._fast_sent = time.monotonic()
-        self._pending = ("fast", -1)
+        self._pending = pending
         self.bus.before_io = self._settle
 
     def _send_slow(self, i: int) -> None:
@@ -892,6 +971,9 @@ class DynamixelTransport:
         if kind == "fast":
             result = self.bus.call(self._fast_collect_op, malformed=sdk.COMM_RX_CORRUPT)
             self._fast_ready = (result, self._fast_sent)
+        elif kind == "bulk":
+            result = self.bus.call(lambda port: self._bulk_collect_op(port, i), malformed=sdk.COMM_RX_CORRUPT)
+            self._fast_ready = (result, self._fast_sent)
         else:
             _, _, length = self._slow_block(i)
             data, result, error = self.bus.call(self.bus.ph.readRx, self.servos[i].cfg.id, length,
@@ -909,8 +991,9 @@ class DynamixelTransport:
             return
         self._state.position = self._to_joint(self._fast_values)
         self._state.stamp = sent
+        self._alerted = frozenset()
         if self._fast_errors.any():
-            self._on_fast_read_errors(self._fast_errors)
+            self._alerted = self._on_fast_read_errors(self._fast_errors)
 
     def _finish_slow(self) -> None:
         """Use a collected split-phase status READ; a failed or refused one is read again
@@ -956,14 +1039,17 @@ class DynamixelTransport:
         if fast and self._fast_errors.any():
             self._on_fast_read_errors(self._fast_errors)
 
-    def _on_fast_read_errors(self, errors: np.ndarray) -> None:
+    def _on_fast_read_errors(self, errors: np.ndarray) -> frozenset[int]:
         """The fast reply keeps every servo's status error byte (the SDK's group reads drop
         it): a hardware alert (bit 0x80) is handled at once rather than when the round-robin
         status read next reaches that servo. A servo already reported stays with the status
-        read (which clears the report once the alert is gone)."""
+        read (which clears the report once the alert is gone). Returns the servos handled."""
+        done = set()
         for i in np.flatnonzero(errors & ALERT_BIT):
             if self.joint_names[i] not in self._state.errors:
                 self._on_alert(int(i))
+                done.add(int(i))
+        return frozenset(done)
 
     def _raise_missing(self, what: str, result: int) -> None:
         """A group read failed: find which servo is silent, to name it."""
@@ -1004,9 +1090,10 @@ class DynamixelTransport:
         data, error = self.bus.read_raw(self.servos[i].cfg.id, start, length, "status block")
         self._apply_slow(i, data, error)
 
-    def _apply_slow(self, i: int, data: bytes, error: int) -> None:
+    def _apply_slow(self, i: int, data: bytes, error: int, alert_handled: bool = False) -> None:
         """Decode servo ``i``'s status block (velocity, effort, voltage, temperature, bus
-        watchdog) into the state; act on its status error byte (alert → register 70)."""
+        watchdog) into the state; act on its status error byte (alert → register 70),
+        unless ``alert_handled`` (the same reply's alert was just acted on)."""
         sv = self.servos[i]
         regs, start, _ = self._slow_block(i)
         val = {k: r.decode(data[r.address - start:r.end - start]) for k, r in regs.items()}
@@ -1026,7 +1113,8 @@ class DynamixelTransport:
             self._recover_bus_watchdog()
         if self.bus.protocol == 2.0:
             if error & ALERT_BIT:
-                self._on_alert(i)
+                if not alert_handled:
+                    self._on_alert(i)
             else:
                 self._state.errors.pop(self.joint_names[i], None)
         else:
