@@ -5,10 +5,12 @@
    own process) through the real Dynamixel transport and safety filter. Per tick it records
    the lateness (wake-up minus deadline), reported as p50 / p99 next to the same loop on the
    record-only transport (no bus: the baseline, same run), the ticks the clock skipped and the
-   ticks whose work ran past the next deadline (overruns). Target (ours): p99 lateness under
-   20 % of the period, no skipped ticks. ``--rt N`` runs the loop and the emulator at
-   SCHED_FIFO priority N (needs CAP_SYS_NICE): on a machine busy with other work this shows
-   the loop's own timing rather than the scheduler's.
+   ticks whose work ran past the next deadline (overruns), and the work per tick (wake-up to
+   the end of the tick's bookkeeping). The loop runs the transport's split-phase bus cycle
+   (the write sends the read request, the next tick takes its reply). Target (ours): p99
+   lateness under 20 % of the period, no skipped ticks. ``--rt N`` runs the loop and the
+   emulator at SCHED_FIFO priority N (needs CAP_SYS_NICE): on a machine busy with other work
+   this shows the loop's own timing rather than the scheduler's.
 2. Loop CPU: CPU seconds of the loop's thread per wall second (``time.thread_time``), target
    under 50 % of one core at 100 Hz.
 3. End-to-end latency: the bundled DualFlow checkpoint in reactive mode on the synthetic
@@ -67,12 +69,14 @@ def run_loop(transport, limits, rate_hz: float, seconds: float, realtime: int = 
 
     buf = TargetBuffer(30.0, interpolation="cubic")
     mid = 0.5 * (limits.lower + limits.upper)
-    lateness = []
+    lateness, work = [], []
     overruns = [0]
 
     def on_status(loop, tick, faults):
+        now = time.monotonic()
         lateness.append(tick.lateness)
-        if time.monotonic() > tick.due + loop.dt:
+        work.append(now - tick.woke)
+        if now > tick.due + loop.dt:
             overruns[0] += 1
 
     loop = ControlLoop(transport, limits, buf, LoopConfig(rate_hz=rate_hz, rest_pose=mid, min_ramp=0.5,
@@ -84,6 +88,7 @@ def run_loop(transport, limits, rate_hz: float, seconds: float, realtime: int = 
     cpu, wall = time.thread_time() - cpu0, time.monotonic() - wall0
     lat = np.asarray(lateness) * 1e3
     return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "overruns": overruns[0],
+            "work_p50": float(np.percentile(work, 50)) * 1e3, "work_p99": float(np.percentile(work, 99)) * 1e3,
             "misses": summary.deadline_misses, "ticks": summary.ticks, "cpu": cpu / wall, "state": summary.end_state}
 
 
@@ -152,6 +157,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                        f"{base['misses']} / {base['ticks']}", "0", verdict(ours["misses"] == 0)))
         out.append(Row(f"overrun ticks (work past the next deadline) @ {rate:.0f} Hz", f"{ours['overruns']} / {ours['ticks']}",
                        f"{base['overruns']} / {base['ticks']}", "0", verdict(ours["overruns"] == 0)))
+        out.append(Row(f"work per tick p50 / p99 @ {rate:.0f} Hz (ms, wake-up to end of tick; baseline record-only)",
+                       f"{ours['work_p50']:.2f} / {ours['work_p99']:.2f}", f"{base['work_p50']:.2f} / {base['work_p99']:.2f}"))
         out.append(Row(f"loop CPU @ {rate:.0f} Hz (% of a core)", 100 * ours["cpu"], 100 * base["cpu"],
                        "< 50" if rate == 100 else "", verdict(ours["cpu"] < 0.5) if rate == 100 else NA))
     if not args.skip_e2e:
