@@ -51,12 +51,13 @@ def excursion(p: np.ndarray) -> float:
     return float(np.sqrt(((p - p.mean(0)) ** 2).sum(-1).mean(0)).mean())
 
 
-def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None, window: int) -> np.ndarray:
+def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None, window: int, steps: int = 5,
+                   hop: int = 5) -> np.ndarray:
     """Partner positions (N, 22, 3) streamed by the bridge's ReactorStage (demo settings)."""
     from dualflow.streaming import StreamConfig
     from ros_free_bridge.stages import ReactorStage
 
-    stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=5, hop=5), text, music,
+    stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=steps, hop=hop), text, music,
                          music_frames=len(leader) + 60)
     out = []
     for k, p in enumerate(leader):

@@ -312,11 +312,13 @@ def generate(
         model, cond, mode=mode, x_actor=x_actor, cfg_scale=cfg_scale, look_ahead=look_ahead
     )
     was_training = model.training
-    model.eval()
+    if was_training:  # Module.eval() walks every submodule: only when needed
+        model.eval()
     try:
         x = ode_solve(velocity, noise, steps=steps, method=method, project=project)
     finally:
-        model.train(was_training)
+        if was_training:
+            model.train(True)
     if mode == "reactive":
         return x_actor, x
     return x[..., :d], x[..., d:]

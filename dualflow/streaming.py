@@ -275,12 +275,18 @@ class ReactiveStreamer:
         """Reactor frames whose look-ahead has arrived but that are not generated yet."""
         return max(0, self.n_actor - self.look_ahead - self._emitted.shape[0])
 
-    def push(self, frames, max_windows: int | None = None) -> torch.Tensor:
+    def push(self, frames, max_windows: int | None = None, revise: int = 0) -> torch.Tensor:
         """Append actor frames (262,) or (n, 262) and return the newly emitted reactor frames (m, 262).
 
         ``max_windows``: generate at most this many windows now (None: every window that is
         due). A real-time caller passes 1 and pushes again (possibly zero frames, shape
         (0, 262)) while ``pending >= hop``, so that it can look at newer input between windows.
+        ``revise``: the first ``revise`` of ``frames`` replace the last ``revise`` actor rows
+        pushed before. For provisional rows: the newest actor frame's 262-d row needs the
+        next frame (its velocity), so a live caller may push it encoded with a predicted next
+        frame and revise it when the true one arrives. Reactor frames already emitted stay as
+        they are (they were computed from what had arrived then); later windows read the
+        revised rows.
         """
         x = torch.as_tensor(np.asarray(frames) if not torch.is_tensor(frames) else frames)
         if x.ndim == 1:
@@ -291,7 +297,12 @@ class ReactiveStreamer:
             )
         if not torch.isfinite(x).all():
             raise DualFlowError("actor frames contain NaN or inf; drop or repair those frames before pushing")
-        self._actor = torch.cat([self._actor, x.to(self.device, self.dtype)], 0)
+        revise = int(revise)
+        if not 0 <= revise <= min(x.shape[0], self.n_actor):
+            raise DualFlowError(f"push(revise={revise}): can replace between 0 and min(new rows {x.shape[0]}, "
+                                f"rows pushed {self.n_actor}) rows")
+        kept = self._actor[: self.n_actor - revise]
+        self._actor = torch.cat([kept, x.to(self.device, self.dtype)], 0)
         return self._drain(final=False, max_windows=max_windows)
 
     def flush(self, max_windows: int | None = None) -> torch.Tensor:
@@ -385,12 +396,16 @@ class ReactiveStreamer:
             cfg_scale=self.config.cfg_scale,
             look_ahead=self.look_ahead,
         )
+        # Module.train()/eval() walk every submodule (~3 ms each for the small model): switch only
+        # when needed, not twice per window
         was_training = self.model.training
-        self.model.eval()
+        if was_training:
+            self.model.eval()
         try:
             x = ode_solve(velocity, eps, steps=self.config.steps, method=self.config.method, project=project)
         finally:
-            self.model.train(was_training)
+            if was_training:
+                self.model.train(True)
         new = x[0, n_ctx: n_ctx + n_new]
         if use_traj:
             self._traj = torch.cat([self._traj, record], 0)

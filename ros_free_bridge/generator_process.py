@@ -191,6 +191,7 @@ class GeneratorConfig:
     max_lag: int | None = None
     warmup: bool = True
     nice: int = 5
+    predict_next: bool = True  #: ReactorStage's provisional newest row (one frame less delay)
 
 
 class GeneratorProcess:
@@ -380,7 +381,8 @@ def build_core(cfg: GeneratorConfig):
     torch.set_num_threads(max(1, int(cfg.threads)))
     stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed)
     # the model first: a bad checkpoint or condition fails before the slower retargeter build
-    reactor = ReactorStage(cfg.fps, cfg.checkpoint, stream, cfg.text, cfg.music, cfg.music_frames, threads=cfg.threads)
+    reactor = ReactorStage(cfg.fps, cfg.checkpoint, stream, cfg.text, cfg.music, cfg.music_frames, threads=cfg.threads,
+                           predict_next=cfg.predict_next)
     files = resolve_robot(cfg.robot)
     retarget = RetargetStage(load_robot(files.mjcf, files.profile), cfg.fps, cfg.joint_names)
     return PartnerCore(reactor, retarget, cfg.max_lag)
@@ -420,6 +422,7 @@ def child_main(rfd: int, wfd: int) -> int:
         core = build_core(cfg)
         first_s, window_s = warm_up(core) if cfg.warmup else (float("nan"), float("nan"))
         chan.send_json(b"R", {"delay_frames": core.delay_frames, "look_ahead": core.reactor.look_ahead,
+                              "frames_ahead": core.reactor.frames_ahead,
                               "max_lag": core.max_lag, "warmup_first_window_s": first_s,
                               "warmup_window_s": window_s, "pid": os.getpid()})
         while True:

@@ -60,6 +60,9 @@ class SessionOptions:
     #: with the control loop for the GIL); "thread": in a thread of this process
     generator: str = "process"
     max_lag: int | None = None  #: frames of generator backlog before dropping to the newest actor frames (None: hop + max_new)
+    #: encode the newest actor frame with a predicted next frame (revised when it arrives):
+    #: partner frame i waits for actor frame i + L instead of i + L + 1 (stages.ReactorStage)
+    predict_next: bool = True
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -221,7 +224,8 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, names, limits, stack:
 
         gen = GeneratorProcess(GeneratorConfig(
             robot=opts.robot, joint_names=list(names), fps=MOTION_FPS, checkpoint=opts.model, window=opts.window,
-            steps=opts.steps, hop=opts.hop, text=opts.text, music=opts.music, max_lag=opts.max_lag))
+            steps=opts.steps, hop=opts.hop, text=opts.text, music=opts.music, max_lag=opts.max_lag,
+            predict_next=opts.predict_next))
         stack.callback(gen.close)
         return gen.start(), rest
     retarget = RetargetStage(robot, MOTION_FPS, names)
@@ -229,7 +233,8 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, names, limits, stack:
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
 
-        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop), opts.text, opts.music)
+        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop),
+                               opts.text, opts.music, predict_next=opts.predict_next)
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
 

@@ -20,10 +20,12 @@
   (the default for generated partners: torch's Python then never competes with the
   control loop for the GIL).
 
-Delay: an actor frame's 262-d feature row needs the next frame (its velocity), and the
-reactor frame i needs actor rows up to i + L; so reactor frame i is produced when actor
-frame i + L + 1 arrives (plus the streamer's hop - 1 frames and the compute time). Its
-target is stamped with that frame's arrival (:class:`PartnerCore`).
+Delay: reactor frame i needs actor rows up to i + L. An actor frame's 262-d feature row
+needs the next frame (its velocity); by default the newest row is encoded with a predicted
+next frame and revised later (``ReactorStage(predict_next=True)``), so reactor frame i is
+produced when actor frame c(i) = i + L arrives (i + L + 1 with ``predict_next=False``),
+plus the streamer's hop - 1 frames and the compute time. Its target is stamped with that
+frame's arrival (:class:`PartnerCore`).
 """
 
 from __future__ import annotations
@@ -66,10 +68,17 @@ class ReactorStage:
     music: an audio file (or a Jukebox .npy) whose features are aligned with the actor clock
     (actor frame k ↔ music frame k); it loops when the run is longer than the track.
     ``music_frames``: how many frames the run may last (the track is tiled to cover them).
+
+    ``predict_next`` (default): an actor frame's 262-d row needs the next frame (its velocity
+    p[n+1] - p[n] and the foot contacts from it), which would add one frame (33 ms) to the
+    delay. Instead the newest frame's row is encoded with the constant-velocity prediction
+    p^[n+1] = 2 p[n] - p[n-1] and pushed as provisional; when p[n+1] arrives the row is
+    revised (``ReactiveStreamer.push(revise=1)``). Partner frame i then needs actor frames up
+    to i + L only (``frames_ahead`` = L); False: up to i + L + 1, every row exact.
     """
 
     def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, text: str | None = None,
-                 music=None, music_frames: int = 30 * 60 * 30, threads: int = 1):
+                 music=None, music_frames: int = 30 * 60 * 30, threads: int = 1, predict_next: bool = True):
         import torch
 
         from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
@@ -85,9 +94,17 @@ class ReactorStage:
         self._streamer_type = ReactiveStreamer
         self.streamer = ReactiveStreamer(self.model, self._stream_config, self._cond)
         self.look_ahead = self.streamer.look_ahead
-        self.delay_frames = self.streamer.delay_frames + 1  # + 1: a feature row needs the next frame
+        self.predict_next = bool(predict_next)
+        #: partner frame i depends on actor frames up to i + frames_ahead
+        self.frames_ahead = self.look_ahead + (0 if self.predict_next else 1)
+        #: frames between actor frame i + frames_ahead and partner frame i at most (the hop)
+        self.delay_frames = self.streamer.delay_frames + (0 if self.predict_next else 1)
         self._canonical = None
-        self._pending: list[np.ndarray] = []  # actor frames not yet encoded, plus the last encoded one
+        # actor frames not yet encoded exactly, after the last exactly encoded one; with
+        # predict_next the first may be pushed already as a provisional row (_provisional)
+        self._pending: list[np.ndarray] = []
+        self._provisional = False
+        self._before: np.ndarray | None = None  # the frame before _pending[0] (for the prediction)
         self._last_in = (0.0, -1)  # arrival and index of the newest actor frame pushed
         self._n_out = 0
         self._torch = torch
@@ -138,16 +155,29 @@ class ReactorStage:
             self._pending.append(pos)
             self._last_in = (f.arrival, f.index)
         hop = self.streamer.config.hop
-        if len(self._pending) - 1 >= hop:
-            rows = self._encode_pending()
+        revise = 0
+        if self._rows_ready() - self.streamer.n_actor >= hop or (
+                self.predict_next and frames and self._rows_ready() - self.look_ahead - self._n_emitted >= hop):
+            rows, revise = self._encode_pending()
         elif self.streamer.pending >= hop:
             rows = np.zeros((0, self.streamer.dim), np.float32)
         else:
             return []
         t0 = time.perf_counter()
         with self._torch.no_grad():
-            out = self.streamer.push(rows, max_windows)
+            out = self.streamer.push(rows, max_windows, revise=revise)
         return self._decode(out, *self._last_in, time.perf_counter() - t0)
+
+    @property
+    def _n_emitted(self) -> int:
+        return self.streamer.emitted.shape[0]
+
+    def _rows_ready(self) -> int:
+        """Actor rows the streamer would hold if every pending frame were encoded now."""
+        provisional = 1 if self._provisional else 0
+        if self.predict_next:
+            return self.streamer.n_actor - provisional + len(self._pending)
+        return self.streamer.n_actor + max(0, len(self._pending) - 1)
 
     @property
     def backlog(self) -> bool:
@@ -173,28 +203,42 @@ class ReactorStage:
 
             cond = replace(cond, music=cond.music[:, first_index:])
         self.streamer = self._streamer_type(self.model, self._stream_config, cond)
-        self._pending = []
+        self._pending, self._provisional, self._before = [], False, None
         self._n_out = int(first_index)
 
     def flush(self, arrival: float, actor_index: int, max_windows: int | None = None) -> list[ReactorFrame]:
         """End of the actor stream: generate the remaining partner frames (``max_windows`` at a
         time: call again until it returns nothing)."""
-        if len(self._pending) > 1:
+        if self._rows_ready() > self.streamer.n_actor:
+            rows, revise = self._encode_pending()
             with self._torch.no_grad():
-                self.streamer.push(self._encode_pending(), max_windows=0)
+                self.streamer.push(rows, max_windows=0, revise=revise)
         t0 = time.perf_counter()
         with self._torch.no_grad():
             out = self.streamer.flush(max_windows)
         return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
 
-    def _encode_pending(self) -> np.ndarray:
-        """Normalised rows for every pending frame but the last (a row needs the next frame's position)."""
+    def _encode_pending(self) -> tuple[np.ndarray, int]:
+        """(normalised rows, how many of them revise provisional rows already pushed).
+
+        Exact mode: rows for every pending frame but the last (a row needs the next frame's
+        position). predict_next: rows for every pending frame, the last one provisional, encoded
+        with p^[n+1] = 2 p[n] - p[n-1] (p[n] itself when no earlier frame exists)."""
         from dualflow.motion import Motion
         from dualflow.motion.features import encode_person
 
-        rows = encode_person(Motion(np.stack(self._pending), self.fps), self._canonical)
+        frames = self._pending
+        revise = 0
+        if self.predict_next:
+            prev = frames[-2] if len(frames) > 1 else self._before
+            frames = frames + [2.0 * frames[-1] - prev if prev is not None else frames[-1]]
+            revise = 1 if self._provisional else 0
+        rows = encode_person(Motion(np.stack(frames), self.fps), self._canonical)
+        if len(self._pending) > 1:
+            self._before = self._pending[-2]
         self._pending = self._pending[-1:]
-        return self.stats.normalize(rows)
+        self._provisional = self.predict_next
+        return self.stats.normalize(rows), revise
 
     def _decode(self, rows, arrival: float, actor_index: int, latency: float) -> list[ReactorFrame]:
         from dualflow.motion.features import decode_person
@@ -257,23 +301,24 @@ class PartnerCore:
     ``index``, ``positions`` (22, 3) m, ``arrival``) and returns the targets they completed
     and any events. ``reactor`` None: the robot retargets the actor itself (imitation).
 
-    Timing stamp: partner frame i depends on actor frames up to c(i) = i + L + 1 (the
-    look-ahead, and the next frame for the last feature row), so its target carries
-    ``arrival`` = the arrival of actor frame c(i) and ``actor_frame`` = c(i). The control loop's
-    end-to-end latency (bus write minus that arrival) is then the time the bridge adds on top
-    of the look-ahead: batching (up to hop - 1 frames), compute, queueing and the loop's
-    playback margin. Actor frame i to partner frame i on the bus takes (L + 1) / fps more.
+    Timing stamp: partner frame i depends on actor frames up to c(i) = i + A, A =
+    ``reactor.frames_ahead`` (the look-ahead L, + 1 when the last feature row waits for the
+    next frame), so its target carries ``arrival`` = the arrival of actor frame c(i) and
+    ``actor_frame`` = c(i). The control loop's end-to-end latency (bus write minus that
+    arrival) is then the time the bridge adds on top of the look-ahead: batching (up to
+    hop - 1 frames), compute, queueing and the loop's playback delay. Actor frame i to partner
+    frame i on the bus takes A / fps more.
 
     Real-time policy. When actor frame N has arrived, the partner frames due are those up to
-    N - L - 1 and
+    N - A and
 
-        overdue = N - L - next_index   (frames whose inputs are all here but not generated yet)
+        overdue = N - A + 1 - next_index   (frames whose inputs are all here but not generated yet)
 
     is at most ``hop`` while the generator keeps up. A backlog is worked off in wider
     windows (``push_many``: up to the streamer's ``max_new`` frames per window, for about
     the cost of one: a window's compute hardly depends on its length on a CPU). If
     ``overdue`` still exceeds ``max_lag`` frames, queueing the stale frames would only make the
-    latency grow, so the stream restarts at a = N - L - hop (the newest actor frames, so one hop
+    latency grow, so the stream restarts at a = N - A + 1 - hop (the newest actor frames, so one hop
     is generated at once), frames [next_index, a) repeat the last pose (the loop holds within
     its limits), and a ``generator_behind`` event reports the frames dropped. The latency is
     then bounded by the model's delay + ``max_lag`` frames + one window's compute.
@@ -326,8 +371,8 @@ class PartnerCore:
         """The drop-to-newest policy (class docstring): held targets and an event, or nothing."""
         r = self.reactor
         arrival, newest = self._last
-        overdue = newest - r.look_ahead - r.next_index
-        restart_at = newest - r.look_ahead - r.streamer.config.hop
+        overdue = newest - r.frames_ahead + 1 - r.next_index
+        restart_at = newest - r.frames_ahead + 1 - r.streamer.config.hop
         if not (overdue > self.max_lag and restart_at > r.next_index and self._recent
                 and restart_at >= self._recent[0].index):
             return [], []
@@ -365,14 +410,14 @@ class PartnerCore:
     def _targets(self, reactor_frames) -> list[PartnerTarget]:
         out = []
         for p in reactor_frames:
-            c = p.index + self.reactor.look_ahead + 1  # the last actor frame partner frame i depends on
+            c = p.index + self.reactor.frames_ahead  # the last actor frame partner frame i depends on
             if c in self._arrivals:
                 arrival, actor = self._arrivals[c], c
             else:  # the stream's end: the look-ahead was cut at the last actor frame
                 arrival, actor = p.source_arrival, p.actor_frame
             out.append(self._target(p.index, p.positions, p.contacts, arrival, actor, p.latency))
         if out:
-            done = out[-1].index + self.reactor.look_ahead + 1
+            done = out[-1].index + self.reactor.frames_ahead
             for k in [k for k in self._arrivals if k < done]:
                 del self._arrivals[k]
         return out
