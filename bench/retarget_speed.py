@@ -65,6 +65,15 @@ def load_clips(kind: str, seconds: float) -> list[Motion]:
     return [duet.actor, duet.reactor]
 
 
+def _loadavg() -> str:
+    """The 1, 5 and 15 minute load averages (a shared machine's timings depend on them)."""
+    try:
+        with open("/proc/loadavg") as fh:
+            return " ".join(fh.read().split()[:3])
+    except OSError:
+        return "unknown"
+
+
 class Clock:
     """CPU and wall seconds of a block."""
 
@@ -128,6 +137,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     clips = load_clips(args.clip, args.seconds)
     n_frames = sum(c.n_frames for c in clips)
     print(f"robot {rb.name} ({rb.kin.n_joints} joints), clips {[c.name for c in clips]}, {n_frames} frames at 30 fps")
+    print(f"load average at start: {_loadavg()}")
 
     offline_cfg = OfflineConfig(balance=not args.no_balance)
     off = OfflineRetargeter(rb, offline_cfg)
@@ -144,7 +154,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     results = {"ours_stream": [], "ours_off": [], "base": [], "ours_zmp": []}
     times = {k: [0.0, 0.0] for k in results}
     reports = {k: [] for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy", "stream_noisy", "ours_zmp")}
-    jerk_clean = {}
+    jerk_clean, ipopt = {}, {}
     for clip in clips:
         tg = make_targets(rb, clip)
         scaler = KeypointScaler(rb, clip.positions)
@@ -162,6 +172,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         times["ours_off"][0] += ck.cpu
         times["ours_off"][1] += ck.wall
         reports["ours_off"].append(evaluate(rb, tr_o, tg, clip.name))
+        ipopt[clip.name] = (tr_o.meta["ipopt_iterations"], tr_o.meta["ipopt_status"])
         if off_zmp is not None:
             with Clock() as ck:
                 tr_z = off_zmp.retarget(clip, scaler=scaler)
@@ -185,6 +196,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         reports["stream_noisy"].append(evaluate(rb, trajectory_from_x(rb, Xsn, clip.fps, {}), tgn, noisy.name))
         reports["base_noisy"].append(evaluate(rb, trajectory_from_x(rb, gmr_style(rb, xml, tgn), clip.fps, {}), tgn, noisy.name))
 
+    print("offline IPOPT per clip (iterations, status per window): "
+          + "; ".join(f"{name} {it} {st}" for name, (it, st) in ipopt.items()))
+    print(f"load average at end: {_loadavg()}")
+
     def agg(key, field, how=np.mean):
         return float(how([getattr(r, field) for r in reports[key]]))
 
@@ -207,6 +222,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         r(f"retarget offline frames/s (CPU time; contacts{'' if args.no_balance else '+balance'})", off_fps, base_fps,
           ">= 250", off_fps >= 250),
         r("retarget offline frames/s (wall)", fps("ours_off", 1), fps("base", 1)),
+        r("offline IPOPT iterations per clip (mean)", float(np.mean([it for it, _ in ipopt.values()])), None),
     ]
     if off_zmp is not None:
         zj = agg("ours_zmp", "jerk_ratio")

@@ -105,6 +105,47 @@ def compiled_function(fn: ca.Function, key: str, enable: bool = True) -> tuple[c
         return fn, _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
 
 
+_single_threaded: list[str] = []
+
+
+def single_threaded_linear_algebra() -> list[str]:
+    """Limit the OpenBLAS and OpenMP thread pools of the libraries bundled in the casadi wheel
+    (``libcasadi-tp-openblas``, ``libgomp``, used by IPOPT's MUMPS) to one thread.
+
+    On small KKT systems their worker threads mostly spin: on our 80-frame windows IPOPT
+    spent most of its time in system CPU, and one thread was about 20 % faster (and leaves the
+    other cores alone). Environment variables (OMP_NUM_THREADS …) only help when set before
+    the libraries load; this works afterwards too. The libraries are found among those this
+    process has loaded (/proc/self/maps; IPOPT loads MUMPS and its BLAS at its first solve, so
+    call this after one). Cheap to call repeatedly (it stops looking once it found OpenBLAS),
+    and a no-op where a library or /proc is absent. Returns the libraries it set."""
+    import ctypes
+
+    if any("openblas" in name for name in _single_threaded):
+        return list(_single_threaded)
+
+    folder = os.path.realpath(os.path.dirname(ca.__file__))
+    try:
+        with open("/proc/self/maps") as fh:  # the copies actually loaded (the wheel holds several)
+            loaded = sorted({line.split()[-1] for line in fh if ".so" in line})
+    except OSError:
+        return []
+    for path in loaded:
+        if not path.startswith(folder + os.sep):
+            continue
+        base = os.path.basename(path)
+        fn = "openblas_set_num_threads" if "openblas" in base else "omp_set_num_threads" if "gomp" in base else None
+        if fn is None:
+            continue
+        try:
+            getattr(ctypes.CDLL(path), fn)(1)
+        except (OSError, AttributeError):
+            continue
+        if base not in _single_threaded:
+            _single_threaded.append(base)
+    return list(_single_threaded)
+
+
 def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = True,
                     hess_lag: ca.Function | None = None) -> tuple[ca.Function, str]:
     """An IPOPT solver whose problem functions (objective, constraints, their gradient and

@@ -35,7 +35,16 @@ Jacobian, Lagrangian Hessian) are compiled to C once per robot and cached on dis
 
 If IPOPT reports the window infeasible (limits and contacts cannot all hold at the clip's
 speed), :class:`RetargetError` says which frames and offers re-timing (``retime``: play the
-clip that many times slower); ``auto_retime`` tries 1.25×, 1.5×, 2× by itself.
+clip that many times slower); ``auto_retime`` tries 1.25×, 1.5×, 2× by itself. IPOPT's status
+per window is kept in the trajectory's ``meta["ipopt_status"]``: an unfinished window
+(e.g. ``Maximum_Iterations_Exceeded``) is accepted only when its point satisfies the hard
+constraints, and a solver error (``Invalid_Option``, ``Error_In_Step_Computation``, …) always
+raises, even when the point it returned (the untouched warm start) looks feasible.
+
+Speed: IPOPT's own linear algebra (MUMPS on the KKT system, ~0.5 ms per frame and
+iteration) dominates; see :func:`retarget.codegen.single_threaded_linear_algebra` for the
+thread setting. fatrop (the structure-exploiting solver shipped with CasADi) was tried on a
+stage-wise version of this problem and was slower (see bench/retarget_speed.py's docstring).
 """
 
 from __future__ import annotations
@@ -47,13 +56,22 @@ import casadi as ca
 import numpy as np
 
 from dualflow.motion import Motion
-from retarget.codegen import compiled_nlpsol
+from retarget.codegen import compiled_nlpsol, single_threaded_linear_algebra
 from retarget.errors import RetargetError
 from retarget.streaming import StreamingConfig, StreamingRetargeter, hash_config, trajectory_from_x
 from retarget.targets import Targets, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
 _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+#: IPOPT outcomes that say the solver (its options, its linear solver, the numbers it was
+#: given) failed, not that the clip is infeasible: they always raise, whatever point came back
+#: (with an unavailable linear solver IPOPT returns the untouched warm start, which may well
+#: satisfy the constraints). Other unsuccessful outcomes (Maximum_Iterations_Exceeded,
+#: Restoration_Failed, ...) are accepted when the returned point satisfies the constraints,
+#: and reported as infeasible otherwise.
+_ERRORS = {"Invalid_Option", "Invalid_Problem_Definition", "Error_In_Step_Computation", "Unrecoverable_Exception",
+           "NonIpopt_Exception_Thrown", "Insufficient_Memory", "Internal_Error", "Not_Enough_Degrees_Of_Freedom",
+           "Invalid_Number_Detected"}
 GRAVITY = 9.81  # m/s²
 
 
@@ -254,15 +272,17 @@ class OfflineRetargeter:
         starts = [0]
         while starts[-1] + W < T:
             starts.append(starts[-1] + hop)
-        iters, info = 0, ""
+        iters, info, statuses = 0, "", []
         for wi, s in enumerate(starts):
-            Xw, it, info = self._solve_window(tg, X, s, W, fixed=wi > 0)
+            Xw, it, info, status = self._solve_window(tg, X, s, W, fixed=wi > 0)
+            statuses.append(status)
             n_real = min(W, T - s)
             keep_from = 0 if wi == 0 else cfg.n_fix
             X[s + keep_from:s + n_real] = Xw[keep_from:n_real]
             iters += it
         X = np.clip(X, rb.x_lower, rb.x_upper)
-        return X, {"windows": len(starts), "window": W, "ipopt_iterations": iters, "compiled": info}
+        return X, {"windows": len(starts), "window": W, "ipopt_iterations": iters, "ipopt_status": statuses,
+                   "compiled": info}
 
     def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool):
         cfg, rb = self.config, self.robot
@@ -313,17 +333,24 @@ class OfflineRetargeter:
         # a warm start must lie inside the box
         args["x0"] = np.clip(args["x0"], args["lbx"], args["ubx"])
         sol = solver(**args)
+        single_threaded_linear_algebra()  # MUMPS's BLAS is loaded by the first solve
         st = solver.stats()
-        status = st.get("return_status", "")
+        status = str(st.get("return_status", ""))
         xs = np.array(sol["x"]).ravel()
         g = np.array(sol["g"]).ravel()
+        if status in _ERRORS or not np.all(np.isfinite(xs)):
+            raise RetargetError(
+                f"offline retarget: IPOPT failed on frames {s}..{min(s + W, T) - 1} with status {status or 'unknown'} "
+                f"(a solver error, not a verdict on the clip); check OfflineConfig.ipopt_options "
+                f"{dict(cfg.ipopt_options) or '(none set)'}, e.g. a linear_solver this IPOPT build lacks (mumps is "
+                "always there)")
         viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
         if status not in _OK and viol > 1e-5:
             worst = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s)
             raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
                               f"worst: {worst})")
         Xw = xs[:nx * W].reshape(W, nx)
-        return Xw, int(st.get("iter_count", 0)), info
+        return Xw, int(st.get("iter_count", 0)), info, status
 
 
     def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int, s: int) -> str:

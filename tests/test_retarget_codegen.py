@@ -53,3 +53,25 @@ def test_nlpsol_fallback_still_solves(cache, monkeypatch):
         solver, info = codegen.compiled_nlpsol("tiny", nlp, {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}, "k3")
     sol = solver(x0=[0, 0], lbg=-np.inf, ubg=2.0)
     assert np.allclose(np.array(sol["x"]).ravel(), [0.5, 1.5], atol=1e-6)
+
+
+def test_ipopt_linear_algebra_runs_on_one_thread():
+    """After an IPOPT solve has loaded MUMPS and the wheel's OpenBLAS, the helper sets that
+    OpenBLAS (the copy this process actually loaded) to one thread; calling it again is harmless."""
+    import ctypes
+    import os
+
+    x = ca.MX.sym("x", 2)
+    solver = ca.nlpsol("one_thread", "ipopt", {"x": x, "f": ca.sumsqr(x - 1), "g": x[0] - x[1]},
+                       {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"})
+    solver(x0=[0, 0], lbg=0, ubg=0)
+    folder = os.path.realpath(os.path.dirname(ca.__file__))
+    with open("/proc/self/maps") as fh:
+        loaded = {line.split()[-1] for line in fh if "openblas" in line and line.split()[-1].startswith(folder)}
+    if not loaded:
+        pytest.skip("this casadi build's IPOPT does not load a bundled OpenBLAS")
+    done = codegen.single_threaded_linear_algebra()
+    assert {os.path.basename(p) for p in loaded} <= set(done)
+    for path in loaded:
+        assert ctypes.CDLL(path).openblas_get_num_threads() == 1
+    assert codegen.single_threaded_linear_algebra() == done

@@ -26,6 +26,8 @@ def test_round_trip_recovers_joint_angles_across_windows():
                         ipopt_options=(("acceptable_tol", 1e-9),), **FAST)
     traj = OfflineRetargeter(rb, cfg).retarget(motion, contacts=np.zeros((45, 2), bool), scaler=KeypointScaler(rb))
     assert traj.meta["windows"] >= 2
+    assert len(traj.meta["ipopt_status"]) == traj.meta["windows"]
+    assert set(traj.meta["ipopt_status"]) <= {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
     assert np.abs(traj.joint_pos - X[:, rb.n_root:]).max() < 2e-3
 
 
@@ -155,6 +157,31 @@ def test_an_unsolved_window_is_a_clear_error_offering_retiming():
     r = OfflineRetargeter(rb, OfflineConfig(window=0, max_iter=1, **FAST))
     with pytest.raises(RetargetError, match=r"stomp: infeasible at its speed: frames 0\.\.19: IPOPT says .*retime=1\.5"):
         r.retarget(motion)
+
+
+def test_a_solver_error_is_never_taken_for_a_solution():
+    """IPOPT told to use a linear solver it does not have returns at once (Invalid_Option) with
+    the warm start untouched. Here the warm start satisfies every constraint (no contacts), so
+    only the status tells: it must be an error naming the status and the option, never a
+    trajectory, and the next solve in the same process works."""
+    rb = toy_robot()
+    motion = _noisy_walk(T=20, seed=3)
+    bad = OfflineRetargeter(rb, OfflineConfig(window=0, contacts=False, ipopt_options=(("linear_solver", "custom"),), **FAST))
+    with pytest.raises(RetargetError, match=r"IPOPT failed on frames 0\.\.19 with status Invalid_Option.*'linear_solver': 'custom'"):
+        bad.retarget(motion)
+    traj = OfflineRetargeter(rb, OfflineConfig(window=0, contacts=False, **FAST)).retarget(motion)
+    assert traj.meta["ipopt_status"][0] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
+def test_an_unfinished_but_feasible_window_is_kept_and_says_so():
+    """Stopped by the iteration budget at a point that satisfies the hard constraints: the
+    trajectory is kept (within limits) and the meta data carry IPOPT's status."""
+    rb = toy_robot()
+    motion = _noisy_walk(T=20, seed=3)
+    traj = OfflineRetargeter(rb, OfflineConfig(window=0, contacts=False, max_iter=2, **FAST)).retarget(motion)
+    assert traj.meta["ipopt_status"] == ["Maximum_Iterations_Exceeded"] and traj.meta["ipopt_iterations"] == 2
+    rep = evaluate(rb, traj, make_targets(rb, motion))
+    assert rep.limit_violations == 0 and rep.velocity_violations == 0
 
 
 def test_retiming_plays_the_clip_slower_within_limits():
