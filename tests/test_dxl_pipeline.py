@@ -32,9 +32,11 @@ def watch_writes(t):
     sent = []
     port = t.bus.port
     write = port.writePort
+    parser = dp.StreamParser(protocol=2)
 
     def write_port(packet):
-        sent.append((bytes(packet)[7], t._pending is not None))
+        pending = t._pending is not None
+        sent.extend((frame.raw[7], pending) for frame in parser.feed(bytes(packet)))  # a write may carry two
         return write(packet)
 
     port.writePort = write_port

@@ -19,10 +19,11 @@ reply also keeps each servo's status error byte, so a hardware alert is seen the
 tick. Everything else (PING, READ, WRITE, REBOOT, the SYNC_READ fallback) is the SDK's.
 
 Split-phase cycle (:meth:`DynamixelTransport.pipeline`, switched on by the control loop):
-``write_goal`` sends SYNC_WRITE and the FAST_SYNC_READ request and returns; the next
-``read_state`` takes the reply that arrived meanwhile, and sends the round-robin status READ
-whose reply is collected before the next packet goes out. A loop tick then never waits for
-the bus; the positions it reads were sampled one tick earlier (``JointState.stamp``).
+``write_goal`` sends SYNC_WRITE and the read request and returns; the next ``read_state``
+takes the reply that arrived meanwhile. The request is a FAST_BULK_READ of every Present
+Position plus one servo's status block (round robin; :class:`FastBulkReadDecoder`), so a
+cycle is two packets out and one reply. A loop tick then never waits for the bus; the
+positions it reads were sampled one tick earlier (``JointState.stamp``).
 
 Protocol 1.0 buses (AX/MX) have no sync read: positions are read servo by servo, and the
 status error byte itself carries the hardware bits.
@@ -505,8 +506,9 @@ class DynamixelTransport:
         self._atexit = None
         # split-phase bus cycle (see pipeline())
         self._pipelined = False
-        self._pending: tuple[str, int] | None = None  # ("fast", -1) or ("slow", i): a reply still on the wire
-        self._fast_sent = 0.0  # monotonic second the pending FAST_SYNC_READ request left
+        # a reply still on the wire: ("fast", -1), ("bulk", status servo j) or ("slow", servo i)
+        self._pending: tuple[str, int] | None = None
+        self._fast_sent = 0.0  # monotonic second the pending position read request left
         self._fast_ready: tuple[int, float] | None = None  # (COMM code, request time) of a collected fast read
         self._slow_ready: tuple[int, list, int, int] | None = None  # (servo index, data, COMM code, error byte)
         self._slow_blocks: dict[int, tuple[dict[str, Register], int, int]] = {}
@@ -619,9 +621,10 @@ class DynamixelTransport:
                               f"[{self._lower[i]:.4f}, {self._upper[i]:.4f}]; refusing to send")
         q = np.clip(q, self._lower, self._upper)
         try:
-            self._send_goal_ticks(self._to_ticks(q))
             if self._pipelined:
-                self._send_fast()
+                self._send_cycle(self._to_ticks(q))
+            else:
+                self._send_goal_ticks(self._to_ticks(q))
         except BridgeError:
             self._on_error()
             raise
@@ -881,9 +884,13 @@ class DynamixelTransport:
             at[j] += pres.address - b0
             bulk.append((dec, (at[:, None] + np.arange(pres.size)[None, :]).ravel(), int(dec.data_starts[j] + start - b0)))
         self._bulk, self._bulk_dtype = bulk, dtype
+
+        def probe(port) -> int:
+            result = self._bulk_send_op(port, 0)
+            return self._bulk_collect_op(port, 0) if result == sdk.COMM_SUCCESS else result
+
         for _ in range(self.bus.retries + 1):
-            if self.bus.call(lambda port: self._bulk_send_op(port, 0) or self._bulk_collect_op(port, 0),
-                             malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
+            if self.bus.call(probe, malformed=sdk.COMM_RX_CORRUPT) == sdk.COMM_SUCCESS:
                 self._bulk_status = None  # a probe, not a status reading to act on
                 return
         self._bulk, self._bulk_refused = None, True
@@ -926,19 +933,38 @@ class DynamixelTransport:
         if result != sdk.COMM_SUCCESS:
             raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus._comm(result)})")
 
-    def _send_fast(self) -> None:
-        """Split phase: send the FAST_SYNC_READ request and leave its reply on the wire
-        (collected by :meth:`_settle`). A failed send leaves nothing pending: the next
-        ``read_state`` then reads the blocking way, with its retries and errors."""
+    def _send_cycle(self, ticks: np.ndarray) -> None:
+        """Split phase: the SYNC_WRITE of ``ticks`` and, right behind it in the same write,
+        the position read request (the FAST_BULK_READ carrying the next servo's status
+        block, else the FAST_SYNC_READ), whose reply is left on the wire (collected by
+        :meth:`_settle`). One system call and one wake-up of the other end per cycle; the
+        reply timeout counts the SYNC_WRITE's bytes too. A failed write is a BridgeError, as
+        for the blocking path."""
+        goals = self._writer.encode(ticks)
         if self._bulk is not None:
             j = self._slow_next
             self._slow_next = (j + 1) % len(self.servos)
-            op, pending = (lambda port: self._bulk_send_op(port, j)), ("bulk", j)
+            dec = self._bulk[j][0]
+            request, timeout_bytes, pending = dec.request, dec.timeout_bytes, ("bulk", j)
         else:
-            op, pending = self._fast_send_op, ("fast", -1)
-        if self.bus.call(op) != sdk.COMM_SUCCESS:
-            self.stats.read_retries += 1
-            return
+            fast = self._fast
+            request, timeout_bytes, pending = fast.request, (11 + fast.size) * fast.n, ("fast", -1)
+        packets = goals + request
+
+        def op(port) -> int:
+            if port.is_using:
+                return sdk.COMM_PORT_BUSY
+            port.ser.reset_input_buffer()  # stale input cannot be taken for this reply
+            port.is_using = True
+            if port.writePort(packets) != len(packets):
+                return sdk.COMM_TX_FAIL
+            port.setPacketTimeout(len(goals) + timeout_bytes)
+            return sdk.COMM_SUCCESS
+
+        result = self.bus.call(op)
+        if result != sdk.COMM_SUCCESS:
+            raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position + read request failed "
+                              f"({self.bus._comm(result)})")
         self._fast_sent = time.monotonic()
         self._pending = pending
         self.bus.before_io = self._settle
@@ -983,8 +1009,9 @@ class DynamixelTransport:
             self.stats.read_retries += 1  # counted here: a newer request may supersede it before it is used
 
     def _finish_fast(self) -> None:
-        """Use a collected split-phase FAST_SYNC_READ; a failed one counts as a retry and
-        is replaced by a blocking read (bounded retries, then an error naming the servo)."""
+        """Use a collected split-phase position read; a failed one (counted as a retry by
+        :meth:`_settle`) is replaced by a blocking read (bounded retries, then an error
+        naming the silent servo)."""
         (result, sent), self._fast_ready = self._fast_ready, None
         if result != sdk.COMM_SUCCESS:
             self._read_positions()
@@ -1036,8 +1063,9 @@ class DynamixelTransport:
         self._state.position = self._to_joint(ticks)
         self._state.stamp = time.monotonic()
         self._fast_ready = None  # a split-phase reply collected meanwhile is older than this
+        self._alerted = frozenset()
         if fast and self._fast_errors.any():
-            self._on_fast_read_errors(self._fast_errors)
+            self._alerted = self._on_fast_read_errors(self._fast_errors)
 
     def _on_fast_read_errors(self, errors: np.ndarray) -> frozenset[int]:
         """The fast reply keeps every servo's status error byte (the SDK's group reads drop
