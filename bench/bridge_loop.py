@@ -14,17 +14,16 @@
 2. Loop CPU: CPU seconds of the loop's thread per wall second (``time.thread_time``), target
    under 50 % of one core at 100 Hz.
 3. End-to-end latency: the bundled DualFlow checkpoint in reactive mode on the synthetic
-   leader (record transport), with the generator in its own process (the default) next to
-   the generator in a thread of the loop's process (the baseline, same run). Partner frame i
-   is generated from actor frames up to i + L + 1 (the look-ahead, and the next frame for the
-   last 262-d feature row). Reported: the loop's end-to-end figure (the bus write of frame i
-   minus the arrival of actor frame i + L + 1: batching, compute, queueing, playback margin)
-   and the partner latency, actor frame i to its partner command on the bus = that + (L + 1)
-   frames. The issue's target: look-ahead L frames + at most 50 ms of compute; with the
-   streamer's hop (frames generated together) the model's delay is L + hop frames
-   (``delay_frames``), so the target is partner latency <= delay_frames / 30 s + 50 ms.
-   Also: partner frames dropped to keep up with the actor (held), and the compute of a
-   generation window. Figures depend on the machine's load, printed with them.
+   leader (record transport, generator process), with the session's defaults next to the
+   old defaults (5 Euler steps over sliding 60-frame windows every 5 frames, the last feature
+   row waiting for the next frame, playback clock fixed by the first frame: the baseline,
+   same run), and the defaults with the generator in a thread. Partner latency, measured
+   per frame: the bus write of partner frame i's command minus the arrival of actor frame i.
+   The issue's target: look-ahead L frames + at most 50 ms (the bundled model: L = 10,
+   333 + 50 = 383 ms). Also the loop's own end-to-end figure (from the arrival of actor frame
+   i + A, the last one frame i depends on), partner frames dropped to keep up (held), a
+   generation window's compute and the generator's CPU use. Figures depend on the machine's
+   load, printed with them.
 
     python bench/bridge_loop.py [--seconds 5] [--skip-e2e] [--quick]
 """
@@ -111,25 +110,46 @@ def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dic
     return ours, base
 
 
-def end_to_end(seconds: float, generator: str) -> dict:
-    """One session of the bundled model on the synthetic leader; latency figures in ms."""
+#: the generator's settings before the latency work (5 Euler steps over sliding 60-frame windows
+#: every 5 frames, the last feature row waiting for the next actor frame, playback clock fixed
+#: by the first frame): the baseline of the latency rows, measured in the same run
+OLD_DEFAULTS = dict(steps=5, hop=5, window=60, incremental=False, predict_next=False, adaptive_playback=False)
+
+
+def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
+    """One session of the bundled model on the synthetic leader (record transport); ms.
+
+    Partner latency of frame i = bus write of partner frame i's command (the first tick that
+    plays it) minus the arrival of actor frame i, both on the monotonic clock, measured per
+    frame (``SessionResult.actor_arrivals``). The loop's own figure (``e2e``) starts at the
+    arrival of the last actor frame partner frame i depends on, c(i) = i + A (A = L, or
+    L + 1 when the last feature row waits for the next frame): what the bridge adds beyond
+    the look-ahead. Frames of the end-of-stream flush (look-ahead cut) are left out."""
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry import read_telemetry
 
     opts = SessionOptions(actor="synthetic", seconds=seconds, transport="record", generator=generator,
-                          out=Path(f"/tmp/bench_e2e_{generator}"), handle_signals=False)
+                          out=Path(f"/tmp/bench_e2e_{generator}"), handle_signals=False, **options)
     res = run_session(opts)
     tel = read_telemetry(res.out / "telemetry.dftl")
-    delay = next((e.get("delay_frames") for e in tel.events if e["kind"] == "session"), None)
-    e2e = np.asarray(res.summary.e2e_latency) * 1e3
-    look = (delay - opts.hop + 1) / 30.0 * 1e3 if delay is not None else float("nan")  # (L + 1) frames
-    gen = tel.records["generator_latency"]
+    ahead = res.pipeline_info.get("frames_ahead")
+    arrivals = res.actor_arrivals
+    rec = tel.records
+    played = np.isfinite(rec["end_to_end"])
+    c = rec["actor_frame"][played].astype(int)
+    e2e = rec["end_to_end"][played]
+    keep = c < len(arrivals) - 1  # not the flush at the end of the stream (c clipped to the last frame)
+    c, e2e = c[keep], e2e[keep]
+    partner = (e2e + arrivals[c] - arrivals[c - ahead]) * 1e3
+    gen = rec["generator_latency"]
     gen = np.unique(gen[np.isfinite(gen)])  # one value per window (its frames share it)
     pct = (lambda a, q: float(np.percentile(a, q)) if a.size else float("nan"))
-    return {"delay_frames": delay, "e2e_p50": pct(e2e, 50), "e2e_p99": pct(e2e, 99),
-            "partner_p50": pct(e2e, 50) + look, "partner_p99": pct(e2e, 99) + look,
+    return {"frames_ahead": ahead, "look_ahead": ahead - (0 if opts.predict_next else 1),
+            "e2e_p50": pct(e2e * 1e3, 50), "e2e_p99": pct(e2e * 1e3, 99),
+            "partner_p50": pct(partner, 50), "partner_p99": pct(partner, 99),
             "window_p50": pct(gen * 1e3, 50), "frames": res.summary.frames_played,
             "dropped": res.pipeline_info.get("frames_dropped", 0), "end": res.summary.end_state,
+            "cpu": res.pipeline_info.get("generator_cpu_per_s", float("nan")),
             "load": Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"}
 
 
@@ -162,20 +182,28 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         out.append(Row(f"loop CPU @ {rate:.0f} Hz (% of a core)", 100 * ours["cpu"], 100 * base["cpu"],
                        "< 50" if rate == 100 else "", verdict(ours["cpu"] < 0.5) if rate == 100 else NA))
     if not args.skip_e2e:
-        proc = end_to_end(args.seconds, "process")
+        new = end_to_end(args.seconds, "process")
+        old = end_to_end(args.seconds, "process", **OLD_DEFAULTS)
         thread = end_to_end(args.seconds, "thread")
-        D = proc["delay_frames"]
-        budget = D / 30.0 * 1e3 + 50.0
-        load = f"load avg {thread['load']} after"
+        L = new["look_ahead"]
+        budget = L / 30.0 * 1e3 + 50.0
+        load = f"load avg {old['load']} after"
+        print(f"latency (ms): new defaults {new}; old defaults {old}; generator thread {thread}")
         for q in ("p50", "p99"):
-            out.append(Row(f"partner latency {q}, actor frame i -> its command, bundled model, generator process "
-                           f"(ms; baseline: generator thread; {load})", proc[f"partner_{q}"], thread[f"partner_{q}"],
-                           f"<= {budget:.0f} (delay {D} frames + 50 ms)", verdict(proc[f"partner_{q}"] <= budget)))
-        out.append(Row("end-to-end p50 / p99 beyond the look-ahead (loop's figure, ms; process, baseline thread)",
-                       f"{proc['e2e_p50']:.0f} / {proc['e2e_p99']:.0f}", f"{thread['e2e_p50']:.0f} / {thread['e2e_p99']:.0f}"))
-        out.append(Row("partner frames played / dropped to keep up (process; baseline thread)",
-                       f"{proc['frames']} / {proc['dropped']}", f"{thread['frames']} / {thread['dropped']}"))
-        out.append(Row("generation window compute p50 (ms; process, baseline thread)", proc["window_p50"], thread["window_p50"]))
+            out.append(Row(f"partner latency {q}, actor frame i -> its command on the bus, bundled model, generator "
+                           f"process (ms; baseline: the old defaults, 5 steps, hop 5, sliding windows; {load})",
+                           new[f"partner_{q}"], old[f"partner_{q}"], f"<= {budget:.0f} (L = {L} frames + 50 ms)",
+                           verdict(new[f"partner_{q}"] <= budget)))
+        out.append(Row("partner latency p50 / p99 with the generator in a thread (new defaults; ms)",
+                       f"{thread['partner_p50']:.0f} / {thread['partner_p99']:.0f}"))
+        out.append(Row("end-to-end p50 / p99 beyond the look-ahead (loop's figure, from actor frame i + A; ms; "
+                       "new, baseline old defaults)", f"{new['e2e_p50']:.0f} / {new['e2e_p99']:.0f} (A = {new['frames_ahead']})",
+                       f"{old['e2e_p50']:.0f} / {old['e2e_p99']:.0f} (A = {old['frames_ahead']})"))
+        out.append(Row("partner frames played / dropped to keep up (new; baseline old defaults)",
+                       f"{new['frames']} / {new['dropped']}", f"{old['frames']} / {old['dropped']}"))
+        out.append(Row("generation window compute p50 (ms; new: 1 frame, 2 steps, incremental; old: 5 frames, 5 steps)",
+                       new["window_p50"], old["window_p50"]))
+        out.append(Row("generator CPU seconds per second of motion (new; baseline old defaults)", new["cpu"], old["cpu"]))
     return out
 
 

@@ -154,6 +154,11 @@ class StreamConfig:
     window then starts from noise everywhere and the seams jump). context: "trajectory"
     (replay the emitted frames' own ODE states) or "path" (straight-line re-noising); see the
     module docstring. seed: noise seed.
+    incremental: keep each frame's activations in fixed-start windows and compute only the
+    new frames (``dualflow.incremental``; same model, each frame computed once per step and
+    start instead of once per step and window; Euler, cfg_scale 1, trajectory context only).
+    bases: how many staggered window starts it keeps (context P - P / bases .. P - 1 frames,
+    P = window - L; cost proportional to bases).
     """
 
     window: int = 60
@@ -167,6 +172,8 @@ class StreamConfig:
     inpaint: bool = True
     context: str = "trajectory"
     seed: int = 0
+    incremental: bool = False
+    bases: int = 2
 
 
 @dataclass
@@ -219,6 +226,16 @@ class ReactiveStreamer:
         self.on_frame = on_frame
         self.look_ahead = model.config.look_ahead if config.look_ahead is None else int(config.look_ahead)
         self.max_new = config.max_new or max(config.hop, (config.window - self.look_ahead) // 2)
+        if config.incremental:
+            self._check_incremental(config)
+            # the newest start, at most one stagger old, must hold every frame of a window
+            span = config.window - self.look_ahead
+            self._stagger = max(1, span // max(1, int(config.bases)))
+            self.max_new = max(1, min(self.max_new, span - self._stagger))
+            if config.hop > self.max_new:
+                raise DualFlowError(f"StreamConfig: hop {config.hop} exceeds the {self.max_new} new frames an incremental "
+                                    f"window can take (window {config.window} - look-ahead {self.look_ahead}, "
+                                    f"{config.bases} starts); lower hop or bases, or raise window")
         if config.context not in ("trajectory", "path"):
             raise DualFlowError(f"StreamConfig.context must be 'trajectory' or 'path', got {config.context!r}")
         if config.hop < 1:
@@ -243,8 +260,12 @@ class ReactiveStreamer:
         self.path = RectifiedPath()
         # ODE states of the last emitted frames at every grid time: (n, steps + 1, 262), frame
         # index of row 0 = self._traj_start (only the last `window` frames are kept).
-        self._traj = torch.zeros(0, config.steps + 1, self.dim, dtype=self.dtype, device=self.device)
+        # (incremental mode: the states at t_0 .. t_{S-1} only, for feeding the other window starts)
+        self._traj = torch.zeros(0, config.steps + (0 if config.incremental else 1), self.dim, dtype=self.dtype,
+                                 device=self.device)
         self._traj_start = 0
+        self._inc = None  # incremental mode: dualflow.incremental.IncrementalModel, built on first use
+        self._bases: list = []  # incremental mode: dualflow.incremental.WindowCache, oldest first
         self._mean = self._std = None
         if stats is not None and config.recanonicalize:
             self._mean = torch.tensor(np.array(stats.mean), dtype=self.dtype, device=self.device)
@@ -301,6 +322,8 @@ class ReactiveStreamer:
         if not 0 <= revise <= min(x.shape[0], self.n_actor):
             raise DualFlowError(f"push(revise={revise}): can replace between 0 and min(new rows {x.shape[0]}, "
                                 f"rows pushed {self.n_actor}) rows")
+        for b in self._bases:
+            b.forget_actor(self.n_actor - revise)
         kept = self._actor[: self.n_actor - revise]
         self._actor = torch.cat([kept, x.to(self.device, self.dtype)], 0)
         return self._drain(final=False, max_windows=max_windows)
@@ -351,9 +374,112 @@ class ReactiveStreamer:
             )
         return self.cond.slice_frames(start, stop)
 
+    @staticmethod
+    def _check_incremental(config: StreamConfig) -> None:
+        bad = [f"{name} {value!r}" for name, value, ok in (
+            ("method", config.method, config.method == "euler"), ("cfg_scale", config.cfg_scale, config.cfg_scale == 1.0),
+            ("context", config.context, config.context == "trajectory"), ("inpaint", config.inpaint, config.inpaint),
+            ("recanonicalize", config.recanonicalize, not config.recanonicalize),
+            ("bases", config.bases, config.bases >= 1)) if not ok]
+        if bad:
+            raise DualFlowError("StreamConfig(incremental=True) supports Euler steps, cfg_scale 1, trajectory context "
+                                f"with inpainting, no recanonicalize and bases >= 1; got {', '.join(bad)}")
+
+    def _emit(self, first_new: int, new: torch.Tensor, tic: float) -> torch.Tensor:
+        self._emitted = torch.cat([self._emitted, new], 0)
+        self.timing.windows.append((first_new, new.shape[0], time.perf_counter() - tic))
+        if self.on_frame is not None:
+            for k in range(new.shape[0]):
+                self.on_frame(first_new + k, new[k])
+        return new
+
+    @torch.no_grad()
+    def _generate_incremental(self, first_new: int, upto: int) -> torch.Tensor:
+        """Frames [first_new, upto) in the oldest cached window start that holds them; every
+        other live start is fed their states (``dualflow.incremental``)."""
+        from dualflow.flow import time_grid
+        from dualflow.incremental import IncrementalModel, WindowCache
+
+        tic = time.perf_counter()
+        grid = time_grid(self.config.steps)
+        W, L = self.config.window, self.look_ahead
+        if self._inc is None:
+            self._inc = IncrementalModel(self.model)
+        if not self._bases or first_new >= self._bases[-1].start + self._stagger:
+            self._bases.append(WindowCache(self._inc, first_new, W, L, self.cond, grid[:-1]))
+        self._bases = [b for b in self._bases if b.can_generate(upto - 1)]
+        if not self._bases:  # cannot happen with max_new as set in __init__; a fresh start is still correct
+            self._bases = [WindowCache(self._inc, first_new, W, L, self.cond, grid[:-1])]
+        gen = self._bases[0]
+        while self._feed(gen):  # frames it has not seen yet (normally fed while idle: ``prepare``)
+            pass
+        x = self._noise_rows(upto)[first_new:upto].to(self.device, self.dtype)[None]
+        states = []
+        for k in range(len(grid) - 1):
+            states.append(x[0])
+            x = x + (grid[k + 1] - grid[k]) * gen.reactor_rows(k, x)
+        # every step's state of the new frames, for the other starts (``prepare``)
+        self._traj = torch.cat([self._traj, torch.stack(states, 1)], 0)
+        drop = max(0, self._traj.shape[0] - self.config.window)
+        self._traj, self._traj_start = self._traj[drop:], self._traj_start + drop
+        return self._emit(first_new, x[0], tic)
+
+    def _feed(self, base) -> bool:
+        """One pass of catch-up work for a cached start: its actor rows, else the recorded
+        states of the emitted frames it has not seen at the first grid step that lacks them.
+        Returns False when it had nothing to do."""
+        if base.actor_behind(self.n_actor):
+            base.sync_actor(self._actor)
+            return True
+        n_done = self._emitted.shape[0]
+        for k, cache in enumerate(base.reactor):
+            lo = base.start + cache.n
+            if lo < n_done:
+                rows = self._traj[lo - self._traj_start: n_done - self._traj_start, k]
+                base.reactor_rows(k, rows[None], need_output=False)
+                return True
+        return False
+
+    #: incremental mode: a window start that is not generating is fed once it lags this many
+    #: emitted frames (a pass over 8 rows costs about one over 1 row on a CPU), or when it
+    #: will generate within that many frames
+    FEED_BATCH = 8
+
+    @torch.no_grad()
+    def prepare(self, max_passes: int = 1) -> bool:
+        """Incremental mode: do up to ``max_passes`` network passes of catch-up work now (the
+        other window starts' actor rows and emitted frames, in batches), so that a window has
+        only its own passes to do. For idle time (e.g. waiting for the next actor frame).
+        Returns whether more catch-up work is due."""
+        if not self.config.incremental:
+            return False
+        done = 0
+        for base in self._due():
+            while done < max_passes and self._feed(base):
+                done += 1
+        return self.has_catch_up
+
+    def _due(self) -> list:
+        """The window starts whose catch-up work is due (see ``FEED_BATCH``)."""
+        if len(self._bases) < 2:
+            return []
+        n_done = self._emitted.shape[0]
+        first = self._bases[0]
+        soon = n_done + self.FEED_BATCH + self.look_ahead - first.start > self.config.window - 1
+        return [b for b in self._bases[1:]
+                if n_done - (b.start + min(c.n for c in b.reactor)) >= (1 if soon else self.FEED_BATCH)
+                or (soon and b.actor_behind(self.n_actor))]
+
+    @property
+    def has_catch_up(self) -> bool:
+        """Incremental mode: whether ``prepare`` has work due (a cached start lags the stream)."""
+        return bool(self._due())
+
     @torch.no_grad()
     def _generate(self, first_new: int, upto: int) -> torch.Tensor:
         """Generate and emit reactor frames [first_new, upto) in one window."""
+        if self.config.incremental:
+            return self._generate_incremental(first_new, upto)
         tic = time.perf_counter()
         stop = min(upto + self.look_ahead, self.n_actor)
         stop = max(stop, upto)
@@ -413,12 +539,7 @@ class ReactiveStreamer:
             self._traj, self._traj_start = self._traj[drop:], self._traj_start + drop
         if frame is not None:
             new = self._norm(frame.to_global(self._denorm(new)))
-        self._emitted = torch.cat([self._emitted, new], 0)
-        self.timing.windows.append((first_new, new.shape[0], time.perf_counter() - tic))
-        if self.on_frame is not None:
-            for k in range(new.shape[0]):
-                self.on_frame(first_new + k, new[k])
-        return new
+        return self._emit(first_new, new, tic)
 
 
 # ---------------------------------------------------------------------------------------------

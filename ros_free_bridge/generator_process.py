@@ -181,8 +181,8 @@ class GeneratorConfig:
     fps: float = 30.0
     checkpoint: str | None = None
     window: int = 60
-    steps: int = 5
-    hop: int = 5
+    steps: int = 2
+    hop: int = 1
     seed: int = 0
     text: str | None = None
     music: str | None = None
@@ -192,6 +192,7 @@ class GeneratorConfig:
     warmup: bool = True
     nice: int = 5
     predict_next: bool = True  #: ReactorStage's provisional newest row (one frame less delay)
+    incremental: bool = True  #: StreamConfig.incremental: cached activations, new frames only
 
 
 class GeneratorProcess:
@@ -258,6 +259,11 @@ class GeneratorProcess:
     @property
     def delay_frames(self) -> int | None:
         return self.ready_info.get("delay_frames")
+
+    @property
+    def frames_ahead(self) -> int | None:
+        """Partner frame i is complete when actor frame i + frames_ahead has arrived."""
+        return self.ready_info.get("frames_ahead")
 
     def cpu_seconds(self) -> float:
         """CPU seconds (user + system) the child has used so far (Linux /proc; NaN elsewhere or
@@ -379,7 +385,7 @@ def build_core(cfg: GeneratorConfig):
     from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
 
     torch.set_num_threads(max(1, int(cfg.threads)))
-    stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed)
+    stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed, incremental=cfg.incremental)
     # the model first: a bad checkpoint or condition fails before the slower retargeter build
     reactor = ReactorStage(cfg.fps, cfg.checkpoint, stream, cfg.text, cfg.music, cfg.music_frames, threads=cfg.threads,
                            predict_next=cfg.predict_next)
@@ -426,10 +432,14 @@ def child_main(rfd: int, wfd: int) -> int:
                               "max_lag": core.max_lag, "warmup_first_window_s": first_s,
                               "warmup_window_s": window_s, "pid": os.getpid()})
         while True:
-            msgs = chan.receive(0.0 if core.backlog else None)  # more windows due: do not wait
+            # more windows due, or catch-up work for idle time: do not wait
+            msgs = chan.receive(0.0 if core.backlog or core.has_idle_work else None)
             if (chan.eof and not msgs) or any(k == b"Q" for k, _ in msgs):
                 return 0
             frames = [decode_actor(p) for k, p in msgs if k == b"A"]
+            if not msgs and not core.backlog:
+                core.idle_step()  # one pass (a few ms), then look at the pipe again
+                continue
             targets, events = core.feed(frames)
             for e in events:
                 chan.send_json(b"V", e)

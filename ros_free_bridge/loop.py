@@ -42,6 +42,7 @@ import numpy as np
 
 from ros_free_bridge.clock import FixedRateClock
 from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.playback import PlaybackClock
 from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
 from ros_free_bridge.targets import TargetBuffer
@@ -87,6 +88,10 @@ class LoopConfig:
     actor_timeout: float = 0.5  #: no new target frame for this long: hold
     rest_after: float = 3.0  #: holding for this long: ramp to rest and stop
     playback_margin: float = 0.05  #: extra delay before playing a frame, to absorb jitter
+    #: playback clock (ros_free_bridge.playback): adapt t0 to the frames' recent arrivals
+    #: (True) or keep it where the first frame put it (False)
+    adaptive_playback: bool = True
+    playback_lead_frames: float = 1.0  #: adaptive: frame k + 1 is due when frame k plays (interpolation)
     min_ramp: float = 1.0  #: shortest start / stop ramp
     max_duration: float | None = None  #: stop after this long streaming (None: until the stream ends)
     temperature_warn: float = 65.0  #: degrade (slow down) above this
@@ -234,7 +239,7 @@ class ControlLoop:
         self._t_start = time.monotonic()
         self.state = State.RAMP_IN
         ramp = list(min_jerk(start, rest, min_jerk_duration(start, rest, self.limits, cfg.min_ramp), self.dt))
-        t0 = None  # motion time origin: frame k is played at t0 + k / fps
+        playback = None  # the playback clock: frame k is played at t0 + k / fps (ros_free_bridge.playback)
         last_new = time.monotonic()
         last_frame_index = -1
         stream_start = None
@@ -266,7 +271,8 @@ class ControlLoop:
                     self._begin_stop(f"generator failed before the first frame: {self.targets.error}")
                     faults |= Fault.GENERATOR_ERROR
                 elif first is not None:
-                    t0 = now + cfg.playback_margin - first.index / self.targets.fps
+                    playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
+                                             cfg.playback_lead_frames, fixed=not cfg.adaptive_playback)
                     stream_start = now
                     last_new = now
                     self.state = State.RUNNING
@@ -274,7 +280,10 @@ class ControlLoop:
                 elif self.targets.closed or now - wait_since > cfg.start_timeout:
                     self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"))
             elif self.state in (State.RUNNING, State.HOLD):
-                sample = self.targets.sample(now - t0)
+                newest = self.targets.newest()
+                if newest is not None:
+                    playback.arrived(newest.index, now)
+                sample = self.targets.sample(playback.motion_time(now))
                 if self.targets.error is not None:
                     faults |= Fault.GENERATOR_ERROR
                     self._begin_stop(f"generator failed: {self.targets.error}")

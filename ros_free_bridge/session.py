@@ -49,12 +49,14 @@ class SessionOptions:
     seed: int = 0
     partner: str = "dualflow"
     model: str | None = None  #: checkpoint directory (None: the bundled one)
-    # Streaming generation on a 2-core CPU: 5 Euler steps over 60-frame windows (the training
-    # clip length) every 5 frames. A window's compute hardly depends on how many new frames it
-    # holds, so when the generator falls behind it catches up with wider steps (up to
-    # (window - L) / 2 = 25 new frames per window); see stages.PartnerCore.
-    steps: int = 5  #: ODE steps per streamed window
-    hop: int = 5  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
+    # Streaming generation on a 2-core CPU, tuned for latency (bench/bridge_loop.py,
+    # bench/partner_motion.py): every frame as soon as its look-ahead is in (hop 1), 2 Euler
+    # steps (the partner's error to the rule follower and its jitter as at 5 steps), windows of
+    # 60 frames (the training clip length; shorter ones jitter more) computed incrementally
+    # (only the new frame runs through the network). When the generator falls behind it
+    # catches up with wider windows (up to 25 new frames); see stages.PartnerCore.
+    steps: int = 2  #: ODE steps per streamed window
+    hop: int = 1  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
     window: int = 60  #: frames per generation window (context + new frames + look-ahead)
     #: "process": DualFlow + retarget in a child process (default: its Python never competes
     #: with the control loop for the GIL); "thread": in a thread of this process
@@ -63,6 +65,12 @@ class SessionOptions:
     #: encode the newest actor frame with a predicted next frame (revised when it arrives):
     #: partner frame i waits for actor frame i + L instead of i + L + 1 (stages.ReactorStage)
     predict_next: bool = True
+    #: cache each frame's activations in fixed-start windows and compute only new frames
+    #: (dualflow.incremental): ~3x less compute per frame than re-running 60-frame windows
+    incremental: bool = True
+    #: the loop's playback clock follows the frames' recent arrival times (ros_free_bridge.playback)
+    #: instead of staying where the first frame put it
+    adaptive_playback: bool = True
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -86,6 +94,8 @@ class SessionResult:
     partner: object = None  #: Motion of the partner poses sent to the retargeter
     robot_motion: object = None  #: RobotTrajectory measured on the virtual robot (sim transports)
     transport_info: dict = field(default_factory=dict)
+    #: monotonic arrival (s) of each actor frame received, by index (for latency figures)
+    actor_arrivals: np.ndarray | None = None
     #: generator: where it ran; frames_dropped: partner frames skipped to keep up (held);
     #: warmup_window_ms: one generation window's compute measured at start (process only)
     pipeline_info: dict = field(default_factory=dict)
@@ -225,7 +235,7 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, names, limits, stack:
         gen = GeneratorProcess(GeneratorConfig(
             robot=opts.robot, joint_names=list(names), fps=MOTION_FPS, checkpoint=opts.model, window=opts.window,
             steps=opts.steps, hop=opts.hop, text=opts.text, music=opts.music, max_lag=opts.max_lag,
-            predict_next=opts.predict_next))
+            predict_next=opts.predict_next, incremental=opts.incremental))
         stack.callback(gen.close)
         return gen.start(), rest
     retarget = RetargetStage(robot, MOTION_FPS, names)
@@ -233,7 +243,8 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, names, limits, stack:
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
 
-        reactor = ReactorStage(MOTION_FPS, opts.model, StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop),
+        stream = StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop, incremental=opts.incremental)
+        reactor = ReactorStage(MOTION_FPS, opts.model, stream,
                                opts.text, opts.music, predict_next=opts.predict_next)
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
@@ -243,9 +254,11 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     from ros_free_bridge.stages import PartnerPipeline
 
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
+                        adaptive_playback=opts.adaptive_playback,
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)
-    config.playback_margin = playback_margin(config.playback_margin, core)
+    if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
+        config.playback_margin = playback_margin(config.playback_margin, core)
     # cubic (Catmull-Rom) interpolation: linear would jump in velocity at every 30 fps frame,
     # which the safety filter's acceleration limit would then clip on every joint
     buffer = TargetBuffer(MOTION_FPS, interpolation="cubic")
@@ -257,7 +270,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
         source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop)
         stack.callback(source.close)
-        telemetry.event("session", actor=described, delay_frames=core.delay_frames, generator=_generator_info(opts, core),
+        telemetry.event("session", actor=described, delay_frames=core.delay_frames,
+                        frames_ahead=getattr(core, "frames_ahead", None), generator=_generator_info(opts, core),
                         playback_margin_s=round(config.playback_margin, 4))
         pipeline = PartnerPipeline(source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core)
         pipeline.start()
@@ -273,7 +287,9 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
     result.pipeline_info = {**_generator_info(opts, core), "playback_margin_ms": round(1e3 * config.playback_margin, 1),
                             "frames_dropped": pipeline.frames_dropped,
-                            "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events)}
+                            "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events),
+                            "frames_ahead": getattr(core, "frames_ahead", None)}
+    result.actor_arrivals = np.asarray(pipeline.actor_arrivals, dtype=float)
     cpu = getattr(core, "streaming_cpu_s", float("nan"))
     if np.isfinite(cpu) and len(pipeline.actor_positions):
         # CPU seconds the generator process used per second of actor motion: < 1 fits one core

@@ -185,6 +185,16 @@ class ReactorStage:
         return self.streamer.pending >= self.streamer.config.hop
 
     @property
+    def has_catch_up(self) -> bool:
+        """Incremental streaming: catch-up work for idle time is waiting (``prepare``)."""
+        return self.streamer.has_catch_up if self.streamer.config.incremental else False
+
+    def prepare(self, max_passes: int = 1) -> None:
+        """Do up to ``max_passes`` network passes of the streamer's catch-up work (idle time)."""
+        with self._torch.no_grad():
+            self.streamer.prepare(max_passes)
+
+    @property
     def next_index(self) -> int:
         """Index of the next partner frame this stage will emit (= its actor frame's index)."""
         return self._n_out
@@ -347,6 +357,11 @@ class PartnerCore:
         return None if self.reactor is None else self.reactor.delay_frames
 
     @property
+    def frames_ahead(self) -> int:
+        """Partner frame i is complete when actor frame i + frames_ahead has arrived (0: imitation)."""
+        return 0 if self.reactor is None else self.reactor.frames_ahead
+
+    @property
     def backlog(self) -> bool:
         """True when ``feed([])`` would generate (frames are due): call it again before waiting."""
         return self.reactor is not None and self.reactor.backlog
@@ -422,9 +437,23 @@ class PartnerCore:
                 del self._arrivals[k]
         return out
 
+    @property
+    def has_idle_work(self) -> bool:
+        """The reactor has catch-up work to do while no actor frame is waiting (``idle_step``)."""
+        return self.reactor is not None and self.reactor.has_catch_up
+
+    def idle_step(self) -> None:
+        """One short piece of the reactor's catch-up work (one network pass, a few ms)."""
+        if self.reactor is not None:
+            self.reactor.prepare(1)
+
     def idle(self, seconds: float) -> None:
-        """Nothing arrived: wait a little (the process variant waits on its pipe instead)."""
-        time.sleep(seconds)
+        """Nothing arrived: do a piece of catch-up work, or wait a little (the process variant
+        waits on its pipe instead)."""
+        if self.has_idle_work:
+            self.idle_step()
+        else:
+            time.sleep(seconds)
 
     def close(self) -> None:
         """Nothing to release in-process (the process variant ends its worker)."""
@@ -465,6 +494,7 @@ class PartnerPipeline:
         self.events: list[dict] = []
         self.record = record
         self.actor_positions: list[np.ndarray] = []
+        self.actor_arrivals: list[float] = []  #: record: monotonic arrival of each actor frame
         self.partner_positions: list[np.ndarray] = []
 
     @property
@@ -502,6 +532,7 @@ class PartnerPipeline:
                 self.frames_in += len(frames)
                 if self.record:
                     self.actor_positions += [f.positions for f in frames]
+                    self.actor_arrivals += [f.arrival for f in frames]
                 targets, events = self.core.feed(frames)
                 self._emit(targets, events)
                 if getattr(self.source, "finished", False):

@@ -120,7 +120,7 @@ def test_a_backlog_beyond_max_lag_is_dropped_held_and_reported(tiny_checkpoint):
     feed(frames[30:60])  # the generator was away for a second: 30 frames at once
     L, hop = reactor.look_ahead, 3
     assert len(events) == 1 and events[0]["kind"] == "generator_behind"
-    restart = 59 - L - hop
+    restart = 59 - L + 1 - hop  # newest - A + 1 - hop, A = L frames ahead (predict_next)
     assert events[0]["restart_frame"] == restart and events[0]["dropped_frames"] == restart - kept_up
     held = [t for t in out if t.held]
     assert [t.index for t in held] == list(range(kept_up, restart))
@@ -128,12 +128,13 @@ def test_a_backlog_beyond_max_lag_is_dropped_held_and_reported(tiny_checkpoint):
     for f in frames[60:]:
         feed([f])
     out += core.finish()
-    # the partner timeline stays whole: one target per actor feature row, in order
-    assert [t.index for t in out] == list(range(leader.n_frames - 1))
+    # the partner timeline stays whole: one target per actor frame, in order
+    assert [t.index for t in out] == list(range(leader.n_frames))
     assert core.frames_dropped == restart - kept_up and len(events) == 1
-    # a generated frame is stamped with the last actor frame it depends on (i + L + 1)
-    gen = [t for t in out if not t.held and t.index + L + 1 < leader.n_frames]
-    assert all(t.actor_frame == t.index + L + 1 and t.arrival == frames[t.index + L + 1].arrival for t in gen)
+    # a generated frame is stamped with the last actor frame it depends on (i + L: the newest
+    # row is encoded with a predicted next frame)
+    gen = [t for t in out if not t.held and t.index + L < leader.n_frames]
+    assert all(t.actor_frame == t.index + L and t.arrival == frames[t.index + L].arrival for t in gen)
 
 
 # -- the process ---------------------------------------------------------------------------
@@ -142,7 +143,8 @@ def test_a_backlog_beyond_max_lag_is_dropped_held_and_reported(tiny_checkpoint):
 @pytest.mark.slow
 def test_the_process_pipeline_streams_every_frame_and_exits(tiny_checkpoint, limits):
     gen = _generator(tiny_checkpoint, limits).start()
-    assert gen.delay_frames == gen.ready_info["look_ahead"] + 3  # L + hop
+    assert gen.delay_frames == gen.ready_info["look_ahead"] + 3 - 1  # L + hop - 1 (predict_next)
+    assert gen.ready_info["frames_ahead"] == gen.ready_info["look_ahead"]
     assert gen.ready_info["pid"] == gen.pid != os.getpid()
     buf = TargetBuffer(30.0)
     tr, loop = _loop(limits, buf)
@@ -153,7 +155,7 @@ def test_the_process_pipeline_streams_every_frame_and_exits(tiny_checkpoint, lim
     pipe.join(10)
     assert summary.end_state == "STOPPED" and summary.reason == "the motion ended"
     assert pipe.frames_in == leader.n_frames
-    assert pipe.frames_out == leader.n_frames - 1 == len(pipe.partner_positions)
+    assert pipe.frames_out == leader.n_frames == len(pipe.partner_positions)
     # how many the loop plays depends on the machine's load (late frames are skipped): not asserted
     assert 0 < summary.frames_played <= pipe.frames_out
     assert not pipe.alive

@@ -56,7 +56,9 @@ def test_generated_partner_streams_every_frame_to_the_transport(op3, tiny_checkp
     summary, pipe, leader = _run(op3, reactor)
     assert summary.end_state == "STOPPED" and summary.reason == "the motion ended"
     assert pipe.frames_in == leader.n_frames
-    assert pipe.frames_out == leader.n_frames - 1  # feature rows: one per consecutive frame pair
+    # one partner frame per actor frame: the newest actor row is encoded with a predicted next
+    # frame (ReactorStage(predict_next=True)), so the last frame has a row too
+    assert pipe.frames_out == leader.n_frames
     # nearly every frame is played: a late tick, or frames that arrive in a burst after the
     # playback clock has passed them, make the loop jump to the newest (it keeps time)
     assert 0.8 * pipe.frames_out <= summary.frames_played <= pipe.frames_out

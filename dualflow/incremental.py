@@ -1,0 +1,291 @@
+"""Incremental reactive inference: each new frame computed once per ODE step, not a whole window.
+
+Why: a streamed window of W frames recomputes every context frame at every ODE step to
+emit a few new ones; on a CPU that is most of the partner's latency (a 60-frame window at
+2 Euler steps: ~80 ms for one new frame). The reactive network is causal (``dualflow.model``:
+causal self-attention, left-padded convolutions, the reactor reads actor frames j <= i + L),
+so inside one window a frame's activations depend only on earlier frames. With trajectory
+context (``dualflow.streaming``: a context frame's state at grid time t_k is replayed as it
+was generated) the activations of the frames already emitted are therefore the same in
+every later window *with the same start*, and can be kept.
+
+The positional encoding is absolute within a window (position p - s for a window starting
+at frame s, 0 <= p - s < W), so a window start cannot move; a :class:`WindowCache` is one
+fixed start s. It holds, per block:
+
+* the block input z of every frame so far (the causal convolutions read k - 1 frames back);
+* the self-attention keys and values K_j = W_K LN(z'_j), V_j = W_V LN(z'_j);
+* for the actor stream also its motion keys LN0(z^(2)_a) through the reactor's motion
+  cross-attention projections (they do not depend on t: computed once);
+
+for the actor stream once and for the reactor once per ODE grid time t_k (the adaptive
+LayerNorms depend on t). Generating frames [p0, p1) runs only those rows through the
+network at each step, attending to the cached keys: for new row i (frame p),
+
+    self-attention keys: frames s .. p,   motion cross-attention keys: actor s .. p + L,
+
+exactly the rows a full window [s, s + W) would let it see (tests/test_incremental.py
+checks equality with the full forward). Cost per frame: about one network pass of one row
+per step instead of one of W rows.
+
+A start serves frames p with p + L - s <= W - 1, i.e. P = W - L of them. The streamer keeps
+``bases`` staggered starts D = P / bases apart: the oldest generates (its context is the
+longest, P - D .. P - 1 frames), the others are fed every emitted frame's recorded states
+(teacher forcing: the same passes, outputs unused) so that they are ready when the oldest
+runs out. Cost: ``bases`` passes per frame and step; context never shorter than P - D.
+The music latent of a start is computed once over its frames [s, s + W) (the bridge's
+music is a file, known ahead); text, retrieval and the time embeddings once per start.
+
+A CPU spends most of a one-row pass on per-operation overhead, so a pass does the same
+arithmetic in fewer operations (equal to the full forward up to float rounding):
+
+* the adaptive LayerNorms' (scale, shift) = W SiLU(z_d) + b depend only on z_d: once per
+  start and grid time;
+* the music and retrieval keys/values do not depend on the motion: once per start; with a
+  single key (the learned null token) attention returns that key's value whatever the query
+  (softmax over one logit is 1), so the whole sub-layer is a constant;
+* the three causal convolutions (kernels k_1 < k_2 < k_3) are one matrix product over the
+  last k_3 block inputs, the smaller kernels zero-padded on the left:
+  y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d).
+
+Limits: Euler steps, ``cfg_scale`` 1 (one conditional pass), trajectory context, no
+per-window canonical frames (``ReactiveStreamer`` checks and says so).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from dualflow.model import MODES, Conditions, DualFlow, sinusoidal_encoding
+
+
+class _StreamCache:
+    """Per-block caches of one stream (the actor, or the reactor at one grid time)."""
+
+    def __init__(self, n_blocks: int):
+        self.z_in: list[torch.Tensor | None] = [None] * n_blocks  # (1, N, W) block inputs
+        self.k: list[torch.Tensor | None] = [None] * n_blocks  # (1, H, N, dh) self-attention
+        self.v: list[torch.Tensor | None] = [None] * n_blocks
+        self.n = 0  # frames cached
+
+    def truncate(self, n: int) -> None:
+        """Forget frames >= n (positions relative to the window start)."""
+        if n >= self.n:
+            return
+        for j in range(len(self.z_in)):
+            if self.z_in[j] is not None:
+                self.z_in[j] = self.z_in[j][:, :n]
+                self.k[j] = self.k[j][:, :, :n]
+                self.v[j] = self.v[j][:, :, :n]
+        self.n = n
+
+
+def _heads(x: torch.Tensor, n_heads: int) -> torch.Tensor:
+    """(1, T, W) -> (1, H, T, W / H)."""
+    b, t, w = x.shape
+    return x.view(b, t, n_heads, w // n_heads).transpose(1, 2)
+
+
+def _kv(attn, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keys and values (1, H, T, dh) of ``dualflow.model.Attention`` over context (1, T, W)."""
+    k, v = attn.kv(context).view(1, context.shape[1], 2, attn.n_heads, -1).permute(2, 0, 3, 1, 4)
+    return k, v
+
+
+def _attend(attn, query: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask) -> torch.Tensor:
+    """``dualflow.model.Attention.forward`` with precomputed keys/values (1, H, Tk, dh)."""
+    b, tq, w = query.shape
+    q = _heads(attn.q(query), attn.n_heads)
+    y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+    return attn.out(y.transpose(1, 2).reshape(b, tq, w))
+
+
+class _Fixed:
+    """A cross-attention sub-layer whose keys do not change: cached keys/values, or the
+    constant output when there is a single key."""
+
+    def __init__(self, attn, context: torch.Tensor):
+        self.attn = attn
+        self.k, self.v = _kv(attn, context)
+        self.const = None
+        if context.shape[1] == 1:  # softmax over one key is 1: the output is that key's value
+            self.const = attn.out(self.v.transpose(1, 2).reshape(1, 1, -1))
+
+    def __call__(self, query: torch.Tensor) -> torch.Tensor:
+        return self.const if self.const is not None else _attend(self.attn, query, self.k, self.v, None)
+
+
+class IncrementalModel:
+    """A ``DualFlow`` (eval mode) with its convolutions stacked for one-matrix passes."""
+
+    def __init__(self, model: DualFlow):
+        self.model = model
+        self.kmax = max(model.config.conv_kernels)
+        self.conv_w: list[torch.Tensor] = []  # (n_k * W, W * kmax): z history (flattened) -> stacked outputs
+        self.conv_b: list[torch.Tensor] = []
+        for block in model.blocks:
+            ws, bs = [], []
+            for c, k in zip(block.conv.convs, block.conv.kernels):
+                w = F.pad(c.weight.detach(), (self.kmax - k, 0))  # (W, W, kmax), taps right-aligned
+                ws.append(w.reshape(w.shape[0], -1))
+                bs.append(c.bias.detach())
+            self.conv_w.append(torch.cat(ws, 0).contiguous())
+            self.conv_b.append(torch.cat(bs, 0))
+
+
+def _ada(norm, z_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(1 + scale, shift) of an ``AdaLayerNorm`` for the conditioning z_d (1, W)."""
+    scale, shift = norm.modulation(F.silu(z_d)).unsqueeze(1).chunk(2, dim=-1)
+    return 1 + scale, shift
+
+
+class WindowCache:
+    """One fixed window start ``start`` (absolute frame) over ``window`` frames: the actor
+    stream's and the reactor's per-step caches (module docstring).
+
+    cond: the stream's conditions (batch 1); the music of frames [start, start + window) is
+    encoded once (what the track has of it). grid: the ODE grid times t_0 .. t_{S-1}.
+    """
+
+    def __init__(self, inc: IncrementalModel, start: int, window: int, look_ahead: int, cond: Conditions,
+                 grid: list[float]):
+        self.inc = inc
+        self.model = model = inc.model
+        self.start = int(start)
+        self.window = int(window)
+        self.look_ahead = int(look_ahead)
+        self.grid = list(grid)
+        cfg = model.config
+        param = next(model.parameters())
+        dev, dt = param.device, param.dtype
+        self.n_blocks = len(model.blocks)
+        stop = self.start + self.window
+        if cond.music is not None:
+            cond = cond.slice_frames(self.start, min(stop, cond.music.shape[1]))
+        n_music = self.window if cond.music is None else cond.music.shape[1]
+        z_text = model.text_latent(cond, 1, dev) + model.task_embed.weight[MODES.index("reactive")]
+        z_actor = z_text + model.time_embedding(torch.ones(1, dtype=dt, device=dev))
+        z_steps = [z_text + model.time_embedding(torch.full((1,), t, dtype=dt, device=dev)) for t in grid]
+        z_m = model.music_latent(cond, 1, n_music)
+        z_r = model.retrieval_latent(cond, 1)
+        self.music = [_Fixed(b.music_attn, z_m) for b in model.blocks]
+        self.retrieval = [_Fixed(b.retrieval_attn, z_r) for b in model.blocks]
+        # per stream (actor, then each grid time) and block: the five norms' (1 + scale, shift)
+        self.mod_actor = [[_ada(n, z_actor) for n in b.norms] for b in model.blocks]
+        self.mod_steps = [[[_ada(n, z) for n in b.norms] for b in model.blocks] for z in z_steps]
+        self.pe = sinusoidal_encoding(torch.arange(self.window, device=dev), cfg.width).to(dt)
+        self.actor = _StreamCache(self.n_blocks)
+        self.motion_k: list[torch.Tensor | None] = [None] * self.n_blocks  # actor keys through W_K, W_V
+        self.motion_v: list[torch.Tensor | None] = [None] * self.n_blocks
+        self.reactor = [_StreamCache(self.n_blocks) for _ in grid]
+
+    # -- bookkeeping -----------------------------------------------------------------------
+    @property
+    def n_reactor(self) -> int:
+        """Reactor frames cached (all steps hold the same frames): start .. start + n - 1."""
+        return self.reactor[0].n
+
+    def can_generate(self, last: int) -> bool:
+        """Whether frame ``last`` (absolute) and its look-ahead fit in this window."""
+        return last + self.look_ahead - self.start <= self.window - 1
+
+    def forget_actor(self, first: int) -> None:
+        """Actor rows from absolute frame ``first`` on were revised: drop them (and, the stream
+        being causal, nothing else depends on them in the actor cache)."""
+        keep = max(0, first - self.start)
+        if keep < self.actor.n:
+            self.actor.truncate(keep)
+            for j in range(self.n_blocks):
+                self.motion_k[j] = self.motion_k[j][:, :, :keep]
+                self.motion_v[j] = self.motion_v[j][:, :, :keep]
+
+    def actor_behind(self, n_actor: int) -> bool:
+        """Whether actor rows received (``n_actor`` of them) that fit the window are not cached yet."""
+        return self.start + self.actor.n < min(n_actor, self.start + self.window)
+
+    def sync_actor(self, actor: torch.Tensor) -> None:
+        """Cache the actor rows (absolute frames, all received so far; (N, 262)) that fit the window."""
+        stop = min(actor.shape[0], self.start + self.window)
+        lo = self.start + self.actor.n
+        if lo < stop:
+            self._actor_rows(actor[lo:stop][None])
+
+    # -- network passes --------------------------------------------------------------------
+    @staticmethod
+    def _norm(block, i: int, z: torch.Tensor, mod) -> torch.Tensor:
+        scale, shift = mod[i]
+        return block.norms[i].norm(z) * scale + shift
+
+    def _temporal(self, j: int, cache: _StreamCache, z: torch.Tensor, mod) -> torch.Tensor:
+        """``DualFlowBlock.temporal`` (causal) for new rows z (1, n, W) after the cached ones."""
+        block = self.model.blocks[j]
+        p0, n = cache.n, z.shape[1]
+        z_all = z if cache.z_in[j] is None else torch.cat([cache.z_in[j], z], 1)
+        cache.z_in[j] = z_all
+        kmax = self.inc.kmax
+        hist = z_all[0, max(0, p0 - kmax + 1):]  # (m, W)
+        if hist.shape[0] < n + kmax - 1:
+            hist = F.pad(hist, (0, 0, n + kmax - 1 - hist.shape[0], 0))
+        windows = hist.unfold(0, kmax, 1).reshape(n, -1)  # (n, W * kmax): row r = z(p0 + r - kmax + 1 .. p0 + r)
+        y = F.gelu(F.linear(windows, self.inc.conv_w[j], self.inc.conv_b[j]))  # (n, n_k * W)
+        gates = block.conv.gates
+        conv = (y.view(n, len(gates), -1) * gates[:, None]).sum(1)
+        z = z + conv[None]
+        h = self._norm(block, 0, z, mod)
+        attn = block.self_attn
+        k_new, v_new = _kv(attn, h)
+        k_all = k_new if cache.k[j] is None else torch.cat([cache.k[j], k_new], 2)
+        v_all = v_new if cache.v[j] is None else torch.cat([cache.v[j], v_new], 2)
+        cache.k[j], cache.v[j] = k_all, v_all
+        mask = None
+        if n > 1:  # new row i sees cached frames and new rows <= i
+            mask = torch.arange(p0 + n, device=z.device)[None, :] <= (p0 + torch.arange(n, device=z.device))[:, None]
+        z = z + _attend(attn, h, k_all, v_all, mask)
+        return z + self.music[j](self._norm(block, 1, z, mod))
+
+    def _finish(self, j: int, z: torch.Tensor, mod) -> torch.Tensor:
+        """``DualFlowBlock.finish``: retrieval cross-attention and feed-forward."""
+        block = self.model.blocks[j]
+        z = z + self.retrieval[j](self._norm(block, 3, z, mod))
+        return z + block.ffn(self._norm(block, 4, z, mod))
+
+    def _actor_rows(self, x_a: torch.Tensor) -> None:
+        """Actor rows x_a (1, n, 262) at the next positions: their motion keys, cached."""
+        m = self.model
+        p0, n = self.actor.n, x_a.shape[1]
+        z = m.in_a(x_a) + self.pe[p0:p0 + n]
+        for j, block in enumerate(m.blocks):
+            mod = self.mod_actor[j]
+            z2 = self._temporal(j, self.actor, z, mod)
+            k_new, v_new = _kv(block.motion_attn, block.keys_of(z2))
+            self.motion_k[j] = k_new if self.motion_k[j] is None else torch.cat([self.motion_k[j], k_new], 2)
+            self.motion_v[j] = v_new if self.motion_v[j] is None else torch.cat([self.motion_v[j], v_new], 2)
+            z = self._finish(j, z2, mod)
+        self.actor.n += n
+
+    def reactor_rows(self, step: int, x: torch.Tensor, need_output: bool = True) -> torch.Tensor | None:
+        """The velocity (1, n, 262) of new reactor rows x (1, n, 262) at grid step ``step``
+        (time ``grid[step]``), appended to that step's cache. The actor rows up to the new
+        rows' look-ahead must be cached (``sync_actor``). ``need_output`` False: only cache
+        (teacher forcing)."""
+        m = self.model
+        cache = self.reactor[step]
+        p0, n = cache.n, x.shape[1]
+        z = m.in_b(x) + self.pe[p0:p0 + n]
+        n_keys = self.actor.n
+        cross = None
+        if n_keys > p0 + self.look_ahead + 1:  # some actor keys lie beyond a row's look-ahead
+            rows = p0 + torch.arange(n, device=x.device)[:, None]
+            cross = torch.arange(n_keys, device=x.device)[None, :] <= rows + self.look_ahead
+        for j, block in enumerate(m.blocks):
+            mod = self.mod_steps[step][j]
+            z2 = self._temporal(j, cache, z, mod)
+            q = self._norm(block, 2, z2, mod)
+            z3 = z2 + _attend(block.motion_attn, q, self.motion_k[j], self.motion_v[j], cross)
+            z = self._finish(j, z3, mod)
+        cache.n += n
+        if not need_output:
+            return None
+        tt = torch.full((1,), self.grid[step], dtype=x.dtype, device=x.device)
+        return m._velocity(m.out_b(m.out_norm(z)), x, tt)
