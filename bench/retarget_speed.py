@@ -16,6 +16,18 @@ Timing: the process is pinned to one core (sched_setaffinity) with single-thread
 frames/s are reported on process CPU time (robust to other load on a shared machine) and on
 wall time. Compilation (cached on disk) is excluded and reported on its own line.
 
+Offline speed, what is known (op3, the CMU pair, one 80-frame window per clip, contacts +
+balance): IPOPT needs about 34 iterations per window, and its own linear algebra (MUMPS on
+the KKT system, about 0.5 ms per frame and iteration) is about 3/4 of the time; function
+evaluations (compiled) are the rest. fatrop, the structure-exploiting interior-point solver in
+the casadi wheel, was tried on a stage-wise version of the same problem (state (q_k, q_k −
+q_{k−1}), control (acceleration, balance weights), manual structure N=79, nx=52, nu=34): it
+solved the windows, but took 76-157 iterations at 40-50 ms each in its Riccati recursion
+(8-23 frames/s, against 24-44 for IPOPT on that formulation in runs at the same load), and a pure
+linear-quadratic test problem of that size (N=80, nx=52, nu=34, box bounds only) already
+takes 38 ms per fatrop iteration with this wheel's BLASFEO. Neither reaches the 250 frames/s
+target; IPOPT on the original formulation stays.
+
 Quality (see retarget/report.py): jerk ratio = mean |Δ³p|·fps³ over the robot's keypoints /
 the same over the source's scaled keypoints; with 1 cm noise the ratio is given both against
 the noisy source (the issue's definition) and against the clean source (stricter).

@@ -112,10 +112,12 @@ def single_threaded_linear_algebra() -> list[str]:
     """Limit the OpenBLAS and OpenMP thread pools of the libraries bundled in the casadi wheel
     (``libcasadi-tp-openblas``, ``libgomp``, used by IPOPT's MUMPS) to one thread.
 
-    On small KKT systems their worker threads mostly spin: on our 80-frame windows IPOPT
-    spent most of its time in system CPU, and one thread was about 20 % faster (and leaves the
-    other cores alone). Environment variables (OMP_NUM_THREADS …) only help when set before
-    the libraries load; this works afterwards too. The libraries are found among those this
+    On small KKT systems their worker threads mostly spin: profiling an 80-frame window, IPOPT
+    spent much of its time in system CPU and one thread was about 20 % faster (40 → 48
+    frames/s in that run), and it leaves the other cores alone. Setting OMP_NUM_THREADS /
+    OPENBLAS_NUM_THREADS before the libraries load does the same (bench/retarget_speed.py
+    does; there this call changes nothing measurable); this works afterwards too, so a
+    program that set neither gets it. The libraries are found among those this
     process has loaded (/proc/self/maps; IPOPT loads MUMPS and its BLAS at its first solve, so
     call this after one). Cheap to call repeatedly (it stops looking once it found OpenBLAS),
     and a no-op where a library or /proc is absent. Returns the libraries it set."""
