@@ -25,8 +25,11 @@ q_{k−1}), control (acceleration, balance weights), manual structure N=79, nx=5
 solved the windows, but took 76-157 iterations at 40-50 ms each in its Riccati recursion
 (8-23 frames/s, against 24-44 for IPOPT on that formulation in runs at the same load), and a pure
 linear-quadratic test problem of that size (N=80, nx=52, nu=34, box bounds only) already
-takes 38 ms per fatrop iteration with this wheel's BLASFEO. Neither reaches the 250 frames/s
-target; IPOPT on the original formulation stays.
+takes 38 ms per fatrop iteration with this wheel's BLASFEO, which is its generic C build
+(only a 4x4 dgemm kernel, no AVX2 ones: about 2 GFlop/s). Neither reaches the 250 frames/s
+target; IPOPT on the original formulation stays. Without the self-collision rows IPOPT needs
+18-20 iterations (the foot-foot pairs are near-active in most frames); without the velocity
+rows each iteration is 25 % cheaper but it needs 46-57 (and a velocity limit is broken).
 
 Quality (see retarget/report.py): jerk ratio = mean |Δ³p|·fps³ over the robot's keypoints /
 the same over the source's scaled keypoints; with 1 cm noise the ratio is given both against
