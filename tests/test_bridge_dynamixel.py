@@ -105,6 +105,7 @@ def test_commands_reach_each_servo_in_order_and_final_pose_matches(op3, tmp_path
     bus, limits = op3
     summary, emu, tel, error = run_on_bus(op3, tmp_path, wave(60))
     assert error is None and summary.end_state == "STOPPED"
+    assert any(e["kind"] == "split_phase_bus" for e in tel.events)  # the loop ran the split-phase bus cycle
     hist = emu.goal_history
     for s in bus.servos:
         ticks = np.array([g.ticks for g in hist[s.id]])
@@ -166,7 +167,6 @@ def test_garbage_udp_packets_are_dropped_and_the_stream_still_drives_the_bus(op3
     probe.close()
     opts = SessionOptions(actor=f"udp://127.0.0.1:{port}", partner="imitate", transport="dynamixel", emulate=True,
                           out=tmp_path / "udp", handle_signals=False)
-    stats = {}
 
     def sender(loop, _described):
         def send():
