@@ -147,6 +147,9 @@ class EmulatedServo:
         self.violations: list[GoalRecord] = []
         self.booting_until = 0.0
         self._mem = bytearray(max(model.table_size, 1))
+        # decoded register values, name -> int: every change of _mem drops what it touched
+        # (set, write, the goal fast path) or everything (factory fill); registers never overlap
+        self._cache: dict[str, int] = {}
         self._regs = model.registers
         # name -> (offset, struct packer or None for sign-magnitude, register): fast access
         self._acc = {
@@ -202,15 +205,23 @@ class EmulatedServo:
         return self._g(name)
 
     def _g(self, name: str) -> int:
-        """Raw register value (internal: no refresh of the output registers)."""
-        offset, packer, reg = self._acc[name]
-        if packer is None:
-            return reg.decode(self._mem[offset:reg.end])
-        return packer.unpack_from(self._mem, offset)[0]
+        """Raw register value (internal: no refresh of the output registers), decoded once
+        per change of its bytes (the bus asks for the same configuration registers for
+        every packet)."""
+        value = self._cache.get(name)
+        if value is None:
+            offset, packer, reg = self._acc[name]
+            if packer is None:
+                value = reg.decode(self._mem[offset:reg.end])
+            else:
+                value = packer.unpack_from(self._mem, offset)[0]
+            self._cache[name] = value
+        return value
 
     def set(self, name: str, value: int) -> None:
         """Set a register's value directly (back door for tests: no access rules)."""
         offset, packer, reg = self._acc[name]
+        self._cache.pop(name, None)
         if packer is None or not reg.signed and value < 0:
             self._mem[offset:reg.end] = reg.encode(value)
         else:
@@ -260,6 +271,7 @@ class EmulatedServo:
     def _factory_fill(self, keep: tuple[str, ...]) -> None:
         kept = {name: self._g(name) for name in keep if name in self._regs}
         self._mem[:] = bytes(len(self._mem))
+        self._cache.clear()
         for r in self._regs.values():
             if r.initial is not None:
                 self._mem[r.address:r.end] = r.encode(r.initial)
@@ -540,6 +552,7 @@ class EmulatedServo:
         old_offset = self._g("homing_offset") if homing else 0
         for r in regs:
             self._mem[r.address:r.end] = data[r.address - address:r.end - address]
+        self._cache.clear()
         if homing:
             self._pos += self._g("homing_offset") - old_offset
         if torque and self.torque_enabled and not was_on:
@@ -567,6 +580,7 @@ class EmulatedServo:
         self._record_goal(ticks, result.ok, instruction)
         if result.ok:
             self._mem[g0:g1] = data
+            self._cache.pop("goal_position", None)
             self._stale = True
         return result
 
