@@ -12,7 +12,7 @@ import pytest
 
 from ros_free_bridge.emulators import dynamixel_protocol as dp
 from ros_free_bridge.errors import BridgeError
-from tests.test_dxl_transport import XM, guarded_emulator, make, small_bus, wait_for
+from test_dxl_transport import XM, guarded_emulator, make, small_bus, wait_for  # tests/ is on sys.path (pytest, prepend mode)
 
 
 @pytest.fixture
@@ -223,7 +223,7 @@ def test_the_port_vanishing_with_a_reply_pending_is_a_bridge_error(bus_and_emu):
 
 
 def test_protocol_1_and_sync_read_buses_stay_blocking():
-    from tests.test_dxl_transport import ServoSpec, DynamixelBusEmulator, DynamixelTransport, parse_config, LAT
+    from test_dxl_transport import LAT, DynamixelBusEmulator, DynamixelTransport, ServoSpec, parse_config
 
     cfg = parse_config({"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "1.0",
                                                  "servos": [{"id": 1, "joint": "a", "model": "AX-12A", "limits": [-1, 1]}]}]})
