@@ -405,8 +405,10 @@ class ReactiveStreamer:
         W, L = self.config.window, self.look_ahead
         if self._inc is None:
             self._inc = IncrementalModel(self.model)
-        if not self._bases or first_new >= self._bases[-1].start + self._stagger:
+        if not self._bases:
             self._bases.append(WindowCache(self._inc, first_new, W, L, self.cond, grid[:-1]))
+        elif first_new >= self._next_start():  # normally made in idle time already (``prepare``)
+            self._add_start()
         self._bases = [b for b in self._bases if b.can_generate(upto - 1)]
         if not self._bases:  # cannot happen with max_new as set in __init__; a fresh start is still correct
             self._bases = [WindowCache(self._inc, first_new, W, L, self.cond, grid[:-1])]
@@ -424,25 +426,39 @@ class ReactiveStreamer:
         self._traj, self._traj_start = self._traj[drop:], self._traj_start + drop
         return self._emit(first_new, x[0], tic)
 
+    def _next_start(self) -> int:
+        """Where the next cached window start goes: one stagger after the newest."""
+        return self._bases[-1].start + self._stagger
+
+    def _add_start(self) -> None:
+        from dualflow.flow import time_grid
+        from dualflow.incremental import WindowCache
+
+        grid = time_grid(self.config.steps)
+        self._bases.append(WindowCache(self._inc, self._next_start(), self.config.window, self.look_ahead, self.cond,
+                                       grid[:-1]))
+
     def _feed(self, base) -> bool:
-        """One pass of catch-up work for a cached start: its actor rows, else the recorded
-        states of the emitted frames it has not seen at the first grid step that lacks them.
-        Returns False when it had nothing to do."""
-        if base.actor_behind(self.n_actor):
-            base.sync_actor(self._actor)
-            return True
+        """One piece of catch-up work for a cached start: the recorded states of the emitted
+        frames it has not seen, at the first grid step that lacks them (after its actor rows:
+        all that arrived, in one pass), else its actor rows alone. Returns False when it had
+        nothing to do."""
         n_done = self._emitted.shape[0]
         for k, cache in enumerate(base.reactor):
             lo = base.start + cache.n
             if lo < n_done:
+                base.sync_actor(self._actor)
                 rows = self._traj[lo - self._traj_start: n_done - self._traj_start, k]
                 base.reactor_rows(k, rows[None], need_output=False)
                 return True
+        if base.actor_behind(self.n_actor):
+            base.sync_actor(self._actor)
+            return True
         return False
 
     #: incremental mode: a window start that is not generating is fed once it lags this many
-    #: emitted frames (a pass over 8 rows costs about one over 1 row on a CPU), or when it
-    #: will generate within that many frames
+    #: emitted frames (a pass over 8 rows costs about one over 1 row on a CPU); what is left
+    #: when it takes over is fed then
     FEED_BATCH = 8
 
     @torch.no_grad()
@@ -454,6 +470,9 @@ class ReactiveStreamer:
         if not self.config.incremental:
             return False
         done = 0
+        if self._bases and self._emitted.shape[0] > self._next_start():
+            self._add_start()  # its frames are fed below, in batches
+            done += 1
         for base in self._due():
             while done < max_passes and self._feed(base):
                 done += 1
@@ -461,14 +480,12 @@ class ReactiveStreamer:
 
     def _due(self) -> list:
         """The window starts whose catch-up work is due (see ``FEED_BATCH``)."""
-        if len(self._bases) < 2:
+        if not self._bases:
             return []
         n_done = self._emitted.shape[0]
-        first = self._bases[0]
-        soon = n_done + self.FEED_BATCH + self.look_ahead - first.start > self.config.window - 1
-        return [b for b in self._bases[1:]
-                if n_done - (b.start + min(c.n for c in b.reactor)) >= (1 if soon else self.FEED_BATCH)
-                or (soon and b.actor_behind(self.n_actor))]
+        if n_done > self._next_start():
+            return [self._bases[-1]]  # a new start is due (``prepare`` makes it)
+        return [b for b in self._bases[1:] if n_done - (b.start + min(c.n for c in b.reactor)) >= self.FEED_BATCH]
 
     @property
     def has_catch_up(self) -> bool:

@@ -445,6 +445,10 @@ def child_main(rfd: int, wfd: int) -> int:
                 chan.send_json(b"V", e)
             for t in targets:
                 chan.send(b"T", encode_target(t))
+            if targets and core.has_idle_work and not core.backlog:
+                # a busy CPU leaves no idle time: one pass of catch-up work per window, after
+                # its targets went out, rather than all of it in the window that needs it
+                core.idle_step()
             if any(k == b"E" for k, _ in msgs):
                 for targets, events in core.finish_stream():
                     for e in events:

@@ -26,7 +26,7 @@ class PlaybackClock:
     """Motion time for the loop. ``fixed=True``: t0 stays where the first frame put it."""
 
     def __init__(self, fps: float, first_index: int, now: float, margin: float, lead_frames: float = 1.0,
-                 window_s: float = 2.0, speed_up: float = 0.1, slow_down: float = 0.5, fixed: bool = False):
+                 window_s: float = 1.0, speed_up: float = 0.2, slow_down: float = 0.5, fixed: bool = False):
         self.fps = float(fps)
         self.margin = float(margin)
         self.lead = float(lead_frames) / self.fps

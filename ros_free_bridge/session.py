@@ -71,6 +71,9 @@ class SessionOptions:
     #: the loop's playback clock follows the frames' recent arrival times (ros_free_bridge.playback)
     #: instead of staying where the first frame put it
     adaptive_playback: bool = True
+    #: reserve (s) between a frame's arrival and its playback on top of what the adaptive clock
+    #: measured; None: 20 ms adaptive (jitter only), the loop's 50 ms fixed
+    playback_margin: float | None = None
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -255,6 +258,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
 
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         adaptive_playback=opts.adaptive_playback,
+                        **({} if opts.playback_margin is None and not opts.adaptive_playback else
+                           {"playback_margin": 0.02 if opts.playback_margin is None else opts.playback_margin}),
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals)
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
