@@ -95,11 +95,14 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         generate(model, args.window, first, mode="reactive", x_actor=actor[None, : args.window], steps=args.steps)
         offline_ms = (time.perf_counter() - tic) * 1000 / args.window
     s1 = stream(model, actor, cond, stats, window=args.window, hop=1, steps=args.steps)
+    si = stream(model, actor, cond, stats, window=args.window, hop=1, steps=args.steps, incremental=True)
     sh = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps)
     print("\ncompute time per emitted frame (ms):")
     print(f"  baseline: one offline {args.window}-frame window / {args.window} frames   {offline_ms:8.2f}")
     print(f"  streamer hop 1  (delay L = {L} frames + compute)      {s1.timing.per_frame_s * 1000:8.2f}"
           f"   (worst window {s1.timing.max_window_s * 1000:.1f} ms)")
+    print(f"  streamer hop 1, incremental windows             {si.timing.per_frame_s * 1000:8.2f}"
+          f"   (worst window {si.timing.max_window_s * 1000:.1f} ms; catch-up of the second start included)")
     print(f"  streamer hop {args.hop:<2d} (delay up to {L + args.hop - 1} frames + compute) {sh.timing.per_frame_s * 1000:8.2f}"
           f"   (worst window {sh.timing.max_window_s * 1000:.1f} ms)")
     print(f"  target: < {REALTIME_MS:.1f} ms per frame for 30 fps real time")
@@ -136,15 +139,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     print(f"  streamer hop {args.hop:<2d}, straight-path ctx {mpjpe(positions_from_normalized(sp.emitted, stats)):.3f}")
     print(f"  streamer hop {args.hop:<2d}                    {mpjpe(pos_h):.3f}")
     print(f"  streamer hop 1                     {mpjpe(pos_1):.3f}")
+    print(f"  streamer hop 1, incremental        {mpjpe(positions_from_normalized(si.emitted, stats)):.3f}")
 
     setting = f"{args.steps} steps, {torch.get_num_threads()} thread(s)"
     base_ms = f"{offline_ms:.4g} (offline window / frames)"
     rt = f"< {REALTIME_MS:.1f} (real time)"
     no_ctx = "no-context windows"
     out = []
-    for hop, st in ((1, s1), (args.hop, sh)):
+    for label, st in (("hop 1", s1), ("hop 1, incremental windows", si), (f"hop {args.hop}", sh)):
         ms = st.timing.per_frame_s * 1000
-        out.append(Row(f"streamer compute per emitted frame, hop {hop}, {setting} (ms)", ms, base_ms, rt,
+        out.append(Row(f"streamer compute per emitted frame, {label}, {setting} (ms)", ms, base_ms, rt,
                        verdict(ms < REALTIME_MS)))
     out += [
         Row(f"seam / inside velocity-jump ratio, streamer hop {args.hop}, trajectory context (baseline {no_ctx})",
@@ -161,6 +165,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop} + window frames (m)", mpjpe(pos_g),
             mpjpe(pos_n)),
         Row("reactor MPJPE vs rule follower, streamer hop 1 (m)", mpjpe(pos_1), mpjpe(pos_n)),
+        Row("reactor MPJPE vs rule follower, streamer hop 1, incremental windows (m)",
+            mpjpe(positions_from_normalized(si.emitted, stats)), mpjpe(pos_n)),
     ]
     return out
 

@@ -113,7 +113,8 @@ def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dic
 #: the generator's settings before the latency work (5 Euler steps over sliding 60-frame windows
 #: every 5 frames, the last feature row waiting for the next actor frame, playback clock fixed
 #: by the first frame): the baseline of the latency rows, measured in the same run
-OLD_DEFAULTS = dict(steps=5, hop=5, window=60, incremental=False, predict_next=False, adaptive_playback=False)
+OLD_DEFAULTS = dict(steps=5, hop=5, window=60, incremental=False, predict_next=False, adaptive_playback=False,
+                    extrapolate_frames=0.0)
 
 
 def end_to_end(seconds: float, generator: str = "process", **options) -> dict:

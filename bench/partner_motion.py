@@ -1,14 +1,19 @@
 """How much the streamed partner moves, and how close it stays to the rule, as the demo runs it.
 
     python bench/partner_motion.py [CHECKPOINT ...] [--seeds 0,1] [--seconds 8] [--window 60]
+                                   [--steps 2] [--hop 1] [--sliding] [--exact-rows]
                                    [--texts none,rule] [--json out.json]
 
 A quality check, not a speed benchmark (the figures do not depend on the machine's load).
 For each leader seed: the SYNTHETIC leader of ``dualflow.synthetic.make_leader_clip`` (8 s,
 30 fps; the demo's default actor), the demo's click track on its beats
 (``ros_free_bridge.commands.demo.click_track``), streamed frame by frame through the bridge's
-``ReactorStage`` with the demo's stream settings (window 60, hop 5, 5 Euler steps; change
-with ``--window``). Text: ``none`` (the demo's default, no cue) and/or ``rule``: each rule's
+``ReactorStage`` with the demo's stream settings (``SessionOptions``' defaults: window 60,
+hop 1, 2 Euler steps, incremental windows, the newest actor row encoded with a predicted
+next frame; change with ``--window``, ``--steps``, ``--hop``, ``--sliding`` (re-run whole
+windows) and ``--exact-rows`` (wait for the next frame); the settings before the latency
+work: ``--steps 5 --hop 5 --sliding --exact-rows``). Jitter: mean over t, j of
+|p[t+1] - 2 p[t] + p[t-1]| (mm/frame^2), next to the rule follower's. Text: ``none`` (the demo's default, no cue) and/or ``rule``: each rule's
 template sentence of ``make_duet(rule, 8 s, seed)``, whose leader is the same clip, so its
 follower is the right answer. Default checkpoint: the bundled one.
 
@@ -51,14 +56,19 @@ def excursion(p: np.ndarray) -> float:
     return float(np.sqrt(((p - p.mean(0)) ** 2).sum(-1).mean(0)).mean())
 
 
-def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None, window: int, steps: int = 5,
-                   hop: int = 5) -> np.ndarray:
+def jitter(p: np.ndarray) -> float:
+    """Mean joint jerk proxy |p[t+1] - 2 p[t] + p[t-1]| (mm/frame^2) of positions (T, 22, 3)."""
+    return float(np.linalg.norm(p[2:] - 2 * p[1:-1] + p[:-2], axis=-1).mean() * 1e3)
+
+
+def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None, window: int, steps: int = 2,
+                   hop: int = 1, incremental: bool = True, predict_next: bool = True) -> np.ndarray:
     """Partner positions (N, 22, 3) streamed by the bridge's ReactorStage (demo settings)."""
     from dualflow.streaming import StreamConfig
     from ros_free_bridge.stages import ReactorStage
 
-    stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=steps, hop=hop), text, music,
-                         music_frames=len(leader) + 60)
+    stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=steps, hop=hop, incremental=incremental),
+                         text, music, music_frames=len(leader) + 60, predict_next=predict_next)
     out = []
     for k, p in enumerate(leader):
         out += stage.push(p, 0.0, k)
@@ -70,7 +80,7 @@ def _mpjpe(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(a - b, axis=-1).mean())
 
 
-def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: int, tmp: Path) -> list[dict]:
+def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: int, tmp: Path, **stream) -> list[dict]:
     from dualflow.synthetic import RULES, make_duet, make_leader_clip
     from ros_free_bridge.commands.demo import click_track
 
@@ -83,7 +93,7 @@ def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: in
         ([("rule", r, prompts[r]) for r in RULES] if "rule" in texts else [])
     rows = []
     for mode, rule, text in cases:
-        pos = stream_partner(checkpoint, leader, music, text, window)
+        pos = stream_partner(checkpoint, leader, music, text, window, **stream)
         n = min(len(pos), len(leader))
         errs = {r: _mpjpe(pos[:n], f[:n]) for r, f in followers.items()}
         target = rule or min(errs, key=errs.get)
@@ -92,6 +102,7 @@ def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: in
             checkpoint=str(checkpoint or "bundled"), seed=seed, text=mode, rule=target,
             speed=joint_speed(pos[:n]), rule_speed=joint_speed(truth), smooth=smooth_speed(pos[:n]),
             rule_smooth=smooth_speed(truth), excursion=excursion(pos[:n]), rule_excursion=excursion(truth),
+            jitter=jitter(pos[:n]), rule_jitter=jitter(truth),
             err=errs[target], err_first_s=_mpjpe(pos[:30], truth[:30]), err_after=_mpjpe(pos[30:n], truth[30:]),
             root_err=_mpjpe(pos[:n, 0], truth[:, 0]), arm_err=_mpjpe(pos[:n, ARM_JOINTS], truth[:, ARM_JOINTS]),
             still_err=_mpjpe(np.broadcast_to(truth.mean(0), truth.shape), truth)))
@@ -107,7 +118,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("checkpoints", nargs="*", help="checkpoint directories (default: the bundled one)")
     ap.add_argument("--seeds", default="0", help="leader seeds, comma separated (default 0, the demo's)")
     ap.add_argument("--seconds", type=float, default=8.0, help="leader length (default 8 s, the demo's)")
-    ap.add_argument("--window", type=int, default=60, help="frames per streamed window (default 60, the demo's)")
+    from ros_free_bridge.session import SessionOptions
+
+    d = SessionOptions()
+    ap.add_argument("--window", type=int, default=d.window, help=f"frames per streamed window (default {d.window}, the demo's)")
+    ap.add_argument("--steps", type=int, default=d.steps, help=f"Euler steps per window (default {d.steps})")
+    ap.add_argument("--hop", type=int, default=d.hop, help=f"frames per window (default {d.hop})")
+    ap.add_argument("--sliding", action="store_true", help="re-run whole windows (not incremental)")
+    ap.add_argument("--exact-rows", action="store_true", help="the newest actor row waits for the next frame")
     ap.add_argument("--texts", default="none,rule", help="none (no cue), rule (each rule's sentence), or both")
     ap.add_argument("--json", help="also write every row to this json file")
     args = ap.parse_args(argv)
@@ -120,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
             for ck in args.checkpoints or [None]:
-                for r in evaluate(ck, seed, args.seconds, texts, args.window, Path(tmp)):
+                for r in evaluate(ck, seed, args.seconds, texts, args.window, Path(tmp), steps=args.steps, hop=args.hop,
+                                  incremental=not args.sliding, predict_next=not args.exact_rows):
                     rows.append(r)
                     print(f"{Path(r['checkpoint']).name} seed {seed} text {r['text']:4s} rule {r['rule']:9s} "
                           f"speed {r['speed']:.3f} (rule {r['rule_speed']:.3f}) smooth {r['smooth']:.3f} "
@@ -129,15 +148,17 @@ def main(argv: list[str] | None = None) -> int:
                           f"root {r['root_err']:.3f} arms {r['arm_err']:.3f} (still at the rule's mean pose "
                           f"{r['still_err']:.3f})", flush=True)
     print("\nmean over seeds and rules (partner | rule follower):")
-    keys = ("speed", "smooth", "excursion", "err", "err_first_s", "err_after", "still_err")
+    keys = ("speed", "smooth", "excursion", "err", "err_first_s", "err_after", "still_err", "jitter")
     for ck in args.checkpoints or [None]:
         for mode in texts:
             sel = [r for r in rows if r["checkpoint"] == str(ck or "bundled") and r["text"] == mode]
-            m = {k: float(np.mean([r[k] for r in sel])) for k in keys + ("rule_speed", "rule_smooth", "rule_excursion")}
+            m = {k: float(np.mean([r[k] for r in sel])) for k in keys + ("rule_speed", "rule_smooth", "rule_excursion",
+                                                                         "rule_jitter")}
             print(f"  {ck or 'bundled'} text {mode}: speed {m['speed']:.3f} | {m['rule_speed']:.3f} m/s, smooth "
                   f"{m['smooth']:.3f} | {m['rule_smooth']:.3f} m/s, excursion {m['excursion']:.3f} | "
                   f"{m['rule_excursion']:.3f} m; err {m['err']:.3f} m (first s {m['err_first_s']:.3f}, after "
-                  f"{m['err_after']:.3f}; still {m['still_err']:.3f})")
+                  f"{m['err_after']:.3f}; still {m['still_err']:.3f}); jitter {m['jitter']:.1f} | "
+                  f"{m['rule_jitter']:.1f} mm/frame^2")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0

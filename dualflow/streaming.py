@@ -51,6 +51,12 @@ Causality: the emitted frame i is computed from actor frames <= i + L, the alrea
 reactor frames (< i, themselves causal by induction) and noise; actor frames > i + L are not
 in the window or are masked by the network (tests/test_streaming.py checks it end to end).
 
+Incremental windows (``StreamConfig(incremental=True)``, ``dualflow.incremental``): the
+same inpainting, but each frame's network activations are kept per fixed window start and
+ODE step, so a window runs only its new frames through the network (about W times less
+work at hop 1); window starts are staggered so that a frame still sees P - P / bases .. P - 1
+frames of context (P = W - L). ``prepare`` does the other starts' catch-up in idle time.
+
 Continuity: the new frames attend (causal self-attention, causal convolutions) to the context
 frames at every ODE step, so the motion continues across window seams. ``seam_report``
 measures the velocity jump at seams against the jump inside windows; bench/bench_streaming.py

@@ -74,6 +74,7 @@ class Fault(IntFlag):
     BUS_ERROR = 256
     ESTOP = 512
     DEGRADED = 1024  #: running with reduced velocity limits (warm servos)
+    EXTRAPOLATED = 2048  #: the target continued the newest frame's velocity (next frame not there yet)
 
 
 @dataclass
@@ -301,6 +302,8 @@ class ControlLoop:
                     quiet = now - last_new
                     if sample.starved:
                         faults |= Fault.STARVED
+                    if sample.extrapolated:
+                        faults |= Fault.EXTRAPOLATED
                     if quiet > cfg.rest_after:
                         faults |= Fault.ACTOR_TIMEOUT
                         self._begin_stop(f"no new frames for {quiet:.1f} s")

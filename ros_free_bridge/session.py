@@ -16,6 +16,17 @@ thread of this one; either way :class:`~ros_free_bridge.stages.PartnerCore` keep
 the actor's clock (wide catch-up windows, then drop to the newest actor frames, reported as
 ``generator_behind`` events and ``SessionResult.pipeline_info``).
 
+Latency (actor frame i's arrival to the bus write of partner frame i's command; measured by
+bench/bridge_loop.py): L frames of look-ahead (the model's; 10 for the bundled one) plus
+what the bridge adds, kept small by the defaults: every frame generated as soon as actor
+frame i + L is in (``hop`` 1, ``predict_next``: the newest feature row does not wait for the
+next frame), 2 Euler steps on incremental windows (only the new frame runs through the
+network, ``dualflow.incremental``), and a playback clock that follows the frames' measured
+arrival (``adaptive_playback``) with the newest frame continued for up to one frame while
+the next is on its way (``extrapolate_frames``). ``OLD_DEFAULTS`` in bench/bridge_loop.py
+are the settings before (5 steps every 5 frames on re-run 60-frame windows, clock fixed by
+the first frame).
+
 Outputs in ``out``: ``telemetry.dftl`` (+ ``.events.jsonl``), ``actor.npz`` and
 ``partner.npz`` (the human motions, our npz format), ``robot.npz`` (the simulated robot's
 measured motion, sim transports) and ``commands.npz`` (record transport).
@@ -74,6 +85,10 @@ class SessionOptions:
     #: reserve (s) between a frame's arrival and its playback on top of what the adaptive clock
     #: measured; None: 20 ms adaptive (jitter only), the loop's 50 ms fixed
     playback_margin: float | None = None
+    #: the loop may continue the newest frame at its velocity for up to this many frames while
+    #: the next is on its way (then holds): frame k plays as soon as it arrives instead of when
+    #: k + 1 does (interpolation needs it); 0: hold
+    extrapolate_frames: float = 1.0
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -258,6 +273,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
 
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         adaptive_playback=opts.adaptive_playback,
+                        playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
                         **({} if opts.playback_margin is None and not opts.adaptive_playback else
                            {"playback_margin": 0.02 if opts.playback_margin is None else opts.playback_margin}),
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
@@ -266,7 +282,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         config.playback_margin = playback_margin(config.playback_margin, core)
     # cubic (Catmull-Rom) interpolation: linear would jump in velocity at every 30 fps frame,
     # which the safety filter's acceleration limit would then clip on every joint
-    buffer = TargetBuffer(MOTION_FPS, interpolation="cubic")
+    buffer = TargetBuffer(MOTION_FPS, interpolation="cubic", extrapolate=opts.extrapolate_frames)
     with ExitStack() as stack:
         transport, info = open_transport(opts, files, hardware, names, rest, stack)
         telemetry = TelemetryWriter(out / "telemetry.dftl", names, opts.rate_hz,
@@ -341,7 +357,8 @@ def playback_margin(default: float, core) -> float:
 def _generator_info(opts: SessionOptions, core) -> dict:
     if opts.partner != "dualflow":
         return {"generator": "none (imitation)"}
-    info = {"generator": opts.generator, "steps": opts.steps, "hop": opts.hop, "window": opts.window}
+    info = {"generator": opts.generator, "steps": opts.steps, "hop": opts.hop, "window": opts.window,
+            "incremental": opts.incremental, "predict_next": opts.predict_next}
     ready = getattr(core, "ready_info", {})
     if "warmup_window_s" in ready:
         info["warmup_window_ms"] = round(1e3 * ready["warmup_window_s"], 1)

@@ -40,16 +40,24 @@ class Sample:
     starved: bool  #: the loop asked for a time beyond the newest frame
     newest: TargetFrame | None  #: the newest frame at or before the sampled time
     finished: bool  #: the producer said no more frames will come and all were played
+    extrapolated: bool = False  #: q continues the newest frames' velocity past the newest frame
 
 
 class TargetBuffer:
     """Thread-safe ring of recent target frames (the producer pushes, the loop samples)."""
 
-    def __init__(self, fps: float, capacity: int = 512, interpolation: str = "linear"):
+    def __init__(self, fps: float, capacity: int = 512, interpolation: str = "linear", extrapolate: float = 0.0):
         if interpolation not in ("linear", "cubic"):
             raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
+        if not extrapolate >= 0:
+            raise ValueError(f"extrapolate must be >= 0 frames, got {extrapolate!r}")
         self.fps = float(fps)
         self.interpolation = interpolation
+        #: frames past the newest one that ``sample`` continues it at the velocity of the last
+        #: two (q_n + s (q_n - q_{n-1}), s <= extrapolate), instead of holding q_n; the next
+        #: frame then takes over. Lets the loop play frame n as soon as it arrives, not one
+        #: frame later (interpolating toward n + 1 needs n + 1).
+        self.extrapolate = float(extrapolate)
         self._frames: deque[TargetFrame] = deque(maxlen=capacity)
         self._lock = threading.Lock()
         self._closed = False
@@ -93,6 +101,10 @@ class TargetBuffer:
         first, last = frames[0].index, frames[-1].index
         pos = max(t * self.fps, first)  # before the first frame: hold the first frame
         if pos >= last:
+            over = pos - last
+            if not self._closed and 0 < over <= self.extrapolate and len(frames) >= 2:
+                q = frames[-1].q + over * (frames[-1].q - frames[-2].q)
+                return Sample(q, False, frames[-1], False, True)
             done = self._closed and pos >= last
             return Sample(frames[-1].q.copy(), not self._closed and pos > last, frames[-1], done)
         k = int(np.floor(pos))

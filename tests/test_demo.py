@@ -37,9 +37,10 @@ def test_demo_writes_every_output(tmp_path, capsys):
     assert tel.truncated_bytes == 0 and len(tel.records) > 100
     n = make_leader(2.0, 30.0, 0).n_frames
     assert load_motion(out / "actor.npz").n_frames == n  # every actor frame
-    # one partner frame per consecutive actor pair (read raw: an untrained model's partner is not human-sized)
+    # one partner frame per actor frame (the newest actor row is encoded with a predicted next
+    # frame; read raw: an untrained model's partner is not human-sized)
     with np.load(out / "partner.npz", allow_pickle=False) as partner:
-        assert partner["positions"].shape == (n - 1, 22, 3)
+        assert partner["positions"].shape == (n, 22, 3)
     robot = RobotTrajectory.load_npz(out / "robot.npz")
     assert robot.joint_names == tel.joint_names and robot.n_frames == len(tel.records) + 1
     check = json.loads((out / "check.json").read_text())

@@ -1,0 +1,83 @@
+"""The loop's playback clock (ros_free_bridge.playback) and the buffer's extrapolation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ros_free_bridge.playback import PlaybackClock
+from ros_free_bridge.targets import TargetBuffer, TargetFrame
+
+FPS = 30.0
+
+
+def _drive(clock, arrival_of, t_end, dt=0.01, first=0):
+    """Run the loop's calls at 100 Hz; frames arrive at ``arrival_of(k)``. Returns [(now, motion time)]."""
+    out, k, now = [], first, arrival_of(first)
+    while now < t_end:
+        while arrival_of(k + 1) <= now:
+            k += 1
+        clock.arrived(k, now)
+        out.append((now, clock.motion_time(now)))
+        now += dt
+    return np.array(out)
+
+
+def test_the_fixed_clock_keeps_where_the_first_frame_put_it():
+    clock = PlaybackClock(FPS, 3, now=10.0, margin=0.05, fixed=True)
+    track = _drive(clock, lambda k: 10.0 + (k - 3) / FPS + 0.2, 12.0, first=3)  # later frames come 200 ms late
+    np.testing.assert_allclose(track[:, 1], track[:, 0] - (10.0 + 0.05 - 3 / FPS))
+
+
+def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
+    delay = 0.120  # frame k arrives 120 ms after its ideal time k / fps (a steady generator)
+    first_late = 0.400  # the first frame was 400 ms late (a slow first window)
+    arrival = (lambda k: k / FPS + delay + (first_late - delay if k == 0 else 0.0))
+    clock = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=1.0, window_s=1.0)
+    track = _drive(clock, arrival, 8.0)
+    speed = np.diff(track[:, 1]) / np.diff(track[:, 0])
+    assert np.all(speed >= 0.5 - 1e-9) and np.all(speed <= 1.2 + 1e-9)  # bounded, never backwards
+    # settled: frame k plays lead + margin after it arrives (as the loop sees it: at its next
+    # 10 ms tick), not 400 ms + margin after
+    assert delay + 1 / FPS + 0.02 - 1e-9 <= clock.t0 <= delay + 1 / FPS + 0.02 + 0.01
+    # and every frame was there when the clock reached the frame before it (interpolation)
+    for now, motion in track[track[:, 0] > 3.0]:
+        k_played = int(np.floor(motion * FPS))
+        assert arrival(k_played + 1) <= now + 1e-9
+
+
+def test_the_adaptive_clock_slows_down_for_late_frames_and_catches_up_after():
+    arrival = (lambda k: k / FPS + (0.3 if 60 <= k < 70 else 0.05))  # a stall of 250 ms around 2 s
+    clock = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=0.0, window_s=1.0)
+    track = _drive(clock, arrival, 8.0)
+    delay_at = (lambda t: t - track[np.searchsorted(track[:, 0], t), 1])  # now - motion time
+    assert max(delay_at(t) for t in np.arange(2.3, 3.5, 0.05)) > 0.2  # it waited for the late frames
+    assert 0.05 + 0.02 <= delay_at(7.9) <= 0.05 + 0.02 + 0.01  # and came back down (to the tick)
+
+
+def _buffer(extrapolate):
+    buf = TargetBuffer(FPS, interpolation="cubic", extrapolate=extrapolate)
+    for k in range(4):
+        buf.push(TargetFrame(k, np.array([0.1 * k, -0.2 * k]), 0.0))
+    return buf
+
+
+def test_the_buffer_continues_the_newest_frames_velocity_for_at_most_extrapolate_frames():
+    buf = _buffer(1.0)
+    s = buf.sample(3.5 / FPS)
+    assert s.extrapolated and not s.starved and s.newest.index == 3
+    np.testing.assert_allclose(s.q, [0.35, -0.7])
+    s = buf.sample(4.5 / FPS)  # beyond one frame: hold the newest and say it is starved
+    assert s.starved and not s.extrapolated
+    np.testing.assert_allclose(s.q, [0.3, -0.6])
+    buf.close()
+    s = buf.sample(3.5 / FPS)  # the stream ended: never extrapolate past the last frame
+    assert s.finished and not s.extrapolated
+
+
+def test_without_extrapolation_the_buffer_holds():
+    s = _buffer(0.0).sample(3.5 / FPS)
+    assert s.starved and not s.extrapolated
+    np.testing.assert_allclose(s.q, [0.3, -0.6])
+    with pytest.raises(ValueError, match="extrapolate"):
+        TargetBuffer(FPS, extrapolate=-1.0)
