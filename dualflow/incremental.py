@@ -261,7 +261,8 @@ class WindowCache:
             k_new, v_new = _kv(block.motion_attn, block.keys_of(z2))
             self.motion_k[j] = k_new if self.motion_k[j] is None else torch.cat([self.motion_k[j], k_new], 2)
             self.motion_v[j] = v_new if self.motion_v[j] is None else torch.cat([self.motion_v[j], v_new], 2)
-            z = self._finish(j, z2, mod)
+            if j + 1 < self.n_blocks:  # the last block's output feeds nothing the reactor reads
+                z = self._finish(j, z2, mod)
         self.actor.n += n
 
     def reactor_rows(self, step: int, x: torch.Tensor, need_output: bool = True) -> torch.Tensor | None:
@@ -283,7 +284,8 @@ class WindowCache:
             z2 = self._temporal(j, cache, z, mod)
             q = self._norm(block, 2, z2, mod)
             z3 = z2 + _attend(block.motion_attn, q, self.motion_k[j], self.motion_v[j], cross)
-            z = self._finish(j, z3, mod)
+            if need_output or j + 1 < self.n_blocks:  # teacher forcing: the last output is not needed
+                z = self._finish(j, z3, mod)
         cache.n += n
         if not need_output:
             return None
