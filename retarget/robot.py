@@ -11,7 +11,11 @@ vector ``x`` (see :mod:`retarget.kinematics`):
 - ``sole(x)``: (3, 8) the four sole corners of the left then the right foot;
 - ``com(x)``: (3, 1) the centre of mass;
 - ``collision(x)``: (P, 1) squared distance between the axis segments of each capsule
-  pair minus (r_a + r_b + margin)², ≥ 0 when the pair is apart.
+  pair minus (r_a + r_b + margin)², ≥ 0 when the pair is apart (the real test: the report
+  counts self-collisions with it);
+- ``offline_collision(x)``: (P', 1) what the offline solver keeps ≥ 0 instead: the pairs
+  between the two feet as rows of a separating plane along the feet's own lateral axis
+  (:class:`Separation`, smooth and conservative), the other pairs as ``collision``.
 """
 
 from __future__ import annotations
@@ -66,6 +70,104 @@ def segment_distance_sq(p0, p1, q0, q1, eps: float = 1e-12):
     s = clamp((b * t - d) / a)
     diff = w + s * u - t * v
     return dot(diff, diff)
+
+
+@dataclass(frozen=True)
+class Separation:
+    """Capsule pairs as rows of separating planes: a smooth, conservative stand-in for the
+    segment distance, for the offline solver.
+
+    The pairs are grouped by their two bodies (A, B); group g has one unit normal n_g (the
+    caller supplies it; for the feet, the feet's own lateral axis). A capsule is the convex
+    hull of the spheres at its axis' end points, so if every end point a_i of a capsule on A
+    (radius r_a) and b_j of its partner on B (radius r_b) satisfies
+
+        n_g·(a_i − b_j) ≥ r_a + r_b + margin                                      (one row each)
+
+    then the plane n_g·p = min_i n_g·a_i − r_a − margin/2 separates the two capsules with
+    ``margin`` to spare: the real segment-distance test of the pair holds. Unlike the squared
+    segment distance, a row is smooth in x (no closest-point case switches, and its gradient
+    does not vanish when the segments are parallel or cross), which is what IPOPT needs; the
+    price is that a pair cannot pass to the other side of its plane.
+
+    Rows are deduplicated: an end point shared by several capsules is one vertex, and a vertex
+    on the segment between two others of the same body and radius (e.g. the middle of a sole
+    edge) adds only rows implied by theirs, so it is dropped (linearly dependent active rows
+    would break IPOPT's constraint qualification).
+
+    groups (G, 2) body ids; vertices: (body, local (3,), radius) each; rows (R, 3) int: group,
+    vertex on A, vertex on B; clearance (R,) m; pair_group (P,) the group of each pair given
+    and pair_flip (P,) whether its capsules are (B, A).
+    """
+
+    groups: tuple
+    vertices: tuple
+    rows: np.ndarray
+    clearance: np.ndarray
+    pair_group: np.ndarray
+    pair_flip: np.ndarray
+
+    @property
+    def n_groups(self) -> int:
+        return len(self.groups)
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.rows.shape[0])
+
+
+def build_separation(capsules: dict, pairs, margin: float) -> Separation:
+    """The :class:`Separation` of the capsule ``pairs`` (names into ``capsules``)."""
+    verts, vindex, groups, rows = [], {}, [], {}
+    pair_group, pair_flip = [], []
+
+    def vid(body, p, r):
+        key = (body, tuple(np.round(np.asarray(p, float), 12)), round(float(r), 12))
+        if key not in vindex:
+            vindex[key] = len(verts)
+            verts.append((int(body), np.asarray(p, float), float(r)))
+        return vindex[key]
+
+    def ends(c):
+        return [c.p0] if np.array_equal(c.p0, c.p1) else [c.p0, c.p1]
+
+    for a, b in pairs:
+        A, B = capsules[a], capsules[b]
+        flip = (B.body, A.body) in groups and (A.body, B.body) not in groups
+        if flip:
+            A, B = B, A
+        if (A.body, B.body) not in groups:
+            groups.append((A.body, B.body))
+        g = groups.index((A.body, B.body))
+        pair_group.append(g)
+        pair_flip.append(flip)
+        for pa in ends(A):
+            for pb in ends(B):
+                rows[(g, vid(A.body, pa, A.radius), vid(B.body, pb, B.radius))] = A.radius + B.radius + margin
+
+    def between(v):
+        """Pairs (u, w) of other vertices of v's body and radius with v on the segment uw."""
+        body, p, r = verts[v]
+        out = []
+        for u in range(len(verts)):
+            for w in range(u + 1, len(verts)):
+                if v in (u, w) or verts[u][0] != body or verts[w][0] != body or verts[u][2] != r or verts[w][2] != r:
+                    continue
+                d = verts[w][1] - verts[u][1]
+                tau = float(np.dot(p - verts[u][1], d) / max(np.dot(d, d), 1e-30))
+                if 0.0 <= tau <= 1.0 and np.linalg.norm(verts[u][1] + tau * d - p) < 1e-9:
+                    out.append((u, w))
+        return out
+
+    keep = {}
+    for (g, va, vb), c in rows.items():
+        implied = any((g, u, vb) in rows and (g, w, vb) in rows for u, w in between(va)) or \
+            any((g, va, u) in rows and (g, va, w) in rows for u, w in between(vb))
+        if not implied:
+            keep[(g, va, vb)] = c
+    return Separation(tuple(groups), tuple(verts), np.array(list(keep), dtype=int).reshape(-1, 3),
+                      np.array(list(keep.values()), dtype=float), np.array(pair_group, dtype=int),
+                      np.array(pair_flip, dtype=bool))
 
 
 @dataclass(frozen=True)
@@ -235,9 +337,59 @@ class RetargetRobot:
             r = ca_.radius + cb.radius + self.profile.collision_margin
             coll.append(segment_distance_sq(p0, p1, q0, q1) - r * r)
         self.collision_expr = ca.vertcat(*coll) if coll else ca.SX.zeros(0, 1)
+        self._build_offline_collision()
         self.f_keypoints = ca.Function("keypoints", [x], [kp])
         self.f_all = ca.Function("robot_points", [x], [kp, self.sole_expr, self.com_expr, self.collision_expr],
                                  ["x"], ["keypoints", "sole", "com", "collision"])
+
+    def _build_offline_collision(self) -> None:
+        """``offline_collision_expr`` (P', 1) and its row labels ``offline_collision_labels``.
+
+        Pairs with one capsule on each foot's body become :class:`Separation` rows with the
+        normal n = the feet's common lateral axis: with f_L, f_R the horizontal parts of the two
+        soles' long (heel → toe) axes, f = (f_L + f_R)/‖f_L + f_R‖ and n = (−f_y, f_x, 0), the
+        left foot's side. The rows are smooth in x and turn with the feet, not with the pelvis
+        (a twisted pelvis over planted feet would tip a pelvis-fixed plane). Conservative: the
+        left foot's capsules stay on their side of a plane along the feet, so feet that pass
+        each other fore and aft still may not cross sideways (the offline solver's warm start,
+        :func:`retarget.offline.feet_apart`, keeps them on their own sides too). The soles are
+        the pairs near contact in most frames, where the segment distance's closest-point case
+        switches cost IPOPT most of its iterations (CMU pair: 34 → 22 per window). Other pairs
+        keep the squared segment distance (``collision_expr``); rows are ≥ 0 when apart."""
+        kin = self.kin
+        pairs = list(self.collision_pairs)
+        foot_bodies = {f.body for f in self.feet} if len(self.feet) == 2 else set()
+        is_foot = [len(foot_bodies) == 2 and {self.capsules[a].body, self.capsules[b].body} == foot_bodies
+                   for a, b in pairs]
+        rows = [self.collision_expr[k] for k in range(len(pairs)) if not is_foot[k]]
+        labels = [f"{a}/{b}" for k, (a, b) in enumerate(pairs) if not is_foot[k]]
+        left = self.feet[0].body if self.feet else -1
+        # the left foot's capsules first, so that the normal points from the right foot to the left
+        foot_pairs = [(a, b) if self.capsules[a].body == left else (b, a) for k, (a, b) in enumerate(pairs) if is_foot[k]]
+        self.separation = build_separation(self.capsules, foot_pairs, self.profile.collision_margin)
+        sep = self.separation
+        if sep.n_rows:
+            fwd = []
+            for foot in self.feet:
+                c = foot.corners
+                edges = [c[1] - c[0], c[2] - c[1]]
+                e = edges[int(np.argmax([np.linalg.norm(v) for v in edges]))]
+                e = e / np.linalg.norm(e)
+                R = kin.body_frame(foot.body)[1]
+                if float((np.array(ca.Function("R", [kin.x_sym], [R])(self.x_stand)) @ e)[0]) < 0:
+                    e = -e  # heel → toe: along the robot's forward (+x) in the stand pose
+                fwd.append(R @ ca.DM(e))
+            f = fwd[0][0:2] + fwd[1][0:2]
+            f = f / ca.sqrt(ca.sumsqr(f))
+            n = ca.vertcat(-f[1], f[0], 0)
+            V = ca.horzcat(*[kin.point(body, p) for body, p, _ in sep.vertices])
+            D = V[:, sep.rows[:, 1].tolist()] - V[:, sep.rows[:, 2].tolist()]
+            plane = (ca.mtimes(n.T, D) - ca.DM(sep.clearance).T).T
+            rows += [plane[i] for i in range(sep.n_rows)]
+            vname = [f"{kin.model.body(body).name}@{np.round(p, 4).tolist()}" for body, p, _ in sep.vertices]
+            labels += [f"sole plane {vname[va]}/{vname[vb]}" for _, va, vb in sep.rows]
+        self.offline_collision_expr = ca.vertcat(*rows) if rows else ca.SX.zeros(0, 1)
+        self.offline_collision_labels = tuple(labels)
 
     def _rest_scales(self) -> None:
         """Per-keypoint bone scale s_k = |r_k − r_parent(k)| / |h_k − h_parent(k)| from the robot at

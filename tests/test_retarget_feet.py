@@ -79,3 +79,79 @@ def test_synthetic_leaders_and_a_follower_retarget_to_op3_within_limits(op3):
         rep = evaluate(op3, traj, make_targets(op3, clip))
         assert rep.limit_violations == 0 and rep.velocity_violations == 0, (clip.name, rep)
         assert rep.self_collisions == 0 and rep.penetration_mm <= 5.0, (clip.name, rep)
+
+
+def _offline_rows(robot):
+    return ca.Function("rows", [robot.kin.x_sym], [robot.offline_collision_expr])
+
+
+def test_sole_plane_rows_replace_the_foot_pairs_and_are_conservative(op3):
+    """The offline solver's sole-plane rows (one plane along the feet's lateral axis, 8 vertex
+    pairs) stand in for the 8 sole pairs; wherever they hold, the real segment-distance test
+    of every sole pair holds too, whatever the configuration."""
+    sep = op3.separation
+    assert sep.n_groups == 1 and sep.n_rows == 8  # 4 edge-end pairs + each sole centre against the other edge's ends
+    labels = op3.offline_collision_labels
+    foot = [i for i, lab in enumerate(labels) if lab.startswith("sole plane")]
+    assert len(foot) == 8 and len(labels) == len(op3.collision_pairs)
+    pairs = [i for i, (a, b) in enumerate(op3.collision_pairs) if "sole" in a + b]
+    rows = _offline_rows(op3).map(1)
+    assert np.all(np.array(rows(op3.x_stand)).ravel()[foot] > 0)
+    rng = np.random.default_rng(0)
+    names = list(op3.joint_names)
+    legs = [op3.n_root + names.index(j) for j in names if j[2:].startswith(("hip", "knee", "ank"))]
+    n_held = 0
+    for _ in range(400):
+        x = op3.x_stand.copy()
+        x[legs] += rng.normal(scale=0.12, size=len(legs))
+        x = np.clip(x, op3.x_lower, op3.x_upper)
+        r = np.array(rows(x)).ravel()[foot]
+        real = op3.evaluate(x[None])["collision"][0, pairs]
+        if np.all(r >= 0):
+            n_held += 1
+            assert np.all(real >= 0), (r, real)
+    assert n_held > 50  # the test saw many configurations where the planes hold
+    # feet crossed sideways: the planes say so
+    li, ri = op3.n_root + names.index("l_hip_roll"), op3.n_root + names.index("r_hip_roll")
+    crossed = op3.x_stand.copy()
+    crossed[[li, ri]] -= 0.1
+    assert np.any(np.array(rows(crossed)).ravel()[foot] < 0)
+
+
+def test_sole_plane_rows_keep_pointing_apart_when_the_feet_cross(op3):
+    """Feet crossed deeper and deeper (same-sign hip roll): the sole-edge distances fall to 0
+    and then grow again (the edges have passed each other, and the gradient points the wrong
+    way), while every plane row keeps falling and its gradient keeps pointing back apart."""
+    names = list(op3.joint_names)
+    li, ri = op3.n_root + names.index("l_hip_roll"), op3.n_root + names.index("r_hip_roll")
+    f = ca.Function("J", [op3.kin.x_sym], [op3.offline_collision_expr, ca.jacobian(op3.offline_collision_expr, op3.kin.x_sym)])
+    foot = [i for i, lab in enumerate(op3.offline_collision_labels) if lab.startswith("sole plane")]
+    edge = [i for i, (a, b) in enumerate(op3.collision_pairs) if a.endswith(("heel_in", "toe_in"))]
+    apart = np.zeros(op3.nx)
+    apart[[li, ri]] = 1.0  # rolling back towards the stand pose uncrosses the feet
+    prev_rows, prev_dist = None, None
+    for roll in (-0.06, -0.1, -0.15, -0.2):
+        x = op3.x_stand.copy()
+        x[[li, ri]] += roll
+        rows, J = (np.array(v) for v in f(x))
+        rows = rows.ravel()[foot]
+        dist = op3.evaluate(x[None])["collision"][0, edge]
+        assert np.all(rows < 0) and np.all((J @ apart)[foot] > 0.1), roll
+        if prev_rows is not None:
+            assert np.all(rows < prev_rows)
+        prev_rows, prev_dist = rows, dist if prev_dist is None else prev_dist
+    assert np.all(dist > prev_dist) and np.all(dist > 0)  # the distance test calls the deepest crossing 'apart'
+
+
+@pytest.mark.slow
+def test_distance_model_still_available_and_agrees_on_feasibility(op3):
+    """collision_model='distance' (every pair as its segment distance) keeps the old problem."""
+    from dualflow.synthetic import make_leader
+
+    clip = make_leader(seconds=3.0, seed=0)
+    for model in ("sole-plane", "distance"):
+        r = OfflineRetargeter(op3, OfflineConfig(compile=False, collision_model=model))
+        rep = evaluate(op3, r.retarget(clip), make_targets(op3, clip))
+        assert rep.self_collisions == 0 and rep.limit_violations == 0, (model, rep)
+    with pytest.raises(Exception, match="collision_model"):
+        OfflineRetargeter(op3, OfflineConfig(collision_model="boxes"))
