@@ -7,10 +7,14 @@ first window faster than the later ones makes them all late. The adaptive clock 
 t0 at the earliest value at which the recent frames were all on time:
 
     a_k  = arrival_k - k / fps                       (frame k's arrival offset)
-    t0*  = max over the frames of the last ``window_s`` seconds of a_k + lead / fps + margin
+    t0*  = q-quantile of a_k over the frames of the last ``window_s`` seconds + lead / fps + margin
 
 (``lead`` frames: the interpolation between frames k and k + 1 needs frame k + 1 when
-frame k is played; ``margin``: reserve for arrival jitter). t0 moves toward t0* at a bounded
+frame k is played, 0 when the buffer may extrapolate the newest frame for a frame
+(``TargetBuffer(extrapolate=1)``); ``margin``: reserve for arrival jitter; ``quantile`` q,
+default 0.9: the odd frame later than the rest (a busy CPU) does not hold the clock back for
+a whole window: it is played when it comes, the buffer's extrapolation covering up to one
+frame of it, and its latency counts as it is). t0 moves toward t0* at a bounded
 rate: earlier (playing faster than real time, at most 1 + ``speed_up``) when frames arrive
 sooner than needed, later (slower, down to 1 - ``slow_down``) when they come late, so motion
 time never jumps or runs backwards. The latency then follows the generator's actual delay
@@ -21,12 +25,15 @@ from __future__ import annotations
 
 from collections import deque
 
+import numpy as np
+
 
 class PlaybackClock:
     """Motion time for the loop. ``fixed=True``: t0 stays where the first frame put it."""
 
     def __init__(self, fps: float, first_index: int, now: float, margin: float, lead_frames: float = 1.0,
-                 window_s: float = 1.0, speed_up: float = 0.2, slow_down: float = 0.5, fixed: bool = False):
+                 window_s: float = 1.0, speed_up: float = 0.2, slow_down: float = 0.5, fixed: bool = False,
+                 quantile: float = 0.9):
         self.fps = float(fps)
         self.margin = float(margin)
         self.lead = float(lead_frames) / self.fps
@@ -34,6 +41,7 @@ class PlaybackClock:
         self.speed_up = float(speed_up)
         self.slow_down = float(slow_down)
         self.fixed = bool(fixed)
+        self.quantile = float(quantile)
         self.t0 = now + self.margin - first_index / self.fps  # the fixed clock's t0 (as before)
         self._offsets: deque[tuple[float, float]] = deque()  # (arrival, a_k)
         self._seen = first_index
@@ -53,7 +61,10 @@ class PlaybackClock:
         """t0*: the earliest t0 at which every recent frame was on time (None: no recent frame)."""
         if not self._offsets:
             return None
-        return max(a for _, a in self._offsets) + self.lead + self.margin
+        offsets = [a for _, a in self._offsets]
+        if self.quantile >= 1.0:
+            return max(offsets) + self.lead + self.margin
+        return float(np.quantile(offsets, self.quantile)) + self.lead + self.margin
 
     def motion_time(self, now: float) -> float:
         """Seconds of motion to play at ``now`` (frame k at k / fps); advances t0 toward t0*."""

@@ -81,3 +81,14 @@ def test_without_extrapolation_the_buffer_holds():
     np.testing.assert_allclose(s.q, [0.3, -0.6])
     with pytest.raises(ValueError, match="extrapolate"):
         TargetBuffer(FPS, extrapolate=-1.0)
+
+
+def test_one_late_frame_does_not_hold_the_clock_back_but_a_late_run_does():
+    # frame 60 is 50 ms late (the next one, in order behind it, 17 ms)
+    arrival = (lambda k: k / FPS + (0.10 if k == 60 else 0.05))
+    robust = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=0.0)  # q = 0.9
+    strict = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=0.0, quantile=1.0)
+    a, b = _drive(robust, arrival, 2.6), _drive(strict, arrival, 2.6)
+    lag = (lambda track: np.max(track[:, 0] - track[:, 1]))
+    assert lag(a[a[:, 0] > 1.5]) < 0.05 + 0.02 + 0.011
+    assert lag(b[b[:, 0] > 1.5]) > 0.1 + 0.02
