@@ -121,6 +121,7 @@ class OfflineRetargeter:
         self.config = config
         self.streaming_config = streaming or StreamingConfig(accel_weight=1e-8)
         self._solvers: dict[tuple, tuple] = {}
+        self._streams: dict[float, StreamingRetargeter] = {}  # warm-start solvers by fps, built once
         self._frame_fn = self._build_frame_function()
 
     # -- problem construction -----------------------------------------------------
@@ -267,7 +268,10 @@ class OfflineRetargeter:
             motion = slowed.resample(fps)
         tg = make_targets(self.robot, motion, contacts, scaler)
         t0 = time.perf_counter()
-        stream = StreamingRetargeter(self.robot, fps, self.streaming_config)
+        stream = self._streams.get(fps)
+        if stream is None:
+            stream = self._streams[fps] = StreamingRetargeter(self.robot, fps, self.streaming_config)
+        stream.reset()
         ws = feet_apart(self.robot, tg.keypoints, 0.02) if self.config.self_collision else tg.keypoints
         X0 = np.stack([stream.step(ws[t], tg.contacts[t]) for t in range(motion.n_frames)])
         X, stats = self.solve(tg, X0)
