@@ -125,7 +125,7 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     frame (``SessionResult.actor_arrivals``). The loop's own figure (``e2e``) starts at the
     arrival of the last actor frame partner frame i depends on, c(i) = i + A (A = L, or
     L + 1 when the last feature row waits for the next frame): what the bridge adds beyond
-    the look-ahead. Frames of the end-of-stream flush (look-ahead cut) are left out."""
+    the look-ahead. Every played frame counts, the end-of-stream flush too."""
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry import read_telemetry
 
@@ -139,9 +139,11 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     played = np.isfinite(rec["end_to_end"])
     c = rec["actor_frame"][played].astype(int)
     e2e = rec["end_to_end"][played]
-    keep = c < len(arrivals) - 1  # not the flush at the end of the stream (c clipped to the last frame)
-    c, e2e = c[keep], e2e[keep]
-    partner = (e2e + arrivals[c] - arrivals[c - ahead]) * 1e3
+    # frames of the end-of-stream flush are stamped with the arrival actor frame c would have had
+    # (the last one's + (c - last) / fps): the write is that + e2e
+    n = len(arrivals)
+    stamp = np.where(c < n, arrivals[np.minimum(c, n - 1)], arrivals[-1] + (c - (n - 1)) / 30.0)
+    partner = (e2e + stamp - arrivals[c - ahead]) * 1e3
     gen = rec["generator_latency"]
     gen = np.unique(gen[np.isfinite(gen)])  # one value per window (its frames share it)
     pct = (lambda a, q: float(np.percentile(a, q)) if a.size else float("nan"))

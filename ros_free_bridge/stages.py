@@ -428,8 +428,12 @@ class PartnerCore:
             c = p.index + self.reactor.frames_ahead  # the last actor frame partner frame i depends on
             if c in self._arrivals:
                 arrival, actor = self._arrivals[c], c
-            else:  # the stream's end: the look-ahead was cut at the last actor frame
-                arrival, actor = p.source_arrival, p.actor_frame
+            else:
+                # the stream's end: actor frame c never came (the look-ahead was cut at the last
+                # frame); stamp the arrival it would have had on the actor's clock, so that the
+                # loop's figure stays "beyond the look-ahead" for these frames too
+                last_arrival, last = self._last
+                arrival, actor = last_arrival + (c - last) / self.reactor.fps, c
             out.append(self._target(p.index, p.positions, p.contacts, arrival, actor, p.latency))
         if out:
             done = out[-1].index + self.reactor.frames_ahead

@@ -135,6 +135,10 @@ def test_a_backlog_beyond_max_lag_is_dropped_held_and_reported(tiny_checkpoint):
     # row is encoded with a predicted next frame)
     gen = [t for t in out if not t.held and t.index + L < leader.n_frames]
     assert all(t.actor_frame == t.index + L and t.arrival == frames[t.index + L].arrival for t in gen)
+    # the end-of-stream flush: the arrival actor frame i + L would have had on the actor's clock
+    flush = [t for t in out if t.index + L >= leader.n_frames]
+    assert len(flush) == L and all(t.actor_frame == t.index + L for t in flush)
+    np.testing.assert_allclose([t.arrival for t in flush], [(t.index + L) / 30.0 for t in flush])
 
 
 # -- the process ---------------------------------------------------------------------------
