@@ -17,19 +17,34 @@ frames/s are reported on process CPU time (robust to other load on a shared mach
 wall time. Compilation (cached on disk) is excluded and reported on its own line.
 
 Offline speed, what is known (op3, the CMU pair, one 80-frame window per clip, contacts +
-balance): IPOPT needs about 34 iterations per window, and its own linear algebra (MUMPS on
-the KKT system, about 0.5 ms per frame and iteration) is about 3/4 of the time; function
-evaluations (compiled) are the rest. fatrop, the structure-exploiting interior-point solver in
-the casadi wheel, was tried on a stage-wise version of the same problem (state (q_k, q_k −
-q_{k−1}), control (acceleration, balance weights), manual structure N=79, nx=52, nu=34): it
-solved the windows, but took 76-157 iterations at 40-50 ms each in its Riccati recursion
-(8-23 frames/s, against 24-44 for IPOPT on that formulation in runs at the same load), and a pure
-linear-quadratic test problem of that size (N=80, nx=52, nu=34, box bounds only) already
-takes 38 ms per fatrop iteration with this wheel's BLASFEO, which is its generic C build
-(only a 4x4 dgemm kernel, no AVX2 ones: about 2 GFlop/s). Neither reaches the 250 frames/s
-target; IPOPT on the original formulation stays. Without the self-collision rows IPOPT needs
-18-20 iterations (the foot-foot pairs are near-active in most frames); without the velocity
-rows each iteration is 25 % cheaper but it needs 46-57 (and a velocity limit is broken).
+balance): IPOPT needs 17-19 iterations per window (34 before the sole-plane rows and the
+quality-function barrier oracle), and its own linear algebra (MUMPS on the KKT system, about
+0.3 ms per frame and iteration) is about 3/4 of the time; function evaluations (compiled)
+are the rest. What cut the iterations: the foot-to-foot capsule pairs (near contact in most
+frames) as a smooth separating plane along the feet's lateral axis instead of segment
+distances (34 → 22; OfflineConfig.collision_model, "distance" keeps the old rows), then
+IPOPT's quality-function mu oracle instead of probing (22 → 17-19; with the distance rows
+it does not help). Per iteration, fast_step_computation + min_refinement_steps 0 (no
+residual check or refinement back-solve after MUMPS) take ~20 % off, same iterates. Its price on this pair: feet that pass each other fore and aft may not
+cross sideways, so keypoint error rises from 14.4 to 15.6 mm and the clean-capture jerk ratio
+from 0.72 to 0.79 (every quality target still met). Tried and not kept: balance weights
+initialised consistent with the warm start's CoM (no fewer iterations), separating planes
+for every pair with normals chosen per frame from the warm start (the planes switch between
+frames: jerk ratio above 1 on 19_01), a smooth max over lateral and fore-aft planes
+(non-convex: a window stalled), acceptable_iter 1 (2 iterations fewer, but windows no longer
+agree with the whole-clip solution at the seams), MUMPS orderings, scaling and pivot
+tolerance, monotone mu with a small mu_init, scaled collision rows. fatrop, the
+structure-exploiting interior-point solver in the casadi wheel, was tried on a stage-wise
+version of the same problem (state (q_k, q_k − q_{k−1}), control (acceleration, balance
+weights), manual structure N=79, nx=52, nu=34): it solved the windows, but took 76-157
+iterations at 40-50 ms each in its Riccati recursion (8-23 frames/s, against 24-44 for IPOPT
+on that formulation in runs at the same load), and a pure linear-quadratic test problem of
+that size (N=80, nx=52, nu=34, box bounds only) already takes 38 ms per fatrop iteration
+with this wheel's BLASFEO, which is its generic C build (only a 4x4 dgemm kernel, no AVX2
+ones: about 2 GFlop/s). With 17-19 iterations at ~40 ms (linear algebra ~30 ms, of which
+one MUMPS factorisation of the ~11k-row KKT system is most), the 250 frames/s target needs
+either ~5 iterations or a 3x cheaper KKT solve. Without the velocity rows each iteration is
+25 % cheaper but it needs 46-57 (and a velocity limit is broken).
 
 Quality (see retarget/report.py): jerk ratio = mean |Δ³p|·fps³ over the robot's keypoints /
 the same over the source's scaled keypoints; with 1 cm noise the ratio is given both against

@@ -231,7 +231,11 @@ class OfflineRetargeter:
                 "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-3,
                 "ipopt.acceptable_iter": 3, "ipopt.acceptable_constr_viol_tol": 1e-6,
                 "ipopt.mu_strategy": "adaptive", "ipopt.mu_oracle": "quality-function", "ipopt.bound_relax_factor": 1e-10,
-                "ipopt.linear_solver": "mumps"}
+                "ipopt.linear_solver": "mumps",
+                # MUMPS's factorisation (with pivoting) solves the KKT system accurately enough: no
+                # residual check and no iterative-refinement back-solve per step (same iterates on
+                # the CMU pair to 3 digits, ~20 % less time)
+                "ipopt.fast_step_computation": "yes", "ipopt.min_refinement_steps": 0}
         opts |= {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
         name = f"rtw{W}"
         ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=()))}_{int(round(fps * 1000))}"
