@@ -115,6 +115,9 @@ class LoopConfig:
                 raise BridgeError(f"loop config: {name} must be one of {STOP_POLICIES}, got {getattr(self, name)!r}")
         if not self.rate_hz > 0:
             raise BridgeError(f"loop config: rate_hz must be > 0, got {self.rate_hz}")
+        if not 0 <= self.realtime_priority <= 99:
+            raise BridgeError(f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
+                              f"priority 1-99, got {self.realtime_priority} (CLI: --realtime-priority)")
 
 
 @dataclass

@@ -93,6 +93,9 @@ class SessionOptions:
     port: str | None = None
     emulate: bool = False
     rate_hz: float = 100.0
+    #: SCHED_FIFO priority (1-99) of the control-loop thread; 0: normal scheduling. Needs root,
+    #: CAP_SYS_NICE or an rtprio limit; when refused the loop runs normally and says why (telemetry event "realtime")
+    realtime_priority: int = 0
     out: Path = Path("runs/latest")
     stop_policy: str | None = None  #: None: the hardware config's
     estop_policy: str = "limp"
@@ -277,7 +280,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
                         **({} if opts.playback_margin is None and not opts.adaptive_playback else
                            {"playback_margin": 0.02 if opts.playback_margin is None else opts.playback_margin}),
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
-                        handle_signals=opts.handle_signals)
+                        handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority)
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
         config.playback_margin = playback_margin(config.playback_margin, core)
     # cubic (Catmull-Rom) interpolation: linear would jump in velocity at every 30 fps frame,

@@ -49,6 +49,9 @@ def register(sub) -> None:
     p.add_argument("--port", help="serial port, overriding the hardware config's (e.g. /dev/ttyUSB0)")
     p.add_argument("--emulate", action="store_true", help="dynamixel/serial: use the byte-level bus emulator, no hardware")
     p.add_argument("--rate", type=float, default=100.0, help="control rate in Hz (default 100)")
+    p.add_argument("--realtime-priority", type=int, default=0, metavar="N",
+                   help="run the control loop at SCHED_FIFO priority N (1-99; needs root, CAP_SYS_NICE or an rtprio "
+                        "limit; refused: normal scheduling, said in the telemetry's 'realtime' event). Default 0: normal")
     p.add_argument("--max-duration", type=float, help="stop after this many seconds of streaming")
     p.add_argument("--stop-policy", choices=("hold", "limp"), help="after the stop ramp (default: the hardware config's)")
     p.add_argument("--estop-policy", choices=("hold", "limp"), default="limp", help="on e-stop and errors (default: limp)")
@@ -142,7 +145,7 @@ def run(args) -> int:
     opts = SessionOptions(
         robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
         model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator, transport=args.transport, port=args.port, emulate=args.emulate,
-        rate_hz=args.rate, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
+        rate_hz=args.rate, realtime_priority=args.realtime_priority, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
     )
     status = None if args.quiet else StatusLine()
