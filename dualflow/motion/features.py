@@ -226,8 +226,8 @@ def encode_person(motion: Motion, canonical: CanonicalFrame | None = None) -> np
         raise DualFlowError(f"canonical: expected a CanonicalFrame, got {type(frame).__name__}")
     pos = frame.to_canonical(motion.positions)  # (T, 22, 3) Y-up
     T = pos.shape[0]
-    _, local = inverse_kinematics(pos, REST_POSE_YUP)
-    rot6 = matrix_to_6d(local[:-1, list(ROTATION_JOINTS)])  # (T-1, 21, 6)
+    _, local = inverse_kinematics(pos[:-1], REST_POSE_YUP)  # per frame; the last row is dropped
+    rot6 = matrix_to_6d(local[:, list(ROTATION_JOINTS)])  # (T-1, 21, 6)
     out = np.concatenate(
         [
             pos[:-1].reshape(T - 1, -1),

@@ -19,10 +19,13 @@ frame (e.g. the Y-up feature frame) pass the rest pose expressed in that frame.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from dualflow.errors import DualFlowError
-from dualflow.motion.rotations import align_vector_sets, swing_rotation
+from dualflow.motion.rotations import _EPS as _ROT_EPS
+from dualflow.motion.rotations import align_vector_sets, any_perpendicular, swing_rotation
 from dualflow.motion.skeleton import N_JOINTS, PARENTS, REST_POSE
 
 _PARENTS = np.asarray(PARENTS)
@@ -34,6 +37,70 @@ CHILDREN: tuple[tuple[int, ...], ...] = tuple(
 #: Joints without children (feet, head, wrists): positions do not determine
 #: their rotation, so inverse kinematics gives them the identity local rotation.
 LEAF_JOINTS: tuple[int, ...] = tuple(j for j in range(N_JOINTS) if not CHILDREN[j])
+
+
+@dataclass(frozen=True)
+class _Level:
+    """The joints at one depth of the tree, split for :func:`inverse_kinematics`."""
+
+    joints: np.ndarray  #: every joint at this depth
+    parents: np.ndarray  #: their parents
+    multi: tuple[int, ...]  #: joints with several children (Kabsch)
+    single: np.ndarray  #: joints with exactly one child (swing)
+    single_parents: np.ndarray
+    single_kids: np.ndarray  #: the child of each ``single`` joint
+
+
+def _levels() -> tuple[_Level, ...]:
+    depth = [0] * N_JOINTS
+    for j in range(1, N_JOINTS):
+        depth[j] = depth[PARENTS[j]] + 1
+    out = []
+    for d in range(max(depth) + 1):
+        joints = [j for j in range(N_JOINTS) if depth[j] == d]
+        single = [j for j in joints if len(CHILDREN[j]) == 1]
+        out.append(_Level(
+            joints=np.array(joints), parents=_PARENTS[joints], multi=tuple(j for j in joints if len(CHILDREN[j]) > 1),
+            single=np.array(single, dtype=int), single_parents=_PARENTS[single].astype(int),
+            single_kids=np.array([CHILDREN[j][0] for j in single], dtype=int)))
+    return tuple(out)
+
+
+_LEVELS = _levels()
+_EYE = np.eye(3)
+
+
+def _swing_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`~dualflow.motion.rotations.swing_rotation` with few numpy calls, for the IK's
+    hot path. a (k, 3) unit rest directions, b (T, k, 3) any length -> (T, k, 3, 3).
+
+    Axis ``u = a x b^`` / |a x b^|, angle ``theta = atan2(|a x b^|, a . b^)`` (b^ = b / |b|),
+    Rodrigues: ``R = cos(theta) I + sin(theta) [u]x + (1 - cos(theta)) u u^T``. A zero
+    ``b`` gives the identity; parallel or opposite directions take
+    :func:`~dualflow.motion.rotations.any_perpendicular` of ``a`` as the axis (exactly as
+    ``swing_rotation``).
+    """
+    nb = np.sqrt(np.einsum("...i,...i->...", b, b))
+    ub = b / np.maximum(nb, _ROT_EPS)[..., None]
+    ua = np.broadcast_to(a, ub.shape)
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = ub[..., 0], ub[..., 1], ub[..., 2]
+    cross = np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    sin = np.sqrt(np.einsum("...i,...i->...", cross, cross))
+    cos = a0 * b0 + a1 * b1 + a2 * b2
+    angle = np.arctan2(sin, cos)
+    degenerate = sin <= 1e-12
+    axis = cross / np.maximum(sin, 1e-300)[..., None]
+    if degenerate.any():
+        axis = np.where(degenerate[..., None], any_perpendicular(ua), axis)
+    angle = np.where(nb < _ROT_EPS, 0.0, angle)
+    s, c = np.sin(angle), np.cos(angle)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    K = np.zeros(axis.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -z, y, -x
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = z, -y, x
+    return (c[..., None, None] * _EYE + s[..., None, None] * K
+            + (1.0 - c)[..., None, None] * (axis[..., :, None] * axis[..., None, :]))
 
 
 def _check_rest(rest, what: str = "rest pose") -> np.ndarray:
@@ -175,11 +242,23 @@ def inverse_kinematics(positions, rest=REST_POSE) -> tuple[np.ndarray, np.ndarra
     identity = np.broadcast_to(np.eye(3), (T, 3, 3))
     local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
     G = local.copy()
-    for j in range(N_JOINTS):
-        parent_G = G[:, PARENTS[j]] if j else identity
-        if CHILDREN[j]:
-            local[:, j] = _joint_rotation(positions, j, parent_G, off)
-        G[:, j] = parent_G @ local[:, j]
+    # one tree depth at a time (a joint's rotation needs only its ancestors'): the
+    # single-child joints of a depth in one batched swing, the two multi-child joints
+    # (pelvis, spine3) on their own; the same equations as joint by joint
+    for level in _LEVELS:
+        for j in level.multi:
+            local[:, j] = _joint_rotation(positions, j, G[:, PARENTS[j]] if j else identity, off)
+        if level.single.size:
+            parent_G = G[:, level.single_parents]  # (T, k, 3, 3)
+            posed = positions[:, level.single_kids] - positions[:, level.single]  # (T, k, 3)
+            posed_in_parent = np.einsum("tkba,tkb->tka", parent_G, posed)
+            rest_dirs = off[level.single_kids]
+            rest_dirs = rest_dirs / np.linalg.norm(rest_dirs, axis=-1, keepdims=True)
+            local[:, level.single] = _swing_matrices(rest_dirs, posed_in_parent)
+        if level.joints[0] == 0:
+            G[:, 0] = local[:, 0]
+        else:
+            G[:, level.joints] = G[:, level.parents] @ local[:, level.joints]
     return positions[:, 0].copy(), local
 
 
