@@ -186,6 +186,9 @@ def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = T
     try:
         return ca.nlpsol(name, "ipopt", str(so_file), opts), f"compiled ({so_file})"
     except RuntimeError as exc:
+        # the solver's options (an unknown or unavailable one) fail the same way uncompiled:
+        # then the cached binary is fine and the error is the caller's; only a binary that
+        # fails where the uncompiled problem loads is dropped from the cache
+        plain = ca.nlpsol(name, "ipopt", nlp, opts)
         so_file.unlink(missing_ok=True)
-        info = _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
-        return ca.nlpsol(name, "ipopt", nlp, opts), info
+        return plain, _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")

@@ -75,3 +75,23 @@ def test_ipopt_linear_algebra_runs_on_one_thread():
     for path in loaded:
         assert ctypes.CDLL(path).openblas_get_num_threads() == 1
     assert codegen.single_threaded_linear_algebra() == done
+
+
+def test_bad_solver_options_raise_and_keep_the_cached_binary(cache):
+    """An option IPOPT refuses fails uncompiled too: the error is the caller's, and the valid
+    cached binary stays (it used to be deleted, costing a recompile on the next run)."""
+    if codegen.find_compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    x = ca.MX.sym("x", 2)
+    nlp = {"x": x, "f": ca.sumsqr(x - ca.DM([1.0, 2.0])), "g": x[0] + x[1]}
+    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}
+    _, info = codegen.compiled_nlpsol("tiny2", nlp, opts, "k4")
+    assert info.startswith("compiled")
+    (so_file,) = cache.glob("tiny2_k4_*.so")
+    with pytest.raises(RuntimeError):
+        codegen.compiled_nlpsol("tiny2", nlp, {**opts, "ipopt.linear_solver": "pardisomkl"}, "k4")
+    assert so_file.exists()
+    solver, info = codegen.compiled_nlpsol("tiny2", nlp, opts, "k4")
+    assert info == f"compiled ({so_file})"
+    sol = solver(x0=[0, 0], lbg=-np.inf, ubg=2.0)
+    assert np.allclose(np.array(sol["x"]).ravel(), [0.5, 1.5], atol=1e-6)
