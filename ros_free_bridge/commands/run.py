@@ -63,6 +63,16 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def fault_names(faults) -> str:
+    """The Fault flags by name, e.g. "starved, deadline_miss", or "none". EXTRAPOLATED (the
+    loop continued the newest frame while the next was on its way) is how a hop-1 run keeps its
+    latency low, not a fault, and is left out."""
+    from ros_free_bridge.loop import Fault
+
+    flags = Fault(int(faults))
+    return ", ".join(f.name.lower() for f in Fault if f and f in flags and f is not Fault.EXTRAPOLATED) or "none"
+
+
 class StatusLine:
     """A one-line live status on stderr: state, rate, latency, interventions, faults."""
 
@@ -83,7 +93,7 @@ class StatusLine:
         stream.write(
             f"\r{loop.state.name:<8} {rate:6.1f} Hz  frame {loop.summary.frames_played:5d}  latency {lat:6.1f} ms  "
             f"interventions {loop.summary.interventions:5d}  misses {loop.deadline_misses:3d}  "
-            f"faults {int(faults):#06x} "
+            f"faults {fault_names(faults)} "
         )
         stream.flush()
 
@@ -128,14 +138,12 @@ def print_summary(result, stream=None) -> None:
     what = (f"latency beyond the {ahead}-frame look-ahead ({ahead / MOTION_FPS * 1e3:.0f} ms more from actor frame i)"
             if ahead else "end-to-end latency")
     flags = Fault(s.faults)
-    # extrapolating up to a frame while the next is on its way is how the loop keeps latency low, not a fault
-    named = [f.name for f in Fault if f and f in flags and f is not Fault.EXTRAPOLATED]
     lines = [
         f"robot {result.files.name}: {s.end_state} ({s.reason})",
         f"ticks {s.ticks}, deadline misses {s.deadline_misses}, late ticks {s.late_ticks}",
         f"partner frames played {s.frames_played}",
         what + " " + (f"p50 {lat['p50'] * 1e3:.0f} ms, p99 {lat['p99'] * 1e3:.0f} ms" if lat else "n/a"),
-        f"safety interventions on {s.interventions} ticks, faults: {', '.join(named).lower() or 'none'}"
+        f"safety interventions on {s.interventions} ticks, faults: {fault_names(s.faults)}"
         + ("; targets extrapolated while a frame was on its way" if Fault.EXTRAPOLATED in flags else ""),
     ]
     if g.get("generator") in ("process", "thread"):
