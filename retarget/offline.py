@@ -307,7 +307,7 @@ class OfflineRetargeter:
             iters += it
         X = np.clip(X, rb.x_lower, rb.x_upper)
         return X, {"windows": len(starts), "window": W, "ipopt_iterations": iters, "ipopt_status": statuses,
-                   "compiled": info}
+                   "collision_model": cfg.collision_model if cfg.self_collision else "off", "compiled": info}
 
     def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool):
         cfg, rb = self.config, self.robot

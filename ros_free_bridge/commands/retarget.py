@@ -38,6 +38,10 @@ def register(subparsers) -> None:
     p.add_argument("--balance-margin", type=float, default=0.01, help="support polygon shrink (m, default 0.01)")
     p.add_argument("--no-contacts", action="store_true", help="do not hold feet in contact on the ground")
     p.add_argument("--no-collision", action="store_true", help="do not keep the profile's capsule pairs apart")
+    p.add_argument("--foot-collision", choices=("sole-plane", "distance"), default="sole-plane",
+                   help="offline: keep the feet apart by a smooth separating plane along their lateral axis (default; "
+                        "about half the solver iterations, but feet cannot cross sideways) or by capsule distances "
+                        "(slower; lets a foot pass in front of the other)")
     p.add_argument("--fixed-base", action="store_true", help="bolt the robot's root in place (upper-body partner)")
     p.add_argument("--retime", type=float, default=1.0, help="play the clip this many times slower (e.g. 1.5)")
     p.add_argument("--auto-retime", action="store_true", help="if infeasible, try 1.25x, 1.5x, 2x slower")
@@ -87,7 +91,7 @@ def run(args) -> int:
         sizes = {k: v for k, v in (("window", args.window), ("overlap", args.overlap)) if v is not None}
         cfg = OfflineConfig(**sizes, balance=args.balance, zmp=args.zmp,
                             balance_margin=args.balance_margin, contacts=not args.no_contacts,
-                            self_collision=not args.no_collision, retime=args.retime, auto_retime=args.auto_retime,
+                            self_collision=not args.no_collision, collision_model=args.foot_collision, retime=args.retime, auto_retime=args.auto_retime,
                             compile=not args.no_compile)
         traj = OfflineRetargeter(robot, cfg).retarget(motion)
     retime = float(traj.meta.get("retime", 1.0))
