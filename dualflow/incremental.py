@@ -44,9 +44,11 @@ arithmetic in fewer operations (equal to the full forward up to float rounding):
 * the music and retrieval keys/values do not depend on the motion: once per start; with a
   single key (the learned null token) attention returns that key's value whatever the query
   (softmax over one logit is 1), so the whole sub-layer is a constant;
-* the three causal convolutions (kernels k_1 < k_2 < k_3) are one matrix product over the
-  last k_3 block inputs, the smaller kernels zero-padded on the left:
-  y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d).
+* the three causal convolutions (kernels k_1 < k_2 < k_3): one matrix product each over
+  the last k block inputs, laid out tap-major so that each reads a contiguous slice of one
+  history matrix: y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d). (A one-row pass is
+  bound by reading the weights from memory; an earlier single product with the smaller
+  kernels zero-padded to k_3 read 1.6x the bytes.)
 
 Limits: Euler steps, ``cfg_scale`` 1 (one conditional pass), trajectory context, no
 per-window canonical frames (``ReactiveStreamer`` checks and says so).
@@ -112,26 +114,31 @@ class _Fixed:
         if context.shape[1] == 1:  # softmax over one key is 1: the output is that key's value
             self.const = attn.out(self.v.transpose(1, 2).reshape(1, 1, -1))
 
-    def __call__(self, query: torch.Tensor) -> torch.Tensor:
-        return self.const if self.const is not None else _attend(self.attn, query, self.k, self.v, None)
+    def __call__(self, query) -> torch.Tensor:
+        """query: (1, n, W), or a function returning it (not called when the output is constant)."""
+        if self.const is not None:
+            return self.const
+        return _attend(self.attn, query() if callable(query) else query, self.k, self.v, None)
 
 
 class IncrementalModel:
-    """A ``DualFlow`` (eval mode) with its convolutions stacked for one-matrix passes."""
+    """A ``DualFlow`` (eval mode) with its convolutions laid out for one-matrix-per-kernel passes.
+
+    Per block and kernel k: the weight (W_out, W_in, k) as (W_out, k * W_in), tap-major, so
+    that it multiplies the last k block inputs z(p - k + 1) .. z(p) laid out one after the
+    other (a contiguous slice of the block-input history). No zero padding to the largest
+    kernel: a one-row pass reads the weights from memory once and multiplies only real taps.
+    """
 
     def __init__(self, model: DualFlow):
         self.model = model
         self.kmax = max(model.config.conv_kernels)
-        self.conv_w: list[torch.Tensor] = []  # (n_k * W, W * kmax): z history (flattened) -> stacked outputs
-        self.conv_b: list[torch.Tensor] = []
+        self.width = model.config.width
+        #: per block: [(k, weight (W, k * W) tap-major, bias (W,))] in the block's kernel order
+        self.conv: list[list[tuple[int, torch.Tensor, torch.Tensor]]] = []
         for block in model.blocks:
-            ws, bs = [], []
-            for c, k in zip(block.conv.convs, block.conv.kernels):
-                w = F.pad(c.weight.detach(), (self.kmax - k, 0))  # (W, W, kmax), taps right-aligned
-                ws.append(w.reshape(w.shape[0], -1))
-                bs.append(c.bias.detach())
-            self.conv_w.append(torch.cat(ws, 0).contiguous())
-            self.conv_b.append(torch.cat(bs, 0))
+            self.conv.append([(int(k), c.weight.detach().permute(0, 2, 1).reshape(c.weight.shape[0], -1).contiguous(),
+                               c.bias.detach()) for c, k in zip(block.conv.convs, block.conv.kernels)])
 
 
 def _ada(norm, z_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -214,8 +221,10 @@ class WindowCache:
     # -- network passes --------------------------------------------------------------------
     @staticmethod
     def _norm(block, i: int, z: torch.Tensor, mod) -> torch.Tensor:
+        """AdaLayerNorm i of ``block``: LN(z) (1 + scale) + shift, in two operations."""
         scale, shift = mod[i]
-        return block.norms[i].norm(z) * scale + shift
+        norm = block.norms[i].norm
+        return torch.addcmul(shift, F.layer_norm(z, norm.normalized_shape, None, None, norm.eps), scale)
 
     def _temporal(self, j: int, cache: _StreamCache, z: torch.Tensor, mod) -> torch.Tensor:
         """``DualFlowBlock.temporal`` (causal) for new rows z (1, n, W) after the cached ones."""
@@ -223,12 +232,14 @@ class WindowCache:
         p0, n = cache.n, z.shape[1]
         z_all = z if cache.z_in[j] is None else torch.cat([cache.z_in[j], z], 1)
         cache.z_in[j] = z_all
-        kmax = self.inc.kmax
+        kmax, width = self.inc.kmax, self.inc.width
         hist = z_all[0, max(0, p0 - kmax + 1):]  # (m, W)
         if hist.shape[0] < n + kmax - 1:
             hist = F.pad(hist, (0, 0, n + kmax - 1 - hist.shape[0], 0))
-        windows = hist.unfold(0, kmax, 1).reshape(n, -1)  # (n, W * kmax): row r = z(p0 + r - kmax + 1 .. p0 + r)
-        y = F.gelu(F.linear(windows, self.inc.conv_w[j], self.inc.conv_b[j]))  # (n, n_k * W)
+        # (n, kmax * W) tap-major: row r = z(p0 + r - kmax + 1), ..., z(p0 + r) one after the other
+        windows = hist.reshape(1, -1) if n == 1 else hist.unfold(0, kmax, 1).transpose(1, 2).reshape(n, -1)
+        # kernel k reads the last k taps: y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d)
+        y = F.gelu(torch.cat([F.linear(windows[:, (kmax - k) * width:], w, b) for k, w, b in self.inc.conv[j]], 1))
         gates = block.conv.gates
         conv = (y.view(n, len(gates), -1) * gates[:, None]).sum(1)
         z = z + conv[None]
@@ -242,12 +253,12 @@ class WindowCache:
         if n > 1:  # new row i sees cached frames and new rows <= i
             mask = torch.arange(p0 + n, device=z.device)[None, :] <= (p0 + torch.arange(n, device=z.device))[:, None]
         z = z + _attend(attn, h, k_all, v_all, mask)
-        return z + self.music[j](self._norm(block, 1, z, mod))
+        return z + self.music[j](lambda: self._norm(block, 1, z, mod))
 
     def _finish(self, j: int, z: torch.Tensor, mod) -> torch.Tensor:
         """``DualFlowBlock.finish``: retrieval cross-attention and feed-forward."""
         block = self.model.blocks[j]
-        z = z + self.retrieval[j](self._norm(block, 3, z, mod))
+        z = z + self.retrieval[j](lambda: self._norm(block, 3, z, mod))
         return z + block.ffn(self._norm(block, 4, z, mod))
 
     def _actor_rows(self, x_a: torch.Tensor) -> None:
