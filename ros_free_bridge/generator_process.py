@@ -405,7 +405,7 @@ def warm_up(core) -> tuple[float, float]:
     r = core.reactor
     streamer = ReactiveStreamer(r.model, r.streamer.config, r.streamer.cond)
     cfg = streamer.config
-    with torch.no_grad():
+    with torch.inference_mode():
         streamer.push(torch.zeros(r.look_ahead + cfg.hop, streamer.dim))
         streamer.push(torch.zeros(cfg.window, streamer.dim))
     windows = streamer.timing.windows

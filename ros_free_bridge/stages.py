@@ -75,6 +75,9 @@ class ReactorStage:
     p^[n+1] = 2 p[n] - p[n-1] and pushed as provisional; when p[n+1] arrives the row is
     revised (``ReactiveStreamer.push(revise=1)``). Partner frame i then needs actor frames up
     to i + L only (``frames_ahead`` = L); False: up to i + L + 1, every row exact.
+
+    The streamer runs under ``torch.inference_mode`` (no autograd bookkeeping: ~10 % less
+    per-operation overhead in the one-row passes); its tensors are only read outside it.
     """
 
     def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, text: str | None = None,
@@ -164,7 +167,7 @@ class ReactorStage:
         else:
             return []
         t0 = time.perf_counter()
-        with self._torch.no_grad():
+        with self._torch.inference_mode():
             out = self.streamer.push(rows, max_windows, revise=revise)
         return self._decode(out, *self._last_in, time.perf_counter() - t0)
 
@@ -191,7 +194,7 @@ class ReactorStage:
 
     def prepare(self, max_passes: int = 1) -> None:
         """Do up to ``max_passes`` network passes of the streamer's catch-up work (idle time)."""
-        with self._torch.no_grad():
+        with self._torch.inference_mode():
             self.streamer.prepare(max_passes)
 
     @property
@@ -221,10 +224,10 @@ class ReactorStage:
         time: call again until it returns nothing)."""
         if self._rows_ready() > self.streamer.n_actor:
             rows, revise = self._encode_pending()
-            with self._torch.no_grad():
+            with self._torch.inference_mode():
                 self.streamer.push(rows, max_windows=0, revise=revise)
         t0 = time.perf_counter()
-        with self._torch.no_grad():
+        with self._torch.inference_mode():
             out = self.streamer.flush(max_windows)
         return self._decode(out, arrival, actor_index, time.perf_counter() - t0)
 
