@@ -444,20 +444,24 @@ class ReactiveStreamer:
         self._bases.append(WindowCache(self._inc, self._next_start(), self.config.window, self.look_ahead, self.cond,
                                        grid[:-1]))
 
-    def _feed(self, base) -> bool:
+    def _feed(self, base, batch: int = 1) -> bool:
         """One piece of catch-up work for a cached start: the recorded states of the emitted
-        frames it has not seen, at the first grid step that lacks them (after its actor rows:
-        all that arrived, in one pass), else its actor rows alone. Returns False when it had
-        nothing to do."""
+        frames it has not seen, at the first grid step that lacks at least ``batch`` of them
+        (after its actor rows: all that arrived, in one pass), else (``batch`` 1) its actor
+        rows alone. Returns False when it had nothing to do.
+
+        ``batch`` > 1 (idle-time catch-up): a step is fed only once it lags that many frames,
+        so that every step is fed in batches; with 1, step 0 (which lags one frame after
+        every emitted frame) would be fed one row at a time and the later steps starved."""
         n_done = self._emitted.shape[0]
         for k, cache in enumerate(base.reactor):
             lo = base.start + cache.n
-            if lo < n_done:
+            if n_done - lo >= batch:
                 base.sync_actor(self._actor)
                 rows = self._traj[lo - self._traj_start: n_done - self._traj_start, k]
                 base.reactor_rows(k, rows[None], need_output=False)
                 return True
-        if base.actor_behind(self.n_actor):
+        if batch <= 1 and base.actor_behind(self.n_actor):
             base.sync_actor(self._actor)
             return True
         return False
@@ -480,7 +484,7 @@ class ReactiveStreamer:
             self._add_start()  # its frames are fed below, in batches
             done += 1
         for base in self._due():
-            while done < max_passes and self._feed(base):
+            while done < max_passes and self._feed(base, self.FEED_BATCH):
                 done += 1
         return self.has_catch_up
 

@@ -120,3 +120,38 @@ def test_unsupported_incremental_settings_are_refused(model):
             ReactiveStreamer(model, StreamConfig(window=16, incremental=True, **bad))
     with pytest.raises(DualFlowError, match="hop"):
         ReactiveStreamer(model, StreamConfig(window=16, hop=9, incremental=True))
+
+
+def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypatch):
+    """A busy generator does one ``prepare`` pass per frame: each grid step of the background
+    start must then be fed FEED_BATCH rows at a time (not step 0 one row per frame while the
+    later steps starve), and the stream is unchanged."""
+    actor = _actor(90)
+    cfg = {"window": 40, "incremental": True, "bases": 2}
+    eager = _stream(model, actor, **cfg)
+    calls = []
+    in_prepare = [False]
+    orig_rows, orig_prepare = WindowCache.reactor_rows, ReactiveStreamer.prepare
+
+    def rows(self, step, x, need_output=True):
+        if in_prepare[0]:
+            calls.append((step, x.shape[1]))
+        return orig_rows(self, step, x, need_output)
+
+    def prepare(self, max_passes=1):
+        in_prepare[0] = True
+        try:
+            return orig_prepare(self, max_passes)
+        finally:
+            in_prepare[0] = False
+
+    monkeypatch.setattr(WindowCache, "reactor_rows", rows)
+    monkeypatch.setattr(ReactiveStreamer, "prepare", prepare)
+    s = ReactiveStreamer(model, StreamConfig(seed=5, hop=1, steps=3, **cfg), Conditions(text=torch.ones(1, 384)))
+    for k in range(actor.shape[0]):
+        s.push(actor[k:k + 1])
+        s.prepare(1)
+    s.flush()
+    torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
+    assert {step for step, _ in calls} == {0, 1, 2}
+    assert min(n for _, n in calls) >= ReactiveStreamer.FEED_BATCH
