@@ -89,6 +89,11 @@ def _heads(x: torch.Tensor, n_heads: int) -> torch.Tensor:
     return x.view(b, t, n_heads, w // n_heads).transpose(1, 2)
 
 
+def _stack(parts: list[torch.Tensor], dim: int) -> torch.Tensor:
+    """torch.cat, without a copy for a single part."""
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim)
+
+
 def _kv(attn, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Keys and values (1, H, T, dh) of ``dualflow.model.Attention`` over context (1, T, W)."""
     k, v = attn.kv(context).view(1, context.shape[1], 2, attn.n_heads, -1).permute(2, 0, 3, 1, 4)
@@ -226,79 +231,132 @@ class WindowCache:
         norm = block.norms[i].norm
         return torch.addcmul(shift, F.layer_norm(z, norm.normalized_shape, None, None, norm.eps), scale)
 
-    def _temporal(self, j: int, cache: _StreamCache, z: torch.Tensor, mod) -> torch.Tensor:
-        """``DualFlowBlock.temporal`` (causal) for new rows z (1, n, W) after the cached ones."""
+    def _temporal(self, j: int, streams: list) -> list[torch.Tensor]:
+        """``DualFlowBlock.temporal`` (causal) for new rows after the cached ones, of one or
+        more streams at once: ``streams`` [(cache, z (1, n, W), mod)]; returns their z.
+
+        The streams share the block's weights, so the convolution, the self-attention's
+        projections run once over all new rows stacked (one weight read); the attention
+        itself and the modulated norms stay per stream."""
         block = self.model.blocks[j]
-        p0, n = cache.n, z.shape[1]
-        z_all = z if cache.z_in[j] is None else torch.cat([cache.z_in[j], z], 1)
-        cache.z_in[j] = z_all
         kmax, width = self.inc.kmax, self.inc.width
-        hist = z_all[0, max(0, p0 - kmax + 1):]  # (m, W)
-        if hist.shape[0] < n + kmax - 1:
-            hist = F.pad(hist, (0, 0, n + kmax - 1 - hist.shape[0], 0))
-        # (n, kmax * W) tap-major: row r = z(p0 + r - kmax + 1), ..., z(p0 + r) one after the other
-        windows = hist.reshape(1, -1) if n == 1 else hist.unfold(0, kmax, 1).transpose(1, 2).reshape(n, -1)
+        wins, sizes = [], []
+        for cache, z, _ in streams:
+            p0, n = cache.n, z.shape[1]
+            z_all = z if cache.z_in[j] is None else torch.cat([cache.z_in[j], z], 1)
+            cache.z_in[j] = z_all
+            hist = z_all[0, max(0, p0 - kmax + 1):]  # (m, W)
+            if hist.shape[0] < n + kmax - 1:
+                hist = F.pad(hist, (0, 0, n + kmax - 1 - hist.shape[0], 0))
+            # (n, kmax * W) tap-major: row r = z(p0 + r - kmax + 1), ..., z(p0 + r) one after the other
+            wins.append(hist.reshape(1, -1) if n == 1 else hist.unfold(0, kmax, 1).transpose(1, 2).reshape(n, -1))
+            sizes.append(n)
+        windows = _stack(wins, 0)
         # kernel k reads the last k taps: y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d)
         y = F.gelu(torch.cat([F.linear(windows[:, (kmax - k) * width:], w, b) for k, w, b in self.inc.conv[j]], 1))
         gates = block.conv.gates
-        conv = (y.view(n, len(gates), -1) * gates[:, None]).sum(1)
-        z = z + conv[None]
-        h = self._norm(block, 0, z, mod)
+        conv = (y.view(y.shape[0], len(gates), -1) * gates[:, None]).sum(1)[None].split(sizes, 1)
+        zs = [z + c for (_, z, _), c in zip(streams, conv)]
         attn = block.self_attn
-        k_new, v_new = _kv(attn, h)
-        k_all = k_new if cache.k[j] is None else torch.cat([cache.k[j], k_new], 2)
-        v_all = v_new if cache.v[j] is None else torch.cat([cache.v[j], v_new], 2)
-        cache.k[j], cache.v[j] = k_all, v_all
-        mask = None
-        if n > 1:  # new row i sees cached frames and new rows <= i
-            mask = torch.arange(p0 + n, device=z.device)[None, :] <= (p0 + torch.arange(n, device=z.device))[:, None]
-        z = z + _attend(attn, h, k_all, v_all, mask)
-        return z + self.music[j](lambda: self._norm(block, 1, z, mod))
+        h = _stack([self._norm(block, 0, z, mod) for z, (_, _, mod) in zip(zs, streams)], 1)
+        q_all, kv_all = attn.q(h).split(sizes, 1), attn.kv(h).split(sizes, 1)
+        ys = []
+        for (cache, z, _), q, kv in zip(streams, q_all, kv_all):
+            p0, n = cache.n, z.shape[1]
+            k_new, v_new = kv.reshape(1, n, 2, attn.n_heads, -1).permute(2, 0, 3, 1, 4)
+            k_all = k_new if cache.k[j] is None else torch.cat([cache.k[j], k_new], 2)
+            v_all = v_new if cache.v[j] is None else torch.cat([cache.v[j], v_new], 2)
+            cache.k[j], cache.v[j] = k_all, v_all
+            mask = None
+            if n > 1:  # new row i sees cached frames and new rows <= i
+                mask = torch.arange(p0 + n, device=z.device)[None, :] <= (p0 + torch.arange(n, device=z.device))[:, None]
+            y = F.scaled_dot_product_attention(_heads(q.reshape(1, n, -1), attn.n_heads), k_all, v_all, attn_mask=mask)
+            ys.append(y.transpose(1, 2).reshape(1, n, -1))
+        out = attn.out(_stack(ys, 1)).split(sizes, 1)
+        zs = [z + o for z, o in zip(zs, out)]
+        return [z + self.music[j](lambda z=z, mod=mod: self._norm(block, 1, z, mod)) for z, (_, _, mod) in zip(zs, streams)]
 
-    def _finish(self, j: int, z: torch.Tensor, mod) -> torch.Tensor:
-        """``DualFlowBlock.finish``: retrieval cross-attention and feed-forward."""
+    def _finish(self, j: int, streams: list) -> list[torch.Tensor]:
+        """``DualFlowBlock.finish`` (retrieval cross-attention and feed-forward) of one or more
+        streams [(z (1, n, W), mod)], the feed-forward over all rows stacked."""
         block = self.model.blocks[j]
-        z = z + self.retrieval[j](lambda: self._norm(block, 3, z, mod))
-        return z + block.ffn(self._norm(block, 4, z, mod))
+        zs = [z + self.retrieval[j](lambda z=z, mod=mod: self._norm(block, 3, z, mod)) for z, mod in streams]
+        ff = block.ffn(_stack([self._norm(block, 4, z, mod) for z, (_, mod) in zip(zs, streams)], 1))
+        return [z + f for z, f in zip(zs, ff.split([z.shape[1] for z in zs], 1))]
 
     def _actor_rows(self, x_a: torch.Tensor) -> None:
         """Actor rows x_a (1, n, 262) at the next positions: their motion keys, cached."""
-        m = self.model
-        p0, n = self.actor.n, x_a.shape[1]
-        z = m.in_a(x_a) + self.pe[p0:p0 + n]
-        for j, block in enumerate(m.blocks):
-            mod = self.mod_actor[j]
-            z2 = self._temporal(j, self.actor, z, mod)
-            k_new, v_new = _kv(block.motion_attn, block.keys_of(z2))
-            self.motion_k[j] = k_new if self.motion_k[j] is None else torch.cat([self.motion_k[j], k_new], 2)
-            self.motion_v[j] = v_new if self.motion_v[j] is None else torch.cat([self.motion_v[j], v_new], 2)
-            if j + 1 < self.n_blocks:  # the last block's output feeds nothing the reactor reads
-                z = self._finish(j, z2, mod)
-        self.actor.n += n
+        self._rows(x_a, None, None, False)
 
-    def reactor_rows(self, step: int, x: torch.Tensor, need_output: bool = True) -> torch.Tensor | None:
+    def _actor_keys(self, j: int, z2: torch.Tensor) -> None:
+        block = self.model.blocks[j]
+        k_new, v_new = _kv(block.motion_attn, block.keys_of(z2))
+        self.motion_k[j] = k_new if self.motion_k[j] is None else torch.cat([self.motion_k[j], k_new], 2)
+        self.motion_v[j] = v_new if self.motion_v[j] is None else torch.cat([self.motion_v[j], v_new], 2)
+
+    def reactor_rows(self, step: int, x: torch.Tensor, need_output: bool = True,
+                     actor: torch.Tensor | None = None) -> torch.Tensor | None:
         """The velocity (1, n, 262) of new reactor rows x (1, n, 262) at grid step ``step``
         (time ``grid[step]``), appended to that step's cache. The actor rows up to the new
-        rows' look-ahead must be cached (``sync_actor``). ``need_output`` False: only cache
-        (teacher forcing)."""
+        rows' look-ahead must be cached (``sync_actor``), or be among ``actor`` (all actor
+        rows received, (N, 262), as for ``sync_actor``): those not cached yet then go through
+        the network in the same pass as the reactor rows (the actor stream of a block comes
+        first: the reactor's motion cross-attention reads its keys). ``need_output`` False:
+        only cache (teacher forcing)."""
+        x_a = None
+        if actor is not None:
+            stop = min(actor.shape[0], self.start + self.window)
+            lo = self.start + self.actor.n
+            if lo < stop:
+                x_a = actor[lo:stop][None]
+        return self._rows(x_a, step, x, need_output)
+
+    def _rows(self, x_a: torch.Tensor | None, step: int | None, x: torch.Tensor | None,
+              need_output: bool) -> torch.Tensor | None:
+        """One pass through the blocks of new actor rows x_a and/or new reactor rows x at grid
+        step ``step`` (either may be None), the reactor's velocity or None."""
         m = self.model
-        cache = self.reactor[step]
-        p0, n = cache.n, x.shape[1]
-        z = m.in_b(x) + self.pe[p0:p0 + n]
-        n_keys = self.actor.n
-        cross = None
-        if n_keys > p0 + self.look_ahead + 1:  # some actor keys lie beyond a row's look-ahead
-            rows = p0 + torch.arange(n, device=x.device)[:, None]
-            cross = torch.arange(n_keys, device=x.device)[None, :] <= rows + self.look_ahead
+        streams, na = [], 0
+        if x_a is not None:
+            pa, na = self.actor.n, x_a.shape[1]
+            streams.append([self.actor, m.in_a(x_a) + self.pe[pa:pa + na], None])
+        if x is not None:
+            cache = self.reactor[step]
+            p0, n = cache.n, x.shape[1]
+            streams.append([cache, m.in_b(x) + self.pe[p0:p0 + n], None])
+            n_keys = self.actor.n + na
+            cross = None
+            if n_keys > p0 + self.look_ahead + 1:  # some actor keys lie beyond a row's look-ahead
+                rows = p0 + torch.arange(n, device=x.device)[:, None]
+                cross = torch.arange(n_keys, device=x.device)[None, :] <= rows + self.look_ahead
         for j, block in enumerate(m.blocks):
-            mod = self.mod_steps[step][j]
-            z2 = self._temporal(j, cache, z, mod)
-            q = self._norm(block, 2, z2, mod)
-            z3 = z2 + _attend(block.motion_attn, q, self.motion_k[j], self.motion_v[j], cross)
-            if need_output or j + 1 < self.n_blocks:  # teacher forcing: the last output is not needed
-                z = self._finish(j, z3, mod)
+            for st in streams:
+                st[2] = self.mod_actor[j] if st[0] is self.actor else self.mod_steps[step][j]
+            out = self._temporal(j, streams)
+            fin = []
+            if x_a is not None:
+                z2a = out.pop(0)
+                self._actor_keys(j, z2a)
+                if j + 1 < self.n_blocks:  # the last block's output feeds nothing the reactor reads
+                    fin.append((z2a, streams[0][2]))
+            if x is not None:
+                z2, mod = out[0], streams[-1][2]
+                q = self._norm(block, 2, z2, mod)
+                z3 = z2 + _attend(block.motion_attn, q, self.motion_k[j], self.motion_v[j], cross)
+                if need_output or j + 1 < self.n_blocks:  # teacher forcing: the last output is not needed
+                    fin.append((z3, mod))
+            zs = self._finish(j, fin) if fin else []
+            if x_a is not None and j + 1 < self.n_blocks:
+                streams[0][1] = zs.pop(0)
+            if x is not None and zs:
+                streams[-1][1] = zs[0]
+        if x_a is not None:
+            self.actor.n += na
+        if x is None:
+            return None
         cache.n += n
         if not need_output:
             return None
+        z = streams[-1][1]
         tt = torch.full((1,), self.grid[step], dtype=x.dtype, device=x.device)
         return m._velocity(m.out_b(m.out_norm(z)), x, tt)

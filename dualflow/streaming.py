@@ -419,13 +419,14 @@ class ReactiveStreamer:
         if not self._bases:  # cannot happen with max_new as set in __init__; a fresh start is still correct
             self._bases = [WindowCache(self._inc, first_new, W, L, self.cond, grid[:-1])]
         gen = self._bases[0]
-        while self._feed(gen):  # frames it has not seen yet (normally fed while idle: ``prepare``)
+        while self._feed(gen, sync_alone=False):  # frames it has not seen yet (normally fed while idle)
             pass
         x = self._noise_rows(upto)[first_new:upto].to(self.device, self.dtype)[None]
         states = []
         for k in range(len(grid) - 1):
             states.append(x[0])
-            x = x + (grid[k + 1] - grid[k]) * gen.reactor_rows(k, x)
+            # the new actor rows go through the network with step 0's rows, in one pass
+            x = x + (grid[k + 1] - grid[k]) * gen.reactor_rows(k, x, actor=self._actor if k == 0 else None)
         # every step's state of the new frames, for the other starts (``prepare``)
         self._traj = torch.cat([self._traj, torch.stack(states, 1)], 0)
         drop = max(0, self._traj.shape[0] - self.config.window)
@@ -444,7 +445,7 @@ class ReactiveStreamer:
         self._bases.append(WindowCache(self._inc, self._next_start(), self.config.window, self.look_ahead, self.cond,
                                        grid[:-1]))
 
-    def _feed(self, base, batch: int = 1) -> bool:
+    def _feed(self, base, batch: int = 1, sync_alone: bool = True) -> bool:
         """One piece of catch-up work for a cached start: the recorded states of the emitted
         frames it has not seen, at the first grid step that lacks at least ``batch`` of them
         (after its actor rows: all that arrived, in one pass), else (``batch`` 1) its actor
@@ -452,7 +453,9 @@ class ReactiveStreamer:
 
         ``batch`` > 1 (idle-time catch-up): a step is fed only once it lags that many frames,
         so that every step is fed in batches; with 1, step 0 (which lags one frame after
-        every emitted frame) would be fed one row at a time and the later steps starved."""
+        every emitted frame) would be fed one row at a time and the later steps starved.
+        ``sync_alone`` False: no pass for actor rows alone (the generating start takes them
+        with its first step's rows)."""
         n_done = self._emitted.shape[0]
         for k, cache in enumerate(base.reactor):
             lo = base.start + cache.n
@@ -461,7 +464,7 @@ class ReactiveStreamer:
                 rows = self._traj[lo - self._traj_start: n_done - self._traj_start, k]
                 base.reactor_rows(k, rows[None], need_output=False)
                 return True
-        if batch <= 1 and base.actor_behind(self.n_actor):
+        if batch <= 1 and sync_alone and base.actor_behind(self.n_actor):
             base.sync_actor(self._actor)
             return True
         return False

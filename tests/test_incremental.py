@@ -133,10 +133,10 @@ def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypa
     in_prepare = [False]
     orig_rows, orig_prepare = WindowCache.reactor_rows, ReactiveStreamer.prepare
 
-    def rows(self, step, x, need_output=True):
+    def rows(self, step, x, need_output=True, actor=None):
         if in_prepare[0]:
             calls.append((step, x.shape[1]))
-        return orig_rows(self, step, x, need_output)
+        return orig_rows(self, step, x, need_output, actor)
 
     def prepare(self, max_passes=1):
         in_prepare[0] = True
@@ -155,3 +155,30 @@ def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypa
     torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
     assert {step for step, _ in calls} == {0, 1, 2}
     assert min(n for _, n in calls) >= ReactiveStreamer.FEED_BATCH
+
+
+def test_actor_rows_in_the_reactor_pass_equal_a_separate_sync(model):
+    """reactor_rows(actor=...) runs the new actor rows and the reactor rows through the blocks
+    together (stacked products); the velocity and every cache equal sync_actor + reactor_rows."""
+    cond = _conds(model)["text and music"]
+    inc = IncrementalModel(model)
+    actor = _actor()
+    x = torch.randn(1, 3, 262, generator=torch.Generator().manual_seed(4))
+    caches = []
+    for fused in (False, True):
+        c = WindowCache(inc, 2, 20, L, cond, [0.0, 0.5])
+        c.sync_actor(actor[:10])
+        c.reactor_rows(0, x[:, :2] * 0.5)  # some cached reactor rows first
+        if fused:
+            v = c.reactor_rows(0, x, actor=actor[:16])
+        else:
+            c.sync_actor(actor[:16])
+            v = c.reactor_rows(0, x)
+        caches.append((c, v))
+    (a, va), (b, vb) = caches
+    assert b.actor.n == a.actor.n == 14
+    torch.testing.assert_close(vb, va, atol=1e-5, rtol=1e-5)
+    for j in range(a.n_blocks):
+        torch.testing.assert_close(b.motion_k[j], a.motion_k[j], atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(b.actor.k[j], a.actor.k[j], atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(b.reactor[0].v[j], a.reactor[0].v[j], atol=1e-5, rtol=1e-5)
