@@ -141,7 +141,15 @@ class IncrementalModel:
         self.width = model.config.width
         #: per block: [(k, weight (W, k * W) tap-major, bias (W,))] in the block's kernel order
         self.conv: list[list[tuple[int, torch.Tensor, torch.Tensor]]] = []
+        #: per block: the self-attention's query and key/value projections as one (3W, W) product
+        self.qkv: list[tuple[torch.Tensor, torch.Tensor]] = []
+        #: per block: the feed-forward's (W1, b1, W2, b2) (dropout is the identity in eval mode)
+        self.ffn: list[tuple[torch.Tensor, ...]] = []
         for block in model.blocks:
+            attn, net = block.self_attn, block.ffn.net
+            self.qkv.append((torch.cat([attn.q.weight, attn.kv.weight], 0).detach().contiguous(),
+                             torch.cat([attn.q.bias, attn.kv.bias], 0).detach()))
+            self.ffn.append((net[0].weight.detach(), net[0].bias.detach(), net[3].weight.detach(), net[3].bias.detach()))
             self.conv.append([(int(k), c.weight.detach().permute(0, 2, 1).reshape(c.weight.shape[0], -1).contiguous(),
                                c.bias.detach()) for c, k in zip(block.conv.convs, block.conv.kernels)])
 
@@ -187,6 +195,11 @@ class WindowCache:
         self.mod_actor = [[_ada(n, z_actor) for n in b.norms] for b in model.blocks]
         self.mod_steps = [[[_ada(n, z) for n in b.norms] for b in model.blocks] for z in z_steps]
         self.pe = sinusoidal_encoding(torch.arange(self.window, device=dev), cfg.width).to(dt)
+        pos = torch.arange(self.window, device=dev)
+        #: [r, c]: window position r may attend to position c in self-attention (c <= r) and in
+        #: the motion cross-attention (c <= r + L); rows and columns are sliced per pass
+        self.causal = pos[None, :] <= pos[:, None]
+        self.cross = pos[None, :] <= pos[:, None] + self.look_ahead
         self.actor = _StreamCache(self.n_blocks)
         self.motion_k: list[torch.Tensor | None] = [None] * self.n_blocks  # actor keys through W_K, W_V
         self.motion_v: list[torch.Tensor | None] = [None] * self.n_blocks
@@ -259,17 +272,16 @@ class WindowCache:
         zs = [z + c for (_, z, _), c in zip(streams, conv)]
         attn = block.self_attn
         h = _stack([self._norm(block, 0, z, mod) for z, (_, _, mod) in zip(zs, streams)], 1)
-        q_all, kv_all = attn.q(h).split(sizes, 1), attn.kv(h).split(sizes, 1)
+        qkv = F.linear(h, *self.inc.qkv[j])  # (1, N, 3W): q | k, v as attn.q and attn.kv give them
         ys = []
-        for (cache, z, _), q, kv in zip(streams, q_all, kv_all):
+        for (cache, z, _), part in zip(streams, qkv.split(sizes, 1)):
             p0, n = cache.n, z.shape[1]
+            q, kv = part[..., :width], part[..., width:]
             k_new, v_new = kv.reshape(1, n, 2, attn.n_heads, -1).permute(2, 0, 3, 1, 4)
             k_all = k_new if cache.k[j] is None else torch.cat([cache.k[j], k_new], 2)
             v_all = v_new if cache.v[j] is None else torch.cat([cache.v[j], v_new], 2)
             cache.k[j], cache.v[j] = k_all, v_all
-            mask = None
-            if n > 1:  # new row i sees cached frames and new rows <= i
-                mask = torch.arange(p0 + n, device=z.device)[None, :] <= (p0 + torch.arange(n, device=z.device))[:, None]
+            mask = self.causal[p0:p0 + n, :p0 + n] if n > 1 else None  # row i: cached frames and new rows <= i
             y = F.scaled_dot_product_attention(_heads(q.reshape(1, n, -1), attn.n_heads), k_all, v_all, attn_mask=mask)
             ys.append(y.transpose(1, 2).reshape(1, n, -1))
         out = attn.out(_stack(ys, 1)).split(sizes, 1)
@@ -281,7 +293,9 @@ class WindowCache:
         streams [(z (1, n, W), mod)], the feed-forward over all rows stacked."""
         block = self.model.blocks[j]
         zs = [z + self.retrieval[j](lambda z=z, mod=mod: self._norm(block, 3, z, mod)) for z, mod in streams]
-        ff = block.ffn(_stack([self._norm(block, 4, z, mod) for z, (_, mod) in zip(zs, streams)], 1))
+        w1, b1, w2, b2 = self.inc.ffn[j]
+        h = _stack([self._norm(block, 4, z, mod) for z, (_, mod) in zip(zs, streams)], 1)
+        ff = F.linear(F.gelu(F.linear(h, w1, b1)), w2, b2)  # block.ffn
         return [z + f for z, f in zip(zs, ff.split([z.shape[1] for z in zs], 1))]
 
     def _actor_rows(self, x_a: torch.Tensor) -> None:
@@ -327,8 +341,7 @@ class WindowCache:
             n_keys = self.actor.n + na
             cross = None
             if n_keys > p0 + self.look_ahead + 1:  # some actor keys lie beyond a row's look-ahead
-                rows = p0 + torch.arange(n, device=x.device)[:, None]
-                cross = torch.arange(n_keys, device=x.device)[None, :] <= rows + self.look_ahead
+                cross = self.cross[p0:p0 + n, :n_keys]
         for j, block in enumerate(m.blocks):
             for st in streams:
                 st[2] = self.mod_actor[j] if st[0] is self.actor else self.mod_steps[step][j]
