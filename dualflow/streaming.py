@@ -473,6 +473,9 @@ class ReactiveStreamer:
     #: emitted frames (a pass over 8 rows costs about one over 1 row on a CPU); what is left
     #: when it takes over is fed then
     FEED_BATCH = 8
+    #: ... except the start that takes over within this many frames: fed everything it lacks
+    #: (still in idle time), so that the window that switches to it has only its own passes
+    TAKEOVER_FRAMES = 3
 
     @torch.no_grad()
     def prepare(self, max_passes: int = 1) -> bool:
@@ -483,22 +486,36 @@ class ReactiveStreamer:
         if not self.config.incremental:
             return False
         done = 0
-        if self._bases and self._emitted.shape[0] > self._next_start():
+        if self._start_due():
             self._add_start()  # its frames are fed below, in batches
             done += 1
-        for base in self._due():
-            while done < max_passes and self._feed(base, self.FEED_BATCH):
+        for base, batch in self._due():
+            while done < max_passes and self._feed(base, batch, sync_alone=False):
                 done += 1
         return self.has_catch_up
 
+    def _start_due(self) -> bool:
+        """Whether the next window start should be made now: its first frame is at most
+        ``TAKEOVER_FRAMES`` away (making one costs about a pass; not in a window that needs it)."""
+        return bool(self._bases) and self._emitted.shape[0] + self.TAKEOVER_FRAMES > self._next_start()
+
     def _due(self) -> list:
-        """The window starts whose catch-up work is due (see ``FEED_BATCH``)."""
+        """The window starts whose catch-up work is due, with the batch to feed them in (see
+        ``FEED_BATCH`` and ``TAKEOVER_FRAMES``)."""
         if not self._bases:
             return []
         n_done = self._emitted.shape[0]
-        if n_done > self._next_start():
-            return [self._bases[-1]]  # a new start is due (``prepare`` makes it)
-        return [b for b in self._bases[1:] if n_done - (b.start + min(c.n for c in b.reactor)) >= self.FEED_BATCH]
+        if self._start_due():
+            return [(self._bases[-1], self.FEED_BATCH)]  # a new start is due (``prepare`` makes it)
+        due = []
+        for i, b in enumerate(self._bases[1:], 1):
+            lag = n_done - (b.start + min(c.n for c in b.reactor))
+            if i == 1 and not self._bases[0].can_generate(n_done + self.TAKEOVER_FRAMES - 1):
+                if lag > 0:
+                    due.append((b, 1))
+            elif lag >= self.FEED_BATCH:
+                due.append((b, self.FEED_BATCH))
+        return due
 
     @property
     def has_catch_up(self) -> bool:

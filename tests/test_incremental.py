@@ -122,39 +122,73 @@ def test_unsupported_incremental_settings_are_refused(model):
         ReactiveStreamer(model, StreamConfig(window=16, hop=9, incremental=True))
 
 
-def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypatch):
-    """A busy generator does one ``prepare`` pass per frame: each grid step of the background
-    start must then be fed FEED_BATCH rows at a time (not step 0 one row per frame while the
-    later steps starve), and the stream is unchanged."""
-    actor = _actor(90)
-    cfg = {"window": 40, "incremental": True, "bases": 2}
-    eager = _stream(model, actor, **cfg)
-    calls = []
-    in_prepare = [False]
+def _record_passes(monkeypatch):
+    """Record (in prepare, need_output, step, rows, takeover) of every WindowCache.reactor_rows
+    call; ``takeover``: the generating start runs out within TAKEOVER_FRAMES frames."""
+    calls, state = [], {"in_prepare": False, "streamer": None}
     orig_rows, orig_prepare = WindowCache.reactor_rows, ReactiveStreamer.prepare
 
     def rows(self, step, x, need_output=True, actor=None):
-        if in_prepare[0]:
-            calls.append((step, x.shape[1]))
+        s = state["streamer"]
+        takeover = not s._bases[0].can_generate(s.emitted.shape[0] + s.TAKEOVER_FRAMES - 1)
+        calls.append((state["in_prepare"], need_output, step, x.shape[1], takeover))
         return orig_rows(self, step, x, need_output, actor)
 
     def prepare(self, max_passes=1):
-        in_prepare[0] = True
+        state["in_prepare"], state["streamer"] = True, self
         try:
             return orig_prepare(self, max_passes)
         finally:
-            in_prepare[0] = False
+            state["in_prepare"] = False
 
     monkeypatch.setattr(WindowCache, "reactor_rows", rows)
     monkeypatch.setattr(ReactiveStreamer, "prepare", prepare)
+    return calls, state
+
+
+def _stream_with_prepare(model, actor, cfg, state, passes_per_frame):
     s = ReactiveStreamer(model, StreamConfig(seed=5, hop=1, steps=3, **cfg), Conditions(text=torch.ones(1, 384)))
+    state["streamer"] = s
     for k in range(actor.shape[0]):
         s.push(actor[k:k + 1])
-        s.prepare(1)
+        if passes_per_frame:
+            s.prepare(passes_per_frame)
+        else:  # idle time: everything due
+            while s.prepare(1):
+                pass
     s.flush()
+    return s
+
+
+def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypatch):
+    """A busy generator does one ``prepare`` pass per frame: each grid step of the background
+    start must then be fed FEED_BATCH rows at a time (not step 0 one row per frame while the
+    later steps starve) - except the start about to take over, which gets everything it
+    lacks - and the stream is unchanged."""
+    actor = _actor(90)
+    cfg = {"window": 40, "incremental": True, "bases": 2}
+    eager = _stream(model, actor, **cfg)
+    calls, state = _record_passes(monkeypatch)
+    s = _stream_with_prepare(model, actor, cfg, state, 1)
     torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
-    assert {step for step, _ in calls} == {0, 1, 2}
-    assert min(n for _, n in calls) >= ReactiveStreamer.FEED_BATCH
+    background = [c for c in calls if c[0]]
+    assert {step for _, _, step, _, _ in background} == {0, 1, 2}
+    assert all(n >= ReactiveStreamer.FEED_BATCH for _, _, _, n, takeover in background if not takeover)
+    assert any(takeover for *_, takeover in background)
+
+
+def test_with_idle_time_the_generating_window_has_only_its_own_passes(model, monkeypatch):
+    """Catch-up work done in idle time (the next start made and fed before it takes over):
+    generating a frame never feeds another start's recorded states, even at a takeover."""
+    actor = _actor(90)
+    cfg = {"window": 40, "incremental": True, "bases": 2}
+    eager = _stream(model, actor, **cfg)
+    calls, state = _record_passes(monkeypatch)
+    s = _stream_with_prepare(model, actor, cfg, state, 0)
+    torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
+    assert len(s._bases) >= 2 and s._bases[0].start > 0  # took over at least once
+    in_window = [c for c in calls if not c[0]]
+    assert in_window and all(need_output for _, need_output, *_ in in_window)
 
 
 def test_actor_rows_in_the_reactor_pass_equal_a_separate_sync(model):
