@@ -89,10 +89,12 @@ def _swing_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     sin = np.sqrt(np.einsum("...i,...i->...", cross, cross))
     cos = a0 * b0 + a1 * b1 + a2 * b2
     angle = np.arctan2(sin, cos)
-    degenerate = sin <= 1e-12
+    # (anti)parallel directions: the axis is any perpendicular of a; for parallel ones the
+    # angle is ~0 and R = I whatever the axis, so only the opposite ones need it
+    flip = (sin <= 1e-12) & (cos < 0.0)
     axis = cross / np.maximum(sin, 1e-300)[..., None]
-    if degenerate.any():
-        axis = np.where(degenerate[..., None], any_perpendicular(ua), axis)
+    if flip.any():
+        axis = np.where(flip[..., None], any_perpendicular(ua), axis)
     angle = np.where(nb < _ROT_EPS, 0.0, angle)
     s, c = np.sin(angle), np.cos(angle)
     x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
