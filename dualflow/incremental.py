@@ -49,6 +49,13 @@ arithmetic in fewer operations (equal to the full forward up to float rounding):
   history matrix: y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d). (A one-row pass is
   bound by reading the weights from memory; an earlier single product with the smaller
   kernels zero-padded to k_3 read 1.6x the bytes.)
+* the self-attention's query and key/value projections are one (3W, W) product;
+* the generating start's new actor rows and its first grid step's reactor rows go through
+  the blocks in one pass (``reactor_rows(actor=...)``): the products with the shared
+  weights (convolutions, self-attention projections, feed-forward) run once over both row
+  sets stacked; the attention and the modulated norms stay per stream. The actor stream of
+  a block is computed before the reactor's motion cross-attention reads its keys, so this
+  equals a separate ``sync_actor`` followed by ``reactor_rows``.
 
 Limits: Euler steps, ``cfg_scale`` 1 (one conditional pass), trajectory context, no
 per-window canonical frames (``ReactiveStreamer`` checks and says so).
