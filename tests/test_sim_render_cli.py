@@ -106,10 +106,7 @@ def test_cli_view_without_display_says_so(wave_npz):
 
 def test_cli_render_writes_mp4(wave_npz, tmp_path, capsys):
     out = tmp_path / "cli.mp4"
-    try:
-        code = main(["render", str(wave_npz), "-o", str(out), "--width", "96", "--height", "64", "--fps", "5"])
-    except SimError as exc:  # pragma: no cover - machines without offscreen GL
-        pytest.skip(str(exc))
-    if code == 2 and "OpenGL" in capsys.readouterr().err:
-        pytest.skip("no offscreen OpenGL on this machine")
-    assert code == 0 and out.stat().st_size > 1000
+    # no skip without offscreen OpenGL (see above): the demo renders too, so such a machine fails here
+    code = main(["render", str(wave_npz), "-o", str(out), "--width", "96", "--height", "64", "--fps", "5"])
+    assert code == 0, capsys.readouterr().err
+    assert out.stat().st_size > 1000
