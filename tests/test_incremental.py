@@ -160,17 +160,25 @@ def _stream_with_prepare(model, actor, cfg, state, passes_per_frame):
     return s
 
 
+def _recorded_stream(model, monkeypatch, passes_per_frame):
+    """Stream 90 actor frames (window 40, two incremental starts) with ``passes_per_frame``
+    catch-up passes per frame (0: idle time, everything due), recording every pass; the
+    emitted stream must equal the eager one. Returns the streamer and the recorded passes."""
+    actor = _actor(90)
+    cfg = {"window": 40, "incremental": True, "bases": 2}
+    eager = _stream(model, actor, **cfg)
+    calls, state = _record_passes(monkeypatch)
+    s = _stream_with_prepare(model, actor, cfg, state, passes_per_frame)
+    torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
+    return s, calls
+
+
 def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypatch):
     """A busy generator does one ``prepare`` pass per frame: each grid step of the background
     start must then be fed FEED_BATCH rows at a time (not step 0 one row per frame while the
     later steps starve) - except the start about to take over, which gets everything it
     lacks - and the stream is unchanged."""
-    actor = _actor(90)
-    cfg = {"window": 40, "incremental": True, "bases": 2}
-    eager = _stream(model, actor, **cfg)
-    calls, state = _record_passes(monkeypatch)
-    s = _stream_with_prepare(model, actor, cfg, state, 1)
-    torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
+    s, calls = _recorded_stream(model, monkeypatch, passes_per_frame=1)
     background = [c for c in calls if c[0]]
     assert {step for _, _, step, _, _ in background} == {0, 1, 2}
     assert all(n >= ReactiveStreamer.FEED_BATCH for _, _, _, n, takeover in background if not takeover)
@@ -180,12 +188,7 @@ def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypa
 def test_with_idle_time_the_generating_window_has_only_its_own_passes(model, monkeypatch):
     """Catch-up work done in idle time (the next start made and fed before it takes over):
     generating a frame never feeds another start's recorded states, even at a takeover."""
-    actor = _actor(90)
-    cfg = {"window": 40, "incremental": True, "bases": 2}
-    eager = _stream(model, actor, **cfg)
-    calls, state = _record_passes(monkeypatch)
-    s = _stream_with_prepare(model, actor, cfg, state, 0)
-    torch.testing.assert_close(s.emitted, eager.emitted, atol=1e-5, rtol=1e-5)
+    s, calls = _recorded_stream(model, monkeypatch, passes_per_frame=0)
     assert len(s._bases) >= 2 and s._bases[0].start > 0  # took over at least once
     in_window = [c for c in calls if not c[0]]
     assert in_window and all(need_output for _, need_output, *_ in in_window)
