@@ -25,8 +25,6 @@ from __future__ import annotations
 
 from collections import deque
 
-import numpy as np
-
 
 class PlaybackClock:
     """Motion time for the loop. ``fixed=True``: t0 stays where the first frame put it."""
@@ -47,24 +45,35 @@ class PlaybackClock:
         self._seen = first_index
         self._offsets.append((now, now - first_index / self.fps))
         self._last = now
+        self._want: float | None = None  # t0* of the current offsets (None: to recompute)
 
     def arrived(self, newest_index: int, now: float) -> None:
         """The newest target frame is ``newest_index`` at ``now`` (call every tick; frames newer
         than the last call count as arrived now)."""
+        n = len(self._offsets)
         for k in range(self._seen + 1, newest_index + 1):
             self._offsets.append((now, now - k / self.fps))
         self._seen = max(self._seen, newest_index)
+        expired = 0
         while self._offsets and self._offsets[0][0] < now - self.window_s:
             self._offsets.popleft()
+            expired += 1
+        if expired or len(self._offsets) != n:
+            self._want = None  # the offsets changed (about twice per frame, not every tick)
 
     def target_t0(self) -> float | None:
         """t0*: the earliest t0 at which every recent frame was on time (None: no recent frame)."""
         if not self._offsets:
             return None
-        offsets = [a for _, a in self._offsets]
-        if self.quantile >= 1.0:
-            return max(offsets) + self.lead + self.margin
-        return float(np.quantile(offsets, self.quantile)) + self.lead + self.margin
+        if self._want is None:
+            # the q-quantile with linear interpolation between order statistics (numpy's
+            # default method), on a few dozen floats: sorted() is far cheaper than np.quantile
+            offsets = sorted(a for _, a in self._offsets)
+            pos = min(self.quantile, 1.0) * (len(offsets) - 1)
+            lo = int(pos)
+            hi = min(lo + 1, len(offsets) - 1)
+            self._want = offsets[lo] + (offsets[hi] - offsets[lo]) * (pos - lo) + self.lead + self.margin
+        return self._want
 
     def motion_time(self, now: float) -> float:
         """Seconds of motion to play at ``now`` (frame k at k / fps); advances t0 toward t0*."""
