@@ -92,3 +92,20 @@ def test_one_late_frame_does_not_hold_the_clock_back_but_a_late_run_does():
     lag = (lambda track: np.max(track[:, 0] - track[:, 1]))
     assert lag(a[a[:, 0] > 1.5]) < 0.05 + 0.02 + 0.011
     assert lag(b[b[:, 0] > 1.5]) > 0.1 + 0.02
+
+
+@pytest.mark.parametrize("quantile", [0.5, 0.9, 1.0])
+def test_the_clock_target_is_the_quantile_of_the_recent_arrival_offsets(quantile):
+    """t0* = q-quantile (numpy's default, linear) of the last second's offsets + lead + margin,
+    whatever the order frames arrive in and however often the loop asks."""
+    rng = np.random.default_rng(3)
+    clock = PlaybackClock(FPS, 0, 0.0, margin=0.02, lead_frames=1.0, quantile=quantile)
+    t = 0.0
+    for _ in range(600):
+        t += 0.01 + rng.uniform(0.0, 0.004)
+        clock.arrived(int(t * FPS - rng.uniform(0.0, 2.0)), t)
+        clock.motion_time(t)
+        offsets = [a for arrival, a in clock._offsets]
+        assert all(t - arrival <= 1.0 for arrival, _ in clock._offsets)
+        expected = np.quantile(offsets, quantile) + 1.0 / FPS + 0.02
+        assert clock.target_t0() == pytest.approx(expected, abs=1e-12)
