@@ -213,11 +213,6 @@ class WindowCache:
         self.reactor = [_StreamCache(self.n_blocks) for _ in grid]
 
     # -- bookkeeping -----------------------------------------------------------------------
-    @property
-    def n_reactor(self) -> int:
-        """Reactor frames cached (all steps hold the same frames): start .. start + n - 1."""
-        return self.reactor[0].n
-
     def can_generate(self, last: int) -> bool:
         """Whether frame ``last`` (absolute) and its look-ahead fit in this window."""
         return last + self.look_ahead - self.start <= self.window - 1
@@ -231,10 +226,6 @@ class WindowCache:
             for j in range(self.n_blocks):
                 self.motion_k[j] = self.motion_k[j][:, :, :keep]
                 self.motion_v[j] = self.motion_v[j][:, :, :keep]
-
-    def actor_behind(self, n_actor: int) -> bool:
-        """Whether actor rows received (``n_actor`` of them) that fit the window are not cached yet."""
-        return self.start + self.actor.n < min(n_actor, self.start + self.window)
 
     def sync_actor(self, actor: torch.Tensor) -> None:
         """Cache the actor rows (absolute frames, all received so far; (N, 262)) that fit the window."""

@@ -371,13 +371,17 @@ class ReactiveStreamer:
             self._noise = torch.cat([self._noise[: first * NOISE_BLOCK]] + fresh, 0)
         return self._noise[:stop]
 
-    def _window_conditions(self, start: int, stop: int) -> Conditions:
+    def _check_music(self, stop: int) -> None:
+        """The music track must cover frames [0, stop) of the stream."""
         music = self.cond.music
         if music is not None and music.shape[1] < stop:
             raise DualFlowError(
                 f"streaming conditions: the music track has {music.shape[1]} frames but the stream reached "
                 f"frame {stop}; give a track covering the whole stream (or no music)"
             )
+
+    def _window_conditions(self, start: int, stop: int) -> Conditions:
+        self._check_music(stop)
         return self.cond.slice_frames(start, stop)
 
     @staticmethod
@@ -409,6 +413,7 @@ class ReactiveStreamer:
         tic = time.perf_counter()
         grid = time_grid(self.config.steps)
         W, L = self.config.window, self.look_ahead
+        self._check_music(max(upto, min(upto + L, self.n_actor)))  # the frames these rows condition on
         if self._inc is None:
             self._inc = IncrementalModel(self.model)
         if not self._bases:
@@ -419,7 +424,7 @@ class ReactiveStreamer:
         if not self._bases:  # cannot happen with max_new as set in __init__; a fresh start is still correct
             self._bases = [WindowCache(self._inc, first_new, W, L, self.cond, grid[:-1])]
         gen = self._bases[0]
-        while self._feed(gen, sync_alone=False):  # frames it has not seen yet (normally fed while idle)
+        while self._feed(gen):  # frames it has not seen yet (normally fed while idle)
             pass
         x = self._noise_rows(upto)[first_new:upto].to(self.device, self.dtype)[None]
         states = []
@@ -445,28 +450,23 @@ class ReactiveStreamer:
         self._bases.append(WindowCache(self._inc, self._next_start(), self.config.window, self.look_ahead, self.cond,
                                        grid[:-1]))
 
-    def _feed(self, base, batch: int = 1, sync_alone: bool = True) -> bool:
-        """One piece of catch-up work for a cached start: the recorded states of the emitted
-        frames it has not seen, at the first grid step that lacks at least ``batch`` of them
-        (after its actor rows: all that arrived, in one pass), else (``batch`` 1) its actor
-        rows alone. Returns False when it had nothing to do.
+    def _feed(self, base, batch: int = 1) -> bool:
+        """One pass of catch-up work for a cached start: the recorded states of the emitted
+        frames it has not seen, at the first grid step that lacks at least ``batch`` of them,
+        with the actor rows it has not cached yet in the same pass. Returns False when it had
+        nothing to do (actor rows alone are never worth a pass: the generating start takes
+        them with its first step's rows).
 
         ``batch`` > 1 (idle-time catch-up): a step is fed only once it lags that many frames,
         so that every step is fed in batches; with 1, step 0 (which lags one frame after
-        every emitted frame) would be fed one row at a time and the later steps starved.
-        ``sync_alone`` False: no pass for actor rows alone (the generating start takes them
-        with its first step's rows)."""
+        every emitted frame) would be fed one row at a time and the later steps starved."""
         n_done = self._emitted.shape[0]
         for k, cache in enumerate(base.reactor):
             lo = base.start + cache.n
             if n_done - lo >= batch:
-                base.sync_actor(self._actor)
                 rows = self._traj[lo - self._traj_start: n_done - self._traj_start, k]
-                base.reactor_rows(k, rows[None], need_output=False)
+                base.reactor_rows(k, rows[None], need_output=False, actor=self._actor)
                 return True
-        if batch <= 1 and sync_alone and base.actor_behind(self.n_actor):
-            base.sync_actor(self._actor)
-            return True
         return False
 
     #: incremental mode: a window start that is not generating is fed once it lags this many
@@ -490,7 +490,7 @@ class ReactiveStreamer:
             self._add_start()  # its frames are fed below, in batches
             done += 1
         for base, batch in self._due():
-            while done < max_passes and self._feed(base, batch, sync_alone=False):
+            while done < max_passes and self._feed(base, batch):
                 done += 1
         return self.has_catch_up
 

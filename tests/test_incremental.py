@@ -219,3 +219,17 @@ def test_actor_rows_in_the_reactor_pass_equal_a_separate_sync(model):
         torch.testing.assert_close(b.motion_k[j], a.motion_k[j], atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(b.actor.k[j], a.actor.k[j], atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(b.reactor[0].v[j], a.reactor[0].v[j], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("incremental", [False, True])
+def test_a_music_track_shorter_than_the_stream_is_one_clear_error(model, incremental):
+    """Both generation paths stop at the first frame the track does not cover, with the
+    streamer's error (incremental windows used to run on with truncated music, then fail
+    deep inside attention)."""
+    music = torch.randn(1, 20, model.config.music_dim, generator=torch.Generator().manual_seed(2))
+    s = ReactiveStreamer(model, StreamConfig(window=16, hop=1, steps=2, incremental=incremental),
+                         Conditions(text=torch.ones(1, 384), music=music))
+    with pytest.raises(DualFlowError, match="music track has 20 frames"):
+        for row in _actor(40):
+            s.push(row)
+    assert s.emitted.shape[0] <= 20
