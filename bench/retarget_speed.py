@@ -98,8 +98,7 @@ def load_clips(kind: str, seconds: float) -> list[Motion]:
 def _loadavg() -> str:
     """The 1, 5 and 15 minute load averages (a shared machine's timings depend on them)."""
     try:
-        with open("/proc/loadavg") as fh:
-            return " ".join(fh.read().split()[:3])
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
     except OSError:
         return "unknown"
 

@@ -106,6 +106,7 @@ def compiled_function(fn: ca.Function, key: str, enable: bool = True) -> tuple[c
 
 
 _single_threaded: list[str] = []
+_looked = [False]  # the loaded libraries were searched once (after a solve): never again per window
 
 
 def single_threaded_linear_algebra() -> list[str]:
@@ -119,12 +120,14 @@ def single_threaded_linear_algebra() -> list[str]:
     does; there this call changes nothing measurable); this works afterwards too, so a
     program that set neither gets it. The libraries are found among those this
     process has loaded (/proc/self/maps; IPOPT loads MUMPS and its BLAS at its first solve, so
-    call this after one). Cheap to call repeatedly (it stops looking once it found OpenBLAS),
-    and a no-op where a library or /proc is absent. Returns the libraries it set."""
+    call this after one). Cheap to call repeatedly: the libraries are searched on the first
+    call only (a casadi whose BLAS lives outside its folder is not re-searched per window), and
+    it is a no-op where a library or /proc is absent. Returns the libraries it set."""
     import ctypes
 
-    if any("openblas" in name for name in _single_threaded):
+    if _looked[0]:
         return list(_single_threaded)
+    _looked[0] = True
 
     folder = os.path.realpath(os.path.dirname(ca.__file__))
     try:

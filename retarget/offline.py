@@ -16,8 +16,8 @@ Per window of W frames, with X = [x_0 … x_{W−1}] (nx, W) and, with balance, 
               (rank-deficient Jacobian), which slowed IPOPT (≈21 → ≈15 iterations per window on CMU)
          b_t = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0                     balance: the point b over the support polygon
               (λ_ti = 0 for corners of a foot in the air)                   shrunk by ``balance_margin``
-              b_t = zmp_t = c_xy,t − (c_z,t / g) fps² (c_xy,t+1 − 2 c_xy,t + c_xy,t−1)   (``zmp``, default; the
-              cart-table ZMP, one-sided at window ends), or the static CoM b_t = c_xy,t
+              b_t = zmp_t = c_xy,t − (c_z,t / g) fps² (c_xy,t+1 − 2 c_xy,t + c_xy,t−1)   (``zmp=True``: the
+              cart-table ZMP, one-sided at window ends), else (default) the static CoM b_t = c_xy,t
          ‖seg_a − seg_b‖² ≥ (r_a + r_b + margin)²                         self-collision between capsule pairs
          n·(a_i − b_j) ≥ r_a + r_b + margin                               the pairs between the two feet
               (``collision_model="sole-plane"``, default): every capsule end point a_i on the left

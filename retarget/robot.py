@@ -95,17 +95,14 @@ class Separation:
     edge) adds only rows implied by theirs, so it is dropped (linearly dependent active rows
     would break IPOPT's constraint qualification).
 
-    groups (G, 2) body ids; vertices: (body, local (3,), radius) each; rows (R, 3) int: group,
-    vertex on A, vertex on B; clearance (R,) m; pair_group (P,) the group of each pair given
-    and pair_flip (P,) whether its capsules are (B, A).
+    groups (G, 2) body ids (a pair given as (B, A) joins group (A, B)); vertices: (body, local
+    (3,), radius) each; rows (R, 3) int: group, vertex on A, vertex on B; clearance (R,) m.
     """
 
     groups: tuple
     vertices: tuple
     rows: np.ndarray
     clearance: np.ndarray
-    pair_group: np.ndarray
-    pair_flip: np.ndarray
 
     @property
     def n_groups(self) -> int:
@@ -119,7 +116,6 @@ class Separation:
 def build_separation(capsules: dict, pairs, margin: float) -> Separation:
     """The :class:`Separation` of the capsule ``pairs`` (names into ``capsules``)."""
     verts, vindex, groups, rows = [], {}, [], {}
-    pair_group, pair_flip = [], []
 
     def vid(body, p, r):
         key = (body, tuple(np.round(np.asarray(p, float), 12)), round(float(r), 12))
@@ -133,14 +129,11 @@ def build_separation(capsules: dict, pairs, margin: float) -> Separation:
 
     for a, b in pairs:
         A, B = capsules[a], capsules[b]
-        flip = (B.body, A.body) in groups and (A.body, B.body) not in groups
-        if flip:
-            A, B = B, A
+        if (B.body, A.body) in groups and (A.body, B.body) not in groups:
+            A, B = B, A  # the group's own order
         if (A.body, B.body) not in groups:
             groups.append((A.body, B.body))
         g = groups.index((A.body, B.body))
-        pair_group.append(g)
-        pair_flip.append(flip)
         for pa in ends(A):
             for pb in ends(B):
                 rows[(g, vid(A.body, pa, A.radius), vid(B.body, pb, B.radius))] = A.radius + B.radius + margin
@@ -166,8 +159,7 @@ def build_separation(capsules: dict, pairs, margin: float) -> Separation:
         if not implied:
             keep[(g, va, vb)] = c
     return Separation(tuple(groups), tuple(verts), np.array(list(keep), dtype=int).reshape(-1, 3),
-                      np.array(list(keep.values()), dtype=float), np.array(pair_group, dtype=int),
-                      np.array(pair_flip, dtype=bool))
+                      np.array(list(keep.values()), dtype=float))
 
 
 @dataclass(frozen=True)

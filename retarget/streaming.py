@@ -249,9 +249,6 @@ class StreamingRetargeter:
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
         self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps ** 2
-        self._min_stance_frames = round(cfg.min_stance * self.fps)
-        self._settle_frames = round(cfg.settle * self.fps)
-        self._max_swing_frames = round(cfg.max_swing * self.fps)
         self._anchor = np.zeros((2, 8))
         # the first frame's long solves stop once a step gains < 1e-6 of the cost (with balance:
         # its one-sided rows make the 1e-6 rad step test slow to trigger); else unchanged

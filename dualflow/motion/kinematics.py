@@ -25,7 +25,7 @@ import numpy as np
 
 from dualflow.errors import DualFlowError
 from dualflow.motion.rotations import _EPS as _ROT_EPS
-from dualflow.motion.rotations import align_vector_sets, any_perpendicular, swing_rotation
+from dualflow.motion.rotations import align_vector_sets, any_perpendicular
 from dualflow.motion.skeleton import N_JOINTS, PARENTS, REST_POSE
 
 _PARENTS = np.asarray(PARENTS)
@@ -227,7 +227,7 @@ def inverse_kinematics(positions, rest=REST_POSE) -> tuple[np.ndarray, np.ndarra
       child directions, scaled to the posed bone lengths, onto the posed child
       offsets. The spread of the children fixes the twist; for a rigid,
       rest-shaped pelvis/chest it is exact.
-    * one child: ``L_j`` is the *swing-only* rotation (:func:`swing_rotation`)
+    * one child: ``L_j`` is the *swing-only* rotation (:func:`~dualflow.motion.rotations.swing_rotation`)
       taking the rest bone direction onto the posed bone direction expressed in
       the parent's frame, ``G_parent^T (p_child - p_j)``. The twist about the
       bone is therefore zero relative to the parent (positions carry no twist).
@@ -274,13 +274,12 @@ def _check_positions(positions) -> np.ndarray:
 
 
 def _joint_rotation(positions: np.ndarray, j: int, parent_G: np.ndarray, off: np.ndarray) -> np.ndarray:
-    """Local rotation (T, 3, 3) of joint j (with children) given its parent's global rotation."""
+    """Local rotation (T, 3, 3) of joint j with several children (pelvis, spine3) given its
+    parent's global rotation; single-child joints take the batched swing in :func:`inverse_kinematics`."""
     kids = list(CHILDREN[j])
     posed = positions[:, kids] - positions[:, j : j + 1]  # (T, k, 3) world
     posed_in_parent = np.einsum("tba,tkb->tka", parent_G, posed)  # G_parent^T d
     rest_dirs = off[kids] / np.linalg.norm(off[kids], axis=-1, keepdims=True)
-    if len(kids) == 1:
-        return swing_rotation(rest_dirs[0], posed_in_parent[:, 0])
     lengths = np.linalg.norm(posed_in_parent, axis=-1, keepdims=True)  # (T, k, 1)
     return align_vector_sets(rest_dirs[None] * lengths, posed_in_parent)
 
