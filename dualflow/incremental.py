@@ -219,7 +219,10 @@ class WindowCache:
 
     def forget_actor(self, first: int) -> None:
         """Actor rows from absolute frame ``first`` on were revised: drop them (and, the stream
-        being causal, nothing else depends on them in the actor cache)."""
+        being causal, nothing else depends on them in the actor cache). Reactor rows already
+        cached whose look-ahead reached the revised rows keep the activations computed with the
+        provisional ones (recomputing them would undo the caching), so with revisions the
+        stream can differ slightly from sliding windows over the final rows."""
         keep = max(0, first - self.start)
         if keep < self.actor.n:
             self.actor.truncate(keep)
