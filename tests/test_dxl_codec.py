@@ -221,13 +221,13 @@ def test_reply_wait_sleeps_instead_of_spinning():
         try:
             port = t.bus.port
             calls = [0]
-            read = port.ser.read
+            read = port._read_now  # every read of the port goes through it (one os.read)
 
             def counting_read(n=1):
                 calls[0] += 1
                 return read(n)
 
-            port.ser.read = counting_read
+            port._read_now = counting_read
             emu.disconnect(1)
             with pytest.raises(BridgeError, match="servo ID 1"):
                 t.read_state()

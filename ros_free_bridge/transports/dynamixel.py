@@ -61,6 +61,7 @@ from __future__ import annotations
 import atexit
 import fcntl
 import math
+import operator
 import os
 import select
 import termios
@@ -73,7 +74,7 @@ import dynamixel_sdk as sdk
 import numpy as np
 
 from firmware_cfg.config import BusConfig, ServoConfig
-from firmware_cfg.servo_models import Register, ServoModel, load_servo_model
+from firmware_cfg.servo_models import _RPM_TO_RAD_S, Register, ServoModel, load_servo_model
 from ros_free_bridge.dynamixel_codec import FastBulkReadDecoder, FastSyncReadDecoder, PacketError, SyncWriteEncoder
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.transports.base import STOP_POLICIES, JointState
@@ -153,6 +154,7 @@ class ExclusivePortHandler(sdk.PortHandler):
         self.latency_ms = latency_ms
         self.margin_ms = margin_ms
         self._poll: select.poll | None = None
+        self._fd = -1
 
     def setupPort(self, cflag_baud):  # noqa: N802 - SDK naming
         import serial
@@ -172,13 +174,40 @@ class ExclusivePortHandler(sdk.PortHandler):
         self.is_open = True
         self.ser.reset_input_buffer()
         self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        self._fd = self.ser.fileno()
         self._poll = select.poll()
-        self._poll.register(self.ser.fileno(), select.POLLIN)
+        self._poll.register(self._fd, select.POLLIN)
         return True
 
     def closePort(self):  # noqa: N802 - SDK naming
         self._poll = None
+        self._fd = -1
         super().closePort()
+
+    def writePort(self, packet):  # noqa: N802 - SDK naming
+        """Write ``packet`` (bytes, or the SDK's list of ints) with ``os.write`` on the
+        port's descriptor: pyserial's ``write`` adds a ``select`` and a timeout object to
+        every call. A partial write (a full kernel buffer) waits for room, at most 1 s;
+        OS errors propagate (the bus turns them into a BridgeError)."""
+        if not isinstance(packet, (bytes, bytearray)):
+            packet = bytes(packet)
+        total, fd = len(packet), self._fd
+        try:
+            done = os.write(fd, packet)
+        except BlockingIOError:
+            done = 0
+        while done < total:
+            if not select.select([], [fd], [], 1.0)[1]:
+                raise OSError(f"{self.port_name}: write of {total} bytes stalled after {done}")
+            try:
+                done += os.write(fd, packet[done:])
+            except BlockingIOError:
+                pass
+        return done
+
+    def discardInput(self) -> None:  # noqa: N802 - SDK naming style
+        """Drop received bytes not yet read (pyserial's ``reset_input_buffer``: TCIFLUSH)."""
+        termios.tcflush(self._fd, termios.TCIFLUSH)
 
     def setPacketTimeout(self, packet_length):  # noqa: N802 - SDK naming
         self.packet_start_time = self.getCurrentTime()
@@ -190,12 +219,36 @@ class ExclusivePortHandler(sdk.PortHandler):
         this back to back: with the port's read timeout of 0 they would spin a whole core
         while the reply is on the wire, a core the rest of the machine (on a 2-core host:
         an emulator, the motion generator) needs."""
-        data = self.ser.read(length)
-        if data or self._poll is None or length <= 0:  # nothing asked for: nothing to wait for
+        if length <= 0 or self._poll is None:  # nothing asked for: nothing to wait for
+            return self.ser.read(length) if length > 0 else b""
+        data = self._read_now(length)
+        if data:
             return data
         left_ms = self.packet_timeout - self.getTimeSinceStart()
         if left_ms > 0 and self._poll.poll(left_ms):
-            data = self.ser.read(length)
+            data = self._read_now(length)
+        return data
+
+    def _read_now(self, length: int) -> bytes:
+        """What has arrived, up to ``length`` bytes, without waiting: one ``os.read`` on the
+        non-blocking descriptor (pyserial's ``read`` puts a ``select`` before every read).
+        The port is in raw mode with VMIN = VTIME = 0, so an empty read means either nothing
+        has arrived or the device is gone; only then is ``poll`` asked, and a port that
+        reports readiness yet reads empty twice is gone: an OSError, as pyserial raises."""
+        fd = self._fd
+        try:
+            data = os.read(fd, length)
+        except BlockingIOError:
+            data = b""
+        if data or not self._poll.poll(0):
+            return data
+        try:
+            data = os.read(fd, length)  # bytes that arrived after the first read
+        except BlockingIOError:
+            data = b""
+        if not data:
+            raise OSError(f"{self.port_name}: the device reports readiness to read but returns no data "
+                          "(disconnected?)")
         return data
 
 
@@ -495,12 +548,17 @@ class DynamixelTransport:
         self._dir = np.array([s.cfg.direction for s in self.servos], float)
         self._off = np.array([s.cfg.zero_offset for s in self.servos])
         self._slow_next = 0
-        self._state = JointState.unknown(len(self.servos))
+        # position, velocity, effort, temperature, voltage: one block, so read_state copies it once
+        self._block = np.full((5, len(self.servos)), np.nan)
+        self._state = JointState(*self._block, np.zeros(len(self.servos), bool), 0.0)
+        self._goal_cache: tuple | None = None  # _goal_rows, for the limits in force
+        self._joint_rows = tuple(zip(self._center.tolist(), self._tpr.tolist(), self._off.tolist(), self._dir.tolist()))
+        self._status_rows = [self._status_scales(sv) for sv in self.servos]
         self._reader = None  # SDK GroupSyncRead: the SYNC_READ fallback (protocol 2.0)
         self._writer: SyncWriteEncoder | None = None
         self._fast: FastSyncReadDecoder | None = None
-        self._fast_values = np.zeros(len(self.servos), np.int64)
-        self._fast_errors = np.zeros(len(self.servos), np.uint8)
+        self._fast_values: tuple[int, ...] = (0,) * len(self.servos)  # ticks of the last fast reply
+        self._fast_errors: tuple[int, ...] = (0,) * len(self.servos)  # its status error bytes
         self._torque_on = np.zeros(len(self.servos), bool)   # last known state on the servo
         self._torque_cmd = np.zeros(len(self.servos), bool)  # what the host asked for
         self._atexit = None
@@ -512,11 +570,12 @@ class DynamixelTransport:
         self._fast_ready: tuple[int, float] | None = None  # (COMM code, request time) of a collected fast read
         self._slow_ready: tuple[int, list, int, int] | None = None  # (servo index, data, COMM code, error byte)
         self._slow_blocks: dict[int, tuple[dict[str, Register], int, int]] = {}
-        # per status servo j: (FAST_BULK_READ of all positions + j's status block, gather index of the
-        # positions in its reply, where j's status block starts in it); None: FSR + a status READ
-        self._bulk: list[tuple[FastBulkReadDecoder, np.ndarray, int]] | None = None
+        # per status servo j: (FAST_BULK_READ of all positions + j's status block, getter of the
+        # positions among its decoded values, (field, index, Register) of j's status registers there);
+        # None: FSR + a status READ
+        self._bulk: list[tuple[FastBulkReadDecoder, operator.itemgetter, tuple]] | None = None
         self._bulk_refused = False  # the servos did not answer FAST_BULK_READ
-        self._bulk_status: tuple[int, bytes, int] | None = None  # (servo index, status block, error byte)
+        self._bulk_status: tuple[int, dict, int] | None = None  # (servo index, status values by field, error byte)
         self._alerted: frozenset[int] = frozenset()  # servos whose alert the last fast reply handled
 
     # ------------------------------------------------------------------ life cycle
@@ -590,8 +649,8 @@ class DynamixelTransport:
             if self._slow_ready is not None:
                 self._finish_slow()
             if self._bulk_status is not None:
-                (i, block, error), self._bulk_status = self._bulk_status, None
-                self._apply_slow(i, block, error, alert_handled=i in self._alerted)
+                (i, val, error), self._bulk_status = self._bulk_status, None
+                self._apply_status(i, val, error, alert_handled=i in self._alerted)
             bulk = self._pipelined and self._bulk is not None
             k = min(self.slow_per_cycle, len(self.servos)) - bulk  # one status block rides with each bulk read
             for j in range(k):
@@ -606,25 +665,19 @@ class DynamixelTransport:
             raise
         self.stats.cycles += 1
         st = self._state
-        return JointState(st.position.copy(), st.velocity.copy(), st.effort.copy(), st.temperature.copy(),
-                          st.voltage.copy(), self._torque_on.copy(), st.stamp, dict(st.errors))
+        b = self._block.copy()
+        return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
 
     def write_goal(self, positions: np.ndarray) -> None:
         q = np.asarray(positions, float)
         if q.shape != (len(self.servos),):
             raise BridgeError(f"Dynamixel: write_goal needs shape ({len(self.servos)},), got {q.shape}")
-        # half a tick of slack: the EEPROM limits are the config's rounded inwards to ticks
-        bad = ~np.isfinite(q) | (q < self._lower - self._half_tick) | (q > self._upper + self._half_tick)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise BridgeError(f"{self.bus.label(self._ids[i])}: goal {q[i]:.4f} rad is outside the joint limits "
-                              f"[{self._lower[i]:.4f}, {self._upper[i]:.4f}]; refusing to send")
-        q = np.clip(q, self._lower, self._upper)
+        ticks = self._goal_ticks(q.tolist())
         try:
             if self._pipelined:
-                self._send_cycle(self._to_ticks(q))
+                self._send_cycle(ticks)
             else:
-                self._send_goal_ticks(self._to_ticks(q))
+                self._send_goal_ticks(ticks)
         except BridgeError:
             self._on_error()
             raise
@@ -727,6 +780,7 @@ class DynamixelTransport:
         self._lower[i], self._upper[i] = lo, hi
         self._tick_lo[i] = max(self._tick_lo[i], lo_t)
         self._tick_hi[i] = min(self._tick_hi[i], hi_t)
+        self._goal_cache = None
 
     # ------------------------------------------------------------------ recovery
     def recover(self, joint: str) -> str:
@@ -784,6 +838,44 @@ class DynamixelTransport:
         """Present ticks (n,) → joint rad: direction · ((ticks − center) / ticks_per_rad − offset)."""
         return self._dir * ((ticks - self._center) / self._tpr - self._off)
 
+    def _goal_rows(self) -> tuple:
+        """Per servo, the floats and ints :meth:`_goal_ticks` needs, made from the limits in
+        force (``_narrow_to_eeprom``, the only place that changes them, drops the cache)."""
+        if self._goal_cache is None:
+            self._goal_cache = tuple(zip((self._lower - self._half_tick).tolist(), (self._upper + self._half_tick).tolist(),
+                             self._lower.tolist(), self._upper.tolist(), self._center.tolist(), self._dir.tolist(),
+                             self._off.tolist(), self._tpr.tolist(), [int(v) for v in self._tick_lo],
+                             [int(v) for v in self._tick_hi]))
+        return self._goal_cache
+
+    def _goal_ticks(self, q: list[float]) -> list[int]:
+        """Joint rad (a list of n floats) → goal ticks (n ints): the limit check, the clip and
+        :meth:`_to_ticks` with Python floats, element by element. The same IEEE operations
+        in the same order as the numpy form (``round`` is ``rint``'s round half to even), so
+        the same ticks (tested); for 20 servos a few Python steps each cost less than a
+        dozen numpy calls. A goal outside a joint's limits (by more than the half tick of
+        slack the EEPROM's limits, rounded inwards, leave), NaN or inf is a BridgeError
+        naming the servo, and nothing is sent."""
+        out = []
+        put = out.append
+        for x, (lo_ok, hi_ok, lo, hi, center, d, off, tpr, t_lo, t_hi) in zip(q, self._goal_rows()):
+            if not lo_ok <= x <= hi_ok:  # NaN fails both comparisons
+                i = len(out)
+                raise BridgeError(f"{self.bus.label(self._ids[i])}: goal {x:.4f} rad is outside the joint limits "
+                                  f"[{lo:.4f}, {hi:.4f}]; refusing to send")
+            x = lo if x < lo else hi if x > hi else x
+            tick = round(center + (d * x + off) * tpr)
+            put(t_lo if tick < t_lo else t_hi if tick > t_hi else tick)
+        return out
+
+    def _set_position(self, ticks) -> None:
+        """Present ticks (a tuple of n ints, or an array) → the state's joint positions, rad.
+        A tuple takes :meth:`_to_joint`'s operations with Python floats (same values)."""
+        if isinstance(ticks, np.ndarray):
+            self._state.position[:] = self._to_joint(ticks)
+            return
+        self._state.position[:] = [d * ((t - c) / r - o) for t, (c, r, o, d) in zip(ticks, self._joint_rows)]
+
     def _make_groups(self) -> None:
         """Protocol 2.0: the hot path's SYNC_WRITE encoder and FAST_SYNC_READ decoder (ours,
         numpy; the same bytes as the SDK's groups), and the SDK's GroupSyncRead for buses
@@ -830,7 +922,7 @@ class DynamixelTransport:
         cannot be taken for this one's."""
         if port.is_using:
             return sdk.COMM_PORT_BUSY
-        port.ser.reset_input_buffer()
+        port.discardInput()
         result = self._tx_op(port, self._fast.request)
         if result == sdk.COMM_SUCCESS:
             port.setPacketTimeout((11 + self._fast.size) * self._fast.n)  # the SDK's sync-read timeout
@@ -845,7 +937,7 @@ class DynamixelTransport:
         if result != sdk.COMM_SUCCESS:
             return result
         try:
-            self._fast_values, self._fast_errors = self._fast.decode(buf)
+            self._fast_errors, self._fast_values = self._fast.decode_fields(buf)
         except PacketError:
             return sdk.COMM_RX_CORRUPT
         return sdk.COMM_SUCCESS
@@ -871,19 +963,26 @@ class DynamixelTransport:
     def _make_bulk(self) -> None:
         """Build the FAST_BULK_READ of every position + servo j's status block, for each j,
         and check once that the servos answer it (firmware without FAST_BULK_READ: keep the
-        FAST_SYNC_READ and a separate status READ)."""
+        FAST_SYNC_READ and a separate status READ). Each decoder reads, in one unpack, every
+        servo's Present Position and servo j's status registers (``decode_fields``)."""
         pres = self.servos[0].present
-        dtype = np.dtype(f"<{'i' if pres.signed else 'u'}{pres.size}")
         bulk = []
         for j in range(len(self.servos)):
-            _, start, length = self._slow_block(j)
+            regs, start, length = self._slow_block(j)
             b0, b1 = min(start, pres.address), max(start + length, pres.end)  # j's span holds its position too
+            # j's fields, by offset in its span: its status registers and its position; a
+            # sign-magnitude register is read unsigned and decoded by its Register
+            span = sorted([(r.address - b0, r.size, r.signed and r.sign_bit is None, key) for key, r in regs.items()]
+                          + [(pres.address - b0, pres.size, pres.signed, "position")])
+            fields = [[(0, pres.size, pres.signed)] if k != j else [f[:3] for f in span] for k in range(len(self.servos))]
             dec = FastBulkReadDecoder([(sv.cfg.id, b0, b1 - b0) if k == j else (sv.cfg.id, pres.address, pres.size)
-                                       for k, sv in enumerate(self.servos)])
-            at = dec.data_starts.copy()
-            at[j] += pres.address - b0
-            bulk.append((dec, (at[:, None] + np.arange(pres.size)[None, :]).ravel(), int(dec.data_starts[j] + start - b0)))
-        self._bulk, self._bulk_dtype = bulk, dtype
+                                       for k, sv in enumerate(self.servos)], fields)
+            keys = [f[3] for f in span]
+            at_j = j + keys.index("position")  # where j's position lands among the decoded values
+            pos = [k if k < j else at_j if k == j else k + len(span) - 1 for k in range(len(self.servos))]
+            status = [(key, j + m, regs[key]) for m, key in enumerate(keys) if key != "position"]
+            bulk.append((dec, operator.itemgetter(*pos), tuple(status)))
+        self._bulk = bulk
 
         def probe(port) -> int:
             result = self._bulk_send_op(port, 0)
@@ -900,7 +999,7 @@ class DynamixelTransport:
         """Send servo j's FAST_BULK_READ (see :meth:`_make_bulk`), start the SDK's bulk-read timeout."""
         if port.is_using:
             return sdk.COMM_PORT_BUSY
-        port.ser.reset_input_buffer()
+        port.discardInput()
         dec = self._bulk[j][0]
         result = self._tx_op(port, dec.request)
         if result == sdk.COMM_SUCCESS:
@@ -909,19 +1008,22 @@ class DynamixelTransport:
 
     def _bulk_collect_op(self, port, j: int) -> int:
         """Collect servo j's FAST_BULK_READ reply: every position into ``_fast_values`` /
-        ``_fast_errors`` (as a fast sync read), j's status block into ``_bulk_status``."""
-        dec, pos_index, block_at = self._bulk[j]
+        ``_fast_errors`` (as a fast sync read), j's status registers into ``_bulk_status``."""
+        dec, positions, status = self._bulk[j]
         result, buf = self._collect_reply(port, dec.reply_length, dec.head)
         if result != sdk.COMM_SUCCESS:
             return result
         try:
-            a, errors = dec.decode(buf)
+            errors, values = dec.decode_fields(buf)
         except PacketError:
             return sdk.COMM_RX_CORRUPT
-        self._fast_values = a[pos_index].view(self._bulk_dtype).astype(np.int64)
-        self._fast_errors = errors.copy()
-        length = self._slow_block(j)[2]
-        self._bulk_status = (j, a[block_at:block_at + length].tobytes(), int(errors[j]))
+        self._fast_values = positions(values) if len(errors) > 1 else (positions(values),)
+        self._fast_errors = errors
+        val = {}
+        for key, at, reg in status:
+            v = values[at]
+            val[key] = v if reg.sign_bit is None else reg.decode(v.to_bytes(reg.size, "little"))
+        self._bulk_status = (j, val, errors[j])
         return sdk.COMM_SUCCESS
 
     def _send_goal_ticks(self, ticks: np.ndarray) -> None:
@@ -954,7 +1056,7 @@ class DynamixelTransport:
         def op(port) -> int:
             if port.is_using:
                 return sdk.COMM_PORT_BUSY
-            port.ser.reset_input_buffer()  # stale input cannot be taken for this reply
+            port.discardInput()  # stale input cannot be taken for this reply
             port.is_using = True
             if port.writePort(packets) != len(packets):
                 return sdk.COMM_TX_FAIL
@@ -975,7 +1077,7 @@ class DynamixelTransport:
         sid, ph = self.servos[i].cfg.id, self.bus.ph
 
         def op(port) -> int:
-            port.ser.reset_input_buffer()
+            port.discardInput()
             return ph.readTx(port, sid, start, length)
 
         if self.bus.call(op) != sdk.COMM_SUCCESS:
@@ -1016,11 +1118,11 @@ class DynamixelTransport:
         if result != sdk.COMM_SUCCESS:
             self._read_positions()
             return
-        self._state.position = self._to_joint(self._fast_values)
+        self._set_position(self._fast_values)
         self._state.stamp = sent
         self._alerted = frozenset()
-        if self._fast_errors.any():
-            self._alerted = self._on_fast_read_errors(self._fast_errors)
+        if any(self._fast_errors):
+            self._alerted = self._on_fast_read_errors(np.array(self._fast_errors, np.uint8))
 
     def _finish_slow(self) -> None:
         """Use a collected split-phase status READ; a failed or refused one is read again
@@ -1060,12 +1162,12 @@ class DynamixelTransport:
                 ticks = np.array([get(sid, reg.address, reg.size) for sid in self._ids], dtype=np.int64)
                 if reg.signed:
                     ticks[ticks >= 1 << (8 * reg.size - 1)] -= 1 << (8 * reg.size)
-        self._state.position = self._to_joint(ticks)
+        self._set_position(ticks)
         self._state.stamp = time.monotonic()
         self._fast_ready = None  # a split-phase reply collected meanwhile is older than this
         self._alerted = frozenset()
-        if fast and self._fast_errors.any():
-            self._alerted = self._on_fast_read_errors(self._fast_errors)
+        if fast and any(self._fast_errors):
+            self._alerted = self._on_fast_read_errors(np.array(self._fast_errors, np.uint8))
 
     def _on_fast_read_errors(self, errors: np.ndarray) -> frozenset[int]:
         """The fast reply keeps every servo's status error byte (the SDK's group reads drop
@@ -1119,24 +1221,47 @@ class DynamixelTransport:
         self._apply_slow(i, data, error)
 
     def _apply_slow(self, i: int, data: bytes, error: int, alert_handled: bool = False) -> None:
-        """Decode servo ``i``'s status block (velocity, effort, voltage, temperature, bus
-        watchdog) into the state; act on its status error byte (alert → register 70),
-        unless ``alert_handled`` (the same reply's alert was just acted on)."""
-        sv = self.servos[i]
+        """Decode servo ``i``'s status block (bytes from its start address) and apply it
+        (:meth:`_apply_status`)."""
         regs, start, _ = self._slow_block(i)
-        val = {k: r.decode(data[r.address - start:r.end - start]) for k, r in regs.items()}
-        m, d = sv.model, sv.cfg.direction
+        self._apply_status(i, {k: r.decode(data[r.address - start:r.end - start]) for k, r in regs.items()},
+                           error, alert_handled)
+
+    @staticmethod
+    def _status_scales(sv: _Servo) -> tuple:
+        """Servo ``sv``'s unit factors for :meth:`_apply_status`, as Python floats (None where
+        the model lacks the quantity): (direction, velocity rpm per unit, current mA per unit,
+        torque constant N·m/A, load % per unit, stall torque N·m, V per unit, °C per unit)."""
+        m = sv.model
+        return (float(sv.cfg.direction), m.velocity_rpm, m.current_ma,
+                m.torque_constant_nm_per_a if m.current_ma is not None else None,
+                m.load_percent, m.ratings.stall_torque_nm, m.voltage_v, m.temperature_c)
+
+    def _apply_status(self, i: int, val: dict[str, int], error: int, alert_handled: bool = False) -> None:
+        """Servo ``i``'s status registers (raw values by field: velocity, current, voltage,
+        temperature, watchdog) into the state, in joint units; act on its status error byte
+        (alert → register 70), unless ``alert_handled`` (the same reply's alert was just
+        acted on). Units, with the model's factors (the servo model's conversions, with
+        Python floats in the same order of operations)::
+
+            velocity rad/s = direction · units · rpm_per_unit · 2π/60
+            effort N·m     = direction · units · mA_per_unit / 1000 · torque constant
+                             (load-reporting models: direction · units · %/unit / 100 · stall torque)
+            voltage V      = units · V_per_unit;  temperature °C = units · °C_per_unit
+        """
+        d, rpm, ma, kt, load, stall, volt, degc = self._status_rows[i]
+        st = self._state
         if "velocity" in val:
-            self._state.velocity[i] = d * float(m.velocity_to_rad_s(val["velocity"]))
+            st.velocity[i] = d * (val["velocity"] * rpm * _RPM_TO_RAD_S)
         if "current" in val:
-            if m.current_ma is not None:
-                self._state.effort[i] = d * float(m.current_to_amps(val["current"])) * m.torque_constant_nm_per_a
-            elif m.load_percent is not None:
-                self._state.effort[i] = d * val["current"] * m.load_percent / 100.0 * m.ratings.stall_torque_nm
+            if ma is not None:
+                st.effort[i] = d * (val["current"] * ma / 1000.0) * kt
+            elif load is not None:
+                st.effort[i] = d * val["current"] * load / 100.0 * stall
         if "voltage" in val:
-            self._state.voltage[i] = float(m.voltage_to_volts(val["voltage"]))
+            st.voltage[i] = val["voltage"] * volt
         if "temperature" in val:
-            self._state.temperature[i] = float(m.temperature_to_celsius(val["temperature"]))
+            st.temperature[i] = val["temperature"] * degc
         if val.get("watchdog", 0) in (-1, 255):
             self._recover_bus_watchdog()
         if self.bus.protocol == 2.0:
@@ -1144,7 +1269,7 @@ class DynamixelTransport:
                 if not alert_handled:
                     self._on_alert(i)
             else:
-                self._state.errors.pop(self.joint_names[i], None)
+                st.errors.pop(self.joint_names[i], None)
         else:
             self._note_p1_error(i, error)
 
