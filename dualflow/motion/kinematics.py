@@ -24,8 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dualflow.errors import DualFlowError
-from dualflow.motion.rotations import _EPS as _ROT_EPS
-from dualflow.motion.rotations import align_vector_sets, any_perpendicular
+from dualflow.motion.rotations import align_vector_sets, swing_rotation
 from dualflow.motion.skeleton import N_JOINTS, PARENTS, REST_POSE
 
 _PARENTS = np.asarray(PARENTS)
@@ -67,42 +66,6 @@ def _levels() -> tuple[_Level, ...]:
 
 
 _LEVELS = _levels()
-_EYE = np.eye(3)
-
-
-def _swing_matrices(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """:func:`~dualflow.motion.rotations.swing_rotation` with few numpy calls, for the IK's
-    hot path. a (k, 3) unit rest directions, b (T, k, 3) any length -> (T, k, 3, 3).
-
-    Axis ``u = a x b^`` / |a x b^|, angle ``theta = atan2(|a x b^|, a . b^)`` (b^ = b / |b|),
-    Rodrigues: ``R = cos(theta) I + sin(theta) [u]x + (1 - cos(theta)) u u^T``. A zero
-    ``b`` gives the identity; parallel or opposite directions take
-    :func:`~dualflow.motion.rotations.any_perpendicular` of ``a`` as the axis (exactly as
-    ``swing_rotation``).
-    """
-    nb = np.sqrt(np.einsum("...i,...i->...", b, b))
-    ub = b / np.maximum(nb, _ROT_EPS)[..., None]
-    ua = np.broadcast_to(a, ub.shape)
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = ub[..., 0], ub[..., 1], ub[..., 2]
-    cross = np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-    sin = np.sqrt(np.einsum("...i,...i->...", cross, cross))
-    cos = a0 * b0 + a1 * b1 + a2 * b2
-    angle = np.arctan2(sin, cos)
-    # (anti)parallel directions: the axis is any perpendicular of a; for parallel ones the
-    # angle is ~0 and R = I whatever the axis, so only the opposite ones need it
-    flip = (sin <= 1e-12) & (cos < 0.0)
-    axis = cross / np.maximum(sin, 1e-300)[..., None]
-    if flip.any():
-        axis = np.where(flip[..., None], any_perpendicular(ua), axis)
-    angle = np.where(nb < _ROT_EPS, 0.0, angle)
-    s, c = np.sin(angle), np.cos(angle)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    K = np.zeros(axis.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -z, y, -x
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = z, -y, x
-    return (c[..., None, None] * _EYE + s[..., None, None] * K
-            + (1.0 - c)[..., None, None] * (axis[..., :, None] * axis[..., None, :]))
 
 
 def _check_rest(rest, what: str = "rest pose") -> np.ndarray:
@@ -256,7 +219,7 @@ def inverse_kinematics(positions, rest=REST_POSE) -> tuple[np.ndarray, np.ndarra
             posed_in_parent = np.einsum("tkba,tkb->tka", parent_G, posed)
             rest_dirs = off[level.single_kids]
             rest_dirs = rest_dirs / np.linalg.norm(rest_dirs, axis=-1, keepdims=True)
-            local[:, level.single] = _swing_matrices(rest_dirs, posed_in_parent)
+            local[:, level.single] = swing_rotation(rest_dirs, posed_in_parent)
         if level.joints[0] == 0:
             G[:, 0] = local[:, 0]
         else:

@@ -146,24 +146,37 @@ def any_perpendicular(v) -> np.ndarray:
 def swing_rotation(a, b) -> np.ndarray:
     """The minimal rotation taking direction ``a`` onto direction ``b``.
 
-    a, b: (..., 3), any non-zero length (only directions matter). Returns
-    (..., 3, 3) ``R`` with ``R @ a/|a| = b/|b|`` and no twist about ``a``: the
-    rotation axis is ``a x b`` and the angle ``atan2(|a x b|, a . b)``. For
-    opposite directions the axis is :func:`any_perpendicular` of ``a``. A zero
-    vector gives the identity.
+    a, b: (..., 3), any non-zero length (only directions matter), broadcast against each
+    other. Returns (..., 3, 3) ``R`` with ``R @ a/|a| = b/|b|`` and no twist about ``a``:
+    axis ``u = a^ x b^ / |a^ x b^|``, angle ``theta = atan2(|a^ x b^|, a^ . b^)`` (``^``: unit
+    vectors), by Rodrigues' formula ``R = cos(theta) I + sin(theta) [u]x + (1 - cos(theta)) u u^T``
+    in a few array operations (the IK calls it per tree depth on every frame). For opposite
+    directions the axis is :func:`any_perpendicular` of ``a`` (for parallel ones R = I
+    whatever the axis). A zero vector gives the identity.
     """
     a = _as_array(a, (3,), "swing source direction")
     b = _as_array(b, (3,), "swing target direction")
     ua, na = _unit(a)
     ub, nb = _unit(b)
     ua, ub = np.broadcast_arrays(ua, ub)
-    cross = np.cross(ua, ub)
-    sin = np.linalg.norm(cross, axis=-1)
-    cos = np.sum(ua * ub, axis=-1)
+    a0, a1, a2 = ua[..., 0], ua[..., 1], ua[..., 2]
+    b0, b1, b2 = ub[..., 0], ub[..., 1], ub[..., 2]
+    cross = np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    sin = np.sqrt(np.einsum("...i,...i->...", cross, cross))
+    cos = a0 * b0 + a1 * b1 + a2 * b2
     angle = np.arctan2(sin, cos)
-    axis = np.where((sin > 1e-12)[..., None], cross / np.maximum(sin, 1e-300)[..., None], any_perpendicular(ua))
+    axis = cross / np.maximum(sin, 1e-300)[..., None]
+    flip = (sin <= 1e-12) & (cos < 0.0)
+    if flip.any():
+        axis = np.where(flip[..., None], any_perpendicular(ua), axis)
     angle = np.where((na < _EPS) | (nb < _EPS), 0.0, angle)
-    return rotvec_to_matrix(axis * angle[..., None])
+    s, c = np.sin(angle), np.cos(angle)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    K = np.zeros(axis.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -z, y, -x
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = z, -y, x
+    return (c[..., None, None] * np.eye(3) + s[..., None, None] * K
+            + (1.0 - c)[..., None, None] * (axis[..., :, None] * axis[..., None, :]))
 
 
 def align_vector_sets(src, dst, weights=None) -> np.ndarray:
