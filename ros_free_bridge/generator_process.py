@@ -432,22 +432,25 @@ def child_main(rfd: int, wfd: int) -> int:
                               "max_lag": core.max_lag, "warmup_first_window_s": first_s,
                               "warmup_window_s": window_s, "pid": os.getpid()})
         while True:
-            # more windows due, or catch-up work for idle time: do not wait
-            msgs = chan.receive(0.0 if core.backlog or core.has_idle_work else None)
+            # more windows due: do not wait; catch-up work: wait only until a pass fits before
+            # the next actor frame (stages.IdleSlots), or for that frame
+            msgs = chan.receive(0.0 if core.backlog else core.idle_wait())
             if (chan.eof and not msgs) or any(k == b"Q" for k, _ in msgs):
                 return 0
             frames = [decode_actor(p) for k, p in msgs if k == b"A"]
             if not msgs and not core.backlog:
-                core.idle_step()  # one pass (a few ms), then look at the pipe again
+                if core.idle_ready():
+                    core.idle_step()  # one pass (a few ms), then look at the pipe again
                 continue
             targets, events = core.feed(frames)
             for e in events:
                 chan.send_json(b"V", e)
             for t in targets:
                 chan.send(b"T", encode_target(t))
-            if targets and core.has_idle_work and not core.backlog:
-                # a busy CPU leaves no idle time: one pass of catch-up work per window, after
-                # its targets went out, rather than all of it in the window that needs it
+            if targets and not core.backlog and core.idle_ready():
+                # a busy CPU leaves little idle time: one pass of catch-up work per window, after
+                # its targets went out and if it ends before the next frame, rather than all of
+                # it in the window that needs it
                 core.idle_step()
             if any(k == b"E" for k, _ in msgs):
                 for targets, events in core.finish_stream():

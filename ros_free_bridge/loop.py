@@ -93,6 +93,9 @@ class LoopConfig:
     #: (True) or keep it where the first frame put it (False)
     adaptive_playback: bool = True
     playback_lead_frames: float = 1.0  #: adaptive: frame k + 1 is due when frame k plays (interpolation)
+    #: adaptive: the share of recent frames that must have arrived by their play time (the
+    #: rest is played as it comes, the buffer extrapolating meanwhile)
+    playback_quantile: float = 0.9
     min_ramp: float = 1.0  #: shortest start / stop ramp
     max_duration: float | None = None  #: stop after this long streaming (None: until the stream ends)
     temperature_warn: float = 65.0  #: degrade (slow down) above this
@@ -115,6 +118,8 @@ class LoopConfig:
                 raise BridgeError(f"loop config: {name} must be one of {STOP_POLICIES}, got {getattr(self, name)!r}")
         if not self.rate_hz > 0:
             raise BridgeError(f"loop config: rate_hz must be > 0, got {self.rate_hz}")
+        if not 0 < self.playback_quantile <= 1:
+            raise BridgeError(f"loop config: playback_quantile must be in (0, 1], got {self.playback_quantile}")
         if not 0 <= self.realtime_priority <= 99:
             raise BridgeError(f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
                               f"priority 1-99, got {self.realtime_priority} (CLI: --realtime-priority)")
@@ -276,7 +281,8 @@ class ControlLoop:
                     faults |= Fault.GENERATOR_ERROR
                 elif first is not None:
                     playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
-                                             cfg.playback_lead_frames, fixed=not cfg.adaptive_playback)
+                                             cfg.playback_lead_frames, fixed=not cfg.adaptive_playback,
+                                             quantile=cfg.playback_quantile)
                     stream_start = now
                     last_new = now
                     self.state = State.RUNNING

@@ -85,6 +85,8 @@ class SessionOptions:
     #: reserve (s) between a frame's arrival and its playback on top of what the adaptive clock
     #: measured; None: 20 ms adaptive (jitter only), the loop's 50 ms fixed
     playback_margin: float | None = None
+    #: the adaptive clock plays a frame when this share of the recent frames had arrived by then
+    playback_quantile: float = 0.9
     #: the loop may continue the newest frame at its velocity for up to this many frames while
     #: the next is on its way (then holds): frame k plays as soon as it arrives instead of when
     #: k + 1 does (interpolation needs it); 0: hold
@@ -277,6 +279,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         adaptive_playback=opts.adaptive_playback,
                         playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
+                        playback_quantile=opts.playback_quantile,
                         **({} if opts.playback_margin is None and not opts.adaptive_playback else
                            {"playback_margin": 0.02 if opts.playback_margin is None else opts.playback_margin}),
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.idle_slots import IdleSlots
 from ros_free_bridge.targets import TargetBuffer, TargetFrame
 
 
@@ -345,6 +346,8 @@ class PartnerCore:
             self.max_lag = max(int(max_lag) if max_lag is not None else self.default_max_lag(reactor), hop + 1)
             self._recent: deque = deque(maxlen=reactor.look_ahead + hop + 2)
         self.frames_dropped = 0
+        #: catch-up passes only in the gap before the next actor frame (the frames' rate: the reactor's fps)
+        self.idle_slots = IdleSlots(1.0 / (reactor.fps if reactor is not None else 30.0))
         self._arrivals: dict[int, float] = {}  # actor index -> arrival, for frames not yet used as c(i)
         self._last_q: np.ndarray | None = None
         self._last_pos: np.ndarray | None = None
@@ -379,6 +382,7 @@ class PartnerCore:
         self._recent.extend(frames)
         for f in frames:
             self._arrivals[f.index] = f.arrival
+            self.idle_slots.arrived(f.arrival)
         out, events = self._catch_up()
         if events:
             frames = [f for f in self._recent if f.index >= self.reactor.next_index]
@@ -449,18 +453,32 @@ class PartnerCore:
         """The reactor has catch-up work to do while no actor frame is waiting (``idle_step``)."""
         return self.reactor is not None and self.reactor.has_catch_up
 
+    def idle_ready(self, now: float | None = None) -> bool:
+        """Catch-up work is due and a pass fits before the next actor frame (:class:`IdleSlots`)."""
+        return self.has_idle_work and self.idle_slots.fits(time.monotonic() if now is None else now)
+
+    def idle_wait(self, now: float | None = None) -> float | None:
+        """Seconds until a catch-up pass may start if no actor frame comes first: 0 now, None
+        when there is no catch-up work."""
+        if not self.has_idle_work:
+            return None
+        return self.idle_slots.wait(time.monotonic() if now is None else now)
+
     def idle_step(self) -> None:
         """One short piece of the reactor's catch-up work (one network pass, a few ms)."""
         if self.reactor is not None:
+            t0 = time.monotonic()
             self.reactor.prepare(1)
+            self.idle_slots.ran(time.monotonic() - t0)
 
     def idle(self, seconds: float) -> None:
-        """Nothing arrived: do a piece of catch-up work, or wait a little (the process variant
-        waits on its pipe instead)."""
-        if self.has_idle_work:
+        """Nothing arrived: do a piece of catch-up work if it fits before the next actor frame,
+        else wait up to ``seconds`` (the process variant waits on its pipe instead)."""
+        wait = self.idle_wait()
+        if wait == 0.0:
             self.idle_step()
         else:
-            time.sleep(seconds)
+            time.sleep(seconds if wait is None else min(seconds, wait))
 
     def close(self) -> None:
         """Nothing to release in-process (the process variant ends its worker)."""

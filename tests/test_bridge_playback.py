@@ -109,3 +109,13 @@ def test_the_clock_target_is_the_quantile_of_the_recent_arrival_offsets(quantile
         assert all(t - arrival <= 1.0 for arrival, _ in clock._offsets)
         expected = np.quantile(offsets, quantile) + 1.0 / FPS + 0.02
         assert clock.target_t0() == pytest.approx(expected, abs=1e-12)
+
+
+def test_the_playback_quantile_is_checked_where_it_is_set():
+    from ros_free_bridge.errors import BridgeError
+    from ros_free_bridge.loop import LoopConfig
+
+    assert LoopConfig(playback_quantile=0.5).playback_quantile == 0.5
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(BridgeError, match="playback_quantile"):
+            LoopConfig(playback_quantile=bad)
