@@ -577,6 +577,7 @@ class DynamixelTransport:
         self._bulk_refused = False  # the servos did not answer FAST_BULK_READ
         self._bulk_status: tuple[int, dict, int] | None = None  # (servo index, status values by field, error byte)
         self._alerted: frozenset[int] = frozenset()  # servos whose alert the last fast reply handled
+        self._rx_carry = b""  # reply bytes _read_bulk_arrived took but left to the general path
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -639,6 +640,10 @@ class DynamixelTransport:
         the reply to the request that ``write_goal`` sent on the previous tick, collected
         without waiting when it has arrived, and ``stamp`` is when that request left; the
         last status READ of the call is sent but collected on the next bus transfer."""
+        if self._pending is not None and self._pending[0] == "bulk" and self.slow_per_cycle == 1:
+            state = self._read_bulk_arrived()
+            if state is not None:
+                return state
         try:
             if self._pending is not None:
                 self._settle()
@@ -665,6 +670,51 @@ class DynamixelTransport:
             raise
         self.stats.cycles += 1
         st = self._state
+        b = self._block.copy()
+        return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
+
+    def _read_bulk_arrived(self) -> JointState | None:
+        """The split-phase cycle's common tick in one pass: the pending FAST_BULK_READ reply
+        has fully arrived, is valid (length, header, CRC, IDs) and carries no status error
+        bit, and ``slow_per_cycle`` is 1 (its one status block rides with it). Then: its
+        positions and its status block into the state, and the reading; the same values
+        :meth:`read_state`'s general path gives (tested). Anything else - bytes still on the
+        wire, a corrupt reply, an error bit - returns None with the bytes read kept for the
+        general path (``_rx_carry``), which then proceeds as if it had read them itself
+        (waits, retries, alerts)."""
+        if self._fast_ready is not None or self._slow_ready is not None or self._bulk_status is not None:
+            return None
+        j = self._pending[1]
+        dec, positions, status = self._bulk[j]
+        port = self.bus.port
+        try:
+            raw = port._read_now(dec.reply_length)
+        except OSError:
+            return None  # the general path reads again and reports the port's failure
+        try:
+            errors, values = dec.decode_fields(raw)
+        except PacketError:
+            self._rx_carry = raw
+            return None
+        if any(errors):
+            self._rx_carry = raw
+            return None
+        self._pending = None
+        self.bus.before_io = None
+        self._set_position(positions(values) if len(errors) > 1 else (positions(values),))
+        st = self._state
+        st.stamp = self._fast_sent
+        self._alerted = frozenset()
+        val = {}
+        for key, at, reg in status:
+            v = values[at]
+            val[key] = v if reg.sign_bit is None else reg.decode(v.to_bytes(reg.size, "little"))
+        try:
+            self._apply_status(j, val, 0)
+        except BridgeError:
+            self._on_error()
+            raise
+        self.stats.cycles += 1
         b = self._block.copy()
         return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
 
@@ -883,7 +933,8 @@ class DynamixelTransport:
         if self.bus.protocol != 2.0:
             return
         first = self.servos[0]
-        self._writer = SyncWriteEncoder(first.goal.address, first.goal.size, self._ids, first.goal.signed)
+        self._writer = SyncWriteEncoder(first.goal.address, first.goal.size, self._ids, first.goal.signed,
+                                        window=(int(self._tick_lo.min()), int(self._tick_hi.max())))
         self._fast = FastSyncReadDecoder(first.present.address, first.present.size, self._ids, first.present.signed)
         self._reader = sdk.GroupSyncRead(self.bus.port, self.bus.ph, first.present.address, first.present.size)
         for sid in self._ids:
@@ -923,6 +974,7 @@ class DynamixelTransport:
         if port.is_using:
             return sdk.COMM_PORT_BUSY
         port.discardInput()
+        self._rx_carry = b""
         result = self._tx_op(port, self._fast.request)
         if result == sdk.COMM_SUCCESS:
             port.setPacketTimeout((11 + self._fast.size) * self._fast.n)  # the SDK's sync-read timeout
@@ -942,12 +994,18 @@ class DynamixelTransport:
             return sdk.COMM_RX_CORRUPT
         return sdk.COMM_SUCCESS
 
-    @staticmethod
-    def _collect_reply(port, need: int, head: bytes) -> tuple[int, bytes]:
+    def _collect_reply(self, port, need: int, head: bytes) -> tuple[int, bytes]:
         """(COMM code, the reply's ``need`` bytes) read through ``port.readPort`` until the
-        packet timeout; bytes before the header are skipped (resync)."""
+        packet timeout, after any bytes :meth:`_read_bulk_arrived` already took
+        (``_rx_carry``); bytes before the header are skipped (resync)."""
         head = head[:5]
-        buf = b""
+        buf, self._rx_carry = self._rx_carry, b""
+        if buf:
+            if not buf.startswith(head):  # garbage before the header: resync
+                at = buf.find(head)
+                buf = buf[at:] if at >= 0 else buf[-4:]
+            if len(buf) >= need:
+                return sdk.COMM_SUCCESS, buf[:need]
         while True:
             chunk = port.readPort(need - len(buf))
             if chunk:
@@ -1000,6 +1058,7 @@ class DynamixelTransport:
         if port.is_using:
             return sdk.COMM_PORT_BUSY
         port.discardInput()
+        self._rx_carry = b""
         dec = self._bulk[j][0]
         result = self._tx_op(port, dec.request)
         if result == sdk.COMM_SUCCESS:
@@ -1057,6 +1116,7 @@ class DynamixelTransport:
             if port.is_using:
                 return sdk.COMM_PORT_BUSY
             port.discardInput()  # stale input cannot be taken for this reply
+            self._rx_carry = b""
             port.is_using = True
             if port.writePort(packets) != len(packets):
                 return sdk.COMM_TX_FAIL
@@ -1078,6 +1138,7 @@ class DynamixelTransport:
 
         def op(port) -> int:
             port.discardInput()
+            self._rx_carry = b""
             return ph.readTx(port, sid, start, length)
 
         if self.bus.call(op) != sdk.COMM_SUCCESS:
