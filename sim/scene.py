@@ -49,6 +49,7 @@ class SceneConfig:
     reactor: Motion | None = None
     reactor_placement: Placement = field(default_factory=Placement)
     floor_friction: float = 1.0
+    floor_pairs: bool = True  # robot-floor contacts as explicit pairs (same contacts, cheaper; see Scene)
 
 
 class Scene:
@@ -91,6 +92,8 @@ class Scene:
 
         # robot height and standing figures from a first compile (before the humans)
         probe = spec.compile()
+        if config.floor_pairs:
+            self._floor_as_pairs(spec, probe)
         probe_data = mujoco.MjData(probe)
         self._reset_to_stand(probe, probe_data)
         robot_probe = RobotIndex.from_model(probe, self.root_name)
@@ -131,6 +134,49 @@ class Scene:
         spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
         spec.visual.global_.offwidth = 1920
         spec.visual.global_.offheight = 1080
+
+    @staticmethod
+    def _floor_as_pairs(spec: mujoco.MjSpec, probe: mujoco.MjModel) -> None:
+        """Robot-floor contacts as explicit ``<pair>``s, the floor left out of the broad phase.
+
+        The floor is an infinite plane, so every robot body overlaps it in MuJoCo's
+        sweep-and-prune and every (floor, geom) pair reaches the narrow phase anyway;
+        listing those pairs explicitly skips the floor's broad-phase work: 2.4 % fewer
+        instructions per op3 mj_step (callgrind, 10 s bench clip), the same contacts.
+        A pair gets the parameters MuJoCo's dynamic mixing would give (equal priority:
+        condim and friction the maximum, margin and gap the maximum, solref / solimp
+        averaged with weight solmix1 / (solmix1 + solmix2)); it is made only for geoms the
+        dynamic filter would collide with the floor (contype/conaffinity bits, not welded
+        to the world, not excluded). When a robot geom needs a rule not written here (a
+        priority other than the floor's, direct solref), the floor stays dynamic."""
+        m = probe
+        floor = m.geom("floor").id
+        excluded = {frozenset((int(s_) >> 16, int(s_) & 0xFFFF)) for s_ in m.exclude_signature}
+        pairs = []
+        for g in range(m.ngeom):
+            b = int(m.geom_bodyid[g])
+            if g == floor or m.body_weldid[b] == 0 or frozenset((0, b)) in excluded:
+                continue
+            if not (m.geom_contype[g] & m.geom_conaffinity[floor] or m.geom_contype[floor] & m.geom_conaffinity[g]):
+                continue
+            if m.geom_priority[g] != m.geom_priority[floor] or m.geom_solref[g, 0] <= 0 or m.geom_solref[floor, 0] <= 0:
+                return
+            s1, s2 = m.geom_solmix[floor], m.geom_solmix[g]
+            mix = 0.5 if s1 + s2 < mujoco.mjMINVAL else s1 / (s1 + s2)
+            f = np.maximum(m.geom_friction[floor], m.geom_friction[g])
+            pairs.append(dict(geomname1="floor", geomname2=m.geom(g).name,
+                              condim=int(max(m.geom_condim[floor], m.geom_condim[g])),
+                              friction=[f[0], f[0], f[1], f[2], f[2]],
+                              solref=list(mix * m.geom_solref[floor] + (1 - mix) * m.geom_solref[g]),
+                              solimp=list(mix * m.geom_solimp[floor] + (1 - mix) * m.geom_solimp[g]),
+                              margin=float(max(m.geom_margin[floor], m.geom_margin[g])),
+                              gap=float(max(m.geom_gap[floor], m.geom_gap[g]))))
+            if not m.geom(g).name:
+                return  # a pair names its geoms
+        for p in pairs:
+            spec.add_pair(**p)
+        floor_spec = spec.geom("floor")
+        floor_spec.contype = floor_spec.conaffinity = 0
 
     @staticmethod
     def _reset_to_stand(model: mujoco.MjModel, data: mujoco.MjData) -> None:

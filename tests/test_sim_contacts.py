@@ -75,3 +75,51 @@ def test_root_pose_from_qpos_matches_mujoco_frames():
     np.testing.assert_allclose(got_pos[:5], pos, atol=1e-12)
     np.testing.assert_allclose(got_zz[:5], zz, atol=1e-12)
     assert np.isnan(got_pos[5]).all() and np.isnan(got_zz[5])  # after the run: not simulated
+
+
+def _contacts(scene: Scene) -> list[tuple]:
+    """The current contacts as comparable rows: sorted geom pair, depth, point, normal,
+    dimension, friction, solref, solimp, margin."""
+    c = scene.data.contact
+    rows = []
+    for i in range(scene.data.ncon):
+        g = tuple(sorted(int(x) for x in c.geom[i]))
+        rows.append((g, round(float(c.dist[i]), 12), tuple(np.round(c.pos[i], 12)), tuple(np.round(np.abs(c.frame[i, :3]), 12)),
+                     int(c.dim[i]), tuple(np.round(c.friction[i], 12)), tuple(c.solref[i]), tuple(c.solimp[i]),
+                     float(c.includemargin[i])))
+    return sorted(rows)
+
+
+@pytest.mark.parametrize("robot, fixed", [("op3", None), ("op3", True), ("ub14", None)])
+def test_floor_pairs_give_the_same_contacts_as_the_dynamic_floor(robot, fixed):
+    """Robot-floor contacts come from explicit pairs (the floor out of the broad phase):
+    standing, lying on its side and crumpled, the contacts equal the dynamic floor's
+    (pairs, depths, points, friction, solver parameters), and so does the motion."""
+    from sim.scene import SceneConfig
+
+    pair = Scene(SceneConfig(robot=robot, fixed_base=fixed))
+    dyn = Scene(SceneConfig(robot=robot, fixed_base=fixed, floor_pairs=False))
+    assert pair.model.npair > 0 and dyn.model.npair == 0
+    assert pair.model.geom_contype[pair.floor_geom] == 0 and dyn.model.geom_contype[dyn.floor_geom] == 1
+    rng = np.random.default_rng(7)
+    r = pair.robot
+    poses = [(pair.stand_ctrl, (1.0, 0.0, 0.0, 0.0))]
+    for _ in range(4):  # random in-limit joints, tilted or lying root
+        q = rng.uniform(r.lower, r.upper)
+        quat = rng.normal(size=4)
+        poses.append((q, tuple(quat / np.linalg.norm(quat))))
+    touched = set()
+    for q, quat in poses:
+        for sc in (pair, dyn):
+            sc.set_robot_pose(q, (0.0, 0.0, 0.3), quat, ground=True)
+            if not sc.robot.fixed_base:  # 3 mm into the floor: depths are compared too
+                sc.data.qpos[sc.robot.free_qpos + 2] -= 0.003
+                mujoco.mj_forward(sc.model, sc.data)
+        got, want = _contacts(pair), _contacts(dyn)
+        assert got == want
+        touched |= {g for row in got for g in row[0] if pair.floor_geom in row[0]}
+        mujoco.mj_step(pair.model, pair.data, 100)
+        mujoco.mj_step(dyn.model, dyn.data, 100)
+        np.testing.assert_allclose(pair.data.qpos, dyn.data.qpos, atol=1e-9)
+    if not pair.robot.fixed_base:
+        assert len(touched - {pair.floor_geom}) >= 4  # more than the feet touched the floor
