@@ -1,7 +1,7 @@
 """The Dynamixel hot path's fast forms equal the general ones: the two-byte CRC, the SYNC_WRITE
 CRC by linearity, the struct-read fast replies (against dynamixel-sdk's own parsing), the
 per-element goal ticks and positions, and the split-phase tick read in one pass
-(``_read_bulk_arrived``) against the general path, on the byte-level emulator."""
+(``_read_arrived``) against the general path, on the byte-level emulator."""
 
 from __future__ import annotations
 
@@ -178,35 +178,43 @@ def run_ticks(t, n: int, fast: bool):
     """n split-phase ticks, each read once the reply is in; returns the readings and how
     many took the one-pass path."""
     taken = [0]
-    one_pass = DynamixelTransport._read_bulk_arrived
+    one_pass = DynamixelTransport._read_arrived
 
     def counted(self):
         out = one_pass(self)
         taken[0] += out is not None
         return out
 
-    t._read_bulk_arrived = (lambda: counted(t)) if fast else (lambda: None)
+    t._read_arrived = (lambda: counted(t)) if fast else (lambda: None)
     out = []
     for _ in range(n):
         t.write_goal(t.lower * 0)
-        need = t._bulk[t._pending[1]][0].reply_length
+        j = t._pending[1]
+        need = (t._bulk[j][0] if j >= 0 else t._fast).reply_length
         assert wait_for(lambda: t.bus.port.ser.in_waiting >= need)
         out.append(t.read_state())
-    del t._read_bulk_arrived
+    del t._read_arrived
     return out, taken[0]
 
 
-def test_one_pass_tick_gives_the_general_paths_state(emu4):
+@pytest.mark.parametrize("slow", [1, 0])
+def test_one_pass_tick_gives_the_general_paths_state(emu4, slow):
     """Torque off, distinct positions, temperatures and supply voltages: a round of ticks
     through the one-pass read and a round through the general path give the same state,
-    bit for bit, and both match the emulator's registers through the model's units."""
+    bit for bit, and both match the emulator's registers through the model's units.
+    ``slow`` 1: FAST_BULK_READ with one status block per tick; 0: FAST_SYNC_READ alone."""
     bus, emu = emu4
     for sid in range(1, 5):
         emu.push(sid, 2048 + 111 * sid)
         emu.overheat(sid, 30.0 + sid) if sid != 2 else None
         emu.set_supply_voltage(sid, 11.0 + 0.3 * sid)
-    with make(bus, emu, slow_per_cycle=1) as t:
-        assert t.pipeline(True) and t._bulk is not None
+    with make(bus, emu, slow_per_cycle=slow) as t:
+        if slow == 0:  # the status fields come from one blocking round first (the one-pass read keeps them)
+            t.slow_per_cycle = 1
+            for _ in range(4):
+                t.read_state()
+            t.slow_per_cycle = 0
+        assert t.pipeline(True) and (t._bulk is not None) == (slow == 1)
         fast, taken = run_ticks(t, 8, fast=True)
         general, skipped = run_ticks(t, 8, fast=False)
         assert taken == 8 and skipped == 0

@@ -92,6 +92,7 @@ P1_ERROR_BITS = {0x01: "input voltage", 0x02: "angle limit", 0x04: "overheating"
                  0x10: "checksum", 0x20: "overload", 0x40: "instruction"}
 P1_HARDWARE_MASK = 0x01 | 0x04 | 0x20
 ALERT_BIT = 0x80
+_NONE: frozenset[int] = frozenset()
 #: Profile Acceleration unit of X-series servos: 214.577 rev/min² in rad/s².
 ACCEL_UNIT_RAD_S2 = 214.577 * 2.0 * math.pi / 3600.0
 SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
@@ -577,7 +578,7 @@ class DynamixelTransport:
         self._bulk_refused = False  # the servos did not answer FAST_BULK_READ
         self._bulk_status: tuple[int, dict, int] | None = None  # (servo index, status values by field, error byte)
         self._alerted: frozenset[int] = frozenset()  # servos whose alert the last fast reply handled
-        self._rx_carry = b""  # reply bytes _read_bulk_arrived took but left to the general path
+        self._rx_carry = b""  # reply bytes _read_arrived took but left to the general path
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> None:
@@ -640,8 +641,10 @@ class DynamixelTransport:
         the reply to the request that ``write_goal`` sent on the previous tick, collected
         without waiting when it has arrived, and ``stamp`` is when that request left; the
         last status READ of the call is sent but collected on the next bus transfer."""
-        if self._pending is not None and self._pending[0] == "bulk" and self.slow_per_cycle == 1:
-            state = self._read_bulk_arrived()
+        pending = self._pending
+        if pending is not None and (pending[0] == "bulk" and self.slow_per_cycle == 1
+                                    or pending[0] == "fast" and self.slow_per_cycle == 0):
+            state = self._read_arrived()
             if state is not None:
                 return state
         try:
@@ -673,11 +676,12 @@ class DynamixelTransport:
         b = self._block.copy()
         return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
 
-    def _read_bulk_arrived(self) -> JointState | None:
-        """The split-phase cycle's common tick in one pass: the pending FAST_BULK_READ reply
-        has fully arrived, is valid (length, header, CRC, IDs) and carries no status error
-        bit, and ``slow_per_cycle`` is 1 (its one status block rides with it). Then: its
-        positions and its status block into the state, and the reading; the same values
+    def _read_arrived(self) -> JointState | None:
+        """The split-phase cycle's common tick in one pass: the pending read's reply has fully
+        arrived, is valid (length, header, CRC, IDs) and carries no status error bit, and it
+        is all the tick reads (a FAST_BULK_READ with ``slow_per_cycle`` 1: its one status
+        block rides with it; a FAST_SYNC_READ with ``slow_per_cycle`` 0). Then: its positions
+        (and status block) into the state, and the reading; the same values
         :meth:`read_state`'s general path gives (tested). Anything else - bytes still on the
         wire, a corrupt reply, an error bit - returns None with the bytes read kept for the
         general path (``_rx_carry``), which then proceeds as if it had read them itself
@@ -685,7 +689,10 @@ class DynamixelTransport:
         if self._fast_ready is not None or self._slow_ready is not None or self._bulk_status is not None:
             return None
         j = self._pending[1]
-        dec, positions, status = self._bulk[j]
+        if j >= 0:
+            dec, positions, status = self._bulk[j]
+        else:
+            dec, positions, status = self._fast, None, None
         port = self.bus.port
         try:
             raw = port._read_now(dec.reply_length)
@@ -701,19 +708,19 @@ class DynamixelTransport:
             return None
         self._pending = None
         self.bus.before_io = None
-        self._set_position(positions(values) if len(errors) > 1 else (positions(values),))
+        if positions is None:
+            self._set_position(values)
+        else:
+            self._set_position(positions(values) if len(errors) > 1 else (positions(values),))
         st = self._state
         st.stamp = self._fast_sent
-        self._alerted = frozenset()
-        val = {}
-        for key, at, reg in status:
-            v = values[at]
-            val[key] = v if reg.sign_bit is None else reg.decode(v.to_bytes(reg.size, "little"))
-        try:
-            self._apply_status(j, val, 0)
-        except BridgeError:
-            self._on_error()
-            raise
+        self._alerted = _NONE
+        if status is not None:
+            try:
+                self._apply_status(j, self._status_values(status, values), 0)
+            except BridgeError:
+                self._on_error()
+                raise
         self.stats.cycles += 1
         b = self._block.copy()
         return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
@@ -908,7 +915,7 @@ class DynamixelTransport:
         naming the servo, and nothing is sent."""
         out = []
         put = out.append
-        for x, (lo_ok, hi_ok, lo, hi, center, d, off, tpr, t_lo, t_hi) in zip(q, self._goal_rows()):
+        for x, (lo_ok, hi_ok, lo, hi, center, d, off, tpr, t_lo, t_hi) in zip(q, self._goal_cache or self._goal_rows()):
             if not lo_ok <= x <= hi_ok:  # NaN fails both comparisons
                 i = len(out)
                 raise BridgeError(f"{self.bus.label(self._ids[i])}: goal {x:.4f} rad is outside the joint limits "
@@ -996,7 +1003,7 @@ class DynamixelTransport:
 
     def _collect_reply(self, port, need: int, head: bytes) -> tuple[int, bytes]:
         """(COMM code, the reply's ``need`` bytes) read through ``port.readPort`` until the
-        packet timeout, after any bytes :meth:`_read_bulk_arrived` already took
+        packet timeout, after any bytes :meth:`_read_arrived` already took
         (``_rx_carry``); bytes before the header are skipped (resync)."""
         head = head[:5]
         buf, self._rx_carry = self._rx_carry, b""
@@ -1078,12 +1085,16 @@ class DynamixelTransport:
             return sdk.COMM_RX_CORRUPT
         self._fast_values = positions(values) if len(errors) > 1 else (positions(values),)
         self._fast_errors = errors
-        val = {}
-        for key, at, reg in status:
-            v = values[at]
-            val[key] = v if reg.sign_bit is None else reg.decode(v.to_bytes(reg.size, "little"))
-        self._bulk_status = (j, val, errors[j])
+        self._bulk_status = (j, self._status_values(status, values), errors[j])
         return sdk.COMM_SUCCESS
+
+    @staticmethod
+    def _status_values(status: tuple, values: tuple) -> dict[str, int]:
+        """Servo j's status registers by field from a decoded FAST_BULK_READ reply (``_bulk``'s
+        third entry: (field, index in ``values``, Register)); a sign-magnitude register was
+        read unsigned and is decoded here."""
+        return {key: values[at] if reg.sign_bit is None else reg.decode(values[at].to_bytes(reg.size, "little"))
+                for key, at, reg in status}
 
     def _send_goal_ticks(self, ticks: np.ndarray) -> None:
         if self._writer is None:  # protocol 1.0: SYNC_WRITE exists there too
