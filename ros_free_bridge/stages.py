@@ -567,13 +567,25 @@ class PartnerPipeline:
                             break
                     break
                 if not frames and not getattr(self.core, "backlog", False):
-                    self.core.idle(0.002)
+                    self.core.idle(self._poll_wait())
         except BaseException as exc:  # noqa: BLE001 - handed to the control loop, which stops safely
             self.buffer.close(exc)
         else:
             self.buffer.close()  # before the core's close, which may wait for a process to exit
         finally:
             self.core.close()
+
+    POLL_S = 0.002  #: longest wait between polls of the actor source
+
+    def _poll_wait(self) -> float:
+        """Seconds to wait before polling the source again: ``POLL_S``, or less when the
+        source says when its next frame is due (a replay: its frames are stamped with their
+        due time, so a late poll would count in the latency)."""
+        due = getattr(self.source, "next_due", None)
+        due = due() if due is not None else None
+        if due is None:
+            return self.POLL_S
+        return min(self.POLL_S, max(0.0, due - time.monotonic()))
 
     def _emit(self, targets: list[PartnerTarget], events: list[dict]) -> None:
         for e in events:

@@ -1,5 +1,7 @@
 """Real-time replay of an actor motion (on an injected clock)."""
 
+import time
+
 import numpy as np
 
 from dualflow.synthetic import make_leader
@@ -34,3 +36,31 @@ def test_looping_replay_wraps_and_never_finishes():
     frames = src.poll()
     assert len(frames) == 61 and not src.finished
     np.testing.assert_array_equal(frames[leader.n_frames].positions, leader.positions[0])
+
+
+def test_next_due_says_when_the_next_frame_comes_and_the_pipeline_waits_no_longer():
+    from ros_free_bridge.stages import PartnerPipeline
+
+    leader = make_leader(seconds=0.2, fps=30.0, seed=2)  # 6 frames
+    now = [100.0]
+    src = MotionReplaySource(leader, clock=lambda: now[0])
+    assert src.next_due() is None  # not started
+    src.start()
+    assert src.next_due() == 100.0
+    src.poll()
+    assert src.next_due() == 100.0 + 1 / 30.0
+    now[0] += 1.0
+    src.poll()
+    assert src.finished and src.next_due() is None
+
+    class Soon:  # a source whose next frame is due in 0.5 ms
+        def next_due(self):
+            return time.monotonic() + 0.0005
+
+    pipe = PartnerPipeline.__new__(PartnerPipeline)  # only the polling policy, no thread
+    pipe.source = Soon()
+    assert 0.0 <= pipe._poll_wait() <= 0.0005
+    pipe.source = src  # finished: nothing due
+    assert pipe._poll_wait() == PartnerPipeline.POLL_S
+    pipe.source = object()  # a source that cannot say (a live UDP stream): the fixed poll interval
+    assert pipe._poll_wait() == PartnerPipeline.POLL_S

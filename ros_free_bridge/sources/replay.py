@@ -40,6 +40,12 @@ class MotionReplaySource:
     def finished(self) -> bool:
         return not self.loop and self._next >= self.motion.n_frames
 
+    def next_due(self) -> float | None:
+        """Monotonic second the next frame is due (None: not started, or no frame left)."""
+        if self._t0 is None or self.finished:
+            return None
+        return self._t0 + self._next / self.fps
+
     def poll(self) -> list[ActorFrame]:
         if self._t0 is None:
             return []
