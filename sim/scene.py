@@ -49,7 +49,7 @@ class SceneConfig:
     reactor: Motion | None = None
     reactor_placement: Placement = field(default_factory=Placement)
     floor_friction: float = 1.0
-    floor_pairs: bool = True  # robot-floor contacts as explicit pairs (same contacts, cheaper; see Scene)
+    floor_pairs: bool = True  # robot-floor contacts as explicit pairs (same contacts, cheaper: Scene._floor_as_pairs)
 
 
 class Scene:
@@ -148,7 +148,8 @@ class Scene:
         averaged with weight solmix1 / (solmix1 + solmix2)); it is made only for geoms the
         dynamic filter would collide with the floor (contype/conaffinity bits, not welded
         to the world, not excluded). When a robot geom needs a rule not written here (a
-        priority other than the floor's, direct solref), the floor stays dynamic."""
+        priority other than the floor's, direct solref, adhesion, surface velocity, a
+        plugin) or has no name (a pair names its geoms), the floor stays dynamic."""
         m = probe
         floor = m.geom("floor").id
         excluded = {frozenset((int(s_) >> 16, int(s_) & 0xFFFF)) for s_ in m.exclude_signature}
@@ -159,7 +160,9 @@ class Scene:
                 continue
             if not (m.geom_contype[g] & m.geom_conaffinity[floor] or m.geom_contype[floor] & m.geom_conaffinity[g]):
                 continue
-            if m.geom_priority[g] != m.geom_priority[floor] or m.geom_solref[g, 0] <= 0 or m.geom_solref[floor, 0] <= 0:
+            if (m.geom_priority[g] != m.geom_priority[floor] or m.geom_solref[g, 0] <= 0 or m.geom_solref[floor, 0] <= 0
+                    or np.any(m.geom_adhesion[[g, floor]]) or np.any(m.geom_surfacevel[[g, floor]])
+                    or np.any(m.geom_plugin[[g, floor]] != -1) or not m.geom(g).name):
                 return
             s1, s2 = m.geom_solmix[floor], m.geom_solmix[g]
             mix = 0.5 if s1 + s2 < mujoco.mjMINVAL else s1 / (s1 + s2)
@@ -171,8 +174,6 @@ class Scene:
                               solimp=list(mix * m.geom_solimp[floor] + (1 - mix) * m.geom_solimp[g]),
                               margin=float(max(m.geom_margin[floor], m.geom_margin[g])),
                               gap=float(max(m.geom_gap[floor], m.geom_gap[g]))))
-            if not m.geom(g).name:
-                return  # a pair names its geoms
         for p in pairs:
             spec.add_pair(**p)
         floor_spec = spec.geom("floor")

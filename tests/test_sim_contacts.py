@@ -79,14 +79,14 @@ def test_root_pose_from_qpos_matches_mujoco_frames():
 
 def _contacts(scene: Scene) -> list[tuple]:
     """The current contacts as comparable rows: sorted geom pair, depth, point, normal,
-    dimension, friction, solref, solimp, margin."""
+    dimension, friction, solref, solimp, margin, adhesion."""
     c = scene.data.contact
     rows = []
     for i in range(scene.data.ncon):
         g = tuple(sorted(int(x) for x in c.geom[i]))
         rows.append((g, round(float(c.dist[i]), 12), tuple(np.round(c.pos[i], 12)), tuple(np.round(np.abs(c.frame[i, :3]), 12)),
                      int(c.dim[i]), tuple(np.round(c.friction[i], 12)), tuple(c.solref[i]), tuple(c.solimp[i]),
-                     float(c.includemargin[i])))
+                     float(c.includemargin[i]), float(c.adhesion[i])))
     return sorted(rows)
 
 
@@ -123,3 +123,22 @@ def test_floor_pairs_give_the_same_contacts_as_the_dynamic_floor(robot, fixed):
         np.testing.assert_allclose(pair.data.qpos, dyn.data.qpos, atol=1e-9)
     if not pair.robot.fixed_base:
         assert len(touched - {pair.floor_geom}) >= 4  # more than the feet touched the floor
+
+
+def test_floor_stays_dynamic_when_a_geom_needs_other_mixing(tmp_path):
+    """A robot geom with a contact priority (its parameters win, not the mix): no pairs are
+    made and the floor keeps its contype/conaffinity, so contacts still happen."""
+    from sim.scene import SceneConfig
+
+    xml = tmp_path / "bot.xml"
+    xml.write_text("""<mujoco><worldbody><body name="base" pos="0 0 0.2"><freejoint/>
+      <geom name="trunk" type="box" size="0.05 0.05 0.05" mass="1"/>
+      <body name="leg" pos="0 0 -0.05"><joint name="j" axis="0 1 0" range="-1 1"/>
+        <geom name="shin" type="capsule" fromto="0 0 0 0 0 -0.1" size="0.02" priority="1" mass="0.2"/>
+      </body></body></worldbody>
+      <actuator><position name="j" joint="j" kp="5"/></actuator></mujoco>""")
+    sc = Scene(SceneConfig(robot=str(xml)))
+    assert sc.model.npair == 0 and sc.model.geom_contype[sc.floor_geom] == 1
+    sc.set_robot_pose(np.zeros(1), (0.0, 0.0, 0.3), (1.0, 0.0, 0.0, 0.0), ground=True)
+    mujoco.mj_step(sc.model, sc.data, 50)
+    assert sc.data.ncon > 0
