@@ -150,32 +150,29 @@ class Scene:
         to the world, not excluded). When a robot geom needs a rule not written here (a
         priority other than the floor's, direct solref, adhesion, surface velocity, a
         plugin) or has no name (a pair names its geoms), the floor stays dynamic."""
-        m = probe
-        floor = m.geom("floor").id
-        excluded = {frozenset((int(s_) >> 16, int(s_) & 0xFFFF)) for s_ in m.exclude_signature}
-        pairs = []
-        for g in range(m.ngeom):
-            b = int(m.geom_bodyid[g])
-            if g == floor or m.body_weldid[b] == 0 or frozenset((0, b)) in excluded:
-                continue
-            if not (m.geom_contype[g] & m.geom_conaffinity[floor] or m.geom_contype[floor] & m.geom_conaffinity[g]):
-                continue
-            if (m.geom_priority[g] != m.geom_priority[floor] or m.geom_solref[g, 0] <= 0 or m.geom_solref[floor, 0] <= 0
-                    or np.any(m.geom_adhesion[[g, floor]]) or np.any(m.geom_surfacevel[[g, floor]])
-                    or np.any(m.geom_plugin[[g, floor]] != -1) or not m.geom(g).name):
-                return
-            s1, s2 = m.geom_solmix[floor], m.geom_solmix[g]
-            mix = 0.5 if s1 + s2 < mujoco.mjMINVAL else s1 / (s1 + s2)
-            f = np.maximum(m.geom_friction[floor], m.geom_friction[g])
-            pairs.append(dict(geomname1="floor", geomname2=m.geom(g).name,
-                              condim=int(max(m.geom_condim[floor], m.geom_condim[g])),
-                              friction=[f[0], f[0], f[1], f[2], f[2]],
-                              solref=list(mix * m.geom_solref[floor] + (1 - mix) * m.geom_solref[g]),
-                              solimp=list(mix * m.geom_solimp[floor] + (1 - mix) * m.geom_solimp[g]),
-                              margin=float(max(m.geom_margin[floor], m.geom_margin[g])),
-                              gap=float(max(m.geom_gap[floor], m.geom_gap[g]))))
-        for p in pairs:
-            spec.add_pair(**p)
+        m, f = probe, probe.geom("floor").id
+        touches_world = {int(s_) & 0xFFFF for s_ in m.exclude_signature if int(s_) >> 16 == 0}
+        touches_world |= {int(s_) >> 16 for s_ in m.exclude_signature if int(s_) & 0xFFFF == 0}
+        g = np.flatnonzero((np.arange(m.ngeom) != f) & (m.body_weldid[m.geom_bodyid] != 0)
+                           & ((m.geom_contype & m.geom_conaffinity[f]) | (m.geom_contype[f] & m.geom_conaffinity) != 0)
+                           & ~np.isin(m.geom_bodyid, list(touches_world)))
+        both = np.append(g, f)
+        names = [m.geom(int(i)).name for i in g]
+        if (np.any(m.geom_priority[g] != m.geom_priority[f]) or np.any(m.geom_solref[both, 0] <= 0)
+                or np.any(m.geom_adhesion[both]) or np.any(m.geom_surfacevel[both])
+                or np.any(m.geom_plugin[both] != -1) or not all(names)):
+            return
+        s1, s2 = m.geom_solmix[f], m.geom_solmix[g]
+        mix = np.where(s1 + s2 < mujoco.mjMINVAL, 0.5, s1 / np.maximum(s1 + s2, mujoco.mjMINVAL))[:, None]
+        fr = np.maximum(m.geom_friction[f], m.geom_friction[g])
+        solref = mix * m.geom_solref[f] + (1 - mix) * m.geom_solref[g]
+        solimp = mix * m.geom_solimp[f] + (1 - mix) * m.geom_solimp[g]
+        condim = np.maximum(m.geom_condim[f], m.geom_condim[g])
+        margin, gap = np.maximum(m.geom_margin[f], m.geom_margin[g]), np.maximum(m.geom_gap[f], m.geom_gap[g])
+        for i, name in enumerate(names):
+            spec.add_pair(geomname1="floor", geomname2=name, condim=int(condim[i]),
+                          friction=[fr[i, 0], fr[i, 0], fr[i, 1], fr[i, 2], fr[i, 2]], solref=solref[i].tolist(),
+                          solimp=solimp[i].tolist(), margin=float(margin[i]), gap=float(gap[i]))
         floor_spec = spec.geom("floor")
         floor_spec.contype = floor_spec.conaffinity = 0
 
