@@ -51,6 +51,8 @@ Speed: IPOPT's own linear algebra (MUMPS on the KKT system, ~0.3 ms per frame an
 iteration) dominates. The adaptive barrier parameter is chosen by IPOPT's quality-function
 oracle (``mu_oracle``), not Mehrotra's probing: with the smooth sole rows that takes 17-19
 iterations per CMU window instead of 22 (with the segment-distance rows it does not help).
+MUMPS gets its workspace estimate + 100 % (``MUMPS_MEM_PERCENT``), not IPOPT's 1000 %, which made it
+allocate and touch 11x the estimate at every factorisation (page faults ~11 % of the time).
 See :func:`retarget.codegen.single_threaded_linear_algebra` for the thread setting. fatrop (the structure-exploiting solver shipped with CasADi) was tried on a
 stage-wise version of this problem and was slower (see bench/retarget_speed.py's docstring).
 """
