@@ -152,29 +152,24 @@ def single_threaded_linear_algebra() -> list[str]:
 
 
 def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = True,
-                    hess_lag: ca.Function | None = None) -> tuple[ca.Function, str]:
+                    hess_lag: ca.Function | None = None, jac_g: ca.Function | None = None) -> tuple[ca.Function, str]:
     """An IPOPT solver whose problem functions (objective, constraints, their gradient and
-    Jacobian, and the Lagrangian Hessian, or ``hess_lag`` when given) are compiled C loaded
-    from the cache, or the plain CasADi solver as fallback. Returns (solver, info)."""
+    Jacobian, and the Lagrangian Hessian, or ``hess_lag`` / ``jac_g`` when given: (x, p) →
+    (g, jac_g_x)) are compiled C loaded from the cache, or the plain CasADi solver as
+    fallback. Returns (solver, info)."""
     opts = dict(opts)
+    given = {k: fn for k, fn in (("hess_lag", hess_lag), ("jac_g", jac_g)) if fn is not None}
     if not enable:
-        if hess_lag is not None:
-            opts["hess_lag"] = hess_lag
-        return ca.nlpsol(name, "ipopt", nlp, opts), "not compiled (disabled)"
-    hess_info = ""
-    if hess_lag is not None:
-        compiled_hess, hess_info = compiled_function(hess_lag, f"{name}_{key}", enable=True)
-        opts["hess_lag"] = compiled_hess
-        if not hess_info.startswith("compiled"):
-            return ca.nlpsol(name, "ipopt", nlp, opts), hess_info
+        return ca.nlpsol(name, "ipopt", nlp, opts | given), "not compiled (disabled)"
+    for k, fn in given.items():  # each compiled on its own and handed to the solver loaded below
+        opts[k], fn_info = compiled_function(fn, f"{name}_{key}", enable=True)
+        if not fn_info.startswith("compiled"):
+            return ca.nlpsol(name, "ipopt", nlp, opts | given), fn_info
     sym = type(nlp["x"])
     graph = ca.Function("nlp_graph", [nlp["x"], nlp.get("p", sym(0, 1))], [nlp["f"], nlp.get("g", sym(0, 1))])
-    so_file = cache_dir() / f"{name}_{key}_{graph_hash(graph, *( [hess_lag] if hess_lag is not None else []))}.so"
+    so_file = cache_dir() / f"{name}_{key}_{graph_hash(graph, *given.values())}.so"
     if not so_file.exists():
-        gen_opts = dict(opts)
-        if hess_lag is not None:
-            gen_opts["hess_lag"] = hess_lag
-        solver = ca.nlpsol(name, "ipopt", nlp, gen_opts)
+        solver = ca.nlpsol(name, "ipopt", nlp, opts | given)
         with tempfile.TemporaryDirectory() as tmp:
             c_file = Path(tmp) / f"{name}_{key}.c"
             cwd = os.getcwd()
@@ -185,13 +180,13 @@ def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = T
                 os.chdir(cwd)
             err = _compile(c_file, so_file)
         if err:
-            return ca.nlpsol(name, "ipopt", nlp, opts), _fallback(err)
+            return ca.nlpsol(name, "ipopt", nlp, opts | given), _fallback(err)
     try:
         return ca.nlpsol(name, "ipopt", str(so_file), opts), f"compiled ({so_file})"
     except RuntimeError as exc:
         # the solver's options (an unknown or unavailable one) fail the same way uncompiled:
         # then the cached binary is fine and the error is the caller's; only a binary that
         # fails where the uncompiled problem loads is dropped from the cache
-        plain = ca.nlpsol(name, "ipopt", nlp, opts)
+        plain = ca.nlpsol(name, "ipopt", nlp, opts | given)
         so_file.unlink(missing_ok=True)
         return plain, _fallback(f"loading {so_file} failed ({str(exc).splitlines()[0]})")
