@@ -37,7 +37,11 @@ Per-frame quantities come from one CasADi function ``frame(x)`` mapped over the 
 structure depends only on the robot, the profile and W (contacts enter as constraint
 bounds, padding as f_t), so IPOPT's problem functions (objective, gradient, constraint
 Jacobian, Lagrangian Hessian) are compiled to C once per robot and cached on disk
-(:mod:`retarget.codegen`). Each window is warm-started from the streaming solver's output.
+(:mod:`retarget.codegen`). The constraint Jacobian and the Gauss-Newton Hessian 2 J_Rᵀ J_R are
+built by the chain rule, dg/dw = ∂g/∂Y · blockdiag_t(∂y_t/∂x_t) + ∂g/∂w with Y the per-frame
+outputs, from one SX frame Jacobian mapped over the window (CasADi's AD of the mapped graph
+took ~100 directional sweeps: 2-3x slower Jacobians). Each window is warm-started from the
+streaming solver's output.
 
 If IPOPT reports the window infeasible (limits and contacts cannot all hold at the clip's
 speed), :class:`RetargetError` says which frames and offers re-timing (``retime``: play the
