@@ -118,6 +118,8 @@ class LoopConfig:
                 raise BridgeError(f"loop config: {name} must be one of {STOP_POLICIES}, got {getattr(self, name)!r}")
         if not self.rate_hz > 0:
             raise BridgeError(f"loop config: rate_hz must be > 0, got {self.rate_hz}")
+        if not self.playback_margin >= 0:
+            raise BridgeError(f"loop config: playback_margin must be >= 0 s, got {self.playback_margin}")
         if not 0 < self.playback_quantile <= 1:
             raise BridgeError(f"loop config: playback_quantile must be in (0, 1], got {self.playback_quantile}")
         if not 0 <= self.realtime_priority <= 99:

@@ -299,7 +299,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         stack.callback(source.close)
         telemetry.event("session", actor=described, delay_frames=core.delay_frames,
                         frames_ahead=getattr(core, "frames_ahead", None), generator=_generator_info(opts, core),
-                        playback_margin_s=round(config.playback_margin, 4))
+                        playback_margin_s=round(config.playback_margin, 4), playback_quantile=config.playback_quantile)
         pipeline = PartnerPipeline(source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core)
         pipeline.start()
         stack.callback(pipeline.stop)

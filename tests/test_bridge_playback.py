@@ -119,3 +119,5 @@ def test_the_playback_quantile_is_checked_where_it_is_set():
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(BridgeError, match="playback_quantile"):
             LoopConfig(playback_quantile=bad)
+    with pytest.raises(BridgeError, match="playback_margin"):
+        LoopConfig(playback_margin=-0.01)

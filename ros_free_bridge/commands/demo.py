@@ -57,7 +57,7 @@ def click_track(beat_times: np.ndarray, seconds: float, path: Path, sr: int = 22
 
 def demo(args) -> int:
     from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
-    from ros_free_bridge.commands.run import StatusLine, print_summary, render_video
+    from ros_free_bridge.commands.run import StatusLine, generator_options, print_summary, render_video
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry import read_telemetry
     from sim.check import CheckConfig, check_trajectory
@@ -81,7 +81,7 @@ def demo(args) -> int:
 
     print(f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
           f"{'' if args.no_bus else ' + emulated Dynamixel bus'}", file=sys.stderr)
-    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator,
+    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, **generator_options(args),
                           transport="sim" if args.no_bus else "sim+dynamixel", emulate=not args.no_bus, out=out,
                           text=args.text, music=music)
     result = run_session(opts, on_status=StatusLine())

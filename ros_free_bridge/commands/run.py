@@ -10,6 +10,7 @@ terminal, q or the space bar does the same.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import threading
 import time
@@ -30,6 +31,40 @@ def add_generator_options(p) -> None:
                    help=f"frames per generation window (default {d.window}, the training clip length)")
     p.add_argument("--generator", choices=("process", "thread"), default=d.generator,
                    help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
+    p.add_argument("--playback-margin", type=_margin_ms, default=None, metavar="MS",
+                   help="reserve between a partner frame's arrival and its playback, on top of the spread of the "
+                        "frames' measured delays (default 20 ms). Less: lower latency, but the loop extrapolates "
+                        "more often and the commands get rougher (README: real time and latency)")
+    p.add_argument("--playback-quantile", type=_quantile, default=d.playback_quantile, metavar="Q",
+                   help=f"share of recent partner frames that must be in by their playback time (default "
+                        f"{d.playback_quantile}); lower: lower latency, more extrapolation")
+
+
+def _margin_ms(text: str) -> float:
+    """--playback-margin in ms -> seconds, >= 0."""
+    try:
+        ms = float(text)
+    except ValueError:
+        ms = float("nan")
+    if not ms >= 0:
+        raise argparse.ArgumentTypeError(f"must be a number of milliseconds >= 0, got {text!r}")
+    return ms / 1e3
+
+
+def _quantile(text: str) -> float:
+    try:
+        q = float(text)
+    except ValueError:
+        q = float("nan")
+    if not 0 < q <= 1:
+        raise argparse.ArgumentTypeError(f"must be a share in (0, 1], e.g. 0.9, got {text!r}")
+    return q
+
+
+def generator_options(args) -> dict:
+    """The SessionOptions fields set by :func:`add_generator_options`."""
+    return dict(model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator,
+                playback_margin=args.playback_margin, playback_quantile=args.playback_quantile)
 
 
 def register(sub) -> None:
@@ -163,7 +198,7 @@ def run(args) -> int:
 
     opts = SessionOptions(
         robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
-        model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator, transport=args.transport, port=args.port, emulate=args.emulate,
+        **generator_options(args), transport=args.transport, port=args.port, emulate=args.emulate,
         rate_hz=args.rate, realtime_priority=args.realtime_priority, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
     )

@@ -218,7 +218,7 @@ def _parse_ids(text: str) -> list[int]:
 
 
 def run_scan(args) -> int:
-    from firmware_cfg.servo_models import all_servo_models, load_servo_model
+    from firmware_cfg.servo_models import all_servo_models
     from ros_free_bridge.transports.dynamixel import DynamixelBus
 
     try:
