@@ -21,7 +21,8 @@ from ros_free_bridge.emulators import dynamixel_protocol as dp
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.transports.dynamixel import DynamixelTransport
 from test_dxl_codec import CapturePort, sdk_sync_write  # tests/ is on sys.path (pytest, prepend mode)
-from test_dxl_transport import XM, guarded_emulator, make, small_bus, wait_for
+import test_dxl_pipeline
+from test_dxl_transport import XM, make, wait_for
 
 IDS = list(range(1, 21))
 
@@ -163,15 +164,7 @@ def test_positions_from_ticks_equal_the_numpy_conversion():
     assert np.array_equal(fast, t._to_joint(ticks))  # bit for bit
 
 
-@pytest.fixture
-def emu4():
-    bus = small_bus(4)
-    emu = guarded_emulator(bus)
-    try:
-        yield bus, emu
-    finally:
-        assert emu.violations == [], "a goal outside the configured limits reached the bus"
-        emu.stop()
+emu4 = test_dxl_pipeline.bus_and_emu  # four emulated servos; no goal outside the limits reaches them
 
 
 def run_ticks(t, n: int, fast: bool):
