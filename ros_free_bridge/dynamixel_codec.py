@@ -302,7 +302,6 @@ class FastSyncReadDecoder:
         self.head = HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS))
         starts = 8 + np.arange(n) * (size + 4)
         self._part_ends = starts + 2 + size  # where each part's CRC starts
-        self._id_bytes = bytes(ids)
         # the whole reply in one unpack: (ERR, ID, value) per part, header and CRCs skipped
         self._unpack = struct.Struct("<8x" + ("BB" + INT_FORMAT[size, signed] + "2x") * n).unpack
 

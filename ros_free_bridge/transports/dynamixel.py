@@ -679,9 +679,7 @@ class DynamixelTransport:
             self._on_error()
             raise
         self.stats.cycles += 1
-        st = self._state
-        b = self._block.copy()
-        return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
+        return self._reading()
 
     def _read_arrived(self) -> JointState | None:
         """The split-phase cycle's common tick in one pass: the pending read's reply has fully
@@ -719,8 +717,7 @@ class DynamixelTransport:
             self._set_position(values)
         else:
             self._set_position(positions(values) if len(errors) > 1 else (positions(values),))
-        st = self._state
-        st.stamp = self._fast_sent
+        self._state.stamp = self._fast_sent
         self._alerted = _NONE
         if status is not None:
             try:
@@ -729,6 +726,12 @@ class DynamixelTransport:
                 self._on_error()
                 raise
         self.stats.cycles += 1
+        return self._reading()
+
+    def _reading(self) -> JointState:
+        """The state as the caller's own copy (one copy of the state block: position,
+        velocity, current, temperature, voltage rows)."""
+        st = self._state
         b = self._block.copy()
         return JointState(b[0], b[1], b[2], b[3], b[4], self._torque_on.copy(), st.stamp, dict(st.errors))
 
