@@ -286,7 +286,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
                         handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority)
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
         config.playback_margin = playback_margin(config.playback_margin, core)
-    # cubic (Catmull-Rom) interpolation: linear would jump in velocity at every 30 fps frame,
+    # cubic (Hermite, causal tangents) interpolation: linear would jump in velocity at every 30 fps frame,
     # which the safety filter's acceleration limit would then clip on every joint
     buffer = TargetBuffer(MOTION_FPS, interpolation="cubic", extrapolate=opts.extrapolate_frames)
     with ExitStack() as stack:

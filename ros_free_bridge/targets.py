@@ -44,7 +44,16 @@ class Sample:
 
 
 class TargetBuffer:
-    """Thread-safe ring of recent target frames (the producer pushes, the loop samples)."""
+    """Thread-safe ring of recent target frames (the producer pushes, the loop samples).
+
+    ``interpolation`` between frames k and k + 1: "linear", or "cubic": the cubic Hermite
+    segment through q_k and q_k+1 whose end tangents come from earlier frames only
+    (``_tangent``). The velocity is then continuous at every frame, and a segment needs
+    nothing after frame k + 1: the loop may play frame k as soon as k + 1 is there, and the
+    segment it plays never changes under it. (Catmull-Rom's central tangent at k + 1 needs
+    frame k + 2; while that has not arrived the segment must fall back to another curve
+    and switch, a jump in velocity each time.)
+    """
 
     def __init__(self, fps: float, capacity: int = 512, interpolation: str = "linear", extrapolate: float = 0.0):
         if interpolation not in ("linear", "cubic"):
@@ -53,8 +62,8 @@ class TargetBuffer:
             raise ValueError(f"extrapolate must be >= 0 frames, got {extrapolate!r}")
         self.fps = float(fps)
         self.interpolation = interpolation
-        #: frames past the newest one that ``sample`` continues it at the velocity of the last
-        #: two (q_n + s (q_n - q_{n-1}), s <= extrapolate), instead of holding q_n; the next
+        #: frames past the newest one that ``sample`` continues it along its tangent
+        #: (q_n + s m_n, s <= extrapolate; see ``_tangent``), instead of holding q_n; the next
         #: frame then takes over. Lets the loop play frame n as soon as it arrives, not one
         #: frame later (interpolating toward n + 1 needs n + 1).
         self.extrapolate = float(extrapolate)
@@ -92,6 +101,17 @@ class TargetBuffer:
         with self._lock:
             return self._frames[-1] if self._frames else None
 
+    def _tangent(self, frames: list[TargetFrame], i: int) -> np.ndarray:
+        """Velocity (per frame) at frames[i] from frames up to i only. Cubic: the slope at
+        frame i of the parabola through frames i - 2, i - 1, i, (3 q_i - 4 q_i-1 + q_i-2) / 2
+        (exact for constant acceleration), the backward difference while fewer frames are
+        there; linear: the backward difference (the slope of the segment that ends at i)."""
+        if i == 0:
+            return np.zeros_like(frames[0].q)
+        if self.interpolation == "cubic" and i >= 2:
+            return 1.5 * frames[i].q - 2.0 * frames[i - 1].q + 0.5 * frames[i - 2].q
+        return frames[i].q - frames[i - 1].q
+
     def sample(self, t: float) -> Sample:
         """Target at motion time ``t`` seconds (frame k is at k / fps)."""
         with self._lock:
@@ -103,7 +123,7 @@ class TargetBuffer:
         if pos >= last:
             over = pos - last
             if not self._closed and 0 < over <= self.extrapolate and len(frames) >= 2:
-                q = frames[-1].q + over * (frames[-1].q - frames[-2].q)
+                q = frames[-1].q + over * self._tangent(frames, len(frames) - 1)
                 return Sample(q, False, frames[-1], False, True)
             done = self._closed and pos >= last
             return Sample(frames[-1].q.copy(), not self._closed and pos > last, frames[-1], done)
@@ -111,11 +131,12 @@ class TargetBuffer:
         i = k - first
         w = pos - k
         a, b = frames[i], frames[i + 1]
-        if self.interpolation == "cubic" and 0 < i and i + 2 < len(frames):
-            p0, p1, p2, p3 = frames[i - 1].q, a.q, b.q, frames[i + 2].q
-            # Catmull-Rom: passes through every frame with continuous velocity
-            q = 0.5 * ((2 * p1) + (-p0 + p2) * w + (2 * p0 - 5 * p1 + 4 * p2 - p3) * w**2
-                       + (-p0 + 3 * p1 - 3 * p2 + p3) * w**3)
+        if self.interpolation == "cubic":
+            # cubic Hermite through q_k and q_k+1 with the causal tangents: the velocity is
+            # continuous at every frame, and this segment needs no frame after k + 1
+            d = b.q - a.q
+            m1, m2 = self._tangent(frames, i), self._tangent(frames, i + 1)
+            q = a.q + w * m1 + (w * w) * ((3.0 - 2.0 * w) * (d - m1) + (w - 1.0) * (m2 - m1))
         else:
             q = (1.0 - w) * a.q + w * b.q
         return Sample(q, False, a if w < 1.0 else b, False)

@@ -1,4 +1,4 @@
-"""The loop's playback clock (ros_free_bridge.playback) and the buffer's extrapolation."""
+"""The loop's playback clock (ros_free_bridge.playback) and the buffer's interpolation and extrapolation."""
 
 from __future__ import annotations
 
@@ -121,3 +121,50 @@ def test_the_playback_quantile_is_checked_where_it_is_set():
             LoopConfig(playback_quantile=bad)
     with pytest.raises(BridgeError, match="playback_margin"):
         LoopConfig(playback_margin=-0.01)
+
+
+def _filled(q, interpolation="cubic", extrapolate=0.0):
+    buf = TargetBuffer(FPS, interpolation=interpolation, extrapolate=extrapolate)
+    for k, row in enumerate(q):
+        buf.push(TargetFrame(k, np.asarray(row, float), 0.0))
+    return buf
+
+
+def test_cubic_interpolation_is_exact_for_constant_acceleration():
+    # the causal tangent (3 q_k - 4 q_k-1 + q_k-2) / 2 is exact on a parabola, and so is the
+    # Hermite segment built on it (a backward difference alone would bend the curve)
+    k = np.arange(8.0)
+    q = np.stack([0.02 * k**2 - 0.1 * k + 0.3, -0.05 * k**2 + 0.4 * k], axis=1)
+    buf = _filled(q)
+    for pos in np.linspace(2.0, 6.99, 40):
+        np.testing.assert_allclose(buf.sample(pos / FPS).q, [0.02 * pos**2 - 0.1 * pos + 0.3, -0.05 * pos**2 + 0.4 * pos],
+                                   atol=1e-12)
+
+
+def test_cubic_segments_never_change_when_later_frames_arrive_and_join_with_continuous_velocity():
+    rng = np.random.default_rng(3)
+    q = np.cumsum(np.cumsum(rng.normal(0.0, 0.01, (12, 3)), axis=0), axis=0)  # rough, like generated motion
+    full = _filled(q)
+    eps = 1e-6
+    for k in range(1, 10):
+        upto = _filled(q[: k + 2])  # frame k + 1 is the newest: segment [k, k + 1] is playable
+        for w in (0.0, 0.3, 0.7, 0.999):
+            np.testing.assert_allclose(upto.sample((k + w) / FPS).q, full.sample((k + w) / FPS).q, atol=1e-12)
+        # velocity into and out of frame k: one-sided differences agree
+        at = full.sample(k / FPS).q
+        np.testing.assert_allclose(at, q[k], atol=1e-12)
+        left = (at - full.sample((k - eps) / FPS).q) / eps
+        right = (full.sample((k + eps) / FPS).q - at) / eps
+        np.testing.assert_allclose(left, right, atol=1e-4)
+
+
+def test_extrapolation_continues_the_last_segment_along_its_end_tangent():
+    q = np.array([[0.0], [0.1], [0.3], [0.6]])  # accelerating: tangent at frame 3 is 1.5 * 0.6 - 2 * 0.3 + 0.5 * 0.1
+    buf = _filled(q, extrapolate=1.0)
+    s = buf.sample(3.5 / FPS)
+    assert s.extrapolated
+    np.testing.assert_allclose(s.q, [0.6 + 0.5 * 0.35])
+    eps = 1e-6  # no kink where the last segment ends and the extrapolation begins
+    left = (buf.sample(3.0 / FPS).q - buf.sample((3.0 - eps) / FPS).q) / eps
+    right = (buf.sample((3.0 + eps) / FPS).q - buf.sample(3.0 / FPS).q) / eps
+    np.testing.assert_allclose(left, right, atol=1e-4)
