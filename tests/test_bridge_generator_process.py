@@ -150,6 +150,8 @@ def test_the_process_pipeline_streams_every_frame_and_exits(tiny_checkpoint, lim
     assert gen.delay_frames == gen.ready_info["look_ahead"] + 3 - 1  # L + hop - 1 (predict_next)
     assert gen.ready_info["frames_ahead"] == gen.ready_info["look_ahead"]
     assert gen.ready_info["pid"] == gen.pid != os.getpid()
+    # the model's objects are out of the collector's way (a full pass over them: ~150 ms)
+    assert gen.ready_info["gc_frozen_objects"] > 10_000
     buf = TargetBuffer(30.0)
     tr, loop = _loop(limits, buf)
     leader = make_leader(1.5, 30.0, seed=2)
