@@ -5,7 +5,8 @@ One tick (default 100 Hz), never blocking on the slow stages:
 1. wait for the tick's absolute deadline (:class:`~ros_free_bridge.clock.FixedRateClock`);
 2. read the transport's state; check e-stop, watchdogs and servo health;
 3. pick the target: the start ramp, the interpolated stream from the
-   :class:`~ros_free_bridge.targets.TargetBuffer`, a hold, or the stop ramp;
+   :class:`~ros_free_bridge.targets.TargetBuffer` (a late frame's change to the curve
+   smoothed by :class:`~ros_free_bridge.targets.RevisionSmoother`), a hold, or the stop ramp;
 4. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
 5. record the tick in telemetry.
 
@@ -45,7 +46,7 @@ from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.playback import PlaybackClock
 from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
-from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.targets import RevisionSmoother, TargetBuffer
 from ros_free_bridge.telemetry import TelemetryWriter
 from ros_free_bridge.transports.base import STOP_POLICIES
 
@@ -96,6 +97,11 @@ class LoopConfig:
     #: adaptive: the share of recent frames that must have arrived by their play time (the
     #: rest is played as it comes, the buffer extrapolating meanwhile)
     playback_quantile: float = 0.9
+    #: ω (rad/s) of the critically damped offset that carries the command across a revision of
+    #: the target curve (a frame that came after the loop had extrapolated past its
+    #: predecessor: targets.RevisionSmoother); position and velocity stay continuous and the
+    #: command joins the new curve within a few 1 / ω. 0: sample the curve as it is
+    revision_smoothing: float = 15.0
     min_ramp: float = 1.0  #: shortest start / stop ramp
     max_duration: float | None = None  #: stop after this long streaming (None: until the stream ends)
     temperature_warn: float = 65.0  #: degrade (slow down) above this
@@ -122,6 +128,8 @@ class LoopConfig:
             raise BridgeError(f"loop config: playback_margin must be >= 0 s, got {self.playback_margin}")
         if not 0 < self.playback_quantile <= 1:
             raise BridgeError(f"loop config: playback_quantile must be in (0, 1], got {self.playback_quantile}")
+        if not 0 <= self.revision_smoothing < float("inf"):
+            raise BridgeError(f"loop config: revision_smoothing must be >= 0 rad/s (0: off), got {self.revision_smoothing}")
         if not 0 <= self.realtime_priority <= 99:
             raise BridgeError(f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
                               f"priority 1-99, got {self.realtime_priority} (CLI: --realtime-priority)")
@@ -251,6 +259,7 @@ class ControlLoop:
         self.state = State.RAMP_IN
         ramp = list(min_jerk(start, rest, min_jerk_duration(start, rest, self.limits, cfg.min_ramp), self.dt))
         playback = None  # the playback clock: frame k is played at t0 + k / fps (ros_free_bridge.playback)
+        curve = RevisionSmoother(self.targets, cfg.revision_smoothing)  # the buffer's curve, revisions smoothed
         last_new = time.monotonic()
         last_frame_index = -1
         stream_start = None
@@ -295,7 +304,7 @@ class ControlLoop:
                 newest = self.targets.newest()
                 if newest is not None:
                     playback.arrived(newest.index, now)
-                sample = self.targets.sample(playback.motion_time(now))
+                sample = curve.sample(playback.motion_time(now), now)
                 if self.targets.error is not None:
                     faults |= Fault.GENERATOR_ERROR
                     self._begin_stop(f"generator failed: {self.targets.error}")
@@ -322,6 +331,7 @@ class ControlLoop:
                         if self.state != State.HOLD:
                             self._event("hold", quiet_s=round(quiet, 3))
                         self.state = State.HOLD
+                        curve.reset()  # the command holds on its own: no offset to carry on resuming
                         faults |= Fault.ACTOR_TIMEOUT if quiet > cfg.actor_timeout else Fault.NONE
                     else:
                         if self.state == State.HOLD:

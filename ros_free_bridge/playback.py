@@ -13,8 +13,9 @@ t0 at the earliest value at which the recent frames were all on time:
 frame k is played, 0 when the buffer may extrapolate the newest frame for a frame
 (``TargetBuffer(extrapolate=1)``); ``margin``: reserve for arrival jitter; ``quantile`` q,
 default 0.9: the odd frame later than the rest (a busy CPU) does not hold the clock back for
-a whole window: it is played when it comes, the buffer's extrapolation covering up to one
-frame of it, and its latency counts as it is). t0 moves toward t0* at a bounded
+a whole window: it is played when it comes, the buffer's extrapolation covering for it
+meanwhile (``TargetBuffer.extrapolate``, its arrival smoothed by ``RevisionSmoother``), and
+its latency counts as it is). t0 moves toward t0* at a bounded
 rate: earlier (playing faster than real time, at most 1 + ``speed_up``) when frames arrive
 sooner than needed, later (slower, down to 1 - ``slow_down``) when they come late, so motion
 time never jumps or runs backwards. The latency then follows the generator's actual delay

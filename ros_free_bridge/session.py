@@ -21,9 +21,10 @@ bench/bridge_loop.py): L frames of look-ahead (the model's; 10 for the bundled o
 what the bridge adds, kept small by the defaults: every frame generated as soon as actor
 frame i + L is in (``hop`` 1, ``predict_next``: the newest feature row does not wait for the
 next frame), 2 Euler steps on incremental windows (only the new frame runs through the
-network, ``dualflow.incremental``), and a playback clock that follows the frames' measured
-arrival (``adaptive_playback``) with the newest frame continued for up to one frame while
-the next is on its way (``extrapolate_frames``). ``OLD_DEFAULTS`` in bench/bridge_loop.py
+network, ``dualflow.incremental``), and a playback clock that plays a frame by the median of
+the frames' measured arrival (``adaptive_playback``, ``playback_quantile``), the newest frame
+continued while the next is on its way (``extrapolate_frames``) and the curve's change when
+it comes smoothed into the commands (``revision_smoothing``). ``OLD_DEFAULTS`` in bench/bridge_loop.py
 are the settings before (5 steps every 5 frames on re-run 60-frame windows, clock fixed by
 the first frame).
 
@@ -50,6 +51,8 @@ TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
 PARTNERS = ("dualflow", "imitate")
 GENERATORS = ("process", "thread")
 MOTION_FPS = 30.0
+#: the adaptive playback clock's default reserve (s) on top of the measured arrival quantile
+ADAPTIVE_MARGIN = 0.005
 
 
 @dataclass
@@ -83,14 +86,19 @@ class SessionOptions:
     #: instead of staying where the first frame put it
     adaptive_playback: bool = True
     #: reserve (s) between a frame's arrival and its playback on top of what the adaptive clock
-    #: measured; None: 20 ms adaptive (jitter only), the loop's 50 ms fixed
+    #: measured; None: 5 ms adaptive, the loop's 50 ms fixed
     playback_margin: float | None = None
     #: the adaptive clock plays a frame when this share of the recent frames had arrived by then
-    playback_quantile: float = 0.9
-    #: the loop may continue the newest frame at its velocity for up to this many frames while
-    #: the next is on its way (then holds): frame k plays as soon as it arrives instead of when
-    #: k + 1 does (interpolation needs it); 0: hold
-    extrapolate_frames: float = 1.0
+    #: (the median: half the frames come after their play time and the loop extrapolates toward
+    #: them, the revisions smoothed by ``revision_smoothing``)
+    playback_quantile: float = 0.5
+    #: the loop may continue the newest frame for up to this many frames while the next is on
+    #: its way, its speed fading to zero (then holds): frame k plays as soon as it arrives instead
+    #: of when k + 1 does (interpolation needs it); 0: hold
+    extrapolate_frames: float = 3.0
+    #: ω (rad/s) of the offset that carries the command smoothly onto the curve when a late frame
+    #: changes it (LoopConfig.revision_smoothing); 0: off
+    revision_smoothing: float = 15.0
     transport: str = "sim"
     port: str | None = None
     emulate: bool = False
@@ -279,9 +287,9 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
                         adaptive_playback=opts.adaptive_playback,
                         playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
-                        playback_quantile=opts.playback_quantile,
+                        playback_quantile=opts.playback_quantile, revision_smoothing=opts.revision_smoothing,
                         **({} if opts.playback_margin is None and not opts.adaptive_playback else
-                           {"playback_margin": 0.02 if opts.playback_margin is None else opts.playback_margin}),
+                           {"playback_margin": ADAPTIVE_MARGIN if opts.playback_margin is None else opts.playback_margin}),
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority)
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
@@ -299,7 +307,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         stack.callback(source.close)
         telemetry.event("session", actor=described, delay_frames=core.delay_frames,
                         frames_ahead=getattr(core, "frames_ahead", None), generator=_generator_info(opts, core),
-                        playback_margin_s=round(config.playback_margin, 4), playback_quantile=config.playback_quantile)
+                        playback_margin_s=round(config.playback_margin, 4), playback_quantile=config.playback_quantile,
+                        extrapolate_frames=buffer.extrapolate, revision_smoothing=config.revision_smoothing)
         pipeline = PartnerPipeline(source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core)
         pipeline.start()
         stack.callback(pipeline.stop)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -62,10 +62,12 @@ class TargetBuffer:
             raise ValueError(f"extrapolate must be >= 0 frames, got {extrapolate!r}")
         self.fps = float(fps)
         self.interpolation = interpolation
-        #: frames past the newest one that ``sample`` continues it along its tangent
-        #: (q_n + s m_n, s <= extrapolate; see ``_tangent``), instead of holding q_n; the next
-        #: frame then takes over. Lets the loop play frame n as soon as it arrives, not one
-        #: frame later (interpolating toward n + 1 needs n + 1).
+        #: frames past the newest one over which ``sample`` continues it instead of holding
+        #: q_n: along its tangent m_n (``_tangent``) with the speed fading linearly to zero,
+        #: q_n + m_n (s - s² / 2E) for s <= E = ``extrapolate``, then held at q_n + m_n E / 2.
+        #: Lets the loop play frame n as soon as it arrives, not one frame later (interpolating
+        #: toward n + 1 needs n + 1); the fade makes a stalled stream come to rest without a jump
+        #: in position or velocity, and the next frame then takes over (:class:`RevisionSmoother`).
         self.extrapolate = float(extrapolate)
         self._frames: deque[TargetFrame] = deque(maxlen=capacity)
         self._lock = threading.Lock()
@@ -122,9 +124,11 @@ class TargetBuffer:
         pos = max(t * self.fps, first)  # before the first frame: hold the first frame
         if pos >= last:
             over = pos - last
-            if not self._closed and 0 < over <= self.extrapolate and len(frames) >= 2:
-                q = frames[-1].q + over * self._tangent(frames, len(frames) - 1)
-                return Sample(q, False, frames[-1], False, True)
+            if not self._closed and over > 0 and self.extrapolate > 0 and len(frames) >= 2:
+                s = min(over, self.extrapolate)
+                q = frames[-1].q + (s - s * s / (2.0 * self.extrapolate)) * self._tangent(frames, len(frames) - 1)
+                starved = over > self.extrapolate  # come to rest: held where the fade ended
+                return Sample(q, starved, frames[-1], False, not starved)
             done = self._closed and pos >= last
             return Sample(frames[-1].q.copy(), not self._closed and pos > last, frames[-1], done)
         k = int(np.floor(pos))
@@ -140,3 +144,66 @@ class TargetBuffer:
         else:
             q = (1.0 - w) * a.q + w * b.q
         return Sample(q, False, a if w < 1.0 else b, False)
+
+
+class RevisionSmoother:
+    """The buffer's curve as the loop plays it, with its revisions smoothed out.
+
+    The loop plays frame n as soon as it arrives and extrapolates past it (``TargetBuffer``'s
+    ``extrapolate``); when frame n + 1 then comes, the curve the loop was following changes
+    under it: at the time last played the new curve is elsewhere (position) and moves
+    otherwise (velocity). Sampling the new curve directly jumps by that difference, which
+    the safety filter's acceleration limit then spreads over the next ticks (bang-bang).
+    Instead the difference is carried as an offset e added to the curve, with the velocity
+    difference as its rate, and e decays as a critically damped second-order system,
+
+        ë = -2 ω ė - ω² e,   e(t) = (e0 + (ė0 + ω e0) t) exp(-ω t),
+
+    so the command's position and velocity are continuous across every revision and it joins
+    the new curve within a few 1 / ω (``omega`` rad/s; 0: off, the curve as it is).
+
+    ``sample(t, now)`` at motion time t (s) and monotonic ``now`` (s) returns the buffer's
+    :class:`Sample` with ``q`` = curve + offset. A revision is a new frame (or the stream's
+    end) since the last call; the curve is then re-sampled at the last two played times to
+    measure what changed. ``reset()`` forgets the offset (after the loop held or ramped
+    on its own).
+    """
+
+    def __init__(self, buffer: TargetBuffer, omega: float):
+        if not omega >= 0:
+            raise ValueError(f"omega must be >= 0 rad/s, got {omega!r}")
+        self.buffer = buffer
+        self.omega = float(omega)
+        self.reset()
+
+    def reset(self) -> None:
+        self.offset: np.ndarray | float = 0.0  #: e: command minus curve (rad)
+        self._rate: np.ndarray | float = 0.0  #: de/dt (rad/s)
+        self._played: list[tuple[float, np.ndarray]] = []  # (motion time, curve there), the last two
+        self._seen: tuple[int, bool] | None = None  # (newest index, closed) at the last call
+        self._now: float | None = None
+
+    def sample(self, t: float, now: float) -> Sample:
+        buf = self.buffer
+        s = buf.sample(t)
+        if s.q is None or self.omega == 0:
+            return s
+        newest = buf.newest()
+        seen = (newest.index if newest is not None else -1, buf.closed)
+        if self._seen is not None and seen != self._seen and len(self._played) == 2:
+            (t2, c2), (t1, c1) = self._played
+            n2, n1 = buf.sample(t2).q, buf.sample(t1).q
+            self.offset = self.offset + (c1 - n1)
+            if t1 > t2:
+                self._rate = self._rate + ((c1 - c2) - (n1 - n2)) / (t1 - t2)
+            self._played = [(t2, n2), (t1, n1)]
+        self._seen = seen
+        if self._now is not None:
+            dt = max(0.0, now - self._now)
+            w = self.omega
+            decay = np.exp(-w * dt)
+            a = self._rate + w * self.offset
+            self.offset, self._rate = (self.offset + a * dt) * decay, (self._rate - w * a * dt) * decay
+        self._now = now
+        self._played = (self._played + [(t, s.q)])[-2:]
+        return replace(s, q=s.q + self.offset)

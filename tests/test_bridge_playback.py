@@ -62,14 +62,17 @@ def _buffer(extrapolate):
     return buf
 
 
-def test_the_buffer_continues_the_newest_frames_velocity_for_at_most_extrapolate_frames():
-    buf = _buffer(1.0)
+def test_the_buffer_continues_the_newest_frame_with_its_speed_fading_over_extrapolate_frames():
+    buf = _buffer(2.0)  # velocity (0.1, -0.2) per frame; q_n + m (s - s^2 / 2E) for s <= E = 2
     s = buf.sample(3.5 / FPS)
     assert s.extrapolated and not s.starved and s.newest.index == 3
-    np.testing.assert_allclose(s.q, [0.35, -0.7])
-    s = buf.sample(4.5 / FPS)  # beyond one frame: hold the newest and say it is starved
+    np.testing.assert_allclose(s.q, np.array([0.3, -0.6]) + (0.5 - 0.25 / 4) * np.array([0.1, -0.2]))
+    eps = 1e-6  # the fade ends at rest: no jump in velocity where the hold begins
+    np.testing.assert_allclose((buf.sample((5.0 + eps) / FPS).q - buf.sample(5.0 / FPS).q) / eps, 0.0, atol=1e-9)
+    np.testing.assert_allclose((buf.sample(5.0 / FPS).q - buf.sample((5.0 - eps) / FPS).q) / eps, 0.0, atol=1e-5)
+    s = buf.sample(6.5 / FPS)  # beyond E: held where the fade ended (no jump back), and starved
     assert s.starved and not s.extrapolated
-    np.testing.assert_allclose(s.q, [0.3, -0.6])
+    np.testing.assert_allclose(s.q, [0.3 + 0.1, -0.6 - 0.2])
     buf.close()
     s = buf.sample(3.5 / FPS)  # the stream ended: never extrapolate past the last frame
     assert s.finished and not s.extrapolated
@@ -163,8 +166,63 @@ def test_extrapolation_continues_the_last_segment_along_its_end_tangent():
     buf = _filled(q, extrapolate=1.0)
     s = buf.sample(3.5 / FPS)
     assert s.extrapolated
-    np.testing.assert_allclose(s.q, [0.6 + 0.5 * 0.35])
+    np.testing.assert_allclose(s.q, [0.6 + (0.5 - 0.125) * 0.35])
     eps = 1e-6  # no kink where the last segment ends and the extrapolation begins
     left = (buf.sample(3.0 / FPS).q - buf.sample((3.0 - eps) / FPS).q) / eps
     right = (buf.sample((3.0 + eps) / FPS).q - buf.sample(3.0 / FPS).q) / eps
     np.testing.assert_allclose(left, right, atol=1e-4)
+
+def _late_frame_commands(omega, late=True):
+    """Commands at 100 Hz over a stream moving at 0.5 rad/s whose frame 11 stops it (q_11 = q_10):
+    ``late`` frame 11 comes at frame time 10.5, while the loop extrapolates frame 10 (E = 3),
+    else in time (before frame 10 plays). Motion time = wall time; returns (times, commands)."""
+    from ros_free_bridge.targets import RevisionSmoother
+
+    v = 0.5 / FPS  # rad per frame
+    q = [np.array([v * k]) for k in range(11)] + [np.array([v * 10])] + [np.array([v * 10])] * 20
+    buf = TargetBuffer(FPS, interpolation="cubic", extrapolate=3.0)
+    curve = RevisionSmoother(buf, omega)
+    times, out, pushed = np.arange(0.0, 1.0, 0.01), [], 0
+    for t in times:
+        due = t * FPS + (0.0 if late else 1.5)  # frames that have arrived by motion time t
+        while pushed < len(q) and pushed <= due + 1e-9:
+            buf.push(TargetFrame(pushed, q[pushed], 0.0))
+            pushed += 1
+        out.append(curve.sample(t, t).q[0])
+    return times, np.array(out)
+
+
+def test_a_late_frame_joins_the_command_to_the_new_curve_without_a_jump():
+    t, smooth = _late_frame_commands(15.0)
+    _, raw = _late_frame_commands(0.0)
+    _, ideal = _late_frame_commands(0.0, late=False)
+    vel = (lambda c: np.diff(c) / 0.01)
+    # without smoothing the late frame's curve replaces the extrapolated one at once: a step in
+    # velocity far beyond any in the curve itself; with it the velocity changes no more than the
+    # in-time curve's does
+    assert np.abs(np.diff(vel(raw))).max() > 3 * np.abs(np.diff(vel(ideal))).max()
+    assert np.abs(np.diff(vel(smooth))).max() <= 1.5 * np.abs(np.diff(vel(ideal))).max()
+    # and it then joins the curve: within 1 % of the extrapolation error after 0.5 s
+    err = np.abs(smooth - raw)
+    assert err.max() > 1e-3 and err[t > 0.35 + 0.5].max() < 0.01 * err.max()
+
+
+def test_without_revisions_the_smoother_is_the_curve_itself():
+    from ros_free_bridge.targets import RevisionSmoother
+
+    buf = _filled(np.array([[0.0], [0.1], [0.3], [0.6], [0.7]]), extrapolate=3.0)
+    curve = RevisionSmoother(buf, 15.0)
+    for t in np.arange(0.0, 6.0 / FPS, 0.01):
+        np.testing.assert_array_equal(curve.sample(t, t).q, buf.sample(t).q)
+    with pytest.raises(ValueError, match="omega"):
+        RevisionSmoother(buf, -1.0)
+
+
+def test_the_revision_smoothing_is_checked_where_it_is_set():
+    from ros_free_bridge.errors import BridgeError
+    from ros_free_bridge.loop import LoopConfig
+
+    assert LoopConfig(revision_smoothing=0.0).revision_smoothing == 0.0
+    for bad in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(BridgeError, match="revision_smoothing"):
+            LoopConfig(revision_smoothing=bad)

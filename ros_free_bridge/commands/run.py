@@ -17,7 +17,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from ros_free_bridge.session import MOTION_FPS, PARTNERS, TRANSPORTS, SessionOptions
+from ros_free_bridge.session import ADAPTIVE_MARGIN, MOTION_FPS, PARTNERS, TRANSPORTS, SessionOptions
 
 
 def add_generator_options(p) -> None:
@@ -32,12 +32,16 @@ def add_generator_options(p) -> None:
     p.add_argument("--generator", choices=("process", "thread"), default=d.generator,
                    help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
     p.add_argument("--playback-margin", type=_margin_ms, default=None, metavar="MS",
-                   help="reserve between a partner frame's arrival and its playback, on top of the spread of the "
-                        "frames' measured delays (default 20 ms). Less: lower latency, but the loop extrapolates "
-                        "more often and the commands get rougher (README: real time and latency)")
+                   help=f"reserve between a partner frame's arrival and its playback, on top of the frames' measured "
+                        f"delays (default {ADAPTIVE_MARGIN * 1e3:g} ms). More: the loop extrapolates less often and "
+                        f"follows the generated motion more closely, at a higher latency (README: real time and latency)")
     p.add_argument("--playback-quantile", type=_quantile, default=d.playback_quantile, metavar="Q",
                    help=f"share of recent partner frames that must be in by their playback time (default "
                         f"{d.playback_quantile}); lower: lower latency, more extrapolation")
+    p.add_argument("--smoothing", type=_omega, default=d.revision_smoothing, metavar="RAD_S",
+                   help=f"how fast the commands join the partner's curve when a late frame changes it (rad/s, default "
+                        f"{d.revision_smoothing:g}: within about {4 / d.revision_smoothing * 1e3:.0f} ms); higher: closer "
+                        f"to the curve, rougher; 0: no smoothing")
 
 
 def _margin_ms(text: str) -> float:
@@ -49,6 +53,17 @@ def _margin_ms(text: str) -> float:
     if not ms >= 0:
         raise argparse.ArgumentTypeError(f"must be a number of milliseconds >= 0, got {text!r}")
     return ms / 1e3
+
+
+def _omega(text: str) -> float:
+    """--smoothing in rad/s, >= 0."""
+    try:
+        w = float(text)
+    except ValueError:
+        w = float("nan")
+    if not 0 <= w < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a rate in rad/s >= 0 (0: off), e.g. 15, got {text!r}")
+    return w
 
 
 def _quantile(text: str) -> float:
@@ -64,7 +79,8 @@ def _quantile(text: str) -> float:
 def generator_options(args) -> dict:
     """The SessionOptions fields set by :func:`add_generator_options`."""
     return dict(model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator,
-                playback_margin=args.playback_margin, playback_quantile=args.playback_quantile)
+                playback_margin=args.playback_margin, playback_quantile=args.playback_quantile,
+                revision_smoothing=args.smoothing)
 
 
 def register(sub) -> None:
