@@ -10,6 +10,7 @@ the loop holds.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import deque
 from dataclasses import dataclass, replace
@@ -201,7 +202,7 @@ class RevisionSmoother:
         if self._now is not None:
             dt = max(0.0, now - self._now)
             w = self.omega
-            decay = np.exp(-w * dt)
+            decay = math.exp(-w * dt)
             a = self._rate + w * self.offset
             self.offset, self._rate = (self.offset + a * dt) * decay, (self._rate - w * a * dt) * decay
         self._now = now

@@ -44,36 +44,31 @@ def add_generator_options(p) -> None:
                         f"to the curve, rougher; 0: no smoothing")
 
 
+def _number(text: str, ok, expected: str) -> float:
+    """``text`` as a float for which ``ok`` holds (NaN never does), else one argparse error
+    saying what was ``expected``."""
+    try:
+        x = float(text)
+    except ValueError:
+        x = float("nan")
+    if not ok(x):
+        raise argparse.ArgumentTypeError(f"must be {expected}, got {text!r}")
+    return x
+
+
 def _margin_ms(text: str) -> float:
     """--playback-margin in ms -> seconds, >= 0."""
-    try:
-        ms = float(text)
-    except ValueError:
-        ms = float("nan")
-    if not ms >= 0:
-        raise argparse.ArgumentTypeError(f"must be a number of milliseconds >= 0, got {text!r}")
-    return ms / 1e3
+    return _number(text, lambda ms: ms >= 0, "a number of milliseconds >= 0") / 1e3
 
 
 def _omega(text: str) -> float:
-    """--smoothing in rad/s, >= 0."""
-    try:
-        w = float(text)
-    except ValueError:
-        w = float("nan")
-    if not 0 <= w < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a rate in rad/s >= 0 (0: off), e.g. 15, got {text!r}")
-    return w
+    """--smoothing in rad/s, >= 0 and finite."""
+    return _number(text, lambda w: 0 <= w < float("inf"), "a rate in rad/s >= 0 (0: off), e.g. 15")
 
 
 def _quantile(text: str) -> float:
-    try:
-        q = float(text)
-    except ValueError:
-        q = float("nan")
-    if not 0 < q <= 1:
-        raise argparse.ArgumentTypeError(f"must be a share in (0, 1], e.g. 0.9, got {text!r}")
-    return q
+    """--playback-quantile, a share in (0, 1]."""
+    return _number(text, lambda q: 0 < q <= 1, "a share in (0, 1], e.g. 0.9")
 
 
 def generator_options(args) -> dict:
