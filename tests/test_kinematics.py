@@ -110,6 +110,32 @@ def test_swing_maps_direction_without_twist():
     np.testing.assert_allclose(swing_rotation([1.0, 0, 0], [3.0, 0, 0]), np.eye(3), atol=1e-15)
 
 
+@pytest.mark.parametrize("gap", [0.5, 2e-3, 9e-4, 1e-7, 1e-13])
+def test_swing_matches_the_axis_angle_rotation_up_to_opposite_directions(gap):
+    """1 + a.b = gap: the outer-product form on one side of its 1e-3 switch, the angle form on
+    the other; both must be the rotation by angle(a, b) about a x b to full precision."""
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(20, 3))
+    a /= np.linalg.norm(a, axis=-1, keepdims=True)
+    perp = np.cross(a, rng.normal(size=(20, 3)))
+    perp /= np.linalg.norm(perp, axis=-1, keepdims=True)
+    angle = np.arccos(gap - 1.0)  # cos(angle) = gap - 1
+    b = np.cos(angle) * a + np.sin(angle) * perp
+    expected = Rotation.from_rotvec(np.cross(a, b) / np.sin(angle) * angle).as_matrix()
+    R = swing_rotation(a, 2.5 * b)
+    np.testing.assert_allclose(R, expected, atol=1e-12)
+    assert is_rotation_matrix(R, atol=1e-12).all()
+
+
+def test_ik_gives_a_zero_length_bone_the_identity():
+    pos = REST_POSE[None].copy()
+    elbow, wrist = joint_index("left_elbow"), joint_index("left_wrist")
+    pos[0, wrist] = pos[0, elbow]  # the forearm has no direction
+    _, rots = inverse_kinematics(pos)
+    assert np.isfinite(rots).all()
+    np.testing.assert_allclose(rots[0, elbow], np.eye(3), atol=1e-15)
+
+
 def test_align_vector_sets_recovers_a_rotation():
     R = random_rotations(8, 3)
     src = np.random.default_rng(3).normal(size=(8, 3, 3))

@@ -19,12 +19,13 @@ frame (e.g. the Y-up feature frame) pass the rest pose expressed in that frame.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from dualflow.errors import DualFlowError
-from dualflow.motion.rotations import align_vector_sets, swing_rotation
+from dualflow.motion.rotations import align_vector_sets, swing_between_units
 from dualflow.motion.skeleton import N_JOINTS, PARENTS, REST_POSE
 
 _PARENTS = np.asarray(PARENTS)
@@ -36,6 +37,10 @@ CHILDREN: tuple[tuple[int, ...], ...] = tuple(
 #: Joints without children (feet, head, wrists): positions do not determine
 #: their rotation, so inverse kinematics gives them the identity local rotation.
 LEAF_JOINTS: tuple[int, ...] = tuple(j for j in range(N_JOINTS) if not CHILDREN[j])
+#: A posed bone shorter than this (m) has no direction: its joint keeps the identity rotation.
+_MIN_BONE = 1e-9
+_I3 = np.eye(3)
+_I3.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -66,6 +71,27 @@ def _levels() -> tuple[_Level, ...]:
 
 
 _LEVELS = _levels()
+
+
+@dataclass(frozen=True)
+class _RestDirections:
+    """Unit rest-pose child directions of one rest pose, per :data:`_LEVELS` entry."""
+
+    single: tuple[np.ndarray, ...]  #: (k, 3) for each level's single-child joints
+    multi: dict  #: joint -> (children, 3) for the multi-child joints
+
+
+@functools.lru_cache(maxsize=8)
+def _rest_directions(rest_bytes: bytes) -> _RestDirections:
+    off = rest_offsets(np.frombuffer(rest_bytes).reshape(N_JOINTS, 3))
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    return _RestDirections(
+        single=tuple(unit(off[lv.single_kids]) for lv in _LEVELS),
+        multi={j: unit(off[list(CHILDREN[j])]) for lv in _LEVELS for j in lv.multi},
+    )
 
 
 def _check_rest(rest, what: str = "rest pose") -> np.ndarray:
@@ -202,24 +228,26 @@ def inverse_kinematics(positions, rest=REST_POSE) -> tuple[np.ndarray, np.ndarra
     rest pose's, and it is passed down the chain as a translation, not amplified.
     """
     positions = _check_positions(positions)
-    off = rest_offsets(rest)
+    dirs = _rest_directions(_check_rest(rest).tobytes())
     T = positions.shape[0]
-    identity = np.broadcast_to(np.eye(3), (T, 3, 3))
-    local = np.broadcast_to(np.eye(3), (T, N_JOINTS, 3, 3)).copy()
+    local = np.empty((T, N_JOINTS, 3, 3))
+    local[:] = _I3
     G = local.copy()
     # one tree depth at a time (a joint's rotation needs only its ancestors'): the
     # single-child joints of a depth in one batched swing, the two multi-child joints
     # (pelvis, spine3) on their own; the same equations as joint by joint
-    for level in _LEVELS:
+    for level, rest_dirs in zip(_LEVELS, dirs.single):
         for j in level.multi:
-            local[:, j] = _joint_rotation(positions, j, G[:, PARENTS[j]] if j else identity, off)
+            local[:, j] = _joint_rotation(positions, j, G[:, PARENTS[j]] if j else _I3, dirs.multi[j])
         if level.single.size:
-            parent_G = G[:, level.single_parents]  # (T, k, 3, 3)
             posed = positions[:, level.single_kids] - positions[:, level.single]  # (T, k, 3)
-            posed_in_parent = np.einsum("tkba,tkb->tka", parent_G, posed)
-            rest_dirs = off[level.single_kids]
-            rest_dirs = rest_dirs / np.linalg.norm(rest_dirs, axis=-1, keepdims=True)
-            local[:, level.single] = swing_rotation(rest_dirs, posed_in_parent)
+            # G_parent^T posed, as the row vector posed^T G_parent
+            posed_in_parent = (posed[..., None, :] @ G[:, level.single_parents])[..., 0, :]
+            length = np.sqrt(np.einsum("tki,tki->tk", posed_in_parent, posed_in_parent))[..., None]
+            posed_dirs = posed_in_parent / np.maximum(length, _MIN_BONE)
+            if (length < _MIN_BONE).any():  # a zero-length bone keeps the identity, as swing_rotation does
+                posed_dirs = np.where(length < _MIN_BONE, rest_dirs, posed_dirs)
+            local[:, level.single] = swing_between_units(rest_dirs, posed_dirs)
         if level.joints[0] == 0:
             G[:, 0] = local[:, 0]
         else:
@@ -236,14 +264,13 @@ def _check_positions(positions) -> np.ndarray:
     return positions
 
 
-def _joint_rotation(positions: np.ndarray, j: int, parent_G: np.ndarray, off: np.ndarray) -> np.ndarray:
+def _joint_rotation(positions: np.ndarray, j: int, parent_G: np.ndarray, rest_dirs: np.ndarray) -> np.ndarray:
     """Local rotation (T, 3, 3) of joint j with several children (pelvis, spine3) given its
-    parent's global rotation; single-child joints take the batched swing in :func:`inverse_kinematics`."""
-    kids = list(CHILDREN[j])
-    posed = positions[:, kids] - positions[:, j : j + 1]  # (T, k, 3) world
-    posed_in_parent = np.einsum("tba,tkb->tka", parent_G, posed)  # G_parent^T d
-    rest_dirs = off[kids] / np.linalg.norm(off[kids], axis=-1, keepdims=True)
-    lengths = np.linalg.norm(posed_in_parent, axis=-1, keepdims=True)  # (T, k, 1)
+    parent's global rotation and its children's unit rest directions (children, 3);
+    single-child joints take the batched swing in :func:`inverse_kinematics`."""
+    posed = positions[:, list(CHILDREN[j])] - positions[:, j : j + 1]  # (T, k, 3) world
+    posed_in_parent = posed @ parent_G  # rows d^T G_parent, i.e. G_parent^T d
+    lengths = np.sqrt(np.einsum("tki,tki->tk", posed_in_parent, posed_in_parent))[..., None]  # (T, k, 1)
     return align_vector_sets(rest_dirs[None] * lengths, posed_in_parent)
 
 
@@ -255,4 +282,5 @@ def root_orientation(positions, rest=REST_POSE) -> np.ndarray:
     """
     positions = _check_positions(positions)
     T = positions.shape[0]
-    return _joint_rotation(positions, 0, np.broadcast_to(np.eye(3), (T, 3, 3)), rest_offsets(rest))
+    return _joint_rotation(positions, 0, np.broadcast_to(np.eye(3), (T, 3, 3)),
+                           _rest_directions(_check_rest(rest).tobytes()).multi[0])

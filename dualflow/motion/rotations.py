@@ -34,6 +34,8 @@ from dualflow.errors import DualFlowError
 
 #: Norm below which a direction is treated as undefined (metres or unitless).
 _EPS = 1e-9
+_I3 = np.eye(3)
+_I3.flags.writeable = False
 
 
 def _as_array(x, last: tuple[int, ...], what: str) -> np.ndarray:
@@ -147,36 +149,59 @@ def swing_rotation(a, b) -> np.ndarray:
     """The minimal rotation taking direction ``a`` onto direction ``b``.
 
     a, b: (..., 3), any non-zero length (only directions matter), broadcast against each
-    other. Returns (..., 3, 3) ``R`` with ``R @ a/|a| = b/|b|`` and no twist about ``a``:
-    axis ``u = a^ x b^ / |a^ x b^|``, angle ``theta = atan2(|a^ x b^|, a^ . b^)`` (``^``: unit
-    vectors), by Rodrigues' formula ``R = cos(theta) I + sin(theta) [u]x + (1 - cos(theta)) u u^T``
-    in a few array operations (the IK calls it per tree depth on every frame). For opposite
-    directions the axis is :func:`any_perpendicular` of ``a`` (for parallel ones R = I
-    whatever the axis). A zero vector gives the identity.
+    other. Returns (..., 3, 3) ``R`` with ``R @ a/|a| = b/|b|`` and no twist about ``a``
+    (it turns about ``a x b``). A zero vector gives the identity; for opposite directions the
+    axis is :func:`any_perpendicular` of ``a``.
     """
     a = _as_array(a, (3,), "swing source direction")
     b = _as_array(b, (3,), "swing target direction")
     ua, na = _unit(a)
     ub, nb = _unit(b)
-    ua, ub = np.broadcast_arrays(ua, ub)
-    a0, a1, a2 = ua[..., 0], ua[..., 1], ua[..., 2]
-    b0, b1, b2 = ub[..., 0], ub[..., 1], ub[..., 2]
-    cross = np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-    sin = np.sqrt(np.einsum("...i,...i->...", cross, cross))
-    cos = a0 * b0 + a1 * b1 + a2 * b2
-    angle = np.arctan2(sin, cos)
+    R = swing_between_units(ua, ub)
+    zero = (na < _EPS) | (nb < _EPS)
+    if zero.any():
+        R = np.where(np.broadcast_to(zero, R.shape[:-2])[..., None, None], np.eye(3), R)
+    return R
+
+
+def swing_between_units(ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """:func:`swing_rotation` of unit vectors ``ua``, ``ub`` (..., 3), broadcast, unchecked.
+
+    With ``c = a . b`` and ``v = a x b``, Rodrigues' formula ``R = c I + [v]x + v v^T / (1 + c)``
+    needs no angle; writing ``[v]x = b a^T - a b^T`` and
+    ``v v^T = (1 - c^2) I - a a^T - b b^T + c (a b^T + b a^T)`` makes it a few outer products:
+
+        R = I + b a^T - a b^T + (c (a b^T + b a^T) - a a^T - b b^T) / (1 + c)
+
+    (the inverse kinematics calls this per tree depth for every frame, where array calls,
+    not arithmetic, are the cost). Within ~2.6 degrees of opposite (``1 + c < 1e-3``) the
+    division loses digits, and those rows take the angle form instead.
+    """
+    c = np.einsum("...i,...i->...", ua, ub)
+    ab = ua[..., :, None] * ub[..., None, :]
+    ba = np.swapaxes(ab, -1, -2)
+    near = (c + 1.0) < 1e-3
+    quad = (c[..., None, None] * (ab + ba) - ua[..., :, None] * ua[..., None, :] - ub[..., :, None] * ub[..., None, :])
+    R = _I3 + ba - ab + quad / np.where(near, 1.0, 1.0 + c)[..., None, None]
+    if near.any():
+        ua, ub = np.broadcast_arrays(ua, ub)
+        R[near] = _swing_by_angle(ua[near], ub[near])
+    return R
+
+
+def _swing_by_angle(ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Unit (n, 3) -> (n, 3, 3) by the axis-angle form of Rodrigues' formula: axis
+    ``u = a x b / |a x b|`` (:func:`any_perpendicular` of ``a`` when the directions are
+    opposite), angle ``atan2(|a x b|, a . b)``; exact also next to opposite directions."""
+    cross = np.cross(ua, ub)
+    sin = np.linalg.norm(cross, axis=-1)
+    cos = np.einsum("...i,...i->...", ua, ub)
     axis = cross / np.maximum(sin, 1e-300)[..., None]
     flip = (sin <= 1e-12) & (cos < 0.0)
     if flip.any():
         axis = np.where(flip[..., None], any_perpendicular(ua), axis)
-    angle = np.where((na < _EPS) | (nb < _EPS), 0.0, angle)
-    s, c = np.sin(angle), np.cos(angle)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    K = np.zeros(axis.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -z, y, -x
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = z, -y, x
-    return (c[..., None, None] * np.eye(3) + s[..., None, None] * K
-            + (1.0 - c)[..., None, None] * (axis[..., :, None] * axis[..., None, :]))
+    angle = np.arctan2(sin, cos)
+    return rotvec_to_matrix(axis * angle[..., None])
 
 
 def align_vector_sets(src, dst, weights=None) -> np.ndarray:
