@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout, installed or not
+
 ARM_JOINTS = [18, 19, 20, 21]  # SMPL-22 elbows and wrists
 
 
