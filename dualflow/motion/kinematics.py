@@ -86,7 +86,9 @@ def _rest_directions(rest_bytes: bytes) -> _RestDirections:
     off = rest_offsets(np.frombuffer(rest_bytes).reshape(N_JOINTS, 3))
 
     def unit(v):
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+        u = v / np.linalg.norm(v, axis=-1, keepdims=True)
+        u.flags.writeable = False  # shared by every later call with this rest pose
+        return u
 
     return _RestDirections(
         single=tuple(unit(off[lv.single_kids]) for lv in _LEVELS),
