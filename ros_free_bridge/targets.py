@@ -42,6 +42,9 @@ class Sample:
     newest: TargetFrame | None  #: the newest frame at or before the sampled time
     finished: bool  #: the producer said no more frames will come and all were played
     extrapolated: bool = False  #: q continues the newest frames' velocity past the newest frame
+    #: (newest frame index, stream closed) of the buffer state this sample was taken from: it
+    #: changes exactly when the curve may have (a frame arrived, or the stream ended)
+    revision: tuple[int, bool] = (-1, False)
 
 
 class TargetBuffer:
@@ -117,21 +120,22 @@ class TargetBuffer:
 
     def sample(self, t: float) -> Sample:
         """Target at motion time ``t`` seconds (frame k is at k / fps)."""
-        with self._lock:
+        with self._lock:  # one consistent state: another thread may push or close meanwhile
             frames = list(self._frames)
+            closed = self._closed
         if not frames:
-            return Sample(None, True, None, self._closed)
+            return Sample(None, True, None, closed, revision=(-1, closed))
         first, last = frames[0].index, frames[-1].index
+        revision = (last, closed)
         pos = max(t * self.fps, first)  # before the first frame: hold the first frame
         if pos >= last:
             over = pos - last
-            if not self._closed and over > 0 and self.extrapolate > 0 and len(frames) >= 2:
+            if not closed and over > 0 and self.extrapolate > 0 and len(frames) >= 2:
                 s = min(over, self.extrapolate)
                 q = frames[-1].q + (s - s * s / (2.0 * self.extrapolate)) * self._tangent(frames, len(frames) - 1)
                 starved = over > self.extrapolate  # come to rest: held where the fade ended
-                return Sample(q, starved, frames[-1], False, not starved)
-            done = self._closed and pos >= last
-            return Sample(frames[-1].q.copy(), not self._closed and pos > last, frames[-1], done)
+                return Sample(q, starved, frames[-1], False, not starved, revision)
+            return Sample(frames[-1].q.copy(), not closed and pos > last, frames[-1], closed, revision=revision)
         k = int(np.floor(pos))
         i = k - first
         w = pos - k
@@ -144,7 +148,7 @@ class TargetBuffer:
             q = a.q + w * m1 + (w * w) * ((3.0 - 2.0 * w) * (d - m1) + (w - 1.0) * (m2 - m1))
         else:
             q = (1.0 - w) * a.q + w * b.q
-        return Sample(q, False, a if w < 1.0 else b, False)
+        return Sample(q, False, a if w < 1.0 else b, False, revision=revision)
 
 
 class RevisionSmoother:
@@ -189,8 +193,7 @@ class RevisionSmoother:
         s = buf.sample(t)
         if s.q is None or self.omega == 0:
             return s
-        newest = buf.newest()
-        seen = (newest.index if newest is not None else -1, buf.closed)
+        seen = s.revision  # the state s came from (reading the buffer again could see a newer one)
         if self._seen is not None and seen != self._seen and len(self._played) == 2:
             (t2, c2), (t1, c1) = self._played
             n2, n1 = buf.sample(t2).q, buf.sample(t1).q

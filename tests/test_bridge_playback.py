@@ -172,24 +172,60 @@ def test_extrapolation_continues_the_last_segment_along_its_end_tangent():
     right = (buf.sample((3.0 + eps) / FPS).q - buf.sample(3.0 / FPS).q) / eps
     np.testing.assert_allclose(left, right, atol=1e-4)
 
-def _late_frame_commands(omega, late=True):
+class _PushDuringSample(TargetBuffer):
+    """A buffer whose producer thread pushes ``pending`` frames just after a ``sample`` call
+    took its state, before the caller's next look at the buffer (the race of two threads)."""
+
+    pending: list = []
+
+    def sample(self, t):
+        s = super().sample(t)
+        pushing, self.pending = self.pending, []
+        for frame in pushing:
+            self.push(frame)
+        return s
+
+
+def _late_frame_commands(omega, late=True, arrival="before"):
     """Commands at 100 Hz over a stream moving at 0.5 rad/s whose frame 11 stops it (q_11 = q_10):
     ``late`` frame 11 comes at frame time 10.5, while the loop extrapolates frame 10 (E = 3),
-    else in time (before frame 10 plays). Motion time = wall time; returns (times, commands)."""
+    else in time (before frame 10 plays). Motion time = wall time; returns (times, commands).
+    ``arrival``: a tick's new frames are pushed "before" its sample, "during" it (after the
+    buffer's state was read) or "after" it."""
     from ros_free_bridge.targets import RevisionSmoother
 
     v = 0.5 / FPS  # rad per frame
     q = [np.array([v * k]) for k in range(11)] + [np.array([v * 10])] + [np.array([v * 10])] * 20
-    buf = TargetBuffer(FPS, interpolation="cubic", extrapolate=3.0)
+    buf = _PushDuringSample(FPS, interpolation="cubic", extrapolate=3.0)
     curve = RevisionSmoother(buf, omega)
     times, out, pushed = np.arange(0.0, 1.0, 0.01), [], 0
     for t in times:
         due = t * FPS + (0.0 if late else 1.5)  # frames that have arrived by motion time t
+        new = []
         while pushed < len(q) and pushed <= due + 1e-9:
-            buf.push(TargetFrame(pushed, q[pushed], 0.0))
+            new.append(TargetFrame(pushed, q[pushed], 0.0))
             pushed += 1
+        if arrival == "before" or pushed == len(new):  # the first frames start the stream
+            for frame in new:
+                buf.push(frame)
+        elif arrival == "during":
+            buf.pending = new
         out.append(curve.sample(t, t).q[0])
+        if arrival == "after" and pushed != len(new):
+            for frame in new:
+                buf.push(frame)
     return times, np.array(out)
+
+
+def test_a_frame_pushed_while_the_smoother_samples_counts_as_the_next_ticks_revision():
+    # the producer thread may push between the buffer's read and anything the smoother reads
+    # after it: the revision must then be noticed on the next tick, exactly as if the frame had
+    # come after this tick, not lost (which would jump the command by the whole revision)
+    _, during = _late_frame_commands(15.0, arrival="during")
+    _, after = _late_frame_commands(15.0, arrival="after")
+    _, before = _late_frame_commands(15.0)
+    np.testing.assert_array_equal(during, after)
+    assert np.abs(after - before).max() > 1e-4  # the arrival tick matters, so the test can tell
 
 
 def test_a_late_frame_joins_the_command_to_the_new_curve_without_a_jump():
