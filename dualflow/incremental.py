@@ -55,7 +55,10 @@ arithmetic in fewer operations (equal to the full forward up to float rounding):
   weights (convolutions, self-attention projections, feed-forward) run once over both row
   sets stacked; the attention and the modulated norms stay per stream. The actor stream of
   a block is computed before the reactor's motion cross-attention reads its keys, so this
-  equals a separate ``sync_actor`` followed by ``reactor_rows``.
+  equals a separate ``sync_actor`` followed by ``reactor_rows``;
+* in idle time before a frame (``WindowCache.prefetch``), the convolutions' products over the
+  frames before the next rows are made: the frame's pass then multiplies only the newest one
+  or two taps of each kernel (about a fifth of a block's weights were the rest of the taps).
 
 Limits: Euler steps, ``cfg_scale`` 1 (one conditional pass), trajectory context, no
 per-window canonical frames (``ReactiveStreamer`` checks and says so).
@@ -77,9 +80,15 @@ class _StreamCache:
         self.k: list[torch.Tensor | None] = [None] * n_blocks  # (1, H, N, dh) self-attention
         self.v: list[torch.Tensor | None] = [None] * n_blocks
         self.n = 0  # frames cached
+        #: per block: (b, P) the convolutions' products over the frames before b for rows
+        #: b, b + 1, ... (``WindowCache.prefetch``), or None
+        self.pre: list[tuple[int, torch.Tensor] | None] = [None] * n_blocks
+        self.pre_base: int | None = None  # the b of every block's entry, None when there is none
 
     def truncate(self, n: int) -> None:
         """Forget frames >= n (positions relative to the window start)."""
+        if self.pre_base is not None and self.pre_base > n:  # it summed frames that are gone
+            self.pre, self.pre_base = [None] * len(self.pre), None
         if n >= self.n:
             return
         for j in range(len(self.z_in)):
@@ -99,6 +108,15 @@ def _heads(x: torch.Tensor, n_heads: int) -> torch.Tensor:
 def _stack(parts: list[torch.Tensor], dim: int) -> torch.Tensor:
     """torch.cat, without a copy for a single part."""
     return parts[0] if len(parts) == 1 else torch.cat(parts, dim)
+
+
+def _taps(hist: torch.Tensor, n: int, k: int) -> torch.Tensor:
+    """The last k frames up to each of the last n rows of ``hist`` (m, W), m <= n + k - 1, one
+    row each, tap-major: (n, k * W), row r = hist rows r - k + 1 .. r of the window ending at
+    the last one. Rows before the start of ``hist`` are zeros."""
+    if hist.shape[0] < n + k - 1:
+        hist = F.pad(hist, (0, 0, n + k - 1 - hist.shape[0], 0))
+    return hist.reshape(1, -1) if n == 1 else hist.unfold(0, k, 1).transpose(1, 2).reshape(n, -1)
 
 
 def _kv(attn, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -159,6 +177,27 @@ class IncrementalModel:
             self.ffn.append((net[0].weight.detach(), net[0].bias.detach(), net[3].weight.detach(), net[3].bias.detach()))
             self.conv.append([(int(k), c.weight.detach().permute(0, 2, 1).reshape(c.weight.shape[0], -1).contiguous(),
                                c.bias.detach()) for c, k in zip(block.conv.convs, block.conv.kernels)])
+        self._last_taps: dict[tuple[int, int], torch.Tensor] = {}
+
+    def conv_products(self, j: int, windows: torch.Tensor) -> torch.Tensor:
+        """Block j's convolutions before their GELU, (n, K * W) for K kernels, of rows of the
+        last ``kmax`` frames (n, kmax * W) tap-major: y_k(p) = b_k + sum_{d < k} W_k[:, :, d]
+        z(p - k + 1 + d), the kernels side by side."""
+        width = self.width
+        return torch.cat([F.linear(windows[:, (self.kmax - k) * width:], w, b) for k, w, b in self.conv[j]], 1)
+
+    def last_taps(self, j: int, m: int) -> torch.Tensor:
+        """Block j's convolution weights of their last m taps, every kernel side by side, as the
+        right factor of a product with rows of the last m frames: (m * W, K * W) (a kernel
+        shorter than m padded with zeros in front)."""
+        key = (j, m)
+        if key not in self._last_taps:
+            width, parts = self.width, []
+            for k, w, _ in self.conv[j]:
+                taps = w[:, max(0, k - m) * width:]
+                parts.append(F.pad(taps, ((m - min(k, m)) * width, 0)))
+            self._last_taps[key] = torch.cat(parts, 0).t().contiguous()
+        return self._last_taps[key]
 
 
 def _ada(norm, z_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -237,6 +276,41 @@ class WindowCache:
         if lo < stop:
             self._actor_rows(actor[lo:stop][None])
 
+    # -- idle-time work ---------------------------------------------------------------------
+    def _prefetch_bases(self) -> list[tuple[_StreamCache, int]]:
+        """(stream, b): the actor stream from its newest row (the next pass may revise it, as
+        the streamer's predicted last feature row is), each grid step's reactor stream from
+        its next row."""
+        return [(self.actor, max(0, self.actor.n - 1))] + [(c, c.n) for c in self.reactor]
+
+    def prefetch_due(self) -> bool:
+        """Whether ``prefetch`` has work: a stream moved on since its last one."""
+        return any(cache.pre_base != b for cache, b in self._prefetch_bases())
+
+    @torch.no_grad()
+    def prefetch(self, rows: int = 2) -> None:
+        """Idle-time share of the next pass's convolutions. A convolution output row p sums
+        W_k[:, :, d] z(p - k + 1 + d) over up to k_max = 21 past block inputs; all but the
+        newest are known before the pass. Per stream (``_prefetch_bases``: from its row b) and
+        block this keeps the sums over frames before b for rows b .. b + rows - 1, biases
+        included; a pass whose new rows fall in that range then multiplies only the taps over
+        frames b .. p (``IncrementalModel.last_taps``: one or two taps instead of 7 + 11 + 21)
+        and adds these sums. The same arithmetic, a few times fewer weights read while a
+        frame waits; a stream truncated before b (a revision) drops its sums."""
+        kmax, width = self.inc.kmax, self.inc.width
+        streams = self._prefetch_bases()
+        for j in range(self.n_blocks):
+            wins = []
+            for cache, b in streams:
+                z_in = cache.z_in[j]
+                hist = z_in[0, max(0, b - kmax + 1):b] if z_in is not None else self.pe.new_zeros(0, width)
+                wins.append(_taps(F.pad(hist, (0, 0, 0, rows)), rows, kmax))  # frames >= b as zeros
+            sums = self.inc.conv_products(j, torch.cat(wins, 0)).split(rows, 0)
+            for (cache, b), part in zip(streams, sums):
+                cache.pre[j] = (b, part)
+        for cache, b in streams:
+            cache.pre_base = b
+
     # -- network passes --------------------------------------------------------------------
     @staticmethod
     def _norm(block, i: int, z: torch.Tensor, mod) -> torch.Tensor:
@@ -254,20 +328,28 @@ class WindowCache:
         itself and the modulated norms stay per stream."""
         block = self.model.blocks[j]
         kmax, width = self.inc.kmax, self.inc.width
-        wins, sizes = [], []
+        rows, sizes = [], []  # per stream: (first new row p0, z_all (1, p0 + n, W), prefetched (b, P))
         for cache, z, _ in streams:
             p0, n = cache.n, z.shape[1]
             z_all = z if cache.z_in[j] is None else torch.cat([cache.z_in[j], z], 1)
             cache.z_in[j] = z_all
-            hist = z_all[0, max(0, p0 - kmax + 1):]  # (m, W)
-            if hist.shape[0] < n + kmax - 1:
-                hist = F.pad(hist, (0, 0, n + kmax - 1 - hist.shape[0], 0))
-            # (n, kmax * W) tap-major: row r = z(p0 + r - kmax + 1), ..., z(p0 + r) one after the other
-            wins.append(hist.reshape(1, -1) if n == 1 else hist.unfold(0, kmax, 1).transpose(1, 2).reshape(n, -1))
+            pre = cache.pre[j]
+            if pre is not None and not (pre[0] <= p0 and p0 + n <= pre[0] + pre[1].shape[0]):
+                pre = None  # prefetched for other rows
+            rows.append((p0, z_all, pre))
             sizes.append(n)
-        windows = _stack(wins, 0)
-        # kernel k reads the last k taps: y_k(p) = sum_{d < k} W_k[:, :, d] z(p - k + 1 + d)
-        y = F.gelu(torch.cat([F.linear(windows[:, (kmax - k) * width:], w, b) for k, w, b in self.inc.conv[j]], 1))
+        if all(pre is not None for *_, pre in rows):
+            # the products over the frames before b were made in idle time (``prefetch``): only
+            # the taps over frames b .. p0 + n - 1 are left, for every stream in one product
+            m = max(p0 + n - pre[0] for (p0, _, pre), n in zip(rows, sizes))
+            windows = _stack([_taps(z_all[0, pre[0]:p0 + n], n, m) for (p0, z_all, pre), n in zip(rows, sizes)], 0)
+            before = _stack([pre[1][p0 - pre[0]:p0 - pre[0] + n] for (p0, _, pre), n in zip(rows, sizes)], 0)
+            y = F.gelu(torch.addmm(before, windows, self.inc.last_taps(j, m)))
+        else:
+            # (n, kmax * W) tap-major: row r = z(p0 + r - kmax + 1), ..., z(p0 + r) one after the other
+            windows = _stack([_taps(z_all[0, max(0, p0 - kmax + 1):], n, kmax)
+                              for (p0, z_all, _), n in zip(rows, sizes)], 0)
+            y = F.gelu(self.inc.conv_products(j, windows))
         gates = block.conv.gates
         conv = (y.view(y.shape[0], len(gates), -1) * gates[:, None]).sum(1)[None].split(sizes, 1)
         zs = [z + c for (_, z, _), c in zip(streams, conv)]

@@ -164,7 +164,9 @@ class StreamConfig:
     new frames (``dualflow.incremental``; same model, each frame computed once per step and
     start instead of once per step and window; Euler, cfg_scale 1, trajectory context only).
     bases: how many staggered window starts it keeps (context P - P / bases .. P - 1 frames,
-    P = window - L; cost proportional to bases).
+    P = window - L; cost proportional to bases). prefetch: in idle time (``prepare``), make
+    the part of the next pass's convolutions that reads only older frames, so that a frame
+    waits for fewer products (``WindowCache.prefetch``; the same results to float rounding).
     """
 
     window: int = 60
@@ -180,6 +182,7 @@ class StreamConfig:
     seed: int = 0
     incremental: bool = False
     bases: int = 2
+    prefetch: bool = True
 
 
 @dataclass
@@ -482,9 +485,14 @@ class ReactiveStreamer:
         """Incremental mode: do up to ``max_passes`` network passes of catch-up work now (the
         other window starts' actor rows and emitted frames, in batches), so that a window has
         only its own passes to do. For idle time (e.g. waiting for the next actor frame).
-        Returns whether more catch-up work is due."""
+        Returns whether more catch-up work is due.
+
+        First, and again after the passes, the window start that generates next gets its
+        share of the next pass's convolutions made (``WindowCache.prefetch``: a fraction of a
+        pass, not counted in ``max_passes``), so that a frame waits for fewer products."""
         if not self.config.incremental:
             return False
+        self._prefetch()
         done = 0
         if self._start_due():
             self._add_start()  # its frames are fed below, in batches
@@ -492,7 +500,26 @@ class ReactiveStreamer:
         for base, batch in self._due():
             while done < max_passes and self._feed(base, batch):
                 done += 1
+        self._prefetch()
         return self.has_catch_up
+
+    def _next_generator(self):
+        """The cached window start that will generate the next frames (None: none can yet)."""
+        n_done = self._emitted.shape[0]
+        return next((b for b in self._bases if b.can_generate(n_done + self.config.hop - 1)), None)
+
+    def _prefetch_target(self):
+        """The window start whose ``prefetch`` is due: the next generator, once it has been
+        fed every frame it lacks (a feed moves its streams on), else None."""
+        gen = self._next_generator() if self.config.prefetch else None
+        if gen is None or not gen.prefetch_due() or any(b is gen for b, _ in self._due()):
+            return None
+        return gen
+
+    def _prefetch(self) -> None:
+        gen = self._prefetch_target()
+        if gen is not None:
+            gen.prefetch(rows=self.config.hop + 1)
 
     def _start_due(self) -> bool:
         """Whether the next window start should be made now: its first frame is at most
@@ -519,8 +546,9 @@ class ReactiveStreamer:
 
     @property
     def has_catch_up(self) -> bool:
-        """Incremental mode: whether ``prepare`` has work due (a cached start lags the stream)."""
-        return bool(self._due())
+        """Incremental mode: whether ``prepare`` has work due (a cached start lags the stream,
+        or the next generator's ``prefetch`` is due)."""
+        return bool(self._due()) or self._prefetch_target() is not None
 
     @torch.no_grad()
     def _generate(self, first_new: int, upto: int) -> torch.Tensor:

@@ -233,3 +233,72 @@ def test_a_music_track_shorter_than_the_stream_is_one_clear_error(model, increme
         for row in _actor(40):
             s.push(row)
     assert s.emitted.shape[0] <= 20
+
+
+def _count_prefetched_passes(monkeypatch) -> list[int]:
+    """Record m of every block pass that used the prefetched convolution sums (m: taps left)."""
+    used = []
+    orig = IncrementalModel.last_taps
+
+    def last_taps(self, j, m):
+        used.append(m)
+        return orig(self, j, m)
+
+    monkeypatch.setattr(IncrementalModel, "last_taps", last_taps)
+    return used
+
+
+def _revising_stream(model, actor, prefetch: bool) -> ReactiveStreamer:
+    """The live generator's pattern: each push revises the previous (provisional) actor row
+    and adds a provisional one, with idle time (``prepare``) between pushes."""
+    s = ReactiveStreamer(model, StreamConfig(window=24, steps=2, seed=5, hop=1, incremental=True, bases=2,
+                                             prefetch=prefetch), Conditions(text=torch.ones(1, 384)))
+    s.push(actor[0:1] * 0.5)
+    for k in range(1, actor.shape[0]):
+        s.push(torch.stack([actor[k - 1], actor[k] * 0.5]), revise=1)  # row k - 1 final, row k provisional
+        while s.prepare(1):
+            pass
+    s.flush()
+    return s
+
+
+def test_prefetched_convolution_sums_change_nothing_and_are_used(model, monkeypatch):
+    """Idle-time prefetch (WindowCache.prefetch) splits each convolution into the sums over
+    older frames, made before the frame, and the newest taps: with revised actor rows and
+    window-start takeovers the stream equals the one without prefetch, and the generating
+    passes do take the short path (one or two taps left per kernel). (Against a stream
+    without idle time it would differ: with revisions, when a background start is fed
+    matters; ``WindowCache.forget_actor``.)"""
+    actor = _actor(60)
+    plain = _revising_stream(model, actor, prefetch=False)
+    used = _count_prefetched_passes(monkeypatch)
+    lazy = _revising_stream(model, actor, prefetch=True)
+    torch.testing.assert_close(lazy.emitted, plain.emitted, atol=1e-5, rtol=1e-5)
+    assert lazy._bases[0].start > 0  # a later start took over, with its own prefetch
+    n_blocks = len(model.blocks)
+    # every emitted frame's 2 grid steps, bar those before the first idle time and at takeovers
+    assert len(used) >= n_blocks * 2 * (60 - 6) and set(used) <= {1, 2}
+
+
+def test_a_revision_before_the_prefetched_rows_drops_their_sums(model):
+    """Revising actor rows older than a prefetch's first row invalidates its sums (they read
+    the old rows): the next pass takes the full products and equals a cache never prefetched."""
+    cond = _conds(model)["text and music"]
+    inc = IncrementalModel(model)
+    actor = _actor()
+    revised = actor.clone()
+    revised[7:12] += 1.0
+    caches = []
+    for prefetch in (False, True):
+        c = WindowCache(inc, 0, 20, L, cond, [0.0])
+        c.sync_actor(actor[:12])
+        if prefetch:
+            c.prefetch()
+            assert c.actor.pre_base == 11 and not c.prefetch_due()
+        c.forget_actor(7)
+        assert c.actor.pre_base is None if prefetch else True
+        c.sync_actor(revised[:12])
+        caches.append(c)
+    a, b = caches
+    for j in range(a.n_blocks):
+        torch.testing.assert_close(b.motion_k[j], a.motion_k[j], atol=1e-5, rtol=1e-5)
