@@ -50,7 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
+from bench.table import NA, Row, cpu_counters, parse_args, script_main, steal_percent, verdict  # noqa: E402
 
 QUICK = ["--seconds", "2"]
 
@@ -90,13 +90,15 @@ def run_loop(transport, limits, rate_hz: float, seconds: float, realtime: int = 
                                                           handle_signals=False, realtime_priority=realtime),
                        on_status=on_status)
     threading.Thread(target=_producer, args=(buf, loop, seconds, limits), daemon=True).start()
-    cpu0, wall0 = time.thread_time(), time.monotonic()
+    cpu0, wall0, host0 = time.thread_time(), time.monotonic(), cpu_counters()
     summary = loop.run()
     cpu, wall = time.thread_time() - cpu0, time.monotonic() - wall0
+    steal = steal_percent(host0, cpu_counters())
     lat = np.asarray(lateness) * 1e3
     return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "overruns": overruns[0],
             "work_p50": float(np.percentile(work, 50)) * 1e3, "work_p99": float(np.percentile(work, 99)) * 1e3,
-            "misses": summary.deadline_misses, "ticks": summary.ticks, "cpu": cpu / wall, "state": summary.end_state}
+            "misses": summary.deadline_misses, "ticks": summary.ticks, "cpu": cpu / wall, "state": summary.end_state,
+            "steal": steal}
 
 
 def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dict]:
@@ -143,7 +145,9 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
 
     opts = SessionOptions(actor="synthetic", seconds=seconds, transport="record", generator=generator,
                           out=Path(f"/tmp/bench_e2e_{generator}"), handle_signals=False, **options)
+    cpu0 = cpu_counters()
     res = run_session(opts)
+    steal = steal_percent(cpu0, cpu_counters())
     tel = read_telemetry(res.out / "telemetry.dftl")
     ahead = res.pipeline_info.get("frames_ahead")
     arrivals = res.actor_arrivals
@@ -174,7 +178,7 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
             "window_p50": pct(gen * 1e3, 50), "frames": res.summary.frames_played,
             "dropped": res.pipeline_info.get("frames_dropped", 0), "end": res.summary.end_state,
             "cpu": res.pipeline_info.get("generator_cpu_per_s", float("nan")),
-            "acc": float(acc), "clipped": clipped, "extrapolated": extrapolated,
+            "acc": float(acc), "clipped": clipped, "extrapolated": extrapolated, "steal": steal,
             "load": Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"}
 
 
@@ -191,7 +195,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     for rate in (100.0, 250.0):
         ours, base = jitter(rate, args.seconds, args.rt)
         period = 1e3 / rate
-        load = f"load {os.getloadavg()[0]:.1f}{sched}"
+        load = f"load {os.getloadavg()[0]:.1f}{sched}; CPU time stolen by the host {ours['steal']:.1f} %"
         print(f"{rate:.0f} Hz ({load}): ours {ours}; record-only {base}")
         out.append(Row(f"loop jitter p50 @ {rate:.0f} Hz, 20 emulated servos at 2 Mbit/s (ms; baseline record-only; {load})",
                        ours["p50"], base["p50"]))
@@ -213,7 +217,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         previous = end_to_end(args.seconds, "process", **PREVIOUS_PLAYBACK)
         L = new["look_ahead"]
         budget = L / 30.0 * 1e3 + 50.0
-        load = f"load avg {old['load']} after"
+        load = (f"load avg {old['load']} after; CPU time stolen by the host during the runs: "
+                f"{new['steal']:.1f} % and {old['steal']:.1f} %")
         print(f"latency (ms): new defaults {new}; old defaults {old}; generator thread {thread}")
         for q in ("p50", "p99"):
             out.append(Row(f"partner latency {q}, actor frame i -> its command on the bus, bundled model, generator "

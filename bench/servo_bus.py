@@ -52,7 +52,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
+from bench.table import NA, Row, cpu_counters, parse_args, script_main, steal_percent, verdict  # noqa: E402
 
 N_SERVOS = 20
 #: FAST_BULK_READ (positions + one 49-byte status block) over FAST_SYNC_READ: request 5 bytes per servo
@@ -465,14 +465,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     runs = {}
     for name, use_sdk, split in (("ours, split phase", False, True), ("ours, blocking cycle", False, False),
                                  ("bare SDK", True, False)):
+        cpu0 = cpu_counters()
         r = runs[name] = sustained(2_000_000, TARGET_HZ, args.seconds, use_sdk=use_sdk, split=split)
+        r["steal"] = steal_percent(cpu0, cpu_counters())
         print(f"sustained {TARGET_HZ:.0f} Hz at 2 Mbit/s, {name}: {r['hz']:.1f} Hz; {r['overruns']}/{r['n']} ticks overran, "
               f"{r['skipped']} skipped; lateness p50 {m(r['lateness']):.3f} / p99 {_pct(r['lateness'], 99):.3f} ms; "
               f"busy per tick p50 {m(r['busy']):.2f} / p99 {_pct(r['busy'], 99):.2f} ms of {1e3 / TARGET_HZ:.1f}; "
-              f"load {os.getloadavg()[0]:.2f}")
+              f"load {os.getloadavg()[0]:.2f}; CPU time stolen by the host {r['steal']:.1f} %")
     mine, blocking, base = runs.values()
     sched = f"; --rt {RT[0]}: emulator and our loop SCHED_FIFO" if RT[0] else ""
-    sched += f"; load {os.getloadavg()[0]:.1f}"
+    sched += f"; load {os.getloadavg()[0]:.1f}; CPU time stolen by the host {mine['steal']:.1f} % (ours), {base['steal']:.1f} % (SDK)"
     out.append(Row(f"sustained bus loop @ 2 Mbit/s, {TARGET_HZ:.0f} Hz asked (Hz achieved; ROBOTIS OP3 framework "
                    f"{OP3_FRAMEWORK_HZ:.0f} Hz; baseline bare SDK{sched})", mine["hz"], base["hz"], "", NA))
     out.append(Row(f"ticks overrun + skipped in the sustained {TARGET_HZ:.0f} Hz bus loop (baseline bare SDK{sched})",

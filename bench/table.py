@@ -69,6 +69,27 @@ class Row:
         return cls(**{k: v for k, v in data.items() if k in names})
 
 
+def cpu_counters() -> tuple[int, int] | None:
+    """(steal, all) CPU time since boot in clock ticks, summed over the CPUs, from /proc/stat
+    (Linux); None where it is not available. Steal is the time a virtual machine's CPUs were
+    ready to run but the hypervisor ran something else: on a shared host it, not our code,
+    sets the tail of timing figures."""
+    try:
+        with open("/proc/stat") as f:
+            ticks = [int(v) for v in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    return (ticks[7] if len(ticks) > 7 else 0), sum(ticks)
+
+
+def steal_percent(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float:
+    """Share (%) of all CPU time between two :func:`cpu_counters` readings that was stolen
+    by the hypervisor (NaN where not measured)."""
+    if before is None or after is None or after[1] <= before[1]:
+        return float("nan")
+    return 100.0 * (after[0] - before[0]) / (after[1] - before[1])
+
+
 def cell(value: Cell) -> str:
     """A value as table text: floats to 4 significant digits, None and NaN as "-"."""
     if value is None:

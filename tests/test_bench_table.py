@@ -18,7 +18,8 @@ if str(ROOT) not in sys.path:
 
 from bench import run_all  # noqa: E402
 from bench.table import (  # noqa: E402
-    COLUMNS, Row, format_csv, format_markdown, format_table, parse_args, verdict, write_table,
+    COLUMNS, Row, cpu_counters, format_csv, format_markdown, format_table, parse_args, steal_percent, verdict,
+    write_table,
 )
 
 ROWS = [
@@ -33,6 +34,17 @@ def test_verdict_and_row_validation():
     with pytest.raises(ValueError, match="verdict"):
         Row("x", 1.0, verdict="ok")
     assert Row.from_dict({**ROWS[0].to_dict(), "extra": 1}) == ROWS[0]
+
+
+def test_steal_share_is_the_stolen_part_of_all_cpu_time_between_two_readings():
+    assert steal_percent((10, 1000), (30, 2000)) == pytest.approx(2.0)
+    assert steal_percent((10, 1000), (10, 3000)) == 0.0
+    for missing in ((None, (1, 2)), ((1, 2), None), ((5, 100), (5, 100))):  # not measured, or no time passed
+        assert steal_percent(*missing) != steal_percent(*missing)  # NaN
+    now = cpu_counters()
+    if now is not None:  # Linux: steal is part of all CPU time, and both only grow
+        later = cpu_counters()
+        assert 0 <= now[0] <= now[1] and later[0] >= now[0] and later[1] >= now[1]
 
 
 def test_text_table_aligns_and_formats_cells():
