@@ -80,10 +80,10 @@ class _StreamCache:
         self.k: list[torch.Tensor | None] = [None] * n_blocks  # (1, H, N, dh) self-attention
         self.v: list[torch.Tensor | None] = [None] * n_blocks
         self.n = 0  # frames cached
-        #: per block: (b, P) the convolutions' products over the frames before b for rows
-        #: b, b + 1, ... (``WindowCache.prefetch``), or None
-        self.pre: list[tuple[int, torch.Tensor] | None] = [None] * n_blocks
-        self.pre_base: int | None = None  # the b of every block's entry, None when there is none
+        #: ``WindowCache.prefetch``: the first row b it was made for (None: none made), and per
+        #: block the convolutions' products over the frames before b for rows b, b + 1, ...
+        self.pre_base: int | None = None
+        self.pre: list[torch.Tensor | None] = [None] * n_blocks
 
     def truncate(self, n: int) -> None:
         """Forget frames >= n (positions relative to the window start)."""
@@ -306,8 +306,8 @@ class WindowCache:
                 hist = z_in[0, max(0, b - kmax + 1):b] if z_in is not None else self.pe.new_zeros(0, width)
                 wins.append(_taps(F.pad(hist, (0, 0, 0, rows)), rows, kmax))  # frames >= b as zeros
             sums = self.inc.conv_products(j, torch.cat(wins, 0)).split(rows, 0)
-            for (cache, b), part in zip(streams, sums):
-                cache.pre[j] = (b, part)
+            for (cache, _), part in zip(streams, sums):
+                cache.pre[j] = part
         for cache, b in streams:
             cache.pre_base = b
 
@@ -333,10 +333,9 @@ class WindowCache:
             p0, n = cache.n, z.shape[1]
             z_all = z if cache.z_in[j] is None else torch.cat([cache.z_in[j], z], 1)
             cache.z_in[j] = z_all
-            pre = cache.pre[j]
-            if pre is not None and not (pre[0] <= p0 and p0 + n <= pre[0] + pre[1].shape[0]):
-                pre = None  # prefetched for other rows
-            rows.append((p0, z_all, pre))
+            b, sums = cache.pre_base, cache.pre[j]
+            pre = (b, sums) if b is not None and b <= p0 and p0 + n <= b + sums.shape[0] else None
+            rows.append((p0, z_all, pre))  # pre None: no prefetch, or made for other rows
             sizes.append(n)
         if all(pre is not None for *_, pre in rows):
             # the products over the frames before b were made in idle time (``prefetch``): only
