@@ -31,8 +31,9 @@ per step instead of one of W rows.
 A start serves frames p with p + L - s <= W - 1, i.e. P = W - L of them. The streamer keeps
 ``bases`` staggered starts D = P / bases apart: the oldest generates (its context is the
 longest, P - D .. P - 1 frames), the others are fed every emitted frame's recorded states
-(teacher forcing: the same passes, outputs unused) so that they are ready when the oldest
-runs out. Cost: ``bases`` passes per frame and step; context never shorter than P - D.
+(teacher forcing, outputs unused; ``WindowCache.feed``: every grid step's rows in one pass,
+like the shared-weight products below) so that they are ready when the oldest runs out.
+Cost: ``bases`` times the rows per frame and step; context never shorter than P - D.
 The music latent of a start is computed once over its frames [s, s + W) (the bridge's
 music is a file, known ahead); text, retrieval and the time embeddings once per start.
 
@@ -271,10 +272,9 @@ class WindowCache:
 
     def sync_actor(self, actor: torch.Tensor) -> None:
         """Cache the actor rows (absolute frames, all received so far; (N, 262)) that fit the window."""
-        stop = min(actor.shape[0], self.start + self.window)
-        lo = self.start + self.actor.n
-        if lo < stop:
-            self._actor_rows(actor[lo:stop][None])
+        x_a = self._new_actor(actor)
+        if x_a is not None:
+            self._actor_rows(x_a)
 
     # -- idle-time work ---------------------------------------------------------------------
     def _prefetch_bases(self) -> list[tuple[_StreamCache, int]]:
@@ -382,13 +382,22 @@ class WindowCache:
 
     def _actor_rows(self, x_a: torch.Tensor) -> None:
         """Actor rows x_a (1, n, 262) at the next positions: their motion keys, cached."""
-        self._rows(x_a, None, None, False)
+        self._rows(x_a, [], False)
 
     def _actor_keys(self, j: int, z2: torch.Tensor) -> None:
         block = self.model.blocks[j]
         k_new, v_new = _kv(block.motion_attn, block.keys_of(z2))
         self.motion_k[j] = k_new if self.motion_k[j] is None else torch.cat([self.motion_k[j], k_new], 2)
         self.motion_v[j] = v_new if self.motion_v[j] is None else torch.cat([self.motion_v[j], v_new], 2)
+
+    def _new_actor(self, actor: torch.Tensor | None) -> torch.Tensor | None:
+        """Of ``actor`` (all actor rows received, (N, 262)), those in this window not cached yet,
+        (1, m, 262), or None."""
+        if actor is None:
+            return None
+        stop = min(actor.shape[0], self.start + self.window)
+        lo = self.start + self.actor.n
+        return actor[lo:stop][None] if lo < stop else None
 
     def reactor_rows(self, step: int, x: torch.Tensor, need_output: bool = True,
                      actor: torch.Tensor | None = None) -> torch.Tensor | None:
@@ -399,59 +408,66 @@ class WindowCache:
         the network in the same pass as the reactor rows (the actor stream of a block comes
         first: the reactor's motion cross-attention reads its keys). ``need_output`` False:
         only cache (teacher forcing)."""
-        x_a = None
-        if actor is not None:
-            stop = min(actor.shape[0], self.start + self.window)
-            lo = self.start + self.actor.n
-            if lo < stop:
-                x_a = actor[lo:stop][None]
-        return self._rows(x_a, step, x, need_output)
+        return self._rows(self._new_actor(actor), [(step, x)], need_output)
 
-    def _rows(self, x_a: torch.Tensor | None, step: int | None, x: torch.Tensor | None,
-              need_output: bool) -> torch.Tensor | None:
-        """One pass through the blocks of new actor rows x_a and/or new reactor rows x at grid
-        step ``step`` (either may be None), the reactor's velocity or None."""
+    def feed(self, rows: list[tuple[int, torch.Tensor]], actor: torch.Tensor | None = None) -> None:
+        """Teacher forcing of several grid steps in one pass: ``rows`` [(step, x (1, n, 262))],
+        each step at most once, appended to those steps' caches (the same caches as one
+        ``reactor_rows(step, x, need_output=False)`` per step; ``actor`` as there). The
+        products with the shared weights run once over every step's rows stacked, so a pass
+        over two steps costs far less than two passes."""
+        if len({step for step, _ in rows}) != len(rows):
+            raise ValueError(f"WindowCache.feed: a grid step given twice in {[step for step, _ in rows]}")
+        self._rows(self._new_actor(actor), list(rows), False)
+
+    def _rows(self, x_a: torch.Tensor | None, reactor: list, need_output: bool) -> torch.Tensor | None:
+        """One pass through the blocks of new actor rows x_a (or None) and new reactor rows
+        ``reactor`` [(step, x (1, n, 262))] at their grid steps; the velocity of the one reactor
+        stream when ``need_output``, else None."""
         m = self.model
-        streams, na = [], 0
+        actor = None
         if x_a is not None:
             pa, na = self.actor.n, x_a.shape[1]
-            streams.append([self.actor, m.in_a(x_a) + self.pe[pa:pa + na], None])
-        if x is not None:
+            actor = [self.actor, m.in_a(x_a) + self.pe[pa:pa + na], None]
+        n_keys = self.actor.n + (0 if x_a is None else x_a.shape[1])
+        out_streams, cross = [], []  # per reactor stream: [cache, z, mod] and its motion mask
+        for step, x in reactor:
             cache = self.reactor[step]
             p0, n = cache.n, x.shape[1]
-            streams.append([cache, m.in_b(x) + self.pe[p0:p0 + n], None])
-            n_keys = self.actor.n + na
-            cross = None
-            if n_keys > p0 + self.look_ahead + 1:  # some actor keys lie beyond a row's look-ahead
-                cross = self.cross[p0:p0 + n, :n_keys]
+            out_streams.append([cache, m.in_b(x) + self.pe[p0:p0 + n], None])
+            # None: every actor key lies within each row's look-ahead
+            cross.append(self.cross[p0:p0 + n, :n_keys] if n_keys > p0 + self.look_ahead + 1 else None)
+        streams = ([actor] if actor is not None else []) + out_streams
+        steps = [step for step, _ in reactor]
         for j, block in enumerate(m.blocks):
-            for st in streams:
-                st[2] = self.mod_actor[j] if st[0] is self.actor else self.mod_steps[step][j]
+            if actor is not None:
+                actor[2] = self.mod_actor[j]
+            for st, step in zip(out_streams, steps):
+                st[2] = self.mod_steps[step][j]
             out = self._temporal(j, streams)
             fin = []
-            if x_a is not None:
+            if actor is not None:
                 z2a = out.pop(0)
                 self._actor_keys(j, z2a)
                 if j + 1 < self.n_blocks:  # the last block's output feeds nothing the reactor reads
-                    fin.append((z2a, streams[0][2]))
-            if x is not None:
-                z2, mod = out[0], streams[-1][2]
-                q = self._norm(block, 2, z2, mod)
-                z3 = z2 + _attend(block.motion_attn, q, self.motion_k[j], self.motion_v[j], cross)
-                if need_output or j + 1 < self.n_blocks:  # teacher forcing: the last output is not needed
-                    fin.append((z3, mod))
+                    fin.append((z2a, actor[2]))
+            last = j + 1 == self.n_blocks
+            for z2, st, mask in zip(out, out_streams, cross):
+                q = self._norm(block, 2, z2, st[2])
+                z3 = z2 + _attend(block.motion_attn, q, self.motion_k[j], self.motion_v[j], mask)
+                if need_output or not last:  # teacher forcing: the last output is not needed
+                    fin.append((z3, st[2]))
             zs = self._finish(j, fin) if fin else []
-            if x_a is not None and j + 1 < self.n_blocks:
-                streams[0][1] = zs.pop(0)
-            if x is not None and zs:
-                streams[-1][1] = zs[0]
-        if x_a is not None:
-            self.actor.n += na
-        if x is None:
-            return None
-        cache.n += n
+            if actor is not None and not last:
+                actor[1] = zs.pop(0)
+            for st, z in zip(out_streams, zs):
+                st[1] = z
+        if actor is not None:
+            self.actor.n += x_a.shape[1]
+        for (cache, _, _), (_, x) in zip(out_streams, reactor):
+            cache.n += x.shape[1]
         if not need_output:
             return None
-        z = streams[-1][1]
+        (step, x), z = reactor[0], out_streams[0][1]
         tt = torch.full((1,), self.grid[step], dtype=x.dtype, device=x.device)
         return m._velocity(m.out_b(m.out_norm(z)), x, tt)

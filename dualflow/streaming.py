@@ -455,22 +455,23 @@ class ReactiveStreamer:
 
     def _feed(self, base, batch: int = 1) -> bool:
         """One pass of catch-up work for a cached start: the recorded states of the emitted
-        frames it has not seen, at the first grid step that lacks at least ``batch`` of them,
-        with the actor rows it has not cached yet in the same pass. Returns False when it had
-        nothing to do (actor rows alone are never worth a pass: the generating start takes
-        them with its first step's rows).
+        frames it has not seen, at every grid step that lacks at least ``batch`` of them, all
+        in one pass (``WindowCache.feed``), with the actor rows it has not cached yet.
+        Returns False when it had nothing to do (actor rows alone are never worth a pass:
+        the generating start takes them with its first step's rows).
 
-        ``batch`` > 1 (idle-time catch-up): a step is fed only once it lags that many frames,
-        so that every step is fed in batches; with 1, step 0 (which lags one frame after
-        every emitted frame) would be fed one row at a time and the later steps starved."""
+        ``batch`` > 1 (idle-time catch-up): a start is fed only once it lags that many
+        frames, so that its passes carry several rows each (a pass over 8 rows costs little
+        more than one over 1 row on a CPU)."""
         n_done = self._emitted.shape[0]
+        rows = []
         for k, cache in enumerate(base.reactor):
             lo = base.start + cache.n
             if n_done - lo >= batch:
-                rows = self._traj[lo - self._traj_start: n_done - self._traj_start, k]
-                base.reactor_rows(k, rows[None], need_output=False, actor=self._actor)
-                return True
-        return False
+                rows.append((k, self._traj[lo - self._traj_start: n_done - self._traj_start, k][None]))
+        if rows:
+            base.feed(rows, actor=self._actor)
+        return bool(rows)
 
     #: incremental mode: a window start that is not generating is fed once it lags this many
     #: emitted frames (a pass over 8 rows costs about one over 1 row on a CPU); what is left
@@ -480,27 +481,47 @@ class ReactiveStreamer:
     #: (still in idle time), so that the window that switches to it has only its own passes
     TAKEOVER_FRAMES = 3
 
-    @torch.no_grad()
-    def prepare(self, max_passes: int = 1) -> bool:
-        """Incremental mode: do up to ``max_passes`` network passes of catch-up work now (the
-        other window starts' actor rows and emitted frames, in batches), so that a window has
-        only its own passes to do. For idle time (e.g. waiting for the next actor frame).
-        Returns whether more catch-up work is due.
+    #: the kinds of catch-up work, in the order ``prepare`` takes them when several are due
+    IDLE_JOBS = ("takeover", "start", "feed", "prefetch")
+    #: the kinds that a frame within ``TAKEOVER_FRAMES`` does itself, in full, if idle time
+    #: has not: done in idle time even when it overruns the gap, a piece delays the next
+    #: frame by less than its own cost, which the takeover frame would otherwise pay
+    URGENT_JOBS = ("takeover", "start")
 
-        First, and again after the passes, the window start that generates next gets its
-        share of the next pass's convolutions made (``WindowCache.prefetch``: a fraction of a
-        pass, not counted in ``max_passes``), so that a frame waits for fewer products."""
+    def idle_jobs(self) -> list[str]:
+        """Incremental mode: the kinds of catch-up work due now, in ``IDLE_JOBS`` order.
+        "takeover": one pass of the frames that the start taking over within
+        ``TAKEOVER_FRAMES`` has not seen (usually one row per grid step); "start": make the
+        next window start and cache the actor rows it holds (about a pass); "feed": one pass
+        of ``FEED_BATCH`` or more rows per grid step for a background start; "prefetch": the
+        next generator's share of its next pass's convolutions (a fraction of a pass). Their
+        costs differ several-fold, so an idle-time scheduler can time each kind on its own
+        (``ros_free_bridge.idle_slots``)."""
         if not self.config.incremental:
-            return False
-        self._prefetch()
-        done = 0
-        if self._start_due():
-            self._add_start()  # its frames are fed below, in batches
-            done += 1
-        for base, batch in self._due():
-            while done < max_passes and self._feed(base, batch):
-                done += 1
-        self._prefetch()
+            return []
+        batches = {batch for _, batch in self._due()}
+        due = {"takeover": 1 in batches, "start": self._start_due(), "feed": self.FEED_BATCH in batches,
+               "prefetch": self._prefetch_target() is not None}
+        return [kind for kind in self.IDLE_JOBS if due[kind]]
+
+    @torch.no_grad()
+    def prepare(self, max_passes: int = 1, kinds=None) -> bool:
+        """Incremental mode: do up to ``max_passes`` pieces of catch-up work now (``idle_jobs``:
+        each the first kind due, among ``kinds`` if given), so that a window has only its own
+        passes to do. For idle time (e.g. waiting for the next actor frame). Returns whether
+        more catch-up work is due."""
+        for _ in range(max(0, int(max_passes))):
+            jobs = [k for k in self.idle_jobs() if kinds is None or k in kinds]
+            if not jobs:
+                break
+            if jobs[0] == "start":
+                self._add_start()
+                self._bases[-1].sync_actor(self._actor)
+            elif jobs[0] == "prefetch":
+                self._prefetch_target().prefetch(rows=self.config.hop + 1)
+            else:
+                want = 1 if jobs[0] == "takeover" else self.FEED_BATCH
+                self._feed(*next((b, batch) for b, batch in self._due() if batch == want))
         return self.has_catch_up
 
     def _next_generator(self):
@@ -516,11 +537,6 @@ class ReactiveStreamer:
             return None
         return gen
 
-    def _prefetch(self) -> None:
-        gen = self._prefetch_target()
-        if gen is not None:
-            gen.prefetch(rows=self.config.hop + 1)
-
     def _start_due(self) -> bool:
         """Whether the next window start should be made now: its first frame is at most
         ``TAKEOVER_FRAMES`` away (making one costs about a pass; not in a window that needs it)."""
@@ -532,8 +548,6 @@ class ReactiveStreamer:
         if not self._bases:
             return []
         n_done = self._emitted.shape[0]
-        if self._start_due():
-            return [(self._bases[-1], self.FEED_BATCH)]  # a new start is due (``prepare`` makes it)
         due = []
         for i, b in enumerate(self._bases[1:], 1):
             lag = n_done - (b.start + min(c.n for c in b.reactor))
@@ -546,9 +560,8 @@ class ReactiveStreamer:
 
     @property
     def has_catch_up(self) -> bool:
-        """Incremental mode: whether ``prepare`` has work due (a cached start lags the stream,
-        or the next generator's ``prefetch`` is due)."""
-        return bool(self._due()) or self._prefetch_target() is not None
+        """Incremental mode: whether ``prepare`` has work due (``idle_jobs``)."""
+        return bool(self.idle_jobs())
 
     @torch.no_grad()
     def _generate(self, first_new: int, upto: int) -> torch.Tensor:

@@ -193,10 +193,20 @@ class ReactorStage:
         """Incremental streaming: catch-up work for idle time is waiting (``prepare``)."""
         return self.streamer.has_catch_up if self.streamer.config.incremental else False
 
-    def prepare(self, max_passes: int = 1) -> None:
-        """Do up to ``max_passes`` network passes of the streamer's catch-up work (idle time)."""
+    def idle_jobs(self) -> list[str]:
+        """The kinds of catch-up work due now, first to be done first (``ReactiveStreamer.idle_jobs``)."""
+        return self.streamer.idle_jobs()
+
+    @property
+    def urgent_jobs(self) -> tuple[str, ...]:
+        """The kinds of catch-up work to do in any idle gap, fitting or not (``ReactiveStreamer.URGENT_JOBS``)."""
+        return self.streamer.URGENT_JOBS
+
+    def prepare(self, max_passes: int = 1, kinds=None) -> None:
+        """Do up to ``max_passes`` pieces of the streamer's catch-up work (idle time), of
+        ``kinds`` only if given."""
         with self._torch.inference_mode():
-            self.streamer.prepare(max_passes)
+            self.streamer.prepare(max_passes, kinds)
 
     @property
     def next_index(self) -> int:
@@ -448,28 +458,39 @@ class PartnerCore:
                 del self._arrivals[k]
         return out
 
-    @property
-    def has_idle_work(self) -> bool:
-        """The reactor has catch-up work to do while no actor frame is waiting (``idle_step``)."""
-        return self.reactor is not None and self.reactor.has_catch_up
+    def _idle_jobs(self) -> list[str]:
+        return [] if self.reactor is None else self.reactor.idle_jobs()
+
+    def _fitting_job(self, now: float | None) -> str | None:
+        """The first due kind of catch-up work whose piece fits before the next actor frame,
+        or that is urgent (the reactor's ``urgent_jobs``: a frame soon does it in full if the
+        idle time has not)."""
+        now = time.monotonic() if now is None else now
+        urgent = self.reactor.urgent_jobs if self.reactor is not None else ()
+        return next((k for k in self._idle_jobs() if k in urgent or self.idle_slots.fits(now, k)), None)
 
     def idle_ready(self, now: float | None = None) -> bool:
-        """Catch-up work is due and a pass fits before the next actor frame (:class:`IdleSlots`)."""
-        return self.has_idle_work and self.idle_slots.fits(time.monotonic() if now is None else now)
+        """Catch-up work is due and a piece of it fits before the next actor frame
+        (:class:`IdleSlots`, each kind of work timed on its own)."""
+        return self._fitting_job(now) is not None
 
     def idle_wait(self, now: float | None = None) -> float | None:
-        """Seconds until a catch-up pass may start if no actor frame comes first: 0 now, None
-        when there is no catch-up work."""
-        if not self.has_idle_work:
+        """Seconds until a piece of catch-up work may start if no actor frame comes first: 0
+        now, None when there is no catch-up work."""
+        jobs = self._idle_jobs()
+        if not jobs:
             return None
-        return self.idle_slots.wait(time.monotonic() if now is None else now)
+        now = time.monotonic() if now is None else now
+        return min(self.idle_slots.wait(now, k) for k in jobs)
 
-    def idle_step(self) -> None:
-        """One short piece of the reactor's catch-up work (one network pass, a few ms)."""
-        if self.reactor is not None:
+    def idle_step(self, now: float | None = None) -> None:
+        """One short piece of the reactor's catch-up work (a few ms): the first due kind that
+        fits before the next actor frame, timed for that kind."""
+        job = self._fitting_job(now)
+        if job is not None:
             t0 = time.monotonic()
-            self.reactor.prepare(1)
-            self.idle_slots.ran(time.monotonic() - t0)
+            self.reactor.prepare(1, kinds=(job,))
+            self.idle_slots.ran(time.monotonic() - t0, job)
 
     def idle(self, seconds: float) -> None:
         """Nothing arrived: do a piece of catch-up work if it fits before the next actor frame,

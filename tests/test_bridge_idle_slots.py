@@ -22,11 +22,24 @@ def test_the_longest_recent_pass_is_the_estimate():
     slots = IdleSlots(PERIOD, guard=0.0, history=3)
     for d in (0.004, 0.011, 0.005):
         slots.ran(d)
-    assert slots.pass_estimate == pytest.approx(0.011)
+    assert slots.estimate() == pytest.approx(0.011)
     slots.ran(0.004)
     slots.ran(0.004)
     slots.ran(0.004)  # the 11 ms pass has left the history
-    assert slots.pass_estimate == pytest.approx(0.004)
+    assert slots.estimate() == pytest.approx(0.004)
+
+
+def test_each_kind_of_work_is_timed_on_its_own():
+    """A cheap kind (the prefetch) still fits in a gap that the dearest kind (a feed) does not."""
+    slots = IdleSlots(PERIOD, guard=0.002)
+    slots.arrived(10.0)
+    slots.ran(0.015, "feed")
+    slots.ran(0.003, "prefetch")
+    assert slots.estimate("feed") == pytest.approx(0.015) and slots.estimate("prefetch") == pytest.approx(0.003)
+    assert slots.estimate("start") == 0.0  # never timed: it runs, and is timed then
+    now = 10.020  # 13.3 ms before the next frame
+    assert slots.fits(now, "prefetch") and not slots.fits(now, "feed")
+    assert slots.wait(now, "prefetch") == 0.0 and slots.wait(now, "feed") > 0.0
 
 
 def test_a_paused_source_does_not_starve_catch_up_work():
@@ -56,3 +69,39 @@ def test_a_bad_period_is_refused():
     with pytest.raises(ValueError, match="period"):
         IdleSlots(0.0)
 
+
+
+def test_urgent_catch_up_runs_in_any_gap_other_work_only_where_it_fits(tiny_checkpoint):
+    """The generator's scheduler (PartnerCore) on a real incremental stream, every kind of
+    piece timed far longer than a frame gap: only the pieces that a frame would otherwise do
+    in full (the streamer's URGENT_JOBS: feeding the start about to take over, making the
+    next start) still run; feeds of the background start and the prefetch wait."""
+    from dualflow.streaming import StreamConfig
+    from dualflow.synthetic import make_leader
+    from retarget.robot import load_robot
+    from ros_free_bridge.robots import resolve_robot
+    from ros_free_bridge.sources.udp import ActorFrame
+    from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
+
+    files = resolve_robot("op3")
+    reactor = ReactorStage(30.0, tiny_checkpoint, StreamConfig(window=40, steps=2, hop=1, incremental=True))
+    core = PartnerCore(reactor, RetargetStage(load_robot(files.mjcf, files.profile), 30.0))
+    assert reactor.urgent_jobs == ("takeover", "start")
+    for kind in reactor.streamer.IDLE_JOBS:
+        core.idle_slots.ran(1.0, kind)  # no piece fits a 33 ms gap
+    leader = make_leader(3.0, 30.0, seed=2)
+    ran, waited = set(), set()
+    for k in range(leader.n_frames):
+        arrival = k * PERIOD
+        core.feed([ActorFrame(k, leader.positions[k], arrival)])
+        while core.backlog:
+            core.feed([])
+        now = arrival + 0.001
+        while core.idle_ready(now):
+            job = reactor.idle_jobs()[0] if reactor.idle_jobs()[0] in reactor.urgent_jobs else None
+            assert job is not None, f"frame {k}: {reactor.idle_jobs()} ran without fitting"
+            core.idle_step(now)
+            ran.add(job)
+        waited.update(reactor.idle_jobs())
+    assert ran == {"takeover", "start"}
+    assert {"feed", "prefetch"} <= waited

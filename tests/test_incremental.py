@@ -123,25 +123,26 @@ def test_unsupported_incremental_settings_are_refused(model):
 
 
 def _record_passes(monkeypatch):
-    """Record (in prepare, need_output, step, rows, takeover) of every WindowCache.reactor_rows
-    call; ``takeover``: the generating start runs out within TAKEOVER_FRAMES frames."""
+    """Record every network pass of a WindowCache: per reactor stream in it, (in prepare,
+    need_output, step, rows, takeover, streams in the pass); ``takeover``: the generating
+    start runs out within TAKEOVER_FRAMES frames."""
     calls, state = [], {"in_prepare": False, "streamer": None}
-    orig_rows, orig_prepare = WindowCache.reactor_rows, ReactiveStreamer.prepare
+    orig_rows, orig_prepare = WindowCache._rows, ReactiveStreamer.prepare
 
-    def rows(self, step, x, need_output=True, actor=None):
+    def rows(self, x_a, reactor, need_output):
         s = state["streamer"]
         takeover = not s._bases[0].can_generate(s.emitted.shape[0] + s.TAKEOVER_FRAMES - 1)
-        calls.append((state["in_prepare"], need_output, step, x.shape[1], takeover))
-        return orig_rows(self, step, x, need_output, actor)
+        calls.extend((state["in_prepare"], need_output, step, x.shape[1], takeover, len(reactor)) for step, x in reactor)
+        return orig_rows(self, x_a, reactor, need_output)
 
-    def prepare(self, max_passes=1):
+    def prepare(self, max_passes=1, kinds=None):
         state["in_prepare"], state["streamer"] = True, self
         try:
-            return orig_prepare(self, max_passes)
+            return orig_prepare(self, max_passes, kinds)
         finally:
             state["in_prepare"] = False
 
-    monkeypatch.setattr(WindowCache, "reactor_rows", rows)
+    monkeypatch.setattr(WindowCache, "_rows", rows)
     monkeypatch.setattr(ReactiveStreamer, "prepare", prepare)
     return calls, state
 
@@ -174,15 +175,15 @@ def _recorded_stream(model, monkeypatch, passes_per_frame):
 
 
 def test_one_catch_up_pass_per_frame_feeds_every_step_in_batches(model, monkeypatch):
-    """A busy generator does one ``prepare`` pass per frame: each grid step of the background
-    start must then be fed FEED_BATCH rows at a time (not step 0 one row per frame while the
-    later steps starve) - except the start about to take over, which gets everything it
-    lacks - and the stream is unchanged."""
+    """A busy generator does one ``prepare`` piece per frame: the background start must then
+    be fed FEED_BATCH rows at a time, every grid step in the same pass - except the start
+    about to take over, which gets everything it lacks - and the stream is unchanged."""
     s, calls = _recorded_stream(model, monkeypatch, passes_per_frame=1)
     background = [c for c in calls if c[0]]
-    assert {step for _, _, step, _, _ in background} == {0, 1, 2}
-    assert all(n >= ReactiveStreamer.FEED_BATCH for _, _, _, n, takeover in background if not takeover)
-    assert any(takeover for *_, takeover in background)
+    assert {step for _, _, step, *_ in background} == {0, 1, 2}
+    assert all(streams == 3 for *_, streams in background)  # the three grid steps in one pass
+    assert all(n >= ReactiveStreamer.FEED_BATCH for _, _, _, n, takeover, _ in background if not takeover)
+    assert any(takeover for *_, takeover, _ in background)
 
 
 def test_with_idle_time_the_generating_window_has_only_its_own_passes(model, monkeypatch):
@@ -219,6 +220,39 @@ def test_actor_rows_in_the_reactor_pass_equal_a_separate_sync(model):
         torch.testing.assert_close(b.motion_k[j], a.motion_k[j], atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(b.actor.k[j], a.actor.k[j], atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(b.reactor[0].v[j], a.reactor[0].v[j], atol=1e-5, rtol=1e-5)
+
+
+def test_feeding_several_grid_steps_in_one_pass_equals_a_pass_per_step(model):
+    """WindowCache.feed stacks the grid steps' rows (and new actor rows) in one pass; every
+    step's cache, the actor keys and the next generated velocity equal one teacher-forcing
+    pass per step. A step given twice is refused."""
+    cond = _conds(model)["text and music"]
+    inc = IncrementalModel(model)
+    actor = _actor()
+    g = torch.Generator().manual_seed(7)
+    x0, x1 = torch.randn(1, 5, 262, generator=g), torch.randn(1, 5, 262, generator=g)
+    nxt = torch.randn(1, 1, 262, generator=g)
+    caches = []
+    for together in (False, True):
+        c = WindowCache(inc, 2, 20, L, cond, [0.0, 0.5])
+        c.sync_actor(actor[:8])
+        if together:
+            c.feed([(0, x0[:, :2]), (1, x1)], actor=actor[:16])  # the steps may lag differently
+        else:
+            c.reactor_rows(0, x0[:, :2], need_output=False, actor=actor[:16])
+            c.reactor_rows(1, x1, need_output=False)
+        v = c.reactor_rows(1, nxt)
+        caches.append((c, v))
+    (a, va), (b, vb) = caches
+    assert [r.n for r in b.reactor] == [r.n for r in a.reactor] == [2, 6] and b.actor.n == a.actor.n == 14
+    torch.testing.assert_close(vb, va, atol=1e-5, rtol=1e-5)
+    for j in range(a.n_blocks):
+        torch.testing.assert_close(b.motion_k[j], a.motion_k[j], atol=1e-5, rtol=1e-5)
+        for step in (0, 1):
+            torch.testing.assert_close(b.reactor[step].k[j], a.reactor[step].k[j], atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(b.reactor[step].z_in[j], a.reactor[step].z_in[j], atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="grid step given twice"):
+        a.feed([(0, x0[:, :1]), (0, x0[:, 1:2])])
 
 
 @pytest.mark.parametrize("incremental", [False, True])
