@@ -471,7 +471,7 @@ class PartnerCore:
 
     def idle_ready(self, now: float | None = None) -> bool:
         """Catch-up work is due and a piece of it fits before the next actor frame
-        (:class:`IdleSlots`, each kind of work timed on its own)."""
+        (:class:`IdleSlots`, each kind of work timed on its own) or is urgent."""
         return self._fitting_job(now) is not None
 
     def idle_wait(self, now: float | None = None) -> float | None:
@@ -481,11 +481,12 @@ class PartnerCore:
         if not jobs:
             return None
         now = time.monotonic() if now is None else now
-        return min(self.idle_slots.wait(now, k) for k in jobs)
+        urgent = self.reactor.urgent_jobs
+        return min(0.0 if k in urgent else self.idle_slots.wait(now, k) for k in jobs)
 
     def idle_step(self, now: float | None = None) -> None:
         """One short piece of the reactor's catch-up work (a few ms): the first due kind that
-        fits before the next actor frame, timed for that kind."""
+        fits before the next actor frame or is urgent, timed for that kind."""
         job = self._fitting_job(now)
         if job is not None:
             t0 = time.monotonic()

@@ -97,6 +97,7 @@ def test_urgent_catch_up_runs_in_any_gap_other_work_only_where_it_fits(tiny_chec
         while core.backlog:
             core.feed([])
         now = arrival + 0.001
+        assert (core.idle_wait(now) == 0.0) == core.idle_ready(now)  # the child process waits on idle_wait
         while core.idle_ready(now):
             job = reactor.idle_jobs()[0] if reactor.idle_jobs()[0] in reactor.urgent_jobs else None
             assert job is not None, f"frame {k}: {reactor.idle_jobs()} ran without fitting"
