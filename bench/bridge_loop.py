@@ -23,7 +23,8 @@
    333 + 50 = 383 ms). Also the loop's own end-to-end figure (from the arrival of actor frame
    i + A, the last one frame i depends on), partner frames dropped to keep up (held), a
    generation window's compute and the generator's CPU use. Figures depend on the machine's
-   load, printed with them.
+   load, printed with them. Each latency run streams ``--e2e-seconds`` (default 15 s, 450
+   frames): a p99 over fewer frames is one of its two or three worst.
 4. The playback clock's trade-off: the defaults (a frame plays once half the recent frames
    had arrived by then, plus 5 ms; the loop extrapolates toward a late frame with its speed
    fading over 3 frames, and the curve's change when it comes is smoothed into the commands,
@@ -33,7 +34,7 @@
    streaming (mean |acceleration|, the share of ticks the safety filter changed, the share
    of ticks extrapolated past the newest frame).
 
-    python bench/bridge_loop.py [--seconds 5] [--skip-e2e] [--quick]
+    python bench/bridge_loop.py [--seconds 5] [--e2e-seconds 15] [--skip-e2e] [--quick]
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.table import NA, Row, cpu_counters, parse_args, script_main, steal_percent, verdict  # noqa: E402
 
-QUICK = ["--seconds", "2"]
+QUICK = ["--seconds", "2", "--e2e-seconds", "2"]
 
 
 def _producer(buf, loop, seconds: float, limits) -> None:
@@ -184,7 +185,9 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
 
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seconds", type=float, default=5.0, help="streaming time per run (default 5 s)")
+    ap.add_argument("--seconds", type=float, default=5.0, help="streaming time per jitter run (default 5 s)")
+    ap.add_argument("--e2e-seconds", type=float, default=15.0,
+                    help="streaming time per end-to-end latency run (default 15 s: 450 frames)")
     ap.add_argument("--skip-e2e", action="store_true", help="skip the end-to-end run with the bundled model")
     ap.add_argument("--rt", type=int, default=0,
                     help="SCHED_FIFO priority (1-99, needs CAP_SYS_NICE) for the control loop and the bus emulator "
@@ -211,10 +214,11 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         out.append(Row(f"loop CPU @ {rate:.0f} Hz (% of a core)", 100 * ours["cpu"], 100 * base["cpu"],
                        "< 50" if rate == 100 else "", verdict(ours["cpu"] < 0.5) if rate == 100 else NA))
     if not args.skip_e2e:
-        new = end_to_end(args.seconds, "process")
-        old = end_to_end(args.seconds, "process", **OLD_DEFAULTS)
-        thread = end_to_end(args.seconds, "thread")
-        previous = end_to_end(args.seconds, "process", **PREVIOUS_PLAYBACK)
+        secs = args.e2e_seconds
+        new = end_to_end(secs, "process")
+        old = end_to_end(secs, "process", **OLD_DEFAULTS)
+        thread = end_to_end(secs, "thread")
+        previous = end_to_end(secs, "process", **PREVIOUS_PLAYBACK)
         L = new["look_ahead"]
         budget = L / 30.0 * 1e3 + 50.0
         load = (f"load avg {old['load']} after; CPU time stolen by the host during the runs: "
@@ -222,7 +226,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         print(f"latency (ms): new defaults {new}; old defaults {old}; generator thread {thread}")
         for q in ("p50", "p99"):
             out.append(Row(f"partner latency {q}, actor frame i -> its command on the bus, bundled model, generator "
-                           f"process (ms; baseline: the old defaults, 5 steps, hop 5, sliding windows; {load})",
+                           f"process, {secs:.0f} s runs (ms; baseline: the old defaults, 5 steps, hop 5, sliding windows; "
+                           f"{load})",
                            new[f"partner_{q}"], old[f"partner_{q}"], f"<= {budget:.0f} (L = {L} frames + 50 ms)",
                            verdict(new[f"partner_{q}"] <= budget)))
         out.append(Row("partner latency p50 / p99 with the generator in a thread (new defaults; ms)",
