@@ -19,10 +19,10 @@ be the dearest kind's, and the cheap prefetch would wait behind it). The second 
 paused source from starving the catch-up work; the streamer still does any work a window
 needs in that window.
 
-Work that a frame soon would do in full if idle time has not (``ReactiveStreamer.URGENT_JOBS``:
-feeding the window start about to take over, making the next start) is not gated
-(``PartnerCore.idle_step``): started in a gap too short for it, it delays the next frame by
-less than its own cost, which the takeover frame would otherwise pay whole.
+Work that a frame soon would do in full if idle time has not (``urgent`` kinds; the
+streamer's ``URGENT_JOBS``: feeding the window start about to take over, making the next
+start) is not gated: started in a gap too short for it, it delays the next frame by less
+than its own cost, which the takeover frame would otherwise pay whole.
 """
 
 from __future__ import annotations
@@ -32,9 +32,11 @@ from collections import deque
 
 class IdleSlots:
     """Gate for catch-up work. ``period``: seconds between actor frames (1 / fps); ``kind``
-    (any hashable, e.g. "feed"): which piece of work, each kind timed on its own."""
+    (any hashable, e.g. "feed"): which piece of work, each kind timed on its own; ``urgent``:
+    the kinds that may start in any gap."""
 
-    def __init__(self, period: float, guard: float = 0.002, late: float | None = None, history: int = 16):
+    def __init__(self, period: float, guard: float = 0.002, late: float | None = None, history: int = 16,
+                 urgent=()):
         if not period > 0:
             raise ValueError(f"period must be > 0 s, got {period!r}")
         self.period = float(period)
@@ -42,6 +44,7 @@ class IdleSlots:
         #: how long past its due time the next frame may be before the source counts as paused
         self.late = 0.5 * self.period if late is None else float(late)
         self.history = int(history)
+        self.urgent = frozenset(urgent)
         self._passes: dict = {}  # kind -> deque of its recent durations
         self._newest: float | None = None  # arrival of the newest actor frame
 
@@ -59,9 +62,9 @@ class IdleSlots:
         return max(self._passes.get(kind, ()), default=0.0)
 
     def fits(self, now: float, kind="pass") -> bool:
-        """Whether a piece of ``kind`` started at ``now`` ends before the next frame is due (or
-        the source paused)."""
-        if self._newest is None:
+        """Whether a piece of ``kind`` may start at ``now``: it is urgent, or it ends before the
+        next frame is due (or the source paused)."""
+        if self._newest is None or kind in self.urgent:
             return True
         due = self._newest + self.period
         return now + self.estimate(kind) + self.guard <= due or now > due + self.late

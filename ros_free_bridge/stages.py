@@ -357,7 +357,8 @@ class PartnerCore:
             self._recent: deque = deque(maxlen=reactor.look_ahead + hop + 2)
         self.frames_dropped = 0
         #: catch-up passes only in the gap before the next actor frame (the frames' rate: the reactor's fps)
-        self.idle_slots = IdleSlots(1.0 / (reactor.fps if reactor is not None else 30.0))
+        self.idle_slots = IdleSlots(1.0 / (reactor.fps if reactor is not None else 30.0),
+                                    urgent=reactor.urgent_jobs if reactor is not None else ())
         self._arrivals: dict[int, float] = {}  # actor index -> arrival, for frames not yet used as c(i)
         self._last_q: np.ndarray | None = None
         self._last_pos: np.ndarray | None = None
@@ -463,11 +464,9 @@ class PartnerCore:
 
     def _fitting_job(self, now: float | None) -> str | None:
         """The first due kind of catch-up work whose piece fits before the next actor frame,
-        or that is urgent (the reactor's ``urgent_jobs``: a frame soon does it in full if the
-        idle time has not)."""
+        or that is urgent (the reactor's ``urgent_jobs``, given to :class:`IdleSlots`)."""
         now = time.monotonic() if now is None else now
-        urgent = self.reactor.urgent_jobs if self.reactor is not None else ()
-        return next((k for k in self._idle_jobs() if k in urgent or self.idle_slots.fits(now, k)), None)
+        return next((k for k in self._idle_jobs() if self.idle_slots.fits(now, k)), None)
 
     def idle_ready(self, now: float | None = None) -> bool:
         """Catch-up work is due and a piece of it fits before the next actor frame
@@ -481,8 +480,7 @@ class PartnerCore:
         if not jobs:
             return None
         now = time.monotonic() if now is None else now
-        urgent = self.reactor.urgent_jobs
-        return min(0.0 if k in urgent else self.idle_slots.wait(now, k) for k in jobs)
+        return min(self.idle_slots.wait(now, k) for k in jobs)
 
     def idle_step(self, now: float | None = None) -> None:
         """One short piece of the reactor's catch-up work (a few ms): the first due kind that

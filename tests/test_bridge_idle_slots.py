@@ -40,6 +40,12 @@ def test_each_kind_of_work_is_timed_on_its_own():
     now = 10.020  # 13.3 ms before the next frame
     assert slots.fits(now, "prefetch") and not slots.fits(now, "feed")
     assert slots.wait(now, "prefetch") == 0.0 and slots.wait(now, "feed") > 0.0
+    urgent = IdleSlots(PERIOD, guard=0.002, urgent=("takeover",))
+    urgent.arrived(10.0)
+    urgent.ran(0.015, "takeover")
+    urgent.ran(0.015, "feed")
+    assert urgent.fits(now, "takeover") and urgent.wait(now, "takeover") == 0.0  # any gap
+    assert not urgent.fits(now, "feed")
 
 
 def test_a_paused_source_does_not_starve_catch_up_work():
