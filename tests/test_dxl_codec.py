@@ -16,7 +16,7 @@ from firmware_cfg.config import parse_config
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.commands.servo import start_emulator
 from ros_free_bridge.dynamixel_codec import (
-    FastSyncReadDecoder, LinearCrc, PacketError, SyncWriteEncoder, crc16, encode_instruction,
+    FastSyncReadDecoder, PacketError, SyncWriteEncoder, encode_instruction,
 )
 from ros_free_bridge.emulators import dynamixel_protocol as dp
 from ros_free_bridge.errors import BridgeError
@@ -78,12 +78,6 @@ def sdk_sync_write(port, address, size, ids, values) -> None:
         group.addParam(sid, list(int(v).to_bytes(size, "little", signed=True)))
     group.txPacket()
     port.is_using = False
-
-
-@settings(max_examples=60, deadline=None)
-@given(st.binary(min_size=1, max_size=200))
-def test_linear_crc_equals_the_scalar_crc(message):
-    assert LinearCrc(len(message))(np.frombuffer(message, np.uint8)) == crc16(message)
 
 
 @settings(max_examples=60, deadline=None)

@@ -1,5 +1,5 @@
-"""The Dynamixel hot path's fast forms equal the general ones: the two-byte CRC, the SYNC_WRITE
-CRC by linearity, the struct-read fast replies (against dynamixel-sdk's own parsing), the
+"""The Dynamixel hot path's fast forms equal the general ones: the SYNC_WRITE packets (against
+dynamixel-sdk's bytes), the struct-read fast replies (against dynamixel-sdk's own parsing), the
 per-element goal ticks and positions, and the split-phase tick read in one pass
 (``_read_arrived``) against the general path, on the byte-level emulator."""
 
@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from firmware_cfg.config import load_config, robot_config_path
 from ros_free_bridge.dynamixel_codec import (
-    FastBulkReadDecoder, FastSyncReadDecoder, PacketError, SyncWriteEncoder, crc16, crc16_fast,
+    FastBulkReadDecoder, FastSyncReadDecoder, PacketError, SyncWriteEncoder, crc16,
 )
 from ros_free_bridge.emulators import dynamixel_protocol as dp
 from ros_free_bridge.errors import BridgeError
@@ -27,37 +27,27 @@ from test_dxl_transport import XM, make, wait_for
 IDS = list(range(1, 21))
 
 
-@settings(max_examples=80, deadline=None)
-@given(st.binary(max_size=300), st.integers(0, 0xFFFF))
-def test_two_byte_crc_equals_the_bytewise_crc(data, start):
-    assert crc16_fast(data, start) == crc16(data, start)
-    assert crc16_fast(memoryview(data)) == crc16(data)
-
-
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(-5000, 9000), min_size=20, max_size=20))
-def test_sync_write_crc_by_linearity_equals_the_sdk_packet(values):
-    """Values inside the window take the per-servo table, outside it the full CRC; both are
-    the SDK's packet byte for byte (values here never form FF FF FD, which the SDK would
-    leave unstuffed)."""
+def test_sync_write_of_signed_goals_equals_the_sdk_packet(values):
+    """Goal Position is a signed 4-byte register: negative ticks and ticks past one turn
+    are the SDK's packet byte for byte (values here never form FF FF FD, which the SDK would
+    leave unstuffed), from a list or an integer array."""
     port = CapturePort()
     sdk_sync_write(port, 116, 4, IDS, values)
-    windowed = SyncWriteEncoder(116, 4, IDS, window=(0, 4095))
-    assert windowed._window is not None
-    assert windowed.encode(values) == port.sent[-1] == SyncWriteEncoder(116, 4, IDS).encode(np.array(values))
-    inside = [min(max(v, 0), 4095) for v in values]
-    sdk_sync_write(port, 116, 4, IDS, inside)
-    assert windowed.encode(inside) == port.sent[-1]
+    enc = SyncWriteEncoder(116, 4, IDS)
+    assert enc.encode(values) == port.sent[-1] == enc.encode(np.array(values))
 
 
-def test_sync_write_window_edges_and_refusals():
-    enc = SyncWriteEncoder(102, 2, [1, 2, 3], window=(-885, 885))
-    plain = SyncWriteEncoder(102, 2, [1, 2, 3])
-    for v in ([-885, 0, 885], [-886, 885, 886], [-32768, 32767, 0]):
-        assert enc.encode(v) == plain.encode(np.array(v))
-    assert SyncWriteEncoder(116, 4, [1], window=(0, 100_000))._window is None  # too wide: full CRC
+def test_sync_write_refuses_values_that_do_not_fit_and_wrong_counts():
+    enc = SyncWriteEncoder(102, 2, [1, 2, 3])
+    for v in ([-885, 0, 885], [-32768, 32767, 0]):
+        raw = enc.encode(v)
+        assert crc16(raw[:-2]) == raw[-2] | (raw[-1] << 8)
+        assert dp.decode_packet(raw).params[4:] == b"".join(
+            bytes((i,)) + x.to_bytes(2, "little", signed=True) for i, x in zip([1, 2, 3], v))
     with pytest.raises(PacketError, match="does not fit"):
-        plain.encode([0, 40000, 0])
+        enc.encode([0, 40000, 0])
     with pytest.raises(PacketError, match="expects 3 values"):
         enc.encode([1, 2])
 

@@ -111,11 +111,31 @@ def test_byte_stuffing_worked_example():
     assert dp.unstuff(h("FF FF FD FD FF FF FD FD")) == h("FF FF FD FF FF FD")
 
 
+def crc_bitwise(data: bytes, crc: int = 0) -> int:
+    """The definition, one bit at a time: polynomial 0x8005 (x^16 + x^15 + x^2 + 1), MSB
+    first, init 0, no final XOR."""
+    for byte in data:
+        crc ^= byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else crc << 1
+            crc &= 0xFFFF
+    return crc
+
+
 def test_crc_is_the_dynamixel_polynomial():
-    # CRC-16 with polynomial 0x8005 (x^16 + x^15 + x^2 + 1), MSB first, init 0.
-    assert dp.CRC_TABLE[1] == 0x8005
-    assert dp.crc16(h("FF FF FD 00 01 03 00 01")) == 0x4E19
+    assert dp.crc16(h("FF FF FD 00 01 03 00 01")) == 0x4E19  # the e-Manual's PING packet
     assert dp.crc16(b"456", dp.crc16(b"123")) == dp.crc16(b"123456")
+    assert dp.crc16(b"123456789") == crc_bitwise(b"123456789") == 0xFEE8  # CRC-16/UMTS check value
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.binary(max_size=300), st.integers(0, 0xFFFF), st.integers(0, 300))
+def test_crc_equals_the_bitwise_definition_on_any_buffer(data, start, cut):
+    """Any bytes-like input (the transport passes memoryviews of replies), any running start."""
+    expected = crc_bitwise(data, start)
+    assert dp.crc16(data, start) == expected
+    assert dp.crc16(bytearray(data), start) == expected
+    assert dp.crc16(memoryview(data)[cut:], dp.crc16(memoryview(data)[:cut], start)) == expected
 
 
 def test_decode_rejects_bad_crc_and_length_with_a_clear_message():

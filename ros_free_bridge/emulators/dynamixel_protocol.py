@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 # CRC-16, stuffing and instruction framing are shared with the transport's hot path
 from ros_free_bridge.dynamixel_codec import (
-    BROADCAST_ID, CRC_TABLE, FAST_SYNC_READ, HEADER2, STATUS, SYNC_READ, SYNC_WRITE, PacketError, crc16,
+    BROADCAST_ID, FAST_SYNC_READ, HEADER2, STATUS, SYNC_READ, SYNC_WRITE, PacketError, crc16,
     encode_instruction, frame2 as _frame2, stuff, unstuff,
 )
 
@@ -292,7 +292,7 @@ __all__ = [
     "REBOOT", "CLEAR", "SYNC_READ", "SYNC_WRITE", "FAST_SYNC_READ", "BULK_READ", "BULK_WRITE", "FAST_BULK_READ",
     "INSTRUCTION_NAMES", "ERR_RESULT_FAIL", "ERR_INSTRUCTION", "ERR_CRC", "ERR_DATA_RANGE", "ERR_DATA_LENGTH",
     "ERR_DATA_LIMIT", "ERR_ACCESS", "ERR_ALERT", "ERR1_VOLTAGE", "ERR1_ANGLE", "ERR1_OVERHEAT", "ERR1_RANGE",
-    "ERR1_CHECKSUM", "ERR1_OVERLOAD", "ERR1_INSTRUCTION", "PacketError", "CRC_TABLE", "crc16", "stuff", "unstuff",
+    "ERR1_CHECKSUM", "ERR1_OVERLOAD", "ERR1_INSTRUCTION", "PacketError", "crc16", "stuff", "unstuff",
     "encode_instruction", "encode_status", "encode_fast_status", "Packet", "decode_packet", "decode_fast_status",
     "checksum1", "encode_instruction1", "encode_status1", "decode_packet1", "Frame", "StreamParser",
 ]

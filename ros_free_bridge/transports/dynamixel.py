@@ -12,8 +12,8 @@ Per control tick (protocol 2.0):
   recovers by policy (:class:`RecoveryPolicy`).
 
 Hot path (protocol 2.0, every tick): the SYNC_WRITE packet is packed with ``struct`` and its
-CRC taken by linearity, one table look-up per servo; the FAST_SYNC_READ / FAST_BULK_READ reply
-is checked (CRC two bytes per step) and read with one ``struct`` unpack
+CRC taken (fastcrc, compiled); the FAST_SYNC_READ / FAST_BULK_READ reply is checked (its
+CRC) and read with one ``struct`` unpack
 (:mod:`ros_free_bridge.dynamixel_codec`, byte for byte the packets of the SDK's
 GroupSyncWrite / GroupSyncRead.fastSyncRead / GroupBulkRead, tested); goal limits, ticks and
 positions are converted element by element with Python floats (the numpy forms' operations,
@@ -944,14 +944,13 @@ class DynamixelTransport:
         self._state.position[:] = [d * ((t - c) / r - o) for t, (c, r, o, d) in zip(ticks, self._joint_rows)]
 
     def _make_groups(self) -> None:
-        """Protocol 2.0: the hot path's SYNC_WRITE encoder and FAST_SYNC_READ decoder (ours,
-        numpy; the same bytes as the SDK's groups), and the SDK's GroupSyncRead for buses
+        """Protocol 2.0: the hot path's SYNC_WRITE encoder and FAST_SYNC_READ decoder (ours;
+        the same bytes as the SDK's groups), and the SDK's GroupSyncRead for buses
         whose servos do not answer FAST_SYNC_READ (firmware < v45 on X series)."""
         if self.bus.protocol != 2.0:
             return
         first = self.servos[0]
-        self._writer = SyncWriteEncoder(first.goal.address, first.goal.size, self._ids, first.goal.signed,
-                                        window=(int(self._tick_lo.min()), int(self._tick_hi.max())))
+        self._writer = SyncWriteEncoder(first.goal.address, first.goal.size, self._ids, first.goal.signed)
         self._fast = FastSyncReadDecoder(first.present.address, first.present.size, self._ids, first.present.signed)
         self._reader = sdk.GroupSyncRead(self.bus.port, self.bus.ph, first.present.address, first.present.size)
         for sid in self._ids:
