@@ -25,7 +25,9 @@ smooth separating plane along the feet's lateral axis instead of segment distanc
 OfflineConfig.collision_model, "distance" keeps the old rows), then IPOPT's quality-function mu
 oracle instead of probing (22 → 17-19; with the distance rows it does not help). Per iteration,
 fast_step_computation + min_refinement_steps 0 (no residual check or refinement back-solve after
-MUMPS) take ~20 % off, same iterates. The constraint Jacobian and the Gauss-Newton Hessian by
+MUMPS) take ~20 % off, same iterates. Per window, starting the constraint multipliers at 0
+(constr_mult_init_max 0) skips the least-squares estimate and its own factorisation: IPOPT's
+InitializeIterates 90 → 3 ms, same iterates. The constraint Jacobian and the Gauss-Newton Hessian by
 the chain rule over per-frame SX Jacobians (retarget.offline: one frame Jacobian mapped over the
 window, then sparse products) instead of CasADi's AD of the mapped graph (~100 directional
 sweeps over all frames): jac_g ~3.5-6.5 → ~1.3-1.7 ms and the Hessian ~2.3-3.9 → ~1.9-2.7 ms per

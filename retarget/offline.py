@@ -286,7 +286,12 @@ class OfflineRetargeter:
                 # allocate and touch ~11x the estimate at every factorisation: ~250k page faults
                 # per CMU pair, the kernel's clear_page ~11 % of the time). Same iterates; when the
                 # estimate is short, IPOPT doubles it and refactorises (0 % never recovers)
-                "ipopt.mumps_mem_percent": MUMPS_MEM_PERCENT}
+                "ipopt.mumps_mem_percent": MUMPS_MEM_PERCENT,
+                # constraint multipliers start at 0: no least-squares estimate, which costs a
+                # factorisation of its own system (with its own MUMPS analysis) per window, ~10 %
+                # of IPOPT's time on the CMU pair, for a start it then threw away (same
+                # iterations and solution to 1e-11 with or without it)
+                "ipopt.constr_mult_init_max": 0.0}
         opts |= {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
         name = f"rtw{W}"
         ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=()))}_{int(round(fps * 1000))}"
