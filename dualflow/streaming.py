@@ -499,9 +499,10 @@ class ReactiveStreamer:
         (``ros_free_bridge.idle_slots``)."""
         if not self.config.incremental:
             return []
-        batches = {batch for _, batch in self._due()}
+        starts = self._due()
+        batches = {batch for _, batch in starts}
         due = {"takeover": 1 in batches, "start": self._start_due(), "feed": self.FEED_BATCH in batches,
-               "prefetch": self._prefetch_target() is not None}
+               "prefetch": self._prefetch_target(starts) is not None}
         return [kind for kind in self.IDLE_JOBS if due[kind]]
 
     @torch.no_grad()
@@ -529,11 +530,12 @@ class ReactiveStreamer:
         n_done = self._emitted.shape[0]
         return next((b for b in self._bases if b.can_generate(n_done + self.config.hop - 1)), None)
 
-    def _prefetch_target(self):
+    def _prefetch_target(self, due: list | None = None):
         """The window start whose ``prefetch`` is due: the next generator, once it has been
-        fed every frame it lacks (a feed moves its streams on), else None."""
+        fed every frame it lacks (a feed moves its streams on), else None. ``due``: ``_due()``
+        if the caller has it already."""
         gen = self._next_generator() if self.config.prefetch else None
-        if gen is None or not gen.prefetch_due() or any(b is gen for b, _ in self._due()):
+        if gen is None or not gen.prefetch_due() or any(b is gen for b, _ in (self._due() if due is None else due)):
             return None
         return gen
 

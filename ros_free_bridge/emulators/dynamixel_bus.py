@@ -451,10 +451,11 @@ class DynamixelBusEmulator:
                 return None
         return None
 
-    def _listeners(self, protocol: int, now: float) -> tuple[dict[int, EmulatedServo], list[EmulatedServo]]:
-        """Servos that hear this packet (right protocol, connected, not booting, same baud),
-        by ID; plus the servos whose ID another listener already has (an ID clash)."""
-        host_baud = self._host_baud() if self.match_baud else None
+    def _listeners(self, protocol: int, now: float,
+                   host_baud: int | None) -> tuple[dict[int, EmulatedServo], list[EmulatedServo]]:
+        """Servos that hear this packet (right protocol, connected, not booting, and at
+        ``host_baud`` unless it is None), by ID; plus the servos whose ID another listener
+        already has (an ID clash)."""
         out: dict[int, EmulatedServo] = {}
         twins: list[EmulatedServo] = []
         for s in self._servos:
@@ -475,11 +476,12 @@ class DynamixelBusEmulator:
         with self.lock:
             self.received.append(frame.raw)
             now = self.clock()
-            wire_baud = self._host_baud() or self.baud
+            host_baud = self._host_baud()  # one termios read per packet
+            wire_baud = host_baud or self.baud
             t_start = max(t_first, self._bus_free_at)
             t_end_in = t_start + 10.0 * len(frame.raw) / wire_baud
             self._bus_free_at = t_end_in
-            listeners, twins = self._listeners(frame.protocol, now)
+            listeners, twins = self._listeners(frame.protocol, now, host_baud if self.match_baud else None)
             if frame.valid:
                 for s in list(listeners.values()) + twins:
                     s.heard(now)  # restarts each servo's Bus Watchdog interval
