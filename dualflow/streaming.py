@@ -497,13 +497,24 @@ class ReactiveStreamer:
         next generator's share of its next pass's convolutions (a fraction of a pass). Their
         costs differ several-fold, so an idle-time scheduler can time each kind on its own
         (``ros_free_bridge.idle_slots``)."""
+        return [kind for kind, _ in self._idle_work()]
+
+    def _idle_work(self) -> list[tuple[str, object]]:
+        """(kind, what it works on) for each kind of catch-up work due now, in ``IDLE_JOBS``
+        order: "takeover" and "feed" the first (start, batch) of ``_due`` with their batch,
+        "start" None, "prefetch" the start to prefetch for."""
         if not self.config.incremental:
             return []
         starts = self._due()
-        batches = {batch for _, batch in starts}
-        due = {"takeover": 1 in batches, "start": self._start_due(), "feed": self.FEED_BATCH in batches,
-               "prefetch": self._prefetch_target(starts) is not None}
-        return [kind for kind in self.IDLE_JOBS if due[kind]]
+        work: dict[str, object] = {}
+        for base, batch in starts:
+            work.setdefault("takeover" if batch == 1 else "feed", (base, batch))
+        if self._start_due():
+            work["start"] = None
+        gen = self._prefetch_target(starts)
+        if gen is not None:
+            work["prefetch"] = gen
+        return [(kind, work[kind]) for kind in self.IDLE_JOBS if kind in work]
 
     @torch.no_grad()
     def prepare(self, max_passes: int = 1, kinds=None) -> bool:
@@ -512,17 +523,17 @@ class ReactiveStreamer:
         passes to do. For idle time (e.g. waiting for the next actor frame). Returns whether
         more catch-up work is due."""
         for _ in range(max(0, int(max_passes))):
-            jobs = [k for k in self.idle_jobs() if kinds is None or k in kinds]
-            if not jobs:
+            work = [(kind, on) for kind, on in self._idle_work() if kinds is None or kind in kinds]
+            if not work:
                 break
-            if jobs[0] == "start":
+            kind, on = work[0]
+            if kind == "start":
                 self._add_start()
                 self._bases[-1].sync_actor(self._actor)
-            elif jobs[0] == "prefetch":
-                self._prefetch_target().prefetch(rows=self.config.hop + 1)
+            elif kind == "prefetch":
+                on.prefetch(rows=self.config.hop + 1)
             else:
-                want = 1 if jobs[0] == "takeover" else self.FEED_BATCH
-                self._feed(*next((b, batch) for b, batch in self._due() if batch == want))
+                self._feed(*on)
         return self.has_catch_up
 
     def _next_generator(self):
@@ -530,12 +541,12 @@ class ReactiveStreamer:
         n_done = self._emitted.shape[0]
         return next((b for b in self._bases if b.can_generate(n_done + self.config.hop - 1)), None)
 
-    def _prefetch_target(self, due: list | None = None):
+    def _prefetch_target(self, due: list):
         """The window start whose ``prefetch`` is due: the next generator, once it has been
-        fed every frame it lacks (a feed moves its streams on), else None. ``due``: ``_due()``
-        if the caller has it already."""
+        fed every frame it lacks (not among ``due``, the ``_due()`` list: a feed moves its
+        streams on), else None."""
         gen = self._next_generator() if self.config.prefetch else None
-        if gen is None or not gen.prefetch_due() or any(b is gen for b, _ in (self._due() if due is None else due)):
+        if gen is None or not gen.prefetch_due() or any(b is gen for b, _ in due):
             return None
         return gen
 
