@@ -315,11 +315,11 @@ class OfflineRetargeter:
             try:
                 return self._retarget_at(motion, contacts, factor, scaler)
             except _Infeasible as exc:
-                last = exc
+                last, last_factor = exc, factor
         msg = (f"{motion.name or 'motion'}: infeasible at {'its speed' if factors[-1] == 1.0 else f'{factors[-1]:g}x slower'}: "
                f"{last}; re-time the clip (retime=1.5 plays it 1.5x slower, CLI --retime 1.5) or let it try "
                "(auto_retime=True, CLI --auto-retime)")
-        raise RetargetError(msg)
+        raise RetargetError(msg, time_s=round(last.frame / motion.fps / last_factor, 3))
 
     def _retarget_at(self, motion: Motion, contacts, factor: float, scaler=None) -> RobotTrajectory:
         fps = motion.fps
@@ -429,16 +429,17 @@ class OfflineRetargeter:
                 "always there)")
         viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
         if status not in _OK and viol > 1e-5:
-            worst = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s)
+            worst, frame = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s)
             raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
-                              f"worst: {worst})")
+                              f"worst: {worst})", s if frame is None else frame)
         Xw = xs[:nx * W].reshape(W, nx)
         return Xw, int(st.get("iter_count", 0)), info, status
 
 
-    def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int, s: int) -> str:
+    def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int,
+                            s: int) -> tuple[str, int | None]:
         """Name the most violated constraint: its block (velocity, sole_z, slide, balance, collision
-        pair) and the clip frame, e.g. ``collision l_sole_in/r_sole_in at frame 12``."""
+        pair) and the clip frame, e.g. ``collision l_sole_in/r_sole_in at frame 12``; and that frame."""
         v = np.maximum(lbg - g, 0) + np.maximum(g - ubg, 0)
         i = int(np.argmax(v))
         start = 0
@@ -454,9 +455,9 @@ class OfflineRetargeter:
                     what = f"collision {a}/{b}"
                 elif name == "vel":
                     what = f"velocity of {self._x_name(j)}"
-                return f"{what} at frame {frame}"
+                return f"{what} at frame {frame}", frame
             start += size
-        return "unknown"
+        return "unknown", None
 
     def _x_name(self, i: int) -> str:
         rb = self.robot
@@ -465,7 +466,9 @@ class OfflineRetargeter:
 
 
 class _Infeasible(Exception):
-    pass
+    def __init__(self, message: str, frame: int):
+        super().__init__(message)
+        self.frame = frame  #: the clip frame of the worst violation (of the clip as solved, maybe slowed)
 
 
 #: keypoints moved with each foot by :func:`feet_apart` (share of the foot's shift)

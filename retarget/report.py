@@ -17,7 +17,10 @@ Definitions (all at robot scale, i.e. against the scaled targets of :mod:`retarg
   motionless source (jerk 0) the ratio is undefined: ``None`` (JSON null, 'n/a' in the
   markdown), never NaN. The mean absolute joint jerk |Δ³q|·fps³ (rad/s³) is reported too;
 - self-collisions: (frame, capsule pair) with the capsules overlapping (distance of their
-  axes below the sum of radii, no margin).
+  axes below the sum of radii, no margin);
+- first failure (s): for a clip that fails (see ``passed``), the earliest moment of a failing
+  criterion: a joint or velocity limit exceeded, a sole more than 5 mm below the ground, a
+  foot sliding more than 5 mm in a frame (when skate fails); ``None`` when the clip passes.
 """
 
 from __future__ import annotations
@@ -34,6 +37,10 @@ from retarget.targets import Targets
 from retarget.trajectory import RobotTrajectory
 
 SKATE_MM_PER_FRAME = 5.0
+#: A clip passes with skate in under this share of its contact frames ...
+SKATE_SHARE = 0.02
+#: ... and no sole deeper than this below the ground (mm).
+PENETRATION_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -57,12 +64,13 @@ class RetargetReport:
     joint_jerk_mean: float
     self_collisions: int
     solver: dict
+    first_failure_s: float | None = None
 
     @property
     def passed(self) -> bool:
         """0 limit and velocity violations, skate in < 2 % of contact frames, penetration ≤ 5 mm."""
-        return (self.limit_violations == 0 and self.velocity_violations == 0 and self.skate_share < 0.02
-                and self.penetration_mm <= 5.0)
+        return (self.limit_violations == 0 and self.velocity_violations == 0 and self.skate_share < SKATE_SHARE
+                and self.penetration_mm <= PENETRATION_MM)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -83,7 +91,9 @@ class RetargetReport:
         ]
         lines = [f"# Retarget report: {self.clip} → {self.robot}", "",
                  f"{self.frames} frames at {self.fps:g} fps, mode {self.mode}; "
-                 f"{'PASS' if self.passed else 'FAIL'}", "", "| figure | value |", "|---|---|"]
+                 f"{'PASS' if self.passed else 'FAIL'}"
+                 + ("" if self.first_failure_s is None else f", first failure at {self.first_failure_s:g} s"),
+                 "", "| figure | value |", "|---|---|"]
         lines += [f"| {a} | {b} |" for a, b in rows]
         return "\n".join(lines) + "\n"
 
@@ -143,22 +153,33 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     ev = robot.evaluate(X)
     T, fps = X.shape[0], traj.fps
     err = 1000 * np.linalg.norm(ev["keypoints"] - targets.keypoints, axis=-1)
-    contact_frames, slides = 0, []
+    contact_frames, slides, slide_frames = 0, [], []
     if robot.has_feet and robot.floating:
         for side in range(2):
             centre = ev["sole"][:, 4 * side:4 * side + 4, 0:2].mean(axis=1)
             both = targets.contacts[1:, side] & targets.contacts[:-1, side]
             step = 1000 * np.linalg.norm(np.diff(centre, axis=0), axis=-1)
             slides.append(step[both])
+            slide_frames.append(1 + np.flatnonzero(both))
             contact_frames += int(both.sum())
     slides = np.concatenate(slides) if slides else np.zeros(0)
+    slide_frames = np.concatenate(slide_frames) if slide_frames else np.zeros(0, int)
+    skate_share = float(np.mean(slides > SKATE_MM_PER_FRAME)) if slides.size else 0.0
     sole_z = ev["sole"][..., 2]
     penetration = float(max(0.0, -sole_z.min()) * 1000) if sole_z.size else 0.0
     q = traj.joint_pos
     lo, hi = robot.x_lower[robot.n_root:], robot.x_upper[robot.n_root:]
-    limit_v = int(np.sum((q < lo - 1e-9) | (q > hi + 1e-9)))
-    vel = np.abs(np.diff(q, axis=0)) * fps
-    vel_v = int(np.sum(vel > robot.velocity_limits * (1 + 1e-6))) if T > 1 else 0
+    beyond = (q < lo - 1e-9) | (q > hi + 1e-9)
+    limit_v = int(np.sum(beyond))
+    too_fast = np.abs(np.diff(q, axis=0)) * fps > robot.velocity_limits * (1 + 1e-6)
+    vel_v = int(np.sum(too_fast))
+    failing = [np.flatnonzero(beyond.any(axis=1)), 1 + np.flatnonzero(too_fast.any(axis=1))]
+    if penetration > PENETRATION_MM:
+        failing.append(np.flatnonzero((sole_z < -PENETRATION_MM / 1000).reshape(T, -1).any(axis=1)))
+    if skate_share >= SKATE_SHARE:
+        failing.append(slide_frames[slides > SKATE_MM_PER_FRAME])
+    failing = np.concatenate(failing)
+    first_failure = round(float(failing.min()) / fps, 3) if failing.size else None
     coll = 0
     if robot.collision_pairs:
         # overlap without the profile's margin: d² − (r_a + r_b + m)² < (r_a + r_b)² − (r_a + r_b + m)²
@@ -171,11 +192,12 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     return RetargetReport(
         clip=clip or str(meta.get("source", "")), robot=robot.name, mode=str(meta.get("mode", "")), frames=T, fps=fps,
         keypoint_error_mean_mm=float(err.mean()), keypoint_error_max_mm=float(err.max()),
-        contact_frames=contact_frames, skate_share=float(np.mean(slides > SKATE_MM_PER_FRAME)) if slides.size else 0.0,
+        contact_frames=contact_frames, skate_share=skate_share,
         worst_slide_mm=float(slides.max()) if slides.size else 0.0, penetration_mm=penetration,
         limit_violations=limit_v, velocity_violations=vel_v, jerk_robot=jr, jerk_source=js,
         jerk_ratio=jerk_ratio(jr, js), joint_jerk_mean=_jerk(q, fps),
         self_collisions=coll, solver={k: v for k, v in meta.items() if k not in ("source",)},
+        first_failure_s=first_failure,
     )
 
 

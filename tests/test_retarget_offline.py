@@ -4,6 +4,8 @@ Problems here are small and solved without C compilation (CasADi's virtual machi
 suite needs no compiler; the compiled path is exercised by bench/retarget_speed.py and the
 slow CMU test."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -155,8 +157,11 @@ def test_an_unsolved_window_is_a_clear_error_offering_retiming():
     rb = toy_robot()
     motion = _noisy_walk(T=20, seed=3).replace(name="stomp")
     r = OfflineRetargeter(rb, OfflineConfig(window=0, max_iter=1, **FAST))
-    with pytest.raises(RetargetError, match=r"stomp: infeasible at its speed: frames 0\.\.19: IPOPT says .*retime=1\.5"):
+    with pytest.raises(RetargetError, match=r"stomp: infeasible at its speed: frames 0\.\.19: IPOPT says .*retime=1\.5") as err:
         r.retarget(motion)
+    # the moment of the worst violation, named in the message, in seconds into the clip
+    frame = int(re.search(r"at frame (\d+)", str(err.value)).group(1))
+    assert 0 <= frame <= 19 and err.value.time_s == round(frame / motion.fps, 3)
 
 
 def test_a_solver_error_is_never_taken_for_a_solution():

@@ -39,3 +39,17 @@ def test_jerk_ratio_of_a_moving_source_is_robot_over_source():
     assert rep.jerk_ratio == 0.0
     assert "ratio 0.00" in rep.to_markdown()
     assert jerk_ratio(3.0, 2.0) == 1.5 and jerk_ratio(1.0, 0.0) is None
+
+
+def test_first_failure_is_the_earliest_failing_frame_and_none_when_passing():
+    rb = toy_robot()
+    still = Motion(np.repeat(REST_POSE[None], 12, axis=0), fps=30.0, name="still")
+    targets = make_targets(rb, still)
+    assert evaluate(rb, _standing(rb), targets).first_failure_s is None
+    X = np.tile(rb.x_stand, (12, 1))
+    j = rb.n_root  # the first joint: beyond its upper limit from frame 7 on, which is also a speed jump
+    X[7:, j] = rb.x_upper[j] + 0.05
+    rep = evaluate(rb, trajectory_from_x(rb, X, 30.0, {"mode": "test"}), targets)
+    assert not rep.passed and rep.limit_violations == 5
+    assert rep.first_failure_s == round(7 / 30.0, 3)
+    assert "first failure at 0.233 s" in rep.to_markdown()
