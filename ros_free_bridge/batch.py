@@ -8,10 +8,18 @@ the robot's role) goes through:
    may find the clip infeasible at its speed and say how much slower it would have to be;
 3. the physics check in MuJoCo (falls, torque saturation, speed limits, collisions, balance).
 
+Which files: the motion files directly in the folder (or, with ``recursive``, in its whole
+tree), named by their path relative to it. A folder in InterGen's layout (``person1/`` and
+``person2/`` side by side, or under ``motions_processed/``) gives one clip per pair, the
+reactor's file: person2's, unless InterHuman-AS's ``actor_reactor.json`` in the dataset root
+says person2 acts.
+
 One row per clip: ``status`` is ``pass``, ``fail`` (with the stage, the reason and the time of
 the first failure) or ``error`` (a file that could not be read, with the message). A clip that
-fails or crashes never stops the batch. Clips run in parallel processes, each loading the
-robot (and its compiled CasADi functions) once.
+fails or crashes never stops the batch, not even one that kills its worker process (a crash in
+a native library, or out of memory): the clips that were in flight are re-run one per process,
+and the one that kills its process again gets an ``error`` row. Clips run in parallel
+processes, each loading the robot (and its compiled CasADi functions) once.
 """
 
 from __future__ import annotations
@@ -33,7 +41,7 @@ class ClipResult:
     status: str = "error"  #: pass | fail | error
     stage: str = ""  #: load | retarget | check
     reason: str = ""
-    first_failure_s: float | None = None
+    first_failure_s: float | None = None  #: seconds into the motion file (not the re-timed trajectory)
     frames: int = 0
     duration_s: float = 0.0
     retime: float = 1.0
@@ -61,13 +69,52 @@ class BatchConfig:
     compile: bool = True
 
 
-def find_motion_files(folder) -> list[Path]:
+def find_motion_files(folder, recursive: bool = False, exclude=None) -> list[Path]:
+    """The clips in ``folder`` (module docstring), sorted; ``exclude``: a folder to leave out
+    (the batch's own output folder, when it lies inside the input)."""
     folder = Path(folder)
     if not folder.is_dir():
         from ros_free_bridge.errors import BridgeError
 
         raise BridgeError(f"{folder}: not a folder; give a folder of motion files (BVH, npz, npy)")
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MOTION_SUFFIXES)
+    skip = Path(exclude).resolve() if exclude is not None else None
+    people = _intergen_people(folder)
+    found = []
+    for p in folder.rglob("*") if recursive else folder.iterdir():
+        if not p.is_file() or p.suffix.lower() not in MOTION_SUFFIXES:
+            continue
+        if skip is not None and p.resolve().is_relative_to(skip):
+            continue
+        if people is not None and p.parent.resolve() in people:
+            continue  # one of a pair: listed below as its reactor
+        found.append(p)
+    if people is not None:
+        found += _intergen_reactors(people)
+    return sorted(found)
+
+
+def _intergen_people(folder: Path) -> dict[Path, str] | None:
+    """InterGen's layout under ``folder``: {person folder: "person1" | "person2"}, else None."""
+    for base in (folder, folder / "motions_processed"):
+        if (base / "person1").is_dir() and (base / "person2").is_dir():
+            return {(base / p).resolve(): p for p in ("person1", "person2")}
+    return None
+
+
+def _intergen_reactors(people: dict[Path, str]) -> list[Path]:
+    """The reactor's file of each clip (a clip with one person only: that person's file)."""
+    from dualflow.datasets.interhuman import LABEL_FILE, read_actor_labels
+
+    files = {person: {f.stem: f for f in d.iterdir() if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES}
+             for d, person in people.items()}
+    root = next(iter(people)).parent
+    root = root.parent if root.name == "motions_processed" else root
+    labels = read_actor_labels(root / LABEL_FILE) if (root / LABEL_FILE).is_file() else {}
+    reactors = []
+    for name in sorted(set(files["person1"]) | set(files["person2"])):
+        order = ("person1", "person2") if labels.get(name) == "person2" else ("person2", "person1")
+        reactors.append(next(files[p][name] for p in order if name in files[p]))
+    return reactors
 
 
 _ROBOT = {}
@@ -89,9 +136,15 @@ def _robot(cfg: BatchConfig):
     return _ROBOT[key]
 
 
-def check_clip(path, cfg: BatchConfig) -> ClipResult:
+def clip_name(path, folder) -> str:
+    """A clip's row name: its path relative to the batch's folder (``/``-separated)."""
+    return Path(path).relative_to(folder).as_posix()
+
+
+def check_clip(path, cfg: BatchConfig, name: str | None = None) -> ClipResult:
     """Retarget and check one file; never raises (an unexpected error becomes an 'error' row
-    with its traceback written beside the clip's outputs)."""
+    with its traceback written beside the clip's outputs). Outputs go to ``OUT/clips/<name>/``
+    (``name``: the row name, default the file's name)."""
     import time
 
     from dualflow.errors import DualFlowError
@@ -99,8 +152,8 @@ def check_clip(path, cfg: BatchConfig) -> ClipResult:
     from sim.errors import SimError
 
     path = Path(path)
-    res = ClipResult(path.name)
-    out = Path(cfg.out) / "clips" / path.stem
+    res = ClipResult(name or path.name)
+    out = Path(cfg.out) / "clips" / res.clip
     t0 = time.monotonic()
     try:
         res.stage = "load"
@@ -115,6 +168,7 @@ def check_clip(path, cfg: BatchConfig) -> ClipResult:
         _physics_check(traj, cfg, fixed, res, out)
     except (DualFlowError, RetargetError, SimError) as exc:
         res.status, res.reason = ("error" if res.stage == "load" else "fail"), str(exc)
+        res.first_failure_s = getattr(exc, "time_s", None)
     except Exception as exc:  # noqa: BLE001 - one broken clip must not stop the batch
         out.mkdir(parents=True, exist_ok=True)
         (out / "traceback.txt").write_text(traceback.format_exc())
@@ -153,7 +207,7 @@ def _retarget_report(robot, traj, motion, res: ClipResult, out: Path) -> None:
     res.limit_violations = report.limit_violations + report.velocity_violations
     res.files["trajectory"] = str(out / "trajectory.npz")
     if not report.passed:
-        res.status, res.stage = "fail", "retarget"
+        res.status, res.stage, res.first_failure_s = "fail", "retarget", _clip_time(report.first_failure_s, res)
         res.reason = (f"retarget report: {report.limit_violations} limit / {report.velocity_violations} velocity "
                       f"violations, skate {100 * report.skate_share:.1f}% of contact frames, "
                       f"penetration {report.penetration_mm:.1f} mm")
@@ -172,34 +226,62 @@ def _physics_check(traj, cfg: BatchConfig, fixed: bool, res: ClipResult, out: Pa
         res.status, res.stage = "pass", ""
     else:
         res.status, res.reason = "fail", check.reason
-        res.first_failure_s = check.first_failure_time
+        res.first_failure_s = _clip_time(check.first_failure_time, res)
 
 
-def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool = True) -> list[ClipResult]:
-    """Check every file; ``jobs`` worker processes (default: all cores). Rows in file order."""
-    import multiprocessing as mp
+def _clip_time(t: float | None, res: ClipResult) -> float | None:
+    """A time on the robot's trajectory -> seconds into the motion file (a re-timed trajectory
+    plays the clip ``retime`` times slower)."""
+    return None if t is None else round(float(t) / res.retime, 3)
 
+
+def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool = True,
+              folder=None) -> list[ClipResult]:
+    """Check every file in ``jobs`` worker processes (default: every core this process may use);
+    rows in file order, named relative to ``folder`` (default: by file name)."""
     from tqdm import tqdm
 
     files = [Path(f) for f in files]
-    jobs = max(1, min(jobs or os.cpu_count() or 1, len(files) or 1))
-    bar = tqdm(total=len(files), desc="retarget-check", unit="clip", disable=not progress)
-    results: dict[str, ClipResult] = {}
-    if jobs == 1:
-        for f in files:
-            results[str(f)] = check_clip(f, cfg)
+    names = [clip_name(f, folder) if folder is not None else f.name for f in files]
+    jobs = max(1, min(jobs or len(os.sched_getaffinity(0)), len(files) or 1))
+    results: dict[int, ClipResult] = {}
+    with tqdm(total=len(files), desc="retarget-check", unit="clip", disable=not progress) as bar:
+        def done(i: int, res: ClipResult) -> None:
+            results[i] = res
             bar.update()
-    else:
-        with mp.get_context("fork").Pool(jobs) as pool:
-            for f, res in zip(files, pool.imap(_check_star, [(f, cfg) for f in files])):
-                results[str(f)] = res
-                bar.update()
-    bar.close()
-    return [results[str(f)] for f in files]
+            bar.set_postfix_str(f"{res.clip}: {res.status}", refresh=True)
+
+        pending = list(range(len(files)))
+        while pending:
+            lost = _pool_pass(pending, files, names, cfg, jobs, done)
+            # the clips a dead worker took down: those in flight (the first submitted, jobs + the
+            # one queued) run one per process, to find the one that kills it; the rest run again
+            suspects, pending = lost[:jobs + 1], lost[jobs + 1:]
+            for i in suspects:
+                if _pool_pass([i], files, names, cfg, 1, done):
+                    done(i, ClipResult(names[i], status="error",
+                                       reason="the worker process died while checking this clip (a crash in a native "
+                                              "library, or out of memory); retarget it alone with `dualflow-bridge "
+                                              f"retarget {files[i]}` to see the crash"))
+    return [results[i] for i in range(len(files))]
 
 
-def _check_star(args):
-    return check_clip(*args)
+def _pool_pass(indices, files, names, cfg: BatchConfig, jobs: int, done) -> list[int]:
+    """Run ``indices`` in a pool of ``jobs`` processes, calling ``done(i, result)`` as each ends;
+    the indices whose result was lost because a worker process died."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    lost = []
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork")) as pool:
+        futures = {pool.submit(check_clip, files[i], cfg, names[i]): i for i in indices}
+        for fut in as_completed(futures):
+            try:
+                done(futures[fut], fut.result())
+            except BrokenProcessPool:
+                lost.append(futures[fut])
+    return sorted(lost)
 
 
 def write_results(results: list[ClipResult], out: Path) -> dict[str, Path]:

@@ -1,14 +1,20 @@
-"""End to end: retarget-check over a folder with a good clip, a broken file and a motion too
-fast for the servos. Real BVH parser, CasADi/IPOPT and MuJoCo, two worker processes."""
+"""End to end: retarget-check over a folder with a good clip, a two-person file, a broken file
+and a motion too fast for the servos; and a batch whose worker processes are killed. Real BVH
+parser, CasADi/IPOPT and MuJoCo, real worker processes."""
 
 import csv
+import os
+import signal
+import threading
+import time
 
 import numpy as np
 import pytest
 
-from dualflow.motion import REST_POSE, Motion
+from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
 from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_leader
+from ros_free_bridge.batch import BatchConfig, run_batch
 from ros_free_bridge.cli import main
 
 pytestmark = pytest.mark.slow
@@ -18,6 +24,9 @@ def test_a_folder_gives_one_row_per_clip_and_a_failure_never_stops_the_batch(tmp
     clips = tmp_path / "clips"
     clips.mkdir()
     save_motion(Motion(np.repeat(REST_POSE[None], 60, 0), 30.0), clips / "standing.npz")
+    # two people: the robot takes the reactor's part (here standing still, 45 frames)
+    walker = Motion(make_leader(1.5, 30.0, 2).positions + [2.0, 0.0, 0.0], 30.0)
+    save_motion(TwoPersonMotion(walker, Motion(np.repeat(REST_POSE[None], 45, 0), 30.0)), clips / "duet.npz")
     leader = make_leader(3.0, 30.0, 1)
     save_motion(Motion(leader.positions, fps=120.0).resample(30.0), clips / "too_fast.npz")  # 4x faster
     (clips / "broken.bvh").write_text("HIERARCHY\nROOT Hips\n{\n OFFSET 0 0\n")
@@ -25,19 +34,67 @@ def test_a_folder_gives_one_row_per_clip_and_a_failure_never_stops_the_batch(tmp
     code = main(["retarget-check", str(clips), "-o", str(out), "--jobs", "2", "--no-compile"])
     assert code == 1  # not every clip passes
     rows = {r["clip"]: r for r in csv.DictReader(open(out / "results.csv"))}
-    assert list(rows) == ["broken.bvh", "standing.npz", "too_fast.npz"]  # file order, all present
+    assert list(rows) == ["broken.bvh", "duet.npz", "standing.npz", "too_fast.npz"]  # file order, all present
     assert rows["broken.bvh"]["status"] == "error" and "line 4" in rows["broken.bvh"]["reason"]
     assert rows["standing.npz"]["status"] == "pass"
+    assert rows["duet.npz"]["status"] == "pass" and rows["duet.npz"]["frames"] == "45"
     fast = rows["too_fast.npz"]
     # 4x too fast: either no trajectory within the servo limits exists at this speed (retarget
     # stage, offering re-timing) or the limit-respecting trajectory cannot be played (check stage)
     assert fast["status"] == "fail" and fast["stage"] in ("retarget", "check")
+    assert 0 <= float(fast["first_failure_s"]) <= 3.0  # seconds into the 3 s file
     if fast["stage"] == "retarget":
         assert "infeasible" in fast["reason"] and "retime" in fast["reason"]
     else:
         assert fast["check_reason"] and fast["limit_violations"] == "0"
     for name in ("trajectory.npz", "retarget.report.json", "check.json", "check.md"):
-        assert (out / "clips" / "standing" / name).stat().st_size > 0, name
+        assert (out / "clips" / "standing.npz" / name).stat().st_size > 0, name
     table = (out / "results.md").read_text()
-    assert "1 of 3 clips pass" in table and "| standing.npz | PASS |" in table
+    assert "2 of 4 clips pass" in table and "| standing.npz | PASS |" in table
     assert "too_fast.npz" in capsys.readouterr().out
+
+
+def _children() -> set[int]:
+    """Live child processes of this process (from /proc)."""
+    me, kids = str(os.getpid()), set()
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = open(f"/proc/{d}/stat").read()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()
+            if fields[1] == me and fields[0] != "Z":
+                kids.add(int(d))
+    return kids
+
+
+def test_a_worker_that_dies_costs_only_its_own_clip(tmp_path, capsys):
+    """SIGKILL the first worker process (in flight with the first clip) and the process the
+    batch then runs that clip alone in: that clip gets an error row, every other clip its result."""
+    clips = []
+    for k in range(3):
+        clips.append(tmp_path / f"stand{k}.npz")
+        save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clips[-1])
+    killed, stop = [], threading.Event()
+
+    def killer():
+        while len(killed) < 2 and not stop.is_set():
+            for pid in sorted(_children() - set(killed)):
+                time.sleep(0.3)  # let it take its clip
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                break
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    try:
+        rows = run_batch(clips, BatchConfig(out=tmp_path / "out", compile=False), jobs=1, progress=False)
+    finally:
+        stop.set()
+        thread.join()
+    assert len(killed) == 2
+    assert [r.clip for r in rows] == ["stand0.npz", "stand1.npz", "stand2.npz"]
+    assert rows[0].status == "error" and "worker process died" in rows[0].reason
+    assert [r.status for r in rows[1:]] == ["pass", "pass"]
