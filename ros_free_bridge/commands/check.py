@@ -15,17 +15,33 @@ def register(subparsers) -> None:
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trajectory", help="robot trajectory .npz (RobotTrajectory.save_npz)")
     p.add_argument("--robot", help="robot name or MJCF path (default: the trajectory's robot, else op3)")
-    p.add_argument("--mode", choices=("free", "fixed"), default="free", help="free-standing or torso bolted")
-    p.add_argument("--control-hz", type=float, default=100.0)
-    p.add_argument("--physics-hz", type=float, default=500.0)
-    p.add_argument("--interp", choices=("linear", "cubic"), default="linear")
-    p.add_argument("--actor", help="human actor motion file (.bvh/.npz/.npy) to place in the scene")
-    p.add_argument("--actor-scale", default="robot", help="'robot', 'human' or a number (default robot)")
-    p.add_argument("--actor-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
-    p.add_argument("--actor-yaw", type=float, default=0.0, help="degrees about +Z")
+    add_mode_option(p)
+    p.add_argument("--control-hz", type=float, default=100.0,
+                   help="rate at which the servo targets are updated, as the bridge's loop does (default 100)")
+    p.add_argument("--physics-hz", type=float, default=500.0,
+                   help="MuJoCo step rate, a whole multiple of --control-hz (default 500)")
+    p.add_argument("--interp", choices=("linear", "cubic"), default="linear",
+                   help="how targets between trajectory frames are made (default linear)")
+    add_placement_options(p, "actor", "human actor motion file (.bvh/.npz/.npy) to place in the scene")
     p.add_argument("-o", "--out", default="check_report", help="report folder (default check_report)")
     p.add_argument("--no-plots", action="store_true", help="write only the JSON report")
     p.set_defaults(func=run)
+
+
+def add_mode_option(p) -> None:
+    p.add_argument("--mode", choices=("free", "fixed"), default="free",
+                   help="free: the robot stands free on the floor (it can fall); fixed: its torso is bolted in "
+                        "place (upper-body partners) (default free)")
+
+
+def add_placement_options(p, prefix: str, what: str) -> None:
+    """--PREFIX FILE and where that person stands: --PREFIX-scale, -offset, -yaw."""
+    p.add_argument(f"--{prefix}", help=what)
+    p.add_argument(f"--{prefix}-scale", default="robot",
+                   help="'robot' (shrunk to the robot's height), 'human' (life size) or a number (default robot)")
+    p.add_argument(f"--{prefix}-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+                   help="move the person by this much after scaling, metres (default 0 0 0)")
+    p.add_argument(f"--{prefix}-yaw", type=float, default=0.0, help="turn the person about +Z, degrees (default 0)")
 
 
 def placement_from_args(args, prefix: str = "actor"):

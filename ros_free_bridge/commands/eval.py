@@ -53,15 +53,23 @@ def register(subparsers) -> None:
     parser.add_argument("--jukebox", metavar="PATH", help="ablation: Jukebox music features")
     parser.add_argument("--look-ahead", action="append", default=[], metavar="L=PATH", help="ablation: look-ahead L")
     parser.add_argument("--retrieval-k", action="append", default=[], metavar="K=PATH", help="ablation: retrieval depth k")
-    parser.add_argument("--mode", choices=("interactive", "reactive", "both"), default="both")
+    parser.add_argument("--mode", choices=("interactive", "reactive", "both"), default="both",
+                        help="interactive: both people generated from text/music; reactive: the reactor generated "
+                             "from the ground-truth actor; both: two row groups, as in the paper (default both)")
     parser.add_argument("--steps", type=int, default=20, help="Euler steps per sample (paper: 20)")
-    parser.add_argument("--cfg-scale", type=float, default=1.0)
-    parser.add_argument("--replications", type=int, default=20)
+    parser.add_argument("--cfg-scale", type=float, default=1.0,
+                        help="classifier-free guidance scale of the conditions (1 = no guidance; default 1)")
+    parser.add_argument("--replications", type=int, default=20,
+                        help="repeats of the whole protocol with different seeds; figures are mean ± 1.96 σ/√n (default 20)")
     parser.add_argument("--batch-size", type=int, default=96, help="R-precision batch (InterGen: 96)")
-    parser.add_argument("--diversity-times", type=int, default=300)
-    parser.add_argument("--mm-samples", type=int, default=100)
-    parser.add_argument("--mm-repeats", type=int, default=30)
-    parser.add_argument("--mm-times", type=int, default=10)
+    parser.add_argument("--diversity-times", type=int, default=300,
+                        help="pairs of generated samples whose embedding distance makes the diversity (default 300)")
+    parser.add_argument("--mm-samples", type=int, default=100,
+                        help="multimodality: conditions sampled from the test set (default 100)")
+    parser.add_argument("--mm-repeats", type=int, default=30,
+                        help="multimodality: generations per condition (default 30)")
+    parser.add_argument("--mm-times", type=int, default=10,
+                        help="multimodality: pairs of those generations compared per condition (default 10)")
     parser.add_argument("--quick", action="store_true", help="smaller protocol: " + ", ".join(f"{k}={v}" for k, v in QUICK.items()))
     parser.add_argument("--no-ground-truth", action="store_true", help="leave out the ground-truth row")
     parser.add_argument("--json", default=None, help="also write the results to this JSON file")
@@ -73,12 +81,12 @@ def register(subparsers) -> None:
                         description="Train the InterCLIP-style motion-text evaluator on a dataset split.")
     _dataset_args(tr, "train")
     tr.add_argument("--out", required=True, help="output folder for the evaluator")
-    tr.add_argument("--steps", type=int, default=400)
-    tr.add_argument("--batch-size", type=int, default=32)
-    tr.add_argument("--lr", type=float, default=3e-4)
-    tr.add_argument("--width", type=int, default=128)
-    tr.add_argument("--layers", type=int, default=2)
-    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--steps", type=int, default=400, help="training steps (default 400)")
+    tr.add_argument("--batch-size", type=int, default=32, help="motion-text pairs per step (default 32)")
+    tr.add_argument("--lr", type=float, default=3e-4, help="AdamW learning rate (default 3e-4)")
+    tr.add_argument("--width", type=int, default=128, help="transformer width of each encoder (default 128)")
+    tr.add_argument("--layers", type=int, default=2, help="transformer layers of each encoder (default 2)")
+    tr.add_argument("--seed", type=int, default=0, help="seed of the initial weights and batch order (default 0)")
     tr.set_defaults(func=run_train_evaluator)
 
 

@@ -189,20 +189,35 @@ def register(subparsers) -> None:
                                    description=__doc__.split("\n\n")[0])
     sub = motion.add_subparsers(dest="motion_command", metavar="ACTION", required=True)
 
-    info = sub.add_parser("info", help="frames, fps, duration, height and extents of a motion file")
+    info = sub.add_parser("info", help="frames, fps, duration, height and extents of a motion file",
+                          description="Read a motion file (or a pair) and print what the bridge sees: frames, "
+                                      "frame rate, duration, each person's height, pelvis height, lowest foot, extents and "
+                                      "path, the distance between two people, and for BVH the joint map and "
+                                      "length unit it detected. Use it to check a file before retargeting it.",
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
     info.add_argument("files", nargs="*", metavar="FILE", help="motion file, and optionally the partner's (FILE2)")
     _add_load_options(info)
     info.set_defaults(func=_info)
 
     conv = sub.add_parser("convert", help="convert between BVH / npz / npy motion files (writes .npz or .bvh)",
-                          description="motion convert IN OUT | motion convert IN IN2 OUT | motion convert --actor A --reactor B OUT")
+                          description="Convert a motion file (BVH, npz, AMASS npz, HumanML3D / InterGen npy) to our "
+                                      ".npz or to BVH, with the reading options below (unit, up axis, joint map, "
+                                      "resampling).\n\n"
+                                      "  motion convert IN OUT                        one person\n"
+                                      "  motion convert IN IN2 OUT                    two people, one world frame\n"
+                                      "  motion convert --actor A --reactor B OUT     the same\n\n"
+                                      "A pair becomes a duet .npz, or two BVH files OUT_actor.bvh and OUT_reactor.bvh.",
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
     conv.add_argument("paths", nargs="+", metavar="PATH", help="input file(s) then the output (.npz or .bvh)")
     conv.add_argument("--bvh-translations", choices=("root", "all"), default="root",
                       help="BVH output: position channels on the root only (usual) or on every joint (exact)")
     _add_load_options(conv)
     conv.set_defaults(func=_convert)
 
-    prev = sub.add_parser("preview", help="draw stick figures of one or two people to .mp4 or .gif")
+    prev = sub.add_parser("preview", help="draw stick figures of one or two people to .mp4 or .gif",
+                          description="Draw one or two people as stick figures, in 3-D with the ground, to an "
+                                      ".mp4 or .gif: a quick look at a file (or at the bundled synthetic duet, "
+                                      "--sample) without MuJoCo.")
     prev.add_argument("files", nargs="*", metavar="FILE", help="motion file, and optionally the partner's (FILE2)")
     prev.add_argument("-o", "--output", required=True, help="output video, .mp4 or .gif")
     prev.add_argument("--sample", nargs="?", const=DEFAULT_SAMPLE_RULE, metavar="RULE",

@@ -7,28 +7,26 @@ import argparse
 
 
 def register(subparsers) -> None:
+    from ros_free_bridge.commands.check import add_mode_option, add_placement_options
+
     p = subparsers.add_parser("render", help="render a robot trajectory to an mp4", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trajectory", help="robot trajectory .npz")
     p.add_argument("-o", "--out", required=True, help="output .mp4")
     p.add_argument("--robot", help="robot name or MJCF path (default: the trajectory's robot, else op3)")
-    p.add_argument("--mode", choices=("free", "fixed"), default="free")
-    p.add_argument("--playback", choices=("physics", "kinematic"), default="physics")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
-    p.add_argument("--fps", type=float, default=30.0)
-    p.add_argument("--azimuth", type=float, default=160.0, help="camera azimuth, degrees (180 = facing the robot)")
-    p.add_argument("--elevation", type=float, default=-15.0)
+    add_mode_option(p)
+    p.add_argument("--playback", choices=("physics", "kinematic"), default="physics",
+                   help="physics: the simulated servos play the trajectory and the video shows what they do (and the "
+                        "check's verdict is printed); kinematic: the poses exactly as written (default physics)")
+    p.add_argument("--width", type=int, default=640, help="width of each panel, pixels (default 640)")
+    p.add_argument("--height", type=int, default=480, help="height, pixels (default 480)")
+    p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
+    p.add_argument("--azimuth", type=float, default=160.0, help="camera azimuth, degrees (180 = facing the robot; default 160)")
+    p.add_argument("--elevation", type=float, default=-15.0, help="camera elevation, degrees (negative: looking down; default -15)")
     p.add_argument("--distance", type=float, help="camera distance in m (default 2.4 x robot height)")
-    p.add_argument("--quality", choices=("fast", "full"), default="fast", help="full: shadows, reflections, MSAA")
-    p.add_argument("--actor", help="human actor motion file")
-    p.add_argument("--actor-scale", default="robot")
-    p.add_argument("--actor-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
-    p.add_argument("--actor-yaw", type=float, default=0.0)
-    p.add_argument("--reactor", help="generated reactor motion file, drawn as a stick figure")
-    p.add_argument("--reactor-scale", default="robot")
-    p.add_argument("--reactor-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
-    p.add_argument("--reactor-yaw", type=float, default=0.0)
+    p.add_argument("--quality", choices=("fast", "full"), default="fast", help="full: shadows, reflections, MSAA (default fast)")
+    add_placement_options(p, "actor", "human actor motion file, drawn beside the robot")
+    add_placement_options(p, "reactor", "generated reactor motion file, drawn as a stick figure")
     p.add_argument("--side-by-side", action="store_true", help="three panels: actor | reactor | robot")
     p.set_defaults(func=run)
 

@@ -25,7 +25,9 @@ def register(subparsers) -> None:
     p.add_argument("--person", choices=("reactor", "actor"), default="reactor", help="which person of a pair to retarget")
     p.add_argument("--robot", default="op3", help="robot name or MJCF path (default op3)")
     p.add_argument("--profile", metavar="YAML", help="retarget profile (default retarget/profiles/<robot>.yaml)")
-    p.add_argument("--mode", choices=("offline", "streaming"), default="offline")
+    p.add_argument("--mode", choices=("offline", "streaming"), default="offline",
+                   help="offline: the whole clip in overlapping windows (contacts, balance, smoothness as hard "
+                        "constraints); streaming: frame by frame as the live bridge does it (default offline)")
     p.add_argument("--fps", type=float, default=30.0, help="resample the motion to this rate first (default 30)")
     p.add_argument("--ground", action="store_true", help="shift the motion so its lowest foot joint is at z = 0")
     p.add_argument("--window", type=int, default=None,

@@ -15,7 +15,7 @@ inspect Dynamixel servo buses.
 - ``emulate CONFIG``: start an emulated bus with the config's servos on a pseudo-terminal
   and print its port, for trying everything above without hardware.
 
-Every command but ``emulate`` takes ``--port`` (default: the config's bus port) and
+Every action but ``emulate`` takes ``--port`` (default: the config's bus port) and
 ``--emulate`` (run against an emulated bus started in-process from the config, e.g.
 ``dualflow-bridge servo provision firmware_cfg/robots/op3.yaml --emulate``).
 """
@@ -49,28 +49,45 @@ def register(subparsers) -> None:
         q.add_argument("--emulate", action="store_true", help="use an emulated bus started from the config (no hardware)")
         q.add_argument("--retries", type=int, default=2, help="retries per packet (default 2)")
 
-    s = sub.add_parser("scan", help="find servos: ping IDs across baud rates and protocols")
+    s = sub.add_parser("scan", help="find servos: ping IDs across baud rates and protocols",
+                       description="Ping every ID at each baud rate and protocol (2.0 by broadcast ping, 1.0 one ID "
+                                   "at a time) and print each servo found: ID, model, firmware, baud, protocol. "
+                                   "Reads only; use it first on a new bus, or when a servo does not answer.")
     s.add_argument("config", nargs="?", help="with --emulate: the config whose servos to emulate")
     s.add_argument("--port", help="serial device (e.g. /dev/ttyUSB0)")
     s.add_argument("--bus", help="bus name in the config")
     s.add_argument("--emulate", action="store_true", help="scan an emulated bus started from CONFIG")
-    s.add_argument("--bauds", default=",".join(str(b) for b in SCAN_BAUDS), help="comma-separated baud rates")
+    s.add_argument("--bauds", default=",".join(str(b) for b in SCAN_BAUDS),
+                   help=f"comma-separated baud rates to try, in order (default {','.join(str(b) for b in SCAN_BAUDS)})")
     s.add_argument("--protocols", default="2,1", help="protocols to try: 2,1 (default), 2 or 1")
     s.add_argument("--ids", default="0-252", help="ID range for protocol 1.0 unicast pings, e.g. 0-30 (2.0 uses broadcast ping)")
     s.add_argument("--latency-ms", type=float, default=4.0,
                    help="reply latency allowed per ping, ms (default 4; the timeout adds the bytes' time and 3 ms)")
     s.set_defaults(func=run_scan)
 
-    s = sub.add_parser("provision", help="write EEPROM/RAM settings from CONFIG (torque off), read back, show the diff")
+    s = sub.add_parser("provision", help="write EEPROM/RAM settings from CONFIG (torque off), read back, show the diff",
+                       description="Make each servo on the bus match CONFIG: switch torque off, write the EEPROM "
+                                   "settings (return delay, temperature and voltage limits, position limits from the joint limits) "
+                                   "and RAM settings (status return level, PID gains, profiles, bus watchdog), "
+                                   "read everything back and print what changed. Writes nothing when a servo's "
+                                   "model differs from the config. Run once per new servo, with the robot "
+                                   "supported (torque goes off).")
     common(s)
     s.add_argument("--dry-run", action="store_true", help="show the diff only; write nothing")
     s.set_defaults(func=run_provision)
 
-    s = sub.add_parser("verify", help="check models and settings against CONFIG (exit 1 on a mismatch)")
+    s = sub.add_parser("verify", help="check models and settings against CONFIG (exit 1 on a mismatch)",
+                       description="Read each servo's model and EEPROM settings and compare them with CONFIG; "
+                                   "report hardware error flags. Reads only. Exit code 0 when everything matches, "
+                                   "1 on a mismatch (run `servo provision` to fix it).")
     common(s)
     s.set_defaults(func=run_verify)
 
-    s = sub.add_parser("calibrate", help="record zero offsets with the robot held in its zero pose")
+    s = sub.add_parser("calibrate", help="record zero offsets with the robot held in its zero pose",
+                       description="With the robot held in its zero pose (the MJCF's zero: every joint at 0 rad), "
+                                   "read each servo's position several times and write a copy of CONFIG with "
+                                   "those zero offsets to --out. Torque is switched off first (unless "
+                                   "--keep-torque), so support the robot.")
     common(s)
     s.add_argument("--out", required=True, help="where to write the calibrated config (YAML)")
     s.add_argument("--samples", type=int, default=10, help="readings averaged per servo (default 10)")
@@ -78,14 +95,21 @@ def register(subparsers) -> None:
     s.add_argument("--keep-torque", action="store_true", help="do not switch torque off before reading")
     s.set_defaults(func=run_calibrate)
 
-    s = sub.add_parser("monitor", help="live table of positions, temperatures, voltages and errors")
+    s = sub.add_parser("monitor", help="live table of positions, temperatures, voltages and errors",
+                       description="A live table, one row per servo: position, velocity, current, temperature, "
+                                   "input voltage and hardware error flags, refreshed --rate times a second. "
+                                   "Reads only; torque is left as it is.")
     common(s)
     s.add_argument("--rate", type=float, default=5.0, help="table refreshes per second (default 5)")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     s.add_argument("--once", action="store_true", help="print one table and exit")
     s.set_defaults(func=run_monitor)
 
-    s = sub.add_parser("emulate", help="start an emulated bus from CONFIG on a pty and print its port")
+    s = sub.add_parser("emulate", help="start an emulated bus from CONFIG on a pty and print its port",
+                       description="Start a byte-level emulation of CONFIG's servos (protocol 2.0, registers, "
+                                   "a motor model) on a pseudo-terminal and print its device path; point --port "
+                                   "of the other servo actions, or `run --transport dynamixel`, at it to try them "
+                                   "without hardware.")
     s.add_argument("config", help="robot hardware config or bundled robot name")
     s.add_argument("--bus", help="bus name in the config (a serial-link bus starts an emulated DFSL board)")
     s.add_argument("--provisioned", action="store_true", help="servos start with the config's settings (verify passes)")

@@ -12,12 +12,20 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("plot", help="figures of a run from its telemetry file")
+    p = sub.add_parser("plot", help="figures of a run from its telemetry file",
+                       description="Draw a run's figures from its telemetry file: joints.png (each joint's "
+                                   "target, command sent and measured angle), timing.png (tick lateness and "
+                                   "compute time, stage and end-to-end latency), safety.png (bridge state, "
+                                   "safety-filter interventions, faults). Prints their paths.")
     p.add_argument("telemetry", help="a telemetry.dftl file written by run or demo")
     p.add_argument("-o", "--out", help="folder for the PNGs (default: beside the file, plots/)")
     p.set_defaults(func=plot)
 
-    r = sub.add_parser("replay", help="replay a run's commands on a transport or as a video")
+    r = sub.add_parser("replay", help="replay a run's commands on a transport or as a video",
+                       description="Play the joint commands a run sent (read from its telemetry file) again: as "
+                                   "a video through the simulated servos (--video), and/or through the control "
+                                   "loop and its safety filter to a transport (--transport), e.g. to repeat on "
+                                   "the real robot what was first tried in simulation.")
     r.add_argument("telemetry", help="a telemetry.dftl file written by run or demo")
     r.add_argument("--robot", help="robot name or hardware config (default: the one the run used)")
     r.add_argument("--video", help="render the commands played through the simulated servos to this .mp4")

@@ -7,16 +7,15 @@ import argparse
 
 
 def register(subparsers) -> None:
+    from ros_free_bridge.commands.check import add_mode_option, add_placement_options
+
     p = subparsers.add_parser("view", help="open the interactive MuJoCo viewer", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trajectory", nargs="?", help="robot trajectory .npz (default: the robot standing)")
     p.add_argument("--robot", help="robot name or MJCF path")
-    p.add_argument("--mode", choices=("free", "fixed"), default="free")
+    add_mode_option(p)
     p.add_argument("--loop", action="store_true", help="replay until the window is closed")
-    p.add_argument("--actor", help="human actor motion file")
-    p.add_argument("--actor-scale", default="robot")
-    p.add_argument("--actor-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"))
-    p.add_argument("--actor-yaw", type=float, default=0.0)
+    add_placement_options(p, "actor", "human actor motion file, shown beside the robot")
     p.set_defaults(func=run)
 
 
