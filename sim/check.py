@@ -178,15 +178,15 @@ def resample(times: np.ndarray, values: np.ndarray, t_new: np.ndarray, kind: str
 
 # -- the check ---------------------------------------------------------------
 def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None = None, actor: Motion | None = None,
-                     actor_placement: Placement | None = None) -> CheckResult:
+                     actor_placement: Placement | None = None, on_tick=None) -> CheckResult:
     """Play ``traj`` (RobotTrajectory or npz path) and judge it. ``robot`` overrides
     ``traj.robot`` (default "op3"); ``actor`` adds the human figure (robot-human
-    penetration is then measured)."""
+    penetration is then measured); ``on_tick(t)`` as in :meth:`Checker.run` (e.g. progress)."""
     config = config or CheckConfig()
     config.validate()
     traj = _as_trajectory(traj)
     scene = scene_for(traj, config, robot, actor, actor_placement)
-    return Checker(scene, config).run(traj)
+    return Checker(scene, config).run(traj, on_tick=on_tick)
 
 
 def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = None, actor: Motion | None = None,

@@ -167,11 +167,12 @@ def write_mp4(frames: list[np.ndarray], path, fps: float) -> Path:
 
 
 def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_config=None, robot: str | None = None,
-                      actor=None, actor_placement=None, reactor=None, reactor_placement=None):
+                      actor=None, actor_placement=None, reactor=None, reactor_placement=None, on_tick=None):
     """Film ``traj`` (RobotTrajectory or npz path) to ``out_path`` (.mp4).
 
     Returns (path, CheckResult or None): with physics playback the check result of
-    the same run comes back too.
+    the same run comes back too. ``on_tick(t)`` (optional) is called as the film reaches
+    trajectory time ``t`` (s), e.g. for a progress bar.
     """
     ensure_headless_gl()
     from sim.check import CheckConfig, Checker, _as_trajectory, _joint_columns, scene_for
@@ -188,7 +189,12 @@ def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_
     result = None
     try:
         if config.playback == "physics":
-            result = Checker(scene, check_config).run(traj, on_tick=filmer.on_tick)
+            def tick(t: float) -> None:
+                filmer.on_tick(t)
+                if on_tick is not None:
+                    on_tick(t)
+
+            result = Checker(scene, check_config).run(traj, on_tick=tick)
         else:
             q = _joint_columns(traj, scene.robot.joint_names, scene.config.robot)
             n_frames = int(np.floor(traj.duration * config.fps + 1e-9)) + 1
@@ -200,6 +206,8 @@ def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_
                 scene.pose_humans(t)
                 scene.mujoco_forward()
                 filmer.grab()
+                if on_tick is not None:
+                    on_tick(t)
     finally:
         filmer.close()
     return write_mp4(filmer.frames, out_path, config.fps), result

@@ -10,7 +10,7 @@ import torch
 from dualflow.checkpoint import save_checkpoint
 from dualflow.model import DualFlow, DualFlowConfig
 from dualflow.motion.features import encode_pair
-from dualflow.motion.io import load_motion
+from dualflow.motion.io import load_motion, save_motion
 from dualflow.motion.normalization import NormStats
 from dualflow.synthetic import make_duet, make_leader
 from retarget import RobotTrajectory
@@ -28,9 +28,11 @@ def test_demo_writes_every_output(tmp_path, capsys):
     out = tmp_path / "demo"
     code = main(["demo", "--model", str(ckpt), "--seconds", "2", "--steps", "2", "-o", str(out)])
     printed = capsys.readouterr().out
-    assert code == 0, printed
     assert "STOPPED (the motion ended)" in printed and "bus_violations: 0" in printed
-    assert "physics check: " in printed
+    check = json.loads((out / "check.json").read_text())
+    # exit code: the run stopped normally with no out-of-limit bus command, and physics says PASS
+    assert code == (0 if check["passed"] else 1), printed
+    assert f"physics check: {'PASS' if check['passed'] else 'FAIL'}" in printed
     for name in ("demo.mp4", "check.json", "check.md", "telemetry.dftl", "actor.npz", "partner.npz", "robot.npz"):
         assert (out / name).stat().st_size > 0, name
     tel = read_telemetry(out / "telemetry.dftl")
@@ -43,6 +45,23 @@ def test_demo_writes_every_output(tmp_path, capsys):
         assert partner["positions"].shape == (n, 22, 3)
     robot = RobotTrajectory.load_npz(out / "robot.npz")
     assert robot.joint_names == tel.joint_names and robot.n_frames == len(tel.records) + 1
-    check = json.loads((out / "check.json").read_text())
     assert check["robot"] == "op3" and isinstance(check["passed"], bool)
     np.testing.assert_allclose(robot.joint_pos[-1], tel.records["measured"][-1], atol=0.05)
+
+
+def test_demo_with_an_actor_file_and_the_bundled_model(tmp_path, capsys):
+    """The README's path for a user's own clip: --actor FILE, no --music (a click track is made on
+    the actor's motion beats), the bundled checkpoint, no video."""
+    actor = tmp_path / "leader.npz"
+    save_motion(make_leader(2.5, 30.0, 3), actor)
+    out = tmp_path / "demo"
+    code = main(["demo", "--actor", str(actor), "--no-video", "-o", str(out)])
+    captured = capsys.readouterr()
+    assert "click track on the actor's motion beats" in captured.err
+    assert (out / "music.wav").stat().st_size > 0
+    check = json.loads((out / "check.json").read_text())
+    assert code == (0 if check["passed"] else 1), captured.out
+    assert "STOPPED (the motion ended)" in captured.out and "bus_violations: 0" in captured.out
+    assert load_motion(out / "actor.npz").n_frames == 75  # every frame of the file, none invented
+    assert load_motion(out / "partner.npz").n_frames == 75
+    assert not (out / "demo.mp4").exists()

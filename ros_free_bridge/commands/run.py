@@ -4,8 +4,20 @@
     dualflow-bridge run --actor udp://127.0.0.1:9870 --transport dynamixel --port /dev/ttyUSB0
     dualflow-bridge run --actor dance.bvh --transport dynamixel --emulate   # no hardware
 
+The actor's motion goes through the partner generator (DualFlow in reactive mode, or the
+robot imitating the actor) and the streaming retargeter to the control loop, which sends
+each command through the safety filter to the transport at --rate Hz. A status line shows
+the state, latency and safety interventions while it runs.
+
 Stop with Ctrl-C (or SIGTERM): an e-stop that applies the e-stop policy at once. On a
-terminal, q or the space bar does the same.
+terminal, q or the space bar does the same. A recorded actor stops by itself at its end
+(the stop policy: hold or limp after a ramp).
+
+Writes into --out: telemetry.dftl (+ .events.jsonl; every control tick, flushed even on a
+crash), actor.npz and partner.npz (the two people), robot.npz (the simulated robot's
+measured motion, sim transports) or commands.npz (record transport), and the video with
+--video. Exit code 0 when the run ends in a normal stop, 1 after an e-stop or a fault, 2 for
+bad options.
 """
 
 from __future__ import annotations
@@ -80,12 +92,12 @@ def generator_options(args) -> dict:
 
 def register(sub) -> None:
     p = sub.add_parser("run", help="stream a robot partner from a live or recorded actor",
-                       description=__doc__.split("\n\n")[0])
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robot", default="op3", help="bundled robot name or a hardware config .yaml (default: op3)")
     p.add_argument("--actor", default="synthetic",
                    help="motion file (BVH, npz, InterGen npy), udp://127.0.0.1:PORT (live), or 'synthetic' (default)")
     p.add_argument("--seconds", type=float, default=10.0, help="length of the synthetic actor (default 10 s)")
-    p.add_argument("--seed", type=int, default=0, help="synthetic actor seed")
+    p.add_argument("--seed", type=int, default=0, help="synthetic actor seed (default 0)")
     p.add_argument("--partner", choices=PARTNERS, default="dualflow",
                    help="dualflow: generate the partner (default); imitate: the robot copies the actor")
     add_generator_options(p)
@@ -222,9 +234,9 @@ def run(args) -> int:
     result = run_session(opts, on_status=status, on_ready=ready)
     if status is not None:
         sys.stderr.write("\n")
-    if args.video:
-        render_video(result, Path(args.video))
     print_summary(result)
+    if args.video:
+        print(f"video: {render_video(result, Path(args.video))}")
     return 0 if result.summary.end_state == "STOPPED" else 1
 
 
@@ -290,8 +302,9 @@ def side_view(robot_motion, actor, placement, camera):
     return replace(camera, azimuth=float(np.degrees(np.arctan2(d[1], d[0]))) + 120.0, lookat=aim)
 
 
-def render_video(result, path: Path) -> Path:
-    """Actor, generated partner and robot side by side, from the run's recorded motions."""
+def render_video(result, path: Path, on_tick=None) -> Path:
+    """Actor, generated partner and robot side by side, from the run's recorded motions
+    (``on_tick(t)``: as the film reaches run time t, s)."""
     from ros_free_bridge.errors import BridgeError
     from sim.render import RenderConfig, render_trajectory
 
@@ -304,6 +317,5 @@ def render_video(result, path: Path) -> Path:
         config = replace(config, camera=side_view(result.robot_motion, result.actor, placement, config.camera))
     out, _ = render_trajectory(result.robot_motion, path, config,
                                robot=result.files.name, actor=result.actor, actor_placement=placement,
-                               reactor=result.partner)
-    print(f"video: {out}", file=sys.stderr)
+                               reactor=result.partner, on_tick=on_tick)
     return out
