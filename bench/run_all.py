@@ -14,6 +14,10 @@ The benchmarks, each defined by an issue (its targets are the issue's):
     #6 bench_streaming      streaming compute per frame, seam continuity, reactor error
     #7 retrieval_speed      one retrieval query against 10,000 entries
     #8 bridge_loop          control-loop jitter, skipped ticks, loop CPU, end-to-end latency
+    #9 demo_time            wall time of `dualflow-bridge demo` on the embedded defaults
+
+(``bench/partner_motion.py`` is not among them: it is a quality check of the bundled model's
+streamed partner, with no target from an issue; run it on its own.)
 
 Each runs in its own fresh Python process (``--child``), so one benchmark's state (threads,
 torch settings, CPU affinity, a GL context) cannot change another's figures, and a crash or a
@@ -64,6 +68,7 @@ BENCHES: tuple[tuple[str, int], ...] = (
     ("bench.bench_streaming", 6),
     ("bench.retrieval_speed", 7),
     ("bench.bridge_loop", 8),
+    ("bench.demo_time", 9),
 )
 
 DEFAULT_TIMEOUT_S = 1800.0
