@@ -85,7 +85,7 @@ def find_motion_files(folder, recursive: bool = False, exclude=None) -> list[Pat
             continue
         if skip is not None and p.resolve().is_relative_to(skip):
             continue
-        if people is not None and p.parent.resolve() in people:
+        if people is not None and p.parent in people:
             continue  # one of a pair: listed below as its reactor
         found.append(p)
     if people is not None:
@@ -97,7 +97,7 @@ def _intergen_people(folder: Path) -> dict[Path, str] | None:
     """InterGen's layout under ``folder``: {person folder: "person1" | "person2"}, else None."""
     for base in (folder, folder / "motions_processed"):
         if (base / "person1").is_dir() and (base / "person2").is_dir():
-            return {(base / p).resolve(): p for p in ("person1", "person2")}
+            return {base / p: p for p in ("person1", "person2")}
     return None
 
 

@@ -68,3 +68,11 @@ def test_not_a_folder_is_one_clear_error(tmp_path):
 def test_relative_names_are_posix_and_unique(tmp_path):
     a, b = touch(tmp_path / "x" / "walk.npz"), touch(tmp_path / "y" / "walk.npz")
     assert np.unique(names([a, b], tmp_path)).size == 2 and names([a], tmp_path) == ["x/walk.npz"]
+
+
+def test_a_relative_folder_works_for_pairs_too(tmp_path, monkeypatch):
+    for person in ("person1", "person2"):
+        touch(tmp_path / "ig" / person / "7.npy")
+    monkeypatch.chdir(tmp_path)
+    files = find_motion_files("ig", recursive=True)
+    assert names(files, "ig") == ["person2/7.npy"] and not files[0].is_absolute()
