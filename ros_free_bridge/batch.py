@@ -18,7 +18,7 @@ One row per clip: ``status`` is ``pass``, ``fail`` (with the stage, the reason a
 the first failure) or ``error`` (a file that could not be read, with the message). A clip that
 fails or crashes never stops the batch, not even one that kills its worker process (a crash in
 a native library, or out of memory): the clips that were in flight are re-run one per process,
-and the one that kills its process again gets an ``error`` row. Clips run in parallel
+the others in a new pool, and a clip that kills its process again gets an ``error`` row. Clips run in parallel
 processes, each loading the robot (and its compiled CasADi functions) once.
 """
 
@@ -78,41 +78,35 @@ def find_motion_files(folder, recursive: bool = False, exclude=None) -> list[Pat
 
         raise BridgeError(f"{folder}: not a folder; give a folder of motion files (BVH, npz, npy)")
     skip = Path(exclude).resolve() if exclude is not None else None
-    people = _intergen_people(folder)
-    found = []
-    for p in folder.rglob("*") if recursive else folder.iterdir():
-        if not p.is_file() or p.suffix.lower() not in MOTION_SUFFIXES:
-            continue
-        if skip is not None and p.resolve().is_relative_to(skip):
-            continue
-        if people is not None and p.parent in people:
-            continue  # one of a pair: listed below as its reactor
-        found.append(p)
-    if people is not None:
-        found += _intergen_reactors(people)
+    candidates = [p for p in (folder.rglob("*") if recursive else folder.iterdir())
+                  if p.is_file() and p.suffix.lower() in MOTION_SUFFIXES
+                  and not (skip is not None and p.resolve().is_relative_to(skip))]
+    # InterGen's layout: FOLDER/ or FOLDER/motions_processed/ (with --recursive: any folder) holding
+    # person1/ and person2/; their files are listed as pairs, by the reactor's file
+    bases = {folder, folder / "motions_processed"}
+    if recursive:
+        bases |= {p.parent.parent for p in candidates}
+    bases = sorted(b for b in bases if (b / "person1").is_dir() and (b / "person2").is_dir())
+    people = {b / person for b in bases for person in ("person1", "person2")}
+    found = [p for p in candidates if p.parent not in people]
+    for base in bases:
+        found += _intergen_reactors(base)
     return sorted(found)
 
 
-def _intergen_people(folder: Path) -> dict[Path, str] | None:
-    """InterGen's layout under ``folder``: {person folder: "person1" | "person2"}, else None."""
-    for base in (folder, folder / "motions_processed"):
-        if (base / "person1").is_dir() and (base / "person2").is_dir():
-            return {base / p: p for p in ("person1", "person2")}
-    return None
+def _intergen_reactors(base: Path) -> list[Path]:
+    """The reactor's file of each clip under ``base``/person1|person2 (a clip with one person only:
+    that person's file); InterHuman-AS's actor_reactor.json in the dataset root says who acts."""
+    from dualflow.datasets.interhuman import LABEL_FILE, PEOPLE, read_actor_labels
 
-
-def _intergen_reactors(people: dict[Path, str]) -> list[Path]:
-    """The reactor's file of each clip (a clip with one person only: that person's file)."""
-    from dualflow.datasets.interhuman import LABEL_FILE, read_actor_labels
-
-    files = {person: {f.stem: f for f in d.iterdir() if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES}
-             for d, person in people.items()}
-    root = next(iter(people)).parent
+    files = {person: {f.name: f for f in (base / person).iterdir() if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES}
+             for person in PEOPLE}
+    root = base.resolve()
     root = root.parent if root.name == "motions_processed" else root
     labels = read_actor_labels(root / LABEL_FILE) if (root / LABEL_FILE).is_file() else {}
     reactors = []
     for name in sorted(set(files["person1"]) | set(files["person2"])):
-        order = ("person1", "person2") if labels.get(name) == "person2" else ("person2", "person1")
+        order = ("person1", "person2") if labels.get(Path(name).stem) == "person2" else ("person2", "person1")
         reactors.append(next(files[p][name] for p in order if name in files[p]))
     return reactors
 
@@ -243,7 +237,7 @@ def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool =
 
     files = [Path(f) for f in files]
     names = [clip_name(f, folder) if folder is not None else f.name for f in files]
-    jobs = max(1, min(jobs or len(os.sched_getaffinity(0)), len(files) or 1))
+    jobs = max(1, min(jobs or _usable_cores(), len(files) or 1))
     results: dict[int, ClipResult] = {}
     with tqdm(total=len(files), desc="retarget-check", unit="clip", disable=not progress) as bar:
         def done(i: int, res: ClipResult) -> None:
@@ -254,8 +248,9 @@ def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool =
         pending = list(range(len(files)))
         while pending:
             lost = _pool_pass(pending, files, names, cfg, jobs, done)
-            # the clips a dead worker took down: those in flight (the first submitted, jobs + the
-            # one queued) run one per process, to find the one that kills it; the rest run again
+            # the clips a dead worker took down: those that were in flight (the first submitted:
+            # jobs, plus the one the pool had queued) run one per process, to find each one that
+            # kills its process; the rest run again in a pool
             suspects, pending = lost[:jobs + 1], lost[jobs + 1:]
             for i in suspects:
                 if _pool_pass([i], files, names, cfg, 1, done):
@@ -275,13 +270,31 @@ def _pool_pass(indices, files, names, cfg: BatchConfig, jobs: int, done) -> list
 
     lost = []
     with ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork")) as pool:
-        futures = {pool.submit(check_clip, files[i], cfg, names[i]): i for i in indices}
-        for fut in as_completed(futures):
-            try:
-                done(futures[fut], fut.result())
-            except BrokenProcessPool:
-                lost.append(futures[fut])
+        try:
+            futures = {pool.submit(check_clip, files[i], cfg, names[i]): i for i in indices}
+            for fut in as_completed(futures):
+                i = futures[fut]
+                try:
+                    done(i, fut.result())
+                except BrokenProcessPool:
+                    lost.append(i)
+                except Exception as exc:  # noqa: BLE001 - e.g. a result that cannot be sent back
+                    done(i, ClipResult(names[i], status="error", reason=f"unexpected {type(exc).__name__}: {exc}"))
+        except BaseException:  # Ctrl-C: no clip is started any more, and the running ones stop
+            workers = list((getattr(pool, "_processes", None) or {}).values())
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in workers:
+                proc.terminate()
+            raise
     return sorted(lost)
+
+
+def _usable_cores() -> int:
+    """Cores this process may run on (its affinity, where the OS has one), at least 1."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except AttributeError:
+        return os.cpu_count() or 1
 
 
 def write_results(results: list[ClipResult], out: Path) -> dict[str, Path]:

@@ -76,3 +76,20 @@ def test_a_relative_folder_works_for_pairs_too(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     files = find_motion_files("ig", recursive=True)
     assert names(files, "ig") == ["person2/7.npy"] and not files[0].is_absolute()
+
+
+def test_with_recursive_a_pair_layout_is_found_in_any_subfolder(tmp_path):
+    for person in ("person1", "person2"):
+        touch(tmp_path / "sessions" / "day1" / person / "5.npy")
+        touch(tmp_path / "sessions" / "day1" / person / "5.bvh")  # same stem, another file: its own clip
+    touch(tmp_path / "sessions" / "solo.bvh")
+    files = find_motion_files(tmp_path, recursive=True)
+    assert names(files, tmp_path) == ["sessions/day1/person2/5.bvh", "sessions/day1/person2/5.npy", "sessions/solo.bvh"]
+
+
+def test_labels_are_found_from_a_relative_motions_processed_folder(tmp_path, monkeypatch):
+    for person in ("person1", "person2"):
+        touch(tmp_path / "motions_processed" / person / "10.npy")
+    (tmp_path / "actor_reactor.json").write_text(json.dumps({"10": "person2"}))
+    monkeypatch.chdir(tmp_path / "motions_processed")
+    assert names(find_motion_files("."), ".") == ["person1/10.npy"]
