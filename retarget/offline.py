@@ -429,7 +429,7 @@ class OfflineRetargeter:
                 "always there)")
         viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
         if status not in _OK and viol > 1e-5:
-            worst, frame = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s)
+            worst, frame = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s, T - 1)
             raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
                               f"worst: {worst})", s if frame is None else frame)
         Xw = xs[:nx * W].reshape(W, nx)
@@ -437,16 +437,17 @@ class OfflineRetargeter:
 
 
     def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int,
-                            s: int) -> tuple[str, int | None]:
+                            s: int, last: int) -> tuple[str, int | None]:
         """Name the most violated constraint: its block (velocity, sole_z, slide, balance, collision
-        pair) and the clip frame, e.g. ``collision l_sole_in/r_sole_in at frame 12``; and that frame."""
+        pair) and the clip frame, e.g. ``collision l_sole_in/r_sole_in at frame 12``; and that frame
+        (a window padded past the clip's ``last`` frame repeats it: a padding row names ``last``)."""
         v = np.maximum(lbg - g, 0) + np.maximum(g - ubg, 0)
         i = int(np.argmax(v))
         start = 0
         for name, size in layout.items():
             if i < start + size:
                 rows = size // (W - 1) if name in ("vel", "slide") else size // W
-                j, frame = (i - start) % rows, s + (i - start) // rows
+                j, frame = (i - start) % rows, min(s + (i - start) // rows, last)
                 what = name
                 if name == "collision" and self.config.collision_model == "sole-plane":
                     what = f"collision {self.robot.offline_collision_labels[j]}"
