@@ -36,9 +36,8 @@ def time_demo(extra: list[str], seconds: float) -> tuple[float, float, str]:
     """(wall s, host steal %, the physics verdict line) of one demo run in a fresh process."""
     with tempfile.TemporaryDirectory(prefix="bench_demo_") as tmp:
         cmd = [sys.executable, "-m", "ros_free_bridge", "demo", "--seconds", f"{seconds:g}", "-o", tmp, *extra]
-        env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
         cpu0, t0 = cpu_counters(), time.monotonic()
-        done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
         wall = time.monotonic() - t0
         steal = steal_percent(cpu0, cpu_counters())
         if done.returncode not in (0, 1):

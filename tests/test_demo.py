@@ -31,6 +31,8 @@ def test_demo_writes_every_output(tmp_path, capsys):
     assert "STOPPED (the motion ended)" in printed and "bus_violations: 0" in printed
     check = json.loads((out / "check.json").read_text())
     # exit code: the run stopped normally with no out-of-limit bus command, and physics says PASS
+    # (an untrained tiny model's partner may well make the robot fall: either verdict is fine
+    # here; that the bundled model's default demo passes is bench/demo_time.py's to show)
     assert code == (0 if check["passed"] else 1), printed
     assert f"physics check: {'PASS' if check['passed'] else 'FAIL'}" in printed
     for name in ("demo.mp4", "check.json", "check.md", "telemetry.dftl", "actor.npz", "partner.npz", "robot.npz"):

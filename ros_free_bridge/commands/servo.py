@@ -77,9 +77,9 @@ def register(subparsers) -> None:
     s.set_defaults(func=run_provision)
 
     s = sub.add_parser("verify", help="check models and settings against CONFIG (exit 1 on a mismatch)",
-                       description="Read each servo's model and EEPROM settings and compare them with CONFIG; "
-                                   "report hardware error flags. Reads only. Exit code 0 when everything matches, "
-                                   "1 on a mismatch (run `servo provision` to fix it).")
+                       description="Read each servo's model and EEPROM settings and compare them with CONFIG, "
+                                   "and its hardware error flags. Reads only. Exit code 0 when everything matches "
+                                   "and no flag is set, 1 otherwise (a settings mismatch: run `servo provision`).")
     common(s)
     s.set_defaults(func=run_verify)
 
@@ -106,8 +106,9 @@ def register(subparsers) -> None:
     s.set_defaults(func=run_monitor)
 
     s = sub.add_parser("emulate", help="start an emulated bus from CONFIG on a pty and print its port",
-                       description="Start a byte-level emulation of CONFIG's servos (protocol 2.0, registers, "
-                                   "a motor model) on a pseudo-terminal and print its device path; point --port "
+                       description="Start a byte-level emulation of CONFIG's bus on a pseudo-terminal (its "
+                                   "servos in the bus's protocol, with their registers and a motor model; a "
+                                   "serial-link bus gets an emulated DFSL board) and print its device path; point --port "
                                    "of the other servo actions, or `run --transport dynamixel`, at it to try them "
                                    "without hardware.")
     s.add_argument("config", help="robot hardware config or bundled robot name")
