@@ -5,7 +5,9 @@ the robot's role) goes through:
 
 1. load, resample to 30 fps;
 2. offline retargeting (CasADi/IPOPT: limits, foot contacts, self-collision, balance), which
-   may find the clip infeasible at its speed and say how much slower it would have to be;
+   may find the clip infeasible at its speed and say how much slower it would have to be; or,
+   with ``retargeter="streaming"``, the live bridge's frame-by-frame retargeter (limits as
+   hard bounds, feet planted, CoM, capture point and ZMP kept over them);
 3. the physics check in MuJoCo (falls, torque saturation, speed limits, collisions, balance).
 
 Which files: the motion files directly in the folder (or, with ``recursive``, in its whole
@@ -67,6 +69,9 @@ class BatchConfig:
     auto_retime: bool = False
     fixed_base: bool | None = None  #: None: the robot's own (fixed for upper-body robots)
     compile: bool = True
+    #: "offline": the whole clip in windows (CasADi/IPOPT, ZMP balance); "streaming": frame by
+    #: frame as the live bridge runs it (feet planted, CoM, capture point and ZMP over them)
+    retargeter: str = "offline"
 
 
 def find_motion_files(folder, recursive: bool = False, exclude=None) -> list[Path]:
@@ -116,17 +121,22 @@ _ROBOT = {}
 
 def _robot(cfg: BatchConfig):
     """The retarget robot and the retargeter, built once per worker process."""
-    key = (cfg.robot, cfg.fixed_base, cfg.balance, cfg.auto_retime, cfg.compile)
+    key = (cfg.robot, cfg.fixed_base, cfg.balance, cfg.auto_retime, cfg.compile, cfg.retargeter, cfg.fps)
     if key not in _ROBOT:
         from retarget.offline import OfflineConfig, OfflineRetargeter
         from retarget.robot import load_robot
+        from retarget.streaming import StreamingConfig, StreamingRetargeter
         from sim.robots import ROBOTS
 
         fixed = cfg.fixed_base if cfg.fixed_base is not None else (ROBOTS[cfg.robot].fixed_base if cfg.robot in ROBOTS else False)
         robot = load_robot(cfg.robot, fixed_base=fixed)
-        retargeter = OfflineRetargeter(robot, OfflineConfig(balance=cfg.balance and not fixed, zmp=True, auto_retime=cfg.auto_retime,
-                                                            compile=cfg.compile))
-        _ROBOT[key] = (robot, retargeter, fixed)
+        balance = cfg.balance and not fixed
+        if cfg.retargeter == "streaming":
+            retarget = StreamingRetargeter(robot, cfg.fps, StreamingConfig(compile=cfg.compile, balance=balance)).run
+        else:
+            retarget = OfflineRetargeter(robot, OfflineConfig(balance=balance, zmp=True, auto_retime=cfg.auto_retime,
+                                                              compile=cfg.compile)).retarget
+        _ROBOT[key] = (robot, retarget, fixed)
     return _ROBOT[key]
 
 
@@ -154,8 +164,8 @@ def check_clip(path, cfg: BatchConfig, name: str | None = None) -> ClipResult:
         motion = _load(path, cfg.fps)
         res.frames, res.duration_s = motion.n_frames, round(motion.duration, 3)
         res.stage = "retarget"
-        robot, retargeter, fixed = _robot(cfg)
-        traj = retargeter.retarget(motion)
+        robot, retarget, fixed = _robot(cfg)
+        traj = retarget(motion)
         res.retime = float(traj.meta.get("retime", 1.0))
         _retarget_report(robot, traj, motion, res, out)
         res.stage = "check"

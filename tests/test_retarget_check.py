@@ -3,6 +3,7 @@ and a motion too fast for the servos; and a batch with a clip that kills its wor
 Real BVH parser, CasADi/IPOPT and MuJoCo, real worker processes."""
 
 import csv
+import json
 import os
 import signal
 from pathlib import Path
@@ -78,3 +79,15 @@ def test_a_clip_that_kills_its_worker_costs_only_its_own_row(tmp_path, monkeypat
     assert [r.clip for r in rows] == [f"stand{k}.npz" for k in range(4)]
     assert rows[0].status == "error" and "worker process died" in rows[0].reason
     assert [r.status for r in rows[1:]] == ["pass"] * 3
+
+
+def test_the_streaming_retargeter_can_do_the_checking(tmp_path):
+    """--retargeter streaming: the live bridge's retargeter makes the trajectory; a standing clip
+    passes, and its trajectory says which retargeter made it."""
+    clip = tmp_path / "standing.npz"
+    save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clip)
+    cfg = BatchConfig(out=tmp_path / "out", compile=False, retargeter="streaming")
+    [row] = run_batch([clip], cfg, jobs=1, progress=False)
+    assert row.status == "pass" and row.limit_violations == 0
+    with np.load(tmp_path / "out" / "clips" / "standing.npz" / "trajectory.npz", allow_pickle=False) as traj:
+        assert json.loads(str(traj["header"]))["meta"]["mode"] == "streaming"
