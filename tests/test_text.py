@@ -33,7 +33,7 @@ SENTENCES = [
 def minilm() -> MiniLMEncoder:
     try:
         minilm_model_dir()
-    except DualFlowError as exc:
+    except DualFlowError as exc:  # the MiniLM weights are not in this checkout: the error says where they go
         pytest.skip(str(exc))
     return MiniLMEncoder()
 

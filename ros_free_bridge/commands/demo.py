@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -138,23 +139,14 @@ def leader_beats(actor: str, seconds: float, seed: int):
     return motion_beats(motion.positions) / motion.fps, motion.duration, "on the actor's motion beats (its speed minima)"
 
 
-class motion_progress:
+@contextmanager
+def motion_progress(title: str, total_s: float):
     """A progress bar over seconds of motion for one demo step: ``with motion_progress(title,
     total_s) as tick: work(on_tick=tick)``; ``tick(t)`` reports that ``t`` seconds are done."""
+    from tqdm import tqdm
 
-    def __init__(self, title: str, total_s: float):
-        self.title, self.total = title, round(float(total_s), 2)
-
-    def __enter__(self):
-        from tqdm import tqdm
-
-        print(self.title, file=sys.stderr)
-        self.bar = tqdm(total=self.total, unit="s", leave=False, file=sys.stderr,
-                        bar_format="  {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of motion [{elapsed}<{remaining}]")
-        return self.tick
-
-    def tick(self, t: float) -> None:
-        self.bar.update(min(float(t), self.total) - self.bar.n)
-
-    def __exit__(self, *exc) -> None:
-        self.bar.close()
+    total = round(float(total_s), 2)
+    print(title, file=sys.stderr)
+    with tqdm(total=total, unit="s", leave=False, file=sys.stderr,
+              bar_format="  {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of motion [{elapsed}<{remaining}]") as bar:
+        yield lambda t: bar.update(min(float(t), total) - bar.n)
