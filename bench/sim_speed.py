@@ -45,7 +45,7 @@ def dance(seconds: float):
     import numpy as np
 
     from retarget import RobotTrajectory
-    from sim.robots import joint_names
+    from firmware_cfg.registry import joint_names
     from sim.scene import Scene
 
     names = joint_names("op3")

@@ -1,13 +1,14 @@
 """The per-robot hardware config: buses, servos, joint mapping, offsets, limits, EEPROM settings.
 
-One YAML file per robot (``firmware_cfg/robots/<robot>.yaml``), loaded with
+One YAML file per robot (``hardware.yaml`` in the robot's folder, see
+:mod:`firmware_cfg.registry`), loaded with
 ``yaml.safe_load`` and validated here. Every error is a :class:`ConfigError` whose
 message starts with ``<file>: <field path>:`` and says what is wrong and the fix.
 
 File layout::
 
     robot: op3
-    mjcf: ../../sim/robots/op3/op3.xml     # optional, relative to this file
+    mjcf: op3.xml                           # optional, relative to this file
     stop_policy: hold                       # hold | limp: what close/e-stop does
     servo_defaults: {model: XM430-W350, return_delay_us: 0, ...}   # optional
     buses:
@@ -59,7 +60,6 @@ from firmware_cfg.errors import ConfigError
 
 PROTOCOLS = ("1.0", "2.0", "serial-link")
 STOP_POLICIES = ("hold", "limp")
-ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 #: Serial-link wire range: int16 centi-degrees.
 SERIAL_LINK_RANGE_RAD = 32767 * math.pi / 18000.0
 SERIAL_LINK_MAX_CHANNELS = 32
@@ -173,9 +173,15 @@ class RobotConfig:
 
 # ----------------------------------------------------------------------------- loading
 
-def robot_config_path(robot: str) -> Path:
-    """``firmware_cfg/robots/<robot>.yaml`` of a bundled robot."""
-    return ROBOTS_DIR / f"{robot}.yaml"
+def robot_config_path(robot: str | Path) -> Path:
+    """The hardware config of a robot reference (a bundled name, a robot folder, an MJCF in a
+    robot folder, or the config itself), through the robot registry."""
+    from firmware_cfg.registry import resolve
+
+    path = Path(str(robot)).expanduser()
+    if path.suffix.lower() in (".yaml", ".yml"):
+        return path  # the config itself (it may name no MJCF: a servo bench, a bus on its own)
+    return resolve(robot).require_hardware()
 
 
 def load_config(path: str | Path, mjcf: str | Path | None = None, *, check_mjcf: bool = True) -> RobotConfig:
@@ -187,8 +193,10 @@ def load_config(path: str | Path, mjcf: str | Path | None = None, *, check_mjcf:
     """
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: hardware config not found; give the path of a robot's YAML "
-                          f"(bundled: {', '.join(p.stem for p in sorted(ROBOTS_DIR.glob('*.yaml')))})")
+        from firmware_cfg.registry import bundled_names
+
+        raise ConfigError(f"{path}: hardware config not found; give a robot's hardware.yaml, a robot folder "
+                          f"or a bundled robot ({', '.join(bundled_names())})")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
@@ -395,13 +403,12 @@ def mjcf_joint_ranges(mjcf: str | Path) -> dict[str, tuple[float, float] | None]
     classes (``class`` / ``childclass``, nested ``<default>``) for ``type``, ``range`` and
     ``limited``, and ``limited="auto"`` (limited when a range is given).
     """
+    from firmware_cfg.registry import parse_mjcf
+
     path = Path(mjcf)
     if not path.is_file():
-        raise ConfigError(f"{path}: MJCF not found; pass the robot's MJCF (sim/robots/<robot>/<robot>.xml) or skip the check")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise ConfigError(f"{path}: not valid XML ({exc})") from None
+        raise ConfigError(f"{path}: MJCF not found; pass the robot's MJCF (firmware_cfg/robots/<robot>/) or skip the check")
+    root = parse_mjcf(path)
     comp = root.find("compiler")
     degree = (comp.get("angle", "degree") if comp is not None else "degree") == "degree"
 

@@ -213,7 +213,7 @@ class RobotKinematics:
 
         path = Path(path)
         if not path.is_file():
-            raise RetargetError(f"{path}: MJCF file not found; give a robot name under sim/robots/ or an existing .xml path")
+            raise RetargetError(f"{path}: MJCF file not found; give a bundled robot name, a robot folder or an existing .xml path")
         try:
             model = mujoco.MjModel.from_xml_path(str(path))
         except ValueError as exc:

@@ -96,7 +96,7 @@ class RetargetProfile:
     def load(cls, path) -> "RetargetProfile":
         path = Path(path)
         if not path.is_file():
-            raise RetargetError(f"{path}: retarget profile not found; write one (see retarget/profiles/op3.yaml)")
+            raise RetargetError(f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, or run `dualflow-bridge robot init MODEL.xml -o DIR`)")
         try:
             data = yaml.safe_load(path.read_text())
         except yaml.YAMLError as exc:

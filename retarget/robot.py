@@ -1,8 +1,9 @@
 """A robot ready for retargeting: its symbolic kinematics bound to its retarget profile.
 
-``load_robot("op3")`` resolves the robot name to ``sim/robots/op3/op3.xml`` (read as a
-file; ``sim``'s code is never imported) and ``retarget/profiles/op3.yaml``. An MJCF
-path works too, with a profile beside the name or given explicitly.
+``load_robot("op3")`` asks the robot registry (:mod:`firmware_cfg.registry`) for the
+robot's folder: its MJCF and its ``profile.yaml``. A robot folder, an MJCF path or a
+hardware config works too; a profile can be given explicitly. An MJCF outside a robot
+folder has no profile of its own: give one, or make the folder with ``robot init``.
 
 Everything the solvers need per frame is a CasADi expression of the configuration
 vector ``x`` (see :mod:`retarget.kinematics`):
@@ -32,10 +33,6 @@ from retarget.errors import RetargetError
 from retarget.kinematics import Capsule, RobotKinematics, quat_to_mat
 from retarget.profile import RetargetProfile
 
-#: The project's root (…/retarget/robot.py → …).
-_ROOT = Path(__file__).resolve().parents[1]
-PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
-ROBOT_DIR = _ROOT / "sim" / "robots"
 
 
 def segment_distance_sq(p0, p1, q0, q1, eps: float = 1e-12):
@@ -179,6 +176,9 @@ class RetargetRobot:
         self.kin = kin
         self.profile = profile
         self.name = profile.robot or kin.name
+        #: How to find this robot again (registry reference): the bundled name, or the path it
+        #: was loaded from; trajectories carry it so that ``check``/``render`` load the same model.
+        self.ref = self.name
         src = profile.source or "profile"
         self._mjcf_hash = hashlib.sha256(mjcf_text.encode()).hexdigest() if mjcf_text else kin.fingerprint()
 
@@ -461,33 +461,62 @@ class RetargetRobot:
 
 
 def resolve_paths(robot: str | Path, profile: str | Path | None = None) -> tuple[Path, Path]:
-    """(MJCF path, profile path) for a robot name or an MJCF path."""
-    text = str(robot)
-    if text.endswith(".xml") or "/" in text or Path(text).suffix:
-        mjcf = Path(text)
-        default_profile = PROFILE_DIR / f"{mjcf.stem}.yaml"
-    else:
-        mjcf = ROBOT_DIR / text / f"{text}.xml"
-        default_profile = PROFILE_DIR / f"{text}.yaml"
-        if not mjcf.is_file():
-            known = sorted(p.name for p in ROBOT_DIR.iterdir() if (p / f"{p.name}.xml").is_file()) if ROBOT_DIR.is_dir() else []
-            raise RetargetError(f"robot {text!r}: no MJCF at {mjcf}; known robots: {', '.join(known) or 'none'}; or give an MJCF path")
-    prof = Path(profile) if profile is not None else default_profile
-    if not prof.is_file():
-        raise RetargetError(f"robot {text}: no retarget profile at {prof}; write one (see retarget/profiles/op3.yaml) and pass it with --profile")
-    return mjcf, prof
+    """(MJCF path, profile path) for a robot reference (a bundled name, a robot folder, an
+    MJCF or a hardware config; see :func:`firmware_cfg.registry.resolve`)."""
+    from firmware_cfg.errors import ConfigError
+    from firmware_cfg.registry import resolve
+
+    try:
+        found = resolve(robot)
+        if profile is not None:
+            prof = Path(profile)
+            if not prof.is_file():
+                raise RetargetError(f"--profile {prof}: file not found")
+            return found.mjcf, prof
+        return found.mjcf, found.require_profile()
+    except ConfigError as exc:
+        raise RetargetError(str(exc)) from None
+
+
+def model_path(robot: str | Path) -> Path:
+    """The MJCF of a robot reference (no profile needed)."""
+    from firmware_cfg.errors import ConfigError
+    from firmware_cfg.registry import resolve
+
+    try:
+        return resolve(robot).mjcf
+    except ConfigError as exc:
+        raise RetargetError(str(exc)) from None
 
 
 def load_robot(robot: str | Path, profile: str | Path | RetargetProfile | None = None, fixed_base: bool = False) -> RetargetRobot:
-    """A :class:`RetargetRobot` from a robot name (``"op3"``) or an MJCF path, and its profile."""
+    """A :class:`RetargetRobot` from a robot reference (a bundled name such as ``"op3"``, a
+    robot folder, an MJCF or a hardware config) and its profile (the robot's own by default)."""
     if isinstance(profile, RetargetProfile):
-        mjcf, _ = resolve_paths(robot, profile.source or None) if profile.source else (Path(robot), None)
+        mjcf = model_path(robot)
         prof = profile
     else:
         mjcf, prof_path = resolve_paths(robot, profile)
         prof = RetargetProfile.load(prof_path)
     kin = RobotKinematics.from_xml(mjcf, name=prof.robot or Path(mjcf).stem, fixed_base=fixed_base)
-    return RetargetRobot(kin, prof, mjcf_text=Path(mjcf).read_text())
+    rb = RetargetRobot(kin, prof, mjcf_text=Path(mjcf).read_text())
+    rb.ref = robot_ref(robot)
+    return rb
+
+
+def robot_ref(robot: str | Path) -> str:
+    """The registry reference that finds ``robot`` again from any working directory: a bundled
+    robot's name, else the absolute path given."""
+    from firmware_cfg.errors import ConfigError
+    from firmware_cfg.registry import resolve
+
+    try:
+        found = resolve(robot)
+    except ConfigError as exc:
+        raise RetargetError(str(exc)) from None
+    if found.bundled:
+        return found.name
+    return str(Path(str(robot)).expanduser().resolve())
 
 
 def robot_from_xml_string(xml: str, profile: RetargetProfile, fixed_base: bool = False) -> RetargetRobot:

@@ -437,4 +437,4 @@ def hash_config(cfg) -> str:
 def trajectory_from_x(robot, X: np.ndarray, fps: float, meta: dict) -> RobotTrajectory:
     """Configurations X (T, nx) → RobotTrajectory in the robot's joint order."""
     root_pos, root_quat = robot.kin.root_pose(X)
-    return RobotTrajectory(robot.joint_names, X[:, robot.n_root:], root_pos, root_quat, fps, robot.name, dict(meta))
+    return RobotTrajectory(robot.joint_names, X[:, robot.n_root:], root_pos, root_quat, fps, robot.ref, dict(meta))

@@ -126,9 +126,9 @@ def _robot(cfg: BatchConfig):
         from retarget.offline import OfflineConfig, OfflineRetargeter
         from retarget.robot import load_robot
         from retarget.streaming import StreamingConfig, StreamingRetargeter
-        from sim.robots import ROBOTS
+        from ros_free_bridge.robots import resolve_robot
 
-        fixed = cfg.fixed_base if cfg.fixed_base is not None else (ROBOTS[cfg.robot].fixed_base if cfg.robot in ROBOTS else False)
+        fixed = cfg.fixed_base if cfg.fixed_base is not None else resolve_robot(cfg.robot).fixed_base
         robot = load_robot(cfg.robot, fixed_base=fixed)
         balance = cfg.balance and not fixed
         if cfg.retargeter == "streaming":

@@ -1,9 +1,6 @@
-"""A robot is one name resolving to three files (DESIGN.md): its MJCF, its retarget
-profile and its hardware config; and, derived from them, the limits the bridge enforces.
-
-``resolve_robot("op3")`` finds the bundled files; ``resolve_robot("my_robot.yaml")`` takes
-a hardware config, whose ``mjcf`` key names the model and whose ``robot`` key names the
-retarget profile (bundled, or ``<robot>.profile.yaml`` beside the config).
+"""The bridge's view of a robot: its files from the robot registry
+(:mod:`firmware_cfg.registry`: a bundled name, a robot folder, an MJCF or a hardware config)
+and, derived from them, the limits the bridge enforces.
 """
 
 from __future__ import annotations
@@ -13,9 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_cfg.config import RobotConfig, load_config, robot_config_path
+from firmware_cfg.config import RobotConfig, load_config
+from firmware_cfg.errors import ConfigError
+from firmware_cfg.registry import Robot, resolve
 from firmware_cfg.servo_models import load_servo_model
-from retarget.robot import resolve_paths
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.safety import JointLimits
 
@@ -30,31 +28,32 @@ DEFAULT_MAX_ACCELERATION = 80.0
 
 @dataclass(frozen=True)
 class RobotFiles:
+    """A resolved robot as the bridge uses it. ``ref`` is how to name it again (a bundled
+    name, or the folder / file path), which the generator process and telemetry carry."""
+
     name: str
     mjcf: Path
     profile: Path
     hardware: Path | None  #: None for a model with no hardware config (simulation only)
+    ref: str
+    fixed_base: bool
 
     def hardware_config(self) -> RobotConfig:
         if self.hardware is None:
-            raise BridgeError(f"robot {self.name!r} has no hardware config; write one (see firmware_cfg/robots/op3.yaml)")
+            raise BridgeError(f"robot {self.ref}: no hardware config (hardware.yaml in the robot's folder); "
+                              "`dualflow-bridge robot init MODEL.xml -o DIR` writes a skeleton to fill in")
         return load_config(self.hardware, self.mjcf)
 
 
-def resolve_robot(robot: str | Path) -> RobotFiles:
-    text = str(robot)
-    if text.endswith((".yaml", ".yml")):
-        path = Path(text)
-        cfg = load_config(path)
-        if cfg.mjcf is None:
-            raise BridgeError(f"{path}: the hardware config needs an 'mjcf' key naming the robot model")
-        local_profile = path.with_name(f"{cfg.robot}.profile.yaml")
-        profile = local_profile if local_profile.is_file() else resolve_paths(cfg.robot)[1]
-        return RobotFiles(cfg.robot, Path(cfg.mjcf), Path(profile), path)
-    mjcf, profile = resolve_paths(text)
-    name = Path(mjcf).stem
-    hardware = Path(robot_config_path(name))
-    return RobotFiles(name, Path(mjcf), Path(profile), hardware if hardware.is_file() else None)
+def resolve_robot(robot: str | Path | Robot) -> RobotFiles:
+    """The files of a robot reference; BridgeError naming the reference and the fix."""
+    try:
+        found = resolve(robot)
+        profile = found.require_profile()
+    except ConfigError as exc:
+        raise BridgeError(str(exc)) from None
+    ref = found.name if found.bundled else str(Path(str(robot)).expanduser().resolve())
+    return RobotFiles(found.name, found.mjcf, profile, found.hardware, ref, found.fixed_base)
 
 
 def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE,
@@ -77,3 +76,13 @@ def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE,
         vmax.append(v)
         amax.append(s.profile_acceleration or default_acceleration)
     return JointLimits(config.joint_names, lower, upper, vmax, amax)
+
+
+def model_limits(robot, default_acceleration: float = DEFAULT_MAX_ACCELERATION) -> JointLimits:
+    """Limits of a robot known only by its model (no hardware config: simulation or recording):
+    the joint ranges and speeds its retargeter keeps (MJCF ranges narrowed by the profile; the
+    profile's velocity limits, never above the MJCF's servo speed), the default acceleration.
+    ``robot`` is a :class:`retarget.robot.RetargetRobot`."""
+    n = robot.n_root
+    return JointLimits(tuple(robot.joint_names), robot.x_lower[n:], robot.x_upper[n:], robot.velocity_limits,
+                       np.full(len(robot.joint_names), default_acceleration))

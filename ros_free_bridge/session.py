@@ -43,7 +43,7 @@ import numpy as np
 
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.loop import ControlLoop, LoopConfig, RunSummary
-from ros_free_bridge.robots import RobotFiles, bridge_limits, resolve_robot
+from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, resolve_robot
 from ros_free_bridge.targets import TargetBuffer
 from ros_free_bridge.telemetry import TelemetryWriter
 
@@ -159,17 +159,21 @@ def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None):
     return MotionReplaySource(motion.resample(MOTION_FPS)), f"{spec} ({motion.n_frames} frames at {motion.fps:g} fps)"
 
 
+#: Transports that need only the robot's model, not its hardware config.
+MODEL_ONLY_TRANSPORTS = ("sim", "record")
+
+
 def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, rest, stack: ExitStack):
     kind = opts.transport
     info: dict = {"transport": kind}
-    stop_policy = opts.stop_policy or hardware.stop_policy
+    stop_policy = opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold")
     if kind not in TRANSPORTS:
         raise BridgeError(f"transport {kind!r}: choose one of {', '.join(TRANSPORTS)}")
 
     def sim():
         from ros_free_bridge.transports.sim import SimTransport
 
-        t = SimTransport(files.name, control_hz=opts.rate_hz, clock=opts.sim_clock)
+        t = SimTransport(files.ref, control_hz=opts.rate_hz, clock=opts.sim_clock)
         if tuple(t.joint_names) != tuple(names):
             raise BridgeError(f"robot {files.name}: the MJCF's joint order {t.joint_names} differs from the hardware "
                               f"config's {names}; list the servos in the MJCF's actuator order")
@@ -241,23 +245,31 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         raise BridgeError(f"partner {opts.partner!r}: choose one of {', '.join(PARTNERS)}")
     if opts.generator not in GENERATORS:
         raise BridgeError(f"generator {opts.generator!r}: choose one of {', '.join(GENERATORS)}")
+    from retarget.robot import load_robot
+
     files = resolve_robot(opts.robot)
-    hardware = files.hardware_config()
-    limits = bridge_limits(hardware)
+    if files.hardware is None and opts.transport in MODEL_ONLY_TRANSPORTS:
+        # a robot without hardware config (a model just brought in): the simulated robot
+        # and recording need only the model's limits
+        hardware = None
+        robot = load_robot(files.mjcf, files.profile)
+        limits = model_limits(robot)
+    else:
+        hardware = files.hardware_config()
+        limits = bridge_limits(hardware)
+        robot = load_robot(files.mjcf, files.profile)
     names = limits.names
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     with ExitStack() as stack:
-        core, rest = _partner_core(opts, files, names, limits, stack)
+        core, rest = _partner_core(opts, files, robot, names, limits, stack)
         return _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready)
 
 
-def _partner_core(opts: SessionOptions, files: RobotFiles, names, limits, stack: ExitStack):
+def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits, stack: ExitStack):
     """(core, rest pose): a PartnerCore here, or the generator process (started, model loaded)."""
-    from retarget.robot import load_robot
     from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
 
-    robot = load_robot(files.mjcf, files.profile)
     stand = np.asarray(robot.x_stand)[robot.n_root:]
     rest = limits.clip(stand[[robot.joint_names.index(n) for n in names]])
     if opts.partner == "dualflow" and opts.generator == "process":
@@ -284,7 +296,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     from dualflow.motion import Motion
     from ros_free_bridge.stages import PartnerPipeline
 
-    config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or hardware.stop_policy,
+    config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold"),
                         adaptive_playback=opts.adaptive_playback,
                         playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
                         playback_quantile=opts.playback_quantile, revision_smoothing=opts.revision_smoothing,
@@ -300,7 +312,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
     with ExitStack() as stack:
         transport, info = open_transport(opts, files, hardware, names, rest, stack)
         telemetry = TelemetryWriter(out / "telemetry.dftl", names, opts.rate_hz,
-                                    meta={"robot": files.name, "actor": opts.actor, "partner": opts.partner,
+                                    meta={"robot": files.ref, "actor": opts.actor, "partner": opts.partner,
                                           "transport": opts.transport, "model": str(opts.model or "bundled")})
         loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
         source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop)

@@ -1,7 +1,7 @@
 """The scene: floor, lights, the robot partner and the human figures, compiled once.
 
 A :class:`Scene` owns one ``MjModel``/``MjData`` pair. The robot comes from its
-MJCF (:func:`sim.robots.mjcf_path`); ``fixed_base=True`` removes its freejoint and
+MJCF (found through :mod:`firmware_cfg.registry`); ``fixed_base=True`` removes its freejoint and
 bolts the root body at ``base_pos``/``base_quat`` (an upper-body partner, or a
 free robot checked with its torso held). The human actor (and optionally the
 generated reactor, drawn as a thin stick figure) are kinematic capsule figures
@@ -22,7 +22,18 @@ from dualflow.motion import Motion
 from sim.errors import SimError
 from sim.human_figure import HumanFigure, Placement
 from sim.robot_index import RobotIndex
-from sim.robots import mjcf_path
+
+
+def robot_model_path(robot):
+    """The MJCF of a robot reference (bundled name, robot folder, MJCF or hardware config)."""
+    from firmware_cfg.errors import ConfigError
+    from firmware_cfg.registry import resolve
+
+    try:
+        return resolve(robot).mjcf
+    except ConfigError as exc:
+        raise SimError(str(exc)) from None
+
 
 ROBOT_GROUP = 1
 ACTOR_GROUP = 3
@@ -63,7 +74,7 @@ class Scene:
         self.config = config = config or SceneConfig()
         if not (np.isfinite(config.timestep) and 0 < config.timestep <= 0.01):
             raise SimError(f"scene: timestep must be in (0, 0.01] s, got {config.timestep!r}")
-        path = mjcf_path(config.robot)
+        path = robot_model_path(config.robot)
         try:
             spec = mujoco.MjSpec.from_file(str(path))
         except ValueError as exc:

@@ -90,9 +90,10 @@ class VirtualRobot:
     def __init__(self, config: VirtualRobotConfig | None = None, clock=time.monotonic):
         self.config = config = config or VirtualRobotConfig()
         config.validate()
-        from sim.robots import joint_names
+        from sim.scene import robot_model_path
+        from firmware_cfg.registry import joint_names
 
-        self.joint_names: tuple[str, ...] = joint_names(config.robot)
+        self.joint_names: tuple[str, ...] = joint_names(robot_model_path(config.robot))
         self._clock = clock
         self._scene = None
         self._opened = False

@@ -15,7 +15,7 @@ from firmware_cfg.config import (
 from firmware_cfg.errors import ConfigError
 
 OP3 = robot_config_path("op3")
-OP3_MJCF = Path(__file__).resolve().parents[1] / "sim" / "robots" / "op3" / "op3.xml"
+OP3_MJCF = Path(__file__).resolve().parents[1] / "firmware_cfg" / "robots" / "op3" / "op3.xml"
 BRIEF_ORDER = ("r_sho_pitch l_sho_pitch r_sho_roll l_sho_roll r_el l_el r_hip_yaw l_hip_yaw r_hip_roll "
                "l_hip_roll r_hip_pitch l_hip_pitch r_knee l_knee r_ank_pitch l_ank_pitch r_ank_roll "
                "l_ank_roll head_pan head_tilt").split()
@@ -150,7 +150,7 @@ def test_mjcf_checks_joints_limits_degrees_and_default_classes(tmp_path):
 
 
 def test_file_level_errors(tmp_path):
-    with pytest.raises(ConfigError, match="hardware config not found.*bundled: .*op3"):
+    with pytest.raises(ConfigError, match="hardware config not found.*bundled robot .*op3"):
         load_config(tmp_path / "nope.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("robot: [unclosed")

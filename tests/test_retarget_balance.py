@@ -217,11 +217,12 @@ def test_balance_needs_ankle_keypoints():
 
     from retarget.kinematics import RobotKinematics
     from retarget.profile import RetargetProfile
-    from retarget.robot import PROFILE_DIR, ROBOT_DIR, RetargetRobot
+    from firmware_cfg.registry import resolve
+    from retarget.robot import RetargetRobot
 
-    data = yaml.safe_load((PROFILE_DIR / "op3.yaml").read_text())
+    data = yaml.safe_load(resolve("op3").profile.read_text())
     del data["keypoints"]["left_ankle"]
-    rb = RetargetRobot(RobotKinematics.from_xml(ROBOT_DIR / "op3" / "op3.xml"), RetargetProfile.from_dict(data, "op3.yaml"))
+    rb = RetargetRobot(RobotKinematics.from_xml(resolve("op3").mjcf), RetargetProfile.from_dict(data, "op3.yaml"))
     StreamingRetargeter(rb, FPS, StreamingConfig(balance=False))  # fine without balance
     with pytest.raises(RetargetError, match="left_ankle"):
         StreamingRetargeter(rb, FPS, StreamingConfig(balance=True))

@@ -9,9 +9,8 @@ import yaml
 from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
 from ros_free_bridge.cli import main
 from retarget import RobotTrajectory
-from retarget.robot import PROFILE_DIR, ROBOT_DIR
+from firmware_cfg.registry import resolve
 
-pytestmark = pytest.mark.skipif(not (ROBOT_DIR / "op3" / "op3.xml").is_file(), reason="bundled op3 MJCF absent")
 
 
 def _clip(T=24, shift=0.0):
@@ -62,8 +61,8 @@ def test_user_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     save_motion(Motion(_clip(), 30.0, name="one"), src)
     assert main(["retarget", str(src), "--robot", "no_such_robot", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: robot 'no_such_robot'") and "\n" not in err
-    data = yaml.safe_load((PROFILE_DIR / "op3.yaml").read_text())
+    assert err.startswith("error: --robot no_such_robot: unknown robot") and "\n" not in err
+    data = yaml.safe_load(resolve("op3").profile.read_text())
     data["keypoints"]["left_knee"] = {"body": "l_knee_bone"}
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump(data))

@@ -8,10 +8,11 @@ import pytest
 
 from retarget import RetargetError
 from retarget.kinematics import RobotKinematics, euler_to_mat, mat_to_euler, mat_to_quat, quat_to_mat
-from retarget.robot import ROBOT_DIR, segment_distance_sq
+from firmware_cfg.registry import resolve
+from retarget.robot import segment_distance_sq
 from retarget_toy import TOY_XML
 
-ROBOTS = [p for p in (ROBOT_DIR / "op3" / "op3.xml", ROBOT_DIR / "ub14" / "ub14.xml") if p.is_file()]
+ROBOTS = [resolve(name).mjcf for name in ("op3", "ub14")]
 
 
 def _random_qpos(m, rng):

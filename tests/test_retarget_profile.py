@@ -7,7 +7,8 @@ import yaml
 from dualflow.motion import REST_POSE, Motion
 from retarget import RetargetError
 from retarget.profile import RetargetProfile
-from retarget.robot import PROFILE_DIR, ROBOT_DIR, load_robot
+from firmware_cfg.registry import resolve
+from retarget.robot import load_robot
 from retarget.targets import KeypointScaler, detect_contacts, make_targets
 from retarget_toy import TOY_PROFILE, toy_robot
 
@@ -121,10 +122,24 @@ def test_contacts_are_detected_from_foot_height_and_speed():
 
 def test_bundled_profiles_load():
     for name in ("op3", "ub14"):
-        if not (ROBOT_DIR / name / f"{name}.xml").is_file():
-            continue
         rb = load_robot(name)
         assert rb.n_keypoints >= 9 and np.all(np.isfinite(rb.velocity_limits))
-        assert (PROFILE_DIR / f"{name}.yaml").is_file()
-    with pytest.raises(RetargetError, match="no MJCF"):
+        assert rb.profile.source == str(resolve(name).profile)
+    with pytest.raises(RetargetError, match="unknown robot"):
         load_robot("no_such_robot")
+
+
+def test_an_mjcf_path_never_picks_up_a_bundled_profile(tmp_path):
+    """A user's model called op3.xml outside a robot folder is not the bundled op3: it has no
+    profile until one is written (issue: `--robot path/op3.xml` silently used the bundled one)."""
+    user = tmp_path / "op3.xml"
+    user.write_text(resolve("op3").mjcf.read_text())
+    with pytest.raises(RetargetError, match="no retarget profile"):
+        load_robot(user)
+    # in a robot folder of its own, the folder's profile is used, whatever the folder is called
+    folder = tmp_path / "op3"
+    folder.mkdir()
+    (folder / "op3.xml").write_text(resolve("op3").mjcf.read_text())
+    (folder / "profile.yaml").write_text(resolve("op3").profile.read_text())
+    rb = load_robot(folder)
+    assert rb.profile.source == str(folder / "profile.yaml") and rb.ref == str(folder)

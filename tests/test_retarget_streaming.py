@@ -54,10 +54,12 @@ def op3_for_round_trip():
 
     from retarget.kinematics import RobotKinematics
     from retarget.profile import RetargetProfile
-    from retarget.robot import PROFILE_DIR, ROBOT_DIR, RetargetRobot
+    from firmware_cfg.registry import resolve
+    from retarget.robot import RetargetRobot
 
-    xml = ROBOT_DIR / "op3" / "op3.xml"  # bundled: its absence is a broken install and fails here
-    data = yaml.safe_load((PROFILE_DIR / "op3.yaml").read_text())
+    op3 = resolve("op3")  # bundled: its absence is a broken install and fails here
+    xml = op3.mjcf
+    data = yaml.safe_load(op3.profile.read_text())
     data.update(posture_weight=0.0, rigid_offsets=[])
     return RetargetRobot(RobotKinematics.from_xml(xml), RetargetProfile.from_dict(data, "op3.yaml"))
 

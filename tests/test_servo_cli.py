@@ -188,7 +188,7 @@ def test_emulate_command_prints_a_port_that_works(capsys):
 
 def test_bad_invocations_are_one_line_errors(capsys):
     code, _, err = run(capsys, "verify", "no_such_robot")
-    assert code == 2 and "hardware config not found" in err and len(err.strip().splitlines()) == 1
+    assert code == 2 and "unknown robot" in err and len(err.strip().splitlines()) == 1
     code, _, err = run(capsys, "scan")
     assert code == 2 and "give --port" in err
     code, _, err = run(capsys, "scan", "--port", "/dev/nonexistent-tty", "--bauds", "57600", "--protocols", "2")

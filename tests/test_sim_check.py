@@ -14,7 +14,7 @@ from sim import SimError
 from sim.check import HUMAN_DISTANCE_CAP, CheckConfig, check_trajectory, resample
 from sim.human_figure import Placement
 from sim.report import write_report
-from sim.robots import joint_names
+from firmware_cfg.registry import joint_names
 from sim.scene import Scene, SceneConfig
 
 FPS = 30.0

@@ -16,7 +16,7 @@ from retarget import RobotTrajectory
 from ros_free_bridge.cli import main
 from sim import SimError
 from sim.render import CameraConfig, RenderConfig, render_trajectory
-from sim.robots import joint_names
+from firmware_cfg.registry import joint_names
 from sim.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[1]

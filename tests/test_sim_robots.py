@@ -13,14 +13,17 @@ import numpy as np
 import pytest
 import yaml
 
-from sim import SimError
-from sim.robots import KEYPOINT_SITES, ROBOTS, joint_limits, joint_names, mjcf_path
+from firmware_cfg.errors import ConfigError
+from firmware_cfg.registry import bundled_names, joint_limits, joint_names, resolve
 from sim.scene import Scene, SceneConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 OP3_IDS = ("r_sho_pitch", "l_sho_pitch", "r_sho_roll", "l_sho_roll", "r_el", "l_el", "r_hip_yaw", "l_hip_yaw",
            "r_hip_roll", "l_hip_roll", "r_hip_pitch", "l_hip_pitch", "r_knee", "l_knee", "r_ank_pitch",
            "l_ank_pitch", "r_ank_roll", "l_ank_roll", "head_pan", "head_tilt")
+#: Retarget keypoint sites every bundled humanoid with legs has (its profile names them).
+KEYPOINT_SITES = ("pelvis", "torso", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand",
+                  "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle", "l_foot", "r_foot", "l_toe", "r_toe")
 PI = math.pi
 ISSUE_LIMITS = {
     "head_pan": (-0.5 * PI, 0.5 * PI), "head_tilt": (-0.5 * PI, 0.5 * PI),
@@ -35,13 +38,13 @@ def op3() -> Scene:
     return Scene(SceneConfig(robot="op3"))
 
 
-@pytest.mark.parametrize("name", sorted(ROBOTS))
+@pytest.mark.parametrize("name", bundled_names())
 def test_bundled_models_compile_with_stand_keyframe_and_sites(name):
     scene = Scene(SceneConfig(robot=name))
     m = scene.model
     assert scene.robot.joint_names == joint_names(name)  # XML reading agrees with the compiled model
     assert m.key("stand") is not None
-    assert scene.robot.fixed_base == ROBOTS[name].fixed_base
+    assert scene.robot.fixed_base == resolve(name).fixed_base == (name == "ub14")
     for site in ("pelvis", "torso", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand"):
         m.site(site)  # raises KeyError when missing
     # the standing pose is collision-free: no self contact, nothing below the floor
@@ -85,7 +88,7 @@ def test_op3_limits_are_the_issue_limits_on_both_sides():
 
 
 def test_op3_limits_match_hardware_config():
-    path = ROOT / "firmware_cfg" / "robots" / "op3.yaml"  # bundled: its absence is a failure, not a skip
+    path = ROOT / "firmware_cfg" / "robots" / "op3" / "hardware.yaml"  # bundled: its absence is a failure, not a skip
     cfg = yaml.safe_load(path.read_text())
     servos = [s for bus in cfg["buses"] for s in bus["servos"]]
     by_id = sorted(servos, key=lambda s: s["id"])
@@ -167,14 +170,15 @@ def test_op3_survives_a_gentle_push(op3):
 
 
 def test_unknown_robot_is_a_clear_error():
-    with pytest.raises(SimError, match="bundled robots are: op3, ub14"):
-        mjcf_path("nao")
-    with pytest.raises(SimError, match="file not found"):
-        mjcf_path("/nonexistent/robot.xml")
+    with pytest.raises(ConfigError, match="bundled robots are op3, ub14"):
+        resolve("nao")
+    with pytest.raises(ConfigError, match="no such file or folder"):
+        resolve("/nonexistent/robot.xml")
 
 
 def test_importing_sim_does_not_import_mujoco_or_torch():
-    code = "import sys, sim, sim.robots; sim.robots.joint_limits('op3'); print('mujoco' in sys.modules, 'torch' in sys.modules)"
+    code = ("import sys, sim, firmware_cfg.registry as r; r.joint_limits('op3'); "
+            "print('mujoco' in sys.modules, 'torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.split() == ["False", "False"]
 

@@ -14,7 +14,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("check", help="judge a robot trajectory in MuJoCo (falls, collisions, torque, speed)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trajectory", help="robot trajectory .npz (RobotTrajectory.save_npz)")
-    p.add_argument("--robot", help="robot name or MJCF path (default: the trajectory's robot, else op3)")
+    p.add_argument("--robot", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF (default: the trajectory's robot, else op3)")
     add_mode_option(p)
     p.add_argument("--control-hz", type=float, default=100.0,
                    help="rate at which the servo targets are updated, as the bridge's loop does (default 100)")

@@ -36,6 +36,9 @@ def register(sub) -> None:
 
     p = sub.add_parser("demo", help="the main job: a dancing leader, a generated robot partner, video and reports",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--robot", default="op3", metavar="NAME|DIR",
+                   help="the robot partner: a bundled name (op3, ub14) or a robot folder (see `robot init`); a robot "
+                        "without hardware.yaml runs without the emulated bus (default op3)")
     p.add_argument("--actor", default="synthetic", help="a motion file for the leader (default: the synthetic leader)")
     p.add_argument("--music", help="an audio file, wav/ogg/mp3 (default: a click track on the leader's beats)")
     p.add_argument("--text", help="a text cue for the partner (default: none)")
@@ -71,6 +74,13 @@ def demo(args) -> int:
     from sim.check import CheckConfig, check_trajectory
     from sim.report import write_report
 
+    from ros_free_bridge.robots import resolve_robot
+
+    files = resolve_robot(args.robot)
+    if files.hardware is None and not args.no_bus:
+        print(f"note: robot {files.ref} has no hardware.yaml; driving the virtual robot without the emulated bus",
+              file=sys.stderr)
+        args.no_bus = True
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.monotonic()
@@ -88,16 +98,16 @@ def demo(args) -> int:
 
     print(f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
           f"{'' if args.no_bus else ' + emulated Dynamixel bus'}", file=sys.stderr)
-    opts = SessionOptions(actor=args.actor, seconds=args.seconds, seed=args.seed, **generator_options(args),
+    opts = SessionOptions(robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, **generator_options(args),
                           transport="sim" if args.no_bus else "sim+dynamixel", emulate=not args.no_bus, out=out,
                           text=args.text, music=music)
     result = run_session(opts, on_status=StatusLine())
     sys.stderr.write("\n")
 
     tel = read_telemetry(out / "telemetry.dftl")
-    commands = tel.commands_trajectory(result.files.name)
+    commands = tel.commands_trajectory(result.files.ref)
     with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
-        check = check_trajectory(commands, CheckConfig(control_hz=tel.rate_hz), robot=result.files.name, on_tick=tick)
+        check = check_trajectory(commands, CheckConfig(control_hz=tel.rate_hz), robot=result.files.ref, on_tick=tick)
     reports = write_report(check, out, "check")
 
     video = None

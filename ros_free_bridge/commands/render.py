@@ -13,7 +13,7 @@ def register(subparsers) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trajectory", help="robot trajectory .npz")
     p.add_argument("-o", "--out", required=True, help="output .mp4")
-    p.add_argument("--robot", help="robot name or MJCF path (default: the trajectory's robot, else op3)")
+    p.add_argument("--robot", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF (default: the trajectory's robot, else op3)")
     add_mode_option(p)
     p.add_argument("--playback", choices=("physics", "kinematic"), default="physics",
                    help="physics: the simulated servos play the trajectory and the video shows what they do (and the "

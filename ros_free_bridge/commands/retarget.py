@@ -1,9 +1,9 @@
 """``dualflow-bridge retarget``: human motion file(s) in, robot trajectory + report out.
 
 One person: ``FILE``. Two people (``FILE FILE2``, ``--actor A --reactor B`` or a duet
-``.npz``): the reactor (person B, the robot's role) is retargeted. The robot is a name
-(``op3``, ``ub14``: ``sim/robots/<name>/<name>.xml`` + ``retarget/profiles/<name>.yaml``) or
-an MJCF path (with ``--profile``). Writes, under ``--out``:
+``.npz``): the reactor (person B, the robot's role) is retargeted. The robot is a bundled
+name (``op3``, ``ub14``: ``firmware_cfg/robots/<name>/``), a robot folder (``robot init``
+makes one from an MJCF), or an MJCF with ``--profile``. Writes, under ``--out``:
 
 - ``<stem>.npz`` and ``<stem>.csv``: the :class:`retarget.RobotTrajectory`;
 - ``<stem>.report.json`` / ``.report.md``: the figures of :mod:`retarget.report`;
@@ -23,8 +23,8 @@ def register(subparsers) -> None:
     p.add_argument("--actor", metavar="FILE", help="actor file (with --reactor)")
     p.add_argument("--reactor", metavar="FILE", help="reactor file: the person whose motion the robot takes")
     p.add_argument("--person", choices=("reactor", "actor"), default="reactor", help="which person of a pair to retarget")
-    p.add_argument("--robot", default="op3", help="robot name or MJCF path (default op3)")
-    p.add_argument("--profile", metavar="YAML", help="retarget profile (default retarget/profiles/<robot>.yaml)")
+    p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF with --profile (default op3)")
+    p.add_argument("--profile", metavar="YAML", help="retarget profile (default: the robot folder's profile.yaml)")
     p.add_argument("--mode", choices=("offline", "streaming"), default="offline",
                    help="offline: the whole clip in overlapping windows (contacts, balance, smoothness as hard "
                         "constraints); streaming: frame by frame as the live bridge does it (default offline)")

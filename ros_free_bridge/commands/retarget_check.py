@@ -30,7 +30,7 @@ def register(sub) -> None:
     p = sub.add_parser("retarget-check", help="retarget and physics-check every motion file in a folder",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("folder", help="folder of motion files (BVH, npz, InterGen/HumanML3D npy); pairs use the reactor")
-    p.add_argument("--robot", default="op3", help="bundled robot name (default op3)")
+    p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14) or a robot folder (see `robot init`) (default op3)")
     p.add_argument("-o", "--out", default="out/retarget_check", help="output folder (default out/retarget_check)")
     p.add_argument("--jobs", type=int, help="worker processes (default: every core this process may use)")
     p.add_argument("--recursive", action="store_true", help="take motion files from FOLDER's subfolders too "

@@ -93,7 +93,7 @@ def generator_options(args) -> dict:
 def register(sub) -> None:
     p = sub.add_parser("run", help="stream a robot partner from a live or recorded actor",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robot", default="op3", help="bundled robot name or a hardware config .yaml (default: op3)")
+    p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`) or its hardware.yaml; sim and record need no hardware config (default: op3)")
     p.add_argument("--actor", default="synthetic",
                    help="motion file (BVH, npz, InterGen npy), udp://127.0.0.1:PORT (live), or 'synthetic' (default)")
     p.add_argument("--seconds", type=float, default=10.0, help="length of the synthetic actor (default 10 s)")
@@ -316,6 +316,6 @@ def render_video(result, path: Path, on_tick=None) -> Path:
     if placement is not None and result.actor is not None:
         config = replace(config, camera=side_view(result.robot_motion, result.actor, placement, config.camera))
     out, _ = render_trajectory(result.robot_motion, path, config,
-                               robot=result.files.name, actor=result.actor, actor_placement=placement,
+                               robot=result.files.ref, actor=result.actor, actor_placement=placement,
                                reactor=result.partner, on_tick=on_tick)
     return out

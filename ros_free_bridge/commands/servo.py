@@ -17,7 +17,7 @@ inspect Dynamixel servo buses.
 
 Every action but ``emulate`` takes ``--port`` (default: the config's bus port) and
 ``--emulate`` (run against an emulated bus started in-process from the config, e.g.
-``dualflow-bridge servo provision firmware_cfg/robots/op3.yaml --emulate``).
+``dualflow-bridge servo provision op3 --emulate``).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def register(subparsers) -> None:
 
     def common(q, config_required=True):
         if config_required:
-            q.add_argument("config", help="robot hardware config (e.g. firmware_cfg/robots/op3.yaml) or a bundled robot name")
+            add_robot_arguments(q)
         q.add_argument("--port", help="serial device (default: the config's bus port)")
         q.add_argument("--bus", help="bus name in the config (default: the only Dynamixel bus)")
         q.add_argument("--emulate", action="store_true", help="use an emulated bus started from the config (no hardware)")
@@ -53,7 +53,8 @@ def register(subparsers) -> None:
                        description="Ping every ID at each baud rate and protocol (2.0 by broadcast ping, 1.0 one ID "
                                    "at a time) and print each servo found: ID, model, firmware, baud, protocol. "
                                    "Reads only; use it first on a new bus, or when a servo does not answer.")
-    s.add_argument("config", nargs="?", help="with --emulate: the config whose servos to emulate")
+    add_robot_arguments(s, "with --emulate: the robot whose servos to emulate (a bundled name, a robot folder or its "
+                           "hardware.yaml)")
     s.add_argument("--port", help="serial device (e.g. /dev/ttyUSB0)")
     s.add_argument("--bus", help="bus name in the config")
     s.add_argument("--emulate", action="store_true", help="scan an emulated bus started from CONFIG")
@@ -111,25 +112,52 @@ def register(subparsers) -> None:
                                    "serial-link bus gets an emulated DFSL board) and print its device path; point --port "
                                    "of the other servo actions, or `run --transport dynamixel`, at it to try them "
                                    "without hardware.")
-    s.add_argument("config", help="robot hardware config or bundled robot name")
+    add_robot_arguments(s)
     s.add_argument("--bus", help="bus name in the config (a serial-link bus starts an emulated DFSL board)")
     s.add_argument("--provisioned", action="store_true", help="servos start with the config's settings (verify passes)")
     s.add_argument("--wire-timing", action="store_true", help="delay replies by their time on the wire")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     s.set_defaults(func=run_emulate)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    for name, action in sub.choices.items():
+        action.set_defaults(func=_with_robot(action.get_default("func"), required=name != "scan"))
+
+
+def _with_robot(func, required: bool):
+    """Let each action read ``args.config`` whichever way the robot was given."""
+    def run(args):
+        args.config = robot_argument(args, required=required)
+        return func(args)
+    return run
 
 
 # ----------------------------------------------------------------------------- shared
 
+ROBOT_HELP = "the robot: a bundled name (op3), a robot folder, or its hardware config .yaml"
+
+
+def add_robot_arguments(q, help_text: str = ROBOT_HELP) -> None:
+    """The robot as a positional CONFIG (as before) or as ``--robot NAME|DIR``, like every command."""
+    q.add_argument("config", nargs="?", metavar="ROBOT", help=help_text)
+    q.add_argument("--robot", dest="robot_option", metavar="NAME|DIR", help=f"{help_text} (same as the positional)")
+
+
+def robot_argument(args, required: bool = True) -> str | None:
+    ref = getattr(args, "robot_option", None) or getattr(args, "config", None)
+    if getattr(args, "robot_option", None) and getattr(args, "config", None) and args.robot_option != args.config:
+        raise BridgeError(f"give the robot once: positional {args.config!r} and --robot {args.robot_option!r} differ")
+    if ref is None and required:
+        raise BridgeError("servo: which robot? give a bundled name (op3), a robot folder or a hardware config, "
+                          "positionally or with --robot")
+    return ref
+
+
 def load_robot_config(ref: str):
-    """A config path, or the name of a bundled robot (``op3``)."""
+    """The hardware config of a robot reference (a bundled name such as ``op3``, a robot folder
+    or the config file itself), through the robot registry."""
     from firmware_cfg.config import load_config, robot_config_path
 
-    path = Path(ref)
-    if not path.exists() and not ref.endswith((".yaml", ".yml")):
-        path = robot_config_path(ref)
-    return load_config(path)
+    return load_config(robot_config_path(ref))
 
 
 def dynamixel_bus_of(cfg, name: str | None):

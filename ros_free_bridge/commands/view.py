@@ -12,7 +12,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("view", help="open the interactive MuJoCo viewer", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trajectory", nargs="?", help="robot trajectory .npz (default: the robot standing)")
-    p.add_argument("--robot", help="robot name or MJCF path")
+    p.add_argument("--robot", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF (default: the trajectory's robot, else op3)")
     add_mode_option(p)
     p.add_argument("--loop", action="store_true", help="replay until the window is closed")
     add_placement_options(p, "actor", "human actor motion file, shown beside the robot")
