@@ -46,10 +46,15 @@ streaming solver's output.
 If IPOPT reports the window infeasible (limits and contacts cannot all hold at the clip's
 speed), :class:`RetargetError` says which frames and offers re-timing (``retime``: play the
 clip that many times slower); ``auto_retime`` tries 1.25×, 1.5×, 2× by itself. IPOPT's status
-per window is kept in the trajectory's ``meta["ipopt_status"]``: an unfinished window
-(e.g. ``Maximum_Iterations_Exceeded``) is accepted only when its point satisfies the hard
-constraints, and a solver error (``Invalid_Option``, ``Error_In_Step_Computation``, …) always
-raises, even when the point it returned (the untouched warm start) looks feasible.
+per window is kept in the trajectory's ``meta["ipopt_status"]``. Only a converged window
+(``Solve_Succeeded``, ``Solved_To_Acceptable_Level``) is ever kept: an unfinished one
+(``Maximum_Iterations_Exceeded``, ``Restoration_Failed``, ``Infeasible_Problem_Detected``, …) is a
+failed retarget, a :class:`RetargetError` naming the window's frames and IPOPT's status, with
+``time_s`` at the worst constraint violation or, when the constraints hold, at the window's first
+frame (its point may satisfy every constraint and still be far from the tracking optimum, so it
+is never passed on as a result; ``auto_retime`` retries it slower like an infeasible one). A solver
+error (``Invalid_Option``, ``Error_In_Step_Computation``, …) always raises at once, even when the
+point it returned (the untouched warm start) looks feasible.
 
 Speed: IPOPT's own linear algebra (MUMPS on the KKT system, ~0.3 ms per frame and
 iteration) dominates. The adaptive barrier parameter is chosen by IPOPT's quality-function
@@ -80,9 +85,9 @@ _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
 #: IPOPT outcomes that say the solver (its options, its linear solver, the numbers it was
 #: given) failed, not that the clip is infeasible: they always raise, whatever point came back
 #: (with an unavailable linear solver IPOPT returns the untouched warm start, which may well
-#: satisfy the constraints). Other unsuccessful outcomes (Maximum_Iterations_Exceeded,
-#: Restoration_Failed, ...) are accepted when the returned point satisfies the constraints,
-#: and reported as infeasible otherwise.
+#: satisfy the constraints). Every other outcome outside _OK (Maximum_Iterations_Exceeded,
+#: Restoration_Failed, ...) fails the window too: as infeasible when the returned point violates
+#: the constraints, as not converged otherwise (both retried by ``auto_retime``).
 _ERRORS = {"Invalid_Option", "Invalid_Problem_Definition", "Error_In_Step_Computation", "Unrecoverable_Exception",
            "NonIpopt_Exception_Thrown", "Insufficient_Memory", "Internal_Error", "Not_Enough_Degrees_Of_Freedom",
            "Invalid_Number_Detected"}
@@ -316,9 +321,15 @@ class OfflineRetargeter:
                 return self._retarget_at(motion, contacts, factor, scaler)
             except _Infeasible as exc:
                 last, last_factor = exc, factor
-        msg = (f"{motion.name or 'motion'}: infeasible at {'its speed' if factors[-1] == 1.0 else f'{factors[-1]:g}x slower'}: "
-               f"{last}; re-time the clip (retime=1.5 plays it 1.5x slower, CLI --retime 1.5) or let it try "
-               "(auto_retime=True, CLI --auto-retime)")
+        speed = "its speed" if factors[-1] == 1.0 else f"{factors[-1]:g}x slower"
+        if last.feasible:  # constraints hold, IPOPT did not finish
+            msg = (f"{motion.name or 'motion'}: retarget failed (not converged) at {speed}: {last}; give IPOPT more "
+                   f"iterations (OfflineConfig.max_iter, now {cfg.max_iter}), or re-time the clip (retime=1.5 plays it "
+                   "1.5x slower, CLI --retime 1.5; auto_retime=True, CLI --auto-retime)")
+        else:
+            msg = (f"{motion.name or 'motion'}: infeasible at {speed}: "
+                   f"{last}; re-time the clip (retime=1.5 plays it 1.5x slower, CLI --retime 1.5) or let it try "
+                   "(auto_retime=True, CLI --auto-retime)")
         raise RetargetError(msg, time_s=round(last.frame / motion.fps / last_factor, 3))
 
     def _retarget_at(self, motion: Motion, contacts, factor: float, scaler=None) -> RobotTrajectory:
@@ -432,6 +443,11 @@ class OfflineRetargeter:
             worst, frame = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s, T - 1)
             raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
                               f"worst: {worst})", s if frame is None else frame)
+        if status not in _OK:
+            # feasible but unfinished: never a result (the module docstring); the window is the moment
+            raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status or 'unknown status'} after "
+                              f"{int(st.get('iter_count', 0))} iterations (the constraints hold, to {viol:.2g}, but "
+                              "the optimum was not reached)", s, feasible=True)
         Xw = xs[:nx * W].reshape(W, nx)
         return Xw, int(st.get("iter_count", 0)), info, status
 
@@ -467,9 +483,13 @@ class OfflineRetargeter:
 
 
 class _Infeasible(Exception):
-    def __init__(self, message: str, frame: int):
+    """A window IPOPT did not solve. ``feasible``: its point satisfies the hard
+    constraints but IPOPT stopped short of the optimum (e.g. Maximum_Iterations_Exceeded)."""
+
+    def __init__(self, message: str, frame: int, feasible: bool = False):
         super().__init__(message)
-        self.frame = frame  #: the clip frame of the worst violation (of the clip as solved, maybe slowed)
+        self.frame = frame  #: the clip frame of the worst violation (of the clip as solved, maybe slowed), or the window's first
+        self.feasible = feasible
 
 
 #: keypoints moved with each foot by :func:`feet_apart` (share of the foot's shift)

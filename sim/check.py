@@ -23,6 +23,13 @@ contact), ``balance`` (centre of mass outside the support polygon for
 ``balance_window_s``), ``torque_saturation`` (a servo at its stall torque for
 ``saturation_window_s``) and ``tracking_error`` (|q - q_cmd| above
 ``max_tracking_error`` for ``tracking_window_s``). The first in time is the reason.
+
+The robot is read as published (:mod:`sim.robot_index`, :mod:`sim.scene`): feet are the
+lowest contact bodies, limits of unranged joints come from the robot's profile or
+hardware config, force limits from the actuators or the joints. A test that cannot run
+for lack of data (a joint with no known limit, a servo with no known no-load speed or
+force limit, a free-standing robot without feet) passes nothing silently: it is listed
+in ``CheckResult.not_checked`` (reason -> why), in the JSON and the markdown report.
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ from retarget.trajectory import RobotTrajectory
 from sim.contacts import ContactClassifier, min_distance
 from sim.errors import SimError
 from sim.human_figure import Placement
+from sim.robot_index import geom_label
 from sim.scene import Scene, SceneConfig
 
 #: Robot-human distances are measured up to this many metres; farther reads as the cap.
@@ -100,7 +108,10 @@ class Failure:
 @dataclass
 class CheckResult:
     """The verdict and everything measured. ``series`` holds (K,) or (K, n) arrays at
-    the control rate for plots: t, q, q_cmd, torque, root_height, tilt_deg, com_margin."""
+    the control rate for plots: t, q, q_cmd, torque, root_height, tilt_deg, com_margin.
+    ``not_checked`` maps a reason that could not be judged (fully or for some joints) to
+    why; ``notes`` are facts about how the robot was read (limits from the actuators'
+    ctrlrange, a derived standing pose)."""
 
     robot: str
     mode: str
@@ -114,6 +125,8 @@ class CheckResult:
     upper: np.ndarray
     series: dict = field(repr=False, default_factory=dict)
     config: CheckConfig = field(default_factory=CheckConfig)
+    not_checked: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
 
     def summary(self) -> dict:
         """JSON-ready dict (no arrays)."""
@@ -121,6 +134,7 @@ class CheckResult:
             "robot": self.robot, "mode": self.mode, "passed": self.passed, "reason": self.reason,
             "first_failure_time_s": self.first_failure_time,
             "failures": [asdict(f) for f in self.failures],
+            "not_checked": dict(self.not_checked), "notes": list(self.notes),
             "metrics": self.metrics, "joint_names": list(self.joint_names),
             "config": asdict(self.config),
         }
@@ -178,27 +192,33 @@ def resample(times: np.ndarray, values: np.ndarray, t_new: np.ndarray, kind: str
 
 # -- the check ---------------------------------------------------------------
 def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None = None, actor: Motion | None = None,
-                     actor_placement: Placement | None = None, on_tick=None) -> CheckResult:
+                     actor_placement: Placement | None = None, on_tick=None, joint_limits: dict | None = None,
+                     no_load_speed=None) -> CheckResult:
     """Play ``traj`` (RobotTrajectory or npz path) and judge it. ``robot`` overrides
     ``traj.robot`` (default "op3"); ``actor`` adds the human figure (robot-human
-    penetration is then measured); ``on_tick(t)`` as in :meth:`Checker.run` (e.g. progress)."""
+    penetration is then measured); ``on_tick(t)`` as in :meth:`Checker.run` (e.g. progress);
+    ``joint_limits`` / ``no_load_speed`` as in :class:`sim.scene.SceneConfig` (for what
+    the MJCF does not say)."""
     config = config or CheckConfig()
     config.validate()
     traj = _as_trajectory(traj)
-    scene = scene_for(traj, config, robot, actor, actor_placement)
+    scene = scene_for(traj, config, robot, actor, actor_placement, joint_limits=joint_limits,
+                      no_load_speed=no_load_speed)
     return Checker(scene, config).run(traj, on_tick=on_tick)
 
 
 def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = None, actor: Motion | None = None,
               actor_placement: Placement | None = None, reactor: Motion | None = None,
-              reactor_placement: Placement | None = None) -> Scene:
+              reactor_placement: Placement | None = None, joint_limits: dict | None = None,
+              no_load_speed=None) -> Scene:
     """The scene a check of ``traj`` runs in (robot from ``robot``, ``traj.robot`` or op3)."""
     robot = robot or traj.robot or "op3"
     return Scene(SceneConfig(robot=robot, fixed_base=(config.mode == "fixed"),
                              base_pos=tuple(traj.root_pos[0]), base_quat=tuple(traj.root_quat[0]),
                              timestep=1.0 / config.physics_hz, actor=actor,
                              actor_placement=actor_placement or Placement(), reactor=reactor,
-                             reactor_placement=reactor_placement or Placement()))
+                             reactor_placement=reactor_placement or Placement(), joint_limits=joint_limits,
+                             no_load_speed=no_load_speed))
 
 
 class Checker:
@@ -207,9 +227,8 @@ class Checker:
     def __init__(self, scene: Scene, config: CheckConfig):
         self.scene, self.config = scene, config
         m, r = scene.model, scene.robot
-        foot_bodies = [int(m.site_bodyid[s]) for s in r.foot_sites]
-        self.contacts = ContactClassifier(m, r.geom_ids, scene.floor_geom, foot_bodies)
-        self.foot_bodies = foot_bodies
+        self.contacts = ContactClassifier(m, r.geom_ids, scene.floor_geom, r.foot_bodies)
+        self.feet = r.feet
         self.robot_col_geoms = np.array([g for g in r.geom_ids if m.geom_contype[g] or m.geom_conaffinity[g]])
 
     def run(self, traj: RobotTrajectory, on_tick=None) -> CheckResult:
@@ -237,8 +256,9 @@ class Checker:
         qvel = np.full((K, m.nv), np.nan)
         force = np.full((K, m.nu), np.nan)
         com = np.full((K, 3), np.nan)  # robot centre of mass
-        sites = np.full((K, m.nsite, 3), np.nan)
-        feet = list(r.foot_sites)
+        feet = np.array([f.body for f in self.feet], dtype=int)
+        foot_x = np.full((K, len(feet), 3), np.nan)  # each foot's top body: position and rotation
+        foot_R = np.full((K, len(feet), 9), np.nan)
         human_min = np.full(K, np.inf)
         con_count = np.zeros(K, int)
         con_geom, con_dist, con_pos = [], [], []
@@ -251,7 +271,7 @@ class Checker:
         a0 = int(act[0])
         ctrl = d.ctrl[a0:a0 + len(act)] if np.array_equal(act, np.arange(a0, a0 + len(act))) else None
         root_xpos, root_xmat, root_com = d.xpos[root], d.xmat[root], d.subtree_com[root]
-        d_qpos, d_qvel, d_force, d_sites = d.qpos, d.qvel, d.actuator_force, d.site_xpos
+        d_qpos, d_qvel, d_force, d_xpos, d_xmat = d.qpos, d.qvel, d.actuator_force, d.xpos, d.xmat
         step = mujoco.mj_step
 
         for k in range(K):
@@ -266,7 +286,9 @@ class Checker:
             qvel[k] = d_qvel
             force[k] = d_force
             com[k] = root_com
-            sites[k] = d_sites
+            if len(feet):
+                foot_x[k] = d_xpos[feet]
+                foot_R[k] = d_xmat[feet]
             nc = d.ncon
             if nc:
                 c = d.contact
@@ -287,23 +309,25 @@ class Checker:
 
         q = qpos[:, r.qpos_adr]
         qd = qvel[:, r.dof_adr]
-        tau = force[:, act]
+        tau = r.joint_torques(force)  # N m at the joints (gear, joint actuatorfrcrange)
         root_h = xpos[:, 2]
         com_xy = com[:, :2]
-        foot_xy = sites[:, feet, :2]
+        # each foot's sole point (Foot.sole_point, in its top body's frame) in the world: x + R p
+        sole = np.array([f.sole_point for f in self.feet]).reshape(-1, 3)
+        foot_xy = (foot_x + np.einsum("kfij,fj->kfi", foot_R.reshape(K, -1, 3, 3), sole))[:, :, :2]
         tilt = np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0)))
         contacts = self.contacts.classify_many(K, con_count, con_geom, con_dist, con_pos)
         self_min, floor_min, non_foot = contacts.self_min, contacts.floor_min, contacts.non_foot
-        self_pairs = {tuple(sorted((m.geom(a).name, m.geom(b).name))) for a, b in contacts.self_pairs}
+        self_pairs = {tuple(sorted((geom_label(m, a), geom_label(m, b)))) for a, b in contacts.self_pairs}
         fall_k = None
         if free:
             fell = (root_h[:K_run] < fall_h) | (root_zz[:K_run] < cos_tilt) | non_foot[:K_run]
             fall_k = _first(fell)
         slip = np.zeros((K, len(feet)))
-        if feet:
+        if len(feet):
             step = np.zeros((K, len(feet)))
             step[1:] = np.linalg.norm(np.diff(foot_xy, axis=0), axis=2)
-            on = contacts.foot_on_floor(self.foot_bodies)  # (K, n_feet)
+            on = contacts.foot_on_floor([f.bodies for f in self.feet])  # (K, n_feet)
             both = on.copy()
             both[1:] &= on[:-1]
             both[0] = False
@@ -344,12 +368,53 @@ class Checker:
             "min_root_height_m": _finite(np.nanmin(root_h[:K_run])) if free else None,
             "standing_root_height_m": _finite(stand_h) if free else None,
         }
+        metrics["joint_limit_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.limit_source)}
+        metrics["no_load_speed_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.speed_source)}
+        metrics["feet"] = {f.side: [m.body(b).name or f"body {b}" for b in f.bodies] for f in self.feet}
         first = failures[0] if failures else None
         series = {"t": t[:K_run], "q": q[:K_run], "q_cmd": q_cmd[:K_run], "torque": tau[:K_run],
                   "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run]}
         return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None, first.reason if first else "ok",
                            first.time if first else None, failures, metrics, r.joint_names, r.lower, r.upper,
-                           series, cfg)
+                           series, cfg, self.not_checked(), self.notes())
+
+    def not_checked(self) -> dict[str, str]:
+        """Reason -> why it could not be judged (for all joints or the ones named)."""
+        r, sc, out = self.scene.robot, self.scene, {}
+        joints = r.unchecked("joint_limit")
+        if joints:
+            out["joint_limit"] = (f"limits not checked for joints {', '.join(joints)}: the MJCF gives them no range and "
+                                  "neither the retarget profile (joint_limits), the hardware config (limits), the "
+                                  "actuator (ctrlrange) nor the caller (joint_limits) does")
+        joints = r.unchecked("speed_limit")
+        if joints:
+            which = "any joint" if len(joints) == r.n else f"joints {', '.join(joints)}"
+            out["speed_limit"] = (f"servo speed not checked for {which}: no no-load speed is known (give the MJCF a "
+                                  "`<custom><numeric name=\"servo_no_load_speed\" data=\"RAD_S\"/></custom>`, name the "
+                                  "servo model in the robot's hardware.yaml, or pass no_load_speed)")
+        joints = r.unchecked("torque_saturation")
+        if joints:
+            which = "any joint" if len(joints) == r.n else f"joints {', '.join(joints)}"
+            out["torque_saturation"] = (f"torque saturation not checked for {which}: no force limit (actuator "
+                                        "forcerange or joint actuatorfrcrange) in the MJCF")
+        if sc.floating and not r.fixed_base and len(r.feet) < 2:
+            found = ", ".join(f.side for f in r.feet) or "none"
+            out["foot_slip"] = (f"feet not found (found: {found}): the robot has no contact geoms on one side of its "
+                                "root's y axis; foot slip is not measured and any floor contact counts as a fall")
+        return out
+
+    def notes(self) -> list[str]:
+        r, sc, out = self.scene.robot, self.scene, []
+        for src, what in (("ctrlrange", "the actuators' ctrlrange"), ("profile", "the retarget profile"),
+                          ("hardware", "the hardware config"), ("given", "the caller")):
+            joints = [j for j, s in zip(r.joint_names, r.limit_source) if s == src]
+            if joints:
+                out.append(f"joint limits from {what} (no range in the MJCF) for {', '.join(joints)}")
+        out += list(sc.facts.notes)
+        if sc.stand_source == "derived":
+            out.append("no 'stand' keyframe: standing pose derived (joints at 0 clipped into their limits, lowest "
+                       "contact geom on the floor)")
+        return out
 
     def _judge(self, t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min, slip, margin,
                K_run, fall_k, stand_h, dt, free, has_actor, self_pairs) -> list[Failure]:
@@ -390,7 +455,9 @@ class Checker:
             cum = np.cumsum(slip[:K_run], axis=0)
             k = _first((cum > limit).any(axis=1))
             if k is not None:
-                out.append(Failure("foot_slip", float(t[k]), f"a foot slid {cum[k].max() * 1000:.0f} mm while in contact "
+                f = self.feet[int(np.argmax(cum[k]))]
+                name = self.scene.model.body(f.body).name or f"body {f.body}"
+                out.append(Failure("foot_slip", float(t[k]), f"the {f.side} foot ({name}) slid {cum[k].max() * 1000:.0f} mm while in contact "
                                    f"(limit {limit * 1000:.0f} mm)"))
         if free:
             k = _first_sustained(margin[:K_run] < -cfg.balance_margin, int(round(cfg.balance_window_s / dt)))

@@ -66,11 +66,12 @@ class ContactLog:
         self._n = n_ticks
         self._starts = np.searchsorted(self._floor_tick, np.arange(n_ticks + 1))
 
-    def foot_on_floor(self, foot_bodies) -> np.ndarray:
-        """(K, len(foot_bodies)) bool: that foot touches the floor at that tick."""
-        out = np.zeros((self._n, len(foot_bodies)), bool)
-        for i, b in enumerate(foot_bodies):
-            sel = self._floor_body == b
+    def foot_on_floor(self, feet) -> np.ndarray:
+        """(K, len(feet)) bool: that foot touches the floor at that tick. Each foot is a
+        body id or a collection of them (a foot made of an ankle and a toe link)."""
+        out = np.zeros((self._n, len(feet)), bool)
+        for i, bodies in enumerate(feet):
+            sel = np.isin(self._floor_body, np.atleast_1d(np.asarray(bodies, dtype=int)))
             out[self._floor_tick[sel], i] = True
         return out
 

@@ -54,6 +54,14 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
     m = result.metrics
     verdict = "PASS" if result.passed else f"FAIL: {result.reason} at {result.first_failure_time:.2f} s"
     lines = [f"# Physical check: {result.robot} ({result.mode} base)", "", f"**{verdict}**", ""]
+    if result.not_checked:
+        lines += ["Not checked (no data to judge by):", ""]
+        lines += [f"- {reason}: {why}" for reason, why in result.not_checked.items()]
+        lines.append("")
+    if result.notes:
+        lines += ["How the robot was read:", ""]
+        lines += [f"- {note}" for note in result.notes]
+        lines.append("")
     if result.failures:
         lines += ["| reason | first at (s) | detail |", "|---|---|---|"]
         lines += [f"| {f.reason} | {f.time:.2f} | {f.detail} |" for f in result.failures]
@@ -111,8 +119,9 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
             continue
         ax.plot(t, s["q_cmd"][:, j], "--", color="tab:orange", lw=1, label="command")
         ax.plot(t, s["q"][:, j], color="tab:blue", lw=1, label="measured")
-        ax.axhline(result.lower[j], color="tab:red", lw=0.8, ls=":")
-        ax.axhline(result.upper[j], color="tab:red", lw=0.8, ls=":", label="limits")
+        for lim in (result.lower[j], result.upper[j]):  # none drawn for a joint without known limits
+            if np.isfinite(lim):
+                ax.axhline(lim, color="tab:red", lw=0.8, ls=":", label="limits" if lim == result.upper[j] else None)
         _light_axes(ax, names[j])
     axes[0, 0].legend(fontsize=7)
     fig.supxlabel("time (s)")

@@ -7,13 +7,30 @@ free robot checked with its torso held). The human actor (and optionally the
 generated reactor, drawn as a thin stick figure) are kinematic capsule figures
 (:class:`sim.human_figure.HumanFigure`) that never exert forces.
 
+A model as published works unmodified:
+
+- the floor: a horizontal plane at z = 0 added by the scene, unless the file already has
+  one attached to the world (a Menagerie-style ``scene.xml`` that ``<include>``s the robot
+  and adds ``<geom name="floor" type="plane">``): that floor is kept as it is (its
+  friction, its look; ``floor_friction`` applies to the scene's own floor only) and named
+  ``floor`` if it has no name. A world plane that is not horizontal at z = 0 is refused;
+- the standing pose: the keyframe named ``stand`` when the model has one. Otherwise one is
+  derived: every joint at its MJCF reference angle (0) clipped into its limits
+  (:class:`sim.robot_index.RobotIndex`), the root at the MJCF's pose raised or lowered so
+  the lowest contact geom touches z = 0, each position servo's goal = its joint angle;
+  ``stand_source`` says which ("keyframe" or "derived");
+- joint limits and servo speeds the MJCF lacks come from the robot's folder or the config
+  (:mod:`sim.robot_facts`); feet from the lowest contact geoms (:func:`sim.robot_index.find_feet`).
+
 Geom groups: 0 floor, 1 robot (moved there after compiling), 3 the actor, 4 the
-reactor stick figure.
+reactor stick figure, 5 the robot's contact-only geoms in a body that also has geoms
+that only show (visual meshes): hidden in videos, so a published model's collision
+hulls are not drawn over its visual meshes.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import mujoco
 import numpy as np
@@ -21,7 +38,8 @@ import numpy as np
 from dualflow.motion import Motion
 from sim.errors import SimError
 from sim.human_figure import HumanFigure, Placement
-from sim.robot_index import RobotIndex
+from sim.robot_facts import robot_facts
+from sim.robot_index import RobotIndex, find_feet, geom_z_range, is_contact_geom
 
 
 def robot_model_path(robot):
@@ -38,6 +56,7 @@ def robot_model_path(robot):
 ROBOT_GROUP = 1
 ACTOR_GROUP = 3
 REACTOR_GROUP = 4
+ROBOT_COLLISION_GROUP = 5
 
 
 @dataclass(frozen=True)
@@ -47,7 +66,11 @@ class SceneConfig:
     ``robot``: a bundled robot name or an MJCF path. ``fixed_base``: None keeps the
     model's own choice (bundled fixed-base robots have no freejoint), True bolts the
     root body at ``base_pos`` (m) / ``base_quat`` (wxyz). ``timestep`` s is the
-    physics step (default 0.002 s = 500 Hz).
+    physics step (default 0.002 s = 500 Hz). ``joint_limits`` (joint -> (lower, upper)
+    rad) and ``no_load_speed`` (joint -> rad/s, or one number for every servo) fill in
+    what the MJCF does not give (unranged joints, servo speed), before the robot folder's
+    profile and hardware config (:mod:`sim.robot_facts`); a joint the MJCF ranges keeps
+    its MJCF range.
     """
 
     robot: str = "op3"
@@ -61,14 +84,19 @@ class SceneConfig:
     reactor_placement: Placement = field(default_factory=Placement)
     floor_friction: float = 1.0
     floor_pairs: bool = True  # robot-floor contacts as explicit pairs (same contacts, cheaper: Scene._floor_as_pairs)
+    joint_limits: dict | None = None
+    no_load_speed: dict | float | None = None
 
 
 class Scene:
     """The compiled scene. Attributes: ``model``, ``data``, ``robot`` (RobotIndex),
-    ``actor`` / ``reactor`` (HumanFigure or None), ``floor_geom`` (id),
-    ``stand_ctrl`` (n,) the "stand" keyframe in joint order, ``stand_root_height``
-    (m, root body z when standing) and ``robot_height`` (m, top of the robot when
-    standing)."""
+    ``actor`` / ``reactor`` (HumanFigure or None), ``floor_geom`` (id), ``floor_name``,
+    ``stand_ctrl`` (n,) the standing pose's servo goals in joint order, ``stand_source``
+    ("keyframe" or "derived", see the module docstring), ``stand_root_height`` (m, root
+    body z when standing), ``robot_height`` (m, top of the robot when standing; exact for
+    meshes and primitives), ``floating`` (the MJCF gives the robot a freejoint: it stands on
+    its own feet, even where this scene bolts it down; only then are feet looked for, in
+    ``robot.feet``) and ``facts`` (:class:`sim.robot_facts.RobotFacts`)."""
 
     def __init__(self, config: SceneConfig | None = None):
         self.config = config = config or SceneConfig()
@@ -82,8 +110,11 @@ class Scene:
         root = spec.worldbody.first_body()
         if root is None:
             raise SimError(f"robot model {path}: worldbody has no body")
+        if not root.name:
+            root.name = "robot_root"
         self.root_name = root.name
         free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE]
+        self.floating = bool(free)
         if config.fixed_base and free:
             spec.delete(free[0])
             for key in spec.keys:
@@ -99,17 +130,23 @@ class Scene:
         # robot (the human figures are mocap bodies without dofs), so it only costs time
         # (7 % of the instructions of an op3 mj_step). The constraint solution is the same.
         spec.option.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ISLAND)
-        self._add_world(spec, config)
+        self.floor_name = self._add_world(spec, config, path)
 
         # robot height and standing figures from a first compile (before the humans)
-        probe = spec.compile()
+        try:
+            probe = spec.compile()
+        except ValueError as exc:
+            raise SimError(f"robot model {path}: MuJoCo cannot compile it in the scene ({exc})") from None
+        self._check_floor(probe, path)
         if config.floor_pairs:
-            self._floor_as_pairs(spec, probe)
+            self._floor_as_pairs(spec, probe, self.floor_name)
         probe_data = mujoco.MjData(probe)
-        self._reset_to_stand(probe, probe_data)
-        robot_probe = RobotIndex.from_model(probe, self.root_name)
-        z_top = probe_data.geom_xpos[robot_probe.geom_ids, 2] + probe.geom_rbound[robot_probe.geom_ids]
-        self.robot_height = float(np.max(z_top) - 0.0)
+        self.facts = robot_facts(config.robot, config.joint_limits, config.no_load_speed)
+        robot_probe = RobotIndex.from_model(probe, self.root_name, self.facts)
+        self.stand_source = "keyframe" if self._stand_key(probe) is not None else "derived"
+        self._stand_qpos, self.stand_ctrl = self._standing_pose(probe, probe_data, robot_probe)
+        z = np.array([geom_z_range(probe, probe_data, int(g)) for g in robot_probe.geom_ids]).reshape(-1, 2)
+        self.robot_height = float(np.max(z[:, 1]) - 0.0)
         self.stand_root_height = float(probe_data.xpos[robot_probe.root_body, 2])
 
         self.actor = self.reactor = None
@@ -122,18 +159,34 @@ class Scene:
                                        rgba=(0.2, 0.45, 0.9, 1.0), radius=0.012, group=REACTOR_GROUP)
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
-        self.robot = RobotIndex.from_model(self.model, self.root_name)
-        self.floor_geom = self.model.geom("floor").id
-        self.model.geom_group[self.robot.geom_ids] = ROBOT_GROUP
+        self.robot = RobotIndex.from_model(self.model, self.root_name, self.facts)
+        self.floor_geom = self.model.geom(self.floor_name).id
+        self._robot_groups()
         for fig in (self.actor, self.reactor):
             if fig is not None:
                 fig.bind(self.model)
-        self.stand_ctrl = self._stand_ctrl()
         self.reset()
+        if self.floating:
+            self.robot = replace(self.robot, feet=find_feet(self.model, self.data, self.robot))
 
     # -- building ----------------------------------------------------------
     @staticmethod
-    def _add_world(spec: mujoco.MjSpec, config: SceneConfig) -> None:
+    def _add_world(spec: mujoco.MjSpec, config: SceneConfig, path) -> str:
+        """Add the floor (unless the file has one: see the module docstring) and lights;
+        return the floor geom's name."""
+        planes = [g for g in spec.worldbody.geoms if g.type == mujoco.mjtGeom.mjGEOM_PLANE]
+        if len(planes) > 1:
+            planes = [g for g in planes if g.name == "floor"] or planes[:1]
+        if planes:
+            own = planes[0]
+            if not own.name:
+                if any(g.name == "floor" for g in spec.geoms):
+                    raise SimError(f"robot model {path}: its world plane has no name and another geom is called "
+                                   "'floor'; name the plane")
+                own.name = "floor"
+            spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, 1920)
+            spec.visual.global_.offheight = max(spec.visual.global_.offheight, 1080)
+            return own.name
         tex = spec.add_texture(name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
                                rgb1=[0.82, 0.84, 0.86], rgb2=[0.72, 0.74, 0.77], width=256, height=256)
         mat = spec.add_material(name="grid", texrepeat=[8, 8], reflectance=0.05)
@@ -145,9 +198,31 @@ class Scene:
         spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
         spec.visual.global_.offwidth = 1920
         spec.visual.global_.offheight = 1080
+        return "floor"
+
+    def _check_floor(self, probe: mujoco.MjModel, path) -> None:
+        """The floor must be the z = 0 ground plane the checks assume (DESIGN: ground z = 0)."""
+        f = probe.geom(self.floor_name).id
+        d = mujoco.MjData(probe)
+        mujoco.mj_kinematics(probe, d)
+        normal, height = d.geom_xmat[f].reshape(3, 3)[:, 2], d.geom_xpos[f, 2]
+        if normal[2] < 1 - 1e-6 or abs(height) > 1e-6:
+            raise SimError(f"robot model {path}: its floor plane {self.floor_name!r} is not horizontal at z = 0 "
+                           f"(normal {np.round(normal, 3).tolist()}, z {height:.3f} m); the checks measure from a "
+                           "level ground at z = 0: move the plane, or load the robot's own MJCF without it")
+
+    def _robot_groups(self) -> None:
+        """Robot geoms to group 1; a contact-only geom to group 5 (not drawn) when its body
+        also has a geom that only shows, so a published model's collision hulls are not drawn
+        over its visual meshes."""
+        m, r = self.model, self.robot
+        m.geom_group[r.geom_ids] = ROBOT_GROUP
+        shows = {int(m.geom_bodyid[g]) for g in r.geom_ids if not is_contact_geom(m, int(g))}
+        hide = [int(g) for g in r.geom_ids if is_contact_geom(m, int(g)) and int(m.geom_bodyid[g]) in shows]
+        m.geom_group[hide] = ROBOT_COLLISION_GROUP
 
     @staticmethod
-    def _floor_as_pairs(spec: mujoco.MjSpec, probe: mujoco.MjModel) -> None:
+    def _floor_as_pairs(spec: mujoco.MjSpec, probe: mujoco.MjModel, floor: str = "floor") -> None:
         """Robot-floor contacts as explicit ``<pair>``s, the floor left out of the broad phase.
 
         The floor is an infinite plane, so every robot body overlaps it in MuJoCo's
@@ -161,7 +236,7 @@ class Scene:
         to the world, not excluded). When a robot geom needs a rule not written here (a
         priority other than the floor's, direct solref, adhesion, surface velocity, a
         plugin) or has no name (a pair names its geoms), the floor stays dynamic."""
-        m, f = probe, probe.geom("floor").id
+        m, f = probe, probe.geom(floor).id
         touches_world = {int(s_) & 0xFFFF for s_ in m.exclude_signature if int(s_) >> 16 == 0}
         touches_world |= {int(s_) >> 16 for s_ in m.exclude_signature if int(s_) & 0xFFFF == 0}
         g = np.flatnonzero((np.arange(m.ngeom) != f) & (m.body_weldid[m.geom_bodyid] != 0)
@@ -181,32 +256,50 @@ class Scene:
         condim = np.maximum(m.geom_condim[f], m.geom_condim[g])
         margin, gap = np.maximum(m.geom_margin[f], m.geom_margin[g]), np.maximum(m.geom_gap[f], m.geom_gap[g])
         for i, name in enumerate(names):
-            spec.add_pair(geomname1="floor", geomname2=name, condim=int(condim[i]),
+            spec.add_pair(geomname1=floor, geomname2=name, condim=int(condim[i]),
                           friction=[fr[i, 0], fr[i, 0], fr[i, 1], fr[i, 2], fr[i, 2]], solref=solref[i].tolist(),
                           solimp=solimp[i].tolist(), margin=float(margin[i]), gap=float(gap[i]))
-        floor_spec = spec.geom("floor")
+        floor_spec = spec.geom(floor)
         floor_spec.contype = floor_spec.conaffinity = 0
 
     @staticmethod
-    def _reset_to_stand(model: mujoco.MjModel, data: mujoco.MjData) -> None:
-        mujoco.mj_resetData(model, data)
+    def _stand_key(model: mujoco.MjModel) -> int | None:
         try:
-            key = model.key("stand").id
-            mujoco.mj_resetDataKeyframe(model, data, key)
+            return model.key("stand").id
         except KeyError:
-            pass
-        mujoco.mj_forward(model, data)
+            return None
 
-    def _stand_ctrl(self) -> np.ndarray:
-        try:
-            key = self.model.key("stand").id
-            return self.model.key_ctrl[key, self.robot.actuator_ids].copy()
-        except KeyError:
-            return np.zeros(self.robot.n)
+    def _standing_pose(self, model: mujoco.MjModel, data: mujoco.MjData, robot: RobotIndex):
+        """(qpos (nq,), servo goals (n,)) of the standing pose (module docstring), and ``data``
+        left in it."""
+        mujoco.mj_resetData(model, data)
+        key = self._stand_key(model)
+        if key is not None:
+            mujoco.mj_resetDataKeyframe(model, data, key)
+            mujoco.mj_forward(model, data)
+            return data.qpos.copy(), model.key_ctrl[key, robot.actuator_ids].copy()
+        q = np.clip(data.qpos[robot.qpos_adr], robot.lower, robot.upper)
+        data.qpos[robot.qpos_adr] = q
+        mujoco.mj_forward(model, data)
+        low = self._lowest_point(model, data, robot)
+        if not robot.fixed_base and np.isfinite(low):
+            data.qpos[robot.free_qpos + 2] -= low
+            mujoco.mj_forward(model, data)
+        return data.qpos.copy(), q.copy()
+
+    def _reset_to_stand(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        mujoco.mj_resetData(model, data)
+        key = self._stand_key(model)
+        if key is not None:
+            mujoco.mj_resetDataKeyframe(model, data, key)
+        else:
+            data.qpos[:] = self._stand_qpos
+            data.ctrl[self.robot.actuator_ids] = self.stand_ctrl
+        mujoco.mj_forward(model, data)
 
     # -- state -------------------------------------------------------------
     def reset(self) -> None:
-        """Robot in its "stand" keyframe, humans at their first frame."""
+        """Robot in its standing pose (the "stand" keyframe or the derived one), humans at their first frame."""
         self._reset_to_stand(self.model, self.data)
         self.pose_humans(0.0)
         mujoco.mj_forward(self.model, self.data)
@@ -231,8 +324,8 @@ class Scene:
             if root_quat is not None:
                 self.data.qpos[r.free_qpos + 3:r.free_qpos + 7] = root_quat
         mujoco.mj_forward(self.model, self.data)
-        if ground and not r.fixed_base:
-            self.data.qpos[r.free_qpos + 2] -= self.lowest_robot_point()
+        if ground and not r.fixed_base and np.isfinite(low := self.lowest_robot_point()):
+            self.data.qpos[r.free_qpos + 2] -= low
             mujoco.mj_forward(self.model, self.data)
 
     def mujoco_forward(self) -> None:
@@ -240,24 +333,11 @@ class Scene:
         mujoco.mj_forward(self.model, self.data)
 
     def lowest_robot_point(self) -> float:
-        """z (m) of the lowest point of any robot collision geom (exact for boxes,
-        capsules and spheres)."""
-        m, d = self.model, self.data
-        zmin = np.inf
-        for g in self.robot.geom_ids:
-            if m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0:
-                continue
-            size, R, c = m.geom_size[g], d.geom_xmat[g].reshape(3, 3), d.geom_xpos[g]
-            t = m.geom_type[g]
-            if t == mujoco.mjtGeom.mjGEOM_BOX:
-                z = c[2] - np.abs(R[2, :]) @ size
-            elif t == mujoco.mjtGeom.mjGEOM_CAPSULE:
-                z = c[2] - abs(R[2, 2]) * size[1] - size[0]
-            elif t == mujoco.mjtGeom.mjGEOM_SPHERE:
-                z = c[2] - size[0]
-            elif t == mujoco.mjtGeom.mjGEOM_CYLINDER:
-                z = c[2] - abs(R[2, 2]) * size[1] - np.hypot(R[2, 0], R[2, 1]) * size[0]
-            else:
-                z = c[2] - m.geom_rbound[g]
-            zmin = min(zmin, float(z))
-        return zmin
+        """z (m) of the lowest point of any robot contact geom (exact for primitives and
+        meshes: :func:`sim.robot_index.geom_z_range`)."""
+        return self._lowest_point(self.model, self.data, self.robot)
+
+    @staticmethod
+    def _lowest_point(model: mujoco.MjModel, data: mujoco.MjData, robot: RobotIndex) -> float:
+        z = [geom_z_range(model, data, int(g))[0] for g in robot.geom_ids if is_contact_geom(model, int(g))]
+        return float(min(z)) if z else float("nan")

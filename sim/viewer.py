@@ -31,7 +31,7 @@ def require_display() -> None:
 def view(traj=None, robot: str | None = None, check_config=None, actor=None, actor_placement=None,
          loop: bool = False) -> None:
     """Open the viewer on ``traj`` (RobotTrajectory or npz path), or on the robot
-    standing still in its "stand" pose when ``traj`` is None."""
+    standing still in its standing pose when ``traj`` is None."""
     require_display()
     import mujoco
     import mujoco.viewer
@@ -42,12 +42,10 @@ def view(traj=None, robot: str | None = None, check_config=None, actor=None, act
 
     check_config = check_config or CheckConfig()
     check_config.validate()
-    if traj is None:
-        scene = Scene()  # op3 standing
-        if robot:
-            from sim.scene import SceneConfig
+    if traj is None:  # the robot standing (its "stand" keyframe or the derived pose: sim.scene)
+        from sim.scene import SceneConfig
 
-            scene = Scene(SceneConfig(robot=robot))
+        scene = Scene(SceneConfig(robot=robot or "op3"))
         traj = RobotTrajectory.standing(scene.robot.joint_names, scene.stand_ctrl, 2, 1.0,
                                         root_pos=scene.data.xpos[scene.robot.root_body], robot=scene.config.robot)
     traj = _as_trajectory(traj)

@@ -112,8 +112,14 @@ class VirtualRobot:
         self._gain = m.actuator_gainprm[r.actuator_ids, 0].copy()
         self._bias = m.actuator_biasprm[r.actuator_ids, 1].copy()
         self._force = m.actuator_forcerange[r.actuator_ids].copy()
-        self._range = m.jnt_range[[m.actuator_trnid[a, 0] for a in r.actuator_ids]].copy()
+        self._force_limited = m.actuator_forcelimited[r.actuator_ids].copy()
         self._joint_ids = np.array([m.actuator_trnid[a, 0] for a in r.actuator_ids])
+        self._range = m.jnt_range[self._joint_ids].copy()  # the model's own, restored by clear_faults
+        self._limited = m.jnt_limited[self._joint_ids].copy()
+        # goals are clamped to the limits the check uses: the MJCF range, else the profile's or
+        # hardware config's (an unranged joint of a published MJCF), else unclamped (RobotIndex)
+        self._goal_range = np.stack([r.lower, r.upper], axis=1)
+        self._stall = r.stall_torque.copy()  # N m; +inf without a force limit (then no heating)
         self._enabled = np.zeros(self._n, bool)
         self._temp = np.full(self._n, cfg.ambient_c)
         self._errors: dict[str, str] = {}
@@ -140,7 +146,8 @@ class VirtualRobot:
         )
 
     def write_goal(self, positions) -> None:
-        """Goal positions (n,) rad; clamped to the MJCF range like a servo's position limits."""
+        """Goal positions (n,) rad; clamped to the joint limits like a servo's position limits
+        (the MJCF range, else the robot folder's limits: :class:`sim.robot_index.RobotIndex`)."""
         self._require_open()
         q = np.asarray(positions, dtype=np.float64)
         if q.shape != (self._n,):
@@ -148,7 +155,7 @@ class VirtualRobot:
                            f"got shape {q.shape}")
         if not np.all(np.isfinite(q)):
             raise SimError("virtual robot: write_goal got NaN or inf; send finite angles in radians")
-        self._goal = np.clip(q, self._range[:, 0], self._range[:, 1])
+        self._goal = np.clip(q, self._goal_range[:, 0], self._goal_range[:, 1])
         self._scene.data.ctrl[self._scene.robot.actuator_ids] = self._goal
         if self.config.clock == "lockstep":
             self.step(1.0 / self.config.control_hz)
@@ -171,7 +178,7 @@ class VirtualRobot:
             raise SimError(f"virtual robot: stop policy must be one of {STOP_POLICIES}, got {policy!r}")
         if policy == "hold":
             present = self._scene.data.qpos[self._scene.robot.qpos_adr].copy()
-            self._goal = np.clip(present, self._range[:, 0], self._range[:, 1])
+            self._goal = np.clip(present, self._goal_range[:, 0], self._goal_range[:, 1])
             self._scene.data.ctrl[self._scene.robot.actuator_ids] = self._goal
             self.set_torque(True)
         else:
@@ -225,7 +232,7 @@ class VirtualRobot:
 
     def _heat(self, torque: np.ndarray, dt: float) -> None:
         cfg = self.config
-        current = np.abs(torque) / self._force[:, 1] * cfg.stall_current_a
+        current = np.abs(torque) / self._stall * cfg.stall_current_a
         resistance = cfg.voltage / cfg.stall_current_a
         power = current ** 2 * resistance
         self._temp += dt / cfg.thermal_time_constant_s * (power * cfg.thermal_resistance_k_per_w - (self._temp - cfg.ambient_c))
@@ -249,11 +256,13 @@ class VirtualRobot:
         if kind == "stuck":
             q = float(d.qpos[r.qpos_adr[j]])
             m.jnt_range[self._joint_ids[j]] = (q - 1e-4, q + 1e-4)
+            m.jnt_limited[self._joint_ids[j]] = 1
             self._stuck[j] = True
         elif kind == "torque_limit":
             if value is None or not np.isfinite(value) or value < 0:
                 raise SimError(f"virtual robot: torque_limit fault needs value >= 0 N m, got {value!r}")
             m.actuator_forcerange[r.actuator_ids[j]] = (-float(value), float(value))
+            m.actuator_forcelimited[r.actuator_ids[j]] = 1
         else:
             raise SimError(f"virtual robot: unknown fault {kind!r}; use 'stuck' or 'torque_limit'")
 
@@ -261,7 +270,9 @@ class VirtualRobot:
         self._require_open()
         m, r = self._scene.model, self._scene.robot
         m.jnt_range[self._joint_ids] = self._range
+        m.jnt_limited[self._joint_ids] = self._limited
         m.actuator_forcerange[r.actuator_ids] = self._force
+        m.actuator_forcelimited[r.actuator_ids] = self._force_limited
         self._stuck[:] = False
 
     def reboot(self, joint: str) -> None:
