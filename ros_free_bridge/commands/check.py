@@ -82,7 +82,8 @@ def run(args) -> int:
     else:
         paths = write_report(result, out, stem)
     if result.passed:
-        print(f"PASS {args.trajectory} ({result.robot}, {result.mode})")
+        unjudged = f"; not checked: {', '.join(result.not_checked)}" if result.not_checked else ""
+        print(f"PASS {args.trajectory} ({result.robot}, {result.mode}{unjudged})")
     else:
         print(f"FAIL {args.trajectory}: {result.reason} at {result.first_failure_time:.2f} s: {result.failures[0].detail}")
     for kind, path in paths.items():

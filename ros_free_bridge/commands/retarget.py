@@ -13,6 +13,7 @@ makes one from an MJCF), or an MJCF with ``--profile``. Writes, under ``--out``:
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 
@@ -79,23 +80,42 @@ def _load(args):
 
 
 def run(args) -> int:
-    from retarget.offline import OfflineConfig, OfflineRetargeter
-    from retarget.report import evaluate, plot_joints
+    from retarget.errors import RetargetError
     from retarget.robot import load_robot
-    from retarget.streaming import StreamingConfig, StreamingRetargeter
-    from retarget.targets import make_targets
 
     motion, stem = _load(args)
     robot = load_robot(args.robot, args.profile, fixed_base=args.fixed_base)
+    try:
+        traj = _retarget(args, robot, motion)
+    except RetargetError as exc:
+        if exc.time_s is None:
+            raise  # bad input (a file, a profile): one line and exit 2 through the CLI
+        # a verdict on the clip, not bad input: the robot cannot do it (an infeasible window, or
+        # one the solver did not finish); exit 1 like a failed physics check
+        print(f"FAIL {stem}: {exc}", file=sys.stderr)
+        return 1
+    return _report(args, robot, motion, stem, traj)
+
+
+def _retarget(args, robot, motion):
+    from retarget.offline import OfflineConfig, OfflineRetargeter
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+
     if args.mode == "streaming":
-        traj = StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile, balance=args.balance)).run(motion)
-    else:
-        sizes = {k: v for k, v in (("window", args.window), ("overlap", args.overlap)) if v is not None}
-        cfg = OfflineConfig(**sizes, balance=args.balance, zmp=args.zmp,
-                            balance_margin=args.balance_margin, contacts=not args.no_contacts,
-                            self_collision=not args.no_collision, collision_model=args.foot_collision, retime=args.retime, auto_retime=args.auto_retime,
-                            compile=not args.no_compile)
-        traj = OfflineRetargeter(robot, cfg).retarget(motion)
+        return StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile,
+                                                                      balance=args.balance)).run(motion)
+    sizes = {k: v for k, v in (("window", args.window), ("overlap", args.overlap)) if v is not None}
+    cfg = OfflineConfig(**sizes, balance=args.balance, zmp=args.zmp,
+                        balance_margin=args.balance_margin, contacts=not args.no_contacts,
+                        self_collision=not args.no_collision, collision_model=args.foot_collision, retime=args.retime,
+                        auto_retime=args.auto_retime, compile=not args.no_compile)
+    return OfflineRetargeter(robot, cfg).retarget(motion)
+
+
+def _report(args, robot, motion, stem, traj) -> int:
+    from retarget.report import evaluate, plot_joints
+    from retarget.targets import make_targets
+
     retime = float(traj.meta.get("retime", 1.0))
     src = motion if retime == 1.0 else _slowed(motion, retime)
     report = evaluate(robot, traj, make_targets(robot, src), clip=motion.name or stem)
