@@ -18,7 +18,9 @@ A profile says, in robot-independent terms:
 - ``rigid_offsets``: keypoints (default: hips and shoulders) placed at the robot's own rest
   offset from their parent, turned by the human's pelvis or chest frame, instead of along the
   scaled human bone (these short bones point differently on a person and on most robots);
-- ``posture_weight``: pull towards the ``stand_keyframe`` pose, which also seeds the solvers.
+- ``posture_weight``: pull towards the ``stand_keyframe`` pose, which also seeds the solvers;
+- ``mjcf``: the robot's model, relative to the profile's folder (a robot folder's profile names
+  its model this way, see :mod:`firmware_cfg.registry`); the solver ignores it.
 
 Only positions are tracked, so no rotation offsets between human and robot frames
 are ever needed. Validation against the MJCF happens in :class:`retarget.robot.RetargetRobot`;
@@ -107,7 +109,9 @@ class RetargetProfile:
     def from_dict(cls, data, source: str = "profile") -> "RetargetProfile":
         if not isinstance(data, dict):
             raise RetargetError(f"{source}: the profile must be a YAML mapping with keys robot, keypoints, feet, ...")
-        known = {"robot", "root", "keypoints", "scale", "joint_limits", "velocity_limits", "capsules",
+        # mjcf: the robot folder's model (relative to the profile), read by firmware_cfg.registry;
+        # the solver gets its model from the caller and ignores the key
+        known = {"robot", "mjcf", "root", "keypoints", "scale", "joint_limits", "velocity_limits", "capsules",
                  "collision_pairs", "collision_margin", "feet", "posture_weight", "stand_keyframe", "rigid_offsets"}
         unknown = sorted(set(data) - known)
         if unknown:

@@ -35,6 +35,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "retarget_check",
     "run",
     "telemetry",
+    "robot",
 )
 
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)

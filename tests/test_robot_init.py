@@ -1,0 +1,416 @@
+"""`dualflow-bridge robot init` and `robot check`: a robot folder from an MJCF alone.
+
+On the two published reference models in ../shared/robots (skipped where absent): init writes
+a folder that check passes and whose profile retargets the real CMU pair as written. On a
+hand-written humanoid whose names mean nothing (q0, q1, ..., m4): the anatomy is found from
+the tree and the geometry alone. And check names every problem of a broken folder with its fix.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ros_free_bridge.cli import main
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+REFERENCE = {"robotis_op3": "scene.xml", "unitree_g1": "g1.xml"}  # OP3 through its scene: the include is followed
+
+#: A small humanoid written for this test. Names are deliberately meaningless and the
+#: order is scrambled (waist and arms before the legs, right arm before the left); the arms
+#: hang down; the right shoulder roll range mirrors the left's. It faces +x, left is +y.
+TOY = """
+<mujoco model="zeta">
+  <compiler angle="degree"/>
+  <default>
+    <joint damping="0.5" armature="0.01"/>
+    <geom contype="1" conaffinity="1"/>
+    <position kp="20" forcerange="-6 6"/>
+  </default>
+  <worldbody>
+    <body name="q0" pos="0 0 0.62">
+      <freejoint name="f"/>
+      <geom name="g0" type="box" size="0.05 0.08 0.04" pos="0 0 0.02"/>
+      <body name="q7" pos="0 0 0.07">
+        <joint name="k1" axis="0 0 1" range="-60 60"/>
+        <geom type="capsule" fromto="0 0 0.02 0 0 0.22" size="0.07"/>
+        <body name="q9" pos="0 -0.13 0.2">
+          <joint name="k2" axis="0 1 0" range="-180 60"/>
+          <joint name="k3" axis="1 0 0" range="-150 10"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.14" size="0.025"/>
+          <body name="q10" pos="0 0 -0.14">
+            <joint name="k4" axis="0 1 0" range="-150 0"/>
+            <geom type="capsule" fromto="0 0 0 0 0 -0.13" size="0.022"/>
+          </body>
+        </body>
+        <body name="q11" pos="0 0.13 0.2">
+          <joint name="k5" axis="0 1 0" range="-180 60"/>
+          <joint name="k6" axis="1 0 0" range="-10 150"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.14" size="0.025"/>
+          <body name="q12" pos="0 0 -0.14">
+            <joint name="k7" axis="0 1 0" range="-150 0"/>
+            <geom type="capsule" fromto="0 0 0 0 0 -0.13" size="0.022"/>
+          </body>
+        </body>
+        <body name="q13" pos="0 0 0.26">
+          <joint name="k8" axis="0 0 1" range="-90 90"/>
+          <geom type="sphere" size="0.06" pos="0 0 0.06"/>
+        </body>
+      </body>
+      <body name="q1" pos="0 0.055 -0.03">
+        <joint name="m1" axis="0 0 1" range="-45 45"/>
+        <joint name="m2" axis="1 0 0" range="-30 45"/>
+        <joint name="m3" axis="0 1 0" range="-100 40"/>
+        <geom type="capsule" fromto="0 0 -0.02 0 0 -0.24" size="0.035"/>
+        <body name="q2" pos="0 0 -0.26">
+          <joint name="m4" axis="0 1 0"/>
+          <geom type="capsule" fromto="0 0 -0.02 0 0 -0.22" size="0.03"/>
+          <body name="q3" pos="0 0 -0.26">
+            <joint name="m5" axis="0 1 0" range="-50 50"/>
+            <joint name="m6" axis="1 0 0" range="-30 30"/>
+            <geom type="box" size="0.08 0.04 0.01" pos="0.03 0 -0.025"/>
+          </body>
+        </body>
+      </body>
+      <body name="q4" pos="0 -0.055 -0.03">
+        <joint name="m7" axis="0 0 1" range="-45 45"/>
+        <joint name="m8" axis="1 0 0" range="-45 30"/>
+        <joint name="m9" axis="0 1 0" range="-100 40"/>
+        <geom type="capsule" fromto="0 0 -0.02 0 0 -0.24" size="0.035"/>
+        <body name="q5" pos="0 0 -0.26">
+          <joint name="m10" axis="0 -1 0"/>
+          <geom type="capsule" fromto="0 0 -0.02 0 0 -0.22" size="0.03"/>
+          <body name="q6" pos="0 0 -0.26">
+            <joint name="m11" axis="0 1 0" range="-50 50"/>
+            <joint name="m12" axis="1 0 0" range="-30 30"/>
+            <geom type="box" size="0.08 0.04 0.01" pos="0.03 0 -0.025"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <position joint="m1" ctrlrange="-0.78 0.78"/> <position joint="m2" ctrlrange="-0.52 0.78"/>
+    <position joint="m3" ctrlrange="-1.74 0.69"/> <position joint="m4" ctrlrange="-2.44 2.44"/>
+    <position joint="m5" ctrlrange="-0.87 0.87"/> <position joint="m6" ctrlrange="-0.52 0.52"/>
+    <position joint="m7" ctrlrange="-0.78 0.78"/> <position joint="m8" ctrlrange="-0.78 0.52"/>
+    <position joint="m9" ctrlrange="-1.74 0.69"/> <position joint="m10" ctrlrange="-2.44 2.44"/>
+    <position joint="m11" ctrlrange="-0.87 0.87"/> <position joint="m12" ctrlrange="-0.52 0.52"/>
+    <position joint="k1" ctrlrange="-1.04 1.04"/> <position joint="k2" ctrlrange="-3.14 1.04"/>
+    <position joint="k3" ctrlrange="-2.61 0.17"/> <position joint="k4" ctrlrange="-2.61 0"/>
+    <position joint="k5" ctrlrange="-3.14 1.04"/> <position joint="k6" ctrlrange="-0.17 2.61"/>
+    <position joint="k7" ctrlrange="-2.61 0"/> <position joint="k8" ctrlrange="-1.57 1.57"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def reference(name: str) -> Path:
+    path = SHARED / "robots" / name / REFERENCE[name]
+    if not path.is_file():
+        pytest.skip(f"reference model not found at {path} (../shared/robots is absent on this machine)")
+    return path
+
+
+def cmu_pair():
+    a, b = SHARED / "data" / "mocap" / "cmu" / "18_01.bvh", SHARED / "data" / "mocap" / "cmu" / "19_01.bvh"
+    if not (a.is_file() and b.is_file()):
+        pytest.skip(f"CMU capture not found in {a.parent} (../shared/data is absent on this machine)")
+    from dualflow.motion.io import load_pair, put_on_ground
+
+    return put_on_ground(load_pair(a, b, fps=30.0))
+
+
+def init(mjcf, out, *extra) -> int:
+    return main(["robot", "init", str(mjcf), "-o", str(out), *extra])
+
+
+def check(folder, capsys, *extra) -> tuple[int, list[str], str]:
+    capsys.readouterr()
+    rc = main(["robot", "check", str(folder), *extra])
+    cap = capsys.readouterr()
+    return rc, [line for line in cap.err.splitlines() if line.startswith("problem: ")], cap.out
+
+
+def keypoint_bodies(folder: Path) -> dict:
+    data = yaml.safe_load((folder / "profile.yaml").read_text())
+    return {h: spec["body"] for h, spec in data["keypoints"].items()}
+
+
+def load(folder: Path):
+    """The folder's RetargetRobot, bound as the retargeter binds it (not through load_robot)."""
+    from firmware_cfg.registry import resolve
+    from retarget.kinematics import RobotKinematics
+    from retarget.profile import RetargetProfile
+    from retarget.robot import RetargetRobot
+
+    robot = resolve(folder)
+    return RetargetRobot(RobotKinematics.from_xml(robot.mjcf), RetargetProfile.load(robot.profile))
+
+
+def retarget_pair(folder: Path, pair):
+    """Offline-retarget both people of ``pair`` with the folder's profile; the reports."""
+    from retarget.offline import OfflineConfig, OfflineRetargeter
+    from retarget.report import evaluate
+    from retarget.targets import make_targets
+
+    rb = load(folder)
+    r = OfflineRetargeter(rb, OfflineConfig(window=40, overlap=10, compile=False))
+    return rb, [evaluate(rb, r.retarget(p), make_targets(rb, p)) for p in (pair.actor, pair.reactor)]
+
+
+@pytest.fixture
+def toy(tmp_path) -> Path:
+    path = tmp_path / "model" / "zeta.xml"
+    path.parent.mkdir()
+    path.write_text(TOY)
+    return path
+
+
+@pytest.fixture
+def toy_folder(toy, tmp_path) -> Path:
+    out = tmp_path / "zeta"
+    assert init(toy, out) == 0
+    return out
+
+
+# -- the reference models -------------------------------------------------------------------
+
+EXPECTED = {  # what a person reading the model would pick (the inference never reads these names)
+    "robotis_op3": {"left_knee": "l_knee_link", "right_knee": "r_knee_link", "left_ankle": "l_ank_pitch_link",
+                    "left_foot": "l_ank_roll_link", "left_hip": "l_hip_pitch_link", "left_elbow": "l_el_link",
+                    "right_shoulder": "r_sho_roll_link", "head": "head_tilt_link", "pelvis": "body_link"},
+    "unitree_g1": {"left_knee": "left_knee_link", "right_knee": "right_knee_link",
+                   "left_ankle": "left_ankle_pitch_link", "right_foot": "right_ankle_roll_link",
+                   "left_elbow": "left_elbow_link", "right_wrist": "right_wrist_pitch_link",
+                   "spine3": "torso_link", "head": "torso_link", "pelvis": "pelvis"},
+}
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCE))
+def test_init_on_a_reference_model_writes_a_folder_that_check_passes(name, tmp_path, capsys):
+    from firmware_cfg.config import load_config
+    from firmware_cfg.registry import resolve
+
+    model = reference(name)
+    out = tmp_path / name
+    assert init(model, out) == 0
+    robot = resolve(out)
+    assert robot.mjcf.name == ("op3.xml" if name == "robotis_op3" else "g1.xml")  # the scene's robot, not the scene
+    assert robot.profile == out / "profile.yaml" and robot.hardware == out / "hardware.yaml"
+    assert not any(p.suffix == ".xml" for p in out.iterdir())  # the model is referenced, never copied
+    assert robot.description.startswith(("robotis_op3", "g1_29dof"))
+    kp = keypoint_bodies(out)
+    assert {h: kp[h] for h in EXPECTED[name]} == EXPECTED[name]
+    assert len(kp) == 17
+    cfg = load_config(out / "hardware.yaml")  # the skeleton parses as written
+    assert [s.joint for s in cfg.servos] == list(robot.joint_names)
+    rc, problems, text = check(out, capsys)
+    assert rc == 0 and problems == [], problems
+    assert "todo:" in text and "FILL IN" in text  # the servo IDs etc. are left to the owner
+    rc, problems, _ = check(out, capsys, "--hardware")
+    assert rc == 2 and any("hardware.yaml" in p and "FILL IN" in p for p in problems)
+
+
+def test_op3_knees_are_kept_to_their_bending_side(tmp_path):
+    # the published OP3 has no joint ranges; its right knee bends with negative angles
+    out = tmp_path / "op3"
+    assert init(reference("robotis_op3"), out) == 0
+    limits = yaml.safe_load((out / "profile.yaml").read_text())["joint_limits"]
+    assert limits["l_knee"][0] == 0.0 and limits["l_knee"][1] > 2.5
+    assert limits["r_knee"][1] == 0.0 and limits["r_knee"][0] < -2.5
+    assert limits["l_hip_roll"] == pytest.approx([-3.141592, 3.141592])  # the actuators' ctrlrange
+
+
+@pytest.mark.parametrize("name", ["robotis_op3", pytest.param("unitree_g1", marks=pytest.mark.slow)])
+def test_the_written_profile_retargets_the_cmu_pair_as_written(name, tmp_path):
+    out = tmp_path / name
+    assert init(reference(name), out) == 0
+    rb, reports = retarget_pair(out, cmu_pair())
+    height = float(rb.standing_heights.max())  # m, the highest keypoint (head) above the soles
+    for rep in reports:
+        assert rep.limit_violations == 0 and rep.velocity_violations == 0, rep
+        assert rep.self_collisions == 0 and rep.penetration_mm < 1.0, rep
+        # OP3 ~28 mm of 0.46 m, G1 ~25 mm of 1.25 m: its 3-DOF arm cannot follow a human elbow exactly
+        assert rep.keypoint_error_mean_mm < 0.08 * 1000 * height, (rep.keypoint_error_mean_mm, height)
+
+
+# -- a humanoid with meaningless names ----------------------------------------------------------
+
+def test_the_anatomy_comes_from_the_tree_and_geometry_not_the_names(toy_folder, capsys):
+    kp = keypoint_bodies(toy_folder)
+    assert kp == {"pelvis": "q0", "spine3": "q7", "head": "q13",
+                  "left_hip": "q1", "right_hip": "q4", "left_knee": "q2", "right_knee": "q5",
+                  "left_ankle": "q3", "right_ankle": "q6", "left_foot": "q3", "right_foot": "q6",
+                  "left_shoulder": "q11", "right_shoulder": "q9", "left_elbow": "q12", "right_elbow": "q10",
+                  "left_wrist": "q12", "right_wrist": "q10"}
+    prof = yaml.safe_load((toy_folder / "profile.yaml").read_text())
+    # the hip is the pitch hinge (the last of three at one point), the wrist the end of the forearm capsule
+    assert "joint m3" in (toy_folder / "profile.yaml").read_text()
+    assert prof["keypoints"]["left_wrist"]["offset"] == pytest.approx([0, 0, -0.152], abs=1e-3)
+    # the sole: the box's bottom face, in the foot's frame, counter-clockwise from above
+    corners = np.array(prof["feet"]["left"]["corners"])
+    assert corners == pytest.approx(np.array([[0.11, -0.04, -0.035], [0.11, 0.04, -0.035],
+                                              [-0.05, 0.04, -0.035], [-0.05, -0.04, -0.035]]), abs=1e-4)
+    assert prof["keypoints"]["left_foot"]["offset"] == pytest.approx([0.11, 0.0, -0.035], abs=1e-4)
+    # unranged knees take the actuator's ctrlrange, cut to the side that sends the foot back
+    # (the right knee's axis is flipped, so it bends the other way)
+    assert prof["joint_limits"]["m4"] == pytest.approx([0.0, 2.44])
+    assert prof["joint_limits"]["m10"] == pytest.approx([-2.44, 0.0])
+    caps = prof["capsules"]
+    assert caps["l_thigh"]["body"] == "q1" and caps["l_thigh"]["radius"] == pytest.approx(0.035, abs=0.004)
+    assert caps["torso"]["body"] == "q7"
+    assert ["l_forearm", "torso"] in prof["collision_pairs"] and ["l_thigh", "r_thigh"] in prof["collision_pairs"]
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 0 and problems == []
+
+
+def test_the_toy_profile_retargets_a_synthetic_duet(toy_folder):
+    from dualflow.synthetic import make_duet
+    from retarget.offline import OfflineConfig, OfflineRetargeter
+    from retarget.report import evaluate
+    from retarget.targets import make_targets
+
+    rb = load(toy_folder)
+    motion = make_duet("mirror", 2.0, 30.0, 0).reactor
+    rep = evaluate(rb, OfflineRetargeter(rb, OfflineConfig(window=40, overlap=10, compile=False)).retarget(motion),
+                   make_targets(rb, motion))
+    assert rep.limit_violations == 0 and rep.velocity_violations == 0 and rep.self_collisions == 0
+    assert rep.keypoint_error_mean_mm < 0.08 * 1000 * float(rb.standing_heights.max())
+
+
+def test_a_scene_that_includes_the_robot_points_the_folder_at_the_robot(toy, tmp_path, capsys):
+    scene = toy.parent / "scene.xml"
+    scene.write_text('<mujoco model="s"><include file="zeta.xml"/><worldbody>'
+                     '<geom name="floor" type="plane" size="0 0 0.05"/></worldbody></mujoco>')
+    out = tmp_path / "from_scene"
+    assert init(scene, out) == 0
+    assert "scene around zeta.xml" in capsys.readouterr().out
+    prof = yaml.safe_load((out / "profile.yaml").read_text())
+    hw = yaml.safe_load((out / "hardware.yaml").read_text())
+    assert prof["mjcf"] == hw["mjcf"] == "../model/zeta.xml"  # relative: the folder moves with its model
+
+
+def test_init_refuses_to_overwrite_without_force(toy, toy_folder, capsys):
+    capsys.readouterr()
+    assert init(toy, toy_folder) == 2
+    assert "--force" in capsys.readouterr().err
+    assert init(toy, toy_folder, "--force") == 0
+
+
+def test_robot_list_names_the_bundled_robots(capsys):
+    from firmware_cfg.registry import bundled_names
+
+    capsys.readouterr()
+    assert main(["robot", "list"]) == 0
+    out = capsys.readouterr().out
+    assert all(re.search(rf"^{n}\s", out, re.M) for n in bundled_names())
+
+
+# -- check: every problem named, with its fix --------------------------------------------------
+
+def edit(path: Path, old: str, new: str, count: int = 1) -> None:
+    text = path.read_text()
+    assert old in text, old
+    path.write_text(text.replace(old, new, count))
+
+
+def test_check_names_every_missing_body_and_joint_of_the_profile(toy_folder, capsys):
+    prof = toy_folder / "profile.yaml"
+    edit(prof, "left_knee:      {body: q2,", "left_knee:      {body: knee_l,")
+    edit(prof, "l_thigh:     {body: q1,", "l_thigh:     {body: thigh_l,")
+    edit(prof, "  m4: [", "  knee4: [")
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and len(problems) == 3, problems
+    assert any("keypoints.left_knee.body" in p and "'knee_l'" in p and "q2" in p for p in problems)  # lists the bodies
+    assert any("capsules.l_thigh.body" in p and "'thigh_l'" in p for p in problems)
+    assert any("joint_limits.knee4" in p and "m4" in p for p in problems)
+
+
+def test_check_wants_feet_on_a_free_standing_robot(toy_folder, capsys):
+    prof = toy_folder / "profile.yaml"
+    data = yaml.safe_load(prof.read_text())
+    data.pop("feet")
+    data["collision_pairs"] = [p for p in data["collision_pairs"] if "_in" not in p[0] + p[1] and "sole" not in p[0]]
+    prof.write_text(yaml.safe_dump(data))
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and len(problems) == 1
+    assert "field feet" in problems[0] and "free joint" in problems[0] and "corners" in problems[0]
+
+
+def test_check_reports_capsules_that_touch_in_the_stand_pose(toy_folder, capsys):
+    edit(toy_folder / "profile.yaml", "radius: 0.0347}", "radius: 0.08}")  # fat thighs
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and any("[l_thigh, r_thigh]" in p and "overlap" in p and "shrink" in p for p in problems), problems
+
+
+def test_check_reports_hardware_config_problems_with_their_fixes(toy_folder, capsys):
+    hw = toy_folder / "hardware.yaml"
+    lines = hw.read_text().splitlines()
+    m12 = next(i for i, line in enumerate(lines) if "joint: m12," in line)
+    del lines[m12]  # a joint left without a servo
+    hw.write_text("\n".join(lines) + "\n")
+    edit(hw, "joint: m1, direction: 1, zero_offset: 0.0, limits: [-0.785398, 0.785398]",
+         "joint: m1, direction: 1, zero_offset: 0.0, limits: [-1.2, 0.785398]")  # wider than the MJCF range
+    edit(hw, "joint: k8,", "joint: neck,")  # not a joint of the model
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and len(problems) == 3, problems
+    assert any("servos[0].limits" in p and "wider than the MJCF range" in p and "narrow" in p for p in problems)
+    assert any("'neck' is not a hinge joint" in p and "k8" in p for p in problems)
+    assert any("no servo drives" in p and "m12" in p and "k8" in p for p in problems)
+
+
+def test_check_reports_an_unranged_joint_beyond_its_actuator_ctrlrange(toy_folder, capsys):
+    edit(toy_folder / "hardware.yaml", "joint: m4, direction: 1, zero_offset: 0.0, limits: [0.000000, 2.440000]",
+         "joint: m4, direction: 1, zero_offset: 0.0, limits: [-0.5, 2.44]")  # within the profile's knee cut, not the ctrlrange: fine
+    edit(toy_folder / "hardware.yaml", "joint: m10, direction: 1, zero_offset: 0.0, limits: [-2.440000, 0.000000]",
+         "joint: m10, direction: 1, zero_offset: 0.0, limits: [-2.44, 3.0]")
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and len(problems) == 1 and "ctrlrange" in problems[0] and "'m10'" in problems[0], problems
+
+
+def test_check_passes_the_parse_error_of_a_hardware_config_through(toy_folder, capsys):
+    edit(toy_folder / "hardware.yaml", "baud: 2000000", "baud: fast")
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and len(problems) == 1 and "baud" in problems[0] and "positive integer" in problems[0]
+
+
+def test_check_on_a_filled_in_folder_has_nothing_left_to_do(toy_folder, capsys):
+    for name in ("hardware.yaml", "profile.yaml"):
+        path = toy_folder / name
+        path.write_text("\n".join(line.split("  # FILL IN")[0] for line in path.read_text().splitlines()) + "\n")
+    rc, problems, text = check(toy_folder, capsys, "--hardware")
+    assert rc == 0 and problems == [] and "todo" not in text
+
+
+def test_check_without_a_hardware_config_is_simulation_only(toy_folder, capsys):
+    (toy_folder / "hardware.yaml").unlink()
+    rc, problems, text = check(toy_folder, capsys)
+    assert rc == 0 and "simulation only" in text
+    rc, problems, _ = check(toy_folder, capsys, "--hardware")
+    assert rc == 2 and "no hardware.yaml" in problems[0] and "robot init" in problems[0]
+
+
+def test_check_reports_a_model_mujoco_cannot_load(toy, toy_folder, capsys):
+    toy.write_text(TOY.replace('<joint name="m5" axis="0 1 0" range="-50 50"/>', '<joint name="m5" axis="0 0 0"/>'))
+    rc, problems, _ = check(toy_folder, capsys)
+    assert rc == 2 and len(problems) == 1 and "MuJoCo cannot load" in problems[0] and "zeta.xml" in problems[0]
+
+
+def test_check_reports_a_folder_without_a_model_or_profile(tmp_path, toy, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    rc, problems, _ = check(empty, capsys)
+    assert rc == 2 and "no MJCF" in problems[0] and "robot init" in problems[0]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    shutil.copy(toy, bare / "bare.xml")
+    rc, problems, _ = check(bare, capsys)
+    assert rc == 2 and "no profile.yaml" in problems[0] and "robot init" in problems[0]
+    rc, problems, _ = check(tmp_path / "nowhere", capsys)
+    assert rc == 2 and "not a folder" in problems[0]
