@@ -120,16 +120,22 @@ def level_footprint(world_corners: np.ndarray, local_corners: np.ndarray, shrink
     return centre + ab[:, :1] * e1 + ab[:, 1:] * e2
 
 
+#: The share of a footprint's half length that shrinking by a margin always leaves.
+MIN_KEPT = 0.2
+
+
 def shrink_footprint(footprint: np.ndarray, shrink: float) -> np.ndarray:
     """A rectangular footprint (4, 2), corners in order around it, with each half length
-    reduced by ``shrink`` (m, not below 0), about its centre."""
+    reduced by ``shrink`` (m) about its centre, but never below :data:`MIN_KEPT` of itself: a
+    sole narrower than twice the margin (a 6 cm wide G1 foot against a 3 cm margin) keeps an
+    area instead of collapsing to a line (a polygon the CoM constraints cannot be built on)."""
     f = np.asarray(footprint, dtype=np.float64)
     centre = f.mean(axis=0)
     e1 = (f[0] - f[1]) / np.linalg.norm(f[0] - f[1])
     e2 = (f[1] - f[2]) / np.linalg.norm(f[1] - f[2])
     a, b = (f - centre) @ e1, (f - centre) @ e2
-    a = np.sign(a) * np.maximum(np.abs(a) - shrink, 0.0)
-    b = np.sign(b) * np.maximum(np.abs(b) - shrink, 0.0)
+    a = np.sign(a) * np.maximum(np.abs(a) - shrink, MIN_KEPT * np.abs(a))
+    b = np.sign(b) * np.maximum(np.abs(b) - shrink, MIN_KEPT * np.abs(b))
     return centre + a[:, None] * e1 + b[:, None] * e2
 
 
@@ -139,7 +145,7 @@ def centre_line(footprint: np.ndarray, shrink: float = 0.0) -> np.ndarray:
     f = np.asarray(footprint, dtype=np.float64)
     centre = f.mean(axis=0)
     e = f[0] - f[1] if np.linalg.norm(f[0] - f[1]) >= np.linalg.norm(f[1] - f[2]) else f[1] - f[2]
-    half = max(0.5 * np.linalg.norm(e) - shrink, 0.0)
+    half = max(0.5 * np.linalg.norm(e) - shrink, MIN_KEPT * 0.5 * np.linalg.norm(e))
     e = e / np.linalg.norm(e)
     return np.stack([centre + half * e, centre - half * e])
 

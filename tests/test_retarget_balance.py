@@ -16,7 +16,7 @@ from retarget import RetargetError
 from retarget.robot import load_robot
 from retarget.streaming import StreamingConfig, StreamingRetargeter
 from retarget.support import (closest_point, com_margins, convex_hull, double_support_points, halfplanes,
-                              level_footprint, margin, shrink_footprint)
+                              level_footprint, margin, shrink_footprint, stance_points)
 
 FPS = 30.0
 J = {n: i for i, n in enumerate(JOINT_NAMES)}
@@ -121,6 +121,17 @@ def test_level_footprint_keeps_size_centre_and_heading_of_a_tilted_sole(op3):
     assert abs(np.arctan2(d[1], d[0]) - np.arctan2(w[1], w[0])) < 1e-9
     small = shrink_footprint(fp, 0.01)
     assert np.allclose([np.linalg.norm(small[i] - small[(i + 1) % 4]) for i in range(4)], np.array(side) - 0.02)
+
+
+def test_a_sole_narrower_than_twice_the_margin_keeps_an_area():
+    """A 6 cm wide sole (the Unitree G1's) shrunk by a 3 cm stance margin used to collapse to a
+    line, and building the single-support region then raised 'a polygon needs 3 vertices'."""
+    narrow = np.array([[0.1, 0.03], [-0.1, 0.03], [-0.1, -0.03], [0.1, -0.03]])
+    small = shrink_footprint(narrow, 0.03)
+    assert np.ptp(small[:, 1]) == pytest.approx(0.2 * 0.06) and np.ptp(small[:, 0]) == pytest.approx(0.14)
+    other = narrow + [0.0, 0.2]
+    A, b = halfplanes(convex_hull(stance_points(narrow, other, 0.03)))
+    assert margin(narrow.mean(axis=0) + [0.0, 0.003], A, b) > 0  # the inner half keeps room for the CoM
 
 
 def test_double_support_region_lies_between_the_feet(op3):
