@@ -19,6 +19,8 @@ File layout::
         defaults: {...}                     # optional, overrides servo_defaults
         servos:
           - {id: 1, joint: r_sho_pitch, direction: 1, zero_offset: 0.0, limits: [-1.5708, 1.5708]}
+        devices:                            # optional: non-servo devices on the same bus
+          - {id: 200, model: OpenCR, role: imu}
 
 Per-servo fields (units; the SI unit is converted to register units by the transport):
 
@@ -38,6 +40,12 @@ Per-servo fields (units; the SI unit is converted to register units by the trans
 - ``status_return_level``: 0 (PING only), 1 (also READ), 2 (all).
 - ``bus_watchdog_ms``: ms, multiple of 20, 0 = off (protocol 2.0 only).
 - ``temperature_limit_c``: °C. ``voltage_limits_v``: [min, max] volts.
+
+Per-device fields (``devices``: boards on a Dynamixel bus that are not joint servos, such
+as the ROBOTIS OP3's OpenCR sub-controller with its IMU): ``id`` (0..252, unique on the
+bus among servos and devices), ``model`` (the device's name, e.g. ``OpenCR``; free text,
+there is no control table for it here) and ``role`` (what the bridge may use it for, one
+of :data:`DEVICE_ROLES`). A serial-link bus has no devices.
 
 Validation: required fields, types, duplicate IDs on a bus, duplicate joints, an
 unknown model or protocol mismatch, limits (and their image in servo ticks) outside the
@@ -73,7 +81,11 @@ _SERVO_KEYS = {
 }
 _DXL_ONLY = {"pid", "return_delay_us", "status_return_level", "bus_watchdog_ms",
              "profile_velocity", "profile_acceleration", "temperature_limit_c", "voltage_limits_v"}
-_BUS_KEYS = {"name", "port", "baud", "protocol", "defaults", "servos"}
+_BUS_KEYS = {"name", "port", "baud", "protocol", "defaults", "servos", "devices"}
+_DEVICE_KEYS = {"id", "model", "role"}
+#: What a non-servo device on a bus is for: ``imu`` = it reports the body's attitude and
+#: angular velocity (the OP3's OpenCR).
+DEVICE_ROLES = ("imu",)
 _TOP_KEYS = {"robot", "mjcf", "stop_policy", "servo_defaults", "buses"}
 
 
@@ -122,12 +134,22 @@ class ServoConfig:
 
 
 @dataclass(frozen=True)
+class DeviceConfig:
+    """A non-servo device on a Dynamixel bus (e.g. the OP3's OpenCR, ID 200, role imu)."""
+
+    id: int
+    model: str
+    role: str
+
+
+@dataclass(frozen=True)
 class BusConfig:
     name: str
     port: str
     baud: int
     protocol: str
     servos: tuple[ServoConfig, ...]
+    devices: tuple[DeviceConfig, ...] = ()
 
     @property
     def protocol_version(self) -> float:
@@ -269,8 +291,31 @@ def _parse_bus(braw: Any, top_defaults: dict, source: str, where: str) -> BusCon
         _parse_servo({**defaults, **_mapping(s, source, f"{where}.servos[{i}]")}, protocol, baud, source, f"{where}.servos[{i}]")
         for i, s in enumerate(servos_raw)
     )
+    devices_raw = b.get("devices", [])
+    if not isinstance(devices_raw, list):
+        raise ConfigError(f"{source}: {where}.devices: must be a list of {{id, model, role}}")
+    if devices_raw and protocol == "serial-link":
+        raise ConfigError(f"{source}: {where}.devices: a serial-link bus has no devices; remove the list")
+    devices = tuple(_parse_device(_mapping(d, source, f"{where}.devices[{i}]"), source, f"{where}.devices[{i}]")
+                    for i, d in enumerate(devices_raw))
     _check_unique([(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)], source, "servo ID")
-    return BusConfig(str(name), port, baud, protocol, servos)
+    _check_unique([(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)]
+                  + [(d.id, f"{where}.devices[{i}].id") for i, d in enumerate(devices)], source, "bus ID")
+    return BusConfig(str(name), port, baud, protocol, servos, devices)
+
+
+def _parse_device(d: dict, source: str, where: str) -> DeviceConfig:
+    _unknown(d, _DEVICE_KEYS, source, where)
+    did = d.get("id")
+    if not _is_int(did) or not 0 <= did <= 252:
+        raise ConfigError(f"{source}: {where}.id: {did!r} must be an integer 0..252")
+    model = d.get("model")
+    if not isinstance(model, str) or not model:
+        raise ConfigError(f"{source}: {where}.model: required, the device's name (e.g. OpenCR)")
+    role = d.get("role")
+    if role not in DEVICE_ROLES:
+        raise ConfigError(f"{source}: {where}.role: {role!r} is not one of {DEVICE_ROLES}")
+    return DeviceConfig(did, model, role)
 
 
 def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> ServoConfig:
@@ -495,7 +540,10 @@ def config_to_dict(cfg: RobotConfig) -> dict:
             if s.voltage_limits_v is not None:
                 d["voltage_limits_v"] = list(s.voltage_limits_v)
             servos.append(d)
-        buses.append({"name": b.name, "port": b.port, "baud": b.baud, "protocol": b.protocol, "servos": servos})
+        bus: dict[str, Any] = {"name": b.name, "port": b.port, "baud": b.baud, "protocol": b.protocol, "servos": servos}
+        if b.devices:
+            bus["devices"] = [{"id": d.id, "model": d.model, "role": d.role} for d in b.devices]
+        buses.append(bus)
     out: dict[str, Any] = {"robot": cfg.robot}
     if cfg.mjcf is not None:
         out["mjcf"] = str(cfg.mjcf)

@@ -21,14 +21,16 @@ def test_loop_moves_the_simulated_robot_and_records_what_it_did():
     assert isinstance(tr, Transport)
     buf = TargetBuffer(30.0)
     loop = ControlLoop(tr, limits, buf, LoopConfig(handle_signals=False, min_ramp=0.3))
-    # both elbows bend to 0.8 rad over a second, then hold (upper body only: the robot keeps standing)
+    # both elbows bend 0.8 rad in towards the body over a second, then hold (upper body only: the
+    # robot keeps standing); ROBOTIS's axes: the right elbow bends in with +, the left with -
     el = [limits.names.index("r_el"), limits.names.index("l_el")]
+    goal = np.array([0.8, -0.8])
     def produce():
         loop.ready.wait(10)
         base = loop.safety.last_command
         for k in range(45):
             q = base.copy()
-            q[el] = base[el] + (0.8 - base[el]) * min(1.0, k / 30)
+            q[el] = base[el] + (goal - base[el]) * min(1.0, k / 30)
             buf.push(TargetFrame(k, q, time.monotonic()))
             time.sleep(1 / 30)
         buf.close()
@@ -38,6 +40,6 @@ def test_loop_moves_the_simulated_robot_and_records_what_it_did():
     assert summary.end_state == "STOPPED"
     traj = tr.recorded_trajectory()
     assert traj.joint_names == limits.names and traj.n_frames == summary.ticks + 1
-    peak = traj.joint_pos[:, el].max(axis=0)
+    peak = np.abs(traj.joint_pos[:, el]).max(axis=0)
     np.testing.assert_allclose(peak, 0.8, atol=0.05)  # the servos tracked the command
     assert traj.root_pos[:, 2].min() > 0.2  # still standing: torso well above the floor

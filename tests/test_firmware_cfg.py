@@ -35,12 +35,18 @@ def test_bundled_op3_config():
     assert {s.model for s in bus.servos} == {"XM430-W350"}
     assert all(s.return_delay_us == 0 for s in bus.servos)
     pi = math.pi
-    expect = {"head_pan": (-0.5 * pi, 0.5 * pi), "r_sho_roll": (-0.3 * pi, 0.5 * pi), "l_knee": (-0.1 * pi, 0.7 * pi),
+    # the real OP3's axes: the right shoulder lowers and the right knee flexes with negative angles
+    expect = {"head_pan": (-0.5 * pi, 0.5 * pi), "r_sho_roll": (-0.5 * pi, 0.3 * pi), "l_sho_roll": (-0.3 * pi, 0.5 * pi),
+              "l_knee": (-0.1 * pi, 0.8 * pi), "r_knee": (-0.8 * pi, 0.1 * pi),
               "r_hip_yaw": (-0.45 * pi, 0.45 * pi), "l_hip_roll": (-0.3 * pi, 0.3 * pi),
               "r_hip_pitch": (-0.4 * pi, 0.4 * pi), "l_ank_roll": (-0.45 * pi, 0.45 * pi)}
     for joint, (lo, hi) in expect.items():
         s = cfg.servo(joint)
         assert s.lower == pytest.approx(lo, abs=1e-6) and s.upper == pytest.approx(hi, abs=1e-6), joint
+    # ROBOTIS's framework maps joint angle = servo angle about the centre tick
+    assert all(s.direction == 1 and s.zero_offset == 0.0 for s in bus.servos)
+    # the OpenCR sub-controller (IMU) is a device on the same bus
+    assert [(d.id, d.model, d.role) for d in bus.devices] == [(200, "OpenCR", "imu")]
 
 
 def test_op3_limits_never_wider_than_the_mjcf():
@@ -94,6 +100,11 @@ def servo(d, i):
     (lambda d: d["buses"][0].pop("port"), r"buses\[0\]\.port: required"),
     (lambda d: d.update(stop_policy="freeze"), r"stop_policy: 'freeze' is not one of"),
     (lambda d: d["servo_defaults"].update(profile_velocity=-1.0), r"servos\[0\]\.profile_velocity: -1\.0 must be >= 0"),
+    (lambda d: d["buses"][0]["devices"][0].update(id=5),
+     r"buses\[0\]\.devices\[0\]\.id: duplicate bus ID 5 \(also at buses\[0\]\.servos\[4\]\.id\)"),
+    (lambda d: d["buses"][0]["devices"][0].update(role="camera"), r"buses\[0\]\.devices\[0\]\.role: 'camera' is not one of"),
+    (lambda d: d["buses"][0]["devices"][0].pop("model"), r"buses\[0\]\.devices\[0\]\.model: required"),
+    (lambda d: d["buses"][0]["devices"][0].update(port=1), r"buses\[0\]\.devices\[0\]\.port: unknown field"),
 ])
 def test_each_mistake_names_the_file_and_field(change, pattern):
     with pytest.raises(ConfigError, match=r"^op3-test\.yaml: (buses\[0\]\.)?" + pattern):

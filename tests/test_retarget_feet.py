@@ -41,10 +41,10 @@ def test_op3_soles_are_apart_standing_and_overlap_when_the_feet_cross(op3):
     assert np.all(op3.evaluate(op3.x_stand[None])["collision"][0, pairs] > 0)
     names = list(op3.joint_names)
     li, ri = op3.n_root + names.index("l_hip_roll"), op3.n_root + names.index("r_hip_roll")
-    for roll in (-0.03, -0.06, -0.1, -0.15):  # same-sign hip roll moves the legs towards each other
+    for roll in (0.03, 0.06, 0.1, 0.15):  # hip adduction (left +, right -: ROBOTIS's axes) moves the legs together
         crossed = op3.x_stand.copy()
         crossed[li] += roll
-        crossed[ri] += roll
+        crossed[ri] -= roll
         assert np.any(op3.evaluate(crossed[None])["collision"][0, pairs] < 0), roll
 
 
@@ -114,12 +114,13 @@ def test_sole_plane_rows_replace_the_foot_pairs_and_are_conservative(op3):
     # feet crossed sideways: the planes say so
     li, ri = op3.n_root + names.index("l_hip_roll"), op3.n_root + names.index("r_hip_roll")
     crossed = op3.x_stand.copy()
-    crossed[[li, ri]] -= 0.1
+    crossed[li] += 0.1  # both hips adducted (left +, right -)
+    crossed[ri] -= 0.1
     assert np.any(np.array(rows(crossed)).ravel()[foot] < 0)
 
 
 def test_sole_plane_rows_keep_pointing_apart_when_the_feet_cross(op3):
-    """Feet crossed deeper and deeper (same-sign hip roll): the sole-edge distances fall to 0
+    """Feet crossed deeper and deeper (both hips adducted): the sole-edge distances fall to 0
     and then grow again (the edges have passed each other, and the gradient points the wrong
     way), while every plane row keeps falling and its gradient keeps pointing back apart."""
     names = list(op3.joint_names)
@@ -128,11 +129,12 @@ def test_sole_plane_rows_keep_pointing_apart_when_the_feet_cross(op3):
     foot = [i for i, lab in enumerate(op3.offline_collision_labels) if lab.startswith("sole plane")]
     edge = [i for i, (a, b) in enumerate(op3.collision_pairs) if a.endswith(("heel_in", "toe_in"))]
     apart = np.zeros(op3.nx)
-    apart[[li, ri]] = 1.0  # rolling back towards the stand pose uncrosses the feet
+    apart[li], apart[ri] = -1.0, 1.0  # abduction (left -, right +) uncrosses the feet
     prev_rows, prev_dist = None, None
-    for roll in (-0.06, -0.1, -0.15, -0.2):
+    for roll in (0.06, 0.1, 0.15, 0.2):
         x = op3.x_stand.copy()
-        x[[li, ri]] += roll
+        x[li] += roll
+        x[ri] -= roll
         rows, J = (np.array(v) for v in f(x))
         rows = rows.ravel()[foot]
         dist = op3.evaluate(x[None])["collision"][0, edge]

@@ -101,8 +101,8 @@ def test_too_fast_fails_on_speed_limit(stand):
 
 def test_self_collision_fails_with_its_reason(stand):
     def q(tt):  # both legs adduct until the feet hit each other (torso bolted: no balance confound)
-        out = stand.copy()
-        out[idx("l_hip_roll")] = -0.5 * ramp(tt, 2.0)
+        out = stand.copy()  # ROBOTIS's axes: adduction is left +, right -
+        out[idx("l_hip_roll")] = 0.5 * ramp(tt, 2.0)
         out[idx("r_hip_roll")] = -0.5 * ramp(tt, 2.0)
         return out
 
@@ -114,9 +114,9 @@ def test_self_collision_fails_with_its_reason(stand):
 
 
 def test_leaning_over_the_toes_fails_on_balance_before_the_fall(stand):
-    def q(tt):  # ankles tip the whole body forward
+    def q(tt):  # ankles tip the whole body forward (toes up relative to the shin: left +, right -)
         out = stand.copy()
-        out[idx("l_ank_pitch")] += -0.5 * ramp(tt, 3.0)
+        out[idx("l_ank_pitch")] += 0.5 * ramp(tt, 3.0)
         out[idx("r_ank_pitch")] += -0.5 * ramp(tt, 3.0)
         return out
 

@@ -25,11 +25,14 @@ OP3_IDS = ("r_sho_pitch", "l_sho_pitch", "r_sho_roll", "l_sho_roll", "r_el", "l_
 KEYPOINT_SITES = ("pelvis", "torso", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand",
                   "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle", "l_foot", "r_foot", "l_toe", "r_toe")
 PI = math.pi
-ISSUE_LIMITS = {
+#: ROBOTIS's software limits (op3_kinematics_dynamics) for the head and the LEFT side, in
+#: ROBOTIS's axes; the knee widened to 0.8 pi for ROBOTIS's sitting pose (op3.xml header).
+#: A right joint's range is the left one mirrored: (-upper, -lower).
+ROBOTIS_LIMITS = {
     "head_pan": (-0.5 * PI, 0.5 * PI), "head_tilt": (-0.5 * PI, 0.5 * PI),
     "sho_pitch": (-0.5 * PI, 0.5 * PI), "sho_roll": (-0.3 * PI, 0.5 * PI), "el": (-0.5 * PI, 0.5 * PI),
     "hip_yaw": (-0.45 * PI, 0.45 * PI), "hip_roll": (-0.3 * PI, 0.3 * PI), "hip_pitch": (-0.4 * PI, 0.4 * PI),
-    "knee": (-0.1 * PI, 0.7 * PI), "ank_pitch": (-0.45 * PI, 0.45 * PI), "ank_roll": (-0.45 * PI, 0.45 * PI),
+    "knee": (-0.1 * PI, 0.8 * PI), "ank_pitch": (-0.45 * PI, 0.45 * PI), "ank_roll": (-0.45 * PI, 0.45 * PI),
 }
 
 
@@ -59,13 +62,13 @@ def test_bundled_models_compile_with_stand_keyframe_and_sites(name):
 def test_op3_published_facts(op3):
     m = op3.model
     assert joint_names("op3") == OP3_IDS
-    assert 3.1 <= sum(m.body_mass) <= 3.5
-    assert m.body("torso").mass[0] == pytest.approx(1.35)
+    assert sum(m.body_mass) == pytest.approx(3.147, abs=0.001)  # ROBOTIS's description
+    assert m.body("body_link").mass[0] == pytest.approx(1.34928)
     assert 0.48 <= op3.robot_height <= 0.54
     for site in KEYPOINT_SITES:
         m.site(site)
     foot = m.geom("l_foot")
-    assert 2 * foot.size[0] == pytest.approx(0.127) and 2 * foot.size[1] == pytest.approx(0.078)
+    assert 2 * foot.size[0] == pytest.approx(0.127) and 2 * foot.size[1] == pytest.approx(0.080)
     # XM430-W350 at 11.1 V: stall torque, no-load speed; back-EMF damping = stall / no-load speed
     assert np.allclose(op3.robot.stall_torque, 3.8) and np.allclose(op3.robot.no_load_speed, 4.5)
     j = m.joint("r_knee")
@@ -80,11 +83,12 @@ def test_op3_published_facts(op3):
     assert np.allclose(m.body("r_ank_roll_link").pos, (-0.0241, 0.019, 0))
 
 
-def test_op3_limits_are_the_issue_limits_on_both_sides():
+def test_op3_limits_are_robotis_limits_mirrored_on_the_right():
     limits = joint_limits("op3")
     for joint, (lo, hi) in limits.items():
         key = joint if joint.startswith("head") else joint[2:]
-        assert (lo, hi) == pytest.approx(ISSUE_LIMITS[key], abs=1e-6), joint
+        expect = ROBOTIS_LIMITS[key] if not joint.startswith("r_") else (-ROBOTIS_LIMITS[key][1], -ROBOTIS_LIMITS[key][0])
+        assert (lo, hi) == pytest.approx(expect, abs=1e-6), joint
 
 
 def test_op3_limits_match_hardware_config():
@@ -109,27 +113,32 @@ def _site_in_body_frame(scene: Scene, site: str, body: str, joints: dict) -> np.
 
 
 def test_op3_axis_conventions(op3):
-    # knee + = flexion: the ankle moves backwards (-X) relative to the thigh
-    assert _site_in_body_frame(op3, "l_ankle", "torso", {"l_knee": 0.5})[0] < -0.02
-    assert _site_in_body_frame(op3, "r_ankle", "torso", {"r_knee": 0.5})[0] < -0.02
-    # hip pitch - = thigh forward
-    assert _site_in_body_frame(op3, "l_knee", "torso", {"l_hip_pitch": -0.5})[0] > 0.02
-    # shoulder roll + = arm lowers (both sides, same number)
-    for side in "lr":
-        assert _site_in_body_frame(op3, f"{side}_hand", "torso", {f"{side}_sho_roll": 1.2})[2] < -0.05
-    # elbow + = flexion: with the arm hanging, the hand comes forward
-    for side in "lr":
-        assert _site_in_body_frame(op3, f"{side}_hand", "torso", {f"{side}_sho_roll": 1.5, f"{side}_el": 1.0})[0] > 0.05
-    # hip roll + = abduction on both sides (foot moves outward)
-    assert _site_in_body_frame(op3, "l_foot", "torso", {"l_hip_roll": 0.3})[1] > 0.1
-    assert _site_in_body_frame(op3, "r_foot", "torso", {"r_hip_roll": 0.3})[1] < -0.1
-    # mirror symmetry: the same values on both sides give mirror-image sites
+    """ROBOTIS's axes: the two sides are not mirrored, so a mirror-image pose has opposite
+    signs on the left and the right (op3.xml's header lists each joint)."""
+    # knee flexion (left +, right -): the ankle moves backwards (-X) relative to the pelvis
+    assert _site_in_body_frame(op3, "l_ankle", "body_link", {"l_knee": 0.5})[0] < -0.02
+    assert _site_in_body_frame(op3, "r_ankle", "body_link", {"r_knee": -0.5})[0] < -0.02
+    # hip flexion (left -, right +): the thigh comes forward
+    assert _site_in_body_frame(op3, "l_knee", "body_link", {"l_hip_pitch": -0.5})[0] > 0.02
+    assert _site_in_body_frame(op3, "r_knee", "body_link", {"r_hip_pitch": 0.5})[0] > 0.02
+    # shoulder roll: left +, right - lower the arm from the T-pose
+    assert _site_in_body_frame(op3, "l_hand", "body_link", {"l_sho_roll": 1.2})[2] < -0.05
+    assert _site_in_body_frame(op3, "r_hand", "body_link", {"r_sho_roll": -1.2})[2] < -0.05
+    # elbow: with the arm hanging, left - and right + swing the forearm in towards the body
+    hang_l = _site_in_body_frame(op3, "l_hand", "body_link", {"l_sho_roll": 1.5})
+    assert _site_in_body_frame(op3, "l_hand", "body_link", {"l_sho_roll": 1.5, "l_el": -1.0})[1] < hang_l[1] - 0.05
+    hang_r = _site_in_body_frame(op3, "r_hand", "body_link", {"r_sho_roll": -1.5})
+    assert _site_in_body_frame(op3, "r_hand", "body_link", {"r_sho_roll": -1.5, "r_el": 1.0})[1] > hang_r[1] + 0.05
+    # hip abduction (left -, right +): the foot moves outward
+    assert _site_in_body_frame(op3, "l_foot", "body_link", {"l_hip_roll": -0.3})[1] > 0.1
+    assert _site_in_body_frame(op3, "r_foot", "body_link", {"r_hip_roll": 0.3})[1] < -0.1
+    # mirror symmetry: opposite values on the two sides give mirror-image sites
     pose = {"sho_pitch": 0.3, "sho_roll": 0.7, "el": 0.4, "hip_yaw": 0.2, "hip_roll": 0.15, "hip_pitch": -0.4,
             "knee": 0.8, "ank_pitch": -0.3, "ank_roll": 0.1}
-    both = {f"{s}_{k}": v for k, v in pose.items() for s in "lr"}
+    both = {**{f"l_{k}": v for k, v in pose.items()}, **{f"r_{k}": -v for k, v in pose.items()}}
     for site in ("hand", "elbow", "knee", "ankle", "foot", "toe"):
-        left = _site_in_body_frame(op3, f"l_{site}", "torso", both)
-        right = _site_in_body_frame(op3, f"r_{site}", "torso", both)
+        left = _site_in_body_frame(op3, f"l_{site}", "body_link", both)
+        right = _site_in_body_frame(op3, f"r_{site}", "body_link", both)
         assert np.allclose(left * (1, -1, 1), right, atol=1e-9), site
 
 
