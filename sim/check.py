@@ -70,7 +70,8 @@ class CheckConfig:
     fall_height_frac: float = 0.6  # of the standing root height
     fall_tilt_deg: float = 50.0
     speed_tolerance: float = 1.0  # x no-load speed
-    self_collision_depth: float = 0.0  # m; any contact between two robot parts
+    self_collision_depth: float = 0.002  # m; two robot parts deeper into each other than this (published
+    # models' collision hulls of neighbouring links often touch by a fraction of a millimetre at rest)
     human_penetration_depth: float = 0.005  # m
     ground_penetration_depth: float = 0.01  # m
     foot_slip_frac: float = 0.06  # of the robot's height, total sliding per foot
