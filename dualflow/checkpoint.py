@@ -243,6 +243,82 @@ def _load_tensors(file: Path) -> dict[str, torch.Tensor]:
         raise DualFlowError(f"{file}: not a readable safetensors file ({exc}); re-save the checkpoint") from None
 
 
+def _read_json(file: Path) -> dict:
+    """A JSON object from ``file``; DualFlowError naming it for anything else."""
+    try:
+        data = json.loads(file.read_bytes().decode("utf-8"))
+    except OSError as exc:
+        raise DualFlowError(f"{file}: cannot read ({exc.strerror})") from None
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise DualFlowError(f"{file}: not valid JSON ({str(exc)[:120]}); the file is damaged, re-export the checkpoint") from None
+    if not isinstance(data, dict):
+        raise DualFlowError(f"{file}: must hold a JSON object, got {type(data).__name__}; re-export the checkpoint")
+    return data
+
+
+def _model_config(section, file: Path) -> DualFlowConfig:
+    """The ``model`` section as a DualFlowConfig, each field's JSON type checked against the
+    dataclass's (ints are whole numbers, not booleans; floats finite; kernel sizes a list of
+    whole numbers), so a damaged config is named here rather than failing deep in torch."""
+    from dataclasses import fields as dataclass_fields
+
+    if not isinstance(section, dict):
+        raise DualFlowError(f"{file}, field 'model': must be an object of DualFlowConfig fields, got {type(section).__name__}")
+    defaults = DualFlowConfig()
+    known = {f.name for f in dataclass_fields(DualFlowConfig)}
+    for key, value in section.items():
+        if key not in known:
+            raise DualFlowError(f"{file}, field 'model.{key}': unknown (valid: {', '.join(sorted(known))}); "
+                                "the checkpoint is from another model version")
+        want = type(getattr(defaults, key))
+
+        def is_int(v):
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        if want is int:
+            ok = is_int(value)
+        elif want is float:
+            ok = (is_int(value) or isinstance(value, float)) and np.isfinite(value)
+        elif want is tuple:
+            ok = isinstance(value, list) and len(value) <= 64 and all(is_int(v) for v in value)
+        else:
+            ok = isinstance(value, want)
+        if not ok:
+            raise DualFlowError(f"{file}, field 'model.{key}': expected {want.__name__}, got {value!r:.60}; the file is damaged")
+    try:
+        return DualFlowConfig.from_dict(section)
+    except (TypeError, ValueError) as exc:
+        raise DualFlowError(f"{file}, field 'model': {exc}") from None
+
+
+def _reference_state(config: DualFlowConfig) -> dict[str, torch.Tensor]:
+    """The state_dict a model of ``config`` has (shapes and dtypes only: built on the meta
+    device, nothing is allocated)."""
+    with torch.device("meta"):
+        return DualFlow(config).state_dict()
+
+
+def _check_weights(state: dict[str, torch.Tensor], reference: dict[str, torch.Tensor], file: Path) -> None:
+    """Weights that fit the model: the same names and shapes, floating point where the model's
+    are, and finite; DualFlowError naming the file and the first offending tensor."""
+    missing = [k for k in reference if k not in state]
+    unexpected = [k for k in state if k not in reference]
+    if missing or unexpected:
+        raise DualFlowError(f"{file}: weights do not match the model in {CONFIG_FILE} (missing {missing[:3]}, unexpected "
+                            f"{unexpected[:3]}); the checkpoint is from another model version or damaged")
+    for key, ref in reference.items():
+        value = state[key]
+        if tuple(value.shape) != tuple(ref.shape):
+            raise DualFlowError(f"{file}, tensor {key!r}: shape {tuple(value.shape)}, but the model in {CONFIG_FILE} has "
+                                f"{tuple(ref.shape)}; the config and the weights are from different models")
+        if ref.is_floating_point() and not value.is_floating_point():
+            raise DualFlowError(f"{file}, tensor {key!r}: dtype {value.dtype}, expected floating point; the weights are "
+                                "damaged or converted wrongly, re-export the checkpoint")
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise DualFlowError(f"{file}, tensor {key!r}: contains NaN or inf; the training diverged or the file is "
+                                "damaged, use an earlier checkpoint")
+
+
 def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpoint:
     """Read a checkpoint directory (see the module docstring); ``resume`` also reads the
     optimizer and trainer state. Bad or missing files raise DualFlowError naming them."""
@@ -252,29 +328,28 @@ def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpo
     for name in (MODEL_FILE, CONFIG_FILE, STATS_FILE):
         if not (path / name).is_file():
             raise DualFlowError(f"{path}: checkpoint lacks {name}; it is incomplete, re-export it")
-    try:
-        meta = json.loads((path / CONFIG_FILE).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DualFlowError(f"{path / CONFIG_FILE}: not valid json ({exc})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT or "model" not in meta:
+    meta = _read_json(path / CONFIG_FILE)
+    if meta.get("format") != FORMAT or "model" not in meta:
         raise DualFlowError(f"{path / CONFIG_FILE}: not a DualFlow checkpoint config (needs format={FORMAT!r} and 'model')")
-    if int(meta.get("version", -1)) > VERSION:
-        raise DualFlowError(f"{path / CONFIG_FILE}: checkpoint version {meta['version']} is newer than this code ({VERSION}); update the package")
-    try:
-        config = DualFlowConfig.from_dict(meta["model"])
-    except (TypeError, DualFlowError) as exc:
-        raise DualFlowError(f"{path / CONFIG_FILE}: bad 'model' section: {exc}") from None
+    version = meta.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise DualFlowError(f"{path / CONFIG_FILE}, field 'version': must be a whole number >= 1 (this code writes "
+                            f"{VERSION}), got {version!r}; the file is damaged")
+    if version > VERSION:
+        raise DualFlowError(f"{path / CONFIG_FILE}: checkpoint version {version} is newer than this code ({VERSION}); update the package")
+    config = _model_config(meta["model"], path / CONFIG_FILE)
     state = _load_tensors(path / MODEL_FILE)
+    reference = _reference_state(config)
+    _check_weights(state, reference, path / MODEL_FILE)
     stats = NormStats.load(path / STATS_FILE)
     ema = _load_tensors(path / EMA_FILE) if (path / EMA_FILE).is_file() else None
+    if ema is not None:
+        _check_weights(ema_module_state(ema), reference, path / EMA_FILE)
     ckpt = Checkpoint(config=config, state_dict=state, stats=stats, meta=meta, path=path, ema_state=ema)
     if resume:
         if not (path / TRAINER_STATE_FILE).is_file():
             raise DualFlowError(f"{path}: lacks {TRAINER_STATE_FILE}; this is an exported checkpoint and cannot be resumed")
-        try:
-            ckpt.trainer_state = json.loads((path / TRAINER_STATE_FILE).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DualFlowError(f"{path / TRAINER_STATE_FILE}: not valid json ({exc})") from None
+        ckpt.trainer_state = _read_json(path / TRAINER_STATE_FILE)
         if (path / OPTIMIZER_FILE).is_file():
             ckpt.optimizer_state = optimizer_from_tensors(
                 _load_tensors(path / OPTIMIZER_FILE), ckpt.trainer_state.get("optimizer_param_groups", [])

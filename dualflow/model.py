@@ -112,6 +112,20 @@ class DualFlowConfig:
     prediction: str = "velocity"
 
     def __post_init__(self) -> None:
+        for f in fields(self):  # the types first: a config read from a file may hold anything
+            value, default = getattr(self, f.name), f.default
+            if isinstance(default, bool) or not isinstance(default, (int, float, str, tuple)):
+                continue
+            if isinstance(default, tuple):
+                ok = isinstance(value, (tuple, list)) and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+            elif isinstance(default, int):
+                ok = isinstance(value, int) and not isinstance(value, bool)
+            elif isinstance(default, float):
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            else:
+                ok = isinstance(value, str)
+            if not ok:
+                raise DualFlowError(f"DualFlowConfig.{f.name} must be {type(default).__name__}, got {value!r:.40}")
         if self.prediction not in PREDICTIONS:
             raise DualFlowError(
                 f"DualFlowConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}"

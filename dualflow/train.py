@@ -276,9 +276,13 @@ def load_train_config(path: str | os.PathLike | None = None, overrides: list[str
         if not p.is_file():
             raise DualFlowError(f"{p}: training config file not found; see dualflow/configs/small_synthetic.yaml")
         try:
-            raw = yaml.safe_load(p.read_text()) or {}
+            raw = yaml.safe_load(p.read_bytes().decode("utf-8")) or {}
         except yaml.YAMLError as exc:
             raise DualFlowError(f"{p}: not valid yaml/json ({str(exc).splitlines()[0]})") from None
+        except UnicodeDecodeError as exc:
+            raise DualFlowError(f"{p}: not UTF-8 text (byte {exc.start}); a training config is a yaml or json file") from None
+        except RecursionError:
+            raise DualFlowError(f"{p}: nested too deeply to be a training config; fix the syntax") from None
         if not isinstance(raw, dict):
             raise DualFlowError(f"{p}: the training config must be a mapping of fields, got {type(raw).__name__}")
     for item in overrides:

@@ -220,9 +220,13 @@ def load_config(path: str | Path, mjcf: str | Path | None = None, *, check_mjcf:
         raise ConfigError(f"{path}: hardware config not found; give a robot's hardware.yaml, a robot folder "
                           f"or a bundled robot ({', '.join(bundled_names())})")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_bytes().decode("utf-8"))
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc}); fix the syntax") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); is it really a hardware.yaml?") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deeply to be a hardware config; fix the syntax") from None
     return parse_config(data, source=str(path), base_dir=path.parent, mjcf=mjcf, check_mjcf=check_mjcf)
 
 

@@ -152,6 +152,11 @@ def _from_folder(folder: Path, bundled: bool) -> Robot:
     assert mjcf is not None
     profile = folder / PROFILE_FILE
     hardware = folder / HARDWARE_FILE
+    if profile.is_file() and hardware.is_file():  # both name the robot: they must name the same one
+        p_name, h_name = _yaml_key(profile, "robot"), _yaml_key(hardware, "robot")
+        if p_name and h_name and str(p_name) != str(h_name):
+            raise ConfigError(f"{profile}: field robot: {p_name!r}, but {hardware.name} beside it is for robot "
+                              f"{h_name!r}; the profile belongs to another robot, put this robot's profile here")
     return Robot(folder.name, folder, mjcf, profile if profile.is_file() else None,
                  hardware if hardware.is_file() else None, bundled)
 
@@ -192,6 +197,8 @@ def _yaml_key(path: Path, key: str):
         data = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise ConfigError(f"{path}: not readable YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not readable YAML (nested too deeply)") from None
     return data.get(key) if isinstance(data, dict) else None
 
 

@@ -100,9 +100,13 @@ class RetargetProfile:
         if not path.is_file():
             raise RetargetError(f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, or run `dualflow-bridge robot init MODEL.xml -o DIR`)")
         try:
-            data = yaml.safe_load(path.read_text())
+            data = yaml.safe_load(path.read_bytes().decode("utf-8"))
         except yaml.YAMLError as exc:
             raise RetargetError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        except UnicodeDecodeError as exc:
+            raise RetargetError(f"{path}: not UTF-8 text (byte {exc.start}); is it really a profile.yaml?") from None
+        except RecursionError:
+            raise RetargetError(f"{path}: nested too deeply to be a retarget profile; fix the syntax") from None
         return cls.from_dict(data, source=str(path))
 
     @classmethod

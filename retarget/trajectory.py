@@ -22,6 +22,16 @@ import numpy as np
 from retarget.errors import RetargetError
 
 
+#: Frame rates a trajectory file may have (frames/s): a motion clip at 1 fps to a control loop's
+#: telemetry at 1 kHz.
+FPS_RANGE = (1.0, 1000.0)
+#: Fewest frames a trajectory file must hold (one frame is a pose, not a motion to judge or play).
+MIN_FRAMES = 2
+#: Largest joint angle (rad) and root coordinate (m) a trajectory file may hold.
+MAX_JOINT_RAD = 1e3
+MAX_ROOT_M = 1e4
+
+
 @dataclass(frozen=True)
 class RobotTrajectory:
     joint_names: tuple[str, ...]
@@ -122,21 +132,61 @@ class RobotTrajectory:
 
     @classmethod
     def load_npz(cls, path) -> "RobotTrajectory":
+        """Read a file written by :meth:`save_npz`. Anything that cannot be a robot trajectory
+        raises RetargetError naming the file and the field: a damaged archive, a missing
+        field, array headers declaring absurd sizes (checked before allocating), non-float
+        joint or root arrays, fewer than :data:`MIN_FRAMES` frames, an fps outside
+        :data:`FPS_RANGE`, values beyond :data:`MAX_JOINT_RAD` / :data:`MAX_ROOT_M`."""
+        from dualflow.motion.io.npfile import open_npz, scalar, text
+
         path = Path(path)
+        fix = "expected arrays joint_pos, root_pos, root_quat, fps and header (RobotTrajectory.save_npz)"
+        with open_npz(path, error=RetargetError) as data:
+            where = f"{path}, field 'header'"
+            try:
+                header = json.loads(text(data.get("header", fix), where, RetargetError))
+            except (ValueError, RecursionError) as exc:
+                if isinstance(exc, RetargetError):
+                    raise
+                raise RetargetError(f"{where}: not valid JSON ({str(exc)[:100]}); re-save the trajectory") from None
+            if not isinstance(header, dict):
+                raise RetargetError(f"{where}: must be a JSON object with joint_names, got {type(header).__name__}")
+            names = header.get("joint_names")
+            if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+                raise RetargetError(f"{where}: joint_names must be a list of joint names (text), got {names!r:.80}")
+            meta = header.get("meta", {})
+            if not isinstance(meta, dict):
+                raise RetargetError(f"{where}: meta must be a JSON object, got {type(meta).__name__}")
+            arrays = {}
+            for key in ("joint_pos", "root_pos", "root_quat"):
+                arr = data.get(key, fix)
+                if arr.dtype.kind != "f":
+                    raise RetargetError(f"{path}, field {key!r}: expected floating-point numbers, got dtype {arr.dtype}; "
+                                        "re-save the trajectory")
+                arrays[key] = arr
+            fps = scalar(data.get("fps", fix), f"{path}, field 'fps'", RetargetError)
+        lo, hi = FPS_RANGE
+        if not lo <= fps <= hi:
+            raise RetargetError(f"{path}, field 'fps': fps must be > 0, within {lo:g}-{hi:g} frames/s, got {fps!r}; "
+                                "the file is damaged")
+        q = arrays["joint_pos"]
+        if q.ndim != 2 or q.shape[0] < MIN_FRAMES:
+            raise RetargetError(f"{path}, field 'joint_pos': a trajectory needs at least {MIN_FRAMES} frames as (T, n) "
+                                f"joint angles, got shape {q.shape}")
+        for key, bound, unit in (("joint_pos", MAX_JOINT_RAD, "rad"), ("root_pos", MAX_ROOT_M, "m")):
+            arr = arrays[key]
+            with np.errstate(invalid="ignore"):
+                big = np.abs(arr) > bound
+            if big.any():
+                frame = int(np.argwhere(big)[0][0])
+                raise RetargetError(f"{path}, field {key!r}: {np.nanmax(np.abs(arr)):.3g} {unit} at frame {frame}, beyond "
+                                    f"±{bound:g} {unit}; the file is damaged")
+        robot = header.get("robot", "")
         try:
-            with np.load(path, allow_pickle=False) as data:
-                header = json.loads(str(data["header"]))
-                return cls(
-                    tuple(header["joint_names"]), data["joint_pos"], data["root_pos"], data["root_quat"],
-                    float(data["fps"]), header.get("robot", ""), header.get("meta", {}),
-                )
+            return cls(tuple(names), q, arrays["root_pos"], arrays["root_quat"], fps,
+                       robot if isinstance(robot, str) else "", meta)
         except RetargetError as exc:
             raise RetargetError(f"{path}: {exc}") from None
-        except (OSError, KeyError, ValueError) as exc:
-            raise RetargetError(
-                f"{path}: not a robot trajectory npz ({exc}); expected arrays joint_pos, root_pos, "
-                "root_quat, fps and header"
-            ) from None
 
     def save_csv(self, path) -> Path:
         """One row per frame: time, root x y z, root qw qx qy qz, then each joint in radians."""

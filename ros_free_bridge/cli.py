@@ -5,8 +5,11 @@ with a ``register(subparsers)`` function that adds its parser and sets
 ``func(args) -> int``. Modules import their heavy dependencies (torch, mujoco,
 casadi) inside ``func`` so that ``--help`` stays fast.
 
-User errors (each package's one error type) print one line and exit 2; any
-other exception is a bug and keeps its traceback.
+Exit codes (DESIGN.md, README "Exit codes"; every leaf parser's --help ends with
+:data:`EXIT_CODES`): 0 it ended normally (and a check passed), 1 a fault, e-stop, watchdog
+stop or failed verdict (the commands return it), 2 bad usage or bad input: user errors (each
+package's one error type) print one line and exit 2; any other exception is a bug and keeps
+its traceback.
 """
 
 from __future__ import annotations
@@ -40,6 +43,24 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)
 
+#: The exit-code contract, appended to every leaf command's --help.
+EXIT_CODES = ("Exit codes: 0 it ended normally (a run stopped at the motion's end, --max-duration or a stop request; "
+              "a check or verification passed); 1 a fault, e-stop or watchdog stop (bus error, overheat, generator "
+              "failure, no frames, Ctrl-C/SIGTERM while the robot is under control) or a failed check; 2 bad usage or "
+              "bad input (one line naming the file or field and the fix).")
+
+
+def _add_exit_codes(parser: argparse.ArgumentParser) -> None:
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    for action in subs:
+        for sub in action.choices.values():
+            _add_exit_codes(sub)
+    if not subs:
+        import textwrap
+
+        text = textwrap.fill(EXIT_CODES, 78, break_on_hyphens=False)  # raw formatters print it as it is
+        parser.epilog = f"{parser.epilog}\n\n{text}" if parser.epilog else text
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -50,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in COMMAND_MODULES:
         module = importlib.import_module(f"ros_free_bridge.commands.{name}")
         module.register(sub)
+    _add_exit_codes(parser)
     return parser
 
 

@@ -34,7 +34,11 @@ D     child→parent  done (after E): every target was sent
 ====  ============  =================================================================
 
 Shutdown: the parent sends Q and closes its write end, waits, then kills. The child also
-exits on EOF, so it does not outlive a parent that died. A child that
+exits on EOF, and it never outlives its parent, however that ends (SIGKILL included):
+:func:`ros_free_bridge.lifeline.die_with_parent` (PR_SET_PDEATHSIG on Linux when the parent
+started it from its main thread, and a parent-pid watch everywhere). SIGINT and SIGTERM
+are ignored: a Ctrl-C reaches the whole process group, and the parent decides (an e-stop
+with the signal as its reason), then ends the child. A child that
 dies (or is killed) is seen as EOF on the parent's read end: ``feed`` raises
 :class:`~ros_free_bridge.errors.BridgeError`, the pipeline closes the target buffer with
 it, and the control loop ramps to rest and applies its stop policy.
@@ -223,8 +227,12 @@ class GeneratorProcess:
         for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
             env[var] = str(max(1, int(self.config.threads)))
         try:
+            from ros_free_bridge.lifeline import parent_thread_lives_on
+
+            argv = [sys.executable, "-m", "ros_free_bridge.generator_process", "--fds", f"{p2c_r},{c2p_w}",
+                    "--parent", str(os.getpid())] + (["--pdeathsig"] if parent_thread_lives_on() else [])
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "ros_free_bridge.generator_process", "--fds", f"{p2c_r},{c2p_w}"],
+                argv,
                 pass_fds=(p2c_r, c2p_w), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env,
             )
         finally:
@@ -414,8 +422,10 @@ def warm_up(core) -> tuple[float, float]:
 
 
 def child_main(rfd: int, wfd: int) -> int:
-    # Ctrl-C reaches the whole process group; the parent decides (e-stop), then closes the pipe
+    # Ctrl-C (or a SIGTERM to the group) reaches every process of the group; the parent
+    # decides (e-stop, the signal as the reason), then ends this one
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     chan = Channel(rfd, wfd)
     try:
         msgs = []
@@ -482,7 +492,13 @@ def child_main(rfd: int, wfd: int) -> int:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="the bridge's generator process (started by the bridge, not by hand)")
     ap.add_argument("--fds", required=True, help="READ_FD,WRITE_FD inherited from the parent")
+    ap.add_argument("--parent", type=int, help="the parent's process id: end when it ends")
+    ap.add_argument("--pdeathsig", action="store_true", help="also ask the kernel to kill this process with the parent")
     args = ap.parse_args(argv)
+    if args.parent is not None:
+        from ros_free_bridge.lifeline import die_with_parent
+
+        die_with_parent(args.parent, pdeathsig=args.pdeathsig)
     rfd, wfd = (int(x) for x in args.fds.split(","))
     return child_main(rfd, wfd)
 

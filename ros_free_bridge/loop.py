@@ -113,6 +113,11 @@ class LoopConfig:
     gc_in_slack: bool = True  #: freeze the heap, collect young objects only in a tick's slack (realtime.LoopGc)
     switch_interval_s: float = 0.0005  #: GIL switch interval while running (the default 5 ms exceeds a 250 Hz period)
     realtime_priority: int = 0  #: SCHED_FIFO priority of the loop thread (1-99; needs privileges); 0: normal
+    #: "clock": frame k is played at its time on the playback clock (live streams: a late tick
+    #: skips ahead, the motion keeps to the wall clock); "ticks": one frame period per executed
+    #: tick from the first frame on, so every frame of a recorded stream is played whatever the
+    #: load (a late or skipped tick delays the rest instead of dropping frames; ``replay``)
+    pace: str = "clock"
     #: split-phase bus cycle where the transport offers one (``pipeline(True)``, the Dynamixel
     #: transport): a tick's write also sends the position read and the next tick takes its
     #: reply, so no tick waits for the bus; measured positions are then one tick old
@@ -124,6 +129,8 @@ class LoopConfig:
                 raise BridgeError(f"loop config: {name} must be one of {STOP_POLICIES}, got {getattr(self, name)!r}")
         if not self.rate_hz > 0:
             raise BridgeError(f"loop config: rate_hz must be > 0, got {self.rate_hz}")
+        if self.pace not in ("clock", "ticks"):
+            raise BridgeError(f"loop config: pace must be 'clock' or 'ticks', got {self.pace!r}")
         if not self.playback_margin >= 0:
             raise BridgeError(f"loop config: playback_margin must be >= 0 s, got {self.playback_margin}")
         if not 0 < self.playback_quantile <= 1:
@@ -146,12 +153,39 @@ class RunSummary:
     reason: str = ""
     frames_played: int = 0
     e2e_latency: list = field(default_factory=list)  #: seconds, one per played target frame
+    #: the stop was forced by a fault or a watchdog (overheat, voltage, a servo's hardware error,
+    #: a failed generator, no frames), not the motion's end, a requested stop or --max-duration
+    fault_stop: bool = False
+
+    @property
+    def ok(self) -> bool:
+        """The run ended normally: stopped (not e-stopped) for a normal reason. The commands'
+        exit code is 0 when this holds, 1 otherwise (README: exit codes)."""
+        return self.end_state == State.STOPPED.name and not self.fault_stop
 
     def latency_percentiles(self) -> dict:
         if not self.e2e_latency:
             return {}
         arr = np.asarray(self.e2e_latency)
         return {"p50": float(np.percentile(arr, 50)), "p99": float(np.percentile(arr, 99)), "max": float(arr.max())}
+
+
+class TickPlayback:
+    """Motion time advanced by one control period per call (one call per executed tick), from
+    the first frame's time: LoopConfig ``pace="ticks"``. Same interface as PlaybackClock."""
+
+    def __init__(self, fps: float, first_index: int, dt: float):
+        self.t0 = first_index / float(fps)
+        self.dt = float(dt)
+        self.ticks = 0  #: motion time t0 + ticks * dt at the next call
+
+    def arrived(self, newest_index: int, now: float) -> None:
+        pass
+
+    def motion_time(self, now: float) -> float:
+        t = self.t0 + self.ticks * self.dt + 1e-9  # a hair past the frame: exact frame, not its predecessor's end
+        self.ticks += 1
+        return t
 
 
 class ControlLoop:
@@ -186,6 +220,8 @@ class ControlLoop:
         self._clock: FixedRateClock | None = None
         self._realtime = ExitStack()  # GC, GIL and scheduling settings while ticking; closed by run()
         self.gc: LoopGc | None = None
+        #: the live input's counters (sources.udp.UdpStats) when there is one: the status line shows its drops
+        self.source_stats = None
 
     @property
     def deadline_misses(self) -> int:
@@ -207,8 +243,19 @@ class ControlLoop:
         atexit.register(self._atexit)
         self._active = True
         try:
-            self.transport.open()
-            self._main()
+            self.transport.open()  # a port that cannot be opened is bad input: it propagates (exit 2)
+            try:
+                self._main()
+            except (BridgeError, OSError) as exc:
+                # the bus failed while the robot was under control (no reply, CRC errors, a
+                # servo or the port gone): a fault, ended in the e-stop policy and reported in
+                # the summary, not an exception. A signal that came first stays the reason: the
+                # failed read was only its echo (e.g. a bus emulator hit by the same Ctrl-C).
+                self._faults |= Fault.BUS_ERROR
+                self.summary.fault_stop = True
+                self._event("bus_error", error=str(exc), after_estop=self._estop_reason is not None)
+                what = "bus error" if isinstance(exc, BridgeError) else "I/O error"
+                self._emergency(self._estop_reason or f"{what}: {exc}")
         except BaseException as exc:
             self._emergency(f"{type(exc).__name__}: {exc}")
             raise
@@ -288,18 +335,22 @@ class ControlLoop:
                 target = self._rest
                 first = self.targets.first()
                 if self.targets.error is not None:
-                    self._begin_stop(f"generator failed before the first frame: {self.targets.error}")
+                    self._begin_stop(f"generator failed before the first frame: {self.targets.error}", fault=True)
                     faults |= Fault.GENERATOR_ERROR
                 elif first is not None:
-                    playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
-                                             cfg.playback_lead_frames, fixed=not cfg.adaptive_playback,
-                                             quantile=cfg.playback_quantile)
+                    if cfg.pace == "ticks":
+                        playback = TickPlayback(self.targets.fps, first.index, self.dt)
+                    else:
+                        playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
+                                                 cfg.playback_lead_frames, fixed=not cfg.adaptive_playback,
+                                                 quantile=cfg.playback_quantile)
                     stream_start = now
                     last_new = now
                     self.state = State.RUNNING
                     self._event("streaming", first_frame=first.index)
                 elif self.targets.closed or now - wait_since > cfg.start_timeout:
-                    self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"))
+                    self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"),
+                                     fault=True)
             elif self.state in (State.RUNNING, State.HOLD):
                 newest = self.targets.newest()
                 if newest is not None:
@@ -307,7 +358,7 @@ class ControlLoop:
                 sample = curve.sample(playback.motion_time(now), now)
                 if self.targets.error is not None:
                     faults |= Fault.GENERATOR_ERROR
-                    self._begin_stop(f"generator failed: {self.targets.error}")
+                    self._begin_stop(f"generator failed: {self.targets.error}", fault=True)
                 elif sample.finished:
                     target, used = sample.q, sample.newest  # play the last frame, then ramp to rest
                     self._begin_stop("the motion ended")
@@ -317,8 +368,10 @@ class ControlLoop:
                     self._begin_stop(f"max duration {cfg.max_duration:g} s reached")
                 else:
                     newest = self.targets.newest()
-                    if newest is not None and newest.index != last_frame_index:
-                        last_frame_index, last_new = newest.index, now
+                    if (newest is not None and newest.index != last_frame_index) or self.targets.closed:
+                        # a closed stream (every frame is in: a recording, or a source that
+                        # ended) cannot go quiet; it plays to its end (sample.finished)
+                        last_frame_index, last_new = (newest.index if newest is not None else -1), now
                     quiet = now - last_new
                     if sample.starved:
                         faults |= Fault.STARVED
@@ -326,7 +379,7 @@ class ControlLoop:
                         faults |= Fault.EXTRAPOLATED
                     if quiet > cfg.rest_after:
                         faults |= Fault.ACTOR_TIMEOUT
-                        self._begin_stop(f"no new frames for {quiet:.1f} s")
+                        self._begin_stop(f"no new frames for {quiet:.1f} s", fault=True)
                     elif quiet > cfg.actor_timeout or sample.q is None:
                         if self.state != State.HOLD:
                             self._event("hold", quiet_s=round(quiet, 3))
@@ -418,10 +471,12 @@ class ControlLoop:
         self.safety = SafetyFilter(self.limits, self.dt)
         self._event("limits_narrowed", joints=narrowed)
 
-    def _begin_stop(self, reason: str) -> None:
+    def _begin_stop(self, reason: str, fault: bool = False) -> None:
+        """Ramp to rest and stop; ``fault``: the stop is forced by a fault or a watchdog."""
         if self.state in (State.RAMP_OUT, State.STOPPED, State.ESTOP):
             return
         self.summary.reason = reason
+        self.summary.fault_stop = fault
         self._event("stopping", reason=reason)
         self._ramp_out = None
         self.state = State.RAMP_OUT
@@ -440,11 +495,11 @@ class ControlLoop:
         volts = np.asarray(state.voltage, float)
         if state.errors:
             faults |= Fault.HARDWARE_ERROR
-            self._begin_stop("hardware error: " + ", ".join(f"{j}: {e}" for j, e in state.errors.items()))
+            self._begin_stop("hardware error: " + ", ".join(f"{j}: {e}" for j, e in state.errors.items()), fault=True)
         if np.any(temps >= cfg.temperature_stop):
             j = self.limits.names[int(np.nanargmax(temps))]
             faults |= Fault.OVERHEAT
-            self._begin_stop(f"{j} at {np.nanmax(temps):.0f} °C (stop threshold {cfg.temperature_stop:g} °C)")
+            self._begin_stop(f"{j} at {np.nanmax(temps):.0f} °C (stop threshold {cfg.temperature_stop:g} °C)", fault=True)
         elif np.any(temps >= cfg.temperature_warn) and not self._degraded:
             j = self.limits.names[int(np.nanargmax(temps))]
             self._degraded = True
@@ -456,7 +511,7 @@ class ControlLoop:
         if finite_v.size and (finite_v.min() < cfg.voltage_min or finite_v.max() > cfg.voltage_max):
             faults |= Fault.VOLTAGE
             self._begin_stop(f"supply voltage {finite_v.min():.1f}-{finite_v.max():.1f} V outside "
-                             f"{cfg.voltage_min:g}-{cfg.voltage_max:g} V")
+                             f"{cfg.voltage_min:g}-{cfg.voltage_max:g} V", fault=True)
         return faults
 
     def _emergency(self, reason: str) -> None:
@@ -464,6 +519,7 @@ class ControlLoop:
         if self.state == State.ESTOP:
             return
         self.state = State.ESTOP
+        self.summary.fault_stop = True
         self._faults |= Fault.ESTOP
         self.summary.reason = reason
         try:

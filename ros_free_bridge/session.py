@@ -114,6 +114,8 @@ class SessionOptions:
     handle_signals: bool = True
     text: str | None = None  #: a text cue for the generator
     music: str | None = None  #: an audio file aligned with the actor clock
+    #: let a udp:// actor listen on a non-loopback address (anyone who reaches it moves the robot)
+    allow_remote_actor: bool = False
 
 
 @dataclass
@@ -127,13 +129,47 @@ class SessionResult:
     transport_info: dict = field(default_factory=dict)
     #: monotonic arrival (s) of each actor frame received, by index (for latency figures)
     actor_arrivals: np.ndarray | None = None
+    #: a live actor's input counters (UdpStats: received, accepted, dropped by kind), else None
+    source_stats: object = None
     #: generator: where it ran; frames_dropped: partner frames skipped to keep up (held);
     #: warmup_window_ms: one generation window's compute measured at start (process only)
     pipeline_info: dict = field(default_factory=dict)
 
 
-def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None):
-    """(source, description) for a file path, ``udp://HOST:PORT`` or ``synthetic``."""
+def load_actor_file(spec: str):
+    """The actor Motion of a motion file (a duet's actor), or None for ``synthetic`` and
+    ``udp://``: read and checked before anything starts, so a bad file is named at once."""
+    if spec == "synthetic" or spec.startswith("udp://"):
+        return None
+    from dualflow.motion import TwoPersonMotion
+    from dualflow.motion.io import load_any
+
+    if not Path(spec).exists():
+        raise BridgeError(f"actor {spec!r}: no such file; give a motion file, udp://127.0.0.1:PORT or 'synthetic'")
+    motion = load_any(spec)
+    return motion.actor if isinstance(motion, TwoPersonMotion) else motion
+
+
+def check_udp_actor(spec: str, allow_remote: bool = False) -> tuple[str, int] | None:
+    """(host, port) of a ``udp://HOST:PORT`` actor, checked before anything starts (a
+    non-loopback host needs ``allow_remote``); None for other actors."""
+    if not spec.startswith("udp://"):
+        return None
+    from ros_free_bridge.sources.udp import is_loopback
+
+    host, _, port = spec[len("udp://"):].rpartition(":")
+    if not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise BridgeError(f"actor {spec!r}: write a UDP source as udp://127.0.0.1:PORT")
+    if not allow_remote and not is_loopback(host):
+        raise BridgeError(f"actor {spec!r}: {host} is not a loopback address, and anyone who reaches it could move the "
+                          "robot; use udp://127.0.0.1:PORT, or add --allow-remote-actor to listen there on purpose")
+    return host, int(port)
+
+
+def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None, motion=None, **udp_options):
+    """(source, description) for a file path, ``udp://HOST:PORT`` or ``synthetic``; ``motion``:
+    the file's motion when already read (:func:`load_actor_file`); ``udp_options`` go to
+    :class:`~ros_free_bridge.sources.udp.UdpActorSource`."""
     from ros_free_bridge.sources.replay import MotionReplaySource
 
     if spec == "synthetic":
@@ -143,19 +179,11 @@ def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None):
     if spec.startswith("udp://"):
         from ros_free_bridge.sources.udp import UdpActorSource
 
-        host, _, port = spec[len("udp://"):].rpartition(":")
-        if not host or not port.isdigit():
-            raise BridgeError(f"actor {spec!r}: write a UDP source as udp://127.0.0.1:PORT")
-        src = UdpActorSource(host, int(port), on_estop=on_estop)
+        host, port = check_udp_actor(spec, allow_remote=udp_options.get("allow_remote", False))
+        src = UdpActorSource(host, port, on_estop=on_estop, **udp_options)
         return src, f"UDP actor stream on {host}:{src.address[1]}"
-    from dualflow.motion import TwoPersonMotion
-    from dualflow.motion.io import load_any
-
-    if not Path(spec).exists():
-        raise BridgeError(f"actor {spec!r}: no such file; give a motion file, udp://127.0.0.1:PORT or 'synthetic'")
-    motion = load_any(spec)
-    if isinstance(motion, TwoPersonMotion):
-        motion = motion.actor
+    if motion is None:
+        motion = load_actor_file(spec)
     return MotionReplaySource(motion.resample(MOTION_FPS)), f"{spec} ({motion.n_frames} frames at {motion.fps:g} fps)"
 
 
@@ -247,6 +275,8 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         raise BridgeError(f"generator {opts.generator!r}: choose one of {', '.join(GENERATORS)}")
     from retarget.robot import load_robot
 
+    actor_motion = load_actor_file(opts.actor)  # a bad file is named before anything starts
+    check_udp_actor(opts.actor, opts.allow_remote_actor)
     files = resolve_robot(opts.robot)
     if files.hardware is None and opts.transport in MODEL_ONLY_TRANSPORTS:
         # a robot without hardware config (a model just brought in): the simulated robot
@@ -263,7 +293,7 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     out.mkdir(parents=True, exist_ok=True)
     with ExitStack() as stack:
         core, rest = _partner_core(opts, files, robot, names, limits, stack)
-        return _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready)
+        return _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready, actor_motion)
 
 
 def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits, stack: ExitStack):
@@ -292,7 +322,7 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
 
-def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready) -> SessionResult:
+def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready, actor_motion=None) -> SessionResult:
     from dualflow.motion import Motion
     from ros_free_bridge.stages import PartnerPipeline
 
@@ -315,8 +345,15 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
                                     meta={"robot": files.ref, "actor": opts.actor, "partner": opts.partner,
                                           "transport": opts.transport, "model": str(opts.model or "bundled")})
         loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
-        source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop)
+        udp = {}
+        if opts.actor.startswith("udp://"):
+            udp = {"allow_remote": opts.allow_remote_actor, "on_event": telemetry.event}
+        source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop,
+                                              motion=actor_motion, **udp)
         stack.callback(source.close)
+        stats = getattr(source, "stats", None)
+        if stats is not None:
+            loop.source_stats = stats  # the status line shows its drop counters
         telemetry.event("session", actor=described, delay_frames=core.delay_frames,
                         frames_ahead=getattr(core, "frames_ahead", None), generator=_generator_info(opts, core),
                         playback_margin_s=round(config.playback_margin, 4), playback_quantile=config.playback_quantile,
@@ -333,6 +370,10 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
             pipeline.stop()
             pipeline.join(30.0)
     result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
+    if stats is not None:
+        result.source_stats = stats
+        telemetry_events_append(out / "telemetry.dftl", "input", received=stats.received, accepted=stats.accepted,
+                                estops=stats.estops, flooded=stats.flooded, senders=stats.senders, dropped=stats.drops())
     result.pipeline_info = {**_generator_info(opts, core), "playback_margin_ms": round(1e3 * config.playback_margin, 1),
                             "frames_dropped": pipeline.frames_dropped,
                             "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events),
@@ -362,6 +403,17 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         result.transport_info["bus_violations"] = emu.stats["violations"]
         result.transport_info["bus_goal_writes"] = emu.stats["goal_writes"]
     return result
+
+
+def telemetry_events_append(telemetry_path: Path, kind: str, **info) -> None:
+    """Append one event to a closed telemetry file's events (the loop closes the writer when it
+    returns; what the session learns afterwards, e.g. the input's final counters, goes here)."""
+    import json
+    import time
+
+    line = json.dumps({"kind": kind, "unix": time.time(), "monotonic": time.monotonic(), **info})
+    with open(telemetry_path.with_name(telemetry_path.name + ".events.jsonl"), "a") as fh:
+        fh.write(line + "\n")
 
 
 def playback_margin(default: float, core) -> float:

@@ -148,29 +148,143 @@ class Telemetry:
                                {"source": "telemetry commands"})
 
 
+#: Record fields every reader of a telemetry file relies on (plot, replay, demo's check).
+REQUIRED_FIELDS = ("t", "tick", "target", "command", "measured", "state", "faults")
+#: Per-joint fields: each must have one column per name in ``joint_names``.
+JOINT_FIELDS = ("target", "command", "measured", "intervention")
+#: Control rates a telemetry file may declare (Hz).
+RATE_RANGE = (1.0, 10000.0)
+#: Largest record accepted (bytes): a 1000-joint robot's record is about 14 kB.
+MAX_RECORD_BYTES = 1 << 20
+#: Largest commanded angle accepted, rad (the safety filter clips to the joint limits).
+MAX_COMMAND_RAD = 1e3
+
+
 def read_telemetry(path) -> Telemetry:
+    """Read a telemetry file and its events. Anything a run cannot have written raises
+    BridgeError naming the file (or the events file) and the field: a missing or malformed
+    header (``joint_names`` unique texts, ``rate_hz`` in :data:`RATE_RANGE`, ``fields`` with
+    plain numeric dtypes, the :data:`REQUIRED_FIELDS`, one column per joint name), no
+    records, NaN or absurd commands. A partial last record and a partial last events line
+    (a crash mid-write) are ignored, as the writer promises."""
     path = Path(path)
     try:
         raw = path.read_bytes()
     except OSError as exc:
         raise BridgeError(f"{path}: cannot read telemetry ({exc.strerror})") from None
     if not raw.startswith(MAGIC) or b"\n" not in raw:
-        raise BridgeError(f"{path}: not a telemetry file (missing the {MAGIC.decode().strip()} header)")
+        raise BridgeError(f"{path}: not a telemetry file (missing the {MAGIC.decode().strip()} header line); give the "
+                          "telemetry.dftl a run wrote")
     line, body = raw.split(b"\n", 1)
-    try:
-        header = json.loads(line[len(MAGIC):])
-        dtype = np.dtype([(name, base, tuple(shape)) for name, base, shape in header["fields"]])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise BridgeError(f"{path}: telemetry header is malformed ({exc})") from None
+    header = _header(path, line[len(MAGIC):])
+    dtype = header["dtype"]
     whole = len(body) // dtype.itemsize * dtype.itemsize
     records = np.frombuffer(body[:whole], dtype=dtype).copy()
+    if len(records) == 0:
+        raise BridgeError(f"{path}: holds no tick records (the run ended before its first tick, or the file was cut); "
+                          "nothing to plot or replay")
+    command = records["command"]
+    bad = ~np.isfinite(command) | (np.abs(command) > MAX_COMMAND_RAD)
+    if bad.any():
+        tick, joint = (int(i) for i in np.argwhere(bad.reshape(len(records), -1))[0])
+        raise BridgeError(f"{path}: record {tick}: the command of joint {header['joint_names'][joint]!r} is "
+                          f"{float(command.reshape(len(records), -1)[tick, joint])!r}, which the bridge never sends; "
+                          "the file is damaged")
+    events = read_events(path.with_name(path.name + ".events.jsonl"))
+    return Telemetry(tuple(header["joint_names"]), header["rate_hz"], records, header["meta"], events,
+                     len(body) - whole)
+
+
+def _header(path: Path, text: bytes) -> dict:
+    """The header's fields checked: joint_names, rate_hz, meta and the record dtype."""
+    def bad(field: str, why: str) -> BridgeError:
+        return BridgeError(f"{path}: header field {field!r}: {why}; the file is damaged or not written by the bridge")
+
+    try:
+        header = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise BridgeError(f"{path}: the telemetry header is not valid JSON ({str(exc)[:100]}); the file is damaged") from None
+    if not isinstance(header, dict):
+        raise BridgeError(f"{path}: the telemetry header must be a JSON object, got {type(header).__name__}")
+    for key in ("joint_names", "rate_hz", "fields"):
+        if key not in header:
+            raise bad(key, "missing")
+    names = header["joint_names"]
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+        raise bad("joint_names", "must be a non-empty list of joint names (text)")
+    if len(set(names)) != len(names):
+        raise bad("joint_names", "lists a joint twice")
+    rate = header["rate_hz"]
+    lo, hi = RATE_RANGE
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not lo <= rate <= hi:
+        raise bad("rate_hz", f"{rate!r} is not a control rate in {lo:g}-{hi:g} Hz")
+    fields = header["fields"]
+    if not isinstance(fields, list) or not fields:
+        raise bad("fields", "must be a list of [name, dtype, shape]")
+    spec = []
+    for item in fields:
+        if (not isinstance(item, list) or len(item) != 3 or not isinstance(item[0], str) or not isinstance(item[1], str)
+                or not isinstance(item[2], list) or not all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= 100000
+                                                            for k in item[2])):
+            raise bad("fields", f"entry {item!r:.80} is not [name, dtype, shape]")
+        try:
+            base = np.dtype(item[1])
+        except (TypeError, ValueError, SyntaxError):
+            raise bad("fields", f"{item[0]!r} has an unknown dtype {item[1]!r}") from None
+        if base.kind not in "biuf" or base.hasobject or base.names is not None:
+            raise bad("fields", f"{item[0]!r} has dtype {item[1]!r}; records hold plain numbers only")
+        spec.append((item[0], base, tuple(item[2])))
+    try:
+        dtype = np.dtype(spec)
+    except (TypeError, ValueError) as exc:
+        raise bad("fields", f"not a record layout ({str(exc)[:80]})") from None
+    if not 0 < dtype.itemsize <= MAX_RECORD_BYTES:
+        raise bad("fields", f"a record of {dtype.itemsize} bytes")
+    missing = [f for f in REQUIRED_FIELDS if f not in dtype.names]
+    if missing:
+        raise bad("fields", f"lacks {', '.join(missing)}")
+    for f in JOINT_FIELDS:
+        if f in dtype.names and dtype[f].shape != (len(names),):
+            raise bad("joint_names", f"{len(names)} names, but field {f!r} has shape {dtype[f].shape}; they must agree")
+    meta = header.get("meta", {})
+    if not isinstance(meta, dict):
+        raise bad("meta", f"must be a JSON object, got {type(meta).__name__}")
+    return {"joint_names": names, "rate_hz": float(rate), "dtype": dtype, "meta": meta}
+
+
+def read_events(path) -> list[dict]:
+    """The events of ``<telemetry>.events.jsonl`` (none if the file is absent). A partial last
+    line (a crash mid-write) is ignored; any other line that is not one JSON object with a
+    ``kind`` raises BridgeError naming the file and the line."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise BridgeError(f"{path}: cannot read the events file ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise BridgeError(f"{path}: the events file is not UTF-8 text (byte {exc.start}); it is damaged or not an "
+                          "events file; remove or replace it") from None
+    lines = text.split("\n")
+    complete, last = lines[:-1], lines[-1]  # text after the last newline: a line cut by a crash
     events = []
-    events_path = path.with_name(path.name + ".events.jsonl")
-    if events_path.exists():
-        for text in events_path.read_text().splitlines():
-            try:
-                events.append(json.loads(text))
-            except ValueError:
-                break  # a partial last line after a crash
-    return Telemetry(tuple(header["joint_names"]), float(header["rate_hz"]), records, header.get("meta", {}),
-                     events, len(body) - whole)
+    for k, line in enumerate(complete, start=1):
+        if not line.strip():
+            continue
+        try:
+            event = json.loads(line)
+        except (ValueError, RecursionError):
+            event = None
+        if not isinstance(event, dict) or not isinstance(event.get("kind"), str):
+            raise BridgeError(f"{path}, line {k}: not an event (one JSON object with a 'kind' per line); the events "
+                              "file is damaged; remove or repair that line")
+        events.append(event)
+    if last.strip():
+        try:
+            event = json.loads(last)
+            if isinstance(event, dict) and isinstance(event.get("kind"), str):
+                events.append(event)
+        except (ValueError, RecursionError):
+            pass
+    return events

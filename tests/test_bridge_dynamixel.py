@@ -141,7 +141,7 @@ def test_generator_nan_and_stall_never_reach_the_bus(op3, tmp_path):
 
 def test_an_overheating_servo_stops_the_run(op3, tmp_path):
     summary, emu, tel, _ = run_on_bus(op3, tmp_path, wave(600), faults=lambda emu, loop: emu.overheat(7, 80.0))
-    assert summary.end_state in ("STOPPED", "ESTOP")
+    assert summary.end_state in ("STOPPED", "ESTOP") and not summary.ok  # a fault stop: exit code 1
     assert summary.faults & (Fault.OVERHEAT | Fault.HARDWARE_ERROR)
     assert "°C" in summary.reason or "overheating" in summary.reason
 
@@ -151,11 +151,12 @@ def test_dropped_status_packets_are_retried_without_stopping(op3, tmp_path):
     assert error is None and summary.end_state == "STOPPED" and summary.reason == "the motion ended"
 
 
-def test_the_port_vanishing_ends_in_a_clear_error_and_a_closed_transport(op3, tmp_path):
+def test_the_port_vanishing_ends_in_a_clear_fault_and_a_closed_transport(op3, tmp_path):
     summary, emu, tel, error = run_on_bus(op3, tmp_path, wave(600), faults=lambda emu, loop: emu.vanish())
-    assert isinstance(error, BridgeError)
-    assert summary.end_state == "ESTOP"
-    assert any(e["kind"] == "estop" for e in tel.events)
+    assert error is None  # a fault to report (exit code 1), not an exception
+    assert summary.end_state == "ESTOP" and not summary.ok and summary.reason.startswith("bus error")
+    assert summary.faults & Fault.BUS_ERROR
+    assert any(e["kind"] == "estop" for e in tel.events) and any(e["kind"] == "bus_error" for e in tel.events)
 
 
 def test_garbage_udp_packets_are_dropped_and_the_stream_still_drives_the_bus(op3, tmp_path):

@@ -138,15 +138,33 @@ class FailingTransport(RecordTransport):
         super().write_goal(positions)
 
 
-def test_an_exception_applies_the_estop_policy_before_propagating(tmp_path):
+def test_a_bus_error_while_running_is_a_fault_that_applies_the_estop_policy(tmp_path):
     tr = FailingTransport(NAMES)
     loop, _, buf = _loop(tmp_path, transport=tr)
     _producer(buf, _sine(100))
-    with pytest.raises(BridgeError, match="no status packet"):
-        loop.run()
+    summary = loop.run()  # a bus failure is a fault to report, not an exception (exit code 1, not 2)
+    assert summary.end_state == "ESTOP" and not summary.ok
+    assert summary.reason.startswith("bus error") and "no status packet" in summary.reason
+    assert summary.faults & Fault.BUS_ERROR
     assert tr.stopped_with == "limp" and not tr.is_open
     tel = read_telemetry(tmp_path / "run.tel")
     assert any(e["kind"] == "estop" and "no status packet" in e["reason"] for e in tel.events)
+
+
+class BuggyTransport(RecordTransport):
+    def write_goal(self, positions):
+        if len(self.commands) > 50:
+            raise ZeroDivisionError("a bug")
+        super().write_goal(positions)
+
+
+def test_a_bug_applies_the_estop_policy_before_propagating(tmp_path):
+    tr = BuggyTransport(NAMES)
+    loop, _, buf = _loop(tmp_path, transport=tr)
+    _producer(buf, _sine(100))
+    with pytest.raises(ZeroDivisionError):
+        loop.run()
+    assert tr.stopped_with == "limp" and not tr.is_open
 
 
 def test_mismatched_joint_names_are_refused(tmp_path):

@@ -97,20 +97,18 @@ class NormStats:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "NormStats":
         """Read stats written by :meth:`save`; bad files raise DualFlowError naming the file."""
+        from dualflow.motion.io.npfile import open_npz
+
         path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                missing = [k for k in ("mean", "std") if k not in data.files]
-                if missing:
-                    raise DualFlowError(
-                        f"{path}: normalization stats file lacks {', '.join(missing)}; "
-                        "write it with NormStats.save"
-                    )
-                mean, std = data["mean"], data["std"]
-        except DualFlowError:
-            raise
-        except (OSError, ValueError) as exc:
-            raise DualFlowError(f"{path}: cannot read normalization stats ({exc}); give an npz from NormStats.save") from None
+        with open_npz(path) as data:  # headers checked before allocating, no pickle
+            missing = [k for k in ("mean", "std") if k not in data]
+            if missing:
+                raise DualFlowError(f"{path}: normalization stats file lacks {', '.join(missing)}; "
+                                    "write it with NormStats.save")
+            mean, std = data["mean"], data["std"]
+        for what, arr in (("mean", mean), ("std", std)):
+            if arr.dtype.kind != "f":
+                raise DualFlowError(f"{path}, field {what!r}: expected floating-point numbers, got dtype {arr.dtype}")
         try:
             return cls(mean, std)
         except DualFlowError as exc:

@@ -123,7 +123,7 @@ def demo(args) -> int:
     if video is not None:
         print(f"video: {video}")
     print(f"done in {time.monotonic() - t_start:.0f} s")
-    ok = (result.summary.end_state == "STOPPED" and result.transport_info.get("bus_violations", 0) == 0
+    ok = (result.summary.ok and result.transport_info.get("bus_violations", 0) == 0
           and check.passed)
     return 0 if ok else 1
 

@@ -13,11 +13,21 @@ Stop with Ctrl-C (or SIGTERM): an e-stop that applies the e-stop policy at once.
 terminal, q or the space bar does the same. A recorded actor stops by itself at its end
 (the stop policy: hold or limp after a ramp).
 
+A live actor (udp://) listens on the loopback interface only, unless --allow-remote-actor
+(then it warns: any host that reaches the port can move the robot). It locks onto one
+sender; packets it drops (garbage, out of range, out of order, forged sequence jumps,
+another sender's) are counted by kind in the status line, the summary and the telemetry
+events.
+
 Writes into --out: telemetry.dftl (+ .events.jsonl; every control tick, flushed even on a
 crash), actor.npz and partner.npz (the two people), robot.npz (the simulated robot's
 measured motion, sim transports) or commands.npz (record transport), and the video with
---video. Exit code 0 when the run ends in a normal stop, 1 after an e-stop or a fault, 2 for
-bad options.
+--video.
+
+Exit codes: 0 the run ended normally (the motion's end, --max-duration, a stop request);
+1 a fault, e-stop or watchdog stop (a bus error, an overheated servo, a failed generator,
+no frames arriving, Ctrl-C / SIGTERM / q); 2 bad options or a bad input file (one line
+naming it and the fix).
 """
 
 from __future__ import annotations
@@ -96,6 +106,9 @@ def register(sub) -> None:
     p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`) or its hardware.yaml; sim and record need no hardware config (default: op3)")
     p.add_argument("--actor", default="synthetic",
                    help="motion file (BVH, npz, InterGen npy), udp://127.0.0.1:PORT (live), or 'synthetic' (default)")
+    p.add_argument("--allow-remote-actor", action="store_true",
+                   help="let a udp:// actor listen on a non-loopback address (e.g. udp://0.0.0.0:9870); anyone who "
+                        "reaches the port can then move the robot: trusted networks only")
     p.add_argument("--seconds", type=float, default=10.0, help="length of the synthetic actor (default 10 s)")
     p.add_argument("--seed", type=int, default=0, help="synthetic actor seed (default 0)")
     p.add_argument("--partner", choices=PARTNERS, default="dualflow",
@@ -148,10 +161,12 @@ class StatusLine:
         self._last, self._ticks0 = now, loop.summary.ticks
         lat = loop.summary.e2e_latency[-1] * 1e3 if loop.summary.e2e_latency else float("nan")
         stream = self._stream or sys.stderr
+        stats = getattr(loop, "source_stats", None)
+        drops = f" udp {stats.describe()} " if stats is not None and stats.dropped else ""
         stream.write(
             f"\r{loop.state.name:<8} {rate:6.1f} Hz  frame {loop.summary.frames_played:5d}  latency {lat:6.1f} ms  "
             f"interventions {loop.summary.interventions:5d}  misses {loop.deadline_misses:3d}  "
-            f"faults {fault_names(faults)} "
+            f"faults {fault_names(faults)} {drops}"
         )
         stream.flush()
 
@@ -210,10 +225,27 @@ def print_summary(result, stream=None) -> None:
         cpu += f"; playback margin {g['playback_margin_ms']:.0f} ms" if "playback_margin_ms" in g else ""
         lines.append(f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}{cpu}), "
                      f"partner frames dropped to keep up: {g['frames_dropped']} in {g['catch_ups']} catch-ups")
+    stats = getattr(result, "source_stats", None)
+    if stats is not None:
+        lines.append(f"udp input: {stats.received} packets, {stats.accepted} frames accepted, {stats.describe()}"
+                     + (f", {stats.estops} e-stop packets" if stats.estops else "")
+                     + (f", {stats.flooded} polls flooded" if stats.flooded else ""))
     for k, v in result.transport_info.items():
         lines.append(f"{k}: {v}")
     lines.append(f"outputs in {result.out}")
     stream.write("\n".join(lines) + "\n")
+
+
+def remote_actor_warning(actor: str, allow_remote: bool) -> str | None:
+    """The warning printed when a udp:// actor listens beyond loopback (--allow-remote-actor)."""
+    from ros_free_bridge.session import check_udp_actor
+    from ros_free_bridge.sources.udp import is_loopback
+
+    where = check_udp_actor(actor, allow_remote)
+    if where is None or is_loopback(where[0]):
+        return None
+    return (f"warning: the UDP actor listens on {where[0]}:{where[1]}, not on loopback: any host that reaches this "
+            "port can move the robot (--allow-remote-actor)")
 
 
 def run(args) -> int:
@@ -224,7 +256,11 @@ def run(args) -> int:
         **generator_options(args), transport=args.transport, port=args.port, emulate=args.emulate,
         rate_hz=args.rate, realtime_priority=args.realtime_priority, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
+        allow_remote_actor=args.allow_remote_actor,
     )
+    warning = remote_actor_warning(args.actor, args.allow_remote_actor)
+    if warning:
+        print(warning, file=sys.stderr)
     status = None if args.quiet else StatusLine()
 
     def ready(loop, described):
@@ -237,7 +273,7 @@ def run(args) -> int:
     print_summary(result)
     if args.video:
         print(f"video: {render_video(result, Path(args.video))}")
-    return 0 if result.summary.end_state == "STOPPED" else 1
+    return 0 if result.summary.ok else 1
 
 
 #: Closest the drawn actor's pelvis may come to the robot's root in the video (m, scene units).

@@ -25,7 +25,9 @@ def register(sub) -> None:
                        description="Play the joint commands a run sent (read from its telemetry file) again: as "
                                    "a video through the simulated servos (--video), and/or through the control "
                                    "loop and its safety filter to a transport (--transport), e.g. to repeat on "
-                                   "the real robot what was first tried in simulation.")
+                                   "the real robot what was first tried in simulation. Every command is played, "
+                                   "one per control tick at the run's rate (a late tick delays the rest, none "
+                                   "is dropped); exit code 1 if the replay ended in an e-stop or a fault.")
     r.add_argument("telemetry", help="a telemetry.dftl file written by run or demo")
     r.add_argument("--robot", help="robot name or hardware config (default: the one the run used)")
     r.add_argument("--video", help="render the commands played through the simulated servos to this .mp4")
@@ -37,10 +39,13 @@ def register(sub) -> None:
 
 
 def plot(args) -> int:
+    from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.telemetry import read_telemetry
     from ros_free_bridge.telemetry_plots import plot_all
 
     tel = read_telemetry(args.telemetry)
+    if len(tel.records) < 2:
+        raise BridgeError(f"{args.telemetry}: holds {len(tel.records)} tick record(s); a plot needs at least 2")
     out = Path(args.out) if args.out else Path(args.telemetry).parent / "plots"
     for p in plot_all(tel, out):
         print(p)
@@ -53,36 +58,53 @@ def replay(args) -> int:
 
     tel = read_telemetry(args.telemetry)
     robot = args.robot or tel.meta.get("robot", "op3")
+    if not isinstance(robot, str) or not robot:
+        raise BridgeError(f"{args.telemetry}: header field 'meta.robot' is {robot!r}; give the robot with --robot")
     if not args.video and not args.transport:
         raise BridgeError("replay: give --video OUT.mp4 and/or --transport sim|record|dynamixel|serial")
-    traj = tel.commands_trajectory(robot)
+    try:
+        traj = tel.commands_trajectory(robot)
+    except BridgeError as exc:
+        raise BridgeError(f"{args.telemetry}: {exc}") from None
+    ok = True
     if args.video:
         from sim.render import render_trajectory
 
         out, result = render_trajectory(traj, args.video, robot=robot)
         print(f"video: {out}" + ("" if result is None else f" (check: {'pass' if result.passed else 'fail'})"))
     if args.transport:
-        replay_on_transport(tel, traj, robot, args)
-    return 0
+        ok = replay_on_transport(tel, traj, robot, args)
+    return 0 if ok else 1
 
 
-def replay_on_transport(tel, traj, robot: str, args) -> None:
-    """Play the logged commands again through the control loop (ramps, limits, e-stop)."""
+def replay_on_transport(tel, traj, robot: str, args) -> bool:
+    """Play the logged commands again through the control loop (ramps, limits, e-stop);
+    True when it ended in a normal stop.
+
+    Every command is played, one per control tick (LoopConfig pace="ticks"): a tick the
+    machine runs late delays the commands after it instead of dropping any, and the stream,
+    complete from the start, never trips the loop's "no new frames" watchdog."""
     import time
     from contextlib import ExitStack
 
+    from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.loop import ControlLoop, LoopConfig
-    from ros_free_bridge.robots import bridge_limits, resolve_robot
-    from ros_free_bridge.session import SessionOptions, open_transport
+    from ros_free_bridge.robots import bridge_limits, model_limits, resolve_robot
+    from ros_free_bridge.session import MODEL_ONLY_TRANSPORTS, SessionOptions, open_transport
     from ros_free_bridge.targets import TargetBuffer, TargetFrame
 
     files = resolve_robot(robot)
-    hardware = files.hardware_config()
-    limits = bridge_limits(hardware)
-    if tuple(limits.names) != tuple(tel.joint_names):
-        from ros_free_bridge.errors import BridgeError
+    if files.hardware is None and args.transport in MODEL_ONLY_TRANSPORTS:
+        from retarget.robot import load_robot
 
-        raise BridgeError(f"replay: the telemetry's joints {tel.joint_names} are not robot {files.name}'s {limits.names}")
+        hardware = None
+        limits = model_limits(load_robot(files.mjcf, files.profile))
+    else:
+        hardware = files.hardware_config()
+        limits = bridge_limits(hardware)
+    if tuple(limits.names) != tuple(tel.joint_names):
+        raise BridgeError(f"{args.telemetry}: the telemetry's joints {tel.joint_names} are not robot {files.name}'s "
+                          f"{limits.names}; give the robot the run used (--robot)")
     buf = TargetBuffer(tel.rate_hz, capacity=traj.n_frames + 1)
     now = time.monotonic()
     for k in range(traj.n_frames):
@@ -91,5 +113,8 @@ def replay_on_transport(tel, traj, robot: str, args) -> None:
     opts = SessionOptions(robot=robot, transport=args.transport, port=args.port, emulate=args.emulate, rate_hz=tel.rate_hz)
     with ExitStack() as stack:
         transport, _ = open_transport(opts, files, hardware, limits.names, traj.joint_pos[0], stack)
-        summary = ControlLoop(transport, limits, buf, LoopConfig(rate_hz=tel.rate_hz, rest_pose=traj.joint_pos[0])).run()
-    print(f"replayed {summary.frames_played} commands: {summary.end_state} ({summary.reason})", file=sys.stderr)
+        summary = ControlLoop(transport, limits, buf, LoopConfig(rate_hz=tel.rate_hz, rest_pose=traj.joint_pos[0],
+                                                                 pace="ticks")).run()
+    print(f"replayed {summary.frames_played} of {traj.n_frames} commands: {summary.end_state} ({summary.reason})",
+          file=sys.stderr)
+    return summary.ok

@@ -19,8 +19,18 @@ import multiprocessing as mp
 import os
 
 
-def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allowed, conn, realtime: int = 0) -> None:
+def _child(servos, baud: int, protocol: int, wire_timing: bool, nice: int, allowed, conn, realtime: int = 0,
+           parent: int | None = None, pdeathsig: bool = False) -> None:
+    import signal
+
     from ros_free_bridge.emulators import DynamixelBusEmulator
+    from ros_free_bridge.lifeline import die_with_parent
+
+    if parent is not None:
+        die_with_parent(parent, pdeathsig=pdeathsig)  # never outlive the bridge, even after its SIGKILL
+    # A Ctrl-C reaches the whole process group: the bus must stay up while the bridge applies
+    # its e-stop policy (real servos do not hear the terminal either); the parent stops it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     if nice:
         try:
@@ -50,10 +60,12 @@ class EmulatorProcess:
 
     def __init__(self, servos=range(1, 21), baud: int = 2_000_000, protocol: int = 2, wire_timing: bool = True,
                  nice: int = 0, allowed: dict | None = None, realtime: int = 0):
+        from ros_free_bridge.lifeline import parent_thread_lives_on
+
         ctx = mp.get_context("fork")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_child, args=(list(servos), baud, protocol, wire_timing, nice, allowed, child,
-                                                      realtime), daemon=True)
+                                                      realtime, os.getpid(), parent_thread_lives_on()), daemon=True)
         self._proc.start()
         self.port: str = self._conn.recv()
         self.stats: dict = {}

@@ -10,7 +10,8 @@ offset size   field
 5      1      type: 1 = actor frame, 2 = e-stop
 6      2      reserved, 0
 8      4      sequence number (uint32, increases by 1 per packet, wraps)
-12     4      reserved, 0
+12     4      stream id (uint32): a number the sender draws at random when it starts
+              and keeps while it runs (0: a sender that does not say)
 ====== ====== ==========================================================
 
 then, for type 1 (actor frame, 288 bytes in all):
@@ -23,9 +24,13 @@ then, for type 1 (actor frame, 288 bytes in all):
 
 and for type 2 (e-stop, 24 bytes in all): the sender timestamp (float64) only.
 
-A receiver drops, and counts, any datagram whose size, magic, version or type is wrong,
-whose positions are not finite, or whose sequence number is not newer than the last
-accepted one (modulo 2³²: newer means 1 ≤ (seq - last) mod 2³² < 2³¹).
+A receiver drops, and counts by kind (:mod:`ros_free_bridge.sources.udp`), any datagram
+whose size, magic, version or type is wrong (``garbage``), whose timestamp or positions are
+not finite or whose positions lie beyond ``MAX_ABS_M`` = 10 m of the origin (``out_of_range``:
+3e38 is finite in float32, but its square is not), or whose sequence number is not newer
+than the last accepted one (modulo 2³²: newer means 1 ≤ (seq - last) mod 2³² < 2³¹) or
+jumps ahead by more than ``MAX_SEQ_JUMP`` (see the receiver for how a restarted sender is
+recognised: by its stream id, never by a higher number alone).
 """
 
 from __future__ import annotations
@@ -44,10 +49,21 @@ STAMP = struct.Struct("<d")
 N_VALUES = 22 * 3
 FRAME_SIZE = HEADER.size + STAMP.size + 4 * N_VALUES  # 288
 ESTOP_SIZE = HEADER.size + STAMP.size  # 24
+#: Largest accepted |coordinate| of an actor joint, metres (a person within 10 m of the origin).
+MAX_ABS_M = 10.0
+#: Largest accepted forward jump of the sequence number within one stream: 3000 packets, more
+#: than a minute and a half of frames at 30 fps lost in a row.
+MAX_SEQ_JUMP = 3000
 
 
 class PacketError(ValueError):
-    """A datagram that is not a valid version-1 packet (it is dropped and counted)."""
+    """A datagram that is not a valid version-1 packet (it is dropped and counted); ``kind``
+    says which counter: ``garbage`` (not a packet) or ``out_of_range`` (a packet whose values
+    cannot be a person)."""
+
+    def __init__(self, message: str, kind: str = "garbage"):
+        super().__init__(message)
+        self.kind = kind
 
 
 @dataclass(frozen=True)
@@ -55,29 +71,32 @@ class ActorFramePacket:
     seq: int
     stamp: float
     positions: np.ndarray  # (22, 3) float64 metres
+    stream: int = 0  #: the sender's stream id (0: not given)
 
 
 @dataclass(frozen=True)
 class EStopPacket:
     seq: int
     stamp: float
+    stream: int = 0
 
 
-def encode_frame(seq: int, stamp: float, positions) -> bytes:
+def encode_frame(seq: int, stamp: float, positions, stream: int = 0) -> bytes:
     pos = np.asarray(positions, dtype="<f4")
     if pos.shape != (22, 3):
         raise PacketError(f"positions must have shape (22, 3), got {pos.shape}")
-    return HEADER.pack(MAGIC, VERSION, TYPE_FRAME, 0, seq & 0xFFFFFFFF, 0) + STAMP.pack(stamp) + pos.tobytes()
+    return (HEADER.pack(MAGIC, VERSION, TYPE_FRAME, 0, seq & 0xFFFFFFFF, stream & 0xFFFFFFFF) + STAMP.pack(stamp)
+            + pos.tobytes())
 
 
-def encode_estop(seq: int, stamp: float) -> bytes:
-    return HEADER.pack(MAGIC, VERSION, TYPE_ESTOP, 0, seq & 0xFFFFFFFF, 0) + STAMP.pack(stamp)
+def encode_estop(seq: int, stamp: float, stream: int = 0) -> bytes:
+    return HEADER.pack(MAGIC, VERSION, TYPE_ESTOP, 0, seq & 0xFFFFFFFF, stream & 0xFFFFFFFF) + STAMP.pack(stamp)
 
 
 def decode(data: bytes) -> ActorFramePacket | EStopPacket:
     if len(data) < HEADER.size:
         raise PacketError(f"datagram of {len(data)} bytes is shorter than the {HEADER.size}-byte header")
-    magic, version, kind, _, seq, _ = HEADER.unpack_from(data)
+    magic, version, kind, _, seq, stream = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise PacketError(f"bad magic {magic!r}, expected {MAGIC!r}")
     if version != VERSION:
@@ -88,13 +107,16 @@ def decode(data: bytes) -> ActorFramePacket | EStopPacket:
         (stamp,) = STAMP.unpack_from(data, HEADER.size)
         pos = np.frombuffer(data, dtype="<f4", count=N_VALUES, offset=HEADER.size + STAMP.size)
         if not (np.isfinite(stamp) and np.all(np.isfinite(pos))):
-            raise PacketError(f"actor frame {seq} has NaN or inf values")
-        return ActorFramePacket(seq, stamp, pos.reshape(22, 3).astype(np.float64))
+            raise PacketError(f"actor frame {seq} has NaN or inf values", "out_of_range")
+        if np.abs(pos).max() > MAX_ABS_M:  # finite, but no person: 3e38 overflows float32 arithmetic
+            raise PacketError(f"actor frame {seq} has a joint {float(np.abs(pos).max()):.3g} m from the origin "
+                              f"(more than {MAX_ABS_M:g} m)", "out_of_range")
+        return ActorFramePacket(seq, stamp, pos.reshape(22, 3).astype(np.float64), stream)
     if kind == TYPE_ESTOP:
         if len(data) != ESTOP_SIZE:
             raise PacketError(f"e-stop packet must be {ESTOP_SIZE} bytes, got {len(data)}")
         (stamp,) = STAMP.unpack_from(data, HEADER.size)
-        return EStopPacket(seq, stamp)
+        return EStopPacket(seq, stamp, stream)
     raise PacketError(f"unknown packet type {kind}")
 
 

@@ -31,6 +31,16 @@ from pathlib import Path
 import numpy as np
 from dualflow.errors import DualFlowError
 
+#: Deepest joint chain accepted (a human skeleton is about 10 deep; hands and face rigs 30).
+MAX_DEPTH = 256
+#: Most joints (End Sites included) and channels accepted in one hierarchy.
+MAX_JOINTS = 10000
+#: Largest absolute OFFSET or channel value accepted, in file units (degrees for rotations):
+#: 1e7 is 10 km in millimetres; anything larger is damage, not capture.
+MAX_VALUE = 1e7
+#: Frame times accepted, seconds: 1 to 1000 fps (dualflow.motion.io.units.FPS_RANGE).
+FRAME_TIME_RANGE = (1e-3, 1.0)
+
 _CHANNEL_NAMES = {
     "xposition": "Xposition",
     "yposition": "Yposition",
@@ -234,12 +244,17 @@ class _Tokens:
             value = float(tok)
         except ValueError:
             raise self.error(f"expected a number for {what}, found {tok!r}", line) from None
-        if not np.isfinite(value):
-            raise self.error(f"{what} is {tok!r}; it must be a finite number", line)
+        if not np.isfinite(value) or abs(value) > MAX_VALUE:
+            raise self.error(f"{what} is {tok!r}; it must be a finite number within ±{MAX_VALUE:g}", line)
         return value
 
 
-def _parse_joint(tok: _Tokens, name: str, parent: int, joints: list[BvhJoint], line: int) -> None:
+def _parse_joint(tok: _Tokens, name: str, parent: int, joints: list[BvhJoint], line: int, depth: int = 1) -> None:
+    if depth > MAX_DEPTH:
+        raise tok.error(f"joint {name!r} is nested {depth} joints deep, more than the {MAX_DEPTH} this reader "
+                        "accepts; the HIERARCHY is damaged (unbalanced braces?)", line)
+    if len(joints) >= MAX_JOINTS:
+        raise tok.error(f"the HIERARCHY has more than {MAX_JOINTS} joints; the file is damaged or not a skeleton", line)
     tok.expect("{")
     tok.expect("OFFSET")
     offset = tuple(tok.number(f"the OFFSET of {name!r}") for _ in range(3))
@@ -251,6 +266,9 @@ def _parse_joint(tok: _Tokens, name: str, parent: int, joints: list[BvhJoint], l
             count = int(count_tok)
         except ValueError:
             raise tok.error(f"CHANNELS of {name!r} must start with a count, found {count_tok!r}", count_line) from None
+        if not 0 <= count <= 6:
+            raise tok.error(f"CHANNELS of {name!r} says {count}; a joint has 0 to 6 channels (X/Y/Z position "
+                            "and rotation)", count_line)
         names = []
         for _ in range(count):
             ch, ch_line = tok.next(f"{count} channel names for {name!r}")
@@ -277,7 +295,7 @@ def _parse_joint(tok: _Tokens, name: str, parent: int, joints: list[BvhJoint], l
             return
         if key == "JOINT":
             child, child_line = tok.next("a joint name")
-            _parse_joint(tok, child, index, joints, child_line)
+            _parse_joint(tok, child, index, joints, child_line, depth + 1)
         elif key == "END":
             site, _ = tok.next("'Site'")
             if site.upper() != "SITE":
@@ -338,9 +356,11 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
         frame_time = float(header["frame time"][0])
     except ValueError:
         raise DualFlowError(f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be a number, found {header['frame time'][0]!r}") from None
-    if not np.isfinite(frame_time) or frame_time <= 0:
+    lo, hi = FRAME_TIME_RANGE
+    if not lo <= frame_time <= hi:  # NaN fails too
         raise DualFlowError(
-            f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be > 0 seconds, found {header['frame time'][0]!r}"
+            f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be > 0, within {lo:g}-{hi:g} seconds "
+            f"(1 to 1000 fps), found {header['frame time'][0]!r}; fix it to the capture's frame period"
         )
     if n_frames <= 0:
         raise DualFlowError(
@@ -386,12 +406,12 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
                 except ValueError:
                     raise DualFlowError(f"{source}, line {line_no}: {word!r} is not a number") from None
         raise
-    finite = np.isfinite(motion)
+    finite = np.isfinite(motion) & (np.abs(motion) <= MAX_VALUE)
     if not finite.all():
         k, c = np.argwhere(~finite)[0]
         raise DualFlowError(
             f"{source}, line {row_lines[k]}: channel {c + 1} is {float(motion[k, c])}; "
-            "motion values must be finite numbers (drop or repair that frame)"
+            f"motion values must be finite numbers within ±{MAX_VALUE:g} (drop or repair that frame)"
         )
     return BvhClip(tuple(joints), frame_time, motion, source, row_lines[0])
 

@@ -46,6 +46,7 @@ from dualflow.motion.io.units import (
     axes_from_rest,
     axes_matrix,
     check_height,
+    check_positions,
     detect_scale,
     estimate_height,
 )
@@ -150,6 +151,7 @@ def bvh_to_motion(clip: BvhClip, options: BvhImportOptions = BvhImportOptions(),
             raise DualFlowError(f"{source}: cannot drop the first frame of a one-frame file; keep it (--keep-first-frame)")
         pos = pos[1:]
         notes.append("dropped the first frame (a reference pose, not capture)")
+    check_positions(pos, source)
     up = pos[:, JOINT_NAMES.index("head"), 2] - pos[:, 0, 2]
     if np.median(up) < 0:
         raise DualFlowError(

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import io
 import json
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +43,20 @@ from dualflow.errors import DualFlowError
 from dualflow.motion.container import Motion, TwoPersonMotion
 from dualflow.motion.io.bvh import atomic_write_bytes
 from dualflow.motion.io.bvh_motion import BvhImportOptions, read_bvh_motion, write_bvh_motion
-from dualflow.motion.io.units import HEIGHT_RANGE, Y_UP, axes_matrix, check_height, estimate_height
+from dualflow.motion.io.npfile import open_npz, read_npy, scalar, text
+from dualflow.motion.io.units import (
+    FPS_RANGE,
+    HEIGHT_RANGE,
+    MAX_COORDINATE_M,
+    MIN_FRAMES,
+    Y_UP,
+    axes_matrix,
+    check_fps,
+    check_height,
+    check_positions,
+    estimate_height,
+    frames_message,
+)
 from dualflow.motion.skeleton import FOOT_JOINTS, JOINT_NAMES, N_JOINTS
 
 MOTION_FORMAT = "dualflow-motion-1"
@@ -61,11 +73,7 @@ def _finish(pos: np.ndarray, fps: float, name: str, source: str, opts: dict, con
     """Scale, height check and resampling shared by the array readers."""
     scale = opts.get("scale") or 1.0
     pos = np.asarray(pos, dtype=np.float64) * scale
-    if pos.shape[0] < 1:
-        raise DualFlowError(f"{source}: the file has zero frames")
-    if not np.isfinite(pos).all():
-        frame, joint, _ = np.argwhere(~np.isfinite(pos))[0]
-        raise DualFlowError(f"{source}: positions contain NaN or inf (first at frame {frame}, joint {joint}); clean the file")
+    check_positions(pos, source)
     check_height(estimate_height(pos), scale, source, opts.get("height_range", HEIGHT_RANGE))
     motion = Motion(pos, fps=fps, contacts=contacts, name=name)
     if opts.get("fps") is not None:
@@ -74,13 +82,8 @@ def _finish(pos: np.ndarray, fps: float, name: str, source: str, opts: dict, con
 
 
 def _fps_value(value, source: str, field: str) -> float:
-    try:
-        fps = float(np.asarray(value).reshape(()))
-    except (TypeError, ValueError):
-        raise DualFlowError(f"{source}, field {field!r}: fps must be one number, got {value!r}") from None
-    if not np.isfinite(fps) or fps <= 0:
-        raise DualFlowError(f"{source}, field {field!r}: fps must be > 0, got {fps!r}")
-    return fps
+    where = f"{source}, field {field!r}"
+    return check_fps(scalar(value, where, what="fps"), where)
 
 
 def _axes(opts: dict, default: str) -> np.ndarray:
@@ -97,27 +100,20 @@ def _magic(path: Path, prefix: bytes, what: str) -> None:
         raise DualFlowError(f"{path}: not a readable {what} file (wrong header); is it really {what}?")
 
 
-def _open_npz(path: Path):
-    _magic(path, b"PK", ".npz")
-    try:
-        return np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
-        raise DualFlowError(f"{path}: not a readable .npz file ({exc}); is it truncated?") from None
-
-
 def _get(data, key: str, source: str) -> np.ndarray:
-    try:
-        return data[key]
-    except ValueError:
-        raise DualFlowError(f"{source}, field {key!r}: holds Python objects (pickle), which are not loaded; re-save it as plain arrays") from None
-    except (zipfile.BadZipFile, OSError, EOFError) as exc:
-        raise DualFlowError(f"{source}, field {key!r}: cannot be read ({exc}); the file is damaged or truncated") from None
+    """Field ``key`` of an open :class:`~dualflow.motion.io.npfile.NpzFile` (errors name it)."""
+    return data.get(key, fix="re-export the file with this field (formats: dualflow.motion.io.formats)")
+
+
+def _text_field(data, key: str, source: str) -> str:
+    return text(_get(data, key, source), f"{source}, field {key!r}")
 
 
 def _positions_field(arr: np.ndarray, source: str, field: str) -> np.ndarray:
     arr = np.asarray(arr)
-    if arr.dtype.kind not in "fiu":
-        raise DualFlowError(f"{source}, field {field!r}: expected numbers, got dtype {arr.dtype}")
+    if arr.dtype.kind != "f":
+        raise DualFlowError(f"{source}, field {field!r}: expected joint positions as floating-point numbers (metres), "
+                            f"got dtype {arr.dtype}; save them as float32 or float64")
     if arr.ndim == 2 and arr.shape[1] % 3 == 0 and arr.shape[1] >= 3 * N_JOINTS:
         arr = arr.reshape(arr.shape[0], -1, 3)
     if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] < N_JOINTS:
@@ -131,6 +127,8 @@ def _contacts_field(data, key: str, n: int, source: str):
     if key not in data.files:
         return None
     c = _get(data, key, source)
+    if c.dtype.kind not in "biuf":
+        raise DualFlowError(f"{source}, field {key!r}: expected foot contacts as booleans, got dtype {c.dtype}")
     if c.shape != (n, 4):
         raise DualFlowError(f"{source}, field {key!r}: expected shape ({n}, 4), got {tuple(c.shape)}")
     return c.astype(bool)
@@ -138,15 +136,15 @@ def _contacts_field(data, key: str, n: int, source: str):
 
 def _read_npz(path: Path, opts: dict):
     source = str(path)
-    with _open_npz(path) as data:
+    with open_npz(path) as data:
         files = set(data.files)
-        fmt = str(_get(data, "format", source)) if "format" in files else ""
+        fmt = _text_field(data, "format", source) if "format" in files else ""
         if fmt == MOTION_FORMAT or (not fmt and {"positions", "fps"} <= files and "joint_names" in files):
             pos = _positions_field(_get(data, "positions", source), source, "positions")
-            fps = _fps_value(_get(data, "fps", source), source, "fps")
-            name = str(_get(data, "name", source)) if "name" in files else path.stem
+            fps = opts.get("source_fps") or _fps_value(_get(data, "fps", source), source, "fps")
+            name = _text_field(data, "name", source) if "name" in files else path.stem
             contacts = _contacts_field(data, "contacts", pos.shape[0], source)
-            return _finish(pos, opts.get("source_fps") or fps, name, source, opts, contacts)
+            return _finish(pos, fps, name, source, opts, contacts)
         if fmt == DUET_FORMAT:
             fps = opts.get("source_fps") or _fps_value(_get(data, "fps", source), source, "fps")
             people = []
@@ -156,17 +154,19 @@ def _read_npz(path: Path, opts: dict):
                     raise DualFlowError(f"{source}: duet file has no field {key!r}; it is incomplete")
                 pos = _positions_field(_get(data, key, source), source, key)
                 contacts = _contacts_field(data, f"{role}_contacts", pos.shape[0], source)
-                name = str(_get(data, f"{role}_name", source)) if f"{role}_name" in files else role
+                name = _text_field(data, f"{role}_name", source) if f"{role}_name" in files else role
                 people.append(_finish(pos, fps, name, source, opts, contacts))
-            text = str(_get(data, "text", source)) if "text" in files else ""
+            cue = _text_field(data, "text", source) if "text" in files else ""
             meta = {}
             if "meta" in files:
                 try:
-                    meta = json.loads(str(_get(data, "meta", source)))
-                except json.JSONDecodeError as exc:
-                    raise DualFlowError(f"{source}, field 'meta': not valid JSON ({exc})") from None
+                    meta = json.loads(_text_field(data, "meta", source))
+                except (json.JSONDecodeError, RecursionError) as exc:
+                    raise DualFlowError(f"{source}, field 'meta': not valid JSON ({str(exc)[:100]})") from None
+                if not isinstance(meta, dict):
+                    raise DualFlowError(f"{source}, field 'meta': must be a JSON object, got {type(meta).__name__}")
             try:
-                return TwoPersonMotion(people[0], people[1], text, meta)
+                return TwoPersonMotion(people[0], people[1], cue, meta)
             except DualFlowError as exc:
                 raise DualFlowError(f"{source}: {exc}") from None
         if fmt:
@@ -185,7 +185,7 @@ def _read_npz(path: Path, opts: dict):
         pos = _positions_field(_get(data, key, source), source, key)
         fps_key = next((k for k in _FPS_KEYS if k in files), None)
         if opts.get("source_fps"):
-            fps = float(opts["source_fps"])
+            fps = check_fps(float(opts["source_fps"]), "option source_fps")
         elif fps_key is None:
             raise DualFlowError(
                 f"{source}: no frame rate field ({', '.join(_FPS_KEYS)}); give the file's fps (--source-fps)"
@@ -210,18 +210,12 @@ def _features():
 def _read_npy(path: Path, opts: dict):
     source = str(path)
     _magic(path, b"\x93NUMPY", ".npy")
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        msg = str(exc)
-        why = "holds Python objects (pickle), which are not loaded" if "pickle" in msg.lower() else f"is damaged or truncated ({msg})"
-        raise DualFlowError(f"{source}: {why}") from None
-    except (OSError, EOFError) as exc:
-        raise DualFlowError(f"{source}: not a readable .npy file ({exc})") from None
-    if arr.dtype.kind not in "fiu":
-        raise DualFlowError(f"{source}: expected a numeric array, got dtype {arr.dtype}")
-    if arr.ndim >= 1 and arr.shape[0] == 0:
-        raise DualFlowError(f"{source}: the file has zero frames")
+    arr = read_npy(path)
+    if arr.dtype.kind != "f":
+        raise DualFlowError(f"{source}: expected a numeric array of floating-point numbers, got dtype {arr.dtype}; "
+                            "save it as float32 or float64")
+    if arr.ndim >= 1 and arr.shape[0] < MIN_FRAMES:
+        raise DualFlowError(frames_message(arr.shape[0], source))
     if not np.isfinite(arr).all():
         row = int(np.argwhere(~np.isfinite(arr))[0][0])
         raise DualFlowError(f"{source}: contains NaN or inf (first at frame {row}); clean the file")
@@ -265,6 +259,8 @@ def _check_options(opts: dict) -> dict:
         value = opts.get(key)
         if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
             raise DualFlowError(f"option {key!r} must be a positive number, got {value!r}")
+        if value is not None and key != "scale":
+            check_fps(float(value), f"option {key!r}")
     return opts
 
 

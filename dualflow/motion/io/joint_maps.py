@@ -206,14 +206,19 @@ def builtin_map(name: str) -> JointMap:
 def load_joint_map(path: str | os.PathLike) -> JointMap:
     """Read a user joint-map file (.yaml/.yml/.json; format in the module docstring)."""
     path = Path(path)
+    kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
     try:
-        text = path.read_text()
+        text = path.read_bytes().decode("utf-8")
     except OSError as exc:
         raise DualFlowError(f"{path}: cannot read joint map ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise DualFlowError(f"{path}: not UTF-8 text (byte {exc.start}); a joint map is a {kind} file") from None
     try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+        data = json.loads(text) if kind == "JSON" else yaml.safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        raise DualFlowError(f"{path}: not valid {'JSON' if path.suffix.lower() == '.json' else 'YAML'}: {exc}") from None
+        raise DualFlowError(f"{path}: not valid {kind}: {str(exc)[:200]}") from None
+    except RecursionError:
+        raise DualFlowError(f"{path}: nested too deeply to be a joint map; fix the syntax") from None
     if not isinstance(data, Mapping) or "joints" not in data or not isinstance(data["joints"], Mapping):
         raise DualFlowError(f"{path}: a joint map needs a 'joints:' mapping of SMPL joint -> source (and optionally 'base:')")
     extra = sorted(set(data) - {"base", "joints"})

@@ -26,6 +26,17 @@ from dualflow.motion.skeleton import REST_POSE
 #: Plausible adult standing height in metres.
 HEIGHT_RANGE: tuple[float, float] = (1.4, 2.1)
 
+#: Frame rates a motion file may declare (frames/s): below 1 fps a clip is a slide show (and
+#: resampling it to 30 fps multiplies its size); no capture system records above 1000 fps.
+FPS_RANGE: tuple[float, float] = (1.0, 1000.0)
+
+#: Fewest frames a motion file must hold: one frame has no motion (and no frame rate to speak of).
+MIN_FRAMES = 2
+
+#: Largest joint coordinate accepted, metres from the capture origin (after the unit scale):
+#: values beyond it are damaged or in another unit, and would overflow later arithmetic.
+MAX_COORDINATE_M = 1e4
+
 #: Length units a file may use, metres per unit.
 KNOWN_UNITS: dict[str, float] = {
     "m": 1.0,
@@ -139,3 +150,36 @@ def axes_matrix(up: str) -> np.ndarray:
     if key == "z":
         return Z_UP.copy()
     raise DualFlowError(f"up axis must be 'y', 'z' or 'auto', got {up!r}")
+
+
+def frames_message(n: int, source: str) -> str:
+    """What to say about a motion file of ``n`` < MIN_FRAMES frames."""
+    if n == 0:
+        return f"{source}: the file has zero frames; a motion needs at least {MIN_FRAMES}"
+    return f"{source}: the file has only {n} frame; a motion needs at least {MIN_FRAMES} (re-export the whole clip)"
+
+
+def check_fps(fps: float, where: str) -> float:
+    """``fps`` if it lies in :data:`FPS_RANGE`, else DualFlowError naming ``where``."""
+    lo, hi = FPS_RANGE
+    if not lo <= fps <= hi:  # NaN fails too
+        raise DualFlowError(f"{where}: fps must be > 0, within {lo:g}-{hi:g} frames/s, got {fps!r}; the field is damaged, "
+                            "or give the file's real rate (--source-fps)")
+    return float(fps)
+
+
+def check_positions(pos: np.ndarray, source: str) -> None:
+    """Joint positions (T, J, 3) in metres as a motion file must give them: at least
+    :data:`MIN_FRAMES` frames, finite, within :data:`MAX_COORDINATE_M`; else DualFlowError."""
+    if pos.shape[0] < MIN_FRAMES:
+        raise DualFlowError(frames_message(pos.shape[0], source))
+    bad = ~np.isfinite(pos)
+    if bad.any():
+        frame, joint = np.argwhere(bad)[0][:2]
+        raise DualFlowError(f"{source}: positions contain NaN or inf (first at frame {frame}, joint {joint}); clean the file")
+    far = np.abs(pos) > MAX_COORDINATE_M
+    if far.any():
+        frame, joint = np.argwhere(far)[0][:2]
+        raise DualFlowError(f"{source}: a joint is {np.abs(pos).max():.3g} m from the origin (first at frame {frame}, "
+                            f"joint {joint}), beyond {MAX_COORDINATE_M:g} m; the values are damaged or in another unit "
+                            "(give --scale)")
