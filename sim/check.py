@@ -1,5 +1,9 @@
 """Physical check of a robot trajectory: play it through the servos in MuJoCo and judge it.
 
+The question it answers is "can the robot do this?": a motion fails only for an outcome
+that would hurt the robot, the person or the performance; what merely looks marginal is
+measured and reported as a warning.
+
 The trajectory (:class:`retarget.RobotTrajectory`) is resampled to the control rate
 (default 100 Hz, like the bridge) by linear or cubic (PCHIP, no overshoot)
 interpolation; each control tick writes the goal angles to the position servos and
@@ -10,19 +14,40 @@ Modes: ``free`` (the robot stands on its own feet; only gravity, contacts and it
 servos act on it; the root pose of the trajectory sets the start pose only) and
 ``fixed`` (the root body is bolted at the trajectory's first root pose).
 
-Before playing, the robot is put in the first frame's pose with its lowest point
-on the floor and the first frame is held for ``settle_s`` seconds (not judged).
+Entry (``entry="stand"``, the default): a clip may start mid-motion, in a pose the robot
+cannot be dropped into. The robot starts in its standing pose (the scene's ``stand``
+keyframe, or the derived one: :mod:`sim.scene`), feet on the floor, at the first frame's root
+position and heading; it stands for ``settle_s`` (not judged) and then moves to the clip's
+first pose along a minimum-jerk path, q(s) = q_stand + (q_0 - q_stand) (10 s^3 - 15 s^4 + 6 s^5),
+as the bridge ramps a real robot to a pose. The move makes its fastest joint peak at
+``entry_speed_frac`` of its servo's no-load speed (the profile's peak speed is 1.875 |dq| / T):
+T = max(``entry_min_s``, max_j 1.875 |dq_j| / (``entry_speed_frac`` v_j)). The transition is
+judged like the clip: its ticks have negative times (the clip's first frame is t = 0); a failure there,
+or a fall whose tipping began there, is reported with ``phase="entry"`` (the clip's first pose
+cannot be reached from standing, or not held: a mid-step pose needs the step's momentum).
+``entry="first_frame"`` puts the robot straight into the first frame's pose, lowest point on
+the floor, and holds it for ``settle_s`` (not judged) instead.
 
-Judged, each with the time of its first failure (s from the start of the clip):
-``joint_limit`` (a command outside the MJCF range), ``speed_limit`` (a commanded
-joint speed above the servo's no-load speed), ``fall`` (root height below
-``fall_height_frac`` of its standing height, tilt above ``fall_tilt_deg``, or a
-part other than a foot on the floor), ``self_collision``, ``human_penetration``,
-``ground_penetration``, ``foot_slip`` (sliding distance of a foot while in
-contact), ``balance`` (centre of mass outside the support polygon for
-``balance_window_s``), ``torque_saturation`` (a servo at its stall torque for
-``saturation_window_s``) and ``tracking_error`` (|q - q_cmd| above
-``max_tracking_error`` for ``tracking_window_s``). The first in time is the reason.
+Failures (each with the time of its first occurrence, s in the clip's time):
+``joint_limit`` (a command outside the joint's range), ``speed_limit`` (a commanded joint
+speed above the servo's no-load speed), ``fall`` (a robot part other than a foot touches the
+floor, e.g. a knee, a hand or the torso, however deep; or the torso tilts beyond
+``fall_tilt_deg``; optionally the root below ``fall_height_frac`` of its standing height),
+``self_collision`` (two robot parts deeper into each other than ``self_collision_depth``),
+``human_penetration`` (the robot inside the human figure by more than
+``human_penetration_depth``), ``torque_saturation`` (a servo at its stall torque for
+``saturation_window_s``) and ``tracking_error`` (|q - q_cmd| above ``max_tracking_error``
+for ``tracking_window_s``). The first in time is the reason.
+
+Warnings (measured, never a failure; ``CheckResult.warnings``): ``foot_slip`` (a foot's
+largest slide within one stance, i.e. one contact phase of that foot, above
+``foot_slip_frac`` of the robot's height; never summed over a clip, so a long clip does
+not fail where a short one passes), ``com_outside_support`` (the centre of mass outside
+the support polygon for ``balance_window_s``: fine while moving, a static robot would
+tip), ``zmp_near_edge`` (the measured ZMP, the centre of pressure of the foot-floor contact
+forces, within ``zmp_edge_margin`` of the support polygon's edge for ``balance_window_s``:
+the feet are about to roll over an edge) and ``foot_in_floor`` (a foot deeper than
+``ground_penetration_depth`` in the floor: soft-contact compliance under load, not a fall).
 
 The robot is read as published (:mod:`sim.robot_index`, :mod:`sim.scene`): feet are the
 lowest contact bodies, limits of unranged joints come from the robot's profile or
@@ -35,7 +60,7 @@ in ``CheckResult.not_checked`` (reason -> why), in the JSON and the markdown rep
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import mujoco
@@ -46,41 +71,54 @@ from retarget.errors import RetargetError
 from retarget.trajectory import RobotTrajectory
 from sim.contacts import ContactClassifier, min_distance
 from sim.errors import SimError
-from sim.human_figure import Placement
-from sim.robot_index import geom_label
+from sim.human_figure import FaceToFace, Placement
+from sim.robot_index import body_label, geom_label
 from sim.scene import Scene, SceneConfig
 
 #: Robot-human distances are measured up to this many metres; farther reads as the cap.
 HUMAN_DISTANCE_CAP = 0.1
 
-REASONS = ("joint_limit", "speed_limit", "fall", "self_collision", "human_penetration", "ground_penetration",
-           "foot_slip", "balance", "torque_saturation", "tracking_error")
+#: Failure reasons, in the order that breaks ties between failures at the same tick.
+REASONS = ("joint_limit", "speed_limit", "fall", "self_collision", "human_penetration", "torque_saturation",
+           "tracking_error")
+
+#: Warning kinds (measured figures that do not fail a motion).
+WARNINGS = ("foot_slip", "com_outside_support", "zmp_near_edge", "foot_in_floor")
+
+#: Servo speed (rad/s) the entry transition assumes for a joint whose no-load speed is unknown.
+UNKNOWN_ENTRY_SPEED = 2.0
 
 
 @dataclass(frozen=True)
 class CheckConfig:
-    """Rates, mode and thresholds. Lengths in m are for the OP3's size unless scaled:
+    """Rates, mode, entry and thresholds. Lengths in m are for the OP3's size unless scaled:
     ``foot_slip_frac`` and ``fall_height_frac`` scale with the robot."""
 
     control_hz: float = 100.0
     physics_hz: float = 500.0
     interpolation: str = "linear"  # "linear" | "cubic"
     mode: str = "free"  # "free" | "fixed"
-    settle_s: float = 0.5
-    fall_height_frac: float = 0.6  # of the standing root height
+    entry: str = "stand"  # "stand" (min-jerk transition from the standing pose) | "first_frame"
+    entry_speed_frac: float = 0.5  # the transition's peak joint speed, x the servo's no-load speed
+    entry_min_s: float = 0.5  # shortest transition
+    settle_s: float = 0.5  # standing still before the transition (or in the first frame): not judged
+    fall_height_frac: float = 0.0  # of the standing root height; 0: off (a deep crouch is not a fall)
     fall_tilt_deg: float = 50.0
     speed_tolerance: float = 1.0  # x no-load speed
     self_collision_depth: float = 0.002  # m; two robot parts deeper into each other than this (published
     # models' collision hulls of neighbouring links often touch by a fraction of a millimetre at rest)
     human_penetration_depth: float = 0.005  # m
-    ground_penetration_depth: float = 0.01  # m
-    foot_slip_frac: float = 0.06  # of the robot's height, total sliding per foot
-    balance_margin: float = 0.0  # m; fail below -balance_margin ...
-    balance_window_s: float = 0.2  # ... sustained this long
     saturation_window_s: float = 0.5
     max_tracking_error: float = 0.35  # rad
     tracking_window_s: float = 0.25
     stop_after_fall_s: float = 0.5
+    # warnings
+    ground_penetration_depth: float = 0.01  # m, a foot this deep in the floor
+    foot_slip_frac: float = 0.02  # of the robot's height, a foot's slide within one stance
+    stance_gap_s: float = 0.05  # a foot off the floor for less than this is still in the same stance
+    balance_margin: float = 0.0  # m; centre of mass outside the support polygon by more than this ...
+    balance_window_s: float = 0.2  # ... (or the ZMP near its edge) sustained this long
+    zmp_edge_margin: float = 0.002  # m; the measured ZMP this close to the support polygon's edge
 
     def validate(self) -> None:
         for name in ("control_hz", "physics_hz"):
@@ -95,24 +133,49 @@ class CheckConfig:
             raise SimError(f"check config: interpolation must be 'linear' or 'cubic', got {self.interpolation!r}")
         if self.mode not in ("free", "fixed"):
             raise SimError(f"check config: mode must be 'free' or 'fixed', got {self.mode!r}")
-        if self.settle_s < 0:
-            raise SimError(f"check config: settle_s must be >= 0, got {self.settle_s!r}")
+        if self.entry not in ("stand", "first_frame"):
+            raise SimError(f"check config: entry must be 'stand' or 'first_frame', got {self.entry!r}")
+        if not (math.isfinite(self.entry_speed_frac) and 0 < self.entry_speed_frac <= 1):
+            raise SimError(f"check config: entry_speed_frac must be in (0, 1], got {self.entry_speed_frac!r}")
+        for name in ("settle_s", "entry_min_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise SimError(f"check config: {name} must be >= 0, got {v!r}")
 
 
 @dataclass
 class Failure:
+    """One failed criterion: ``reason`` (one of :data:`REASONS`), ``time`` (s in the clip's time:
+    negative during the entry transition), ``detail`` and ``phase`` ("entry": while moving from
+    standing to the clip's first pose; "clip": while playing the clip)."""
+
     reason: str
     time: float  # s from the start of the clip
     detail: str
+    phase: str = "clip"
+
+
+@dataclass
+class CheckWarning:
+    """A measured figure beyond its warning level: ``kind`` (one of :data:`WARNINGS`), ``time``
+    (s in the clip's time, where it first happened), ``detail``, ``phase`` as in :class:`Failure`."""
+
+    kind: str
+    time: float
+    detail: str
+    phase: str = "clip"
 
 
 @dataclass
 class CheckResult:
     """The verdict and everything measured. ``series`` holds (K,) or (K, n) arrays at
-    the control rate for plots: t, q, q_cmd, torque, root_height, tilt_deg, com_margin.
+    the control rate for plots, the entry transition included (negative t): t, q, q_cmd,
+    torque, root_height, tilt_deg, com_margin, zmp_margin.
     ``not_checked`` maps a reason that could not be judged (fully or for some joints) to
     why; ``notes`` are facts about how the robot was read (limits from the actuators'
-    ctrlrange, a derived standing pose)."""
+    ctrlrange, a derived standing pose). ``warnings`` (:class:`CheckWarning`) never change
+    ``passed``. ``entry_transition_s`` is the duration of the move from standing to the
+    clip's first pose (0 with ``entry="first_frame"``)."""
 
     robot: str
     mode: str
@@ -128,6 +191,8 @@ class CheckResult:
     config: CheckConfig = field(default_factory=CheckConfig)
     not_checked: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    entry_transition_s: float = 0.0
 
     def summary(self) -> dict:
         """JSON-ready dict (no arrays)."""
@@ -135,6 +200,8 @@ class CheckResult:
             "robot": self.robot, "mode": self.mode, "passed": self.passed, "reason": self.reason,
             "first_failure_time_s": self.first_failure_time,
             "failures": [asdict(f) for f in self.failures],
+            "warnings": [asdict(w) for w in self.warnings],
+            "entry_transition_s": self.entry_transition_s,
             "not_checked": dict(self.not_checked), "notes": list(self.notes),
             "metrics": self.metrics, "joint_names": list(self.joint_names),
             "config": asdict(self.config),
@@ -193,11 +260,13 @@ def resample(times: np.ndarray, values: np.ndarray, t_new: np.ndarray, kind: str
 
 # -- the check ---------------------------------------------------------------
 def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None = None, actor: Motion | None = None,
-                     actor_placement: Placement | None = None, on_tick=None, joint_limits: dict | None = None,
-                     no_load_speed=None) -> CheckResult:
+                     actor_placement: Placement | FaceToFace | None = None, on_tick=None,
+                     joint_limits: dict | None = None, no_load_speed=None) -> CheckResult:
     """Play ``traj`` (RobotTrajectory or npz path) and judge it. ``robot`` overrides
     ``traj.robot`` (default "op3"); ``actor`` adds the human figure (robot-human
-    penetration is then measured); ``on_tick(t)`` as in :meth:`Checker.run` (e.g. progress);
+    penetration is then measured), placed by ``actor_placement`` (None: face to face at a
+    partner's distance, :class:`sim.human_figure.FaceToFace`); ``on_tick(t)`` as in
+    :meth:`Checker.run` (e.g. progress);
     ``joint_limits`` / ``no_load_speed`` as in :class:`sim.scene.SceneConfig` (for what
     the MJCF does not say)."""
     config = config or CheckConfig()
@@ -209,15 +278,23 @@ def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None 
 
 
 def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = None, actor: Motion | None = None,
-              actor_placement: Placement | None = None, reactor: Motion | None = None,
-              reactor_placement: Placement | None = None, joint_limits: dict | None = None,
+              actor_placement: Placement | FaceToFace | None = None, reactor: Motion | None = None,
+              reactor_placement: Placement | FaceToFace | None = None, joint_limits: dict | None = None,
               no_load_speed=None) -> Scene:
-    """The scene a check of ``traj`` runs in (robot from ``robot``, ``traj.robot`` or op3)."""
+    """The scene a check of ``traj`` runs in (robot from ``robot``, ``traj.robot`` or op3). The
+    actor stands face to face with the robot's first frame unless ``actor_placement`` says
+    otherwise; the reactor (the person the robot plays) is drawn where ``reactor_placement`` puts
+    it (None: as the file has it)."""
     robot = robot or traj.robot or "op3"
+    actor_placement = actor_placement or FaceToFace()
+    if isinstance(actor_placement, FaceToFace) and actor_placement.path is None and config.mode == "free":
+        # keep the partner's distance from the root's planned path, not just its first frame
+        actor_placement = replace(actor_placement, path=tuple(map(tuple, np.round(traj.root_pos[:, :2], 6).tolist())),
+                                  path_fps=float(traj.fps))
     return Scene(SceneConfig(robot=robot, fixed_base=(config.mode == "fixed"),
                              base_pos=tuple(traj.root_pos[0]), base_quat=tuple(traj.root_quat[0]),
                              timestep=1.0 / config.physics_hz, actor=actor,
-                             actor_placement=actor_placement or Placement(), reactor=reactor,
+                             actor_placement=actor_placement, reactor=reactor,
                              reactor_placement=reactor_placement or Placement(), joint_limits=joint_limits,
                              no_load_speed=no_load_speed))
 
@@ -233,24 +310,24 @@ class Checker:
         self.robot_col_geoms = np.array([g for g in r.geom_ids if m.geom_contype[g] or m.geom_conaffinity[g]])
 
     def run(self, traj: RobotTrajectory, on_tick=None) -> CheckResult:
-        """Play and judge ``traj``. ``on_tick(t)`` (optional) is called after each
-        control tick with the clip time t in seconds (a renderer grabs frames there)."""
+        """Play and judge ``traj``. ``on_tick(t)`` (optional) is called after each control
+        tick of the clip with the clip time t >= 0 in seconds (a renderer grabs frames
+        there); the entry transition before it is not reported there."""
         sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
         q_traj = _joint_columns(traj, r.joint_names, sc.config.robot)
         dt = 1.0 / cfg.control_hz
         n_sub = int(round(cfg.physics_hz / cfg.control_hz))
-        n_ticks = int(math.floor(traj.duration * cfg.control_hz + 1e-9)) + 1
-        t = np.arange(n_ticks) * dt
-        q_cmd = resample(traj.times, q_traj, t, cfg.interpolation)
+        n_clip = int(math.floor(traj.duration * cfg.control_hz + 1e-9)) + 1
+        q_clip = resample(traj.times, q_traj, np.arange(n_clip) * dt, cfg.interpolation)
         free = not r.fixed_base
 
-        # start: first frame, lowest point on the floor, settle
-        sc.set_robot_pose(q_cmd[0], traj.root_pos[0], traj.root_quat[0], ground=free)
-        sc.pose_humans(0.0)
-        mujoco.mj_step(m, d, int(round(cfg.settle_s * cfg.physics_hz)))
+        q_entry = self._start(traj, q_clip[0])  # robot placed and settled; (k0, n) transition commands
+        k0 = len(q_entry)
+        q_cmd = np.concatenate([q_entry, q_clip]) if k0 else q_clip
+        t = (np.arange(k0 + n_clip) - k0) * dt  # clip time: the transition is negative
         stand_h = sc.stand_root_height if free else np.nan
 
-        K, n = n_ticks, r.n
+        K, n = len(t), r.n
         # -- record raw state per control tick into preallocated arrays (a few plain
         # copies from views bound once); everything is analysed afterwards, vectorised.
         qpos = np.full((K, m.nq), np.nan)
@@ -262,10 +339,10 @@ class Checker:
         foot_R = np.full((K, len(feet), 9), np.nan)
         human_min = np.full(K, np.inf)
         con_count = np.zeros(K, int)
-        con_geom, con_dist, con_pos = [], [], []
+        con_geom, con_dist, con_pos, con_efc, con_dim, efc_force = [], [], [], [], [], []
         actor = sc.actor
         stop_at = K
-        fall_h = cfg.fall_height_frac * stand_h if free else -np.inf
+        fall_h = cfg.fall_height_frac * stand_h if free and cfg.fall_height_frac > 0 else -np.inf
         cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg)) if free else -2.0
         root = r.root_body
         act = r.actuator_ids
@@ -297,11 +374,14 @@ class Checker:
                 con_geom.append(c.geom.copy())
                 con_dist.append(c.dist.copy())
                 con_pos.append(c.pos.copy())
+                con_efc.append(c.efc_address.copy())
+                con_dim.append(c.dim.copy())
+                efc_force.append(d.efc_force[:d.nefc].copy())
             if actor is not None:
                 human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids, HUMAN_DISTANCE_CAP)
             if stop_at == K and (root_xpos[2] < fall_h or root_xmat[8] < cos_tilt):
                 stop_at = min(K, k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
-            if on_tick is not None:
+            if on_tick is not None and k >= k0:
                 on_tick(float(t[k]))
             if k + 1 >= stop_at:
                 break
@@ -318,35 +398,54 @@ class Checker:
         foot_xy = (foot_x + np.einsum("kfij,fj->kfi", foot_R.reshape(K, -1, 3, 3), sole))[:, :, :2]
         tilt = np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0)))
         contacts = self.contacts.classify_many(K, con_count, con_geom, con_dist, con_pos)
-        self_min, floor_min, non_foot = contacts.self_min, contacts.floor_min, contacts.non_foot
+        self_min, non_foot = contacts.self_min, contacts.non_foot
         self_pairs = {tuple(sorted((geom_label(m, a), geom_label(m, b)))) for a, b in contacts.self_pairs}
         fall_k = None
         if free:
             fell = (root_h[:K_run] < fall_h) | (root_zz[:K_run] < cos_tilt) | non_foot[:K_run]
             fall_k = _first(fell)
-        slip = np.zeros((K, len(feet)))
-        if len(feet):
-            step = np.zeros((K, len(feet)))
-            step[1:] = np.linalg.norm(np.diff(foot_xy, axis=0), axis=2)
-            on = contacts.foot_on_floor([f.bodies for f in self.feet])  # (K, n_feet)
-            both = on.copy()
-            both[1:] &= on[:-1]
-            both[0] = False
-            slip = np.where(both, step, 0.0)
+            if fall_k is not None:  # what follows a fall (a touch without tilting on) is not judged
+                K_run = min(K_run, fall_k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
 
-        margin = np.full(K, np.nan)
+        stances = []  # per foot, its stances as _stance_slides gives them
+        if len(feet):
+            on = contacts.foot_on_floor([f.bodies for f in self.feet])[:K_run]  # (K_run, n_feet)
+            stances = [_stance_slides(on[:, i], foot_xy[:K_run, i], int(round(cfg.stance_gap_s / dt)))
+                       for i in range(len(feet))]
+
+        margin = np.full(K, np.nan)  # centre of mass to the support polygon, m (+ inside)
+        zmp_margin = np.full(K, np.nan)  # measured ZMP (centre of pressure) to the polygon's edge, m
         if free:
             margin[:K_run] = contacts.support_margins(com_xy[:K_run])
+            fn = _normal_forces(con_efc, con_dim, efc_force, m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL)
+            cop, _ = contacts.centre_of_pressure(fn)
+            zmp_margin[:K_run] = contacts.support_margins(cop[:K_run])
 
-        failures = self._judge(t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min,
-                               slip, margin, K_run, fall_k, stand_h, dt, free, actor is not None, self_pairs)
+        failures = self._judge(t, q_cmd, q, tau, root_h, tilt, contacts, self_min, human_min, K_run, fall_k, stand_h,
+                               dt, actor is not None, self_pairs)
         failures.sort(key=lambda f: (f.time, REASONS.index(f.reason)))
+        warnings = self._warn(t, contacts, stances, margin, zmp_margin, K_run, dt, free)
+        warnings.sort(key=lambda w: (w.time, WARNINGS.index(w.kind)))
+        for item in (*failures, *warnings):
+            if item.time < -1e-9:
+                item.phase = "entry"
+                item.detail = f"entering the clip's first pose from standing: {item.detail}"
+        if fall_k is not None and fall_k >= k0 and k0:
+            onset = _tipping_since(fall_k, margin, zmp_margin, cfg)
+            if onset < k0:  # it was already going over when the clip began: the first pose was not reached
+                f = next(f for f in failures if f.reason == "fall")
+                f.phase = "entry"
+                f.detail += (f"; tipping since {t[onset]:.2f} s, while entering the clip's first pose from standing "
+                             "(a first pose the robot cannot hold still, e.g. mid-step)")
         err = np.abs(q[:K_run] - q_cmd[:K_run])
         cmd_speed = np.abs(np.diff(q_cmd, axis=0)) / dt if K > 1 else np.zeros((1, n))
         sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
+        worst = max(((s[2], i, s) for i, fs in enumerate(stances) for s in fs), key=lambda w: w[0], default=None)
         metrics = {
             "duration_s": float(traj.duration),
             "simulated_s": float(K_run * dt),
+            "entry_transition_s": float(k0 * dt),
+            "entry": dict(self.entry),
             "control_hz": cfg.control_hz, "physics_hz": cfg.physics_hz,
             "tracking_rms_rad": _per_joint(r.joint_names, np.sqrt(np.nanmean(err ** 2, axis=0))),
             "tracking_max_rad": _per_joint(r.joint_names, np.nanmax(err, axis=0)),
@@ -360,10 +459,16 @@ class Checker:
             "self_collision_ticks": int((self_min[:K_run] < -cfg.self_collision_depth).sum()),
             "self_collision_pairs": sorted(" / ".join(p) for p in self_pairs),
             "min_self_distance_m": _finite(self_min[:K_run].min()),
-            "max_ground_penetration_m": _finite(max(0.0, -floor_min[:K_run].min())),
+            "max_ground_penetration_m": _finite(max(0.0, -contacts.floor_min[:K_run].min())),
+            "max_foot_penetration_m": _finite(max(0.0, -contacts.foot_floor_min[:K_run].min())),
             "min_human_distance_m": _finite(human_min[:K_run].min()) if actor is not None else None,
-            "foot_slip_m": [float(s) for s in slip[:K_run].sum(axis=0)],
+            "foot_slip_m": [float(max((s[2] for s in fs), default=0.0)) for fs in stances],
+            "stances": [len(fs) for fs in stances],
+            "worst_stance": None if worst is None else {
+                "foot": self.feet[worst[1]].side, "start_s": float(t[worst[2][0]]),
+                "end_s": float(t[worst[2][1] - 1]), "slide_m": float(worst[0])},
             "min_com_margin_m": _finite(np.nanmin(margin)) if free and np.isfinite(margin).any() else None,
+            "min_zmp_margin_m": _finite(np.nanmin(zmp_margin)) if free and np.isfinite(zmp_margin).any() else None,
             "no_support_s": float(np.isnan(margin[:K_run]).sum() * dt) if free else None,
             "max_tilt_deg": _finite(np.nanmax(tilt[:K_run])) if free else None,
             "min_root_height_m": _finite(np.nanmin(root_h[:K_run])) if free else None,
@@ -372,12 +477,49 @@ class Checker:
         metrics["joint_limit_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.limit_source)}
         metrics["no_load_speed_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.speed_source)}
         metrics["feet"] = {f.side: [m.body(b).name or f"body {b}" for b in f.bodies] for f in self.feet}
+        p = sc.actor_placement
+        metrics["actor_placement"] = None if actor is None else {
+            "scale": float(p.resolve_scale(actor.motion, sc.robot_height)), "offset_m": [float(v) for v in p.offset],
+            "yaw_deg": float(p.yaw_deg)}
         first = failures[0] if failures else None
         series = {"t": t[:K_run], "q": q[:K_run], "q_cmd": q_cmd[:K_run], "torque": tau[:K_run],
-                  "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run]}
+                  "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run],
+                  "zmp_margin": zmp_margin[:K_run]}
         return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None, first.reason if first else "ok",
                            first.time if first else None, failures, metrics, r.joint_names, r.lower, r.upper,
-                           series, cfg, self.not_checked(), self.notes())
+                           series, cfg, self.not_checked(), self.notes(), warnings, float(k0 * dt))
+
+    def _start(self, traj: RobotTrajectory, q0: np.ndarray) -> np.ndarray:
+        """Put the robot where the run starts and let it settle; return the entry transition's
+        commands (k0, n), one per control tick before the clip's first frame (k0 = 0 with
+        ``entry="first_frame"``), and note what it did in ``self.entry``. See the module docstring."""
+        sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
+        settle = int(round(cfg.settle_s * cfg.physics_hz))
+        self.entry = {"duration_s": 0.0}
+        if cfg.entry == "first_frame":
+            sc.set_robot_pose(q0, traj.root_pos[0], traj.root_quat[0], ground=not r.fixed_base)
+            sc.pose_humans(0.0)
+            mujoco.mj_step(m, d, settle)
+            return np.zeros((0, r.n))
+        sc.reset()  # standing pose, humans at their first frame
+        if not r.fixed_base:  # at the first frame's place and heading; the stand's height and lean kept
+            a = r.free_qpos
+            stand_quat = d.qpos[a + 3:a + 7].copy()
+            turn = _yaw(traj.root_quat[0]) - _yaw(stand_quat)
+            quat = np.zeros(4)
+            mujoco.mju_mulQuat(quat, np.array([math.cos(turn / 2), 0.0, 0.0, math.sin(turn / 2)]), stand_quat)
+            d.qpos[a:a + 2] = traj.root_pos[0, :2]
+            d.qpos[a + 3:a + 7] = quat
+            mujoco.mj_forward(m, d)
+        start = sc.stand_ctrl.copy()
+        mujoco.mj_step(m, d, settle)
+        duration = entry_duration(start, q0, r.no_load_speed, cfg.entry_speed_frac, cfg.entry_min_s)
+        k0 = int(math.ceil(duration * cfg.control_hz - 1e-9))
+        j = int(np.argmax(np.abs(q0 - start)))
+        self.entry = {"duration_s": k0 / cfg.control_hz, "largest_move_rad": float(abs(q0[j] - start[j])),
+                      "largest_move_joint": r.joint_names[j]}
+        s = np.arange(k0) / k0  # the tick at t = 0 plays q0 itself (s = 1): it is the clip's first
+        return start + (q0 - start) * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)[:, None]
 
     def not_checked(self) -> dict[str, str]:
         """Reason -> why it could not be judged (for all joints or the ones named)."""
@@ -417,9 +559,9 @@ class Checker:
                        "contact geom on the floor)")
         return out
 
-    def _judge(self, t, q_cmd, q, tau, root_h, tilt, non_foot, self_min, floor_min, human_min, slip, margin,
-               K_run, fall_k, stand_h, dt, free, has_actor, self_pairs) -> list[Failure]:
-        cfg, r = self.config, self.scene.robot
+    def _judge(self, t, q_cmd, q, tau, root_h, tilt, contacts, self_min, human_min, K_run, fall_k, stand_h, dt,
+               has_actor, self_pairs) -> list[Failure]:
+        cfg, r, m = self.config, self.scene.robot, self.scene.model
         names = r.joint_names
         out: list[Failure] = []
         below = q_cmd < r.lower - 1e-6
@@ -436,9 +578,13 @@ class Checker:
                 out.append(Failure("speed_limit", float(t[k]), f"{names[j]} commanded at {speed[k, j]:.2f} rad/s, "
                                    f"above the servo's no-load speed {r.no_load_speed[j]:.2f} rad/s"))
         if fall_k is not None:
-            why = (f"root height {root_h[fall_k]:.3f} m (standing {stand_h:.3f} m)" if root_h[fall_k] < cfg.fall_height_frac * stand_h
-                   else f"torso tilt {tilt[fall_k]:.0f} deg" if tilt[fall_k] > cfg.fall_tilt_deg
-                   else "a part other than a foot touched the floor")
+            if contacts.non_foot[fall_k]:
+                parts = ", ".join(body_label(m, b) for b in contacts.non_foot_bodies(fall_k))
+                why = f"a part other than a foot touched the floor ({parts})"
+            elif tilt[fall_k] > cfg.fall_tilt_deg:
+                why = f"torso tilt {tilt[fall_k]:.0f} deg (limit {cfg.fall_tilt_deg:g} deg)"
+            else:
+                why = f"root height {root_h[fall_k]:.3f} m (standing {stand_h:.3f} m)"
             out.append(Failure("fall", float(t[fall_k]), why))
         k = _first(self_min[:K_run] < -cfg.self_collision_depth)
         if k is not None:
@@ -448,24 +594,6 @@ class Checker:
             k = _first(human_min[:K_run] < -cfg.human_penetration_depth)
             if k is not None:
                 out.append(Failure("human_penetration", float(t[k]), f"robot enters the human figure by {-human_min[k] * 1000:.1f} mm"))
-        k = _first(floor_min[:K_run] < -cfg.ground_penetration_depth)
-        if k is not None:
-            out.append(Failure("ground_penetration", float(t[k]), f"robot is {-floor_min[k] * 1000:.1f} mm into the floor"))
-        if slip.shape[1]:
-            limit = cfg.foot_slip_frac * self.scene.robot_height
-            cum = np.cumsum(slip[:K_run], axis=0)
-            k = _first((cum > limit).any(axis=1))
-            if k is not None:
-                f = self.feet[int(np.argmax(cum[k]))]
-                name = self.scene.model.body(f.body).name or f"body {f.body}"
-                out.append(Failure("foot_slip", float(t[k]), f"the {f.side} foot ({name}) slid {cum[k].max() * 1000:.0f} mm while in contact "
-                                   f"(limit {limit * 1000:.0f} mm)"))
-        if free:
-            k = _first_sustained(margin[:K_run] < -cfg.balance_margin, int(round(cfg.balance_window_s / dt)))
-            if k is not None:
-                worst = -np.nanmin(margin[k:k + int(round(cfg.balance_window_s / dt)) + 1])
-                out.append(Failure("balance", float(t[k]), f"centre of mass up to {worst * 1000:.0f} mm outside the "
-                                   f"support polygon for over {cfg.balance_window_s:g} s"))
         sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
         w = int(round(cfg.saturation_window_s / dt))
         firsts = [(_first_sustained(sat[:, j], w), j) for j in range(r.n)]
@@ -483,6 +611,123 @@ class Checker:
             out.append(Failure("tracking_error", float(t[k]), f"{names[j]} lags its command by over "
                                f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s"))
         return out
+
+    def _warn(self, t, contacts, stances, margin, zmp_margin, K_run, dt, free) -> list[CheckWarning]:
+        """The measured figures beyond their warning levels (module docstring)."""
+        cfg, sc = self.config, self.scene
+        out: list[CheckWarning] = []
+        level = cfg.foot_slip_frac * sc.robot_height
+        for foot, fs in zip(self.feet, stances):
+            over = [s for s in fs if s[2] > level]
+            if over:
+                s0, s1, slide, _, _ = max(over, key=lambda s: s[2])
+                rate = slide / max((s1 - s0) * dt, dt) * 1000
+                first = _first_over(over[0], level)
+                more = (f"; {len(over)} of its {len(fs)} stances slid over that, the first from {t[first]:.2f} s"
+                        if len(over) > 1 else "")
+                out.append(CheckWarning("foot_slip", float(t[first]), f"the {foot.side} foot "
+                                        f"({body_label(sc.model, foot.body)}) slid {slide * 1000:.1f} mm within one "
+                                        f"stance (the stance from {t[s0]:.2f} s to {t[s1 - 1]:.2f} s, {rate:.1f} mm/s "
+                                        f"on average), over the warning level {level * 1000:.1f} mm "
+                                        f"({cfg.foot_slip_frac:g} x robot height){more}"))
+        k = _first(contacts.foot_floor_min[:K_run] < -cfg.ground_penetration_depth)
+        if k is not None:
+            deepest = -contacts.foot_floor_min[:K_run].min()
+            out.append(CheckWarning("foot_in_floor", float(t[k]), f"a foot is {deepest * 1000:.1f} mm into the floor "
+                                    f"(over {cfg.ground_penetration_depth * 1000:g} mm): the soft contact gives under "
+                                    "the load; the sole would press harder on a real floor"))
+        if free:
+            w = int(round(cfg.balance_window_s / dt))
+            k = _first_sustained(margin[:K_run] < -cfg.balance_margin, w)
+            if k is not None:
+                worst = -np.nanmin(margin[k:k + w + 1])
+                out.append(CheckWarning("com_outside_support", float(t[k]), f"centre of mass up to {worst * 1000:.0f} mm "
+                                        f"outside the support polygon for over {cfg.balance_window_s:g} s (held "
+                                        "still there, the robot would tip)"))
+            k = _first_sustained(zmp_margin[:K_run] < cfg.zmp_edge_margin, w)
+            if k is not None:
+                out.append(CheckWarning("zmp_near_edge", float(t[k]), f"the measured ZMP (the feet's centre of "
+                                        f"pressure) within {cfg.zmp_edge_margin * 1000:g} mm of the support polygon's "
+                                        f"edge for over {cfg.balance_window_s:g} s: a foot is rolling over an edge"))
+        return out
+
+
+def entry_duration(q_from: np.ndarray, q_to: np.ndarray, no_load_speed: np.ndarray, speed_frac: float = 0.5,
+                   minimum: float = 0.5) -> float:
+    """Duration (s) of the minimum-jerk move from ``q_from`` to ``q_to`` (n,) rad whose fastest
+    joint peaks at ``speed_frac`` of its servo's no-load speed (n,) rad/s (unknown, +inf or NaN:
+    :data:`UNKNOWN_ENTRY_SPEED`): T = max(minimum, max_j 1.875 |dq_j| / (speed_frac v_j)), 1.875
+    being the peak of the profile's speed over the mean."""
+    v = np.asarray(no_load_speed, np.float64)
+    v = np.where(np.isfinite(v) & (v > 0), v, UNKNOWN_ENTRY_SPEED)
+    dq = np.abs(np.asarray(q_to, np.float64) - np.asarray(q_from, np.float64))
+    return float(max(minimum, np.max(1.875 * dq / (speed_frac * v), initial=0.0)))
+
+
+def _tipping_since(k: int, margin: np.ndarray, zmp_margin: np.ndarray, cfg: CheckConfig) -> int:
+    """First tick of the run of ticks up to ``k`` in which the robot was going over: its
+    measured ZMP at the support polygon's edge, its centre of mass outside the polygon, or no
+    support at all."""
+    with np.errstate(invalid="ignore"):
+        tipping = (zmp_margin[:k] < cfg.zmp_edge_margin) | (margin[:k] < -cfg.balance_margin) | np.isnan(margin[:k])
+    calm = np.flatnonzero(~tipping)
+    return int(calm[-1] + 1) if len(calm) else 0
+
+
+def _yaw(quat) -> float:
+    """Heading (rad about +Z) of the x axis of the frame with orientation ``quat`` (wxyz)."""
+    w, x, y, z = (float(v) for v in quat)
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def _stance_slides(on: np.ndarray, xy: np.ndarray, gap: int) -> list[tuple[int, int, float, int, np.ndarray]]:
+    """One foot's stances: maximal runs of ticks on the floor (K,), off-floor gaps shorter than
+    ``gap`` ticks bridged, each as (first tick, end tick (exclusive), slide m, tick of it, the
+    distance (e - s,) m at every tick). The slide is the farthest the sole point ``xy`` (K, 2)
+    got from where it stood at the stance's first tick: rocking and jitter within a stance do
+    not add up, a steady creep does."""
+    on = np.asarray(on, bool).copy()
+    if gap > 1 and on.any():
+        idx = np.flatnonzero(on)
+        step = np.diff(idx)
+        for i in np.flatnonzero((step > 1) & (step <= gap)):  # fewer than gap off-ticks between two on-ticks
+            on[idx[i]:idx[i + 1]] = True
+    edges = np.diff(np.concatenate([[0], on.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    out = []
+    for s, e in zip(starts, ends):
+        dist = np.linalg.norm(xy[s:e] - xy[s], axis=1)
+        dist = np.where(np.isfinite(dist), dist, 0.0)
+        j = int(np.argmax(dist))
+        out.append((int(s), int(e), float(dist[j]), int(s + j), dist))
+    return out
+
+
+def _first_over(stance, level: float) -> int:
+    """The tick at which ``stance`` (from :func:`_stance_slides`) first slid beyond ``level`` m."""
+    return int(stance[0] + np.argmax(stance[4] > level))
+
+
+def _normal_forces(adrs: list, dims: list, efcs: list, pyramidal: bool) -> np.ndarray:
+    """Normal force (N,) N of every recorded contact, from each tick's contacts' ``efc_address``
+    and ``dim`` and that tick's ``efc_force``, as :func:`mujoco.mj_contactForce` decodes it: a
+    pyramidal cone's normal force is the sum of its 2 (dim - 1) edge forces, an elliptic cone's
+    (or a frictionless contact's) the first row. A contact without constraint rows gets 0."""
+    if not adrs:
+        return np.zeros(0)
+    counts = np.array([len(a) for a in adrs])
+    base = np.concatenate([[0], np.cumsum([len(e) for e in efcs])[:-1]])
+    adr = np.concatenate(adrs).astype(np.int64)
+    dim = np.concatenate(dims).astype(np.int64)
+    row0 = adr + np.repeat(base, counts)
+    efc = np.concatenate(efcs)
+    rows = np.where(dim > 1, 2 * (dim - 1), 1) if pyramidal else np.ones_like(dim)
+    out = np.zeros(len(adr))
+    active = adr >= 0
+    for nr in np.unique(rows[active]):
+        sel = active & (rows == nr)
+        out[sel] = efc[row0[sel][:, None] + np.arange(nr)].sum(axis=1)
+    return out
 
 
 def _root_pose_series(qpos: np.ndarray, free_qpos: int, xpos_now: np.ndarray, xmat_now: np.ndarray,

@@ -42,9 +42,9 @@ class ContactClassifier:
 class ContactLog:
     """The contacts of a whole run, split into robot-self and robot-floor per tick.
 
-    Attributes (K,): ``self_min`` (m, +inf when none), ``floor_min`` (m),
-    ``non_foot`` (a robot part other than a foot touches the floor); ``self_pairs``
-    the distinct penetrating geom pairs."""
+    Attributes (K,): ``self_min`` (m, +inf when none), ``floor_min`` (m), ``foot_floor_min``
+    (m, the feet's contacts only), ``non_foot`` (a robot part other than a foot touches the
+    floor); ``self_pairs`` the distinct penetrating geom pairs."""
 
     def __init__(self, cls: ContactClassifier, n_ticks: int, tick, g, dist, pos):
         robot = cls.is_robot[g] if len(g) else np.zeros((0, 2), bool)
@@ -61,10 +61,36 @@ class ContactLog:
         self._floor_tick = tick[floorc]
         self._floor_body = cls.geom_body[np.where(is_floor[floorc, 0], gf[:, 1], gf[:, 0])] if len(gf) else np.zeros(0, int)
         self._floor_pos = pos[floorc]
+        self._floor_mask = floorc
+        self._floor_foot = cls.is_foot_body[self._floor_body]
         self.non_foot = np.zeros(n_ticks, bool)
-        np.logical_or.at(self.non_foot, self._floor_tick, ~cls.is_foot_body[self._floor_body])
+        np.logical_or.at(self.non_foot, self._floor_tick, ~self._floor_foot)
+        self.foot_floor_min = np.full(n_ticks, np.inf)
+        np.minimum.at(self.foot_floor_min, self._floor_tick[self._floor_foot], dist[floorc][self._floor_foot])
         self._n = n_ticks
         self._starts = np.searchsorted(self._floor_tick, np.arange(n_ticks + 1))
+
+    def non_foot_bodies(self, k: int) -> list[int]:
+        """Ids of the robot bodies other than feet that touch the floor at tick k."""
+        sl = slice(self._starts[k], self._starts[k + 1])
+        return sorted({int(b) for b, foot in zip(self._floor_body[sl], self._floor_foot[sl]) if not foot})
+
+    def centre_of_pressure(self, normal_force: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The measured ZMP: centre of pressure (K, 2) m of the robot-floor contacts and their
+        total normal force (K,) N, from ``normal_force`` (N,) of every recorded contact, in the
+        order given to :meth:`ContactClassifier.classify_many`.
+
+        On a level floor the contact points lie in one plane, so the point about which the
+        contact forces have no horizontal moment is p = sum(f_i p_i) / sum(f_i) over the
+        normal forces f_i at the points p_i. NaN where the robot does not press on the floor."""
+        f = np.asarray(normal_force, np.float64)[self._floor_mask]
+        total = np.zeros(self._n)
+        np.add.at(total, self._floor_tick, f)
+        moment = np.zeros((self._n, 2))
+        np.add.at(moment, self._floor_tick, f[:, None] * self._floor_pos)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cop = np.where((total > 1e-9)[:, None], moment / total[:, None], np.nan)
+        return cop, total
 
     def foot_on_floor(self, feet) -> np.ndarray:
         """(K, len(feet)) bool: that foot touches the floor at that tick. Each foot is a

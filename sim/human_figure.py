@@ -6,12 +6,13 @@ Distances and penetrations between the robot and the figure are measured
 explicitly (:mod:`sim.contacts`).
 
 Placement: world = R_z(yaw) @ (scale * p) + offset, applied to every joint position
-p of the source motion.
+p of the source motion. :class:`FaceToFace` works one out for a partner: in front of the
+robot, facing it, at a partner's distance.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
@@ -49,6 +50,75 @@ class Placement:
         if not np.isfinite(s) or s <= 0:
             raise SimError(f"human placement: scale must be > 0, got {self.scale!r}")
         return s
+
+
+#: Root-to-pelvis distance of a person facing the robot, as a share of the mean standing height
+#: of the two (the robot and the person as scaled). Two adults of about 1.7 m who talk or shake
+#: hands stand about 1 m apart, pelvis to pelvis (the far phase of Hall's personal distance,
+#: 0.75-1.2 m): close enough to reach each other with bent elbows, far enough that torsos and
+#: hanging arms never touch. 1.0 / 1.7 is about 0.6.
+PARTNER_DISTANCE_FRAC = 0.6
+
+
+@dataclass(frozen=True)
+class FaceToFace:
+    """A person placed as a partner: in front of the robot, facing it, at a partner's distance.
+
+    Resolved (:meth:`resolve`) from the first frames of both: the person's motion is scaled
+    (``scale`` as in :class:`Placement`) and turned about +Z so that their first-frame heading
+    (the hips' left vector turned by -90 deg) points back at the robot; their first-frame
+    pelvis goes on the line ahead of the robot's first-frame root along the robot's heading
+    (its root's x axis on the floor), as near as keeps the pelvis at least ``distance`` m from
+    the robot's root (horizontally) in every frame: ``distance`` at the first frame, farther
+    where the two walk towards each other (``path``: the robot's root xy per frame at
+    ``path_fps``, e.g. a trajectory's; None: the robot stays at its first-frame root).
+    ``distance`` None is :data:`PARTNER_DISTANCE_FRAC` x the mean of the robot's height and
+    the scaled person's. Heights stay as they are: the motion's floor (z = 0) is the scene's."""
+
+    scale: float | str = "robot"
+    distance: float | None = None
+    path: tuple | None = field(default=None, repr=False)  # ((x, y), ...) m, the robot's root per frame
+    path_fps: float | None = None
+
+    def resolve(self, motion: Motion, robot_height: float, root_pos, root_quat) -> Placement:
+        """The :class:`Placement` for ``motion`` beside a robot of ``robot_height`` m whose root
+        is at ``root_pos`` (3,) m with orientation ``root_quat`` (wxyz) at the first frame."""
+        s = Placement(self.scale).resolve_scale(motion, robot_height)
+        d = self.distance
+        if d is None:
+            d = PARTNER_DISTANCE_FRAC * 0.5 * (robot_height + s * estimate_height(motion))
+        elif not (np.isfinite(d) and d >= 0):
+            raise SimError(f"human placement: distance must be >= 0 m, got {self.distance!r}")
+        w, x, y, z = (float(v) for v in root_quat)
+        heading = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))  # yaw of the root's x axis
+        ahead = np.array([np.cos(heading), np.sin(heading)])
+        p0 = motion.positions[0]
+        left = p0[1] - p0[2]  # right hip -> left hip
+        facing = np.arctan2(left[1], left[0]) - 0.5 * np.pi
+        yaw = heading + np.pi - facing  # turn the person to face back along the robot's heading
+        yaw_deg = float((np.degrees(yaw) + 180.0) % 360.0 - 180.0)
+        root0 = np.asarray(root_pos, dtype=np.float64)[:2]
+        turned = Placement(s, (0.0, 0.0, 0.0), yaw_deg)
+        pelvis = place(motion.positions[:, :1], s, turned)[:, 0, :2]  # (T, 2), before moving
+        offset = root0 + d * ahead - pelvis[0]
+        robot = self._robot_xy(motion, root0)
+        for _ in range(8):  # each pass closes the closest frame's shortfall (exact when it is along `ahead`)
+            gap = np.linalg.norm(pelvis + offset - robot, axis=1)
+            shortfall = d - float(gap.min())
+            if shortfall <= 1e-4:
+                break
+            offset = offset + shortfall * ahead
+        return Placement(s, (float(offset[0]), float(offset[1]), 0.0), yaw_deg)
+
+    def _robot_xy(self, motion: Motion, root0: np.ndarray) -> np.ndarray:
+        """(T, 2) the robot's root at the person's frame times: ``path`` resampled (clamped at
+        its ends), or the first-frame root throughout."""
+        if not self.path or not self.path_fps:
+            return root0[None]
+        path = np.asarray(self.path, dtype=np.float64).reshape(-1, 2)
+        t = np.arange(motion.n_frames) / motion.fps
+        tp = np.arange(len(path)) / self.path_fps
+        return np.stack([np.interp(t, tp, path[:, i]) for i in (0, 1)], axis=1)
 
 
 def estimate_height(motion: Motion) -> float:

@@ -170,8 +170,11 @@ def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_
                       actor=None, actor_placement=None, reactor=None, reactor_placement=None, on_tick=None):
     """Film ``traj`` (RobotTrajectory or npz path) to ``out_path`` (.mp4).
 
-    Returns (path, CheckResult or None): with physics playback the check result of
-    the same run comes back too. ``on_tick(t)`` (optional) is called as the film reaches
+    Returns (path, CheckResult): the physics check of ``traj`` in the same scene, with the
+    same people placed the same way (:func:`sim.check.check_trajectory` gives the same verdict):
+    with physics playback the film is of that very run (from the clip's first frame; the entry
+    transition from the standing pose before it is judged, not filmed), with kinematic playback
+    the check runs after filming. ``on_tick(t)`` (optional) is called as the film reaches
     trajectory time ``t`` (s), e.g. for a progress bar.
     """
     ensure_headless_gl()
@@ -208,6 +211,7 @@ def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_
                 filmer.grab()
                 if on_tick is not None:
                     on_tick(t)
+            result = Checker(scene, check_config).run(traj)
     finally:
         filmer.close()
     return write_mp4(filmer.frames, out_path, config.fps), result

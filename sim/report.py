@@ -4,8 +4,8 @@ Files are written under a temporary name and renamed, so a report is complete or
 absent. Plots (PNG, Agg backend, no display needed):
 - ``joints.png``: each joint's measured angle, command and limits (rad) over time;
 - ``torque.png``: each servo's drive torque (N m) with its stall torque;
-- ``balance.png``: centre-of-mass margin to the support polygon (m), root height
-  (m) and torso tilt (deg).
+- ``balance.png``: centre-of-mass and measured-ZMP margins to the support polygon (mm),
+  root height (m) and torso tilt (deg); the entry transition (before 0 s) shaded.
 """
 
 from __future__ import annotations
@@ -50,10 +50,28 @@ def write_report(result: CheckResult, out_dir, stem: str = "check") -> dict[str,
     return paths
 
 
+def verdict(result: CheckResult) -> str:
+    """One line: ``PASS`` (with the number of warnings), or ``FAIL: <reason> at <t> s: <detail>`` (the
+    detail says so when it happened while entering the clip's first pose from standing)."""
+    if result.passed:
+        n = len(result.warnings)
+        return "PASS" + (f" ({n} warning{'s' if n != 1 else ''})" if n else "")
+    f = result.failures[0]
+    return f"FAIL: {f.reason} at {f.time:.2f} s: {f.detail}"
+
+
+def warning_lines(result: CheckResult) -> list[str]:
+    """One line per warning: ``warning: <kind> at <t> s: <detail>``."""
+    return [f"warning: {w.kind} at {w.time:.2f} s: {w.detail}" for w in result.warnings]
+
+
 def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
     m = result.metrics
-    verdict = "PASS" if result.passed else f"FAIL: {result.reason} at {result.first_failure_time:.2f} s"
-    lines = [f"# Physical check: {result.robot} ({result.mode} base)", "", f"**{verdict}**", ""]
+    lines = [f"# Physical check: {result.robot} ({result.mode} base)", "", f"**{verdict(result)}**", ""]
+    if result.warnings:
+        lines += ["Warnings (measured, not failures):", ""]
+        lines += [f"- {w.kind} at {w.time:.2f} s: {w.detail}" for w in result.warnings]
+        lines.append("")
     if result.not_checked:
         lines += ["Not checked (no data to judge by):", ""]
         lines += [f"- {reason}: {why}" for reason, why in result.not_checked.items()]
@@ -63,17 +81,32 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
         lines += [f"- {note}" for note in result.notes]
         lines.append("")
     if result.failures:
-        lines += ["| reason | first at (s) | detail |", "|---|---|---|"]
-        lines += [f"| {f.reason} | {f.time:.2f} | {f.detail} |" for f in result.failures]
+        lines += ["| reason | first at (s) | phase | detail |", "|---|---|---|---|"]
+        lines += [f"| {f.reason} | {f.time:.2f} | {f.phase} | {f.detail} |" for f in result.failures]
         lines.append("")
+    entry, how = m.get("entry_transition_s", 0.0), m.get("entry") or {}
+    entered = (f"entered from the standing pose by a {entry:.2f} s minimum-jerk transition (times before 0 s; "
+               f"largest move {how.get('largest_move_joint')} {how.get('largest_move_rad', 0.0):.2f} rad)"
+               if entry else "started in the first frame's pose")
+    worst = m.get("worst_stance")
+    slip = ", ".join(f"{s * 1000:.1f} mm" for s in m["foot_slip_m"]) or "n/a"
+    if worst:
+        slip += (f" (worst: the {worst['foot']} foot, stance from {worst['start_s']:.2f} s to {worst['end_s']:.2f} s; "
+                 "stances per foot "
+                 f"{', '.join(str(n) for n in m['stances'])})")
+    place = m.get("actor_placement")
     lines += ["## Summary", "",
               f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
-              f"physics {m['physics_hz']:g} Hz",
+              f"physics {m['physics_hz']:g} Hz; {entered}",
               f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
-              f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')}",
-              f"- min distance to the human (measured up to 100 mm): {_fmt(m['min_human_distance_m'], 1000, 'mm')}",
-              f"- foot slip per foot: {', '.join(f'{s * 1000:.1f} mm' for s in m['foot_slip_m']) or 'n/a'}",
-              f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; max tilt "
+              f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')} (feet: "
+              f"{_fmt(m.get('max_foot_penetration_m'), 1000, 'mm')})",
+              f"- min distance to the human (measured up to 100 mm): {_fmt(m['min_human_distance_m'], 1000, 'mm')}"
+              + ("" if not place else f"; the human scaled {place['scale']:.3f}, moved by "
+                 f"({', '.join(f'{v:.2f}' for v in place['offset_m'])}) m, turned {place['yaw_deg']:.0f} deg"),
+              f"- largest slide of a foot within one stance, per foot: {slip}",
+              f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; min ZMP margin (centre of "
+              f"pressure to the support edge): {_fmt(m.get('min_zmp_margin_m'), 1000, 'mm')}; max tilt "
               f"{_fmt(m['max_tilt_deg'], 1, 'deg')}", ""]
     lines += ["## Per joint", "", "| joint | rms err (rad) | max err (rad) | max torque (N m) | stall (N m) | saturated (s) | "
               "max cmd speed (rad/s) | no-load speed (rad/s) | speed hits |", "|---|---|---|---|---|---|---|---|---|"]
@@ -144,17 +177,22 @@ def _plots(result: CheckResult, out: Path, stem: str) -> dict[str, Path]:
     paths["torque_png"] = _save(fig, out / f"{stem}_torque.png")
 
     fig, axes = plt.subplots(3, 1, figsize=(8, 6), sharex=True, gridspec_kw={"left": 0.1, "right": 0.98, "top": 0.97})
-    axes[0].plot(t, s["com_margin"] * 1000, color="tab:purple")
+    axes[0].plot(t, s["com_margin"] * 1000, color="tab:purple", label="centre of mass")
+    if "zmp_margin" in s:
+        axes[0].plot(t, s["zmp_margin"] * 1000, color="tab:olive", lw=0.8, label="ZMP (centre of pressure)")
+        axes[0].legend(fontsize=7)
     axes[0].axhline(0, color="tab:red", lw=0.8, ls=":")
-    axes[0].set_ylabel("CoM margin (mm)")
+    axes[0].set_ylabel("support margin (mm)")
     axes[1].plot(t, s["root_height"], color="tab:blue")
     axes[1].set_ylabel("root height (m)")
     axes[2].plot(t, s["tilt_deg"], color="tab:brown")
     axes[2].set_ylabel("tilt (deg)")
     axes[2].set_xlabel("time (s)")
-    if result.first_failure_time is not None:
-        for ax in axes:
+    for ax in axes:
+        if result.first_failure_time is not None:
             ax.axvline(result.first_failure_time, color="k", lw=0.8, ls="--")
+        if len(t) and t[0] < 0:  # the entry transition ends where the clip starts
+            ax.axvspan(t[0], 0.0, color="0.9", lw=0)
     paths["balance_png"] = _save(fig, out / f"{stem}_balance.png")
     return paths
 

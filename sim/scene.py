@@ -37,7 +37,7 @@ import numpy as np
 
 from dualflow.motion import Motion
 from sim.errors import SimError
-from sim.human_figure import HumanFigure, Placement
+from sim.human_figure import FaceToFace, HumanFigure, Placement
 from sim.robot_facts import robot_facts
 from sim.robot_index import RobotIndex, find_feet, geom_z_range, is_contact_geom
 
@@ -65,7 +65,8 @@ class SceneConfig:
 
     ``robot``: a bundled robot name or an MJCF path. ``fixed_base``: None keeps the
     model's own choice (bundled fixed-base robots have no freejoint), True bolts the
-    root body at ``base_pos`` (m) / ``base_quat`` (wxyz). ``timestep`` s is the
+    root body at ``base_pos`` (m) / ``base_quat`` (wxyz) (a free robot's first-frame pose otherwise:
+    a :class:`sim.human_figure.FaceToFace` placement faces it). ``timestep`` s is the
     physics step (default 0.002 s = 500 Hz). ``joint_limits`` (joint -> (lower, upper)
     rad) and ``no_load_speed`` (joint -> rad/s, or one number for every servo) fill in
     what the MJCF does not give (unranged joints, servo speed), before the robot folder's
@@ -79,9 +80,9 @@ class SceneConfig:
     base_quat: tuple[float, float, float, float] | None = None
     timestep: float = 0.002
     actor: Motion | None = None
-    actor_placement: Placement = field(default_factory=Placement)
+    actor_placement: Placement | FaceToFace = field(default_factory=Placement)
     reactor: Motion | None = None
-    reactor_placement: Placement = field(default_factory=Placement)
+    reactor_placement: Placement | FaceToFace = field(default_factory=Placement)
     floor_friction: float = 1.0
     floor_pairs: bool = True  # robot-floor contacts as explicit pairs (same contacts, cheaper: Scene._floor_as_pairs)
     joint_limits: dict | None = None
@@ -96,7 +97,9 @@ class Scene:
     body z when standing), ``robot_height`` (m, top of the robot when standing; exact for
     meshes and primitives), ``floating`` (the MJCF gives the robot a freejoint: it stands on
     its own feet, even where this scene bolts it down; only then are feet looked for, in
-    ``robot.feet``) and ``facts`` (:class:`sim.robot_facts.RobotFacts`)."""
+    ``robot.feet``), ``facts`` (:class:`sim.robot_facts.RobotFacts`) and ``actor_placement`` /
+    ``reactor_placement`` (the :class:`sim.human_figure.Placement` each person got, None without
+    that person)."""
 
     def __init__(self, config: SceneConfig | None = None):
         self.config = config = config or SceneConfig()
@@ -150,12 +153,17 @@ class Scene:
         self.stand_root_height = float(probe_data.xpos[robot_probe.root_body, 2])
 
         self.actor = self.reactor = None
+        root_pos = config.base_pos if config.base_pos is not None else probe_data.xpos[robot_probe.root_body]
+        root_quat = config.base_quat if config.base_quat is not None else probe_data.xquat[robot_probe.root_body]
+        self.actor_placement = self.reactor_placement = None  # as resolved (a FaceToFace becomes a Placement)
         if config.actor is not None:
-            s = config.actor_placement.resolve_scale(config.actor, self.robot_height)
-            self.actor = HumanFigure(spec, "actor_", config.actor, s, config.actor_placement, group=ACTOR_GROUP)
+            self.actor_placement = p = self._placement(config.actor_placement, config.actor, root_pos, root_quat)
+            s = p.resolve_scale(config.actor, self.robot_height)
+            self.actor = HumanFigure(spec, "actor_", config.actor, s, p, group=ACTOR_GROUP)
         if config.reactor is not None:
-            s = config.reactor_placement.resolve_scale(config.reactor, self.robot_height)
-            self.reactor = HumanFigure(spec, "reactor_", config.reactor, s, config.reactor_placement,
+            self.reactor_placement = p = self._placement(config.reactor_placement, config.reactor, root_pos, root_quat)
+            s = p.resolve_scale(config.reactor, self.robot_height)
+            self.reactor = HumanFigure(spec, "reactor_", config.reactor, s, p,
                                        rgba=(0.2, 0.45, 0.9, 1.0), radius=0.012, group=REACTOR_GROUP)
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
@@ -170,6 +178,13 @@ class Scene:
             self.robot = replace(self.robot, feet=find_feet(self.model, self.data, self.robot))
 
     # -- building ----------------------------------------------------------
+    def _placement(self, placement, motion: Motion, root_pos, root_quat) -> Placement:
+        """A :class:`FaceToFace` resolved against the robot's first-frame root pose (``base_pos`` /
+        ``base_quat``, else the standing pose's); a :class:`Placement` as it is."""
+        if isinstance(placement, FaceToFace):
+            return placement.resolve(motion, self.robot_height, root_pos, root_quat)
+        return placement
+
     @staticmethod
     def _add_world(spec: mujoco.MjSpec, config: SceneConfig, path) -> str:
         """Add the floor (unless the file has one: see the module docstring) and lights;

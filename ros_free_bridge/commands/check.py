@@ -34,28 +34,47 @@ def add_mode_option(p) -> None:
                         "place (upper-body partners) (default free)")
 
 
-def add_placement_options(p, prefix: str, what: str) -> None:
-    """--PREFIX FILE and where that person stands: --PREFIX-scale, -offset, -yaw."""
+def add_placement_options(p, prefix: str, what: str, partner: bool = True) -> None:
+    """--PREFIX FILE and where that person stands: --PREFIX-scale, -offset, -yaw and, for a
+    ``partner`` (the actor), -distance. A partner stands face to face with the robot unless
+    -offset or -yaw is given; anyone else is drawn where the file has them."""
     p.add_argument(f"--{prefix}", help=what)
     p.add_argument(f"--{prefix}-scale", default="robot",
                    help="'robot' (shrunk to the robot's height), 'human' (life size) or a number (default robot)")
-    p.add_argument(f"--{prefix}-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
-                   help="move the person by this much after scaling, metres (default 0 0 0)")
-    p.add_argument(f"--{prefix}-yaw", type=float, default=0.0, help="turn the person about +Z, degrees (default 0)")
+    where = ("(default: face to face with the robot, see --%s-distance)" % prefix if partner
+             else "(default 0 0 0: as the file has them)")
+    p.add_argument(f"--{prefix}-offset", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                   help=f"move the person by this much after scaling, metres, instead of placing them {where}")
+    p.add_argument(f"--{prefix}-yaw", type=float, default=None,
+                   help="turn the person about +Z, degrees, with --%s-offset (default 0)" % prefix)
+    if partner:
+        p.add_argument(f"--{prefix}-distance", type=float, default=None, metavar="M",
+                       help="face to face: from the robot's root to the person's pelvis at the first frame, metres, "
+                            "in front of the robot, the person turned to face it (default 0.6 x the mean height of "
+                            "the robot and the scaled person: a conversation or handshake distance)")
 
 
 def placement_from_args(args, prefix: str = "actor"):
-    from sim.human_figure import Placement
+    """A :class:`sim.human_figure.Placement` when -offset or -yaw is given (or the person is not a
+    partner); else a :class:`sim.human_figure.FaceToFace`."""
+    from sim.errors import SimError
+    from sim.human_figure import FaceToFace, Placement
 
     scale = getattr(args, f"{prefix}_scale")
     if scale not in ("robot", "human"):
         try:
             scale = float(scale)
         except ValueError:
-            from sim.errors import SimError
-
             raise SimError(f"--{prefix}-scale must be 'robot', 'human' or a number, got {scale!r}") from None
-    return Placement(scale, tuple(getattr(args, f"{prefix}_offset")), getattr(args, f"{prefix}_yaw"))
+    offset, yaw = getattr(args, f"{prefix}_offset"), getattr(args, f"{prefix}_yaw")
+    partner = hasattr(args, f"{prefix}_distance")
+    distance = getattr(args, f"{prefix}_distance", None)
+    if partner and offset is None and yaw is None:
+        return FaceToFace(scale, distance)
+    if distance is not None:
+        raise SimError(f"--{prefix}-distance places the person face to face; leave out --{prefix}-offset and "
+                       f"--{prefix}-yaw with it")
+    return Placement(scale, tuple(offset) if offset is not None else (0.0, 0.0, 0.0), yaw or 0.0)
 
 
 def load_human(path):
@@ -68,12 +87,20 @@ def load_human(path):
 
 def run(args) -> int:
     from sim.check import CheckConfig, check_trajectory
-    from sim.report import write_json, write_report
+    from sim.report import warning_lines, write_json, write_report
 
     config = CheckConfig(control_hz=args.control_hz, physics_hz=args.physics_hz, interpolation=args.interp,
                          mode=args.mode)
-    result = check_trajectory(args.trajectory, config, robot=args.robot, actor=load_human(args.actor),
-                              actor_placement=placement_from_args(args))
+    from retarget.errors import RetargetError
+    from sim.errors import SimError
+
+    try:
+        result = check_trajectory(args.trajectory, config, robot=args.robot, actor=load_human(args.actor),
+                                  actor_placement=placement_from_args(args))
+    except (SimError, RetargetError) as exc:  # name the file where the message does not (a joint mismatch)
+        if str(args.trajectory) in str(exc) or (args.actor and str(args.actor) in str(exc)):
+            raise
+        raise type(exc)(f"{args.trajectory}: {exc}") from None
     out = Path(args.out)
     stem = Path(args.trajectory).stem
     if args.no_plots:
@@ -83,9 +110,14 @@ def run(args) -> int:
         paths = write_report(result, out, stem)
     if result.passed:
         unjudged = f"; not checked: {', '.join(result.not_checked)}" if result.not_checked else ""
-        print(f"PASS {args.trajectory} ({result.robot}, {result.mode}{unjudged})")
+        warned = f"; {len(result.warnings)} warnings" if result.warnings else ""
+        print(f"PASS {args.trajectory} ({result.robot}, {result.mode}{unjudged}{warned})")
     else:
         print(f"FAIL {args.trajectory}: {result.reason} at {result.first_failure_time:.2f} s: {result.failures[0].detail}")
+    print(f"  entered from standing in {result.entry_transition_s:.2f} s (before the clip's 0 s)"
+          if result.entry_transition_s else "  started in the clip's first pose")
+    for line in warning_lines(result):
+        print(f"  {line}")
     for kind, path in paths.items():
         print(f"  {kind}: {path}")
     return 0 if result.passed else 1

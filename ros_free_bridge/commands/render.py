@@ -26,7 +26,7 @@ def register(subparsers) -> None:
     p.add_argument("--distance", type=float, help="camera distance in m (default 2.4 x robot height)")
     p.add_argument("--quality", choices=("fast", "full"), default="fast", help="full: shadows, reflections, MSAA (default fast)")
     add_placement_options(p, "actor", "human actor motion file, drawn beside the robot")
-    add_placement_options(p, "reactor", "generated reactor motion file, drawn as a stick figure")
+    add_placement_options(p, "reactor", "generated reactor motion file, drawn as a stick figure", partner=False)
     p.add_argument("--side-by-side", action="store_true", help="three panels: actor | reactor | robot")
     p.set_defaults(func=run)
 
@@ -35,6 +35,7 @@ def run(args) -> int:
     from ros_free_bridge.commands.check import load_human, placement_from_args
     from sim.check import CheckConfig
     from sim.render import CameraConfig, RenderConfig, render_trajectory
+    from sim.report import verdict, warning_lines
 
     config = RenderConfig(width=args.width, height=args.height, fps=args.fps,
                           camera=CameraConfig(distance=args.distance, azimuth=args.azimuth, elevation=args.elevation),
@@ -43,7 +44,8 @@ def run(args) -> int:
                                      actor=load_human(args.actor), actor_placement=placement_from_args(args, "actor"),
                                      reactor=load_human(args.reactor),
                                      reactor_placement=placement_from_args(args, "reactor"))
-    verdict = "" if result is None else (" (check: pass)" if result.passed else f" (check: FAIL {result.reason} at "
-                                                                                f"{result.first_failure_time:.2f} s)")
-    print(f"wrote {path}{verdict}")
+    print(f"wrote {path}")
+    print(f"check: {verdict(result)}")  # the same check `check` runs, on the same scene
+    for line in warning_lines(result):
+        print(f"  {line}")
     return 0
