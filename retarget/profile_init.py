@@ -185,8 +185,10 @@ def _bottom_points_local(m, g: int, down_local: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class Capsule:
-    """A capsule in ``body``'s frame: segment ``p0``-``p1`` (m) and ``radius`` (m)."""
+class FittedCapsule:
+    """A capsule being fitted for the profile, in ``body``'s frame: segment ``p0``-``p1`` (m),
+    ``radius`` (m), how far it may shrink to clear a pair that touches at rest (``min_radius``),
+    and why it changed (``note``)."""
 
     name: str
     body: int
@@ -654,7 +656,7 @@ def build_capsules(rest: _Rest, an: Anatomy) -> dict:
         if len(pts) < 4:
             return
         p0, p1, r = fit_capsule(rest.to_local(frame, pts))
-        caps[name] = Capsule(name, frame, p0, p1, r, 0.5 * r)
+        caps[name] = FittedCapsule(name, frame, p0, p1, r, 0.5 * r)
 
     pre = {"left": "l_", "right": "r_"}
     for side, limb in an.legs.items():
@@ -678,7 +680,7 @@ def build_capsules(rest: _Rest, an: Anatomy) -> dict:
             lo, hi = float(t.min()) + r, float(t.max()) - r
             if hi < lo:
                 lo = hi = 0.5 * (lo + hi)
-            caps["torso"] = Capsule("torso", an.chest_body, base + lo * up, base + hi * up, r, 0.5 * r)
+            caps["torso"] = FittedCapsule("torso", an.chest_body, base + lo * up, base + hi * up, r, 0.5 * r)
     # feet: the sole edge facing the other foot, spheres on it, a sphere at the sole's centre
     if len(an.legs) == 2:
         edge_r = 0.003
@@ -691,13 +693,13 @@ def build_capsules(rest: _Rest, an: Anatomy) -> dict:
                 return rest.to_local(b, x * an.forward + y * an.left + [0, 0, z])
 
             heel, toe, xm = at(so["x0"], y_in), at(so["x1"], y_in), 0.5 * (so["x0"] + so["x1"])
-            caps[p + "sole_in"] = Capsule(p + "sole_in", b, heel, toe, edge_r, edge_r)
+            caps[p + "sole_in"] = FittedCapsule(p + "sole_in", b, heel, toe, edge_r, edge_r)
             for nm, x in (("heel_in", so["x0"]), ("mid_in", xm), ("toe_in", so["x1"])):
                 q = at(x, y_in)
-                caps[p + nm] = Capsule(p + nm, b, q, q.copy(), edge_r, edge_r)
+                caps[p + nm] = FittedCapsule(p + nm, b, q, q.copy(), edge_r, edge_r)
             half_w = 0.5 * (so["y1"] - so["y0"])
             q = at(xm, 0.5 * (so["y0"] + so["y1"]))
-            caps[p + "sole_mid"] = Capsule(p + "sole_mid", b, q, q.copy(), max(0.75 * half_w, edge_r), edge_r)
+            caps[p + "sole_mid"] = FittedCapsule(p + "sole_mid", b, q, q.copy(), max(0.75 * half_w, edge_r), edge_r)
     return caps
 
 
