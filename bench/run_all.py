@@ -15,6 +15,7 @@ The benchmarks, each defined by an issue (its targets are the issue's):
     #7 retrieval_speed      one retrieval query against 10,000 entries
     #8 bridge_loop          control-loop jitter, skipped ticks, loop CPU, end-to-end latency
     #9 demo_time            wall time of `dualflow-bridge demo` on the embedded defaults
+    #26 retarget_check_engines  retarget-check clips per minute: local engine vs Ray (1 and 2 workers)
 
 (``bench/partner_motion.py`` is not among them: it is a quality check of the bundled model's
 streamed partner, with no target from an issue; run it on its own.)
@@ -69,6 +70,7 @@ BENCHES: tuple[tuple[str, int], ...] = (
     ("bench.retrieval_speed", 7),
     ("bench.bridge_loop", 8),
     ("bench.demo_time", 9),
+    ("bench.retarget_check_engines", 26),
 )
 
 DEFAULT_TIMEOUT_S = 1800.0

@@ -1,13 +1,15 @@
 """Which files retarget-check takes from a folder: plain files, subfolders, InterGen's
-person1/person2 layout (the reactor of each pair, InterHuman-AS labels) and its own output."""
+person1/person2 layout (the reactor of each pair, InterHuman-AS labels), its own output, and
+the two files of one capture joined by a --pairs pattern."""
 
 import json
+import re
 
 import numpy as np
 import pytest
 
 from dualflow.errors import DualFlowError
-from ros_free_bridge.batch import clip_name, find_motion_files
+from ros_free_bridge.batch import PairPattern, clip_name, find_clips, find_motion_files
 from ros_free_bridge.errors import BridgeError
 
 
@@ -93,3 +95,52 @@ def test_labels_are_found_from_a_relative_motions_processed_folder(tmp_path, mon
     (tmp_path / "actor_reactor.json").write_text(json.dumps({"10": "person2"}))
     monkeypatch.chdir(tmp_path / "motions_processed")
     assert names(find_motion_files("."), ".") == ["person1/10.npy"]
+
+
+def test_a_pair_pattern_joins_the_two_files_of_each_capture(tmp_path):
+    for n in ("take1_S1.bvh", "take1_S2.bvh", "take2_S1.bvh", "take2_S2.bvh", "solo.bvh",
+              "take3_S2.bvh",  # its actor is missing
+              "take4_S1.bvh",  # its reactor is missing
+              "take5_S1.npz"):  # another file type: not the pattern's, a clip of its own
+        touch(tmp_path / n)
+    clips = {c.name: c for c in find_clips(tmp_path, pairs="{name}_S1.bvh,{name}_S2.bvh")}
+    assert list(clips) == ["solo.bvh", "take1_S2.bvh", "take2_S2.bvh", "take3_S2.bvh", "take4_S1.bvh", "take5_S1.npz"]
+    pair = clips["take1_S2.bvh"]  # named by the reactor's file: the part the robot plays
+    assert pair.path == tmp_path / "take1_S2.bvh" and pair.actor == tmp_path / "take1_S1.bvh"
+    assert pair.actor_name == "take1_S1.bvh" and not pair.problem
+    assert clips["solo.bvh"].actor is None and not clips["solo.bvh"].problem
+    assert "no actor file take3_S1.bvh" in clips["take3_S2.bvh"].problem
+    assert "without its reactor take4_S2.bvh" in clips["take4_S1.bvh"].problem
+    assert not clips["take5_S1.npz"].problem and clips["take5_S1.npz"].actor is None
+
+
+def test_pairs_are_found_in_subfolders_and_only_within_one_folder(tmp_path):
+    touch(tmp_path / "day1" / "a_S1.bvh")
+    touch(tmp_path / "day1" / "a_S2.bvh")
+    touch(tmp_path / "day2" / "a_S2.bvh")  # day1's actor does not pair with it
+    clips = {c.name: c for c in find_clips(tmp_path, recursive=True, pairs="{name}_S1.bvh,{name}_S2.bvh")}
+    assert clips["day1/a_S2.bvh"].actor_name == "day1/a_S1.bvh"
+    assert clips["day2/a_S2.bvh"].problem and clips["day2/a_S2.bvh"].actor is None
+
+
+def test_a_prefix_pattern_pairs_the_cmu_trial_numbers(tmp_path):
+    """CMU's two-person trials are numbered per subject (18_01 with 19_01)."""
+    touch(tmp_path / "18_01.bvh")
+    touch(tmp_path / "19_01.bvh")
+    [clip] = find_clips(tmp_path, pairs="18_{name}.bvh,19_{name}.bvh")
+    assert (clip.name, clip.actor_name) == ("19_01.bvh", "18_01.bvh")
+
+
+@pytest.mark.parametrize("bad, message", [
+    ("{name}_S1.bvh", "two file-name patterns"),
+    ("{name}_S1.bvh,{name}_S2.bvh,{name}_S3.bvh", "two file-name patterns"),
+    ("S1.bvh,{name}_S2.bvh", "exactly one {name}"),
+    ("{name}_{name}.bvh,{name}_S2.bvh", "exactly one {name}"),
+    ("{take}_S1.bvh,{take}_S2.bvh", "exactly one {name}"),
+    ("a/{name}.bvh,b/{name}.bvh", "not paths"),
+    ("{name}_S1.txt,{name}_S2.txt", "motion file type"),
+    ("{name}.bvh,{name}.bvh", "the same"),
+])
+def test_a_bad_pair_pattern_says_what_to_write(bad, message):
+    with pytest.raises(BridgeError, match=re.escape(message)):
+        PairPattern.parse(bad)

@@ -32,7 +32,7 @@ def test_a_folder_gives_one_row_per_clip_and_a_failure_never_stops_the_batch(tmp
     save_motion(Motion(leader.positions, fps=120.0).resample(30.0), clips / "too_fast.npz")  # 4x faster
     (clips / "broken.bvh").write_text("HIERARCHY\nROOT Hips\n{\n OFFSET 0 0\n")
     out = tmp_path / "out"
-    code = main(["retarget-check", str(clips), "-o", str(out), "--jobs", "2", "--no-compile"])
+    code = main(["retarget-check", str(clips), "-o", str(out), "--jobs", "2", "--no-compile", "--no-video"])
     assert code == 1  # not every clip passes
     rows = {r["clip"]: r for r in csv.DictReader(open(out / "results.csv"))}
     assert list(rows) == ["broken.bvh", "duet.npz", "standing.npz", "too_fast.npz"]  # file order, all present
@@ -58,12 +58,12 @@ def test_a_folder_gives_one_row_per_clip_and_a_failure_never_stops_the_batch(tmp
 REAL_CHECK_CLIP = batch.check_clip
 
 
-def check_clip_killing_stand0(path, cfg, name=None):
+def check_clip_killing_stand0(path, cfg, name=None, **kw):
     """The real check, except that the worker process checking stand0 dies at once, as a
     segfault in a native library would kill it (fault injection, forked into the workers)."""
     if Path(path).stem == "stand0":
         os.kill(os.getpid(), signal.SIGKILL)
-    return REAL_CHECK_CLIP(path, cfg, name)
+    return REAL_CHECK_CLIP(path, cfg, name, **kw)
 
 
 @pytest.mark.parametrize("jobs", [1, 2])
@@ -75,7 +75,7 @@ def test_a_clip_that_kills_its_worker_costs_only_its_own_row(tmp_path, monkeypat
         clips.append(tmp_path / f"stand{k}.npz")
         save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clips[-1])
     monkeypatch.setattr(batch, "check_clip", check_clip_killing_stand0)
-    rows = run_batch(clips, BatchConfig(out=tmp_path / "out", compile=False), jobs=jobs, progress=False)
+    rows = run_batch(clips, BatchConfig(out=tmp_path / "out", compile=False, video=False), jobs=jobs, progress=False)
     assert [r.clip for r in rows] == [f"stand{k}.npz" for k in range(4)]
     assert rows[0].status == "error" and "worker process died" in rows[0].reason
     assert [r.status for r in rows[1:]] == ["pass"] * 3
@@ -86,7 +86,7 @@ def test_the_streaming_retargeter_can_do_the_checking(tmp_path):
     passes, and its trajectory says which retargeter made it."""
     clip = tmp_path / "standing.npz"
     save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clip)
-    cfg = BatchConfig(out=tmp_path / "out", compile=False, retargeter="streaming")
+    cfg = BatchConfig(out=tmp_path / "out", compile=False, retargeter="streaming", video=False)
     [row] = run_batch([clip], cfg, jobs=1, progress=False)
     assert row.status == "pass" and row.limit_violations == 0
     with np.load(tmp_path / "out" / "clips" / "standing.npz" / "trajectory.npz", allow_pickle=False) as traj:
