@@ -26,8 +26,10 @@ the first failure) or ``error`` (a file that could not be read, with the message
 fails or crashes never stops the batch, not even one that kills its worker process (a crash in
 a native library, or out of memory).
 
-Engines (``run_batch(engine=...)``): ``local`` (the default) runs the clips in a pool of forked
-processes on this machine; a worker that dies takes the clips in flight with it: those are
+Engines (``run_batch(engine=...)``): ``local`` (the default) runs the clips in a pool of worker
+processes on this machine (forked; with videos, forked from a clean fork server, so a script
+calling :func:`run_batch` needs the usual ``if __name__ == "__main__":`` guard); a worker that
+dies takes the clips in flight with it: those are
 re-run one per process, the others in a new pool, and a clip that kills its process again gets
 an ``error`` row. ``ray`` runs each clip as a Ray task (:mod:`ros_free_bridge.batch_ray`), on
 a cluster or a local Ray instance; only that engine imports Ray. Both run the same per-clip
@@ -766,11 +768,7 @@ def _pool_pass(indices, clips: list[Clip], cfg: BatchConfig, jobs: int, done) ->
     from concurrent.futures.process import BrokenProcessPool
 
     lost = []
-    # fork: the workers start at once with everything imported (and, in tests, patched). Not once
-    # Ray is loaded in this process: its gRPC threads and locks do not survive a fork (a forked
-    # worker can hang), so then a fork server, started clean, makes the workers.
-    method = "forkserver" if sys.modules.get("ray") is not None else "fork"
-    with ProcessPoolExecutor(jobs, mp_context=mp.get_context(method)) as pool:
+    with ProcessPoolExecutor(jobs, mp_context=_pool_context(cfg)) as pool:
         try:
             futures = {pool.submit(check_clip, clips[i].path, cfg, clips[i].name, actor=clips[i].actor): i
                        for i in indices}
@@ -791,6 +789,23 @@ def _pool_pass(indices, clips: list[Clip], cfg: BatchConfig, jobs: int, done) ->
                 proc.terminate()
             raise
     return sorted(lost)
+
+
+def _pool_context(cfg: BatchConfig):
+    """How the local engine's workers are made.
+
+    ``fork`` starts them at once with everything this process imported (and, in tests,
+    patched). It is not safe after this process used OpenGL (EGL: a forked worker that films a
+    clip hangs creating its context) or loaded Ray (its gRPC threads and locks do not survive a
+    fork): with videos, or with Ray loaded, a fork server started clean (this package and its
+    solvers imported, no OpenGL context) makes the workers instead."""
+    import multiprocessing as mp
+
+    if not cfg.video and sys.modules.get("ray") is None:
+        return mp.get_context("fork")
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["ros_free_bridge.batch", "retarget.offline", "sim.check"])
+    return ctx
 
 
 def _usable_cores() -> int:
