@@ -123,6 +123,17 @@ def resolve(ref: str | Path | Robot) -> Robot:
                       f"or give a robot folder (`{INIT_HINT}` makes one from an MJCF)")
 
 
+def reference(robot: str | Path | Robot) -> str:
+    """How to name ``robot`` again from any working directory (what trajectories, telemetry and
+    the generator process carry): a bundled robot's name, else the absolute path given."""
+    found = resolve(robot)
+    if found.bundled:
+        return found.name
+    if isinstance(robot, Robot):
+        return str(robot.folder if robot.profile is not None else robot.mjcf)
+    return str(Path(str(robot)).expanduser().resolve())
+
+
 def _folder_mjcf(folder: Path, quiet: bool = False) -> Path | None:
     own = folder / f"{folder.name}.xml"
     if own.is_file():
@@ -274,5 +285,5 @@ def joint_limits(robot: str | Path | Robot) -> dict[str, tuple[float, float] | N
     return {j: ranges.get(j) for j in joint_names(found)}
 
 
-__all__ = ["BUNDLED_DIR", "Robot", "bundled_names", "resolve", "parse_mjcf", "joint_names", "joint_limits",
+__all__ = ["BUNDLED_DIR", "Robot", "bundled_names", "resolve", "reference", "parse_mjcf", "joint_names", "joint_limits",
            "mjcf_has_freejoint", "PROFILE_FILE", "HARDWARE_FILE", "INIT_HINT"]

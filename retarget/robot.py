@@ -508,15 +508,12 @@ def robot_ref(robot: str | Path) -> str:
     """The registry reference that finds ``robot`` again from any working directory: a bundled
     robot's name, else the absolute path given."""
     from firmware_cfg.errors import ConfigError
-    from firmware_cfg.registry import resolve
+    from firmware_cfg.registry import reference
 
     try:
-        found = resolve(robot)
+        return reference(robot)
     except ConfigError as exc:
         raise RetargetError(str(exc)) from None
-    if found.bundled:
-        return found.name
-    return str(Path(str(robot)).expanduser().resolve())
 
 
 def robot_from_xml_string(xml: str, profile: RetargetProfile, fixed_base: bool = False) -> RetargetRobot:

@@ -12,7 +12,7 @@ import numpy as np
 
 from firmware_cfg.config import RobotConfig, load_config
 from firmware_cfg.errors import ConfigError
-from firmware_cfg.registry import Robot, resolve
+from firmware_cfg.registry import Robot, reference, resolve
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.safety import JointLimits
@@ -52,8 +52,7 @@ def resolve_robot(robot: str | Path | Robot) -> RobotFiles:
         profile = found.require_profile()
     except ConfigError as exc:
         raise BridgeError(str(exc)) from None
-    ref = found.name if found.bundled else str(Path(str(robot)).expanduser().resolve())
-    return RobotFiles(found.name, found.mjcf, profile, found.hardware, ref, found.fixed_base)
+    return RobotFiles(found.name, found.mjcf, profile, found.hardware, reference(robot), found.fixed_base)
 
 
 def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE,
