@@ -28,6 +28,23 @@ import numpy as np
 STOP_POLICIES = ("hold", "limp")
 
 
+@dataclass(frozen=True)
+class ImuReading:
+    """One sample of a body-mounted IMU (e.g. the OP3's OpenCR, or a MuJoCo IMU site).
+
+    Frame: the IMU's own axes, x forward, y left, z up when the robot stands upright.
+    ``gyro`` (3,) angular rate in rad/s; ``accel`` (3,) specific force in m/s^2 (about
+    +9.81 on z when upright and still); ``quat`` (4,) w, x, y, z: the IMU frame's
+    orientation in the world (gravity along -z), all NaN where the device reports none.
+    ``stamp``: the ``time.monotonic()`` second at which the sample was read.
+    """
+
+    gyro: np.ndarray
+    accel: np.ndarray
+    quat: np.ndarray
+    stamp: float
+
+
 @dataclass
 class JointState:
     """One reading of every joint, arrays of shape (n,) in ``joint_names`` order.
@@ -35,7 +52,8 @@ class JointState:
     Fields that a transport cannot measure are NaN (never invented). ``errors`` maps a
     joint name to a short decoded description of its hardware-error status
     (e.g. "overheating"); it is empty when all is well. ``stamp`` is the
-    ``time.monotonic()`` second at which the reading completed.
+    ``time.monotonic()`` second at which the reading completed. ``imu`` is the body
+    IMU's sample from the same cycle (None where the robot has no IMU device).
     """
 
     position: np.ndarray
@@ -46,6 +64,8 @@ class JointState:
     torque_enabled: np.ndarray
     stamp: float
     errors: dict[str, str] = field(default_factory=dict)
+    #: the body IMU's reading taken in the same bus cycle, or None on a robot without one
+    imu: ImuReading | None = None
 
     @classmethod
     def unknown(cls, n: int, stamp: float = 0.0) -> "JointState":
