@@ -107,7 +107,7 @@ def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dic
     ``rate_hz``. ``realtime``: SCHED_FIFO priority for the loop and the emulator (0: off)."""
     from ros_free_bridge.emulators.process import EmulatorProcess
     from ros_free_bridge.robots import bridge_limits, resolve_robot
-    from ros_free_bridge.transports.dynamixel import DynamixelTransport
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
     from ros_free_bridge.transports.record import RecordTransport
 
     cfg = resolve_robot("op3").hardware_config()
@@ -115,7 +115,8 @@ def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dic
     base = run_loop(RecordTransport(limits.names, initial=0.5 * (limits.lower + limits.upper)), limits, rate_hz, seconds,
                     realtime)
     bus = cfg.bus()
-    with EmulatorProcess(baud=bus.baud, wire_timing=True, realtime=realtime) as emu:
+    units = [(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices]  # + the OpenCR IMU
+    with EmulatorProcess(units, baud=bus.baud, wire_timing=True, realtime=realtime) as emu:
         tr = DynamixelTransport(dataclasses.replace(bus), port=emu.port, joint_names=limits.names, latency_ms=20.0)
         ours = run_loop(tr, limits, rate_hz, seconds, realtime)
     return ours, base

@@ -78,10 +78,11 @@ RT = [0]  # --rt: SCHED_FIFO priority of the emulator and of the sustained loops
 class _Emulator:
     """The bus emulator in a child process, at this bench's --nice."""
 
-    def __init__(self, baud: int) -> None:
+    def __init__(self, baud: int, devices=()) -> None:
         from ros_free_bridge.emulators.process import EmulatorProcess
 
-        self._proc = EmulatorProcess(range(1, N_SERVOS + 1), baud, wire_timing=True, nice=NICE[0], realtime=RT[0])
+        units = list(range(1, N_SERVOS + 1)) + list(devices)
+        self._proc = EmulatorProcess(units, baud, wire_timing=True, nice=NICE[0], realtime=RT[0])
         self.port = self._proc.port
 
     def stop(self) -> None:
@@ -127,10 +128,10 @@ def bench_baud(baud: int, cycles: int) -> dict:
     import dynamixel_sdk as sdk
 
     from firmware_cfg.config import load_config, robot_config_path
-    from ros_free_bridge.transports.dynamixel import DynamixelTransport
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
     bus = load_config(robot_config_path("op3"), check_mjcf=False).buses[0]
-    bus = dataclasses.replace(bus, baud=baud)
+    bus = dataclasses.replace(bus, baud=baud, devices=())  # the servos alone (the IMU: imu_cost)
     emu = _Emulator(baud)
     try:
         t = DynamixelTransport(bus, port=emu.port, slow_per_cycle=0, latency_ms=20.0)
@@ -169,8 +170,8 @@ def bench_baud(baud: int, cycles: int) -> dict:
                     c0, t0 = time.thread_time(), time.perf_counter()
                     t.write_goal(goal)
                     c1, t1 = time.thread_time(), time.perf_counter()
-                    j = t._pending[1]
-                    need = (t._bulk[j][0] if j >= 0 else t._fast).reply_length
+                    j = t.cycle.pending[1]
+                    need = (t.cycle.bulk[j][0] if j >= 0 else t.cycle.fast).reply_length
                     time.sleep(settle)
                     late += t.bus.port.ser.in_waiting < need
                     c2, t2 = time.thread_time(), time.perf_counter()
@@ -187,8 +188,8 @@ def bench_baud(baud: int, cycles: int) -> dict:
             # bare system calls - discard input, write goals + FAST_SYNC_READ request, read the
             # reply once it is there - and no Python work around them
             fd = t.bus.port._fd
-            packets = t._writer.encode(t._to_ticks(q)) + t._fast.request
-            need = t._fast.reply_length
+            packets = t.cycle.writer.encode(t.servos.to_ticks(q)) + t.cycle.fast.request
+            need = t.cycle.fast.reply_length
             floor_ms, floor_cpu = [], []
             for k in range(cycles + 20):
                 c0, t0 = time.thread_time(), time.perf_counter()
@@ -230,6 +231,56 @@ def bench_baud(baud: int, cycles: int) -> dict:
             "floor": floor_ms, "floor_cpu": floor_cpu}
 
 
+#: the IMU's READ in each cycle: instruction 14 bytes + status 11 + 18 data bytes (OpenCR, 32..49)
+IMU_READ_BYTES = 14 + 11 + 18
+
+
+def imu_cost(baud: int, cycles: int) -> dict:
+    """What reading the OP3's OpenCR IMU (ID 200) in every bus cycle adds: one transport on
+    the op3 bus (20 servos + the OpenCR, emulator with wire timing), its IMU device switched
+    on and off cycle by cycle, so the baseline is the same bus without the IMU read, same
+    run. Blocking cycle: wall time of write_goal + read_state (``slow_per_cycle`` 0).
+    Split-phase cycle: host wall time of read_state + write_goal with every reply already
+    there (each preceded by a pause the bytes need)."""
+    from firmware_cfg.config import load_config, robot_config_path
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
+
+    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud)
+    emu = _Emulator(baud, devices=[(d.id, d.model) for d in bus.devices])
+    settle = (sum(theory_ms(baud)) + IMU_READ_BYTES * 10e3 / baud + 3.0) * 1e-3
+    out = {"blocking": ([], []), "split": ([], [])}
+    try:
+        t = DynamixelTransport(bus, port=emu.port, slow_per_cycle=0, latency_ms=20.0)
+        with t:
+            imu, q = t.imu, t.read_state().position
+            for k in range(2 * (cycles + 20)):
+                t.imu = imu if k % 2 == 0 else None
+                t0 = time.perf_counter()
+                t.write_goal(q)
+                t.read_state()
+                if k >= 40:
+                    out["blocking"][k % 2].append((time.perf_counter() - t0) * 1e3)
+            t.imu = imu
+            t.pipeline(True)
+            t.write_goal(q)
+            for k in range(2 * (cycles + 20)):
+                t.imu = imu if k % 2 == 0 else None
+                time.sleep(settle)
+                t0 = time.perf_counter()
+                t.read_state()  # positions in; with the IMU: its READ goes out
+                t1 = time.perf_counter()
+                time.sleep(settle)
+                t2 = time.perf_counter()
+                t.write_goal(q)  # with the IMU: its reply collected; goals + next request out
+                t3 = time.perf_counter()
+                if k >= 40:
+                    out["split"][k % 2].append((t1 - t0 + t3 - t2) * 1e3)
+            misses = imu.misses
+    finally:
+        emu.stop()
+    return {"baud": baud, "theory": IMU_READ_BYTES * 10e3 / baud, "misses": misses, **out}
+
+
 def host_cpu(baud: int, cycles: int) -> dict:
     """Host CPU per SYNC_WRITE + FAST_SYNC_READ cycle, ours next to the bare SDK (the
     baseline), alternating cycle by cycle so both see the same machine load.
@@ -243,10 +294,11 @@ def host_cpu(baud: int, cycles: int) -> dict:
 
     from firmware_cfg.config import load_config, robot_config_path
     from ros_free_bridge.emulators import DynamixelBusEmulator
-    from ros_free_bridge.emulators import dynamixel_protocol as dp
-    from ros_free_bridge.transports.dynamixel import DynamixelTransport
+    from ros_free_bridge.dynamixel import protocol as dp
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
-    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud)
+    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud,
+                              devices=())
     emu = DynamixelBusEmulator(servos=range(1, N_SERVOS + 1), baud=baud, wire_timing=False, return_delay_us=0.0).start()
     t = DynamixelTransport(bus, port=emu.port_path, slow_per_cycle=0, latency_ms=20.0)
     try:
@@ -357,9 +409,10 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split
     from firmware_cfg.config import load_config, robot_config_path
     from ros_free_bridge.clock import FixedRateClock
     from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
-    from ros_free_bridge.transports.dynamixel import DynamixelTransport
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
-    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud)
+    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud,
+                              devices=())
     emu = _Emulator(baud)
     lateness, busy = [], []
     clock = FixedRateClock(hz)
@@ -455,6 +508,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         out.append(Row(f"the same with the control loop's setting (slow_per_cycle 1: FAST_BULK_READ + one status block) "
                        f"@ {mbit} (ms median; its CPU {m(r['split_bulk_cpu']):.3f}; baseline: bare system calls)",
                        m(r["split_bulk"]), m(r["floor"]), host_target, verdict(m(r["split_bulk"]) < TARGET_HOST_MS)))
+    ic = imu_cost(2_000_000, max(40, args.cycles // 4))
+    m = statistics.median
+    for mode, what in (("blocking", "blocking cycle (write_goal + read_state), wall clock"),
+                       ("split", "split-phase cycle (read_state + write_goal, replies already there), host wall clock")):
+        mine, base = ic[mode]
+        print(f"IMU (OpenCR, ID 200) read in every cycle at 2 Mbit/s, {what}: with {m(mine):.3f} ms, without "
+              f"{m(base):.3f} ms (adds {m(mine) - m(base):.3f}; its bytes on the wire {ic['theory']:.3f} ms)")
+        out.append(Row(f"op3 bus cycle with the OpenCR IMU read @ 2 Mbit/s, {what} (ms median; the IMU READ's bytes "
+                       f"on the wire {ic['theory']:.3f} ms; baseline: the same bus without the IMU, same run)",
+                       m(mine), m(base), "", NA))
     hc = host_cpu(2_000_000, args.cycles)
     m = statistics.median
     print(f"host CPU per cycle at 2 Mbit/s (reply injected, no emulator running, nothing waited for): ours median "

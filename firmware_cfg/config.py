@@ -43,8 +43,8 @@ Per-servo fields (units; the SI unit is converted to register units by the trans
 
 Per-device fields (``devices``: boards on a Dynamixel bus that are not joint servos, such
 as the ROBOTIS OP3's OpenCR sub-controller with its IMU): ``id`` (0..252, unique on the
-bus among servos and devices), ``model`` (the device's name, e.g. ``OpenCR``; free text,
-there is no control table for it here) and ``role`` (what the bridge may use it for, one
+bus among servos and devices), ``model`` (a model of :mod:`firmware_cfg.device_models`,
+e.g. ``OpenCR``, on a bus of its protocol) and ``role`` (what the bridge may use it for, one
 of :data:`DEVICE_ROLES`). A serial-link bus has no devices.
 
 Validation: required fields, types, duplicate IDs on a bus, duplicate joints, an
@@ -63,7 +63,7 @@ from typing import Any
 
 import yaml
 
-from firmware_cfg import servo_models
+from firmware_cfg import device_models, servo_models
 from firmware_cfg.errors import ConfigError
 
 PROTOCOLS = ("1.0", "2.0", "serial-link")
@@ -300,7 +300,7 @@ def _parse_bus(braw: Any, top_defaults: dict, source: str, where: str) -> BusCon
         raise ConfigError(f"{source}: {where}.devices: must be a list of {{id, model, role}}")
     if devices_raw and protocol == "serial-link":
         raise ConfigError(f"{source}: {where}.devices: a serial-link bus has no devices; remove the list")
-    devices = tuple(_parse_device(_mapping(d, source, f"{where}.devices[{i}]"), source, f"{where}.devices[{i}]")
+    devices = tuple(_parse_device(_mapping(d, source, f"{where}.devices[{i}]"), protocol, source, f"{where}.devices[{i}]")
                     for i, d in enumerate(devices_raw))
     _check_unique([(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)], source, "servo ID")
     _check_unique([(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)]
@@ -308,7 +308,7 @@ def _parse_bus(braw: Any, top_defaults: dict, source: str, where: str) -> BusCon
     return BusConfig(str(name), port, baud, protocol, servos, devices)
 
 
-def _parse_device(d: dict, source: str, where: str) -> DeviceConfig:
+def _parse_device(d: dict, protocol: str, source: str, where: str) -> DeviceConfig:
     _unknown(d, _DEVICE_KEYS, source, where)
     did = d.get("id")
     if not _is_int(did) or not 0 <= did <= 252:
@@ -316,10 +316,19 @@ def _parse_device(d: dict, source: str, where: str) -> DeviceConfig:
     model = d.get("model")
     if not isinstance(model, str) or not model:
         raise ConfigError(f"{source}: {where}.model: required, the device's name (e.g. OpenCR)")
+    known = device_models.find_device_model(model)
+    if known is None:
+        raise ConfigError(f"{source}: {where}.model: {model!r} is not a known device model; use one of "
+                          f"{device_models.device_model_names()} (firmware_cfg/device_models.py)")
+    if protocol != "serial-link" and float(protocol) != known.protocol:
+        raise ConfigError(f"{source}: {where}.model: {known.name} speaks protocol {known.protocol}.0 but the bus is "
+                          f"{protocol}; put it on a protocol {known.protocol}.0 bus")
     role = d.get("role")
     if role not in DEVICE_ROLES:
         raise ConfigError(f"{source}: {where}.role: {role!r} is not one of {DEVICE_ROLES}")
-    return DeviceConfig(did, model, role)
+    if role == "imu" and known.imu is None:
+        raise ConfigError(f"{source}: {where}.role: {known.name} has no IMU; use a device model with one")
+    return DeviceConfig(did, known.name, role)
 
 
 def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> ServoConfig:

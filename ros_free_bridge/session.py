@@ -208,7 +208,7 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
         return t
 
     def dynamixel():
-        from ros_free_bridge.transports.dynamixel import DynamixelTransport
+        from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
         bus = next((b for b in hardware.buses if b.protocol in ("1.0", "2.0")), None)
         if bus is None:
@@ -219,10 +219,11 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
             # control loop for the GIL. It counts any goal outside the config's limits.
             from firmware_cfg.servo_models import load_servo_model
             from ros_free_bridge.emulators.process import EmulatorProcess
-            from ros_free_bridge.transports.dynamixel import servo_tick_limits
+            from ros_free_bridge.dynamixel.servos import servo_tick_limits
 
             allowed = {s.id: servo_tick_limits(s, load_servo_model(s.model)) for s in bus.servos}
-            emu = EmulatorProcess([(s.id, s.model) for s in bus.servos], bus.baud, int(float(bus.protocol)),
+            emu = EmulatorProcess([(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices],
+                                  bus.baud, int(float(bus.protocol)),
                                   wire_timing=False, allowed=allowed)
             stack.callback(emu.stop)
             port = emu.port

@@ -22,7 +22,8 @@ from ros_free_bridge.session import SessionOptions, run_session
 from ros_free_bridge.sources import udp_packet
 from ros_free_bridge.targets import TargetBuffer, TargetFrame
 from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
-from ros_free_bridge.transports.dynamixel import DynamixelTransport, servo_tick_limits
+from ros_free_bridge.dynamixel.servos import servo_tick_limits
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
 pytestmark = pytest.mark.slow
 XM = load_servo_model("XM430-W350")

@@ -1,4 +1,4 @@
-"""The transport's hot-path packet code (ros_free_bridge.dynamixel_codec): the numpy
+"""The transport's hot-path packet code (ros_free_bridge.dynamixel.group_codec): the numpy
 SYNC_WRITE encoder and FAST_SYNC_READ decoder against dynamixel-sdk's own packets, captured
 on the emulator side, and the linear CRC against the scalar one."""
 
@@ -15,12 +15,11 @@ from hypothesis import strategies as st
 from firmware_cfg.config import parse_config
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.commands.servo import start_emulator
-from ros_free_bridge.dynamixel_codec import (
-    FastSyncReadDecoder, PacketError, SyncWriteEncoder, encode_instruction,
-)
-from ros_free_bridge.emulators import dynamixel_protocol as dp
+from ros_free_bridge.dynamixel.group_codec import FastSyncReadDecoder, SyncWriteEncoder
+from ros_free_bridge.dynamixel.protocol import PacketError, encode_instruction
+from ros_free_bridge.dynamixel import protocol as dp
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.transports.dynamixel import DynamixelTransport
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
 XM = load_servo_model("XM430-W350")
 IDS = list(range(1, 21))
@@ -166,7 +165,7 @@ def test_transport_packets_equal_the_sdk_packets_on_the_wire():
                 n = count(emu, dp.SYNC_WRITE)
                 t.write_goal(goal)
                 ours = next_packet(emu, dp.SYNC_WRITE, n)
-                ticks = t._to_ticks(np.clip(goal, t.lower, t.upper))
+                ticks = t.servos.to_ticks(np.clip(goal, t.lower, t.upper))
                 sdk_sync_write(t.bus.port, 116, 4, ids, ticks)
                 theirs = next_packet(emu, dp.SYNC_WRITE, n + 1)
                 assert ours == theirs

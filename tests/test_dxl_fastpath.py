@@ -14,12 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from firmware_cfg.config import load_config, robot_config_path
-from ros_free_bridge.dynamixel_codec import (
-    FastBulkReadDecoder, FastSyncReadDecoder, PacketError, SyncWriteEncoder, crc16,
-)
-from ros_free_bridge.emulators import dynamixel_protocol as dp
+from ros_free_bridge.dynamixel.group_codec import FastBulkReadDecoder, FastSyncReadDecoder, SyncWriteEncoder
+from ros_free_bridge.dynamixel.protocol import PacketError, crc16
+from ros_free_bridge.dynamixel import protocol as dp
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.transports.dynamixel import DynamixelTransport
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 from test_dxl_codec import CapturePort, sdk_sync_write  # tests/ is on sys.path (pytest, prepend mode)
 import test_dxl_pipeline
 from test_dxl_transport import XM, make, wait_for
@@ -132,8 +131,8 @@ def test_goal_ticks_equal_the_numpy_conversion(fractions):
     t = op3_transport()
     lo, hi = t.lower, t.upper
     q = lo + np.asarray(fractions) * (hi - lo)
-    q = np.clip(q, lo - t._half_tick * 0.999, hi + t._half_tick * 0.999)
-    assert t._goal_ticks(q.tolist()) == t._to_ticks(np.clip(q, lo, hi)).tolist()
+    q = np.clip(q, lo - t.servos.half_tick * 0.999, hi + t.servos.half_tick * 0.999)
+    assert t.servos.goal_ticks(q.tolist()) == t.servos.to_ticks(np.clip(q, lo, hi)).tolist()
 
 
 def test_goal_ticks_refuse_what_the_limits_refuse():
@@ -143,15 +142,15 @@ def test_goal_ticks_refuse_what_the_limits_refuse():
         g = q.copy()
         g[4] = bad
         with pytest.raises(BridgeError, match=r"servo ID 5 \(r_el\).*outside the joint limits"):
-            t._goal_ticks(g.tolist())
+            t.servos.goal_ticks(g.tolist())
 
 
 def test_positions_from_ticks_equal_the_numpy_conversion():
     t = op3_transport()
     ticks = np.random.default_rng(2).integers(-100, 4200, 20)
-    t._set_position(tuple(ticks.tolist()))
-    fast = t._state.position.copy()
-    assert np.array_equal(fast, t._to_joint(ticks))  # bit for bit
+    t.servos.set_position(tuple(ticks.tolist()))
+    fast = t.servos.state.position.copy()
+    assert np.array_equal(fast, t.servos.to_joint(ticks))  # bit for bit
 
 
 emu4 = test_dxl_pipeline.bus_and_emu  # four emulated servos; no goal outside the limits reaches them
@@ -172,8 +171,8 @@ def run_ticks(t, n: int, fast: bool):
     out = []
     for _ in range(n):
         t.write_goal(t.lower * 0)
-        j = t._pending[1]
-        need = (t._bulk[j][0] if j >= 0 else t._fast).reply_length
+        j = t.cycle.pending[1]
+        need = (t.cycle.bulk[j][0] if j >= 0 else t.cycle.fast).reply_length
         assert wait_for(lambda: t.bus.port.ser.in_waiting >= need)
         out.append(t.read_state())
     del t._read_arrived
@@ -197,7 +196,7 @@ def test_one_pass_tick_gives_the_general_paths_state(emu4, slow):
             for _ in range(4):
                 t.read_state()
             t.slow_per_cycle = 0
-        assert t.pipeline(True) and (t._bulk is not None) == (slow == 1)
+        assert t.pipeline(True) and (t.cycle.bulk is not None) == (slow == 1)
         fast, taken = run_ticks(t, 8, fast=True)
         general, skipped = run_ticks(t, 8, fast=False)
         assert taken == 8 and skipped == 0
@@ -206,7 +205,7 @@ def test_one_pass_tick_gives_the_general_paths_state(emu4, slow):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
         assert a.errors == b.errors
         ticks = np.array([emu.read_register(sid, "present_position") for sid in range(1, 5)])
-        assert np.array_equal(a.position, t._to_joint(ticks))
+        assert np.array_equal(a.position, t.servos.to_joint(ticks))
         volts = [emu.read_register(sid, "present_input_voltage") * XM.voltage_v for sid in range(1, 5)]
         temps = [emu.read_register(sid, "present_temperature") * XM.temperature_c for sid in range(1, 5)]
         assert a.voltage.tolist() == volts and a.temperature.tolist() == temps

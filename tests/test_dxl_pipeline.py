@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from ros_free_bridge.emulators import dynamixel_protocol as dp
+from ros_free_bridge.dynamixel import protocol as dp
 from ros_free_bridge.errors import BridgeError
 from test_dxl_transport import XM, guarded_emulator, make, small_bus, wait_for  # tests/ is on sys.path (pytest, prepend mode)
 
@@ -35,7 +35,7 @@ def watch_writes(t):
     parser = dp.StreamParser(protocol=2)
 
     def write_port(packet):
-        pending = t._pending is not None
+        pending = t.cycle.pending is not None
         sent.extend((frame.raw[7], pending) for frame in parser.feed(bytes(packet)))  # a write may carry two
         return write(packet)
 
@@ -46,7 +46,8 @@ def watch_writes(t):
 def test_codec_fast_bulk_read_request_equals_the_sdk_packet(bus_and_emu):
     import dynamixel_sdk as sdk
 
-    from ros_free_bridge.dynamixel_codec import FastBulkReadDecoder, PacketError
+    from ros_free_bridge.dynamixel.group_codec import FastBulkReadDecoder
+    from ros_free_bridge.dynamixel.protocol import PacketError
 
     bus, emu = bus_and_emu
     items = [(1, 132, 4), (2, 98, 49), (3, 132, 4), (4, 132, 4)]
@@ -87,7 +88,7 @@ def test_write_sends_the_read_request_and_the_next_read_takes_its_reply(bus_and_
         assert not any(pending for _, pending in sent)
         # the servos got there, and the split-phase reading says so (one tick old at most)
         assert wait_for(lambda: all(abs(emu.read_register(i + 1, "present_position") - g) <= 2 for i, g in
-                                    enumerate(np.rint(t._to_ticks(goal)))))
+                                    enumerate(np.rint(t.servos.to_ticks(goal)))))
         t.write_goal(goal)
         np.testing.assert_allclose(t.read_state().position, goal, atol=2.5 / XM.ticks_per_rad)
         # the blocking path reads the same pose
@@ -116,9 +117,9 @@ def test_one_fast_bulk_read_per_cycle_brings_positions_and_a_status_block(bus_an
         assert np.all(np.isfinite(s.temperature)) and np.all(np.isfinite(s.voltage))
         assert s.temperature[2] == pytest.approx(80.0, abs=1.0) and s.temperature[0] == pytest.approx(25.0, abs=1.0)
         assert "overheating" in s.errors["j3"] and "policy does not reboot" in s.errors["j3"]
-        assert s.position[1] == pytest.approx(t._to_joint(np.array([0, 2348, 0, 0]))[1], abs=1e-9)
+        assert s.position[1] == pytest.approx(t.servos.to_joint(np.array([0, 2348, 0, 0]))[1], abs=1e-9)
         # a new alert in the reply that also carries that servo's status block is handled once
-        j = t._slow_next
+        j = t.cycle.slow_next
         emu.overheat(j + 1, 80.0)
         alerts = t.stats.alerts
         t.write_goal(t.lower * 0)
@@ -153,7 +154,7 @@ def test_firmware_without_fast_group_reads_stays_blocking(bus_and_emu):
         assert not t.stats.fast_sync_read  # SYNC_READ fallback
         assert t.pipeline(True) is False
         t.write_goal(np.zeros(4))
-        assert t._pending is None and np.all(np.isfinite(t.read_state().position))
+        assert t.cycle.pending is None and np.all(np.isfinite(t.read_state().position))
 
 
 def test_a_dropped_or_corrupted_reply_is_retried_then_the_silent_servo_is_named(bus_and_emu):
@@ -199,7 +200,7 @@ def test_stop_and_estop_collect_the_pending_reply_first(bus_and_emu):
         t.pipeline(True)
         sent = watch_writes(t)
         t.write_goal(np.full(4, 0.1))
-        assert t._pending is not None
+        assert t.cycle.pending is not None
         t.safe_stop("limp")  # an e-stop while the position reply is on the wire
         assert not any(pending for _, pending in sent)
         assert all(emu.read_register(i, "torque_enable") == 0 for i in (1, 2, 3, 4))
@@ -219,7 +220,7 @@ def test_the_port_vanishing_with_a_reply_pending_is_a_bridge_error(bus_and_emu):
             t.read_state()
             t.write_goal(np.zeros(4))
     t.close()
-    assert t.bus.port is None and t._pending is None
+    assert t.bus.port is None and t.cycle.pending is None
 
 
 def test_protocol_1_and_sync_read_buses_stay_blocking():
@@ -231,4 +232,4 @@ def test_protocol_1_and_sync_read_buses_stay_blocking():
         with DynamixelTransport(cfg.buses[0], port=emu.port_path, latency_ms=LAT) as t:
             assert t.pipeline(True) is False and not t.pipelined
             t.write_goal(np.zeros(1))
-            assert t._pending is None and np.isfinite(t.read_state().position[0])
+            assert t.cycle.pending is None and np.isfinite(t.read_state().position[0])

@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ros_free_bridge import BridgeError
-from ros_free_bridge.emulators import dynamixel_protocol as dp
+from ros_free_bridge.dynamixel import protocol as dp
 
 
 def h(text: str) -> bytes:

@@ -16,9 +16,10 @@ from ros_free_bridge.commands.servo import start_emulator
 from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.transports.base import Transport
-from ros_free_bridge.transports.dynamixel import (
-    DynamixelTransport, decode_hardware_error, servo_register_settings, servo_tick_limits, set_latency_timer,
-)
+from ros_free_bridge.dynamixel.port import set_latency_timer
+from ros_free_bridge.dynamixel.protocol import decode_hardware_error
+from ros_free_bridge.dynamixel.servos import servo_register_settings, servo_tick_limits
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
 XM = load_servo_model("XM430-W350")
 LAT = 30.0  # ms of reply-timeout latency: generous, the emulator shares this process's GIL
@@ -325,7 +326,7 @@ def test_communication_error_with_limp_policy_switches_every_servo_off():
 EXIT_SCRIPT = """
 import sys, numpy as np
 from firmware_cfg.config import parse_config
-from ros_free_bridge.transports.dynamixel import DynamixelTransport
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 bus = parse_config({config!r}).buses[0]
 t = DynamixelTransport(bus, port=sys.argv[1], stop_policy="limp", latency_ms=30.0)
 t.open()

@@ -16,7 +16,8 @@ from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.cli import main
 from ros_free_bridge.commands.servo import start_emulator
 from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
-from ros_free_bridge.transports.dynamixel import DynamixelTransport, servo_register_settings, servo_tick_limits
+from ros_free_bridge.dynamixel.servos import servo_register_settings, servo_tick_limits
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
 OP3 = str(robot_config_path("op3"))
 XM = load_servo_model("XM430-W350")
@@ -149,8 +150,9 @@ def test_scan_finds_models_and_firmware(capsys, factory_emu):
     code, out, _ = run(capsys, "scan", "--port", factory_emu.port_path, "--bauds", "57600,2000000", "--protocols", "2")
     assert code == 0
     lines = [line.split() for line in out.splitlines()[1:]]
-    assert [int(line[2]) for line in lines] == list(range(1, 21))
-    assert {tuple(line[i] for i in (0, 1, 3, 4, 5)) for line in lines} == {("2.0", "2000000", "1020", "XM430-W350", "45")}
+    assert [int(line[2]) for line in lines] == list(range(1, 21)) + [200]  # the servos, then the OpenCR (IMU)
+    assert {tuple(line[i] for i in (0, 1, 3, 4, 5)) for line in lines[:-1]} == {("2.0", "2000000", "1020", "XM430-W350", "45")}
+    assert lines[-1][3:] == ["29696", "OpenCR", "2"]
 
 
 def test_scan_protocol_1_bus(capsys):

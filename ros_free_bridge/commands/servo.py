@@ -175,13 +175,14 @@ def dynamixel_bus_of(cfg, name: str | None):
 
 
 def start_emulator(bus, *, provisioned: bool = False, wire_timing: bool = False):
-    """A :class:`DynamixelBusEmulator` with the bus's servos (IDs and models), started.
-    ``provisioned``: their control tables already hold the config's settings."""
+    """A :class:`DynamixelBusEmulator` with the bus's servos (IDs and models) and devices
+    (e.g. the OP3's OpenCR IMU), started. ``provisioned``: the servos' control tables
+    already hold the config's settings."""
     from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
-    from ros_free_bridge.transports.dynamixel import servo_register_settings
+    from ros_free_bridge.dynamixel.servos import servo_register_settings
     from firmware_cfg.servo_models import load_servo_model
 
-    specs = [ServoSpec(s.id, s.model) for s in bus.servos]
+    specs = [ServoSpec(s.id, s.model) for s in bus.servos] + [ServoSpec(d.id, d.model) for d in bus.devices]
     emu = DynamixelBusEmulator(servos=specs, baud=bus.baud, protocol=int(float(bus.protocol)),
                                wire_timing=wire_timing, return_delay_us=None).start()
     if provisioned:
@@ -194,7 +195,7 @@ def start_emulator(bus, *, provisioned: bool = False, wire_timing: bool = False)
 @contextlib.contextmanager
 def open_bus(args, bus):
     """(DynamixelBus, emulator or None) for the command's port or its emulator."""
-    from ros_free_bridge.transports.dynamixel import DynamixelBus
+    from ros_free_bridge.dynamixel.bus import DynamixelBus
 
     emu = start_emulator(bus) if getattr(args, "emulate", False) else None
     try:
@@ -237,7 +238,7 @@ def check_models(dxl, bus) -> list[tuple[object, object, int]]:
 def read_settings(dxl, servo, model, eeprom_only: bool = False) -> tuple[dict[str, int], dict[str, int]]:
     """(wanted, present) register values for one servo (``eeprom_only``: the persistent
     ones; RAM settings reset at power-off and the transport applies them at open)."""
-    from ros_free_bridge.transports.dynamixel import servo_register_settings
+    from ros_free_bridge.dynamixel.servos import servo_register_settings
 
     wanted = servo_register_settings(servo, model)
     if eeprom_only:
@@ -272,7 +273,7 @@ def _parse_ids(text: str) -> list[int]:
 
 def run_scan(args) -> int:
     from firmware_cfg.servo_models import all_servo_models
-    from ros_free_bridge.transports.dynamixel import DynamixelBus
+    from ros_free_bridge.dynamixel.bus import DynamixelBus
 
     try:
         bauds = [int(b) for b in args.bauds.split(",") if b.strip()]
@@ -294,7 +295,9 @@ def run_scan(args) -> int:
         port = dynamixel_bus_of(load_robot_config(args.config), args.bus).port
     else:
         raise BridgeError("scan: give --port (e.g. /dev/ttyUSB0), a CONFIG, or --emulate CONFIG")
-    known = {(m.model_number, m.protocol): m for m in all_servo_models()}
+    from firmware_cfg.device_models import DEVICE_MODELS
+
+    known = {(m.model_number, m.protocol): m for m in (*all_servo_models(), *DEVICE_MODELS)}
     rows = []
     try:
         for protocol in protocols:
@@ -315,7 +318,7 @@ def run_scan(args) -> int:
                                     break
                     for sid, number, fw in hits:
                         m = known.get((number, protocol))
-                        if fw is None and m is not None and m.has("firmware_version"):
+                        if fw is None and m is not None and "firmware_version" in m.registers:
                             try:
                                 fw = dxl.read(sid, m.register("firmware_version"))[0]
                             except BridgeError:
@@ -387,7 +390,7 @@ def run_verify(args) -> int:
             diff = [f"{k}={present[k]} (want {v})" for k, v in wanted.items() if present[k] != v]
             hw = ""
             if model.has("hardware_error_status"):
-                from ros_free_bridge.transports.dynamixel import decode_hardware_error
+                from ros_free_bridge.dynamixel.protocol import decode_hardware_error
                 bits = dxl.read(s.id, model.register("hardware_error_status"))[0]
                 hw = ", ".join(decode_hardware_error(bits))
             bad += bool(diff) or bool(hw)
@@ -455,7 +458,7 @@ def run_calibrate(args) -> int:
 
 def monitor_rows(dxl, bus) -> list[list[str]]:
     from firmware_cfg.servo_models import load_servo_model
-    from ros_free_bridge.transports.dynamixel import decode_hardware_error
+    from ros_free_bridge.dynamixel.protocol import decode_hardware_error
 
     rows = []
     for s in bus.servos:

@@ -5,7 +5,8 @@
     # or give --link /tmp/ttyDXL for a stable name.
 
 Options: ``--ids`` (ranges and lists: ``1-18,19,20``), ``--model`` (any bundled servo
-model), ``--baud``, ``--wire-timing`` (replies take the time the bytes need on the
+model), ``--device ID:MODEL`` (a non-servo device, e.g. ``200:OpenCR``, the OP3's IMU
+board; repeatable), ``--baud``, ``--wire-timing`` (replies take the time the bytes need on the
 wire), ``--return-delay-us``. Exits 0 on Ctrl-C or SIGTERM, 2 on a bad option.
 """
 
@@ -39,6 +40,20 @@ def parse_ids(text: str) -> list[int]:
     return ids
 
 
+def parse_device(text: str) -> tuple[int, str]:
+    """'200:OpenCR' -> (200, 'OpenCR'); a BridgeError names the bad option."""
+    from firmware_cfg.device_models import device_model_names, find_device_model
+
+    sid, _, name = text.partition(":")
+    try:
+        ident = int(sid)
+    except ValueError:
+        raise BridgeError(f"--device {text!r}: use ID:MODEL, e.g. 200:OpenCR") from None
+    if find_device_model(name) is None or not 0 <= ident <= 252:
+        raise BridgeError(f"--device {text!r}: ID 0..252 and a model of {device_model_names()}")
+    return ident, name
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m ros_free_bridge.emulators",
                                      description="Emulated Dynamixel servo bus on a pseudo-terminal.")
@@ -49,13 +64,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wire-timing", action="store_true", help="delay replies by their time on the wire")
     parser.add_argument("--return-delay-us", type=float, default=0.0)
     parser.add_argument("--link", default=None, help="also make this symlink to the pty")
+    parser.add_argument("--device", action="append", default=[], metavar="ID:MODEL",
+                        help="a non-servo device on the bus, e.g. 200:OpenCR (the OP3's IMU); repeatable")
     args = parser.parse_args(argv)
 
     from ros_free_bridge.emulators.dynamixel_bus import DEFAULT_MODELS, DynamixelBusEmulator
 
     try:
         model = args.model or DEFAULT_MODELS[args.protocol]
-        servos = [(i, model) for i in parse_ids(args.ids)]
+        servos = [(i, model) for i in parse_ids(args.ids)] + [parse_device(d) for d in args.device]
         emu = DynamixelBusEmulator(servos, baud=args.baud, protocol=args.protocol, wire_timing=args.wire_timing,
                                    return_delay_us=args.return_delay_us)
     except Exception as exc:  # ConfigError / BridgeError: one line, exit 2
@@ -71,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             os.symlink(emu.port_path, tmp)
             os.replace(tmp, args.link)
         print(emu.port_path, flush=True)
-        print(f"{len(servos)} x {model} at {args.baud} bps, protocol {args.protocol}; Ctrl-C to stop",
+        print(f"{len(servos) - len(args.device)} x {model} (+ {len(args.device)} device(s)) at {args.baud} bps, protocol {args.protocol}; Ctrl-C to stop",
               file=sys.stderr, flush=True)
         try:
             while not stop.wait(0.5):

@@ -2,88 +2,18 @@
 
 Try the bridge without hardware, and test transports byte for byte::
 
-    from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
-    import dynamixel_sdk as sdk
-
     with DynamixelBusEmulator(servos=range(1, 21), baud=2_000_000) as emu:   # 20 × XM430-W350
-        port = sdk.PortHandler(emu.port_path)
-        port.openPort(); port.setBaudRate(2_000_000)
-        ph = sdk.PacketHandler(2.0)
-        model, result, error = ph.ping(port, 1)          # 1020, COMM_SUCCESS, 0
-        ...
-        emu.goal_history[3]        # every Goal Position that reached servo 3 (GoalRecord)
-        emu.violations             # goals outside ranges set with allowed_range=...
+        port = sdk.PortHandler(emu.port_path)        # then the SDK or a transport, as on a U2D2
+        emu.goal_history[3], emu.violations          # what reached servo 3; goals outside allowed_range
 
-Servos: ``servos`` takes ints (IDs of the default model: XM430-W350 for protocol 2,
-AX-12A for protocol 1), ``(id, model)`` pairs, or :class:`ServoSpec` for the start
-position and an allowed goal range. Protocol 1.0 and 2.0 servos may share one bus; each
-answers only packets of its own protocol.
-
-What the emulator does (ROBOTIS e-Manual "Protocol 2.0" / "Protocol 1.0"):
-
-- protocol 2.0: PING (unicast and broadcast), READ, WRITE, REG_WRITE, ACTION, REBOOT,
-  FACTORY_RESET, CLEAR, SYNC_READ, SYNC_WRITE, FAST_SYNC_READ, BULK_READ, BULK_WRITE,
-  FAST_BULK_READ, with byte stuffing and CRC-16; a bad CRC is answered with a CRC error,
-  an unknown instruction with an instruction error;
-- protocol 1.0: PING, READ, WRITE, REG_WRITE, ACTION, RESET, SYNC_WRITE, BULK_READ;
-- Status Return Level (PING always answered; level 1 adds reads; level 2 everything),
-  broadcast ID 0xFE (no reply except PING and the group reads);
-- per-servo control tables, write rules (EEPROM lock while torque is on, access/range/limit
-  errors), motor model, hardware errors and alert bit, Bus Watchdog(98): see
-  :mod:`.emulated_servo`;
-- an ID written to clash with another servo's: both execute unicast instructions to it
-  and answer at once, which reaches the host as one packet with a broken CRC;
-- REBOOT: the servo answers, then stays silent for ``reboot_time_s`` (RAM back to factory
-  values, hardware errors cleared, torque off, goal = present);
-- baud: a servo only hears the host when the pty's baud setting (what the host set with
-  termios) is within 3 % of its Baud Rate register's rate, as a wrong baud gives garbage
-  on a real bus (``match_baud=False`` turns this off); a pty itself ignores the baud rate;
-- wire timing (``wire_timing=True``): each instruction occupies the bus for its bytes at
-  10 bits per byte at the baud rate; each reply is written to the pty when its last byte
-  would have arrived: ``t = end of previous traffic + Return Delay Time (2 µs units) +
-  10 * n_bytes / baud``. Replies of a SYNC/BULK read follow one another in ID order.
-  Without it, replies are written as soon as they are computed (fast tests).
-
-Older firmware: ``unsupported={"FAST_SYNC_READ", ...}`` makes the servos treat those
-instructions as unknown, as X-series firmware before v45 does with the fast group reads.
-
-Fault injection (all take effect on the next packet; ``clear_faults`` undoes them):
-``drop_replies(id, n)`` (the servo acts but its reply is lost), ``corrupt_replies(id, n)``
-(reply sent with a broken CRC), ``disconnect(id)`` (the servo neither hears nor
-answers), ``set_hardware_error(id, bits)`` (Hardware Error Status bits and the alert bit;
-shutdown bits switch torque off until REBOOT), ``overheat(id)`` (temperature held above
-the limit), ``set_supply_voltage(id, volts)``, ``stick(id)`` (motor blocked: stall
-current, overload after 1 s), ``push(id, ticks)`` (external displacement), and
-``vanish()`` (the pty closes as when a USB adapter is unplugged: the host's next read or
-write fails with an OSError/SerialException).
-
-Inspection: ``servo(id)`` (the :class:`~.emulated_servo.EmulatedServo`),
-``read_register(id, name)`` / ``write_register(id, name, value)`` (behind the bus's back),
-``goal_history`` ({id: [GoalRecord(stamp, servo_id, ticks, accepted, instruction)]}, every
-Goal Position write that reached the servo, accepted or not), ``allowed_range(id, lo, hi)``
-and ``violations`` (goals outside it), ``instruction_counts``, ``rx_bytes``/``tx_bytes``,
-``crc_errors``, ``received`` (the raw bytes of the last 64 packets heard, valid or not,
-as the host sent them: for comparing packet builders byte for byte).
-
-Setup notes for dynamixel-sdk on a pty: ``PortHandler.openPort``/``setBaudRate`` work
-unchanged (pyserial sets the baud with termios, which a pty accepts for the standard
-rates up to 4 Mbps); pyserial's ``set_low_latency_mode`` raises ValueError on a pty
-(there is no ASYNC_LOW_LATENCY on a pseudo-terminal), so a transport must treat that
-call as best-effort. The SDK waits 2 x LATENCY_TIMER + 2 ms (34 ms) for a reply; on a
-heavily loaded machine the emulator's thread can be descheduled longer than that, so
-tests raise ``dynamixel_sdk.port_handler.LATENCY_TIMER`` (a module setting) to 50.
-
-dynamixel-sdk 4.1.0 quirks met while testing against this emulator: it does not byte-stuff
-the packets it sends when stuffing would change their length (it computes the stuffed
-packet and drops it); its in-place unstuffing can drop a byte when ``FF FD FD`` follows a
-stuffed marker; ``GroupBulkRead`` fails for protocol 1.0 (it passes an extra argument to
-``bulkReadTx``); and an exception inside a transfer leaves ``port.is_using`` True, so the
-next call reports COMM_PORT_BUSY unless the caller resets it.
-
-Thread model: one reader thread per emulator; all servo state is guarded by
-``emu.lock``, which every public method takes (hold it when touching ``emu.servo(id)``
-directly). ``start(threaded=False)`` + ``pump()`` instead handle packets in the caller's
-thread, for measuring host CPU time without a second thread.
+``servos``: IDs (XM430-W350 on protocol 2, AX-12A on 1), ``(id, model)`` pairs (a device
+model such as ``(200, "OpenCR")`` adds a non-servo device) or :class:`ServoSpec`. It
+answers every protocol 2.0 and 1.0 instruction a servo does, with status return levels,
+broadcast, ID clashes, REBOOT downtime, baud matching and optional wire timing; faults
+are injected by method (``drop_replies``, ``corrupt_replies``, ``disconnect``,
+``set_hardware_error``, ``overheat``, ``set_supply_voltage``, ``stick``, ``push``,
+``vanish``). All state is under ``emu.lock``. The full behaviour, the fault and inspection
+API and dynamixel-sdk's quirks on a pty: docs/dynamixel.md.
 """
 
 from __future__ import annotations
@@ -101,8 +31,10 @@ import tty
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
+from firmware_cfg.device_models import find_device_model
 from firmware_cfg.servo_models import BAUD_TOLERANCE, load_servo_model
-from ros_free_bridge.emulators import dynamixel_protocol as dp
+from ros_free_bridge.dynamixel import protocol as dp
+from ros_free_bridge.emulators.emulated_device import EmulatedDevice, ImuSource
 from ros_free_bridge.emulators.emulated_servo import (
     EmulatedServo,
     GoalRecord,
@@ -126,8 +58,8 @@ _BAUD_CONSTANTS = {getattr(termios, name): int(name[1:]) for name in dir(termios
 
 @dataclass(frozen=True)
 class ServoSpec:
-    """One servo on the emulated bus: its ID, model (name or number), start position in
-    ticks (None: the model's center) and an optional allowed goal range in ticks; a goal
+    """One servo on the emulated bus: its ID, model (name or number; a device model's name,
+    e.g. ``OpenCR``, makes a non-servo device instead), start position in ticks (None: the model's center) and an optional allowed goal range in ticks; a goal
     outside it is recorded in ``emu.violations`` (it is still applied if the servo's own
     limits accept it)."""
 
@@ -172,9 +104,13 @@ class DynamixelBusEmulator:
                               f"use names from {sorted(dp.INSTRUCTION_NAMES.values())}")
         self.unsupported = frozenset(unsupported)
         self.lock = threading.RLock()
-        self._servos: list[EmulatedServo] = []
+        self._servos: list[EmulatedServo | EmulatedDevice] = []
         for item in servos:
             spec = self._spec(item)
+            device = find_device_model(spec.model) if isinstance(spec.model, str) else None
+            if device is not None:
+                self._servos.append(self._device(device, spec.id, return_delay_us))
+                continue
             model = load_servo_model(spec.model)
             servo = EmulatedServo(model, spec.id, spec.position, clock=clock)
             try:
@@ -201,6 +137,20 @@ class DynamixelBusEmulator:
         self.tx_bytes = 0
         self.crc_errors = 0
         self.vanished = False
+        self._has_devices = any(isinstance(s, EmulatedDevice) for s in self._servos)
+
+    def _device(self, model, device_id: int, return_delay_us: float | None) -> EmulatedDevice:
+        """A non-servo device (e.g. the OP3's OpenCR) at ``device_id``, at the bus's baud."""
+        dev = EmulatedDevice(model, device_id, clock=self.clock)
+        for code in range(7):
+            dev.set("baud_rate", code)
+            if dev.baud() == self.baud:
+                break
+        else:
+            raise BridgeError(f"emulated {model.name} (ID {device_id}) cannot run at {self.baud} bps")
+        if return_delay_us is not None:
+            dev.set("return_delay_time", int(round(return_delay_us / 2.0)))
+        return dev
 
     def _spec(self, item: ServoSpec | tuple | int) -> ServoSpec:
         if isinstance(item, ServoSpec):
@@ -290,7 +240,13 @@ class DynamixelBusEmulator:
     # ------------------------------------------------------------------ servo access
     @property
     def servos(self) -> list[EmulatedServo]:
-        return list(self._servos)
+        """The servos (not the devices) on the bus."""
+        return [s for s in self._servos if not isinstance(s, EmulatedDevice)]
+
+    @property
+    def devices(self) -> list[EmulatedDevice]:
+        """The non-servo devices (e.g. the OpenCR) on the bus."""
+        return [s for s in self._servos if isinstance(s, EmulatedDevice)]
 
     def servo(self, servo_id: int) -> EmulatedServo:
         """The servo whose ID register is ``servo_id`` now."""
@@ -298,6 +254,25 @@ class DynamixelBusEmulator:
             if s.servo_id == servo_id:
                 return s
         raise BridgeError(f"no emulated servo with ID {servo_id} (IDs: {sorted(s.servo_id for s in self._servos)})")
+
+    def device(self, device_id: int) -> EmulatedDevice:
+        """The non-servo device (e.g. the OpenCR) whose ID register is ``device_id`` now."""
+        found = self.servo(device_id)
+        if not isinstance(found, EmulatedDevice):
+            raise BridgeError(f"ID {device_id} on the emulated bus is a servo, not a device")
+        return found
+
+    def set_imu(self, device_id: int, gyro=None, accel=None, quat=None) -> None:
+        """The IMU sample device ``device_id`` reports (robot IMU frame: gyro rad/s, accel
+        m/s^2, quat wxyz; see :meth:`EmulatedDevice.set_imu`)."""
+        with self.lock:
+            self.device(device_id).set_imu(gyro, accel, quat)
+
+    def set_imu_source(self, device_id: int, source: ImuSource | None) -> None:
+        """Report what ``source()`` returns at every read, (gyro, accel, quat): e.g. a
+        physics model's IMU site. None: back to the values of :meth:`set_imu`."""
+        with self.lock:
+            self.device(device_id).imu_source = source
 
     def read_register(self, servo_id: int, name: str) -> int:
         """A register's value, with the motor model brought up to now."""
@@ -555,6 +530,12 @@ class DynamixelBusEmulator:
             if unicast is not None:
                 reply_level(unicast, 0, dp.ERR_INSTRUCTION)
             return [r for r in replies if r is not None]
+        if self._has_devices:  # a device answers only the instructions its firmware has
+            name = dp.INSTRUCTION_NAMES.get(inst, "")
+            if unicast is not None and not getattr(unicast, "supports", lambda _: True)(name):
+                reply_level(unicast, 0, dp.ERR_INSTRUCTION)
+                return [r for r in replies if r is not None]
+            servos = {i: s for i, s in servos.items() if getattr(s, "supports", lambda _: True)(name)}
 
         def werr(result: WriteResult) -> int:
             return 0 if result.ok else _P2_WRITE_ERRORS[result.error]

@@ -2,43 +2,11 @@
 
 The bus emulator (:mod:`.dynamixel_bus`) owns a list of these and calls them from its
 reader thread under one lock; they hold no lock of their own. Everything is in the
-servo's own units (ticks, register units); the model's tables come from
-:mod:`firmware_cfg.servo_models`.
-
-Write rules (what a protocol 2.0 servo answers, e-Manual "Protocol 2.0", Status Packet
-errors), returned as a :class:`WriteResult`:
-
-- a write must cover whole registers (else ``length``: Data Length Error); bytes that fall
-  in gaps between registers are ignored;
-- read-only registers refuse writes (``access``: Access Error);
-- EEPROM-area registers refuse writes while Torque Enable is 1 (``access``; "ROM lock");
-  protocol 1.0 models instead refuse EEPROM writes while their Lock register is 1;
-- a value outside the register's range gives ``range`` (Data Range Error);
-- a Goal Position outside [Min, Max] Position Limit (or the CW/CCW Angle Limits on
-  protocol 1.0 models) gives ``limit`` (Data Limit Error / Angle Limit Error);
-- any error leaves the table unchanged (all-or-nothing).
-
-Motor model, advanced lazily to the current time before every access (position control
-modes; velocity mode 1 follows Goal Velocity; other modes hold)::
-
-    v_max  = min(profile velocity (or Velocity Limit when it is 0), no-load speed * V/V_rated)
-    x     <- x + clip(goal - x, -v_max dt, +v_max dt)           (only with torque on)
-    I      = I_stall * clip((goal - x) / 128 ticks, -1, 1)        (torque on; 0 when off)
-    T     <- T_ss + (T - T_ss) exp(-dt / 60 s),  T_ss = T_ambient + 60 K * (I / I_stall)^2
-
-Hardware errors (Hardware Error Status, register 70 on X models; bits of the status
-error byte on protocol 1.0 models): input voltage (bit 0) outside the voltage limits,
-overheating (bit 2) at or above Temperature Limit, overload (bit 5) after 1 s at stall
-current, plus any bits injected by a test. A bit that is also set in Shutdown(63) switches
-torque off and keeps it off until REBOOT.
-
-With torque off the goal is stored but ignored, and :meth:`push` moves the horn (an
-external hand); with torque on a pushed servo moves back to its goal.
-
-Bus Watchdog(98) (X models): with torque on and a period of 1..127 x 20 ms, a servo that
-hears no instruction packet for that long stops where it is, Bus Watchdog reads -1 and
-the goal registers refuse writes with a Data Range Error until 0 is written to it.
-Every valid instruction packet the servo hears on its bus restarts the interval.
+servo's own units (ticks, register units) from its :mod:`firmware_cfg.servo_models` table.
+A write returns a :class:`WriteResult` (ok, or 'access' / 'length' / 'range' / 'limit',
+all-or-nothing); the motor model (slew-limited position, current, temperature, hardware
+errors with Shutdown, the Bus Watchdog) advances lazily to the present before every
+access. The rules and equations are written out in docs/dynamixel.md.
 """
 
 from __future__ import annotations

@@ -1,22 +1,12 @@
-"""Dynamixel protocol 2.0 packet code shared by the transport and the bus emulator.
+"""The control loop's hot-path packets, built and read with one ``struct`` call each.
 
-- scalar pieces: CRC-16, byte stuffing, instruction framing (the emulator's codec,
-  :mod:`ros_free_bridge.emulators.dynamixel_protocol`, re-exports them);
-- the control loop's hot path: :class:`SyncWriteEncoder` (one SYNC_WRITE of a register to a
-  fixed set of servos: one ``struct`` pack and the CRC), :class:`FastSyncReadDecoder` (the
-  FAST_SYNC_READ request and the one-unpack read of its reply) and
-  :class:`FastBulkReadDecoder` (the same for FAST_BULK_READ: each servo its own span). For a
-  20-servo packet the cost is interpreter steps, not bytes, so these take few; the CRC is
-  fastcrc's compiled code. The transport writes and reads these bytes through
-  dynamixel-sdk's ``PortHandler``.
-
-Protocol 2.0 instruction packet (ROBOTIS e-Manual, "Protocol 2.0")::
-
-    FF FF FD 00 | ID | LEN_L LEN_H | INST | PARAM... | CRC_L CRC_H
-    LEN = len(INST + PARAM (stuffed)) + 2
-    CRC = CRC-16 (poly 0x8005, init 0, MSB first, no final XOR) over FF .. last PARAM byte
-
-Byte stuffing: after every ``FF FF FD`` inside INST..PARAM one ``FD`` is inserted.
+:class:`SyncWriteEncoder` (one SYNC_WRITE of a register to a fixed set of servos),
+:class:`FastSyncReadDecoder` (the FAST_SYNC_READ request and the one-unpack read of its
+reply) and :class:`FastBulkReadDecoder` (the same for FAST_BULK_READ, each servo its own
+span). Their bytes equal dynamixel-sdk's GroupSyncWrite / GroupSyncRead.fastSyncRead /
+GroupBulkRead packets (tested); for a 20-servo packet the cost is interpreter steps, not
+bytes, so these take few. A malformed reply is a :class:`~.protocol.PacketError` naming
+what is wrong.
 """
 
 from __future__ import annotations
@@ -25,62 +15,11 @@ import operator
 import struct
 
 import numpy as np
-from fastcrc.crc16 import umts as _crc16_umts
 
-from ros_free_bridge.errors import BridgeError
-
-HEADER2 = b"\xff\xff\xfd\x00"
-BROADCAST_ID = 0xFE
-STATUS = 0x55
-SYNC_READ = 0x82
-SYNC_WRITE = 0x83
-FAST_SYNC_READ = 0x8A
-FAST_BULK_READ = 0x9A
-ALERT_BIT = 0x80
-
-
-class PacketError(BridgeError):
-    """A malformed packet: wrong header, length, CRC or checksum. Says which and why."""
-
-
-def crc16(data, crc: int = 0) -> int:
-    """CRC-16 of protocol 2.0: polynomial 0x8005 (x^16 + x^15 + x^2 + 1), init 0, MSB first,
-    no final XOR (the catalogue's CRC-16/UMTS), by fastcrc's compiled code. ``data``: any
-    bytes-like object (bytes, bytearray, memoryview); ``crc`` continues a running CRC, so
-    ``crc16(b, crc16(a)) == crc16(a + b)``. A 20-servo reply's CRC costs well under a
-    microsecond, where a table look-up per byte in Python cost ~25 µs with cold caches."""
-    return _crc16_umts(data, crc)
-
-
-#: struct format letter of a little-endian integer of 1, 2 or 4 bytes, by (size, signed)
-INT_FORMAT = {(1, True): "b", (1, False): "B", (2, True): "h", (2, False): "H", (4, True): "i", (4, False): "I"}
-
-
-def stuff(body: bytes) -> bytes:
-    """Insert ``FD`` after every ``FF FF FD`` in the INST..PARAM bytes."""
-    if b"\xff\xff\xfd" not in body:
-        return bytes(body)
-    return bytes(body).replace(b"\xff\xff\xfd", b"\xff\xff\xfd\xfd")
-
-
-def unstuff(body: bytes) -> bytes:
-    """Inverse of :func:`stuff`: ``FF FF FD FD`` becomes ``FF FF FD``."""
-    if b"\xff\xff\xfd\xfd" not in body:
-        return bytes(body)
-    return bytes(body).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
-
-
-def frame2(packet_id: int, body: bytes) -> bytes:
-    """Header + ID + LEN + body (already stuffed) + CRC."""
-    length = len(body) + 2
-    head = HEADER2 + bytes((packet_id & 0xFF, length & 0xFF, length >> 8))
-    crc = crc16(body, crc16(head))
-    return head + body + bytes((crc & 0xFF, crc >> 8))
-
-
-def encode_instruction(packet_id: int, instruction: int, params: bytes = b"") -> bytes:
-    """A protocol 2.0 instruction packet, stuffed and with its CRC."""
-    return frame2(packet_id, stuff(bytes((instruction,)) + bytes(params)))
+from ros_free_bridge.dynamixel.protocol import (
+    BROADCAST_ID, FAST_BULK_READ, FAST_SYNC_READ, HEADER2, INT_FORMAT, STATUS, SYNC_WRITE, PacketError, crc16,
+    encode_instruction,
+)
 
 
 class SyncWriteEncoder:
