@@ -7,8 +7,11 @@ One tick (default 100 Hz), never blocking on the slow stages:
 3. pick the target: the start ramp, the interpolated stream from the
    :class:`~ros_free_bridge.targets.TargetBuffer` (a late frame's change to the curve
    smoothed by :class:`~ros_free_bridge.targets.RevisionSmoother`), a hold, or the stop ramp;
-4. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
-5. record the tick in telemetry.
+4. balance stabilizer (free-standing robots whose transport reads an IMU,
+   ``LoopConfig.stabilizer``): :class:`sim.stabilizer.Stabilizer` adds bounded corrections on
+   the legs' joints from the IMU and the measured joint angles (telemetry ``correction``);
+5. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
+6. record the tick in telemetry.
 
 With a transport that offers it (``pipeline``: the Dynamixel transport), the bus cycle is
 split: step 4's write also sends the position read request, whose reply step 2 of the next
@@ -122,6 +125,11 @@ class LoopConfig:
     #: transport): a tick's write also sends the position read and the next tick takes its
     #: reply, so no tick waits for the bus; measured positions are then one tick old
     split_phase_bus: bool = True
+    #: balance stabilizer (sim.stabilizer) for a free-standing robot whose transport gives IMU
+    #: readings (JointState.imu); it acts only where the loop is given the robot's BalanceModel
+    stabilizer: bool = True
+    #: sim.stabilizer.StabilizerGains overriding the robot-scaled defaults (None: the defaults)
+    stabilizer_gains: object = None
 
     def __post_init__(self) -> None:
         for name in ("stop_policy", "estop_policy"):
@@ -192,7 +200,10 @@ class ControlLoop:
     """Drive ``transport`` from ``targets`` at ``config.rate_hz`` within ``limits``."""
 
     def __init__(self, transport, limits: JointLimits, targets: TargetBuffer, config: LoopConfig,
-                 telemetry: TelemetryWriter | None = None, on_status=None):
+                 telemetry: TelemetryWriter | None = None, on_status=None, balance=None):
+        """``balance``: the robot's :class:`sim.stabilizer.BalanceModel` (None: no stabilizer,
+        e.g. a fixed-base robot); the stabilizer runs when ``config.stabilizer`` is on and the
+        transport's readings carry an IMU sample."""
         if tuple(transport.joint_names) != tuple(limits.names):
             raise BridgeError(
                 f"control loop: transport joints {tuple(transport.joint_names)} differ from the limits' "
@@ -222,6 +233,12 @@ class ControlLoop:
         self.gc: LoopGc | None = None
         #: the live input's counters (sources.udp.UdpStats) when there is one: the status line shows its drops
         self.source_stats = None
+        self.stabilizer = None
+        if balance is not None and config.stabilizer:
+            from sim.stabilizer import Stabilizer
+
+            self.stabilizer = Stabilizer(balance.with_gains(config.stabilizer_gains))
+        self._stabilizing = False  #: the stabilizer ran this run (an IMU was read)
 
     @property
     def deadline_misses(self) -> int:
@@ -299,6 +316,15 @@ class ControlLoop:
                         stamp="JointState.stamp = when that request left")
         rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
         self._rest = rest
+        self._reference = start  # the last target before the stabilizer (what a hold keeps)
+        if self.stabilizer is not None:
+            self.stabilizer.reset()
+        imu = getattr(self._last_state, "imu", None)
+        self._event("stabilizer", on=self.stabilizer is not None and imu is not None,
+                    why=("on" if self.stabilizer is not None and imu is not None else
+                         "turned off (--no-stabilizer)" if not cfg.stabilizer else
+                         "no balance model (fixed base, or legs not found)" if self.stabilizer is None else
+                         "the transport reads no IMU"))
         self._enter_realtime()
         self._clock = FixedRateClock(cfg.rate_hz)
         self._clock.start()
@@ -320,7 +346,7 @@ class ControlLoop:
             if self._estop_reason is not None:
                 self._emergency(self._estop_reason)
                 return
-            target = self.safety.last_command
+            target = self._reference
             used = None
             now = time.monotonic()
             ramping_out = self.state == State.RAMP_OUT  # a stop decided this tick ramps from the next one
@@ -396,7 +422,9 @@ class ControlLoop:
                             faults |= Fault.NONFINITE
             if ramping_out:
                 if self._ramp_out is None:
-                    cur = self.safety.last_command
+                    # from the last reference when stabilizing (the command holds a correction
+                    # the stabilizer keeps adding): no jump by the correction at the ramp's start
+                    cur = self._reference if self._stabilizing else self.safety.last_command
                     self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits, cfg.min_ramp), self.dt))
                     self._settle_ticks = 0
                 if self._ramp_out:
@@ -404,9 +432,17 @@ class ControlLoop:
                 else:  # ramp done; the filter may still be braking a joint that was moving fast
                     target = self._rest
                     self._settle_ticks += 1
-            command, flags = self.safety.step(target)
+            self._reference = target
+            desired, correction = target, None
+            stab = self.stabilizer
+            if stab is not None and state.imu is not None and np.all(np.isfinite(target)):
+                desired = stab.step(target, state.position, state.imu, self.dt)
+                correction = desired - target
+                self._stabilizing = True
+            command, flags = self.safety.step(desired)
             if ramping_out and not self._ramp_out:
-                if np.max(np.abs(command - self._rest)) < 1e-6:
+                # at rest: the reference has arrived and the filter passes the command unchanged
+                if np.max(np.abs(target - self._rest)) < 1e-6 and np.max(np.abs(command - desired)) < 1e-6:
                     self.state = State.STOPPED
                 elif self._settle_ticks * self.dt > 2.0:
                     self._event("rest_not_reached", error=float(np.max(np.abs(command - self._rest))))
@@ -429,7 +465,7 @@ class ControlLoop:
             if self.telemetry is not None:
                 self.telemetry.record(
                     t=tick.woke - self._t_start, tick=tick.index, lateness=tick.lateness, compute=compute,
-                    target=target, command=command,
+                    target=target, command=command, correction=0.0 if correction is None else correction,
                     measured=state.position, intervention=flags, state=int(self.state), faults=int(faults),
                     actor_frame=-1 if used is None else used.actor_frame,
                     generator_latency=np.nan if used is None else used.generator_latency,
@@ -481,9 +517,12 @@ class ControlLoop:
         self._ramp_out = None
         self.state = State.RAMP_OUT
 
+    _last_state = None
+
     def _read(self):
         try:
-            return self.transport.read_state()
+            self._last_state = self.transport.read_state()
+            return self._last_state
         except BridgeError:
             self._faults |= Fault.BUS_ERROR
             raise

@@ -116,6 +116,9 @@ class SessionOptions:
     music: str | None = None  #: an audio file aligned with the actor clock
     #: let a udp:// actor listen on a non-loopback address (anyone who reaches it moves the robot)
     allow_remote_actor: bool = False
+    #: balance stabilizer in the loop for a free-standing robot whose transport reads an IMU
+    #: (LoopConfig.stabilizer); False: open loop (--no-stabilizer)
+    stabilizer: bool = True
 
 
 @dataclass
@@ -334,7 +337,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
                         **({} if opts.playback_margin is None and not opts.adaptive_playback else
                            {"playback_margin": ADAPTIVE_MARGIN if opts.playback_margin is None else opts.playback_margin}),
                         estop_policy=opts.estop_policy, max_duration=opts.max_duration,
-                        handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority)
+                        handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority,
+                        stabilizer=opts.stabilizer)
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
         config.playback_margin = playback_margin(config.playback_margin, core)
     # cubic (Hermite, causal tangents) interpolation: linear would jump in velocity at every 30 fps frame,
@@ -345,7 +349,8 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         telemetry = TelemetryWriter(out / "telemetry.dftl", names, opts.rate_hz,
                                     meta={"robot": files.ref, "actor": opts.actor, "partner": opts.partner,
                                           "transport": opts.transport, "model": str(opts.model or "bundled")})
-        loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status)
+        loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status,
+                           balance=_balance_model(files, names) if opts.stabilizer else None)
         udp = {}
         if opts.actor.startswith("udp://"):
             udp = {"allow_remote": opts.allow_remote_actor, "on_event": telemetry.event}
@@ -404,6 +409,18 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
         result.transport_info["bus_violations"] = emu.stats["violations"]
         result.transport_info["bus_goal_writes"] = emu.stats["goal_writes"]
     return result
+
+
+def _balance_model(files, names):
+    """The robot's sim.stabilizer.BalanceModel, or None for a fixed-base robot (or one whose legs
+    are not found)."""
+    from firmware_cfg.registry import resolve
+
+    if resolve(files.ref).fixed_base:
+        return None
+    from sim.stabilizer import balance_model
+
+    return balance_model(files.ref, joint_names=tuple(names))
 
 
 def telemetry_events_append(telemetry_path: Path, kind: str, **info) -> None:

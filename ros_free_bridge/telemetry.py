@@ -39,6 +39,7 @@ def tick_dtype(n_joints: int) -> np.dtype:
             ("lateness", "<f4"),  # wake-up time minus deadline
             ("compute", "<f4"),  # time spent in the tick before the bus write
             ("target", "<f4", (n,)),  # what upstream asked for (before the safety filter)
+            ("correction", "<f4", (n,)),  # the balance stabilizer's change to the target (0: off)
             ("command", "<f4", (n,)),  # what was sent
             ("measured", "<f4", (n,)),  # present positions read this tick (NaN if not read)
             ("intervention", "u1", (n,)),  # safety.Intervention flags per joint
@@ -135,15 +136,21 @@ class Telemetry:
     events: list[dict]
     truncated_bytes: int  #: bytes of a partial last record (a crash mid-write), ignored
 
-    def commands_trajectory(self, robot: str = ""):
+    def commands_trajectory(self, robot: str = "", without_correction: bool = False):
         """The commands the run sent, as a RobotTrajectory at the control rate. The root is
-        left at the origin, upright: a free robot is placed on the ground by whoever plays it."""
+        left at the origin, upright: a free robot is placed on the ground by whoever plays it.
+        ``without_correction``: minus the balance stabilizer's corrections (the ``correction``
+        field; absent in files of older runs: none), i.e. the commands as the loop would have
+        sent them open loop, for a check that runs its own stabilizer."""
         from retarget import RobotTrajectory
 
         n = len(self.records)
         if n < 2:
             raise BridgeError("telemetry: fewer than 2 ticks were recorded; nothing to replay or check")
-        return RobotTrajectory(self.joint_names, self.records["command"].astype(np.float64), np.zeros((n, 3)),
+        q = self.records["command"].astype(np.float64)
+        if without_correction and "correction" in self.records.dtype.names:
+            q = q - self.records["correction"].astype(np.float64)
+        return RobotTrajectory(self.joint_names, q, np.zeros((n, 3)),
                                np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), self.rate_hz, robot,
                                {"source": "telemetry commands"})
 

@@ -14,6 +14,17 @@ Modes: ``free`` (the robot stands on its own feet; only gravity, contacts and it
 servos act on it; the root pose of the trajectory sets the start pose only) and
 ``fixed`` (the root body is bolted at the trajectory's first root pose).
 
+Balance stabilizer (``stabilizer=True``, the default): a free-standing robot's goals pass
+through the same :class:`sim.stabilizer.Stabilizer` the bridge's control loop runs, fed with
+the simulated IMU (:class:`sim.virtual_robot.ImuProbe`) and joint angles one control tick old
+(as the bridge's split-phase bus reads them), from the first settle on; so the check judges
+what the bridge would send (``q_cmd`` is the corrected command; ``series["correction"]`` and
+``metrics["stabilizer"]`` say how much it changed). A correction never adds a joint-limit or servo-speed breach: it is
+kept inside the limits of a joint whose reference is, and the corrected command moves no
+faster than the reference or the servo's no-load speed, whichever is faster (the bridge's
+safety filter does the same). ``stabilizer=False`` (``check --no-stabilizer``) plays the
+reference open loop. It is off for a fixed base and for a robot whose legs are not found.
+
 Entry (``entry="stand"``, the default): a clip may start mid-motion, in a pose the robot
 cannot be dropped into. The robot starts in its standing pose (the scene's ``stand``
 keyframe, or the derived one: :mod:`sim.scene`), feet on the floor, at the first frame's root
@@ -74,6 +85,8 @@ from sim.errors import SimError
 from sim.human_figure import FaceToFace, Placement
 from sim.robot_index import body_label, geom_label
 from sim.scene import Scene, SceneConfig
+from sim.stabilizer import Stabilizer, StabilizerGains, balance_model
+from sim.virtual_robot import ImuProbe
 
 #: Robot-human distances are measured up to this many metres; farther reads as the cap.
 HUMAN_DISTANCE_CAP = 0.1
@@ -119,6 +132,9 @@ class CheckConfig:
     balance_margin: float = 0.0  # m; centre of mass outside the support polygon by more than this ...
     balance_window_s: float = 0.2  # ... (or the ZMP near its edge) sustained this long
     zmp_edge_margin: float = 0.002  # m; the measured ZMP this close to the support polygon's edge
+    # balance feedback, as in the bridge's loop (module docstring); gains None: scaled to the robot
+    stabilizer: bool = True
+    stabilizer_gains: StabilizerGains | None = None
 
     def validate(self) -> None:
         for name in ("control_hz", "physics_hz"):
@@ -137,6 +153,11 @@ class CheckConfig:
             raise SimError(f"check config: entry must be 'stand' or 'first_frame', got {self.entry!r}")
         if not (math.isfinite(self.entry_speed_frac) and 0 < self.entry_speed_frac <= 1):
             raise SimError(f"check config: entry_speed_frac must be in (0, 1], got {self.entry_speed_frac!r}")
+        if self.stabilizer_gains is not None:
+            try:
+                self.stabilizer_gains.validate()
+            except ValueError as exc:
+                raise SimError(f"check config: {exc}") from None
         for name in ("settle_s", "entry_min_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -308,6 +329,9 @@ class Checker:
         self.contacts = ContactClassifier(m, r.geom_ids, scene.floor_geom, r.foot_bodies)
         self.feet = r.feet
         self.robot_col_geoms = np.array([g for g in r.geom_ids if m.geom_contype[g] or m.geom_conaffinity[g]])
+        self.balance = balance_model(scene=scene, gains=config.stabilizer_gains) if config.stabilizer else None
+        self.stabilizer = Stabilizer(self.balance) if self.balance is not None else None
+        self.imu = ImuProbe(m, r.root_body) if self.stabilizer is not None else None
 
     def run(self, traj: RobotTrajectory, on_tick=None) -> CheckResult:
         """Play and judge ``traj``. ``on_tick(t)`` (optional) is called after each control
@@ -352,7 +376,24 @@ class Checker:
         d_qpos, d_qvel, d_force, d_xpos, d_xmat = d.qpos, d.qvel, d.actuator_force, d.xpos, d.xmat
         step = mujoco.mj_step
 
+        stab, imu = self.stabilizer, self.imu
+        correction = np.zeros((K, n)) if stab is not None else None
+        q_ref = q_cmd
+        if stab is not None:
+            q_cmd = q_ref.copy()
+            speed = np.where(np.isfinite(r.no_load_speed), cfg.speed_tolerance * r.no_load_speed, np.inf) * dt
+            reading = (d_qpos[r.qpos_adr].copy(), imu.read(d))
         for k in range(K):
+            if stab is not None:  # the readings of one tick before, as the bridge's split-phase bus gives them
+                fresh = (d_qpos[r.qpos_adr].copy(), imu.read(d))
+                goal = stab.step(q_ref[k], reading[0], reading[1], dt)
+                reading = fresh
+                if k:  # no faster than the reference or the servo, whichever is faster
+                    room = np.maximum(0.999 * speed, np.abs(q_ref[k] - q_ref[k - 1]))
+                    goal = np.clip(goal, q_cmd[k - 1] - room, q_cmd[k - 1] + room)
+                q_cmd[k] = goal
+                correction[k] = goal - q_ref[k]
+                stab.correction = correction[k].copy()
             if ctrl is not None:
                 ctrl[:] = q_cmd[k]
             else:
@@ -474,6 +515,7 @@ class Checker:
             "min_root_height_m": _finite(np.nanmin(root_h[:K_run])) if free else None,
             "standing_root_height_m": _finite(stand_h) if free else None,
         }
+        metrics["stabilizer"] = self._stabilizer_metrics(correction, K_run, t)
         metrics["joint_limit_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.limit_source)}
         metrics["no_load_speed_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.speed_source)}
         metrics["feet"] = {f.side: [m.body(b).name or f"body {b}" for b in f.bodies] for f in self.feet}
@@ -484,7 +526,8 @@ class Checker:
         first = failures[0] if failures else None
         series = {"t": t[:K_run], "q": q[:K_run], "q_cmd": q_cmd[:K_run], "torque": tau[:K_run],
                   "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run],
-                  "zmp_margin": zmp_margin[:K_run]}
+                  "zmp_margin": zmp_margin[:K_run],
+                  "correction": (correction[:K_run] if correction is not None else np.zeros((K_run, n)))}
         return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None, first.reason if first else "ok",
                            first.time if first else None, failures, metrics, r.joint_names, r.lower, r.upper,
                            series, cfg, self.not_checked(), self.notes(), warnings, float(k0 * dt))
@@ -499,7 +542,7 @@ class Checker:
         if cfg.entry == "first_frame":
             sc.set_robot_pose(q0, traj.root_pos[0], traj.root_quat[0], ground=not r.fixed_base)
             sc.pose_humans(0.0)
-            mujoco.mj_step(m, d, settle)
+            self._settle(q0, settle)
             return np.zeros((0, r.n))
         sc.reset()  # standing pose, humans at their first frame
         if not r.fixed_base:  # at the first frame's place and heading; the stand's height and lean kept
@@ -512,7 +555,7 @@ class Checker:
             d.qpos[a + 3:a + 7] = quat
             mujoco.mj_forward(m, d)
         start = sc.stand_ctrl.copy()
-        mujoco.mj_step(m, d, settle)
+        self._settle(start, settle)
         duration = entry_duration(start, q0, r.no_load_speed, cfg.entry_speed_frac, cfg.entry_min_s)
         k0 = int(math.ceil(duration * cfg.control_hz - 1e-9))
         j = int(np.argmax(np.abs(q0 - start)))
@@ -520,6 +563,38 @@ class Checker:
                       "largest_move_joint": r.joint_names[j]}
         s = np.arange(k0) / k0  # the tick at t = 0 plays q0 itself (s = 1): it is the clip's first
         return start + (q0 - start) * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)[:, None]
+
+    def _settle(self, q: np.ndarray, steps: int) -> None:
+        """Hold goals ``q`` (n,) for ``steps`` physics steps, through the stabilizer (when on) at
+        the control rate, as the bridge holds a robot standing."""
+        m, d, r, cfg = self.scene.model, self.scene.data, self.scene.robot, self.config
+        if self.stabilizer is None:  # the goals the pose was set with
+            mujoco.mj_step(m, d, steps)
+            return
+        self.stabilizer.reset()
+        n_sub = int(round(cfg.physics_hz / cfg.control_hz))
+        dt = 1.0 / cfg.control_hz
+        reading = (d.qpos[r.qpos_adr].copy(), self.imu.read(d))
+        for _ in range(max(0, steps) // n_sub):
+            fresh = (d.qpos[r.qpos_adr].copy(), self.imu.read(d))
+            d.ctrl[r.actuator_ids] = self.stabilizer.step(q, reading[0], reading[1], dt)
+            reading = fresh  # one tick old next time, as in run()
+            mujoco.mj_step(m, d, n_sub)
+
+    def _stabilizer_metrics(self, correction, k_run: int, t: np.ndarray) -> dict:
+        """Whether the stabilizer was on, why not, and its largest correction."""
+        cfg, sc = self.config, self.scene
+        if self.stabilizer is None:
+            why = ("turned off (--no-stabilizer)" if not cfg.stabilizer else
+                   "fixed base" if sc.robot.fixed_base or not sc.floating else
+                   "no two legs with ankle joints found from the root to the feet")
+            return {"on": False, "why_off": why}
+        c = np.abs(correction[:k_run]) if k_run else np.zeros((1, sc.robot.n))
+        k, j = np.unravel_index(int(np.argmax(c)), c.shape) if c.size else (0, 0)
+        g = self.balance.gains
+        return {"on": True, "max_correction_rad": float(c.max()) if c.size else 0.0,
+                "max_correction_joint": sc.robot.joint_names[j], "max_correction_time_s": float(t[k]) if k_run else None,
+                "gains": {k_: float(v) for k_, v in asdict(g).items()}, "notes": list(self.balance.notes)}
 
     def not_checked(self) -> dict[str, str]:
         """Reason -> why it could not be judged (for all joints or the ones named)."""

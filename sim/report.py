@@ -60,6 +60,15 @@ def verdict(result: CheckResult) -> str:
     return f"FAIL: {f.reason} at {f.time:.2f} s: {f.detail}"
 
 
+def stabilizer_line(result: CheckResult) -> str:
+    """How the check's balance stabilizer ran: on, with its largest correction, or off and why."""
+    st = result.metrics.get("stabilizer", {})
+    if not st.get("on"):
+        return f"stabilizer off ({st.get('why_off', 'not run')})"
+    return (f"stabilizer on, largest correction {st['max_correction_rad']:.3f} rad "
+            f"({st['max_correction_joint']} at {st['max_correction_time_s']:.2f} s)")
+
+
 def warning_lines(result: CheckResult) -> list[str]:
     """One line per warning: ``warning: <kind> at <t> s: <detail>``."""
     return [f"warning: {w.kind} at {w.time:.2f} s: {w.detail}" for w in result.warnings]
@@ -98,6 +107,7 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
     lines += ["## Summary", "",
               f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
               f"physics {m['physics_hz']:g} Hz; {entered}",
+              f"- {stabilizer_line(result)}",
               f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
               f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')} (feet: "
               f"{_fmt(m.get('max_foot_penetration_m'), 1000, 'mm')})",

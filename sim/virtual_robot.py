@@ -24,6 +24,12 @@ overheats in a few minutes, as XM430s do). Above ``max_temperature_c`` (the
 Dynamixel default shutdown temperature, 80 C) the servo switches its torque off and
 reports "overheating", as a real one does, until :meth:`reboot`.
 
+IMU: each reading carries the body IMU's sample (:class:`ImuSample`, :class:`ImuProbe`): the
+model's gyro / accelerometer / framequat sensors on a site of the root body (the OP3's
+``imu`` site), else a site of the root body named like "imu", else the root body's frame,
+with the rate and attitude computed from the simulation and the specific force taken as
+gravity alone (R^T (0, 0, 9.81): the quasi-static value) where no accelerometer is declared.
+
 Faults (:meth:`inject_fault`): ``"stuck"`` locks the joint mechanically where it
 is (a seized gearbox; goals are ignored); ``"torque_limit"`` lowers the servo's
 torque limit to ``value`` N m (a weak battery, a worn motor).
@@ -41,9 +47,70 @@ from sim.errors import SimError
 STOP_POLICIES = ("hold", "limp")
 
 
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU sample, like the bridge's ImuReading: in the IMU site's frame (x forward, y left,
+    z up standing), ``gyro`` (3,) rad/s, ``accel`` (3,) m/s^2 specific force, ``quat`` (4,) wxyz
+    the site's attitude in the world, ``stamp`` s."""
+
+    gyro: np.ndarray
+    accel: np.ndarray
+    quat: np.ndarray
+    stamp: float
+
+
+class ImuProbe:
+    """Reads a robot's body IMU from a compiled model (see the module docstring for which
+    site and sensors). ``site`` is -1 when the root body's own frame stands in for it."""
+
+    def __init__(self, model, root_body: int):
+        import mujoco
+
+        from sim.stabilizer import imu_site
+
+        self._mj = mujoco
+        self.model, self.root = model, int(root_body)
+        self.site = imu_site(model, root_body)
+        self._gyro = self._accel = self._quat = None
+        for s in range(model.nsensor):
+            if model.sensor_objtype[s] != mujoco.mjtObj.mjOBJ_SITE or model.sensor_objid[s] != self.site:
+                continue
+            adr = slice(int(model.sensor_adr[s]), int(model.sensor_adr[s]) + int(model.sensor_dim[s]))
+            kind = model.sensor_type[s]
+            if kind == mujoco.mjtSensor.mjSENS_GYRO and self._gyro is None:
+                self._gyro = adr
+            elif kind == mujoco.mjtSensor.mjSENS_ACCELEROMETER and self._accel is None:
+                self._accel = adr
+            elif kind == mujoco.mjtSensor.mjSENS_FRAMEQUAT and self._quat is None:
+                self._quat = adr
+        self._res = np.zeros(6)
+
+    def read(self, data, stamp: float = 0.0) -> ImuSample:
+        mj, m = self._mj, self.model
+        if self.site >= 0:
+            R = data.site_xmat[self.site].reshape(3, 3)
+            objtype, obj = mj.mjtObj.mjOBJ_SITE, self.site
+        else:
+            R = data.xmat[self.root].reshape(3, 3)
+            objtype, obj = mj.mjtObj.mjOBJ_BODY, self.root
+        if self._quat is not None:
+            quat = data.sensordata[self._quat].copy()
+        else:
+            quat = np.zeros(4)
+            mj.mju_mat2Quat(quat, R.reshape(9).copy())
+        if self._gyro is not None:
+            gyro = data.sensordata[self._gyro].copy()
+        else:
+            mj.mj_objectVelocity(m, data, objtype, obj, self._res, 1)
+            gyro = self._res[:3].copy()
+        accel = data.sensordata[self._accel].copy() if self._accel is not None else R.T @ np.array([0.0, 0.0, 9.81])
+        return ImuSample(gyro, accel, quat, stamp)
+
+
 @dataclass
 class VirtualReading:
-    """One reading, like the bridge's JointState: arrays (n,) in joint order."""
+    """One reading, like the bridge's JointState: arrays (n,) in joint order, ``imu`` the body
+    IMU's sample at the same instant."""
 
     position: np.ndarray
     velocity: np.ndarray
@@ -53,6 +120,7 @@ class VirtualReading:
     torque_enabled: np.ndarray
     stamp: float
     errors: dict[str, str] = field(default_factory=dict)
+    imu: ImuSample | None = None
 
 
 @dataclass(frozen=True)
@@ -131,6 +199,7 @@ class VirtualRobot:
         for j in range(self._n):
             self._apply_torque(j, False)
         sc.data.ctrl[r.actuator_ids] = self._goal
+        self._imu = ImuProbe(m, r.root_body)
         self._opened = True
 
     def read_state(self) -> VirtualReading:
@@ -138,11 +207,12 @@ class VirtualRobot:
         self._advance_realtime()
         r, d = self._scene.robot, self._scene.data
         n = self._n
+        stamp = self._clock()
         return VirtualReading(
             position=d.qpos[r.qpos_adr].copy(), velocity=d.qvel[r.dof_adr].copy(),
             effort=d.actuator_force[r.actuator_ids].copy(), temperature=self._temp.copy(),
             voltage=np.full(n, self.config.voltage), torque_enabled=self._enabled.copy(),
-            stamp=self._clock(), errors=dict(self._errors),
+            stamp=stamp, errors=dict(self._errors), imu=self._imu.read(d, stamp),
         )
 
     def write_goal(self, positions) -> None:

@@ -23,6 +23,9 @@ def register(subparsers) -> None:
     p.add_argument("--interp", choices=("linear", "cubic"), default="linear",
                    help="how targets between trajectory frames are made (default linear)")
     add_placement_options(p, "actor", "human actor motion file (.bvh/.npz/.npy) to place in the scene")
+    p.add_argument("--no-stabilizer", action="store_true",
+                   help="play the trajectory open loop: without the balance stabilizer the bridge runs for a "
+                        "free-standing robot (default: with it, fed by the simulated IMU)")
     p.add_argument("-o", "--out", default="check_report", help="report folder (default check_report)")
     p.add_argument("--no-plots", action="store_true", help="write only the JSON report")
     p.set_defaults(func=run)
@@ -90,7 +93,7 @@ def run(args) -> int:
     from sim.report import warning_lines, write_json, write_report
 
     config = CheckConfig(control_hz=args.control_hz, physics_hz=args.physics_hz, interpolation=args.interp,
-                         mode=args.mode)
+                         mode=args.mode, stabilizer=not args.no_stabilizer)
     from retarget.errors import RetargetError
     from sim.errors import SimError
 
@@ -114,6 +117,9 @@ def run(args) -> int:
         print(f"PASS {args.trajectory} ({result.robot}, {result.mode}{unjudged}{warned})")
     else:
         print(f"FAIL {args.trajectory}: {result.reason} at {result.first_failure_time:.2f} s: {result.failures[0].detail}")
+    from sim.report import stabilizer_line
+
+    print(f"  {stabilizer_line(result)}")
     print(f"  entered from standing in {result.entry_transition_s:.2f} s (before the clip's 0 s)"
           if result.entry_transition_s else "  started in the clip's first pose")
     for line in warning_lines(result):

@@ -32,7 +32,7 @@ import numpy as np
 
 
 def register(sub) -> None:
-    from ros_free_bridge.commands.run import add_generator_options
+    from ros_free_bridge.commands.run import add_generator_options, add_stabilizer_option
 
     p = sub.add_parser("demo", help="the main job: a dancing leader, a generated robot partner, video and reports",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -47,6 +47,7 @@ def register(sub) -> None:
     add_generator_options(p)
     p.add_argument("--no-bus", action="store_true", help="drive the virtual robot only, without the emulated bus")
     p.add_argument("--no-video", action="store_true", help="skip the video")
+    add_stabilizer_option(p)
     p.add_argument("-o", "--out", default="demo_out", help="output folder (default demo_out)")
     p.set_defaults(func=demo)
 
@@ -72,7 +73,7 @@ def demo(args) -> int:
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry import read_telemetry
     from sim.check import CheckConfig, check_trajectory
-    from sim.report import write_report
+    from sim.report import stabilizer_line, write_report
 
     from ros_free_bridge.robots import resolve_robot
 
@@ -100,14 +101,17 @@ def demo(args) -> int:
           f"{'' if args.no_bus else ' + emulated Dynamixel bus'}", file=sys.stderr)
     opts = SessionOptions(robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, **generator_options(args),
                           transport="sim" if args.no_bus else "sim+dynamixel", emulate=not args.no_bus, out=out,
-                          text=args.text, music=music)
+                          text=args.text, music=music, stabilizer=not args.no_stabilizer)
     result = run_session(opts, on_status=StatusLine())
     sys.stderr.write("\n")
 
     tel = read_telemetry(out / "telemetry.dftl")
-    commands = tel.commands_trajectory(result.files.ref)
+    # the commands without the loop's stabilizer corrections: the check runs its own stabilizer on
+    # its own simulated robot (off with --no-stabilizer, as in the run)
+    commands = tel.commands_trajectory(result.files.ref, without_correction=True)
     with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
-        check = check_trajectory(commands, CheckConfig(control_hz=tel.rate_hz), robot=result.files.ref, on_tick=tick)
+        check = check_trajectory(commands, CheckConfig(control_hz=tel.rate_hz, stabilizer=not args.no_stabilizer),
+                                 robot=result.files.ref, on_tick=tick)
     reports = write_report(check, out, "check")
 
     video = None
@@ -117,7 +121,8 @@ def demo(args) -> int:
 
     print_summary(result)
     print(f"physics check: {'PASS' if check.passed else 'FAIL'}"
-          + ("" if check.passed else f" ({check.reason}, first at {check.first_failure_time} s)"))
+          + ("" if check.passed else f" ({check.reason}, first at {check.first_failure_time} s)")
+          + f"; {stabilizer_line(check)}")
     for name, path in reports.items():
         print(f"{name}: {path}")
     if video is not None:

@@ -42,6 +42,12 @@ from pathlib import Path
 from ros_free_bridge.session import ADAPTIVE_MARGIN, MOTION_FPS, PARTNERS, TRANSPORTS, SessionOptions
 
 
+def add_stabilizer_option(p) -> None:
+    p.add_argument("--no-stabilizer", action="store_true",
+                   help="no balance stabilizer in the loop (on by default for a free-standing robot whose transport "
+                        "reads an IMU: IMU and joint readings -> bounded corrections on the legs' joints)")
+
+
 def add_generator_options(p) -> None:
     """The partner generator's options, shared by ``run`` and ``demo``; defaults are SessionOptions'."""
     d = SessionOptions()
@@ -124,6 +130,7 @@ def register(sub) -> None:
                    help="run the control loop at SCHED_FIFO priority N (1-99; needs root, CAP_SYS_NICE or an rtprio "
                         "limit; refused: normal scheduling, said in the telemetry's 'realtime' event). Default 0: normal")
     p.add_argument("--max-duration", type=float, help="stop after this many seconds of streaming")
+    add_stabilizer_option(p)
     p.add_argument("--stop-policy", choices=("hold", "limp"), help="after the stop ramp (default: the hardware config's)")
     p.add_argument("--estop-policy", choices=("hold", "limp"), default="limp", help="on e-stop and errors (default: limp)")
     p.add_argument("--sim-clock", choices=("realtime", "lockstep"), default="realtime",
@@ -256,7 +263,7 @@ def run(args) -> int:
         **generator_options(args), transport=args.transport, port=args.port, emulate=args.emulate,
         rate_hz=args.rate, realtime_priority=args.realtime_priority, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
         max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
-        allow_remote_actor=args.allow_remote_actor,
+        allow_remote_actor=args.allow_remote_actor, stabilizer=not args.no_stabilizer,
     )
     warning = remote_actor_warning(args.actor, args.allow_remote_actor)
     if warning:

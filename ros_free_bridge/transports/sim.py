@@ -1,7 +1,8 @@
 """The MuJoCo virtual robot as a bridge transport.
 
 Wraps :class:`sim.virtual_robot.VirtualRobot` (which mirrors the transport methods but
-returns its own reading type, since ``sim`` does not import the bridge) and records what
+returns its own reading type, since ``sim`` does not import the bridge; its IMU sample becomes
+``JointState.imu``) and records what
 the simulated robot actually did at every write: its root pose and measured joint angles.
 :meth:`SimTransport.recorded_trajectory` returns that as a
 :class:`retarget.RobotTrajectory`, for rendering a video of the run or checking it.
@@ -12,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from retarget import RobotTrajectory
-from ros_free_bridge.transports.base import JointState
+from ros_free_bridge.transports.base import ImuReading, JointState
 
 
 class SimTransport:
@@ -35,7 +36,9 @@ class SimTransport:
 
     def read_state(self) -> JointState:
         r = self.robot.read_state()
-        return JointState(r.position, r.velocity, r.effort, r.temperature, r.voltage, r.torque_enabled, r.stamp, r.errors)
+        imu = None if r.imu is None else ImuReading(r.imu.gyro, r.imu.accel, r.imu.quat, r.imu.stamp)
+        return JointState(r.position, r.velocity, r.effort, r.temperature, r.voltage, r.torque_enabled, r.stamp,
+                          r.errors, imu)
 
     def write_goal(self, positions) -> None:
         self.robot.write_goal(positions)
