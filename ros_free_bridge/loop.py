@@ -196,6 +196,20 @@ class TickPlayback:
         return t
 
 
+@dataclass
+class _Stream:
+    """The streaming state the loop carries between ticks: the buffer's ``curve`` (revisions
+    smoothed), the ``playback`` clock (frame k is played at t0 + k / fps), when the stream
+    started, when a new frame last arrived and its index, and when waiting began."""
+
+    curve: RevisionSmoother
+    playback: object = None
+    start: float = 0.0
+    last_new: float = 0.0
+    last_frame_index: int = -1
+    wait_since: float = 0.0
+
+
 class ControlLoop:
     """Drive ``transport`` from ``targets`` at ``config.rate_hz`` within ``limits``."""
 
@@ -297,6 +311,51 @@ class ControlLoop:
         return self.summary
 
     def _main(self) -> None:
+        start = self._start_up()
+        ramp = list(min_jerk(start, self._rest, min_jerk_duration(start, self._rest, self.limits, self.config.min_ramp),
+                             self.dt))
+        stream = _Stream(RevisionSmoother(self.targets, self.config.revision_smoothing))
+        while True:
+            tick = self._clock.wait()
+            faults = Fault.DEADLINE_MISS if tick.skipped else Fault.NONE
+            state = self._read()
+            faults |= self._check_health(state)
+            if self._estop_reason is not None:
+                self._emergency(self._estop_reason)
+                return
+            now = time.monotonic()
+            ramping_out = self.state == State.RAMP_OUT  # a stop decided this tick ramps from the next one
+            target, used = self._reference, None
+            if self.state == State.RAMP_IN:
+                target = ramp.pop(0)
+                if not ramp:
+                    self.state = State.WAITING
+                    self.ready.set()
+                    stream.wait_since = now
+                    self._event("ready")
+            elif self.state == State.WAITING:
+                target = self._rest
+                faults |= self._await_first_frame(stream, now)
+            elif self.state in (State.RUNNING, State.HOLD):
+                target, used, more = self._stream_target(stream, now, target)
+                faults |= more
+            if ramping_out:
+                target = self._ramp_out_target()
+            self._reference = target
+            desired, correction = self._stabilize(target, state)
+            command, flags = self.safety.step(desired)
+            if ramping_out and not self._ramp_out:
+                self._check_at_rest(target, desired, command)
+            compute = time.monotonic() - tick.woke
+            self.transport.write_goal(command)
+            self._account(tick, faults, state, target, correction, command, flags, used, compute)
+            if self.state == State.STOPPED:
+                self.transport.safe_stop(self.config.stop_policy)
+                self._event("stopped", policy=self.config.stop_policy, reason=self.summary.reason)
+                return
+
+    def _start_up(self) -> np.ndarray:
+        """From the present pose, torque on, to a started clock; returns the start pose (n,)."""
         cfg = self.config
         self._adopt_transport_limits()
         present = self._read().position
@@ -310,19 +369,17 @@ class ControlLoop:
         self.transport.write_goal(start)  # goal = present before torque on: no jump
         self.transport.set_torque(True)
         self._event("torque_on")
-        pipeline = getattr(self.transport, "pipeline", None)
-        if cfg.split_phase_bus and callable(pipeline) and pipeline(True):
+        if cfg.split_phase_bus and self.transport.pipeline(True):
             self._event("split_phase_bus", measured="the reply to the previous tick's read request",
                         stamp="JointState.stamp = when that request left")
-        rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
-        self._rest = rest
+        self._rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
         self._reference = start  # the last target before the stabilizer (what a hold keeps)
         if self.stabilizer is not None:
             self.stabilizer.reset()
-        imu = getattr(self._last_state, "imu", None)
-        self._event("stabilizer", on=self.stabilizer is not None and imu is not None,
-                    why=("on" if self.stabilizer is not None and imu is not None else
-                         "turned off (--no-stabilizer)" if not cfg.stabilizer else
+        imu = self._last_state.imu if self._last_state is not None else None
+        on = self.stabilizer is not None and imu is not None
+        self._event("stabilizer", on=on,
+                    why=("on" if on else "turned off (--no-stabilizer)" if not cfg.stabilizer else
                          "no balance model (fixed base, or legs not found)" if self.stabilizer is None else
                          "the transport reads no IMU"))
         self._enter_realtime()
@@ -330,155 +387,132 @@ class ControlLoop:
         self._clock.start()
         self._t_start = time.monotonic()
         self.state = State.RAMP_IN
-        ramp = list(min_jerk(start, rest, min_jerk_duration(start, rest, self.limits, cfg.min_ramp), self.dt))
-        playback = None  # the playback clock: frame k is played at t0 + k / fps (ros_free_bridge.playback)
-        curve = RevisionSmoother(self.targets, cfg.revision_smoothing)  # the buffer's curve, revisions smoothed
-        last_new = time.monotonic()
-        last_frame_index = -1
-        stream_start = None
-        while True:
-            tick = self._clock.wait()
-            faults = Fault.NONE
-            if tick.skipped:
-                faults |= Fault.DEADLINE_MISS
-            state = self._read()
-            faults |= self._check_health(state)
-            if self._estop_reason is not None:
-                self._emergency(self._estop_reason)
-                return
-            target = self._reference
-            used = None
-            now = time.monotonic()
-            ramping_out = self.state == State.RAMP_OUT  # a stop decided this tick ramps from the next one
-            if self.state == State.RAMP_IN:
-                target = ramp.pop(0)
-                if not ramp:
-                    self.state = State.WAITING
-                    self.ready.set()
-                    wait_since = now
-                    self._event("ready")
-            elif self.state == State.WAITING:
-                target = self._rest
-                first = self.targets.first()
-                if self.targets.error is not None:
-                    self._begin_stop(f"generator failed before the first frame: {self.targets.error}", fault=True)
-                    faults |= Fault.GENERATOR_ERROR
-                elif first is not None:
-                    if cfg.pace == "ticks":
-                        playback = TickPlayback(self.targets.fps, first.index, self.dt)
-                    else:
-                        playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
-                                                 cfg.playback_lead_frames, fixed=not cfg.adaptive_playback,
-                                                 quantile=cfg.playback_quantile)
-                    stream_start = now
-                    last_new = now
-                    self.state = State.RUNNING
-                    self._event("streaming", first_frame=first.index)
-                elif self.targets.closed or now - wait_since > cfg.start_timeout:
-                    self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"),
-                                     fault=True)
-            elif self.state in (State.RUNNING, State.HOLD):
-                newest = self.targets.newest()
-                if newest is not None:
-                    playback.arrived(newest.index, now)
-                sample = curve.sample(playback.motion_time(now), now)
-                if self.targets.error is not None:
-                    faults |= Fault.GENERATOR_ERROR
-                    self._begin_stop(f"generator failed: {self.targets.error}", fault=True)
-                elif sample.finished:
-                    target, used = sample.q, sample.newest  # play the last frame, then ramp to rest
-                    self._begin_stop("the motion ended")
-                elif self._stop_reason is not None:
-                    self._begin_stop(self._stop_reason)
-                elif cfg.max_duration is not None and now - stream_start >= cfg.max_duration:
-                    self._begin_stop(f"max duration {cfg.max_duration:g} s reached")
-                else:
-                    newest = self.targets.newest()
-                    if (newest is not None and newest.index != last_frame_index) or self.targets.closed:
-                        # a closed stream (every frame is in: a recording, or a source that
-                        # ended) cannot go quiet; it plays to its end (sample.finished)
-                        last_frame_index, last_new = (newest.index if newest is not None else -1), now
-                    quiet = now - last_new
-                    if sample.starved:
-                        faults |= Fault.STARVED
-                    if sample.extrapolated:
-                        faults |= Fault.EXTRAPOLATED
-                    if quiet > cfg.rest_after:
-                        faults |= Fault.ACTOR_TIMEOUT
-                        self._begin_stop(f"no new frames for {quiet:.1f} s", fault=True)
-                    elif quiet > cfg.actor_timeout or sample.q is None:
-                        if self.state != State.HOLD:
-                            self._event("hold", quiet_s=round(quiet, 3))
-                        self.state = State.HOLD
-                        curve.reset()  # the command holds on its own: no offset to carry on resuming
-                        faults |= Fault.ACTOR_TIMEOUT if quiet > cfg.actor_timeout else Fault.NONE
-                    else:
-                        if self.state == State.HOLD:
-                            self._event("resume")
-                        self.state = State.RUNNING
-                        target = sample.q
-                        used = sample.newest
-                        if not np.all(np.isfinite(target)):
-                            faults |= Fault.NONFINITE
-            if ramping_out:
-                if self._ramp_out is None:
-                    # from the last reference when stabilizing (the command holds a correction
-                    # the stabilizer keeps adding): no jump by the correction at the ramp's start
-                    cur = self._reference if self._stabilizing else self.safety.last_command
-                    self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits, cfg.min_ramp), self.dt))
-                    self._settle_ticks = 0
-                if self._ramp_out:
-                    target = self._ramp_out.pop(0)
-                else:  # ramp done; the filter may still be braking a joint that was moving fast
-                    target = self._rest
-                    self._settle_ticks += 1
-            self._reference = target
-            desired, correction = target, None
-            stab = self.stabilizer
-            if stab is not None and state.imu is not None and np.all(np.isfinite(target)):
-                desired = stab.step(target, state.position, state.imu, self.dt)
-                correction = desired - target
-                self._stabilizing = True
-            command, flags = self.safety.step(desired)
-            if ramping_out and not self._ramp_out:
-                # at rest: the reference has arrived and the filter passes the command unchanged
-                if np.max(np.abs(target - self._rest)) < 1e-6 and np.max(np.abs(command - desired)) < 1e-6:
-                    self.state = State.STOPPED
-                elif self._settle_ticks * self.dt > 2.0:
-                    self._event("rest_not_reached", error=float(np.max(np.abs(command - self._rest))))
-                    self.state = State.STOPPED
-            compute = time.monotonic() - tick.woke
-            self.transport.write_goal(command)
-            write_time = time.monotonic()
-            e2e = float("nan")
-            if used is not None and used.index != self._last_used:
-                self._last_used = used.index
-                self.summary.frames_played += 1
-                e2e = write_time - used.source_arrival
-                self.summary.e2e_latency.append(e2e)
-            if flags.any():
-                self.summary.interventions += 1
-            if self._degraded:
-                faults |= Fault.DEGRADED
-            self._faults |= faults
-            self.summary.ticks += 1
-            if self.telemetry is not None:
-                self.telemetry.record(
-                    t=tick.woke - self._t_start, tick=tick.index, lateness=tick.lateness, compute=compute,
-                    target=target, command=command, correction=0.0 if correction is None else correction,
-                    measured=state.position, intervention=flags, state=int(self.state), faults=int(faults),
-                    actor_frame=-1 if used is None else used.actor_frame,
-                    generator_latency=np.nan if used is None else used.generator_latency,
-                    retarget_latency=np.nan if used is None else used.retarget_latency, end_to_end=e2e,
-                )
-            if self.on_status is not None:
-                self.on_status(self, tick, faults)
-            if self.gc is not None:
-                self.gc.collect_in_slack(tick.due + self.dt - time.monotonic())
-            if self.state == State.STOPPED:
-                self.transport.safe_stop(cfg.stop_policy)
-                self._event("stopped", policy=cfg.stop_policy, reason=self.summary.reason)
-                return
+        return start
+
+    def _await_first_frame(self, stream: _Stream, now: float) -> Fault:
+        """While waiting at rest: start playing at the first target frame, or give up."""
+        cfg = self.config
+        first = self.targets.first()
+        if self.targets.error is not None:
+            self._begin_stop(f"generator failed before the first frame: {self.targets.error}", fault=True)
+            return Fault.GENERATOR_ERROR
+        if first is not None:
+            if cfg.pace == "ticks":
+                stream.playback = TickPlayback(self.targets.fps, first.index, self.dt)
+            else:
+                stream.playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
+                                                cfg.playback_lead_frames, fixed=not cfg.adaptive_playback,
+                                                quantile=cfg.playback_quantile)
+            stream.start = stream.last_new = now
+            self.state = State.RUNNING
+            self._event("streaming", first_frame=first.index)
+        elif self.targets.closed or now - stream.wait_since > cfg.start_timeout:
+            self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"),
+                             fault=True)
+        return Fault.NONE
+
+    def _stream_target(self, stream: _Stream, now: float, held: np.ndarray):
+        """(target, the frame used or None, faults) while streaming: the interpolated curve, a
+        hold when the stream goes quiet, or the start of a stop."""
+        cfg = self.config
+        newest = self.targets.newest()
+        if newest is not None:
+            stream.playback.arrived(newest.index, now)
+        sample = stream.curve.sample(stream.playback.motion_time(now), now)
+        if self.targets.error is not None:
+            self._begin_stop(f"generator failed: {self.targets.error}", fault=True)
+            return held, None, Fault.GENERATOR_ERROR
+        if sample.finished:
+            self._begin_stop("the motion ended")
+            return sample.q, sample.newest, Fault.NONE  # play the last frame, then ramp to rest
+        if self._stop_reason is not None:
+            self._begin_stop(self._stop_reason)
+            return held, None, Fault.NONE
+        if cfg.max_duration is not None and now - stream.start >= cfg.max_duration:
+            self._begin_stop(f"max duration {cfg.max_duration:g} s reached")
+            return held, None, Fault.NONE
+        if (newest is not None and newest.index != stream.last_frame_index) or self.targets.closed:
+            # a closed stream (every frame is in: a recording, or a source that ended) cannot go
+            # quiet; it plays to its end (sample.finished)
+            stream.last_frame_index, stream.last_new = (newest.index if newest is not None else -1), now
+        quiet = now - stream.last_new
+        faults = (Fault.STARVED if sample.starved else Fault.NONE) | (Fault.EXTRAPOLATED if sample.extrapolated
+                                                                      else Fault.NONE)
+        if quiet > cfg.rest_after:
+            self._begin_stop(f"no new frames for {quiet:.1f} s", fault=True)
+            return held, None, faults | Fault.ACTOR_TIMEOUT
+        if quiet > cfg.actor_timeout or sample.q is None:
+            if self.state != State.HOLD:
+                self._event("hold", quiet_s=round(quiet, 3))
+            self.state = State.HOLD
+            stream.curve.reset()  # the command holds on its own: no offset to carry on resuming
+            return held, None, faults | (Fault.ACTOR_TIMEOUT if quiet > cfg.actor_timeout else Fault.NONE)
+        if self.state == State.HOLD:
+            self._event("resume")
+        self.state = State.RUNNING
+        if not np.all(np.isfinite(sample.q)):
+            faults |= Fault.NONFINITE
+        return sample.q, sample.newest, faults
+
+    def _ramp_out_target(self) -> np.ndarray:
+        """The stop ramp's next target (built on its first tick), then the rest pose."""
+        if self._ramp_out is None:
+            # from the last reference when stabilizing (the command holds a correction the
+            # stabilizer keeps adding): no jump by the correction at the ramp's start
+            cur = self._reference if self._stabilizing else self.safety.last_command
+            self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits,
+                                                                              self.config.min_ramp), self.dt))
+            self._settle_ticks = 0
+        if self._ramp_out:
+            return self._ramp_out.pop(0)
+        self._settle_ticks += 1  # ramp done; the filter may still be braking a joint that was moving fast
+        return self._rest
+
+    def _stabilize(self, target: np.ndarray, state):
+        """(the target with the balance stabilizer's correction, the correction or None)."""
+        if self.stabilizer is None or state.imu is None or not np.all(np.isfinite(target)):
+            return target, None
+        desired = self.stabilizer.step(target, state.position, state.imu, self.dt)
+        self._stabilizing = True
+        return desired, desired - target
+
+    def _check_at_rest(self, target: np.ndarray, desired: np.ndarray, command: np.ndarray) -> None:
+        """After the stop ramp: stopped once the reference has arrived and the filter passes
+        the command unchanged (or after 2 s of braking)."""
+        if np.max(np.abs(target - self._rest)) < 1e-6 and np.max(np.abs(command - desired)) < 1e-6:
+            self.state = State.STOPPED
+        elif self._settle_ticks * self.dt > 2.0:
+            self._event("rest_not_reached", error=float(np.max(np.abs(command - self._rest))))
+            self.state = State.STOPPED
+
+    def _account(self, tick, faults: Fault, state, target, correction, command, flags, used, compute: float) -> None:
+        """The tick's counters, latency, telemetry record, status callback and GC slack."""
+        write_time = time.monotonic()
+        e2e = float("nan")
+        if used is not None and used.index != self._last_used:
+            self._last_used = used.index
+            self.summary.frames_played += 1
+            e2e = write_time - used.source_arrival
+            self.summary.e2e_latency.append(e2e)
+        if flags.any():
+            self.summary.interventions += 1
+        if self._degraded:
+            faults |= Fault.DEGRADED
+        self._faults |= faults
+        self.summary.ticks += 1
+        if self.telemetry is not None:
+            self.telemetry.record(
+                t=tick.woke - self._t_start, tick=tick.index, lateness=tick.lateness, compute=compute,
+                target=target, command=command, correction=0.0 if correction is None else correction,
+                measured=state.position, intervention=flags, state=int(self.state), faults=int(faults),
+                actor_frame=-1 if used is None else used.actor_frame,
+                generator_latency=np.nan if used is None else used.generator_latency,
+                retarget_latency=np.nan if used is None else used.retarget_latency, end_to_end=e2e,
+            )
+        if self.on_status is not None:
+            self.on_status(self, tick, faults)
+        if self.gc is not None:
+            self.gc.collect_in_slack(tick.due + self.dt - time.monotonic())
 
     # -- helpers --------------------------------------------------------------
     def _enter_realtime(self) -> None:
@@ -493,8 +527,6 @@ class ControlLoop:
         self._event("realtime", scheduling=note, gc_in_slack=cfg.gc_in_slack, switch_interval_s=cfg.switch_interval_s)
 
     def _adopt_transport_limits(self) -> None:
-        if not hasattr(self.transport, "position_limits"):
-            return
         found = self.transport.position_limits()
         if found is None:
             return

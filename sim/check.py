@@ -320,6 +320,93 @@ def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = No
                              no_load_speed=no_load_speed))
 
 
+@dataclass
+class _Recording:
+    """The raw state one play recorded per control tick (K ticks; rows from ``k_run`` on were
+    not played): the reference ``q_ref`` and the commands ``q_cmd`` (K, n) with the
+    stabilizer's ``correction``; MuJoCo's qpos, qvel, actuator force; the robot's centre of
+    mass; each foot's top body position and rotation; the robot-human distance; the contacts
+    of each tick with contacts (lists, as :meth:`ContactClassifier.classify_many` takes them)."""
+
+    t: np.ndarray
+    q_ref: np.ndarray
+    q_cmd: np.ndarray
+    correction: np.ndarray
+    k0: int
+    qpos: np.ndarray
+    qvel: np.ndarray
+    force: np.ndarray
+    com: np.ndarray
+    foot_x: np.ndarray
+    foot_R: np.ndarray
+    human_min: np.ndarray
+    con_count: np.ndarray
+    con_geom: list = field(default_factory=list)
+    con_dist: list = field(default_factory=list)
+    con_pos: list = field(default_factory=list)
+    con_efc: list = field(default_factory=list)
+    con_dim: list = field(default_factory=list)
+    efc_force: list = field(default_factory=list)
+    k_run: int = 0
+    root_xpos: np.ndarray | None = None  # the root body's last pose (for _root_pose_series)
+    root_xmat: np.ndarray | None = None
+
+    @classmethod
+    def empty(cls, t: np.ndarray, q_ref: np.ndarray, model, n_feet: int, k0: int) -> "_Recording":
+        K, n = q_ref.shape
+        return cls(t, q_ref, q_ref.copy(), np.zeros((K, n)), k0, np.full((K, model.nq), np.nan),
+                   np.full((K, model.nv), np.nan), np.full((K, model.nu), np.nan), np.full((K, 3), np.nan),
+                   np.full((K, n_feet, 3), np.nan), np.full((K, n_feet, 9), np.nan), np.full(K, np.inf),
+                   np.zeros(K, int))
+
+    def record_contacts(self, k: int, data) -> None:
+        nc = data.ncon
+        if nc:
+            c = data.contact
+            self.con_count[k] = nc
+            self.con_geom.append(c.geom.copy())
+            self.con_dist.append(c.dist.copy())
+            self.con_pos.append(c.pos.copy())
+            self.con_efc.append(c.efc_address.copy())
+            self.con_dim.append(c.dim.copy())
+            self.efc_force.append(data.efc_force[:data.nefc].copy())
+
+
+@dataclass
+class Series:
+    """What the judge reads, per control tick (K ticks, judged up to ``k_run``): clip time ``t``
+    (s, negative during the entry), the commands ``q_cmd`` and the stabilizer's ``correction``,
+    measured ``q``, ``qd`` and joint torques ``tau`` (K, n); root height, torso tilt (deg), the
+    classified contacts (:class:`sim.contacts.ContactSeries`) and self-collision pairs; the
+    robot-human distance; the CoM and measured-ZMP margins to the support polygon (m, + inside);
+    each foot's stances (:func:`_stance_slides`); the first fall tick ``fall_k``; the entry's
+    ``k0`` ticks; the standing root height; ``dt``; whether the robot stands free and a human
+    is in the scene."""
+
+    t: np.ndarray
+    q_cmd: np.ndarray
+    correction: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    tau: np.ndarray
+    root_h: np.ndarray
+    tilt: np.ndarray
+    contacts: object
+    self_pairs: set
+    human_min: np.ndarray
+    margin: np.ndarray
+    zmp_margin: np.ndarray
+    stances: list
+    k_run: int
+    fall_k: int | None
+    k0: int
+    stand_h: float
+    dt: float
+    free: bool
+    has_actor: bool
+
+
+
 class Checker:
     """Runs one trajectory through one scene and collects the measurements."""
 
@@ -337,200 +424,195 @@ class Checker:
         """Play and judge ``traj``. ``on_tick(t)`` (optional) is called after each control
         tick of the clip with the clip time t >= 0 in seconds (a renderer grabs frames
         there); the entry transition before it is not reported there."""
-        sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
+        sc, cfg, r = self.scene, self.config, self.scene.robot
         q_traj = _joint_columns(traj, r.joint_names, sc.config.robot)
         dt = 1.0 / cfg.control_hz
-        n_sub = int(round(cfg.physics_hz / cfg.control_hz))
         n_clip = int(math.floor(traj.duration * cfg.control_hz + 1e-9)) + 1
         q_clip = resample(traj.times, q_traj, np.arange(n_clip) * dt, cfg.interpolation)
-        free = not r.fixed_base
-
         q_entry = self._start(traj, q_clip[0])  # robot placed and settled; (k0, n) transition commands
         k0 = len(q_entry)
-        q_cmd = np.concatenate([q_entry, q_clip]) if k0 else q_clip
+        q_ref = np.concatenate([q_entry, q_clip]) if k0 else q_clip
         t = (np.arange(k0 + n_clip) - k0) * dt  # clip time: the transition is negative
-        stand_h = sc.stand_root_height if free else np.nan
+        s = self._analyse(self._play(q_ref, t, k0, on_tick))
+        failures = sorted(self._judge(s), key=lambda f: (f.time, REASONS.index(f.reason)))
+        warnings = sorted(self._warn(s), key=lambda w: (w.time, WARNINGS.index(w.kind)))
+        self._mark_entry(s, failures, warnings)
+        metrics = self._metrics(traj, s)
+        first = failures[0] if failures else None
+        K = s.k_run
+        series = {"t": s.t[:K], "q": s.q[:K], "q_cmd": s.q_cmd[:K], "torque": s.tau[:K],
+                  "root_height": s.root_h[:K], "tilt_deg": s.tilt[:K], "com_margin": s.margin[:K],
+                  "zmp_margin": s.zmp_margin[:K], "correction": s.correction[:K]}
+        return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None,
+                           first.reason if first else "ok", first.time if first else None, failures, metrics,
+                           r.joint_names, r.lower, r.upper, series, cfg, self.not_checked(), self.notes(), warnings,
+                           float(k0 * dt))
 
-        K, n = len(t), r.n
-        # -- record raw state per control tick into preallocated arrays (a few plain
-        # copies from views bound once); everything is analysed afterwards, vectorised.
-        qpos = np.full((K, m.nq), np.nan)
-        qvel = np.full((K, m.nv), np.nan)
-        force = np.full((K, m.nu), np.nan)
-        com = np.full((K, 3), np.nan)  # robot centre of mass
+    def _play(self, q_ref: np.ndarray, t: np.ndarray, k0: int, on_tick) -> _Recording:
+        """Play the commands ``q_ref`` (K, n), through the stabilizer when it is on, and record
+        the raw state at every control tick; stop ``stop_after_fall_s`` after a fall."""
+        sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
+        K, n_sub = len(t), int(round(cfg.physics_hz / cfg.control_hz))
+        rec = _Recording.empty(t, q_ref, m, len(self.feet), k0)
         feet = np.array([f.body for f in self.feet], dtype=int)
-        foot_x = np.full((K, len(feet), 3), np.nan)  # each foot's top body: position and rotation
-        foot_R = np.full((K, len(feet), 9), np.nan)
-        human_min = np.full(K, np.inf)
-        con_count = np.zeros(K, int)
-        con_geom, con_dist, con_pos, con_efc, con_dim, efc_force = [], [], [], [], [], []
-        actor = sc.actor
-        stop_at = K
+        free = not r.fixed_base
+        stand_h = sc.stand_root_height if free else np.nan
         fall_h = cfg.fall_height_frac * stand_h if free and cfg.fall_height_frac > 0 else -np.inf
         cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg)) if free else -2.0
-        root = r.root_body
         act = r.actuator_ids
         a0 = int(act[0])
         ctrl = d.ctrl[a0:a0 + len(act)] if np.array_equal(act, np.arange(a0, a0 + len(act))) else None
+        root = r.root_body
         root_xpos, root_xmat, root_com = d.xpos[root], d.xmat[root], d.subtree_com[root]
         d_qpos, d_qvel, d_force, d_xpos, d_xmat = d.qpos, d.qvel, d.actuator_force, d.xpos, d.xmat
-        step = mujoco.mj_step
-
-        stab, imu = self.stabilizer, self.imu
-        correction = np.zeros((K, n)) if stab is not None else None
-        q_ref = q_cmd
-        if stab is not None:
-            q_cmd = q_ref.copy()
-            speed = np.where(np.isfinite(r.no_load_speed), cfg.speed_tolerance * r.no_load_speed, np.inf) * dt
-            reading = (d_qpos[r.qpos_adr].copy(), imu.read(d))
+        actor, step, stop_at = sc.actor, mujoco.mj_step, K
+        stabilized = self._stabilized_commands(rec) if self.stabilizer is not None else None
         for k in range(K):
-            if stab is not None:  # the readings of one tick before, as the bridge's split-phase bus gives them
-                fresh = (d_qpos[r.qpos_adr].copy(), imu.read(d))
-                goal = stab.step(q_ref[k], reading[0], reading[1], dt)
-                reading = fresh
-                if k:  # no faster than the reference or the servo, whichever is faster
-                    room = np.maximum(0.999 * speed, np.abs(q_ref[k] - q_ref[k - 1]))
-                    goal = np.clip(goal, q_cmd[k - 1] - room, q_cmd[k - 1] + room)
-                q_cmd[k] = goal
-                correction[k] = goal - q_ref[k]
-                stab.correction = correction[k].copy()
+            goal = rec.q_cmd[k] if stabilized is None else next(stabilized)
             if ctrl is not None:
-                ctrl[:] = q_cmd[k]
+                ctrl[:] = goal
             else:
-                d.ctrl[act] = q_cmd[k]
+                d.ctrl[act] = goal
             if actor is not None:
                 actor.pose_at(d, t[k])
             step(m, d, n_sub)
-            qpos[k] = d_qpos
-            qvel[k] = d_qvel
-            force[k] = d_force
-            com[k] = root_com
+            rec.qpos[k], rec.qvel[k], rec.force[k], rec.com[k] = d_qpos, d_qvel, d_force, root_com
             if len(feet):
-                foot_x[k] = d_xpos[feet]
-                foot_R[k] = d_xmat[feet]
-            nc = d.ncon
-            if nc:
-                c = d.contact
-                con_count[k] = nc
-                con_geom.append(c.geom.copy())
-                con_dist.append(c.dist.copy())
-                con_pos.append(c.pos.copy())
-                con_efc.append(c.efc_address.copy())
-                con_dim.append(c.dim.copy())
-                efc_force.append(d.efc_force[:d.nefc].copy())
+                rec.foot_x[k], rec.foot_R[k] = d_xpos[feet], d_xmat[feet]
+            rec.record_contacts(k, d)
             if actor is not None:
-                human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids, HUMAN_DISTANCE_CAP)
+                rec.human_min[k] = min_distance(m, d, self.robot_col_geoms, actor.geom_ids, HUMAN_DISTANCE_CAP)
             if stop_at == K and (root_xpos[2] < fall_h or root_xmat[8] < cos_tilt):
                 stop_at = min(K, k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
             if on_tick is not None and k >= k0:
                 on_tick(float(t[k]))
             if k + 1 >= stop_at:
                 break
-        K_run = min(stop_at, K)
-        xpos, root_zz = _root_pose_series(qpos, r.free_qpos, root_xpos, root_xmat, K_run)
+        rec.k_run = min(stop_at, K)
+        rec.root_xpos, rec.root_xmat = root_xpos.copy(), root_xmat.copy()
+        return rec
 
-        q = qpos[:, r.qpos_adr]
-        qd = qvel[:, r.dof_adr]
-        tau = r.joint_torques(force)  # N m at the joints (gear, joint actuatorfrcrange)
-        root_h = xpos[:, 2]
-        com_xy = com[:, :2]
+    def _stabilized_commands(self, rec: _Recording):
+        """Yield each tick's command: the reference through the stabilizer, fed with the readings
+        of one tick before (as the bridge's split-phase bus gives them), moving no faster than the
+        reference or the servo, whichever is faster; fills ``rec.q_cmd`` and ``rec.correction``."""
+        cfg, d, r, stab, imu = self.config, self.scene.data, self.scene.robot, self.stabilizer, self.imu
+        dt = 1.0 / cfg.control_hz
+        q_ref = rec.q_ref
+        speed = np.where(np.isfinite(r.no_load_speed), cfg.speed_tolerance * r.no_load_speed, np.inf) * dt
+        reading = (d.qpos[r.qpos_adr].copy(), imu.read(d))
+        for k in range(len(q_ref)):
+            fresh = (d.qpos[r.qpos_adr].copy(), imu.read(d))
+            goal = stab.step(q_ref[k], reading[0], reading[1], dt)
+            reading = fresh
+            if k:
+                room = np.maximum(0.999 * speed, np.abs(q_ref[k] - q_ref[k - 1]))
+                goal = np.clip(goal, rec.q_cmd[k - 1] - room, rec.q_cmd[k - 1] + room)
+            rec.q_cmd[k] = goal
+            rec.correction[k] = goal - q_ref[k]
+            stab.correction = rec.correction[k].copy()
+            yield goal
+
+    def _analyse(self, rec: _Recording) -> Series:
+        """The recording turned into the judged time series (vectorised, after the play)."""
+        sc, cfg, m, r = self.scene, self.config, self.scene.model, self.scene.robot
+        K, dt, free = len(rec.t), 1.0 / cfg.control_hz, not r.fixed_base
+        xpos, root_zz = _root_pose_series(rec.qpos, r.free_qpos, rec.root_xpos, rec.root_xmat, rec.k_run)
         # each foot's sole point (Foot.sole_point, in its top body's frame) in the world: x + R p
         sole = np.array([f.sole_point for f in self.feet]).reshape(-1, 3)
-        foot_xy = (foot_x + np.einsum("kfij,fj->kfi", foot_R.reshape(K, -1, 3, 3), sole))[:, :, :2]
-        tilt = np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0)))
-        contacts = self.contacts.classify_many(K, con_count, con_geom, con_dist, con_pos)
-        self_min, non_foot = contacts.self_min, contacts.non_foot
-        self_pairs = {tuple(sorted((geom_label(m, a), geom_label(m, b)))) for a, b in contacts.self_pairs}
-        fall_k = None
+        foot_xy = (rec.foot_x + np.einsum("kfij,fj->kfi", rec.foot_R.reshape(K, -1, 3, 3), sole))[:, :, :2]
+        contacts = self.contacts.classify_many(K, rec.con_count, rec.con_geom, rec.con_dist, rec.con_pos)
+        s = Series(t=rec.t, q_cmd=rec.q_cmd, correction=rec.correction, q=rec.qpos[:, r.qpos_adr],
+                   qd=rec.qvel[:, r.dof_adr], tau=r.joint_torques(rec.force), root_h=xpos[:, 2],
+                   tilt=np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0))), contacts=contacts,
+                   self_pairs={tuple(sorted((geom_label(m, a), geom_label(m, b)))) for a, b in contacts.self_pairs},
+                   human_min=rec.human_min, margin=np.full(K, np.nan), zmp_margin=np.full(K, np.nan), stances=[],
+                   k_run=rec.k_run, fall_k=None, k0=rec.k0, stand_h=sc.stand_root_height if free else np.nan,
+                   dt=dt, free=free, has_actor=sc.actor is not None)
         if free:
-            fell = (root_h[:K_run] < fall_h) | (root_zz[:K_run] < cos_tilt) | non_foot[:K_run]
-            fall_k = _first(fell)
-            if fall_k is not None:  # what follows a fall (a touch without tilting on) is not judged
-                K_run = min(K_run, fall_k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
-
-        stances = []  # per foot, its stances as _stance_slides gives them
-        if len(feet):
-            on = contacts.foot_on_floor([f.bodies for f in self.feet])[:K_run]  # (K_run, n_feet)
-            stances = [_stance_slides(on[:, i], foot_xy[:K_run, i], int(round(cfg.stance_gap_s / dt)))
-                       for i in range(len(feet))]
-
-        margin = np.full(K, np.nan)  # centre of mass to the support polygon, m (+ inside)
-        zmp_margin = np.full(K, np.nan)  # measured ZMP (centre of pressure) to the polygon's edge, m
-        if free:
-            margin[:K_run] = contacts.support_margins(com_xy[:K_run])
-            fn = _normal_forces(con_efc, con_dim, efc_force, m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL)
+            fall_h = cfg.fall_height_frac * s.stand_h if cfg.fall_height_frac > 0 else -np.inf
+            cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
+            K_run = s.k_run
+            fell = (s.root_h[:K_run] < fall_h) | (root_zz[:K_run] < cos_tilt) | contacts.non_foot[:K_run]
+            s.fall_k = _first(fell)
+            if s.fall_k is not None:  # what follows a fall (a touch without tilting on) is not judged
+                s.k_run = min(K_run, s.fall_k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
+        if len(self.feet):
+            on = contacts.foot_on_floor([f.bodies for f in self.feet])[:s.k_run]  # (k_run, n_feet)
+            s.stances = [_stance_slides(on[:, i], foot_xy[:s.k_run, i], int(round(cfg.stance_gap_s / dt)))
+                         for i in range(len(self.feet))]
+        if free:  # centre of mass, and the measured ZMP (centre of pressure), to the support polygon (+ inside)
+            s.margin[:s.k_run] = contacts.support_margins(rec.com[:s.k_run, :2])
+            fn = _normal_forces(rec.con_efc, rec.con_dim, rec.efc_force, m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL)
             cop, _ = contacts.centre_of_pressure(fn)
-            zmp_margin[:K_run] = contacts.support_margins(cop[:K_run])
+            s.zmp_margin[:s.k_run] = contacts.support_margins(cop[:s.k_run])
+        return s
 
-        failures = self._judge(t, q_cmd, q, tau, root_h, tilt, contacts, self_min, human_min, K_run, fall_k, stand_h,
-                               dt, actor is not None, self_pairs)
-        failures.sort(key=lambda f: (f.time, REASONS.index(f.reason)))
-        warnings = self._warn(t, contacts, stances, margin, zmp_margin, K_run, dt, free)
-        warnings.sort(key=lambda w: (w.time, WARNINGS.index(w.kind)))
+    def _mark_entry(self, s: Series, failures: list, warnings: list) -> None:
+        """Say which failures and warnings happened while entering the clip's first pose."""
         for item in (*failures, *warnings):
             if item.time < -1e-9:
                 item.phase = "entry"
                 item.detail = f"entering the clip's first pose from standing: {item.detail}"
-        if fall_k is not None and fall_k >= k0 and k0:
-            onset = _tipping_since(fall_k, margin, zmp_margin, cfg)
-            if onset < k0:  # it was already going over when the clip began: the first pose was not reached
+        if s.fall_k is not None and s.fall_k >= s.k0 and s.k0:
+            onset = _tipping_since(s.fall_k, s.margin, s.zmp_margin, self.config)
+            if onset < s.k0:  # it was already going over when the clip began: the first pose was not reached
                 f = next(f for f in failures if f.reason == "fall")
                 f.phase = "entry"
-                f.detail += (f"; tipping since {t[onset]:.2f} s, while entering the clip's first pose from standing "
-                             "(a first pose the robot cannot hold still, e.g. mid-step)")
-        err = np.abs(q[:K_run] - q_cmd[:K_run])
-        cmd_speed = np.abs(np.diff(q_cmd, axis=0)) / dt if K > 1 else np.zeros((1, n))
-        sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
-        worst = max(((s[2], i, s) for i, fs in enumerate(stances) for s in fs), key=lambda w: w[0], default=None)
+                f.detail += (f"; tipping since {s.t[onset]:.2f} s, while entering the clip's first pose from "
+                             "standing (a first pose the robot cannot hold still, e.g. mid-step)")
+
+    def _metrics(self, traj: RobotTrajectory, s: Series) -> dict:
+        cfg, sc, m, r = self.config, self.scene, self.scene.model, self.scene.robot
+        K_run, dt, names, free = s.k_run, s.dt, r.joint_names, s.free
+        err = np.abs(s.q[:K_run] - s.q_cmd[:K_run])
+        cmd_speed = np.abs(np.diff(s.q_cmd, axis=0)) / dt if len(s.t) > 1 else np.zeros((1, r.n))
+        sat = np.abs(s.tau[:K_run]) >= 0.99 * r.stall_torque
+        worst = max(((st[2], i, st) for i, fs in enumerate(s.stances) for st in fs), key=lambda w: w[0], default=None)
+        margin, zmp = s.margin, s.zmp_margin
         metrics = {
             "duration_s": float(traj.duration),
             "simulated_s": float(K_run * dt),
-            "entry_transition_s": float(k0 * dt),
+            "entry_transition_s": float(s.k0 * dt),
             "entry": dict(self.entry),
             "control_hz": cfg.control_hz, "physics_hz": cfg.physics_hz,
-            "tracking_rms_rad": _per_joint(r.joint_names, np.sqrt(np.nanmean(err ** 2, axis=0))),
-            "tracking_max_rad": _per_joint(r.joint_names, np.nanmax(err, axis=0)),
-            "torque_saturation_s": _per_joint(r.joint_names, sat.sum(axis=0) * dt),
-            "max_abs_torque_nm": _per_joint(r.joint_names, np.nanmax(np.abs(tau[:K_run]), axis=0)),
-            "stall_torque_nm": _per_joint(r.joint_names, r.stall_torque),
-            "no_load_speed_rad_s": _per_joint(r.joint_names, r.no_load_speed),
-            "speed_limit_hits": {j: int(v) for j, v in zip(r.joint_names, (cmd_speed > cfg.speed_tolerance * r.no_load_speed).sum(axis=0))},
-            "max_command_speed_rad_s": _per_joint(r.joint_names, cmd_speed.max(axis=0)),
-            "max_measured_speed_rad_s": _per_joint(r.joint_names, np.nanmax(np.abs(qd[:K_run]), axis=0)),
-            "self_collision_ticks": int((self_min[:K_run] < -cfg.self_collision_depth).sum()),
-            "self_collision_pairs": sorted(" / ".join(p) for p in self_pairs),
-            "min_self_distance_m": _finite(self_min[:K_run].min()),
-            "max_ground_penetration_m": _finite(max(0.0, -contacts.floor_min[:K_run].min())),
-            "max_foot_penetration_m": _finite(max(0.0, -contacts.foot_floor_min[:K_run].min())),
-            "min_human_distance_m": _finite(human_min[:K_run].min()) if actor is not None else None,
-            "foot_slip_m": [float(max((s[2] for s in fs), default=0.0)) for fs in stances],
-            "stances": [len(fs) for fs in stances],
+            "tracking_rms_rad": _per_joint(names, np.sqrt(np.nanmean(err ** 2, axis=0))),
+            "tracking_max_rad": _per_joint(names, np.nanmax(err, axis=0)),
+            "torque_saturation_s": _per_joint(names, sat.sum(axis=0) * dt),
+            "max_abs_torque_nm": _per_joint(names, np.nanmax(np.abs(s.tau[:K_run]), axis=0)),
+            "stall_torque_nm": _per_joint(names, r.stall_torque),
+            "no_load_speed_rad_s": _per_joint(names, r.no_load_speed),
+            "speed_limit_hits": {j: int(v) for j, v in
+                                 zip(names, (cmd_speed > cfg.speed_tolerance * r.no_load_speed).sum(axis=0))},
+            "max_command_speed_rad_s": _per_joint(names, cmd_speed.max(axis=0)),
+            "max_measured_speed_rad_s": _per_joint(names, np.nanmax(np.abs(s.qd[:K_run]), axis=0)),
+            "self_collision_ticks": int((s.contacts.self_min[:K_run] < -cfg.self_collision_depth).sum()),
+            "self_collision_pairs": sorted(" / ".join(p) for p in s.self_pairs),
+            "min_self_distance_m": _finite(s.contacts.self_min[:K_run].min()),
+            "max_ground_penetration_m": _finite(max(0.0, -s.contacts.floor_min[:K_run].min())),
+            "max_foot_penetration_m": _finite(max(0.0, -s.contacts.foot_floor_min[:K_run].min())),
+            "min_human_distance_m": _finite(s.human_min[:K_run].min()) if s.has_actor else None,
+            "foot_slip_m": [float(max((st[2] for st in fs), default=0.0)) for fs in s.stances],
+            "stances": [len(fs) for fs in s.stances],
             "worst_stance": None if worst is None else {
-                "foot": self.feet[worst[1]].side, "start_s": float(t[worst[2][0]]),
-                "end_s": float(t[worst[2][1] - 1]), "slide_m": float(worst[0])},
+                "foot": self.feet[worst[1]].side, "start_s": float(s.t[worst[2][0]]),
+                "end_s": float(s.t[worst[2][1] - 1]), "slide_m": float(worst[0])},
             "min_com_margin_m": _finite(np.nanmin(margin)) if free and np.isfinite(margin).any() else None,
-            "min_zmp_margin_m": _finite(np.nanmin(zmp_margin)) if free and np.isfinite(zmp_margin).any() else None,
+            "min_zmp_margin_m": _finite(np.nanmin(zmp)) if free and np.isfinite(zmp).any() else None,
             "no_support_s": float(np.isnan(margin[:K_run]).sum() * dt) if free else None,
-            "max_tilt_deg": _finite(np.nanmax(tilt[:K_run])) if free else None,
-            "min_root_height_m": _finite(np.nanmin(root_h[:K_run])) if free else None,
-            "standing_root_height_m": _finite(stand_h) if free else None,
+            "max_tilt_deg": _finite(np.nanmax(s.tilt[:K_run])) if free else None,
+            "min_root_height_m": _finite(np.nanmin(s.root_h[:K_run])) if free else None,
+            "standing_root_height_m": _finite(s.stand_h) if free else None,
         }
-        metrics["stabilizer"] = self._stabilizer_metrics(correction, K_run, t)
-        metrics["joint_limit_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.limit_source)}
-        metrics["no_load_speed_source"] = {j: (s or None) for j, s in zip(r.joint_names, r.speed_source)}
+        metrics["stabilizer"] = self._stabilizer_metrics(s.correction, K_run, s.t)
+        metrics["joint_limit_source"] = {j: (src or None) for j, src in zip(names, r.limit_source)}
+        metrics["no_load_speed_source"] = {j: (src or None) for j, src in zip(names, r.speed_source)}
         metrics["feet"] = {f.side: [m.body(b).name or f"body {b}" for b in f.bodies] for f in self.feet}
         p = sc.actor_placement
-        metrics["actor_placement"] = None if actor is None else {
-            "scale": float(p.resolve_scale(actor.motion, sc.robot_height)), "offset_m": [float(v) for v in p.offset],
+        metrics["actor_placement"] = None if not s.has_actor else {
+            "scale": float(p.resolve_scale(sc.actor.motion, sc.robot_height)), "offset_m": [float(v) for v in p.offset],
             "yaw_deg": float(p.yaw_deg)}
-        first = failures[0] if failures else None
-        series = {"t": t[:K_run], "q": q[:K_run], "q_cmd": q_cmd[:K_run], "torque": tau[:K_run],
-                  "root_height": root_h[:K_run], "tilt_deg": tilt[:K_run], "com_margin": margin[:K_run],
-                  "zmp_margin": zmp_margin[:K_run],
-                  "correction": (correction[:K_run] if correction is not None else np.zeros((K_run, n)))}
-        return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None, first.reason if first else "ok",
-                           first.time if first else None, failures, metrics, r.joint_names, r.lower, r.upper,
-                           series, cfg, self.not_checked(), self.notes(), warnings, float(k0 * dt))
+        return metrics
 
     def _start(self, traj: RobotTrajectory, q0: np.ndarray) -> np.ndarray:
         """Put the robot where the run starts and let it settle; return the entry transition's
@@ -634,9 +716,11 @@ class Checker:
                        "contact geom on the floor)")
         return out
 
-    def _judge(self, t, q_cmd, q, tau, root_h, tilt, contacts, self_min, human_min, K_run, fall_k, stand_h, dt,
-               has_actor, self_pairs) -> list[Failure]:
+    def _judge(self, s: Series) -> list[Failure]:
+        """The failed criteria (module docstring), each at its first tick."""
         cfg, r, m = self.config, self.scene.robot, self.scene.model
+        t, q_cmd, q, tau, root_h, tilt, contacts = s.t, s.q_cmd, s.q, s.tau, s.root_h, s.tilt, s.contacts
+        self_min, human_min, K_run, fall_k, dt = contacts.self_min, s.human_min, s.k_run, s.fall_k, s.dt
         names = r.joint_names
         out: list[Failure] = []
         below = q_cmd < r.lower - 1e-6
@@ -659,13 +743,13 @@ class Checker:
             elif tilt[fall_k] > cfg.fall_tilt_deg:
                 why = f"torso tilt {tilt[fall_k]:.0f} deg (limit {cfg.fall_tilt_deg:g} deg)"
             else:
-                why = f"root height {root_h[fall_k]:.3f} m (standing {stand_h:.3f} m)"
+                why = f"root height {root_h[fall_k]:.3f} m (standing {s.stand_h:.3f} m)"
             out.append(Failure("fall", float(t[fall_k]), why))
         k = _first(self_min[:K_run] < -cfg.self_collision_depth)
         if k is not None:
             out.append(Failure("self_collision", float(t[k]), f"robot parts collide ({-self_min[k] * 1000:.1f} mm deep) "
-                               f"({', '.join(sorted(' / '.join(p) for p in self_pairs)) or 'see report'})"))
-        if has_actor:
+                               f"({', '.join(sorted(' / '.join(p) for p in s.self_pairs)) or 'see report'})"))
+        if s.has_actor:
             k = _first(human_min[:K_run] < -cfg.human_penetration_depth)
             if k is not None:
                 out.append(Failure("human_penetration", float(t[k]), f"robot enters the human figure by {-human_min[k] * 1000:.1f} mm"))
@@ -687,9 +771,11 @@ class Checker:
                                f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s"))
         return out
 
-    def _warn(self, t, contacts, stances, margin, zmp_margin, K_run, dt, free) -> list[CheckWarning]:
+    def _warn(self, s: Series) -> list[CheckWarning]:
         """The measured figures beyond their warning levels (module docstring)."""
         cfg, sc = self.config, self.scene
+        t, contacts, stances, margin, zmp_margin, K_run, dt = (s.t, s.contacts, s.stances, s.margin, s.zmp_margin,
+                                                               s.k_run, s.dt)
         out: list[CheckWarning] = []
         level = cfg.foot_slip_frac * sc.robot_height
         for foot, fs in zip(self.feet, stances):
@@ -711,7 +797,7 @@ class Checker:
             out.append(CheckWarning("foot_in_floor", float(t[k]), f"a foot is {deepest * 1000:.1f} mm into the floor "
                                     f"(over {cfg.ground_penetration_depth * 1000:g} mm): the soft contact gives under "
                                     "the load; the sole would press harder on a real floor"))
-        if free:
+        if s.free:
             w = int(round(cfg.balance_window_s / dt))
             k = _first_sustained(margin[:K_run] < -cfg.balance_margin, w)
             if k is not None:

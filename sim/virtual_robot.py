@@ -2,8 +2,8 @@
 
 Method names mirror ``ros_free_bridge.transports.base.Transport`` (open,
 read_state, write_goal, set_torque, safe_stop, close) so the bridge can wrap it as
-its sim transport; ``sim`` does not import the bridge, so readings come back as
-:class:`VirtualReading`, field for field like the bridge's ``JointState``.
+its sim transport; readings are :class:`firmware_cfg.readings.JointState`, the type every
+transport returns.
 Units: rad, rad/s, N m, deg C, V; arrays (n,) in the robot's joint (actuator) order.
 
 Time. ``clock="realtime"``: every call advances physics to the wall clock (times
@@ -24,7 +24,7 @@ overheats in a few minutes, as XM430s do). Above ``max_temperature_c`` (the
 Dynamixel default shutdown temperature, 80 C) the servo switches its torque off and
 reports "overheating", as a real one does, until :meth:`reboot`.
 
-IMU: each reading carries the body IMU's sample (:class:`ImuSample`, :class:`ImuProbe`): the
+IMU: each reading carries the body IMU's sample (``JointState.imu``, :class:`ImuProbe`): the
 model's gyro / accelerometer / framequat sensors on a site of the root body (the OP3's
 ``imu`` site), else a site of the root body named like "imu", else the root body's frame,
 with the rate and attitude computed from the simulation and the specific force taken as
@@ -38,25 +38,14 @@ torque limit to ``value`` N m (a weak battery, a worn motor).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from firmware_cfg.readings import ImuReading, JointState
 from sim.errors import SimError
 
 STOP_POLICIES = ("hold", "limp")
-
-
-@dataclass(frozen=True)
-class ImuSample:
-    """One IMU sample, like the bridge's ImuReading: in the IMU site's frame (x forward, y left,
-    z up standing), ``gyro`` (3,) rad/s, ``accel`` (3,) m/s^2 specific force, ``quat`` (4,) wxyz
-    the site's attitude in the world, ``stamp`` s."""
-
-    gyro: np.ndarray
-    accel: np.ndarray
-    quat: np.ndarray
-    stamp: float
 
 
 class ImuProbe:
@@ -85,7 +74,7 @@ class ImuProbe:
                 self._quat = adr
         self._res = np.zeros(6)
 
-    def read(self, data, stamp: float = 0.0) -> ImuSample:
+    def read(self, data, stamp: float = 0.0) -> ImuReading:
         mj, m = self._mj, self.model
         if self.site >= 0:
             R = data.site_xmat[self.site].reshape(3, 3)
@@ -104,23 +93,7 @@ class ImuProbe:
             mj.mj_objectVelocity(m, data, objtype, obj, self._res, 1)
             gyro = self._res[:3].copy()
         accel = data.sensordata[self._accel].copy() if self._accel is not None else R.T @ np.array([0.0, 0.0, 9.81])
-        return ImuSample(gyro, accel, quat, stamp)
-
-
-@dataclass
-class VirtualReading:
-    """One reading, like the bridge's JointState: arrays (n,) in joint order, ``imu`` the body
-    IMU's sample at the same instant."""
-
-    position: np.ndarray
-    velocity: np.ndarray
-    effort: np.ndarray
-    temperature: np.ndarray
-    voltage: np.ndarray
-    torque_enabled: np.ndarray
-    stamp: float
-    errors: dict[str, str] = field(default_factory=dict)
-    imu: ImuSample | None = None
+        return ImuReading(gyro, accel, quat, stamp)
 
 
 @dataclass(frozen=True)
@@ -202,13 +175,13 @@ class VirtualRobot:
         self._imu = ImuProbe(m, r.root_body)
         self._opened = True
 
-    def read_state(self) -> VirtualReading:
+    def read_state(self) -> JointState:
         self._require_open()
         self._advance_realtime()
         r, d = self._scene.robot, self._scene.data
         n = self._n
         stamp = self._clock()
-        return VirtualReading(
+        return JointState(
             position=d.qpos[r.qpos_adr].copy(), velocity=d.qvel[r.dof_adr].copy(),
             effort=d.actuator_force[r.actuator_ids].copy(), temperature=self._temp.copy(),
             voltage=np.full(n, self.config.voltage), torque_enabled=self._enabled.copy(),

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from sim import SimError
-from sim.virtual_robot import VirtualReading, VirtualRobot, VirtualRobotConfig
+from firmware_cfg.readings import JointState
+from sim.virtual_robot import VirtualRobot, VirtualRobotConfig
 
 
 @pytest.fixture
@@ -26,7 +27,7 @@ def _start(vr: VirtualRobot) -> np.ndarray:
 
 def test_life_cycle_and_reading_fields(robot):
     s = robot.read_state()
-    assert isinstance(s, VirtualReading)
+    assert isinstance(s, JointState)
     n = len(robot.joint_names)
     assert n == 20 and robot.joint_names[0] == "r_sho_pitch"
     for arr in (s.position, s.velocity, s.effort, s.temperature, s.voltage, s.torque_enabled):

@@ -57,6 +57,14 @@ class RecordTransport:
     def close(self) -> None:
         self.is_open = False
 
+    def position_limits(self) -> None:
+        """None: no limits beyond the caller's (see transports.base)."""
+        return None
+
+    def pipeline(self, enabled: bool = True) -> bool:
+        """False: no split-phase bus cycle here (see transports.base)."""
+        return False
+
     def save(self, path) -> Path:
         path = Path(path)
         tmp = path.with_name(path.name + ".partial.npz")

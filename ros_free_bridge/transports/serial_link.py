@@ -103,6 +103,14 @@ class SerialLinkTransport:
         finally:
             self._release()
 
+    def position_limits(self) -> None:
+        """None: no limits beyond the caller's (see transports.base)."""
+        return None
+
+    def pipeline(self, enabled: bool = True) -> bool:
+        """False: no split-phase bus cycle here (see transports.base)."""
+        return False
+
     def __enter__(self) -> "SerialLinkTransport":
         self.open()
         return self

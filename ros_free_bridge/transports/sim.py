@@ -1,9 +1,8 @@
 """The MuJoCo virtual robot as a bridge transport.
 
-Wraps :class:`sim.virtual_robot.VirtualRobot` (which mirrors the transport methods but
-returns its own reading type, since ``sim`` does not import the bridge; its IMU sample becomes
-``JointState.imu``) and records what
-the simulated robot actually did at every write: its root pose and measured joint angles.
+Wraps :class:`sim.virtual_robot.VirtualRobot` (which mirrors the transport methods and
+returns the same :class:`firmware_cfg.readings.JointState`, IMU sample included) and records
+what the simulated robot actually did at every write: its root pose and measured joint angles.
 :meth:`SimTransport.recorded_trajectory` returns that as a
 :class:`retarget.RobotTrajectory`, for rendering a video of the run or checking it.
 """
@@ -13,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from retarget import RobotTrajectory
-from ros_free_bridge.transports.base import ImuReading, JointState
+from ros_free_bridge.transports.base import JointState
 
 
 class SimTransport:
@@ -35,10 +34,7 @@ class SimTransport:
         self.robot.open()
 
     def read_state(self) -> JointState:
-        r = self.robot.read_state()
-        imu = None if r.imu is None else ImuReading(r.imu.gyro, r.imu.accel, r.imu.quat, r.imu.stamp)
-        return JointState(r.position, r.velocity, r.effort, r.temperature, r.voltage, r.torque_enabled, r.stamp,
-                          r.errors, imu)
+        return self.robot.read_state()
 
     def write_goal(self, positions) -> None:
         self.robot.write_goal(positions)
@@ -57,6 +53,14 @@ class SimTransport:
 
     def close(self) -> None:
         self.robot.close()
+
+    def position_limits(self) -> None:
+        """None: no limits beyond the caller's (see transports.base)."""
+        return None
+
+    def pipeline(self, enabled: bool = True) -> bool:
+        """False: no split-phase bus cycle here (see transports.base)."""
+        return False
 
     def recorded_trajectory(self) -> RobotTrajectory | None:
         """The simulated robot's measured motion, one frame per command written (None if none)."""

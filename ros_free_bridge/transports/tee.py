@@ -55,10 +55,15 @@ class TeeTransport:
 
     def position_limits(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The tightest limits any transport enforces (None if none reports any)."""
-        found = [t.position_limits() for t in self.transports if hasattr(t, "position_limits")]
+        found = [lim for lim in (t.position_limits() for t in self.transports) if lim is not None]
         if not found:
             return None
         return (np.max([lo for lo, _ in found], axis=0), np.min([hi for _, hi in found], axis=0))
+
+    def pipeline(self, enabled: bool = True) -> bool:
+        """False: each tick reads every transport in turn (a split phase would pair one
+        transport's reply with another's tick)."""
+        return False
 
     def safe_stop(self, policy: str = "hold") -> None:
         self._all("safe_stop", policy)
