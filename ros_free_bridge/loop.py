@@ -41,6 +41,7 @@ import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
+from typing import NamedTuple
 
 import numpy as np
 
@@ -196,6 +197,19 @@ class TickPlayback:
         return t
 
 
+class _Sent(NamedTuple):
+    """One tick's output: the target before the stabilizer, its correction (None: none), the
+    command written, the safety filter's flags, the target frame used (None: none) and the
+    tick's compute time (s)."""
+
+    target: np.ndarray
+    correction: np.ndarray | None
+    command: np.ndarray
+    flags: np.ndarray
+    used: object
+    compute: float
+
+
 @dataclass
 class _Stream:
     """The streaming state the loop carries between ticks: the buffer's ``curve`` (revisions
@@ -348,7 +362,7 @@ class ControlLoop:
                 self._check_at_rest(target, desired, command)
             compute = time.monotonic() - tick.woke
             self.transport.write_goal(command)
-            self._account(tick, faults, state, target, correction, command, flags, used, compute)
+            self._account(tick, faults, state, _Sent(target, correction, command, flags, used, compute))
             if self.state == State.STOPPED:
                 self.transport.safe_stop(self.config.stop_policy)
                 self._event("stopped", policy=self.config.stop_policy, reason=self.summary.reason)
@@ -485,8 +499,9 @@ class ControlLoop:
             self._event("rest_not_reached", error=float(np.max(np.abs(command - self._rest))))
             self.state = State.STOPPED
 
-    def _account(self, tick, faults: Fault, state, target, correction, command, flags, used, compute: float) -> None:
+    def _account(self, tick, faults: Fault, state, sent: _Sent) -> None:
         """The tick's counters, latency, telemetry record, status callback and GC slack."""
+        target, correction, command, flags, used, compute = sent
         write_time = time.monotonic()
         e2e = float("nan")
         if used is not None and used.index != self._last_used:

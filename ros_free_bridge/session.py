@@ -297,7 +297,7 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     out.mkdir(parents=True, exist_ok=True)
     with ExitStack() as stack:
         core, rest = _partner_core(opts, files, robot, names, limits, stack)
-        return _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready, actor_motion)
+        return _run(opts, _Robot(files, hardware, limits, rest), out, core, on_status, on_ready, actor_motion)
 
 
 def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits, stack: ExitStack):
@@ -326,31 +326,52 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
 
-def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_ready, actor_motion=None) -> SessionResult:
-    from dualflow.motion import Motion
-    from ros_free_bridge.stages import PartnerPipeline
+@dataclass(frozen=True)
+class _Robot:
+    """The robot a session drives: its folder's files, hardware config (None for a model-only
+    transport), the limits the loop enforces (joint order = ``limits.names``) and the rest pose."""
 
-    config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rest, stop_policy=opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold"),
+    files: RobotFiles
+    hardware: object
+    limits: object
+    rest: np.ndarray
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.limits.names
+
+
+def _loop_config(opts: SessionOptions, rb: _Robot, core) -> LoopConfig:
+    hardware = rb.hardware
+    margin = ({} if opts.playback_margin is None and not opts.adaptive_playback else
+              {"playback_margin": ADAPTIVE_MARGIN if opts.playback_margin is None else opts.playback_margin})
+    config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rb.rest,
+                        stop_policy=opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold"),
                         adaptive_playback=opts.adaptive_playback,
                         playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
                         playback_quantile=opts.playback_quantile, revision_smoothing=opts.revision_smoothing,
-                        **({} if opts.playback_margin is None and not opts.adaptive_playback else
-                           {"playback_margin": ADAPTIVE_MARGIN if opts.playback_margin is None else opts.playback_margin}),
-                        estop_policy=opts.estop_policy, max_duration=opts.max_duration,
+                        **margin, estop_policy=opts.estop_policy, max_duration=opts.max_duration,
                         handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority,
                         stabilizer=opts.stabilizer)
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
         config.playback_margin = playback_margin(config.playback_margin, core)
+    return config
+
+
+def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready, actor_motion=None) -> SessionResult:
+    from ros_free_bridge.stages import PartnerPipeline
+
+    config = _loop_config(opts, rb, core)
     # cubic (Hermite, causal tangents) interpolation: linear would jump in velocity at every 30 fps frame,
     # which the safety filter's acceleration limit would then clip on every joint
     buffer = TargetBuffer(MOTION_FPS, interpolation="cubic", extrapolate=opts.extrapolate_frames)
     with ExitStack() as stack:
-        transport, info = open_transport(opts, files, hardware, names, rest, stack)
-        telemetry = TelemetryWriter(out / "telemetry.dftl", names, opts.rate_hz,
-                                    meta={"robot": files.ref, "actor": opts.actor, "partner": opts.partner,
+        transport, info = open_transport(opts, rb.files, rb.hardware, rb.names, rb.rest, stack)
+        telemetry = TelemetryWriter(out / "telemetry.dftl", rb.names, opts.rate_hz,
+                                    meta={"robot": rb.files.ref, "actor": opts.actor, "partner": opts.partner,
                                           "transport": opts.transport, "model": str(opts.model or "bundled")})
-        loop = ControlLoop(transport, limits, buffer, config, telemetry, on_status=on_status,
-                           balance=_balance_model(files, names) if opts.stabilizer else None)
+        loop = ControlLoop(transport, rb.limits, buffer, config, telemetry, on_status=on_status,
+                           balance=_balance_model(rb.files, rb.names) if opts.stabilizer else None)
         udp = {}
         if opts.actor.startswith("udp://"):
             udp = {"allow_remote": opts.allow_remote_actor, "on_event": telemetry.event}
@@ -375,7 +396,7 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
             # never leave the pipeline thread (or the generator in it) running while the process exits
             pipeline.stop()
             pipeline.join(30.0)
-    result = SessionResult(summary, out, files, transport_info={k: v for k, v in info.items() if k != "emulator"})
+    result = SessionResult(summary, out, rb.files, transport_info={k: v for k, v in info.items() if k != "emulator"})
     if stats is not None:
         result.source_stats = stats
         telemetry_events_append(out / "telemetry.dftl", "input", received=stats.received, accepted=stats.accepted,
@@ -384,13 +405,22 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
                             "frames_dropped": pipeline.frames_dropped,
                             "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events),
                             "frames_ahead": getattr(core, "frames_ahead", None)}
-    result.actor_arrivals = np.asarray(pipeline.actor_arrivals, dtype=float)
     cpu = getattr(core, "streaming_cpu_s", float("nan"))
     if np.isfinite(cpu) and len(pipeline.actor_positions):
         # CPU seconds the generator process used per second of actor motion: < 1 fits one core
         result.pipeline_info["generator_cpu_per_s"] = round(cpu / (len(pipeline.actor_positions) / MOTION_FPS), 3)
+    _save_outputs(result, pipeline, transport, info.get("emulator"))
+    return result
+
+
+def _save_outputs(result: SessionResult, pipeline, transport, emu) -> None:
+    """The run's people (actor.npz, partner.npz), the simulated robot's motion (robot.npz), the
+    recorded commands (commands.npz) and the emulated bus's counters, into ``result``."""
+    from dualflow.motion import Motion
     from dualflow.motion.io import save_motion
 
+    out = result.out
+    result.actor_arrivals = np.asarray(pipeline.actor_arrivals, dtype=float)
     if pipeline.actor_positions:
         result.actor = Motion(np.asarray(pipeline.actor_positions), MOTION_FPS, name="actor")
         save_motion(result.actor, out / "actor.npz")
@@ -404,11 +434,9 @@ def _run(opts, files, hardware, limits, names, rest, out, core, on_status, on_re
             result.robot_motion.save_npz(out / "robot.npz")
     if hasattr(transport, "save"):
         transport.save(out / "commands.npz")
-    emu = info.get("emulator")
     if emu is not None and getattr(emu, "stats", None):
         result.transport_info["bus_violations"] = emu.stats["violations"]
         result.transport_info["bus_goal_writes"] = emu.stats["goal_writes"]
-    return result
 
 
 def _balance_model(files, names):
