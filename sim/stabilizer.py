@@ -203,30 +203,35 @@ class Stabilizer:
         (n,) rad (NaN: unknown; None: not read), ``imu`` (an object with ``gyro`` (3,) rad/s,
         ``accel`` (3,) m/s^2, ``quat`` (4,) wxyz; None: no IMU, then only the sag
         compensation acts) and the tick ``dt`` s."""
-        m, gains = self.model, self.model.gains
         q_ref = np.asarray(q_ref, dtype=np.float64)
         if q_ref.shape != (self.n,) or not np.isfinite(q_ref).all() or not dt > 0:
             return q_ref  # the safety filter deals with a bad target; nothing to add to it
-        ql = q_ref.tolist()
+        frames, weights, u_ref = self._reference_up(q_ref.tolist(), dt)
+        target = np.zeros(self.n)
+        self._attitude_feedback(target, frames, weights, u_ref, imu, dt)
+        self._sag_compensation(target, q_ref, position, dt)
+        return self._bounded(q_ref, target, dt)
+
+    def _reference_up(self, ql: list, dt: float):
+        """(each leg's frames, each leg's stance weight 0..1, the world's up axis in the root
+        frame that the reference gives with the stance feet flat, low-passed)."""
+        gains = self.model.gains
         frames = [_leg_frames(leg, ql) for leg in self._legs]
         heights = [u[0] * p[0] + u[1] * p[1] + u[2] * p[2] for u, p, _ in frames]
-        low = min(heights)
-        band = max(gains.stance_band, 1e-6)
+        low, band = min(heights), max(gains.stance_band, 1e-6)
         weights = [min(1.0, max(0.0, 1.0 - (h - low) / band)) for h in heights]
-        ux = sum(w * f[0][0] for w, f in zip(weights, frames))
-        uy = sum(w * f[0][1] for w, f in zip(weights, frames))
-        uz = sum(w * f[0][2] for w, f in zip(weights, frames))
-        nu = math.sqrt(ux * ux + uy * uy + uz * uz) or 1.0
-        u_ref = (ux / nu, uy / nu, uz / nu)
+        u = [sum(w * f[0][i] for w, f in zip(weights, frames)) for i in range(3)]
         if self._u_ref_prev is not None:  # low-pass: a jittery reference must not shake the ankles
             a = dt / (dt + 1.0 / (2 * math.pi * max(gains.reference_cutoff_hz, 1e-3)))
+            nu = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) or 1.0
             p = self._u_ref_prev
-            ux, uy, uz = (p[i] + a * (u_ref[i] - p[i]) for i in range(3))
-            nu = math.sqrt(ux * ux + uy * uy + uz * uz) or 1.0
-            u_ref = (ux / nu, uy / nu, uz / nu)
+            u = [p[i] + a * (u[i] / nu - p[i]) for i in range(3)]
+        nu = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) or 1.0
+        return frames, weights, (u[0] / nu, u[1] / nu, u[2] / nu)
 
-        target = np.zeros(self.n)
-        # -- attitude and rate feedback (needs the IMU) --
+    def _attitude_feedback(self, target: np.ndarray, frames, weights, u_ref, imu, dt: float) -> None:
+        """Add the attitude and rate feedback (module docstring, term 1) to ``target`` (n,)."""
+        gains = self.model.gains
         u_meas, gyro = _imu_up_and_rate(imu, self._R)
         self.active = u_meas is not None
         if gyro is not None:
@@ -236,30 +241,33 @@ class Stabilizer:
         prev = self._u_ref_prev
         w_ref = _cross(u_ref, prev, 1.0 / dt) if prev is not None else (0.0, 0.0, 0.0)
         self._u_ref_prev = u_ref
-        if u_meas is not None:
-            e = _tilt_only(_cross(u_ref, u_meas), u_meas)
-            self.tilt_error = np.array(e)
-            rate = (0.0, 0.0, 0.0)
-            if self._gyro is not None:
-                rate = _tilt_only(tuple(w_ref[i] - self._gyro[i] for i in range(3)), u_meas)
-            ai = self._att_i
-            w_ankle = tuple(gains.kp * e[i] + gains.ki * ai[i] + gains.kd * rate[i] for i in range(3))
-            w_hip = tuple(gains.kd_hip * r for r in rate)
-            for (_, _, axes), wt, (ankles, hips) in zip(frames, weights, self._roles):
-                if wt <= 0:
-                    continue
-                for joints, w in ((ankles, w_ankle), (hips, w_hip)):
-                    for j in joints:
-                        if j >= 0:
-                            ax = axes[j]
-                            target[j] -= wt * (ax[0] * w[0] + ax[1] * w[1] + ax[2] * w[2])
-            lim = gains.max_correction
-            if gains.ki > 0 and not any(abs(target[j]) >= lim for j in m.ankle_joints):  # anti-windup
-                cap = lim / gains.ki
-                for i in range(3):
-                    ai[i] = min(cap, max(-cap, ai[i] + e[i] * dt))
-        # -- sag compensation (joint readings only) --
-        sag = self._sag
+        if u_meas is None:
+            return
+        e = _tilt_only(_cross(u_ref, u_meas), u_meas)
+        self.tilt_error = np.array(e)
+        rate = (0.0, 0.0, 0.0)
+        if self._gyro is not None:
+            rate = _tilt_only(tuple(w_ref[i] - self._gyro[i] for i in range(3)), u_meas)
+        ai = self._att_i
+        w_ankle = tuple(gains.kp * e[i] + gains.ki * ai[i] + gains.kd * rate[i] for i in range(3))
+        w_hip = tuple(gains.kd_hip * r for r in rate)
+        for (_, _, axes), wt, (ankles, hips) in zip(frames, weights, self._roles):
+            if wt <= 0:
+                continue
+            for joints, w in ((ankles, w_ankle), (hips, w_hip)):
+                for j in joints:
+                    if j >= 0:
+                        ax = axes[j]
+                        target[j] -= wt * (ax[0] * w[0] + ax[1] * w[1] + ax[2] * w[2])
+        lim = gains.max_correction
+        if gains.ki > 0 and not any(abs(target[j]) >= lim for j in self.model.ankle_joints):  # anti-windup
+            cap = lim / gains.ki
+            for i in range(3):
+                ai[i] = min(cap, max(-cap, ai[i] + e[i] * dt))
+
+    def _sag_compensation(self, target: np.ndarray, q_ref: np.ndarray, position, dt: float) -> None:
+        """Add the sag compensation (module docstring, term 2) to ``target`` (n,)."""
+        gains, sag = self.model.gains, self._sag
         if len(sag):
             meas = None if position is None else np.asarray(position, dtype=np.float64)
             if meas is not None and meas.shape == (self.n,):
@@ -277,7 +285,10 @@ class Stabilizer:
         self._feedback = np.minimum(np.maximum(target, -gains.max_correction), gains.max_correction)
         if len(sag):
             target[sag] += self._sag_i + gains.kp_sag * self._sag_err
-        # -- bounds: magnitude, rate, joint limits --
+
+    def _bounded(self, q_ref: np.ndarray, target: np.ndarray, dt: float) -> np.ndarray:
+        """``q_ref`` plus the correction ``target``, bounded in size, rate and joint limits."""
+        m, gains = self.model, self.model.gains
         step = gains.max_rate * dt
         c = np.minimum(np.maximum(target, -gains.max_correction), gains.max_correction)
         c = np.minimum(np.maximum(c, self.correction - step), self.correction + step)
