@@ -1,63 +1,17 @@
-"""The per-robot hardware config: buses, servos, joint mapping, offsets, limits, EEPROM settings.
+"""The per-robot hardware config (``hardware.yaml``): buses, servos, joint mapping, limits, settings.
 
-One YAML file per robot (``hardware.yaml`` in the robot's folder, see
-:mod:`firmware_cfg.registry`), loaded with
-``yaml.safe_load`` and validated here. Every error is a :class:`ConfigError` whose
-message starts with ``<file>: <field path>:`` and says what is wrong and the fix.
-
-File layout::
-
-    robot: op3
-    mjcf: op3.xml                           # optional, relative to this file
-    stop_policy: hold                       # hold | limp: what close/e-stop does
-    servo_defaults: {model: XM430-W350, return_delay_us: 0, ...}   # optional
-    buses:
-      - name: body
-        port: /dev/ttyUSB0
-        baud: 2000000
-        protocol: "2.0"                     # "1.0" | "2.0" | serial-link
-        defaults: {...}                     # optional, overrides servo_defaults
-        servos:
-          - {id: 1, joint: r_sho_pitch, direction: 1, zero_offset: 0.0, limits: [-1.5708, 1.5708]}
-        devices:                            # optional: non-servo devices on the same bus
-          - {id: 200, model: OpenCR, role: imu}
-
-Per-servo fields (units; the SI unit is converted to register units by the transport):
-
-- ``id``: bus ID, 0..252 on Dynamixel buses, the channel 0..31 on a serial link.
-- ``joint``: the robot's joint name (MJCF joint name).
-- ``model``: a name from :mod:`firmware_cfg.servo_models` (Dynamixel buses only).
-- ``direction``: +1 or -1.
-- ``zero_offset``: **radians, servo side**. The joint/servo mapping is
-  ``servo_angle = direction · joint_angle + zero_offset``, where ``servo_angle`` is
-  measured from the servo's centre tick (2048 of 4096 on an X-series servo, 512 of 1024
-  on an AX/MX-1.0 servo). Radians, not ticks, so the same file works for servos of
-  different resolution; ``servo calibrate`` writes it.
-- ``limits``: [lower, upper] joint angle in radians (joint side, before direction/offset).
-- ``profile_velocity`` rad/s and ``profile_acceleration`` rad/s² (0 = no profile limit).
-- ``pid``: {p, i, d} raw register gains (the servo's own unitless KP/KI/KD values).
-- ``return_delay_us``: µs (multiple of 2 on protocol 2.0 servos), 0..508.
-- ``status_return_level``: 0 (PING only), 1 (also READ), 2 (all).
-- ``bus_watchdog_ms``: ms, multiple of 20, 0 = off (protocol 2.0 only).
-- ``temperature_limit_c``: °C. ``voltage_limits_v``: [min, max] volts.
-
-Per-device fields (``devices``: boards on a Dynamixel bus that are not joint servos, such
-as the ROBOTIS OP3's OpenCR sub-controller with its IMU): ``id`` (0..252, unique on the
-bus among servos and devices), ``model`` (a model of :mod:`firmware_cfg.device_models`,
-e.g. ``OpenCR``, on a bus of its protocol) and ``role`` (what the bridge may use it for, one
-of :data:`DEVICE_ROLES`). A serial-link bus has no devices.
-
-Validation: required fields, types, duplicate IDs on a bus, duplicate joints, an
-unknown model or protocol mismatch, limits (and their image in servo ticks) outside the
-servo's position range, and, when an MJCF is given, a joint the MJCF lacks or limits
-wider than the MJCF's ``range``. The MJCF is read with ``xml.etree`` only.
+:func:`load_config` reads one robot's file with ``yaml.safe_load`` and validates it into
+frozen dataclasses (:class:`RobotConfig`), optionally against the robot's MJCF. Angles in
+rad: joint side, except ``zero_offset`` (servo side). Every error is a :class:`ConfigError`
+whose message starts with ``<file>: <field path>:`` and says what is wrong and the fix.
+The file's fields, units and checks: docs/dynamixel.md, "The hardware config".
 """
 
 from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -331,10 +285,40 @@ def _parse_device(d: dict, protocol: str, source: str, where: str) -> DeviceConf
     return DeviceConfig(did, known.name, role)
 
 
-def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> ServoConfig:
-    _unknown(s, _SERVO_KEYS, source, where)
-    f = lambda key: f"{source}: {where}.{key}"  # noqa: E731 - the field prefix of every message
+@dataclass(frozen=True)
+class _Field:
+    """Where a servo entry is (``source`` file, ``where`` path such as ``buses[0].servos[3]``);
+    calling it with a key gives the prefix of an error message about that field."""
 
+    source: str
+    where: str
+
+    def __call__(self, key: str) -> str:
+        return f"{self.source}: {self.where}.{key}"
+
+
+def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> ServoConfig:
+    """One servo entry (bus defaults already merged in) of a bus of ``protocol`` at ``baud``."""
+    _unknown(s, _SERVO_KEYS, source, where)
+    f = _Field(source, where)
+    sid, joint, direction, zero, lower, upper = _parse_joint_mapping(s, protocol, f)
+    if protocol == "serial-link":
+        model = s.get("model")
+        servo = ServoConfig(sid, joint, model if isinstance(model, str) else None, direction, zero, lower, upper)
+        return _check_serial_link(s, servo, f)
+    spec = _dynamixel_model(s.get("model"), protocol, baud, f)
+    pid = _parse_pid(s.get("pid"), f)
+    rd, srl, wd = _parse_bus_registers(s, protocol, f)
+    pv, pa = _parse_profile(s, f)
+    temp = _parse_temperature_limit(s.get("temperature_limit_c"), spec, f)
+    volt = _parse_voltage_limits(s.get("voltage_limits_v"), spec, f)
+    servo = ServoConfig(sid, joint, spec.name, direction, zero, lower, upper, pv, pa, pid, rd, srl, wd, temp, volt)
+    _check_position_range(servo, spec, f)
+    return servo
+
+
+def _parse_joint_mapping(s: dict, protocol: str, f: _Field) -> tuple[int, str, int, float, float, float]:
+    """(id, joint, direction, zero_offset rad, lower rad, upper rad), the fields every bus has."""
     sid = s.get("id")
     max_id = SERIAL_LINK_MAX_CHANNELS - 1 if protocol == "serial-link" else 252
     if not _is_int(sid) or not 0 <= sid <= max_id:
@@ -352,18 +336,23 @@ def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> 
     lower, upper = (_number(v, f("limits")) for v in lim)
     if not lower < upper:
         raise ConfigError(f"{f('limits')}: lower {lower} must be below upper {upper}")
+    return sid, joint, direction, zero, lower, upper
 
-    model = s.get("model")
-    if protocol == "serial-link":
-        extra = sorted(k for k in _DXL_ONLY if s.get(k) is not None)
-        if extra:
-            raise ConfigError(f"{f(extra[0])}: not used on a serial-link bus; remove it")
-        servo = ServoConfig(sid, joint, model if isinstance(model, str) else None, direction, zero, lower, upper)
-        lo, hi = servo.servo_limits()
-        if lo < -SERIAL_LINK_RANGE_RAD or hi > SERIAL_LINK_RANGE_RAD:
-            raise ConfigError(f"{f('limits')}: maps to servo angles [{lo:.3f}, {hi:.3f}] rad, outside the serial link's ±327.67°")
-        return servo
 
+def _check_serial_link(s: dict, servo: ServoConfig, f: _Field) -> ServoConfig:
+    """A serial-link channel has no Dynamixel fields, and its limits fit the link's int16
+    centi-degrees; returns ``servo``."""
+    extra = sorted(k for k in _DXL_ONLY if s.get(k) is not None)
+    if extra:
+        raise ConfigError(f"{f(extra[0])}: not used on a serial-link bus; remove it")
+    lo, hi = servo.servo_limits()
+    if lo < -SERIAL_LINK_RANGE_RAD or hi > SERIAL_LINK_RANGE_RAD:
+        raise ConfigError(f"{f('limits')}: maps to servo angles [{lo:.3f}, {hi:.3f}] rad, outside the serial link's ±327.67°")
+    return servo
+
+
+def _dynamixel_model(model: Any, protocol: str, baud: int, f: _Field) -> servo_models.ServoModel:
+    """The servo model named by ``model``, checked against the bus's protocol and baud."""
     known = ", ".join(servo_models.servo_model_names())
     if not isinstance(model, str):
         raise ConfigError(f"{f('model')}: required on a Dynamixel bus; one of {known}")
@@ -377,19 +366,26 @@ def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> 
     if baud not in spec.baud_rates.values():
         raise ConfigError(f"{f('model')}: {spec.name} cannot run at the bus baud {baud}; "
                           f"it supports {sorted(set(spec.baud_rates.values()))}")
-    model = spec.name
+    return spec
 
-    pid = None
-    if s.get("pid") is not None:
-        p = _mapping(s["pid"], source, f"{where}.pid")
-        _unknown(p, {"p", "i", "d"}, source, f"{where}.pid")
-        vals = {}
-        for k in ("p", "i", "d"):
-            v = p.get(k, 0)
-            if not _is_int(v) or not 0 <= v <= 16383:
-                raise ConfigError(f"{f('pid.' + k)}: {v!r} must be an integer register value 0..16383")
-            vals[k] = v
-        pid = PID(**vals)
+
+def _parse_pid(raw: Any, f: _Field) -> PID | None:
+    """``pid: {p, i, d}`` raw register gains 0..16383 (a missing gain is 0), or None."""
+    if raw is None:
+        return None
+    p = _mapping(raw, f.source, f"{f.where}.pid")
+    _unknown(p, {"p", "i", "d"}, f.source, f"{f.where}.pid")
+    vals = {}
+    for k in ("p", "i", "d"):
+        v = p.get(k, 0)
+        if not _is_int(v) or not 0 <= v <= 16383:
+            raise ConfigError(f"{f('pid.' + k)}: {v!r} must be an integer register value 0..16383")
+        vals[k] = v
+    return PID(**vals)
+
+
+def _parse_bus_registers(s: dict, protocol: str, f: _Field) -> tuple[int | None, int | None, int | None]:
+    """(return_delay_us, status_return_level, bus_watchdog_ms), each None when not set."""
     rd = s.get("return_delay_us")
     if rd is not None and (not _is_int(rd) or not 0 <= rd <= 508 or rd % 2):
         raise ConfigError(f"{f('return_delay_us')}: {rd!r} must be an even integer 0..508 µs (register unit 2 µs)")
@@ -403,6 +399,11 @@ def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> 
         raise ConfigError(f"{f('bus_watchdog_ms')}: {wd!r} must be a multiple of 20 ms in 0..2540 (0 = off)")
     if wd and protocol != "2.0":
         raise ConfigError(f"{f('bus_watchdog_ms')}: the bus watchdog exists on protocol 2.0 servos only; remove it")
+    return rd, srl, wd
+
+
+def _parse_profile(s: dict, f: _Field) -> tuple[float | None, float | None]:
+    """(profile_velocity rad/s, profile_acceleration rad/s²), each >= 0 or None."""
     pv = s.get("profile_velocity")
     pv = None if pv is None else _number(pv, f("profile_velocity"))
     pa = s.get("profile_acceleration")
@@ -410,29 +411,40 @@ def _parse_servo(s: dict, protocol: str, baud: int, source: str, where: str) -> 
     for key, val in (("profile_velocity", pv), ("profile_acceleration", pa)):
         if val is not None and val < 0:
             raise ConfigError(f"{f(key)}: {val} must be >= 0 (0 = no limit)")
-    temp = s.get("temperature_limit_c")
+    return pv, pa
+
+
+def _parse_temperature_limit(temp: Any, spec: servo_models.ServoModel, f: _Field) -> int | None:
+    """``temperature_limit_c`` (°C) within the model's register range, or None."""
     max_temp = spec.register("temperature_limit").range[1] if spec.has("temperature_limit") else 100
     if temp is not None and (not _is_int(temp) or not 0 < temp <= max_temp):
-        raise ConfigError(f"{f('temperature_limit_c')}: {temp!r} must be an integer 1..{max_temp} °C for {model}")
-    volt = s.get("voltage_limits_v")
-    if volt is not None:
-        if not isinstance(volt, (list, tuple)) or len(volt) != 2:
-            raise ConfigError(f"{f('voltage_limits_v')}: must be [min, max] volts")
-        vmin, vmax = (_number(v, f("voltage_limits_v")) for v in volt)
-        lo_v, hi_v = spec_voltage_range(spec)
-        if not lo_v <= vmin < vmax <= hi_v:
-            raise ConfigError(f"{f('voltage_limits_v')}: [{vmin}, {vmax}] V must satisfy {lo_v} <= min < max <= {hi_v} for {model}")
-        volt = (vmin, vmax)
+        raise ConfigError(f"{f('temperature_limit_c')}: {temp!r} must be an integer 1..{max_temp} °C for {spec.name}")
+    return temp
 
-    servo = ServoConfig(sid, joint, model, direction, zero, lower, upper, pv, pa, pid, rd, srl, wd, temp, volt)
+
+def _parse_voltage_limits(volt: Any, spec: servo_models.ServoModel, f: _Field) -> tuple[float, float] | None:
+    """``voltage_limits_v`` [min, max] (V) within what the model's registers accept, or None."""
+    if volt is None:
+        return None
+    if not isinstance(volt, (list, tuple)) or len(volt) != 2:
+        raise ConfigError(f"{f('voltage_limits_v')}: must be [min, max] volts")
+    vmin, vmax = (_number(v, f("voltage_limits_v")) for v in volt)
+    lo_v, hi_v = spec_voltage_range(spec)
+    if not lo_v <= vmin < vmax <= hi_v:
+        raise ConfigError(f"{f('voltage_limits_v')}: [{vmin}, {vmax}] V must satisfy {lo_v} <= min < max <= {hi_v} "
+                          f"for {spec.name}")
+    return (vmin, vmax)
+
+
+def _check_position_range(servo: ServoConfig, spec: servo_models.ServoModel, f: _Field) -> None:
+    """The joint limits, mapped to the servo side, must lie in the model's position range."""
     lo, hi = servo.servo_limits()
     rmin, rmax = spec_angle_range(spec)
     if lo < rmin - 1e-9 or hi > rmax + 1e-9:
         raise ConfigError(
-            f"{f('limits')}: [{lower:.4f}, {upper:.4f}] rad maps to servo angles [{lo:.4f}, {hi:.4f}] rad "
-            f"(direction {direction}, zero_offset {zero}), outside {model}'s position range [{rmin:.4f}, {rmax:.4f}]; "
-            "narrow the limits or fix zero_offset")
-    return servo
+            f"{f('limits')}: [{servo.lower:.4f}, {servo.upper:.4f}] rad maps to servo angles [{lo:.4f}, {hi:.4f}] rad "
+            f"(direction {servo.direction}, zero_offset {servo.zero_offset}), outside {spec.name}'s position range "
+            f"[{rmin:.4f}, {rmax:.4f}]; narrow the limits or fix zero_offset")
 
 
 # ----------------------------------------------------------------------------- servo model views

@@ -47,7 +47,7 @@ import numpy as np
 
 from ros_free_bridge.clock import FixedRateClock
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.playback import PlaybackClock
+from ros_free_bridge.playback import PlaybackClock, PlaybackPolicy
 from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
 from ros_free_bridge.targets import RevisionSmoother, TargetBuffer
@@ -414,9 +414,9 @@ class ControlLoop:
             if cfg.pace == "ticks":
                 stream.playback = TickPlayback(self.targets.fps, first.index, self.dt)
             else:
-                stream.playback = PlaybackClock(self.targets.fps, first.index, now, cfg.playback_margin,
-                                                cfg.playback_lead_frames, fixed=not cfg.adaptive_playback,
-                                                quantile=cfg.playback_quantile)
+                policy = PlaybackPolicy(cfg.playback_margin, cfg.playback_lead_frames, quantile=cfg.playback_quantile,
+                                        fixed=not cfg.adaptive_playback)
+                stream.playback = PlaybackClock(self.targets.fps, first.index, now, policy)
             stream.start = stream.last_new = now
             self.state = State.RUNNING
             self._event("streaming", first_frame=first.index)

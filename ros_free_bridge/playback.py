@@ -1,46 +1,50 @@
 """The control loop's playback clock: when target frame k is played.
 
-Frame k is played at t0 + k / fps (motion time (now - t0) seconds). A fixed t0, set when the
-first frame arrives, makes that first frame's lateness the latency of the whole run: a slow
-first window (or a start while the machine is busy) costs every later frame the same, and a
-first window faster than the later ones makes them all late. The adaptive clock instead keeps
-t0 at the earliest value at which the recent frames were all on time:
-
-    a_k  = arrival_k - k / fps                       (frame k's arrival offset)
-    t0*  = q-quantile of a_k over the frames of the last ``window_s`` seconds + lead / fps + margin
-
-(``lead`` frames: the interpolation between frames k and k + 1 needs frame k + 1 when
-frame k is played, 0 when the buffer may extrapolate the newest frame for a frame
-(``TargetBuffer(extrapolate=1)``); ``margin``: reserve for arrival jitter; ``quantile`` q,
-default 0.9: the odd frame later than the rest (a busy CPU) does not hold the clock back for
-a whole window: it is played when it comes, the buffer's extrapolation covering for it
-meanwhile (``TargetBuffer.extrapolate``, its arrival smoothed by ``RevisionSmoother``), and
-its latency counts as it is). t0 moves toward t0* at a bounded
-rate: earlier (playing faster than real time, at most 1 + ``speed_up``) when frames arrive
-sooner than needed, later (slower, down to 1 - ``slow_down``) when they come late, so motion
-time never jumps or runs backwards. The latency then follows the generator's actual delay
-instead of the first frame's.
+Frame k plays at t0 + k / fps. :class:`PlaybackClock` moves t0, at a bounded rate, toward the
+earliest value at which (a quantile of) the recent frames arrived in time, so the latency
+follows the generator's actual delay rather than the first frame's; motion time never jumps
+or runs backwards. Times in seconds. The reasoning and the formula: docs/bridge_timing.md.
 """
 
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class PlaybackPolicy:
+    """How the clock places t0 (docs/bridge_timing.md).
+
+    ``margin``: s of reserve for arrival jitter. ``lead_frames``: frames that must have
+    arrived beyond the one played (1 for interpolation, 0 when the buffer may extrapolate).
+    ``window_s``: s of recent arrivals considered. ``quantile``: the share of them that must
+    be in time (1.0: all). ``speed_up`` / ``slow_down``: the largest rate (s per s) at which t0
+    moves earlier / later, i.e. playback at most 1 + speed_up and at least 1 - slow_down
+    times real time. ``fixed``: t0 stays where the first frame put it."""
+
+    margin: float
+    lead_frames: float = 1.0
+    window_s: float = 1.0
+    speed_up: float = 0.2
+    slow_down: float = 0.5
+    quantile: float = 0.9
+    fixed: bool = False
 
 
 class PlaybackClock:
-    """Motion time for the loop. ``fixed=True``: t0 stays where the first frame put it."""
+    """Motion time for the loop, from the first frame (``first_index``, arrived at ``now``)
+    on, under ``policy``."""
 
-    def __init__(self, fps: float, first_index: int, now: float, margin: float, lead_frames: float = 1.0,
-                 window_s: float = 1.0, speed_up: float = 0.2, slow_down: float = 0.5, fixed: bool = False,
-                 quantile: float = 0.9):
+    def __init__(self, fps: float, first_index: int, now: float, policy: PlaybackPolicy):
         self.fps = float(fps)
-        self.margin = float(margin)
-        self.lead = float(lead_frames) / self.fps
-        self.window_s = float(window_s)
-        self.speed_up = float(speed_up)
-        self.slow_down = float(slow_down)
-        self.fixed = bool(fixed)
-        self.quantile = float(quantile)
+        self.margin = float(policy.margin)
+        self.lead = float(policy.lead_frames) / self.fps
+        self.window_s = float(policy.window_s)
+        self.speed_up = float(policy.speed_up)
+        self.slow_down = float(policy.slow_down)
+        self.fixed = bool(policy.fixed)
+        self.quantile = float(policy.quantile)
         self.t0 = now + self.margin - first_index / self.fps  # the fixed clock's t0 (as before)
         self._offsets: deque[tuple[float, float]] = deque()  # (arrival, a_k)
         self._seen = first_index

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ros_free_bridge.playback import PlaybackClock
+from ros_free_bridge.playback import PlaybackClock, PlaybackPolicy
 from ros_free_bridge.targets import TargetBuffer, TargetFrame
 
 FPS = 30.0
@@ -24,7 +24,7 @@ def _drive(clock, arrival_of, t_end, dt=0.01, first=0):
 
 
 def test_the_fixed_clock_keeps_where_the_first_frame_put_it():
-    clock = PlaybackClock(FPS, 3, now=10.0, margin=0.05, fixed=True)
+    clock = PlaybackClock(FPS, 3, now=10.0, policy=PlaybackPolicy(margin=0.05, fixed=True))
     track = _drive(clock, lambda k: 10.0 + (k - 3) / FPS + 0.2, 12.0, first=3)  # later frames come 200 ms late
     np.testing.assert_allclose(track[:, 1], track[:, 0] - (10.0 + 0.05 - 3 / FPS))
 
@@ -33,7 +33,7 @@ def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
     delay = 0.120  # frame k arrives 120 ms after its ideal time k / fps (a steady generator)
     first_late = 0.400  # the first frame was 400 ms late (a slow first window)
     arrival = (lambda k: k / FPS + delay + (first_late - delay if k == 0 else 0.0))
-    clock = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=1.0, window_s=1.0)
+    clock = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=1.0, window_s=1.0))
     track = _drive(clock, arrival, 8.0)
     speed = np.diff(track[:, 1]) / np.diff(track[:, 0])
     assert np.all(speed >= 0.5 - 1e-9) and np.all(speed <= 1.2 + 1e-9)  # bounded, never backwards
@@ -48,7 +48,7 @@ def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
 
 def test_the_adaptive_clock_slows_down_for_late_frames_and_catches_up_after():
     arrival = (lambda k: k / FPS + (0.3 if 60 <= k < 70 else 0.05))  # a stall of 250 ms around 2 s
-    clock = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=0.0, window_s=1.0)
+    clock = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0, window_s=1.0))
     track = _drive(clock, arrival, 8.0)
     delay_at = (lambda t: t - track[np.searchsorted(track[:, 0], t), 1])  # now - motion time
     assert max(delay_at(t) for t in np.arange(2.3, 3.5, 0.05)) > 0.2  # it waited for the late frames
@@ -89,8 +89,8 @@ def test_without_extrapolation_the_buffer_holds():
 def test_one_late_frame_does_not_hold_the_clock_back_but_a_late_run_does():
     # frame 60 is 50 ms late (the next one, in order behind it, 17 ms)
     arrival = (lambda k: k / FPS + (0.10 if k == 60 else 0.05))
-    robust = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=0.0)  # q = 0.9
-    strict = PlaybackClock(FPS, 0, now=arrival(0), margin=0.02, lead_frames=0.0, quantile=1.0)
+    robust = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0))  # q = 0.9
+    strict = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0, quantile=1.0))
     a, b = _drive(robust, arrival, 2.6), _drive(strict, arrival, 2.6)
     lag = (lambda track: np.max(track[:, 0] - track[:, 1]))
     assert lag(a[a[:, 0] > 1.5]) < 0.05 + 0.02 + 0.011
@@ -102,7 +102,7 @@ def test_the_clock_target_is_the_quantile_of_the_recent_arrival_offsets(quantile
     """t0* = q-quantile (numpy's default, linear) of the last second's offsets + lead + margin,
     whatever the order frames arrive in and however often the loop asks."""
     rng = np.random.default_rng(3)
-    clock = PlaybackClock(FPS, 0, 0.0, margin=0.02, lead_frames=1.0, quantile=quantile)
+    clock = PlaybackClock(FPS, 0, 0.0, PlaybackPolicy(margin=0.02, lead_frames=1.0, quantile=quantile))
     t = 0.0
     for _ in range(600):
         t += 0.01 + rng.uniform(0.0, 0.004)

@@ -1,4 +1,25 @@
-"""``dualflow-bridge servo scan|provision|verify|calibrate|monitor|emulate``: set up and
+"""``dualflow-bridge servo ACTION``: set up and inspect Dynamixel servo buses.
+
+Actions scan, provision, verify, calibrate, monitor and emulate, each a ``run_*`` function
+(what each does: :data:`DESCRIPTION`, the command's help). Errors are ConfigError or
+BridgeError, which the command line turns into one message and exit 2; ``verify`` exits 1
+on a mismatch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import sys
+import time
+from pathlib import Path
+
+from firmware_cfg.errors import ConfigError
+from ros_free_bridge.errors import BridgeError
+
+#: The ``servo --help`` text: what each action does.
+DESCRIPTION = """``dualflow-bridge servo scan|provision|verify|calibrate|monitor|emulate``: set up and
 inspect Dynamixel servo buses.
 
 - ``scan``: ping IDs across baud rates and protocols; print each servo's model and firmware.
@@ -20,35 +41,32 @@ Every action but ``emulate`` takes ``--port`` (default: the config's bus port) a
 ``dualflow-bridge servo provision op3 --emulate``).
 """
 
-from __future__ import annotations
-
-import argparse
-import contextlib
-import math
-import sys
-import time
-from pathlib import Path
-
-from firmware_cfg.errors import ConfigError
-from ros_free_bridge.errors import BridgeError
-
 #: Baud rates ``scan`` tries by default (those both the SDK and the bundled models know).
 SCAN_BAUDS = (57600, 115200, 1000000, 2000000, 3000000, 4000000, 9600, 500000)
 
 
 def register(subparsers) -> None:
+    """Add ``servo`` and its actions to the command line's ``subparsers``."""
     p = subparsers.add_parser("servo", help="scan, provision, verify, calibrate and monitor Dynamixel servos",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                              description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="servo_command", metavar="ACTION")
+    for add in (_add_scan, _add_provision, _add_verify, _add_calibrate, _add_monitor, _add_emulate):
+        add(sub)
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    for name, action in sub.choices.items():
+        action.set_defaults(func=_with_robot(action.get_default("func"), required=name != "scan"))
 
-    def common(q, config_required=True):
-        if config_required:
-            add_robot_arguments(q)
-        q.add_argument("--port", help="serial device (default: the config's bus port)")
-        q.add_argument("--bus", help="bus name in the config (default: the only Dynamixel bus)")
-        q.add_argument("--emulate", action="store_true", help="use an emulated bus started from the config (no hardware)")
-        q.add_argument("--retries", type=int, default=2, help="retries per packet (default 2)")
 
+def _add_bus_options(q) -> None:
+    """The robot, and which bus to talk to and how: the options the config-driven actions share."""
+    add_robot_arguments(q)
+    q.add_argument("--port", help="serial device (default: the config's bus port)")
+    q.add_argument("--bus", help="bus name in the config (default: the only Dynamixel bus)")
+    q.add_argument("--emulate", action="store_true", help="use an emulated bus started from the config (no hardware)")
+    q.add_argument("--retries", type=int, default=2, help="retries per packet (default 2)")
+
+
+def _add_scan(sub) -> None:
     s = sub.add_parser("scan", help="find servos: ping IDs across baud rates and protocols",
                        description="Ping every ID at each baud rate and protocol (2.0 by broadcast ping, 1.0 one ID "
                                    "at a time) and print each servo found: ID, model, firmware, baud, protocol. "
@@ -66,6 +84,8 @@ def register(subparsers) -> None:
                    help="reply latency allowed per ping, ms (default 4; the timeout adds the bytes' time and 3 ms)")
     s.set_defaults(func=run_scan)
 
+
+def _add_provision(sub) -> None:
     s = sub.add_parser("provision", help="write EEPROM/RAM settings from CONFIG (torque off), read back, show the diff",
                        description="Make each servo on the bus match CONFIG: switch torque off, write the EEPROM "
                                    "settings (return delay, temperature and voltage limits, position limits from the joint limits) "
@@ -73,39 +93,47 @@ def register(subparsers) -> None:
                                    "read everything back and print what changed. Writes nothing when a servo's "
                                    "model differs from the config. Run once per new servo, with the robot "
                                    "supported (torque goes off).")
-    common(s)
+    _add_bus_options(s)
     s.add_argument("--dry-run", action="store_true", help="show the diff only; write nothing")
     s.set_defaults(func=run_provision)
 
+
+def _add_verify(sub) -> None:
     s = sub.add_parser("verify", help="check models and settings against CONFIG (exit 1 on a mismatch)",
                        description="Read each servo's model and EEPROM settings and compare them with CONFIG, "
                                    "and its hardware error flags. Reads only. Exit code 0 when everything matches "
                                    "and no flag is set, 1 otherwise (a settings mismatch: run `servo provision`).")
-    common(s)
+    _add_bus_options(s)
     s.set_defaults(func=run_verify)
 
+
+def _add_calibrate(sub) -> None:
     s = sub.add_parser("calibrate", help="record zero offsets with the robot held in its zero pose",
                        description="With the robot held in its zero pose (the MJCF's zero: every joint at 0 rad), "
                                    "read each servo's position several times and write a copy of CONFIG with "
                                    "those zero offsets to --out. Torque is switched off first (unless "
                                    "--keep-torque), so support the robot.")
-    common(s)
+    _add_bus_options(s)
     s.add_argument("--out", required=True, help="where to write the calibrated config (YAML)")
     s.add_argument("--samples", type=int, default=10, help="readings averaged per servo (default 10)")
     s.add_argument("--joints", help="comma-separated joints to calibrate (default: all on the bus)")
     s.add_argument("--keep-torque", action="store_true", help="do not switch torque off before reading")
     s.set_defaults(func=run_calibrate)
 
+
+def _add_monitor(sub) -> None:
     s = sub.add_parser("monitor", help="live table of positions, temperatures, voltages and errors",
                        description="A live table, one row per servo: position, velocity, current, temperature, "
                                    "input voltage and hardware error flags, refreshed --rate times a second. "
                                    "Reads only; torque is left as it is.")
-    common(s)
+    _add_bus_options(s)
     s.add_argument("--rate", type=float, default=5.0, help="table refreshes per second (default 5)")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     s.add_argument("--once", action="store_true", help="print one table and exit")
     s.set_defaults(func=run_monitor)
 
+
+def _add_emulate(sub) -> None:
     s = sub.add_parser("emulate", help="start an emulated bus from CONFIG on a pty and print its port",
                        description="Start a byte-level emulation of CONFIG's bus on a pseudo-terminal (its "
                                    "servos in the bus's protocol, with their registers and a motor model; a "
@@ -118,9 +146,6 @@ def register(subparsers) -> None:
     s.add_argument("--wire-timing", action="store_true", help="delay replies by their time on the wire")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
     s.set_defaults(func=run_emulate)
-    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
-    for name, action in sub.choices.items():
-        action.set_defaults(func=_with_robot(action.get_default("func"), required=name != "scan"))
 
 
 def _with_robot(func, required: bool):

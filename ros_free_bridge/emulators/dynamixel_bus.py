@@ -1,19 +1,10 @@
 """A byte-level emulated Dynamixel bus on a pseudo-terminal, for dynamixel-sdk to open.
 
-Try the bridge without hardware, and test transports byte for byte::
-
-    with DynamixelBusEmulator(servos=range(1, 21), baud=2_000_000) as emu:   # 20 × XM430-W350
-        port = sdk.PortHandler(emu.port_path)        # then the SDK or a transport, as on a U2D2
-        emu.goal_history[3], emu.violations          # what reached servo 3; goals outside allowed_range
-
-``servos``: IDs (XM430-W350 on protocol 2, AX-12A on 1), ``(id, model)`` pairs (a device
-model such as ``(200, "OpenCR")`` adds a non-servo device) or :class:`ServoSpec`. It
-answers every protocol 2.0 and 1.0 instruction a servo does, with status return levels,
-broadcast, ID clashes, REBOOT downtime, baud matching and optional wire timing; faults
-are injected by method (``drop_replies``, ``corrupt_replies``, ``disconnect``,
-``set_hardware_error``, ``overheat``, ``set_supply_voltage``, ``stick``, ``push``,
-``vanish``). All state is under ``emu.lock``. The full behaviour, the fault and inspection
-API and dynamixel-sdk's quirks on a pty: docs/dynamixel.md.
+``DynamixelBusEmulator(servos, baud, protocol)`` serves servos (and devices such as the
+OP3's OpenCR) that answer protocol 2.0 and 1.0 instructions as real ones do, at
+``emu.port_path``; faults are injected and what reached each servo is inspected by method,
+all state under ``emu.lock``. Behaviour, fault and inspection API, and dynamixel-sdk's
+quirks on a pty: docs/dynamixel.md, "The byte-level emulator".
 """
 
 from __future__ import annotations
@@ -28,7 +19,7 @@ import termios
 import threading
 import time
 import tty
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
 from firmware_cfg.device_models import find_device_model
@@ -38,7 +29,6 @@ from ros_free_bridge.emulators.emulated_device import EmulatedDevice, ImuSource
 from ros_free_bridge.emulators.emulated_servo import (
     EmulatedServo,
     GoalRecord,
-    WriteResult,
 )
 from ros_free_bridge.errors import BridgeError
 
@@ -49,6 +39,9 @@ _P2_WRITE_ERRORS = {"access": dp.ERR_ACCESS, "length": dp.ERR_DATA_LENGTH, "rang
                     "limit": dp.ERR_DATA_LIMIT}
 _P1_WRITE_ERRORS = {"access": dp.ERR1_RANGE, "length": dp.ERR1_RANGE, "range": dp.ERR1_RANGE,
                     "limit": dp.ERR1_ANGLE}
+
+#: CLEAR's parameters for the multi-turn count: option 1, then the fixed key "DXL\"".
+_CLEAR_MULTI_TURN = bytes((0x01, 0x44, 0x58, 0x4C, 0x22))
 
 _TCGETS2 = 0x802C542A
 _BOTHER = 0o010000
@@ -69,6 +62,48 @@ class ServoSpec:
     allowed_range: tuple[int, int] | None = None
 
 
+@dataclass
+class _Instruction:
+    """A valid protocol 2.0 instruction packet as the listening servos see it, and the
+    replies it draws, in sending order (None where a fault swallowed one)."""
+
+    inst: int
+    params: bytes
+    target: int  #: the ID it is addressed to (``dp.BROADCAST_ID``: all)
+    servos: dict[int, EmulatedServo]  #: the servos that hear it, by ID
+    replies: list[tuple[EmulatedServo, bytes] | None] = field(default_factory=list)
+
+    @property
+    def broadcast(self) -> bool:
+        return self.target == dp.BROADCAST_ID
+
+    @property
+    def unicast(self) -> EmulatedServo | None:
+        """The addressed servo, if it hears the packet."""
+        return self.servos.get(self.target)
+
+    def group(self) -> list[EmulatedServo]:
+        """Every listener for a broadcast packet, else the addressed one (if it hears)."""
+        return list(self.servos.values()) if self.broadcast else [self.unicast] if self.unicast else []
+
+    def sent(self) -> list[tuple[EmulatedServo, bytes]]:
+        return [r for r in self.replies if r is not None]
+
+
+def _supports(unit: EmulatedServo | EmulatedDevice, name: str) -> bool:
+    """Whether the unit's firmware has the instruction (a servo has them all)."""
+    return getattr(unit, "supports", lambda _: True)(name)
+
+
+def _narrow_to_capable(req: _Instruction, name: str) -> bool:
+    """Keep only the listeners whose firmware has instruction ``name`` (a device answers only
+    its own); False when the addressed unit lacks it."""
+    if req.unicast is not None and not _supports(req.unicast, name):
+        return False
+    req.servos = {i: s for i, s in req.servos.items() if _supports(s, name)}
+    return True
+
+
 class DynamixelBusEmulator:
     """An emulated multi-servo Dynamixel bus behind a pseudo-terminal (see module docstring)."""
 
@@ -83,13 +118,14 @@ class DynamixelBusEmulator:
         reboot_time_s: float = 0.05,
         match_baud: bool = True,
         clock: Callable[[], float] = time.monotonic,
-        unsupported: Iterable[str] = (),
     ) -> None:
-        """``return_delay_us`` sets every servo's Return Delay Time register (None keeps the
-        factory 250 = 500 µs); ``reboot_time_s`` is how long a rebooted servo stays silent;
-        ``unsupported``: protocol 2.0 instruction names the servos' firmware lacks (e.g.
-        ``{"FAST_SYNC_READ", "FAST_BULK_READ"}`` for X series firmware before v45): they
-        answer those like an unknown instruction (broadcast: silence)."""
+        """``servos``: IDs (the protocol's default model), ``(id, model)`` pairs or
+        :class:`ServoSpec`; a device model's name (``(200, "OpenCR")``) adds a non-servo
+        device. ``baud`` in bit/s. ``wire_timing``: replies leave when their bytes would have
+        crossed the wire. ``return_delay_us`` sets every unit's Return Delay Time register
+        (None keeps the factory 250 = 500 µs); ``reboot_time_s``: how long a rebooted servo
+        stays silent; ``match_baud``: a servo hears the host only at its own baud rate;
+        ``clock``: seconds, monotonic. Firmware without some instructions: :attr:`unsupported`."""
         if protocol not in (1, 2):
             raise BridgeError(f"emulator protocol must be 1 or 2, got {protocol!r}")
         self.baud = int(baud)
@@ -98,29 +134,10 @@ class DynamixelBusEmulator:
         self.reboot_time_s = reboot_time_s
         self.match_baud = match_baud
         self.clock = clock
-        unknown = set(unsupported) - set(dp.INSTRUCTION_NAMES.values())
-        if unknown:
-            raise BridgeError(f"emulator unsupported={sorted(unknown)}: not instruction names; "
-                              f"use names from {sorted(dp.INSTRUCTION_NAMES.values())}")
-        self.unsupported = frozenset(unsupported)
+        self._unsupported: frozenset[str] = frozenset()
         self.lock = threading.RLock()
-        self._servos: list[EmulatedServo | EmulatedDevice] = []
-        for item in servos:
-            spec = self._spec(item)
-            device = find_device_model(spec.model) if isinstance(spec.model, str) else None
-            if device is not None:
-                self._servos.append(self._device(device, spec.id, return_delay_us))
-                continue
-            model = load_servo_model(spec.model)
-            servo = EmulatedServo(model, spec.id, spec.position, clock=clock)
-            try:
-                servo.set("baud_rate", model.baud_to_register(self.baud))
-            except Exception as exc:
-                raise BridgeError(f"emulated servo {spec.id} ({model.name}) cannot run at {self.baud} bps: {exc}") from None
-            if return_delay_us is not None:
-                servo.set("return_delay_time", int(round(return_delay_us / model.return_delay_us)))
-            servo.allowed_range = spec.allowed_range
-            self._servos.append(servo)
+        self._servos: list[EmulatedServo | EmulatedDevice] = [
+            self._unit(self._spec(item), return_delay_us) for item in servos]
         ids = [s.servo_id for s in self._servos]
         if len(set(ids)) != len(ids):
             raise BridgeError(f"emulated bus has duplicate servo IDs: {sorted(ids)}")
@@ -138,6 +155,38 @@ class DynamixelBusEmulator:
         self.crc_errors = 0
         self.vanished = False
         self._has_devices = any(isinstance(s, EmulatedDevice) for s in self._servos)
+
+    @property
+    def unsupported(self) -> frozenset[str]:
+        """Protocol 2.0 instruction names the servos' firmware lacks (e.g.
+        ``{"FAST_SYNC_READ", "FAST_BULK_READ"}`` for X series firmware before v45): they are
+        answered like an unknown instruction (broadcast: silence). Settable at any time."""
+        return self._unsupported
+
+    @unsupported.setter
+    def unsupported(self, names: Iterable[str]) -> None:
+        names = frozenset(names)
+        unknown = names - set(dp.INSTRUCTION_NAMES.values())
+        if unknown:
+            raise BridgeError(f"emulator unsupported={sorted(unknown)}: not instruction names; "
+                              f"use names from {sorted(dp.INSTRUCTION_NAMES.values())}")
+        self._unsupported = names
+
+    def _unit(self, spec: ServoSpec, return_delay_us: float | None) -> EmulatedServo | EmulatedDevice:
+        """The servo, or the device when ``spec.model`` names a device model, at the bus's baud."""
+        device = find_device_model(spec.model) if isinstance(spec.model, str) else None
+        if device is not None:
+            return self._device(device, spec.id, return_delay_us)
+        model = load_servo_model(spec.model)
+        servo = EmulatedServo(model, spec.id, spec.position, clock=self.clock)
+        try:
+            servo.set("baud_rate", model.baud_to_register(self.baud))
+        except Exception as exc:
+            raise BridgeError(f"emulated servo {spec.id} ({model.name}) cannot run at {self.baud} bps: {exc}") from None
+        if return_delay_us is not None:
+            servo.set("return_delay_time", int(round(return_delay_us / model.return_delay_us)))
+        servo.allowed_range = spec.allowed_range
+        return servo
 
     def _device(self, model, device_id: int, return_delay_us: float | None) -> EmulatedDevice:
         """A non-servo device (e.g. the OP3's OpenCR) at ``device_id``, at the bus's baud."""
@@ -504,126 +553,153 @@ class DynamixelBusEmulator:
             raw = raw[:-2] + bytes((raw[-2] ^ 0xFF, raw[-1] ^ 0xFF))
         return servo, raw
 
-    def _dispatch2(self, frame: dp.Frame, servos: dict[int, EmulatedServo], count: bool = True) -> list[tuple[EmulatedServo, bytes]]:
-        raw = frame.raw
-        target = raw[4]
+    def _dispatch2(self, frame: dp.Frame, servos: dict[int, EmulatedServo],
+                   count: bool = True) -> list[tuple[EmulatedServo, bytes]]:
+        """The replies a protocol 2.0 packet draws from ``servos`` (the listeners, by ID), in
+        the order they go out. ``count``: add the packet to the statistics (False when an ID
+        clash makes a second servo execute it)."""
+        target = frame.raw[4]
         if not frame.valid:
             self.crc_errors += count
             s = servos.get(target)
             rep = self._status2(s, dp.ERR_CRC) if s is not None else None
             return [rep] if rep else []
-        pkt = dp.decode_packet(raw)
+        pkt = dp.decode_packet(frame.raw)
         if pkt.is_status:
             return []  # another device's reply (or our own echo): not for servos
-        inst, params = pkt.instruction, pkt.params
         if count:
-            self._count(inst)
-        replies: list[tuple[EmulatedServo, bytes] | None] = []
-        broadcast = target == dp.BROADCAST_ID
-        unicast = servos.get(target)
+            self._count(pkt.instruction)
+        req = _Instruction(pkt.instruction, pkt.params, target, servos)
+        name = dp.INSTRUCTION_NAMES.get(req.inst, "")
+        if name in self.unsupported or (self._has_devices and not _narrow_to_capable(req, name)):
+            self._refuse2(req)
+        else:
+            self._HANDLERS2.get(req.inst, DynamixelBusEmulator._refuse2)(self, req)
+        return req.sent()
 
-        def reply_level(servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
-            if not broadcast and servo.status_return_level() >= level:
-                replies.append(self._status2(servo, error, data, reply_id=target))
+    def _reply2(self, req: _Instruction, servo: EmulatedServo, level: int, error: int = 0, data: bytes = b"") -> None:
+        """``servo`` answers a packet addressed to it (not broadcast) when its Status Return
+        Level is at least ``level`` (0: PING only, 1: reads too, 2: everything)."""
+        if not req.broadcast and servo.status_return_level() >= level:
+            req.replies.append(self._status2(servo, error, data, reply_id=req.target))
 
-        if self.unsupported and dp.INSTRUCTION_NAMES.get(inst) in self.unsupported:
-            if unicast is not None:
-                reply_level(unicast, 0, dp.ERR_INSTRUCTION)
-            return [r for r in replies if r is not None]
-        if self._has_devices:  # a device answers only the instructions its firmware has
-            name = dp.INSTRUCTION_NAMES.get(inst, "")
-            if unicast is not None and not getattr(unicast, "supports", lambda _: True)(name):
-                reply_level(unicast, 0, dp.ERR_INSTRUCTION)
-                return [r for r in replies if r is not None]
-            servos = {i: s for i, s in servos.items() if getattr(s, "supports", lambda _: True)(name)}
+    def _refuse2(self, req: _Instruction) -> None:
+        """An instruction the servo does not take (unknown, missing from its firmware, or a
+        group instruction not sent to the broadcast ID): an instruction error."""
+        if req.unicast is not None:
+            self._reply2(req, req.unicast, 0, dp.ERR_INSTRUCTION)
 
-        def werr(result: WriteResult) -> int:
-            return 0 if result.ok else _P2_WRITE_ERRORS[result.error]
-
-        if inst == dp.PING:
-            group = sorted(servos.values(), key=lambda s: s.servo_id) if broadcast else [unicast] if unicast else []
-            for s in group:
-                replies.append(self._status2(s, 0, s.model.model_number.to_bytes(2, "little")
+    def _ping2(self, req: _Instruction) -> None:
+        """Model number (2 bytes) and firmware version; a broadcast PING is answered by all."""
+        group = sorted(req.servos.values(), key=lambda s: s.servo_id) if req.broadcast else req.group()
+        for s in group:
+            req.replies.append(self._status2(s, 0, s.model.model_number.to_bytes(2, "little")
                                              + bytes((s.get("firmware_version") & 0xFF,))))
-        elif inst == dp.READ:
-            if unicast and len(params) == 4:
-                addr, length = _u16(params, 0), _u16(params, 2)
-                data = unicast.read(addr, length)
-                if data is None:
-                    reply_level(unicast, 1, dp.ERR_ACCESS)
-                else:
-                    reply_level(unicast, 1, 0, data)
-            elif unicast:
-                reply_level(unicast, 1, dp.ERR_DATA_LENGTH)
-        elif inst in (dp.WRITE, dp.REG_WRITE):
-            group = list(servos.values()) if broadcast else [unicast] if unicast else []
-            for s in group:
-                if len(params) < 3:
-                    reply_level(s, 2, dp.ERR_DATA_LENGTH)
-                    continue
-                addr, data = _u16(params, 0), params[2:]
-                result = s.write(addr, data) if inst == dp.WRITE else s.reg_write(addr, data)
-                reply_level(s, 2, werr(result))
-        elif inst == dp.ACTION:
-            group = list(servos.values()) if broadcast else [unicast] if unicast else []
-            for s in group:
-                done = s.action()
-                reply_level(s, 2, 0 if done else dp.ERR_INSTRUCTION)
-        elif inst == dp.REBOOT:
-            group = list(servos.values()) if broadcast else [unicast] if unicast else []
-            for s in group:
-                reply_level(s, 2)
-                s.reboot(self.reboot_time_s)
-        elif inst == dp.FACTORY_RESET:
-            option = params[0] if params else 0xFF
-            if not (broadcast and option == 0xFF):
-                group = list(servos.values()) if broadcast else [unicast] if unicast else []
-                for s in group:
-                    reply_level(s, 2)
-                    s.factory_reset(option)
-        elif inst == dp.CLEAR:
-            if unicast:
-                ok = params[:5] == bytes((0x01, 0x44, 0x58, 0x4C, 0x22))
-                reply_level(unicast, 2, 0 if ok else dp.ERR_DATA_RANGE)
-        elif inst in (dp.SYNC_READ, dp.FAST_SYNC_READ) and broadcast and len(params) >= 4:
-            addr, length = _u16(params, 0), _u16(params, 2)
-            ids = list(params[4:])
-            if inst == dp.SYNC_READ:
-                for i in ids:
-                    s = servos.get(i)
-                    if s is not None and s.status_return_level() >= 1:
-                        data = s.read(addr, length)
-                        replies.append(self._status2(s, dp.ERR_ACCESS if data is None else 0, data or b""))
-            else:
-                replies.extend(self._fast_read([(i, addr, length) for i in ids], servos))
-        elif inst == dp.SYNC_WRITE and broadcast and len(params) >= 4:
-            addr, length = _u16(params, 0), _u16(params, 2)
-            body = params[4:]
-            for k in range(0, len(body) - length, length + 1):
-                s = servos.get(body[k])
-                if s is not None:
-                    s.write(addr, body[k + 1:k + 1 + length], "SYNC_WRITE")
-        elif inst in (dp.BULK_READ, dp.FAST_BULK_READ) and broadcast:
-            items = [(params[k], _u16(params, k + 1), _u16(params, k + 3)) for k in range(0, len(params) - 4, 5)]
-            if inst == dp.BULK_READ:
-                for i, addr, length in items:
-                    s = servos.get(i)
-                    if s is not None and s.status_return_level() >= 1:
-                        data = s.read(addr, length)
-                        replies.append(self._status2(s, dp.ERR_ACCESS if data is None else 0, data or b""))
-            else:
-                replies.extend(self._fast_read(items, servos))
-        elif inst == dp.BULK_WRITE and broadcast:
-            k = 0
-            while k + 5 <= len(params):
-                i, addr, length = params[k], _u16(params, k + 1), _u16(params, k + 3)
-                s = servos.get(i)
-                if s is not None:
-                    s.write(addr, params[k + 5:k + 5 + length], "BULK_WRITE")
-                k += 5 + length
-        elif unicast is not None:
-            reply_level(unicast, 0, dp.ERR_INSTRUCTION)
-        return [r for r in replies if r is not None]
+
+    def _read2(self, req: _Instruction) -> None:
+        s = req.unicast
+        if s is None:
+            return
+        if len(req.params) != 4:
+            self._reply2(req, s, 1, dp.ERR_DATA_LENGTH)
+            return
+        data = s.read(_u16(req.params, 0), _u16(req.params, 2))
+        self._reply2(req, s, 1, dp.ERR_ACCESS if data is None else 0, data or b"")
+
+    def _write2(self, req: _Instruction) -> None:
+        """WRITE, and REG_WRITE (held until ACTION)."""
+        for s in req.group():
+            if len(req.params) < 3:
+                self._reply2(req, s, 2, dp.ERR_DATA_LENGTH)
+                continue
+            addr, data = _u16(req.params, 0), req.params[2:]
+            result = s.write(addr, data) if req.inst == dp.WRITE else s.reg_write(addr, data)
+            self._reply2(req, s, 2, 0 if result.ok else _P2_WRITE_ERRORS[result.error])
+
+    def _action2(self, req: _Instruction) -> None:
+        for s in req.group():
+            done = s.action()
+            self._reply2(req, s, 2, 0 if done else dp.ERR_INSTRUCTION)
+
+    def _reboot2(self, req: _Instruction) -> None:
+        for s in req.group():
+            self._reply2(req, s, 2)
+            s.reboot(self.reboot_time_s)
+
+    def _factory_reset2(self, req: _Instruction) -> None:
+        option = req.params[0] if req.params else 0xFF
+        if req.broadcast and option == 0xFF:
+            return  # resetting everything, IDs included, by broadcast is refused (silence)
+        for s in req.group():
+            self._reply2(req, s, 2)
+            s.factory_reset(option)
+
+    def _clear2(self, req: _Instruction) -> None:
+        """CLEAR of the multi-turn count; any other option or key is a data range error."""
+        if req.unicast:
+            ok = req.params[:5] == _CLEAR_MULTI_TURN
+            self._reply2(req, req.unicast, 2, 0 if ok else dp.ERR_DATA_RANGE)
+
+    def _sync_read2(self, req: _Instruction) -> None:
+        """SYNC_READ and FAST_SYNC_READ: one address and length, then the IDs."""
+        if not (req.broadcast and len(req.params) >= 4):
+            self._refuse2(req)
+            return
+        addr, length = _u16(req.params, 0), _u16(req.params, 2)
+        self._group_read2(req, [(i, addr, length) for i in req.params[4:]])
+
+    def _bulk_read2(self, req: _Instruction) -> None:
+        """BULK_READ and FAST_BULK_READ: (ID, address, length) per servo."""
+        if not req.broadcast:
+            self._refuse2(req)
+            return
+        p = req.params
+        self._group_read2(req, [(p[k], _u16(p, k + 1), _u16(p, k + 3)) for k in range(0, len(p) - 4, 5)])
+
+    def _group_read2(self, req: _Instruction, items: list[tuple[int, int, int]]) -> None:
+        """The (ID, address, length) reads of a group read: one status packet per servo in
+        order, or for the fast forms one packet they build together."""
+        if req.inst in (dp.FAST_SYNC_READ, dp.FAST_BULK_READ):
+            req.replies.extend(self._fast_read(items, req.servos))
+            return
+        for i, addr, length in items:
+            s = req.servos.get(i)
+            if s is not None and s.status_return_level() >= 1:
+                data = s.read(addr, length)
+                req.replies.append(self._status2(s, dp.ERR_ACCESS if data is None else 0, data or b""))
+
+    def _sync_write2(self, req: _Instruction) -> None:
+        """One address and length, then (ID, data) per servo; never answered."""
+        if not (req.broadcast and len(req.params) >= 4):
+            self._refuse2(req)
+            return
+        addr, length = _u16(req.params, 0), _u16(req.params, 2)
+        body = req.params[4:]
+        for k in range(0, len(body) - length, length + 1):
+            s = req.servos.get(body[k])
+            if s is not None:
+                s.write(addr, body[k + 1:k + 1 + length], "SYNC_WRITE")
+
+    def _bulk_write2(self, req: _Instruction) -> None:
+        """(ID, address, length, data) per servo; never answered."""
+        if not req.broadcast:
+            self._refuse2(req)
+            return
+        p, k = req.params, 0
+        while k + 5 <= len(p):
+            i, addr, length = p[k], _u16(p, k + 1), _u16(p, k + 3)
+            s = req.servos.get(i)
+            if s is not None:
+                s.write(addr, p[k + 5:k + 5 + length], "BULK_WRITE")
+            k += 5 + length
+
+    #: The handler of each protocol 2.0 instruction; any other gets an instruction error.
+    _HANDLERS2: dict[int, Callable[[DynamixelBusEmulator, _Instruction], None]] = {
+        dp.PING: _ping2, dp.READ: _read2, dp.WRITE: _write2, dp.REG_WRITE: _write2, dp.ACTION: _action2,
+        dp.REBOOT: _reboot2, dp.FACTORY_RESET: _factory_reset2, dp.CLEAR: _clear2,
+        dp.SYNC_READ: _sync_read2, dp.FAST_SYNC_READ: _sync_read2, dp.SYNC_WRITE: _sync_write2,
+        dp.BULK_READ: _bulk_read2, dp.FAST_BULK_READ: _bulk_read2, dp.BULK_WRITE: _bulk_write2,
+    }
 
     def _fast_read(self, items: list[tuple[int, int, int]], servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
         """FAST_SYNC_READ / FAST_BULK_READ: one packet built servo by servo. A silent
