@@ -57,7 +57,7 @@ QUICK = ["--seconds", "2", "--e2e-seconds", "2"]
 
 
 def _producer(buf, loop, seconds: float, limits) -> None:
-    from ros_free_bridge.targets import TargetFrame
+    from ros_free_bridge.control.targets import TargetFrame
 
     loop.ready.wait(30)
     mid = 0.5 * (limits.lower + limits.upper)
@@ -72,8 +72,8 @@ def run_loop(transport, limits, rate_hz: float, seconds: float, realtime: int = 
     """Stream a 30 fps sine through the control loop at ``rate_hz``. Lateness: wake-up minus
     deadline per tick (ms); overruns: ticks whose work (read, filter, write, telemetry)
     ended after the next tick's deadline; misses: ticks skipped by the clock."""
-    from ros_free_bridge.loop import ControlLoop, LoopConfig
-    from ros_free_bridge.targets import TargetBuffer
+    from ros_free_bridge.control.loop import ControlLoop, LoopConfig
+    from ros_free_bridge.control.targets import TargetBuffer
 
     buf = TargetBuffer(30.0, interpolation="cubic")
     mid = 0.5 * (limits.lower + limits.upper)
@@ -167,7 +167,7 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     pct = (lambda a, q: float(np.percentile(a, q)) if a.size else float("nan"))
     # smoothness of what the bus got while streaming: the commands' mean |acceleration| and the
     # share of ticks the safety filter had to change (a rougher target means more of both)
-    from ros_free_bridge.loop import Fault, State
+    from ros_free_bridge.control.loop import Fault, State
 
     running = rec["state"] == int(State.RUNNING)
     cmd = rec["command"][running]

@@ -402,13 +402,13 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split
     """A bus-only fixed-rate loop at ``hz``: per tick, goals out and a full ``read_state``
     (positions + one servo's status block). Ours: the transport on ros_free_bridge's
     clock (sleep, then spin the last 0.5 ms) with GC in the slack and a short GIL switch
-    interval (ros_free_bridge.realtime), with the split-phase cycle the control loop uses
+    interval (ros_free_bridge.control.realtime), with the split-phase cycle the control loop uses
     (``split``; positions are then the reply to the previous tick's request).
     ``use_sdk``: the same ticks through the bare SDK (:func:`_sdk_loop_baseline`, blocking)
     on the same clock, without the GC measures."""
     from firmware_cfg.config import load_config, robot_config_path
-    from ros_free_bridge.clock import FixedRateClock
-    from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
+    from ros_free_bridge.control.clock import FixedRateClock
+    from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
     from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
     bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud,

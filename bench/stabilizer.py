@@ -80,7 +80,7 @@ def tick_cost_us(ticks: int) -> tuple[float, float]:
     IMU readings from the simulation and a reference that moves every tick."""
     import numpy as np
 
-    from ros_free_bridge.safety import JointLimits, SafetyFilter
+    from ros_free_bridge.control.safety import JointLimits, SafetyFilter
     from sim.scene import Scene
     from sim.stabilizer import Stabilizer, balance_model
     from sim.virtual_robot import ImuProbe

@@ -6,7 +6,7 @@ prefetch. It is done in pieces of a few ms each on a 2-core CPU, of a few kinds
 (``ReactiveStreamer.idle_jobs``) whose costs differ several-fold: a prefetch is a fraction
 of a network pass, making a start is about one. A piece still running when an actor frame
 arrives delays that frame's partner frame by what is left of it, and that tail is what the
-loop's playback clock has to allow for on every frame (``ros_free_bridge.playback``: a
+loop's playback clock has to allow for on every frame (``ros_free_bridge.control.playback``: a
 quantile of the frames' delays). Actor frames come at the source's rate, so the next one is
 due at ``a + period`` (``a``: the newest frame's arrival) and a piece starts only when it
 should be over by then:

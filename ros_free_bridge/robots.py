@@ -15,7 +15,7 @@ from firmware_cfg.errors import ConfigError
 from firmware_cfg.registry import Robot, reference, resolve
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.safety import JointLimits
+from ros_free_bridge.control.safety import JointLimits
 
 #: Fraction of a servo's no-load speed the bridge may command (the rest is headroom
 #: for the position loop to catch up under load).

@@ -42,9 +42,9 @@ from pathlib import Path
 import numpy as np
 
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.loop import ControlLoop, LoopConfig, RunSummary
+from ros_free_bridge.control.loop import ControlLoop, LoopConfig, RunSummary
 from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, resolve_robot
-from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.telemetry import TelemetryWriter
 
 TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
@@ -82,7 +82,7 @@ class SessionOptions:
     #: cache each frame's activations in fixed-start windows and compute only new frames
     #: (dualflow.incremental): ~3x less compute per frame than re-running 60-frame windows
     incremental: bool = True
-    #: the loop's playback clock follows the frames' recent arrival times (ros_free_bridge.playback)
+    #: the loop's playback clock follows the frames' recent arrival times (ros_free_bridge.control.playback)
     #: instead of staying where the first frame put it
     adaptive_playback: bool = True
     #: reserve (s) between a frame's arrival and its playback on top of what the adaptive clock

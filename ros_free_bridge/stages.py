@@ -13,9 +13,9 @@
   dropped, the stream restarts at the newest actor frames and the skipped frames hold the
   last pose; a ``generator_behind`` event says so. Latency stays bounded instead of growing.
 - :class:`PartnerPipeline`: a thread that polls the actor source, runs a
-  :class:`PartnerCore` and pushes :class:`~ros_free_bridge.targets.TargetFrame` s to the
+  :class:`PartnerCore` and pushes :class:`~ros_free_bridge.control.targets.TargetFrame` s to the
   control loop's buffer. It never touches the transport, so a slow or failed stage can only
-  starve the loop (which then holds and stops, see :mod:`ros_free_bridge.loop`), never
+  starve the loop (which then holds and stops, see :mod:`ros_free_bridge.control.loop`), never
   block it. :mod:`ros_free_bridge.generator_process` runs the same core in its own process
   (the default for generated partners: torch's Python then never competes with the
   control loop for the GIL).
@@ -40,7 +40,7 @@ import numpy as np
 
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.idle_slots import IdleSlots
-from ros_free_bridge.targets import TargetBuffer, TargetFrame
+from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
 
 
 @dataclass(frozen=True)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ros_free_bridge.loop import Fault, State
-from ros_free_bridge.safety import Intervention
+from ros_free_bridge.control.loop import Fault, State
+from ros_free_bridge.control.safety import Intervention
 from ros_free_bridge.telemetry import Telemetry
 
 

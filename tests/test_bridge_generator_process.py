@@ -19,12 +19,12 @@ from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.generator_process import (
     Channel, GeneratorConfig, GeneratorProcess, decode_actor, decode_target, encode_actor, encode_target,
 )
-from ros_free_bridge.loop import ControlLoop, LoopConfig
+from ros_free_bridge.control.loop import ControlLoop, LoopConfig
 from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.sources.replay import MotionReplaySource
 from ros_free_bridge.sources.udp import ActorFrame
 from ros_free_bridge.stages import PartnerCore, PartnerPipeline, PartnerTarget, ReactorStage, RetargetStage
-from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.transports.record import RecordTransport
 
 

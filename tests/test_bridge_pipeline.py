@@ -15,11 +15,11 @@ from dualflow.motion.features import encode_pair
 from dualflow.motion.normalization import NormStats
 from dualflow.streaming import StreamConfig
 from dualflow.synthetic import make_duet, make_leader
-from ros_free_bridge.loop import ControlLoop, LoopConfig
+from ros_free_bridge.control.loop import ControlLoop, LoopConfig
 from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.sources.replay import MotionReplaySource
 from ros_free_bridge.stages import PartnerPipeline, ReactorStage, RetargetStage
-from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.transports.record import RecordTransport
 
 pytestmark = pytest.mark.slow

@@ -1,12 +1,12 @@
-"""The loop's playback clock (ros_free_bridge.playback) and the buffer's interpolation and extrapolation."""
+"""The loop's playback clock (ros_free_bridge.control.playback) and the buffer's interpolation and extrapolation."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ros_free_bridge.playback import PlaybackClock, PlaybackPolicy
-from ros_free_bridge.targets import TargetBuffer, TargetFrame
+from ros_free_bridge.control.playback import PlaybackClock, PlaybackPolicy
+from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
 
 FPS = 30.0
 
@@ -116,7 +116,7 @@ def test_the_clock_target_is_the_quantile_of_the_recent_arrival_offsets(quantile
 
 def test_the_playback_quantile_is_checked_where_it_is_set():
     from ros_free_bridge.errors import BridgeError
-    from ros_free_bridge.loop import LoopConfig
+    from ros_free_bridge.control.loop import LoopConfig
 
     assert LoopConfig(playback_quantile=0.5).playback_quantile == 0.5
     for bad in (0.0, 1.5, float("nan")):
@@ -192,7 +192,7 @@ def _late_frame_commands(omega, late=True, arrival="before"):
     else in time (before frame 10 plays). Motion time = wall time; returns (times, commands).
     ``arrival``: a tick's new frames are pushed "before" its sample, "during" it (after the
     buffer's state was read) or "after" it."""
-    from ros_free_bridge.targets import RevisionSmoother
+    from ros_free_bridge.control.targets import RevisionSmoother
 
     v = 0.5 / FPS  # rad per frame
     q = [np.array([v * k]) for k in range(11)] + [np.array([v * 10])] + [np.array([v * 10])] * 20
@@ -244,7 +244,7 @@ def test_a_late_frame_joins_the_command_to_the_new_curve_without_a_jump():
 
 
 def test_without_revisions_the_smoother_is_the_curve_itself():
-    from ros_free_bridge.targets import RevisionSmoother
+    from ros_free_bridge.control.targets import RevisionSmoother
 
     buf = _filled(np.array([[0.0], [0.1], [0.3], [0.6], [0.7]]), extrapolate=3.0)
     curve = RevisionSmoother(buf, 15.0)
@@ -256,7 +256,7 @@ def test_without_revisions_the_smoother_is_the_curve_itself():
 
 def test_the_revision_smoothing_is_checked_where_it_is_set():
     from ros_free_bridge.errors import BridgeError
-    from ros_free_bridge.loop import LoopConfig
+    from ros_free_bridge.control.loop import LoopConfig
 
     assert LoopConfig(revision_smoothing=0.0).revision_smoothing == 0.0
     for bad in (-1.0, float("inf"), float("nan")):

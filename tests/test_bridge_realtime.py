@@ -1,4 +1,4 @@
-"""ros_free_bridge.realtime: garbage collection in the loop's slack, the GIL switch interval
+"""ros_free_bridge.control.realtime: garbage collection in the loop's slack, the GIL switch interval
 and SCHED_FIFO, each restored afterwards; and the control loop using them."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import weakref
 
 import numpy as np
 
-from ros_free_bridge.loop import ControlLoop, LoopConfig
-from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
-from ros_free_bridge.safety import JointLimits
-from ros_free_bridge.targets import TargetBuffer
+from ros_free_bridge.control.loop import ControlLoop, LoopConfig
+from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
+from ros_free_bridge.control.safety import JointLimits
+from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
 from ros_free_bridge.transports.record import RecordTransport
 

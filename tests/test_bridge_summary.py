@@ -3,7 +3,7 @@
 from pathlib import Path
 
 from ros_free_bridge.commands.run import print_summary
-from ros_free_bridge.loop import Fault, RunSummary
+from ros_free_bridge.control.loop import Fault, RunSummary
 from ros_free_bridge.robots import resolve_robot
 from ros_free_bridge.session import SessionResult
 

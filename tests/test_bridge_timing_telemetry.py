@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ros_free_bridge.clock import FixedRateClock
+from ros_free_bridge.control.clock import FixedRateClock
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
 

@@ -11,9 +11,9 @@ import time
 import numpy as np
 
 from ros_free_bridge.cli import main
-from ros_free_bridge.loop import ControlLoop, LoopConfig
-from ros_free_bridge.safety import JointLimits
-from ros_free_bridge.targets import TargetBuffer, TargetFrame
+from ros_free_bridge.control.loop import ControlLoop, LoopConfig
+from ros_free_bridge.control.safety import JointLimits
+from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
 from ros_free_bridge.telemetry import TelemetryWriter
 from ros_free_bridge.transports.record import RecordTransport
 

@@ -131,9 +131,9 @@ def test_the_check_runs_the_stabilizer_by_default_and_not_with_it_off():
 
 @pytest.mark.slow
 def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_correction(tmp_path):
-    from ros_free_bridge.loop import ControlLoop, LoopConfig
+    from ros_free_bridge.control.loop import ControlLoop, LoopConfig
     from ros_free_bridge.robots import bridge_limits, resolve_robot
-    from ros_free_bridge.targets import TargetBuffer, TargetFrame
+    from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
     from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
     from ros_free_bridge.transports.sim import SimTransport
 

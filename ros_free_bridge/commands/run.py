@@ -145,7 +145,7 @@ def fault_names(faults) -> str:
     """The Fault flags by name, e.g. "starved, deadline_miss", or "none". EXTRAPOLATED (the
     loop continued the newest frame while the next was on its way) is how a hop-1 run keeps its
     latency low, not a fault, and is left out."""
-    from ros_free_bridge.loop import Fault
+    from ros_free_bridge.control.loop import Fault
 
     flags = Fault(int(faults))
     return ", ".join(f.name.lower() for f in Fault if f and f in flags and f is not Fault.EXTRAPOLATED) or "none"
@@ -207,7 +207,7 @@ def watch_keys(loop) -> None:
 
 def print_summary(result, stream=None) -> None:
     stream = stream or sys.stdout
-    from ros_free_bridge.loop import Fault
+    from ros_free_bridge.control.loop import Fault
 
     s = result.summary
     g = getattr(result, "pipeline_info", {})

@@ -2,15 +2,15 @@
 
 One tick (default 100 Hz), never blocking on the slow stages:
 
-1. wait for the tick's absolute deadline (:class:`~ros_free_bridge.clock.FixedRateClock`);
+1. wait for the tick's absolute deadline (:class:`~ros_free_bridge.control.clock.FixedRateClock`);
 2. read the transport's state; check e-stop, watchdogs and servo health;
 3. pick the target: the start ramp, the interpolated stream from the
-   :class:`~ros_free_bridge.targets.TargetBuffer` (a late frame's change to the curve
-   smoothed by :class:`~ros_free_bridge.targets.RevisionSmoother`), a hold, or the stop ramp;
+   :class:`~ros_free_bridge.control.targets.TargetBuffer` (a late frame's change to the curve
+   smoothed by :class:`~ros_free_bridge.control.targets.RevisionSmoother`), a hold, or the stop ramp;
 4. balance stabilizer (free-standing robots whose transport reads an IMU,
    ``LoopConfig.stabilizer``): :class:`sim.stabilizer.Stabilizer` adds bounded corrections on
    the legs' joints from the IMU and the measured joint angles (telemetry ``correction``);
-5. pass it through the :class:`~ros_free_bridge.safety.SafetyFilter` and write it;
+5. pass it through the :class:`~ros_free_bridge.control.safety.SafetyFilter` and write it;
 6. record the tick in telemetry.
 
 With a transport that offers it (``pipeline``: the Dynamixel transport), the bus cycle is
@@ -18,7 +18,7 @@ split: step 4's write also sends the position read request, whose reply step 2 o
 tick takes without waiting (``LoopConfig.split_phase_bus``); the measured positions in
 telemetry are then those sampled one tick earlier.
 
-While ticking, :mod:`ros_free_bridge.realtime` keeps the loop on time: the heap is frozen
+While ticking, :mod:`ros_free_bridge.control.realtime` keeps the loop on time: the heap is frozen
 and young objects are collected only in a tick's slack after the bus write (no collector
 pause inside a tick), the GIL switch interval is 0.5 ms (a generator thread cannot hold the
 loop off for the default 5 ms), and ``LoopConfig.realtime_priority`` puts the loop thread in
@@ -45,12 +45,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ros_free_bridge.clock import FixedRateClock
+from ros_free_bridge.control.clock import FixedRateClock
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.playback import PlaybackClock, PlaybackPolicy
-from ros_free_bridge.realtime import LoopGc, realtime_priority, switch_interval
-from ros_free_bridge.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
-from ros_free_bridge.targets import RevisionSmoother, TargetBuffer
+from ros_free_bridge.control.playback import PlaybackClock, PlaybackPolicy
+from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
+from ros_free_bridge.control.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
+from ros_free_bridge.control.targets import RevisionSmoother, TargetBuffer
 from ros_free_bridge.telemetry import TelemetryWriter
 from ros_free_bridge.transports.base import STOP_POLICIES
 
@@ -94,7 +94,7 @@ class LoopConfig:
     actor_timeout: float = 0.5  #: no new target frame for this long: hold
     rest_after: float = 3.0  #: holding for this long: ramp to rest and stop
     playback_margin: float = 0.05  #: extra delay before playing a frame, to absorb jitter
-    #: playback clock (ros_free_bridge.playback): adapt t0 to the frames' recent arrivals
+    #: playback clock (ros_free_bridge.control.playback): adapt t0 to the frames' recent arrivals
     #: (True) or keep it where the first frame put it (False)
     adaptive_playback: bool = True
     playback_lead_frames: float = 1.0  #: adaptive: frame k + 1 is due when frame k plays (interpolation)
@@ -532,7 +532,7 @@ class ControlLoop:
     # -- helpers --------------------------------------------------------------
     def _enter_realtime(self) -> None:
         """GC in the ticks' slack, a short GIL switch interval and (if configured and
-        permitted) SCHED_FIFO for this thread, until run() ends (ros_free_bridge.realtime)."""
+        permitted) SCHED_FIFO for this thread, until run() ends (ros_free_bridge.control.realtime)."""
         cfg = self.config
         if cfg.gc_in_slack:
             self.gc = self._realtime.enter_context(LoopGc())
