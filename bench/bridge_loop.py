@@ -143,7 +143,7 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     L + 1 when the last feature row waits for the next frame): what the bridge adds beyond
     the look-ahead. Every played frame counts, the end-of-stream flush too."""
     from ros_free_bridge.session import SessionOptions, run_session
-    from ros_free_bridge.telemetry import read_telemetry
+    from ros_free_bridge.telemetry.log import read_telemetry
 
     opts = SessionOptions(actor="synthetic", seconds=seconds, transport="record", generator=generator,
                           out=Path(f"/tmp/bench_e2e_{generator}"), handle_signals=False, **options)

@@ -45,7 +45,7 @@ from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig, RunSummary
 from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, resolve_robot
 from ros_free_bridge.control.targets import TargetBuffer
-from ros_free_bridge.telemetry import TelemetryWriter
+from ros_free_bridge.telemetry.log import TelemetryWriter
 
 TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
 PARTNERS = ("dualflow", "imitate")

@@ -506,7 +506,7 @@ def _trajectory_cases(b: Builder, good: Path) -> None:
 
 
 def _telemetry_cases(b: Builder, good: Path) -> None:
-    from ros_free_bridge.telemetry import MAGIC, TelemetryWriter
+    from ros_free_bridge.telemetry.log import MAGIC, TelemetryWriter
 
     robot = MODEL_ROBOT
     from retarget.robot import load_robot
@@ -573,7 +573,7 @@ def _telemetry_cases(b: Builder, good: Path) -> None:
     rec_size = len(body) // 40
     arr = bytearray(body)
     # NaN in the first joint command of tick 10 (the command field's offset in the record)
-    from ros_free_bridge.telemetry import tick_dtype
+    from ros_free_bridge.telemetry.log import tick_dtype
 
     off = tick_dtype(n).fields["command"][1]
     arr[10 * rec_size + off: 10 * rec_size + off + 4] = np.float32(np.nan).tobytes()

@@ -21,7 +21,7 @@ from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.session import SessionOptions, run_session
 from ros_free_bridge.sources import udp_packet
 from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
-from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
+from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
 from ros_free_bridge.dynamixel.servos import servo_tick_limits
 from ros_free_bridge.dynamixel.transport import DynamixelTransport
 

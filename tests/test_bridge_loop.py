@@ -13,7 +13,7 @@ from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.loop import ControlLoop, Fault, LoopConfig, State
 from ros_free_bridge.control.safety import JointLimits
 from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
-from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
+from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
 from ros_free_bridge.transports.record import RecordTransport
 
 NAMES = ("j0", "j1", "j2")

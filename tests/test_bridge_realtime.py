@@ -14,7 +14,7 @@ from ros_free_bridge.control.loop import ControlLoop, LoopConfig
 from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.control.safety import JointLimits
 from ros_free_bridge.control.targets import TargetBuffer
-from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
+from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
 from ros_free_bridge.transports.record import RecordTransport
 
 

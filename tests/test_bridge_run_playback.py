@@ -5,7 +5,7 @@ import pytest
 from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_leader
 from ros_free_bridge.cli import main
-from ros_free_bridge.telemetry import read_telemetry
+from ros_free_bridge.telemetry.log import read_telemetry
 
 
 def test_the_playback_settings_reach_the_loop(tmp_path):

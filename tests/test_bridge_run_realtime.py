@@ -7,7 +7,7 @@ import pytest
 from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_leader
 from ros_free_bridge.cli import main
-from ros_free_bridge.telemetry import read_telemetry
+from ros_free_bridge.telemetry.log import read_telemetry
 
 
 def test_run_passes_the_priority_to_the_loop_and_logs_the_outcome(tmp_path):

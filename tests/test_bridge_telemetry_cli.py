@@ -5,7 +5,7 @@ import pytest
 
 from ros_free_bridge.cli import main
 from ros_free_bridge.robots import bridge_limits, resolve_robot
-from ros_free_bridge.telemetry import TelemetryWriter
+from ros_free_bridge.telemetry.log import TelemetryWriter
 
 
 @pytest.fixture

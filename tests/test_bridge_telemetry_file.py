@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
+from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
 
 
 def _run(path, n_ticks, stop_reason):

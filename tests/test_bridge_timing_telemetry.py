@@ -5,7 +5,7 @@ import pytest
 
 from ros_free_bridge.control.clock import FixedRateClock
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
+from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
 
 
 class FakeTime:

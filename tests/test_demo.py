@@ -15,7 +15,7 @@ from dualflow.motion.normalization import NormStats
 from dualflow.synthetic import make_duet, make_leader
 from retarget import RobotTrajectory
 from ros_free_bridge.cli import main
-from ros_free_bridge.telemetry import read_telemetry
+from ros_free_bridge.telemetry.log import read_telemetry
 
 pytestmark = pytest.mark.slow
 

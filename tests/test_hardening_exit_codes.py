@@ -19,7 +19,7 @@ from ros_free_bridge.cli import EXIT_CODES, build_parser, main
 from ros_free_bridge.control.loop import ControlLoop, Fault, LoopConfig
 from ros_free_bridge.control.safety import JointLimits
 from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
-from ros_free_bridge.telemetry import read_telemetry
+from ros_free_bridge.telemetry.log import read_telemetry
 from ros_free_bridge.transports.record import RecordTransport
 
 os.environ.setdefault("MUJOCO_GL", "egl")

@@ -28,7 +28,7 @@ from retarget.profile import RetargetProfile
 from retarget.trajectory import RobotTrajectory
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.sources import udp_packet as pk
-from ros_free_bridge.telemetry import MAGIC, TelemetryWriter, read_events, read_telemetry
+from ros_free_bridge.telemetry.log import MAGIC, TelemetryWriter, read_events, read_telemetry
 
 FUZZ = settings(max_examples=60, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

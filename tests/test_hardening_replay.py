@@ -14,7 +14,7 @@ from ros_free_bridge.cli import main
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig
 from ros_free_bridge.control.safety import JointLimits
 from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
-from ros_free_bridge.telemetry import TelemetryWriter
+from ros_free_bridge.telemetry.log import TelemetryWriter
 from ros_free_bridge.transports.record import RecordTransport
 
 

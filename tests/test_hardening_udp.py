@@ -20,7 +20,7 @@ from ros_free_bridge.commands.run import StatusLine, remote_actor_warning
 from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.sources import udp_packet as pk
 from ros_free_bridge.sources.udp import UdpActorSource, is_loopback
-from ros_free_bridge.telemetry import read_telemetry
+from ros_free_bridge.telemetry.log import read_telemetry
 
 LOOPBACK = "127.0.0.1"
 

@@ -134,7 +134,7 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     from ros_free_bridge.control.loop import ControlLoop, LoopConfig
     from ros_free_bridge.robots import bridge_limits, resolve_robot
     from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
-    from ros_free_bridge.telemetry import TelemetryWriter, read_telemetry
+    from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
     from ros_free_bridge.transports.sim import SimTransport
 
     limits = bridge_limits(resolve_robot("op3").hardware_config())

@@ -71,7 +71,7 @@ def demo(args) -> int:
     from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
     from ros_free_bridge.commands.run import StatusLine, generator_options, print_summary, render_video
     from ros_free_bridge.session import SessionOptions, run_session
-    from ros_free_bridge.telemetry import read_telemetry
+    from ros_free_bridge.telemetry.log import read_telemetry
     from sim.check import CheckConfig, check_trajectory
     from sim.report import stabilizer_line, write_report
 

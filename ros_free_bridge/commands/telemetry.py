@@ -40,8 +40,8 @@ def register(sub) -> None:
 
 def plot(args) -> int:
     from ros_free_bridge.errors import BridgeError
-    from ros_free_bridge.telemetry import read_telemetry
-    from ros_free_bridge.telemetry_plots import plot_all
+    from ros_free_bridge.telemetry.log import read_telemetry
+    from ros_free_bridge.telemetry.plots import plot_all
 
     tel = read_telemetry(args.telemetry)
     if len(tel.records) < 2:
@@ -54,7 +54,7 @@ def plot(args) -> int:
 
 def replay(args) -> int:
     from ros_free_bridge.errors import BridgeError
-    from ros_free_bridge.telemetry import read_telemetry
+    from ros_free_bridge.telemetry.log import read_telemetry
 
     tel = read_telemetry(args.telemetry)
     robot = args.robot or tel.meta.get("robot", "op3")

@@ -51,7 +51,7 @@ from ros_free_bridge.control.playback import PlaybackClock, PlaybackPolicy
 from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.control.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
 from ros_free_bridge.control.targets import RevisionSmoother, TargetBuffer
-from ros_free_bridge.telemetry import TelemetryWriter
+from ros_free_bridge.telemetry.log import TelemetryWriter
 from ros_free_bridge.transports.base import STOP_POLICIES
 
 

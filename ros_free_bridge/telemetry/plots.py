@@ -11,7 +11,7 @@ import numpy as np
 
 from ros_free_bridge.control.loop import Fault, State
 from ros_free_bridge.control.safety import Intervention
-from ros_free_bridge.telemetry import Telemetry
+from ros_free_bridge.telemetry.log import Telemetry
 
 
 def _pyplot():
