@@ -6,7 +6,7 @@ import pytest
 from dualflow.motion import Motion
 from dualflow.motion.skeleton import REST_POSE
 from retarget.trajectory import RobotTrajectory
-from ros_free_bridge.commands.run import actor_placement_for_robot
+from ros_free_bridge.run_video import actor_placement_for_robot
 from sim.human_figure import place
 
 FPS = 30.0
@@ -58,7 +58,7 @@ def test_an_actor_walking_into_the_robot_is_kept_at_the_minimum_gap():
 def test_the_video_camera_looks_across_the_robot_actor_line_not_along_it():
     from sim.render import CameraConfig
 
-    from ros_free_bridge.commands.run import side_view
+    from ros_free_bridge.run_video import side_view
 
     n = 30
     partner = _person(np.zeros((n, 2)), 0.0)

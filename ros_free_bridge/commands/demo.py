@@ -69,7 +69,8 @@ def click_track(beat_times: np.ndarray, seconds: float, path: Path, sr: int = 22
 
 def demo(args) -> int:
     from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
-    from ros_free_bridge.commands.run import StatusLine, generator_options, print_summary, render_video
+    from ros_free_bridge.commands.run import StatusLine, generator_options, print_summary
+    from ros_free_bridge.run_video import render_video
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry.log import read_telemetry
     from sim.check import CheckConfig, check_trajectory
