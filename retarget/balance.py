@@ -35,6 +35,10 @@ Rules (lengths m, times s, the fields of :class:`retarget.streaming.StreamingCon
   most ``shift_accel``). A lifted foot's targets stay within ``swing_height`` of standing
   height; it touches down (flat, where it is) when the person's foot is down, or after
   ``max_swing``. The last planted foot never lifts: a jump or a glide is played on both feet.
+  With ``preview`` > 0 (the stream delayed by that many frames; :meth:`plan`'s ``ahead``) the
+  shift starts when the person's foot *will* leave, and the foot lifts when the person's is up.
+  Measured on the op3 (bench/stepping.py): with preview 9 (0.3 s) the CoM still does not reach
+  the stance region within a 0.3 s human swing, so the robot does not step yet; off by default.
 - The person's translation and heading are anchored to the planted feet
   (:meth:`BalancePlanner.anchor`): the robot follows steps, not sliding.
 """
@@ -129,10 +133,11 @@ class BalancePlanner:
         self.set_points(True)
         return held
 
-    def next(self, human_contact, targets: np.ndarray) -> tuple[bool, bool]:
+    def next(self, human_contact, targets: np.ndarray, ahead=None) -> tuple[bool, bool]:
         """Any later frame: plan the feet, keep a lifted foot's targets low (``targets`` changed
-        in place), set the row parameters; returns the feet to hold."""
-        held = self.plan(human_contact)
+        in place), set the row parameters; returns the feet to hold. ``ahead``: the person's
+        contacts ``preview`` frames later (see :meth:`plan`), or None."""
+        held = self.plan(human_contact, ahead)
         cfg = self.config
         for s in range(2):
             if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
@@ -226,12 +231,32 @@ class BalancePlanner:
         self._cpred[:] = (px, py)
         self._zmp[:] = 0.0 if first else self._zmp_scale
 
-    def plan(self, human_contact) -> tuple[bool, bool]:
+    def plan(self, human_contact, ahead=None) -> tuple[bool, bool]:
         """Update :attr:`planted` from the human's contacts and the last frame's CoM, and set
         the anchors, the balance region and the CoM prediction in the parameter buffer.
-        Returns the contacts (left, right) the solver holds on the ground this frame."""
+        Returns the contacts (left, right) the solver holds on the ground this frame.
+
+        ``ahead`` (2,) bool: the person's contacts a preview later (a stream delayed by that
+        many frames knows them). With it, the weight shift towards the stance foot starts when
+        the person's foot *will* leave while the other stays down, so that the robot's foot can
+        lift when the person's does (a 0.3 s human swing is shorter than the shift and settle
+        the soft servo robot needs); the foot lifts once the shift has settled and the person's
+        foot is up, and lands when the person's does."""
         cfg = self.config
         contact = (bool(human_contact[0]), bool(human_contact[1]))
+        if ahead is not None and cfg.steps:
+            ahead = (bool(ahead[0]), bool(ahead[1]))
+            self._since += 1
+            want = [True, True]
+            for s in range(2):
+                planted, other = bool(self.planted[s]), 1 - s
+                if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
+                    self.touch_down(s)
+                    continue
+                if planted and self._since[s] >= self._min_stance_frames and self.planted[other] and contact[other] \
+                        and ((not ahead[s] and ahead[other]) or not contact[s]):
+                    want[s] = False
+            return self._shift_or_lift(want, lift_ok=[not contact[0], not contact[1]])
         # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
         # the other, or its target moves step_distance or turns step_turn from where the robot put
         # it down) and the robot's foot has stood min_stance frames; a near-standing person's contact
@@ -253,6 +278,13 @@ class BalancePlanner:
             turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
             want[s] = not (dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance
                            or turn > cfg.step_turn)
+        return self._shift_or_lift(want, lift_ok=[True, True])
+
+    def _shift_or_lift(self, want, lift_ok) -> tuple[bool, bool]:
+        """Lift a foot that should (``want[s]`` False) once the CoM has settled over the other
+        (and ``lift_ok[s]``), else shift the weight towards it; set the region. Returns the
+        contacts held."""
+        cfg = self.config
         c1 = self._c1
         shift_point = None
         self.shifting = False
@@ -266,7 +298,7 @@ class BalancePlanner:
             hull, A, b = self._stance[other]
             inside = float(np.min(b - A @ c1)) >= -cfg.release_tolerance
             self._settled = self._settled + 1 if inside else 0
-            if self._settled > self._settle_frames:
+            if self._settled > self._settle_frames and lift_ok[s]:
                 self.planted[s] = False  # the weight is on the other foot: lift
                 self._prints[s] = None
                 self._since[s] = 0

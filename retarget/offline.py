@@ -16,8 +16,9 @@ Per window of W frames, with X = [x_0 … x_{W−1}] (nx, W) and, with balance, 
               (rank-deficient Jacobian), which slowed IPOPT (≈21 → ≈15 iterations per window on CMU)
          b_t = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0                     balance: the point b over the support polygon
               (λ_ti = 0 for corners of a foot in the air)                   shrunk by ``balance_margin``
-              b_t = zmp_t = c_xy,t − (c_z,t / g) fps² (c_xy,t+1 − 2 c_xy,t + c_xy,t−1)   (``zmp=True``: the
-              cart-table ZMP, one-sided at window ends), else (default) the static CoM b_t = c_xy,t
+              b_t = zmp_t = Σ_k m_k (c_k,xy (c̈_k,z + g) − c_k,z c̈_k,xy) / Σ_k m_k (c̈_k,z + g)   (``zmp=True``:
+              the multibody ZMP of the segments k, c̈ by second differences, one-sided at window ends;
+              ``zmp_model="cart-table"``: one mass at the CoM), else (default) the static CoM b_t = c_xy,t
          ‖seg_a − seg_b‖² ≥ (r_a + r_b + margin)²                         self-collision between capsule pairs
          n·(a_i − b_j) ≥ r_a + r_b + margin                               the pairs between the two feet
               (``collision_model="sole-plane"``, default): every capsule end point a_i on the left
@@ -41,7 +42,24 @@ Jacobian, Lagrangian Hessian) are compiled to C once per robot and cached on dis
 built by the chain rule, dg/dw = ∂g/∂Y · blockdiag_t(∂y_t/∂x_t) + ∂g/∂w with Y the per-frame
 outputs, from one SX frame Jacobian mapped over the window (CasADi's AD of the mapped graph
 took ~100 directional sweeps: 2-3x slower Jacobians). Each window is warm-started from the
-streaming solver's output.
+streaming solver, run on from the last two frames the earlier windows solved
+(:meth:`retarget.streaming.StreamingRetargeter.resume`): one streamed start for the whole clip
+turned and slid its contact feet with the person while the solved robot kept them planted, so a
+person turning slowly on the spot left the next window a root-yaw jump of all the turn not
+followed, which IPOPT reported as "infeasible ... velocity of root yaw" at any speed.
+
+Contacts: the robot's own schedule (``steps``, :mod:`retarget.schedule`) from the person's: a
+foot the person pivots or slides on re-steps, frames with both feet in the air (a jump) keep
+the feet down; the changes are in ``meta["changes"]`` (seconds, what, why), the schedule in
+``meta["contacts"]`` and the step counts in ``meta["steps"]``. With ``zmp`` the balance rows
+keep the ZMP over the support polygon of the feet the schedule holds down, through double
+support between steps (the window sees 80 frames, 2.7 s at 30 fps: the preview the weight shift
+before a step needs). The ZMP is the multibody one (``zmp_model="multibody"``): the robot's
+segments (:func:`mass_groups`: trunk, legs, arms, head) as point masses, so the angular momentum
+of swinging legs and arms counts; on the generated duets the cart-table ZMP of the CoM alone was
+29 mm (mean) from MuJoCo's full-model ZMP and the full ZMP left the polygon in 30 % of the
+frames the cart-table one held; the 6-segment model is 6 mm from it. Parts where the solution
+runs at a speed limit are reported as ``speed-limited`` changes (:func:`speed_limited`).
 
 If IPOPT reports the window infeasible (limits and contacts cannot all hold at the clip's
 speed), :class:`RetargetError` says which frames and offers re-timing (``retime``: play the
@@ -68,6 +86,7 @@ stage-wise version of this problem and was slower (see bench/retarget_speed.py's
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 
@@ -77,6 +96,8 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.codegen import compiled_nlpsol, single_threaded_linear_algebra
 from retarget.errors import RetargetError
+from retarget.schedule import Change, StepConfig, count_steps, robot_contacts, standing_soles, standing_start
+from retarget.shaping import ease_travel
 from retarget.streaming import StreamingConfig, StreamingRetargeter, hash_config, trajectory_from_x
 from retarget.targets import Targets, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
@@ -111,6 +132,15 @@ class OfflineConfig:
     balance: bool = False
     balance_margin: float = 0.01
     zmp: bool = False  # True: balance keeps the ZMP (CoM with its acceleration term) over the polygon, not the CoM
+    # the ZMP's model: "multibody" (the robot's segments as point masses: their angular momentum
+    # counts) or "cart-table" (one point mass at the CoM)
+    zmp_model: str = "multibody"
+    # with zmp: in single support the CoM too stays over the stance foot (shrunk by balance_margin):
+    # the ZMP alone lets the CoM hang outside the foot while it accelerates, which the compliant
+    # servos and the 30 fps reference do not reproduce precisely enough (the robot tips over the toe)
+    # (off by default: it let cmu19_01 pass but made the synthetic turning leader fall, see the note)
+    single_support_com: bool = False
+    pre_lift_s: float = 0.0  # ... and already this long (s) before each lift-off, over the foot that stays
     self_collision: bool = True
     # "sole-plane": the pairs between the two feet as a separating plane along the feet's
     # lateral axis (smooth, conservative; RetargetRobot.offline_collision_expr), the other
@@ -124,6 +154,9 @@ class OfflineConfig:
     auto_retime: bool = False
     hessian: str = "gauss-newton"
     ipopt_options: tuple = ()  # extra (name, value) pairs passed to IPOPT, e.g. (("print_level", 5),)
+    # the robot's contact schedule from the person's (retarget.schedule: re-steps for pivots and
+    # slides, no flight); None holds the person's contacts as they are
+    steps: StepConfig | None = StepConfig()
 
 
 class OfflineRetargeter:
@@ -137,6 +170,8 @@ class OfflineRetargeter:
         self._problems: dict[tuple, dict] = {}
         self._streams: dict[float, StreamingRetargeter] = {}  # warm-start solvers by fps, built once
         self._frame_fn = self._build_frame_function()
+        self._com_height = float(robot.evaluate(robot.x_stand[None])["com"][0, 2]) if robot.n_keypoints else 0.0
+        self._height = float(np.ptp(robot.evaluate(robot.x_stand[None])["keypoints"][0][:, 2])) if robot.n_keypoints else 0.0
 
     # -- problem construction -----------------------------------------------------
     def _build_frame_function(self) -> ca.Function:
@@ -163,7 +198,17 @@ class OfflineRetargeter:
             coll = ca.SX.zeros(0, 1)
         else:
             coll = rb.offline_collision_expr if cfg.collision_model == "sole-plane" else rb.collision_expr
-        return ca.Function("frame", [x], [rb.keypoints_expr, rb.sole_expr, shr, rb.com_expr, coll])
+        com = rb.com_expr
+        if cfg.zmp_model not in ("multibody", "cart-table"):
+            raise RetargetError(f"offline config: zmp_model must be 'multibody' or 'cart-table', got {cfg.zmp_model!r}")
+        self._group_mass = np.array([1.0])
+        if cfg.zmp and cfg.zmp_model == "multibody":  # the CoMs of the segments (3, G): the multibody ZMP
+            m = rb.kin.model
+            groups = mass_groups(m)
+            self._group_mass = np.array([sum(float(m.body_mass[b]) for b in g) for g in groups])
+            com = ca.horzcat(*[sum((float(m.body_mass[b]) * rb.kin.point(b, m.body_ipos[b]) for b in g), ca.SX.zeros(3, 1))
+                               / max(mg, 1e-12) for g, mg in zip(groups, self._group_mass)])
+        return ca.Function("frame", [x], [rb.keypoints_expr, rb.sole_expr, shr, com, coll])
 
     def _frame_jacobian(self, W: int) -> ca.Function:
         """X (nx, W) → (Y (ny, W): the frame function's outputs stacked per frame, ∂Y/∂X (ny, nx·W):
@@ -181,11 +226,14 @@ class OfflineRetargeter:
         feet = rb.has_feet and rb.floating and cfg.contacts
         balance = feet and cfg.balance
         X = ca.MX.sym("X", nx, W)
-        L = ca.MX.sym("L", 8, W) if balance else ca.MX.sym("L", 0, W)
+        static = balance and cfg.zmp and cfg.single_support_com
+        L = ca.MX.sym("L", (16 if static else 8) if balance else 0, W)
         TGT = ca.MX.sym("TGT", 3 * K, W)
         FW = ca.MX.sym("FW", 1, W)
         XF = ca.MX.sym("XF", nx, cfg.n_fix)
         WF = ca.MX.sym("WF", 1, 1)
+        REST = ca.MX.sym("REST", 1, 1)  # 1: the window starts the clip from rest (the ZMP at frame 0)
+        ANC = ca.MX.sym("ANC", 8 if feet else 0, 1)  # per foot: corner 0 xy, sole diagonal xy (frame 0)
         # the per-frame outputs as a symbol Y (ny, W) (column t = the frame's outputs, stacked):
         # R and g are written once in the mapped outputs (f, g and the gradient) and once in Y
         # (their Jacobians by the chain rule, below)
@@ -228,19 +276,51 @@ class OfflineRetargeter:
                               (d[0, :-1] * d[1, 1:] - d[1, :-1] * d[0, 1:]) / diag2]
                 g.append(ca.vec(ca.vertcat(*slide)))
                 layout["slide"] = 6 * (W - 1)
+                # the feet's placement in the window's first frame (the standing start): corner 0
+                # at ANC's point, the sole diagonal along ANC's direction (bounds switch it on)
+                anchor = []
+                for f, foot in enumerate(rb.feet):
+                    c0, c2 = 8 * f, 8 * f + 4
+                    d = xy[c2:c2 + 2, 0] - xy[c0:c0 + 2, 0]
+                    a = ANC[4 * f + 2:4 * f + 4]
+                    diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
+                    anchor += [xy[c0:c0 + 2, 0] - ANC[4 * f:4 * f + 2], (d[0] * a[1] - d[1] * a[0]) / diag2]
+                g.append(ca.vertcat(*anchor))
+                layout["anchor"] = 6
             if balance:
                 s = ca.reshape(shr, 16, W)
                 sx, sy = s[0::2, :], s[1::2, :]
-                c3 = ca.reshape(com, 3, W)
-                comxy = c3[0:2, :]
                 if cfg.zmp and W >= 3:
-                    # ZMP of the cart-table model: p = c_xy − (c_z / g) · c̈_xy, with c̈ the central
-                    # second difference (one-sided at the window's ends)
-                    acc = (c3[0:2, 2:] - 2 * c3[0:2, 1:-1] + c3[0:2, :-2]) * fps ** 2
-                    acc = ca.horzcat(acc[:, 0], acc, acc[:, -1])
-                    comxy = comxy - ca.repmat(c3[2, :] / GRAVITY, 2, 1) * acc
-                g.append(ca.vec(ca.vertcat(comxy[0, :] - ca.sum1(L * sx), comxy[1, :] - ca.sum1(L * sy), ca.sum1(L) - 1)))
+                    # multibody ZMP of the segments as point masses m_k at c_k (3, W) each:
+                    # p = Σ_k m_k (c_k,xy (c̈_k,z + g) − c_k,z c̈_k,xy) / Σ_k m_k (c̈_k,z + g), with c̈
+                    # the central second difference (one-sided at the window's ends)
+                    G = len(self._group_mass)
+                    cg = ca.reshape(com, 3 * G, W)  # rows 3k..3k+2: segment k's CoM
+                    acc = (cg[:, 2:] - 2 * cg[:, 1:-1] + cg[:, :-2]) * fps ** 2
+                    # frame 0: from rest (c_−1 = c_0) when REST, else one-sided
+                    acc0 = REST * (cg[:, 1] - cg[:, 0]) * fps ** 2 + (1 - REST) * acc[:, 0]
+                    acc = ca.horzcat(acc0, acc, acc[:, -1])
+                    num, den = 0, 0
+                    for k, mk in enumerate(self._group_mass):
+                        c, a = cg[3 * k:3 * k + 3, :], acc[3 * k:3 * k + 3, :]
+                        lift = mk * (a[2, :] + GRAVITY)
+                        num = num + ca.repmat(lift, 2, 1) * c[0:2, :] - mk * ca.repmat(c[2, :], 2, 1) * a[0:2, :]
+                        den = den + lift
+                    comxy = num / ca.repmat(den, 2, 1)
+                else:
+                    comxy = ca.reshape(com, 3, W)[0:2, :]
+                L1 = L[0:8, :]
+                g.append(ca.vec(ca.vertcat(comxy[0, :] - ca.sum1(L1 * sx), comxy[1, :] - ca.sum1(L1 * sy), ca.sum1(L1) - 1)))
                 layout["balance"] = 3 * W
+                if static:  # the CoM over the stance foot in single support (bounds switch it on)
+                    G = len(self._group_mass)
+                    cg = ca.reshape(com, 3 * G, W)
+                    ctot = sum(float(mk) * cg[3 * k:3 * k + 2, :] for k, mk in enumerate(self._group_mass)) / float(
+                        np.sum(self._group_mass))
+                    L2 = L[8:16, :]
+                    g.append(ca.vec(ca.vertcat(ctot[0, :] - ca.sum1(L2 * sx), ctot[1, :] - ca.sum1(L2 * sy),
+                                               ca.sum1(L2) - 1)))
+                    layout["static"] = 3 * W
             P = coll.shape[0]
             if P:
                 g.append(ca.vec(coll))
@@ -250,7 +330,7 @@ class OfflineRetargeter:
         R_x, J_x, g_x, layout, P = terms(*fr.map(W, "serial")(X))
         R, _, g, _, _ = terms(*parts)
         w = ca.vertcat(ca.vec(X), ca.vec(L))
-        par = ca.vertcat(ca.vec(TGT), ca.vec(FW), ca.vec(XF), WF)
+        par = ca.vertcat(ca.vec(TGT), ca.vec(FW), ca.vec(XF), WF, ANC, REST)
         nlp = {"x": w, "p": par, "f": J_x, "g": g_x}
         dy_dx = self._frame_jacobian(W)
         # constraint Jacobian by the chain rule: dg/dw = ∂g/∂Y · blockdiag_t(∂y_t/∂x_t) + ∂g/∂w, with
@@ -299,7 +379,7 @@ class OfflineRetargeter:
                 "ipopt.constr_mult_init_max": 0.0}
         opts |= {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
         name = f"rtw{W}"
-        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=()))}_{int(round(fps * 1000))}"
+        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=(), steps=None))}_{int(round(fps * 1000))}"
         solver, info = compiled_nlpsol(name, nlp, opts, ckey, enable=cfg.compile, hess_lag=hess, jac_g=jac_g)
         # the problem and its hand-made derivatives, kept for checks against CasADi's own AD
         self._problems[key] = {"nlp": nlp, "R": R_x, "jac_g": jac_g, "hess": hess}
@@ -341,19 +421,81 @@ class OfflineRetargeter:
             motion = slowed.resample(fps)
         tg = make_targets(self.robot, motion, contacts, scaler)
         t0 = time.perf_counter()
+        person_steps = count_steps(tg.contacts)
+        changes, anchor = [], None
+        if self.config.steps is not None and self.config.contacts and self.robot.has_feet and self.robot.floating:
+            planned, changes = robot_contacts(self.robot, tg.keypoints, tg.contacts, fps, self.config.steps)
+            kp = tg.keypoints
+            if self.config.steps.standing_start:
+                anchor = standing_soles(self.robot, kp)
+                kp, n, moved, turned = standing_start(self.robot, kp, planned)
+                if n and (moved > self.config.steps.step_distance or turned > self.config.steps.step_turn):
+                    changes.insert(0, Change(0.0, round(n / fps, 3), "standing start",
+                                             "the robot starts in its standing stance (it is brought to the first "
+                                             f"frame from standing; the person's feet stood up to {1000 * moved:.0f} mm and "
+                                             f"{math.degrees(turned):.0f} deg away from that) and steps into the person's"))
+            if self.config.steps.travel_zmp_shift > 0:
+                a_max = GRAVITY * self.config.steps.travel_zmp_shift / max(self._com_height, 1e-3)
+                kp, shift = ease_travel(kp, self.robot.root_keypoint, fps, a_max)
+                changes += _runs_over(np.linalg.norm(shift, axis=1), 0.02, fps, "slower travel",
+                                      f"the person's travel accelerated faster than the robot's feet balance "
+                                      f"({a_max:.1f} m/s²; e.g. walking off from the first frame): the robot followed "
+                                      "more slowly, more than 2 cm behind")
+            tg = Targets(kp, planned, tg.fps)
         stream = self._streams.get(fps)
         if stream is None:
             stream = self._streams[fps] = StreamingRetargeter(self.robot, fps, self.streaming_config)
         stream.reset()
         ws = feet_apart(self.robot, tg.keypoints, 0.02) if self.config.self_collision else tg.keypoints
-        X0 = np.stack([stream.step(ws[t], tg.contacts[t]) for t in range(motion.n_frames)])
-        X, stats = self.solve(tg, X0)
+
+        def warm(X: np.ndarray, start: int, stop: int) -> None:
+            """Frames start..stop−1 of X streamed on from the two solved frames before them."""
+            if start == 0:
+                stream.reset()
+            else:
+                stream.resume(X[start - 1], X[start - 2] if start >= 2 else X[start - 1])
+            for t in range(start, stop):
+                X[t] = stream.step(ws[t], tg.contacts[t])
+
+        X0 = np.zeros((motion.n_frames, self.robot.nx))
+        swing = None
+        if (self.config.steps is not None and self.config.steps.swing_clearance > 0 and self.config.contacts
+                and self.robot.has_feet and self.robot.floating):
+            swing = swing_floor(tg.contacts, self.config.steps.swing_clearance * self._height)
+        ramp = None
+        if self.config.steps is not None and self.config.steps.start_ramp > 0:
+            ramp = int(round(self.config.steps.start_ramp * fps))
+        X, stats = self.solve(tg, X0, warm, swing, anchor, ramp)
         stats["seconds"] = time.perf_counter() - t0
         stats["retime"] = factor
+        stats["contacts"] = tg.contacts.astype(int).tolist()  # the robot's schedule, (T, 2) 0/1
+        stats["steps"] = {"person": person_steps, "robot": count_steps(tg.contacts)}
+        changes += speed_limited(self.robot, X, fps, self.config.velocity_safety)
+        changes.sort(key=lambda c: c.start_s)
+        stats["changes"] = [c.to_dict() for c in changes]
         return trajectory_from_x(self.robot, X, fps, {"mode": "offline", "source": motion.name, **stats})
 
-    def solve(self, tg: Targets, X0: np.ndarray) -> tuple[np.ndarray, dict]:
-        """Solve all windows; X0 (T, nx) is the initial guess. Returns X (T, nx) and solver stats."""
+    def solve(self, tg: Targets, X0: np.ndarray, warm=None, swing=None, anchor=None,
+              ramp=None) -> tuple[np.ndarray, dict]:
+        """Solve all windows; X0 (T, nx) is the initial guess. Returns X (T, nx) and solver stats.
+
+        ``warm(X, start, stop)``, if given, fills X[start:stop] (in place) with the warm start of
+        the frames a window solves for the first time, continuing from the solved frames before
+        ``start``. A warm start made once for the whole clip (X0 alone) drifts away from what the
+        earlier windows solved: a streamed start turns and slides its contact feet with the
+        person, the solved robot keeps them planted, so at the next window's first unsolved frame
+        the start jumps by all the turn (or travel) the planted robot did not follow; IPOPT then
+        has to close a root-yaw jump of that size inside one frame's velocity limit and stops
+        infeasible ("velocity of root yaw", whatever the clip's speed).
+
+        ``swing`` (T, 2) m, if given: the lowest a foot's sole corners may be in each frame it is
+        off the ground (:func:`swing_floor`), and each lift-off and touch-down is vertical (the
+        foot's position and heading in the first and last frame in the air are those of the frame
+        on the ground next to it). ``anchor`` (2, 4), if given: each foot's sole corner 0 xy and
+        sole-diagonal direction xy (corner 2 − corner 0) in the first frame (the standing start).
+        ``ramp`` (frames), if given: the clip starts from rest, as the robot does after the move
+        from standing: every DOF's speed limit opens linearly over the first ``ramp`` frames and
+        the ZMP of frame 0 counts the acceleration from rest."""
         cfg, rb = self.config, self.robot
         T = tg.keypoints.shape[0]
         # a clip shorter than the window is padded to it (padding is masked out), so one compiled
@@ -367,18 +509,23 @@ class OfflineRetargeter:
         while starts[-1] + W < T:
             starts.append(starts[-1] + hop)
         iters, info, statuses = 0, "", []
+        done = 0  # frames 0..done−1 are solved
         for wi, s in enumerate(starts):
-            Xw, it, info, status = self._solve_window(tg, X, s, W, fixed=wi > 0)
+            if warm is not None:
+                warm(X, done, min(s + W, T))
+            Xw, it, info, status = self._solve_window(tg, X, s, W, fixed=wi > 0, swing=swing, anchor=anchor, ramp=ramp)
             statuses.append(status)
             n_real = min(W, T - s)
             keep_from = 0 if wi == 0 else cfg.n_fix
             X[s + keep_from:s + n_real] = Xw[keep_from:n_real]
+            done = s + n_real
             iters += it
         X = np.clip(X, rb.x_lower, rb.x_upper)
         return X, {"windows": len(starts), "window": W, "ipopt_iterations": iters, "ipopt_status": statuses,
                    "collision_model": cfg.collision_model if cfg.self_collision else "off", "compiled": info}
 
-    def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool):
+    def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool, swing=None, anchor=None,
+                      ramp=None):
         cfg, rb = self.config, self.robot
         solver, layout, P, balance, feet, info = self._solver(W, tg.fps)
         T, nx = X.shape[0], rb.nx
@@ -387,22 +534,33 @@ class OfflineRetargeter:
         tgt = tg.keypoints[idx].reshape(W, -1).T  # (3K, W): column t = (k0x k0y k0z k1x …)
         x0 = X[idx].T
         xf = X[s:s + cfg.n_fix].T if fixed else np.tile(X[s], (cfg.n_fix, 1)).T
-        p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0]])
+        pin = anchor is not None and not fixed and feet
+        anc = np.asarray(anchor, dtype=np.float64).ravel() if pin else np.zeros(8 if feet else 0)
+        rest = 1.0 if (ramp is not None and not fixed) else 0.0
+        p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0], anc, [rest]])
         contact = tg.contacts[idx]
         lbg, ubg = [], []
         v = np.concatenate([rb.root_velocity_limits, rb.velocity_limits])[:, None] * cfg.velocity_safety / tg.fps
-        lbg.append(np.tile(-v, (1, W - 1)).ravel(order="F"))
-        ubg.append(np.tile(v, (1, W - 1)).ravel(order="F"))
+        vb = np.tile(v, (1, W - 1))
+        if ramp is not None and not fixed:  # from rest: the speed limits open over ``ramp`` frames
+            vb = vb * np.minimum(1.0, (np.arange(W - 1) + 1) / max(ramp, 1))[None, :]
+        lbg.append((-vb).ravel(order="F"))
+        ubg.append(vb.ravel(order="F"))
         lam0 = np.zeros((0, W))
         if feet:
             cz = np.repeat(contact, 4, axis=1).T  # (8, W)
             free = cz & np.tile([False, False, False, True], 2)[:, None]  # corner 3 of a foot in contact
-            lbg.append(np.where(free, -np.inf, 0.0).ravel(order="F"))
+            low = np.zeros((8, W)) if swing is None else np.repeat(swing[idx], 4, axis=1).T
+            lbg.append(np.where(free, -np.inf, np.where(cz, 0.0, low)).ravel(order="F"))
             ubg.append(np.where(cz & ~free, 0.0, np.inf).ravel(order="F"))
-            both = contact[1:] & contact[:-1]       # (W-1, 2)
+            # a foot in contact in both frames does not slide or turn; with ``swing`` also between
+            # a contact frame and the air frame next to it (a vertical lift-off and touch-down)
+            both = contact[1:] & contact[:-1] if swing is None else contact[1:] | contact[:-1]  # (W-1, 2)
             cs = np.repeat(both, 3, axis=1).T        # (6, W-1)
             lbg.append(np.where(cs, 0.0, -np.inf).ravel(order="F"))
             ubg.append(np.where(cs, 0.0, np.inf).ravel(order="F"))
+            lbg.append(np.zeros(6) if pin else np.full(6, -np.inf))
+            ubg.append(np.zeros(6) if pin else np.full(6, np.inf))
         lbx = np.tile(rb.x_lower[:, None], (1, W))
         ubx = np.tile(rb.x_upper[:, None], (1, W))
         lbl = np.zeros((0, W))
@@ -417,6 +575,15 @@ class OfflineRetargeter:
             ubl = np.where(cl, 1.0, 0.0)
             n_on = np.maximum(cl.sum(axis=0, keepdims=True), 1)
             lam0 = cl / n_on
+            if layout.get("static"):
+                stance = _static_stance(tg.contacts, int(round(cfg.pre_lift_s * tg.fps)))[idx]  # (W, 2)
+                on = stance.any(axis=1)
+                b2 = np.where(on, 0.0, np.inf)
+                lbg.append(np.stack([-b2, -b2, -b2]).ravel(order="F"))
+                ubg.append(np.stack([b2, b2, b2]).ravel(order="F"))
+                cl2 = np.repeat(np.where(on[:, None], stance, contact), 4, axis=1).T
+                lbl, ubl = np.vstack([lbl, np.zeros((8, W))]), np.vstack([ubl, np.where(cl2, 1.0, 0.0)])
+                lam0 = np.vstack([lam0, cl2 / np.maximum(cl2.sum(axis=0, keepdims=True), 1)])
         if P:
             lbg.append(np.zeros(P * W))
             ubg.append(np.full(P * W, np.inf))
@@ -532,6 +699,113 @@ def feet_apart(robot, keypoints: np.ndarray, extra: float = 0.0) -> np.ndarray:
             if name in idx:
                 out[:, idx[name]] += sign * share * push
     return out
+
+
+def _static_stance(contacts: np.ndarray, pre: int) -> np.ndarray:
+    """(T, 2) bool: the foot the CoM must stand over in each frame (none: all False): the
+    stance foot in single support, and the foot that stays in the ``pre`` frames of double
+    support before the other lifts. contacts (T, 2) bool."""
+    c = np.asarray(contacts, dtype=bool)
+    out = c & ~c[:, ::-1]  # single support: the foot down
+    T = c.shape[0]
+    for s in range(2):
+        lifts = np.flatnonzero(c[:-1, s] & ~c[1:, s]) + 1  # first frame in the air
+        for t in lifts:
+            a = max(0, t - pre)
+            both = c[a:t].all(axis=1)
+            out[a:t, 1 - s] |= both
+            out[a:t, s] &= ~both
+    return out
+
+
+def _runs_over(value: np.ndarray, level: float, fps: float, what: str, why: str) -> list:
+    """One Change per run of frames with ``value`` (T,) above ``level``."""
+    out, T, t = [], len(value), 0
+    while t < T:
+        if value[t] > level:
+            e = t
+            while e < T and value[e] > level:
+                e += 1
+            out.append(Change(round(t / fps, 3), round(e / fps, 3), what, why))
+            t = e
+        else:
+            t += 1
+    return out
+
+
+def speed_limited(robot, X: np.ndarray, fps: float, safety: float = 1.0, share: float = 0.98,
+                  min_frames: int = 2, gap: int = 2) -> list:
+    """Parts where the solution runs at a speed limit: runs of at least ``min_frames`` frames
+    (gaps up to ``gap`` frames bridged) in which some joint or root DOF moves at ``share`` of
+    its velocity bound or more; there the robot follows the person at reduced amplitude. One
+    :class:`retarget.schedule.Change` ("speed-limited", naming the joints) per run. X (T, nx)."""
+    v = np.concatenate([robot.root_velocity_limits, robot.velocity_limits]) * safety / fps
+    if X.shape[0] < 2:
+        return []
+    hit = np.abs(np.diff(X, axis=0)) >= share * v[None]  # (T-1, nx): frame t → t+1
+    any_hit = hit.any(axis=1)
+    names = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")[:robot.n_root] + tuple(robot.joint_names)
+    out, t, T1 = [], 0, len(any_hit)
+    while t < T1:
+        if not any_hit[t]:
+            t += 1
+            continue
+        e = t + 1
+        while e < T1 and (any_hit[e] or any_hit[e:e + gap + 1].any()):
+            e += 1
+        if e - t >= min_frames:
+            joints = [names[j] for j in np.flatnonzero(hit[t:e].any(axis=0))]
+            out.append(Change(round(t / fps, 3), round((e + 1) / fps, 3), "speed-limited",
+                              f"{', '.join(joints[:4])}{' ...' if len(joints) > 4 else ''} at the servo's speed limit: "
+                              "the robot follows the person at reduced amplitude"))
+        t = e
+    return out
+
+
+def mass_groups(model, share: float = 0.35) -> list[list[int]]:
+    """The robot's segments for the multibody ZMP: body ids (with mass) per segment. Each child
+    subtree of the root body is a segment (a leg, an arm, the head), except that a subtree with
+    more than ``share`` of the robot's mass (a torso carrying the arms) is split the same way,
+    its top body joining the trunk; the trunk (the root body and those top bodies) is one."""
+    parent = model.body_parentid
+    children = {b: [c for c in range(1, model.nbody) if parent[c] == b and c != b] for b in range(model.nbody)}
+    root = next(b for b in range(1, model.nbody) if parent[b] == 0)
+
+    def subtree(b):
+        out = [b]
+        for c in children[b]:
+            out += subtree(c)
+        return out
+
+    total = float(sum(model.body_mass[1:]))
+    trunk, groups, todo = [root], [], list(children[root])
+    while todo:
+        b = todo.pop(0)
+        sub = subtree(b)
+        if sum(float(model.body_mass[i]) for i in sub) > share * total and children[b]:
+            trunk.append(b)
+            todo += children[b]
+        else:
+            groups.append(sub)
+    groups = [trunk] + groups
+    groups = [[b for b in g if model.body_mass[b] > 0] for g in groups]
+    return [g for g in groups if g]
+
+
+def swing_floor(contacts: np.ndarray, clearance: float) -> np.ndarray:
+    """The lowest each foot's sole may be (T, 2) m: 0 in contact and in the air frame next to a
+    contact frame, ``clearance`` / 2 two frames from one, ``clearance`` farther (a swing of 5+
+    frames clears the floor in its middle instead of skimming it). contacts (T, 2) bool."""
+    c = np.asarray(contacts, dtype=bool)
+    T = c.shape[0]
+    dist = np.full(c.shape, T, dtype=float)  # frames to the nearest contact frame of the same foot
+    for s in range(2):
+        on = np.flatnonzero(c[:, s])
+        if on.size:
+            t = np.arange(T)
+            j = np.clip(np.searchsorted(on, t), 0, on.size - 1)
+            dist[:, s] = np.minimum(np.abs(on[j] - t), np.abs(on[np.maximum(j - 1, 0)] - t))
+    return clearance * np.clip((dist - 1) / 2, 0.0, 1.0)
 
 
 def retarget_offline(robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None,

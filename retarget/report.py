@@ -3,7 +3,8 @@
 Definitions (all at robot scale, i.e. against the scaled targets of :mod:`retarget.targets`):
 
 - keypoint error (mm): ‖p_k(x_t) − target_kt‖ over frames and keypoints (mean, max);
-- foot skate: over frames t where a foot is in contact at t − 1 and t, the horizontal
+- foot skate: over frames t where a foot is in contact at t − 1 and t (the robot's contact
+  schedule, ``meta["contacts"]``, when the retargeter planned one; else the person's), the horizontal
   displacement of its sole centre; ``skate_share`` is the share of those frames sliding more
   than 5 mm in one frame, ``worst_slide_mm`` the largest slide;
 - ground penetration (mm): the deepest sole corner below z = 0 over the clip (0 if none);
@@ -65,6 +66,11 @@ class RetargetReport:
     self_collisions: int
     solver: dict
     first_failure_s: float | None = None
+    #: parts the robot plays differently from the person (the contact schedule's changes,
+    #: retarget.schedule): dicts start_s, end_s, what, why, keypoint_error_mm (mean over them)
+    changes: tuple = ()
+    #: touch-downs of the person's feet and of the robot's planned contacts (None: no schedule)
+    steps: dict | None = None
 
     @property
     def passed(self) -> bool:
@@ -94,8 +100,20 @@ class RetargetReport:
                  f"{'PASS' if self.passed else 'FAIL'}"
                  + ("" if self.first_failure_s is None else f", first failure at {self.first_failure_s:g} s"),
                  "", "| figure | value |", "|---|---|"]
+        if self.steps is not None:
+            lines += [f"| steps robot / person | {self.steps.get('robot')} / {self.steps.get('person')} |"]
         lines += [f"| {a} | {b} |" for a, b in rows]
+        if self.changes:
+            lines += ["", "## What the robot does differently", "", "| seconds | what | why | keypoint error there |",
+                      "|---|---|---|---|"]
+            lines += [f"| {c['start_s']:.2f}-{c['end_s']:.2f} | {c['what']} | {c['why']} | "
+                      f"{c.get('keypoint_error_mm', float('nan')):.1f} mm |" for c in self.changes]
         return "\n".join(lines) + "\n"
+
+    def changes_text(self) -> str:
+        """One line for a table: each change as 'what start-end s (error mm)', or ''."""
+        return "; ".join(f"{c['what']} {c['start_s']:.2f}-{c['end_s']:.2f} s ({c.get('keypoint_error_mm', 0):.0f} mm)"
+                         for c in self.changes)
 
     def save(self, out_dir, stem: str) -> dict[str, Path]:
         out = Path(out_dir)
@@ -141,6 +159,18 @@ def configurations(robot, traj: RobotTrajectory) -> np.ndarray:
     return np.hstack([traj.root_pos, mat_to_euler(Rs), traj.joint_pos])
 
 
+def robot_schedule(traj: RobotTrajectory, person: np.ndarray) -> np.ndarray:
+    """The robot's side contacts (T, 2) bool: the schedule the retargeter planned
+    (``traj.meta["contacts"]``, :mod:`retarget.schedule`) when it has one of the right shape,
+    else the person's ``person`` (T, 2)."""
+    planned = traj.meta.get("contacts")
+    if planned is not None:
+        planned = np.asarray(planned, dtype=bool)
+        if planned.shape == np.shape(person):
+            return planned
+    return np.asarray(person, dtype=bool)
+
+
 def _jerk(p: np.ndarray, fps: float) -> float:
     if p.shape[0] < 4:
         return 0.0
@@ -154,10 +184,11 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     T, fps = X.shape[0], traj.fps
     err = 1000 * np.linalg.norm(ev["keypoints"] - targets.keypoints, axis=-1)
     contact_frames, slides, slide_frames = 0, [], []
+    on = robot_schedule(traj, targets.contacts)
     if robot.has_feet and robot.floating:
         for side in range(2):
             centre = ev["sole"][:, 4 * side:4 * side + 4, 0:2].mean(axis=1)
-            both = targets.contacts[1:, side] & targets.contacts[:-1, side]
+            both = on[1:, side] & on[:-1, side]
             step = 1000 * np.linalg.norm(np.diff(centre, axis=0), axis=-1)
             slides.append(step[both])
             slide_frames.append(1 + np.flatnonzero(both))
@@ -189,6 +220,11 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         coll = int(np.sum(ev["collision"] < thresh[None] - 1e-9))
     jr, js = _jerk(ev["keypoints"], fps), _jerk(targets.keypoints, fps)
     meta = dict(traj.meta)
+    changes = []
+    for c in meta.get("changes", []) or []:
+        a, b = int(round(c["start_s"] * fps)), int(round(c["end_s"] * fps))
+        a, b = min(max(a, 0), T - 1), min(max(b, a + 1), T)
+        changes.append({**c, "keypoint_error_mm": float(err[a:b].mean())})
     return RetargetReport(
         clip=clip or str(meta.get("source", "")), robot=robot.name, mode=str(meta.get("mode", "")), frames=T, fps=fps,
         keypoint_error_mean_mm=float(err.mean()), keypoint_error_max_mm=float(err.max()),
@@ -196,8 +232,8 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         worst_slide_mm=float(slides.max()) if slides.size else 0.0, penetration_mm=penetration,
         limit_violations=limit_v, velocity_violations=vel_v, jerk_robot=jr, jerk_source=js,
         jerk_ratio=jerk_ratio(jr, js), joint_jerk_mean=_jerk(q, fps),
-        self_collisions=coll, solver={k: v for k, v in meta.items() if k not in ("source",)},
-        first_failure_s=first_failure,
+        self_collisions=coll, solver={k: v for k, v in meta.items() if k not in ("source", "contacts", "changes", "steps")},
+        first_failure_s=first_failure, changes=tuple(changes), steps=meta.get("steps"),
     )
 
 

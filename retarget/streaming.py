@@ -97,6 +97,9 @@ class StreamingConfig:
     max_swing: float = 0.6  # a lifted foot comes down after this long even if the person's does not
     swing_height: float = 0.02  # a lifted foot's ankle and toe targets stay this close above standing height
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
+    # frames of the person's contacts known ahead of the frame being solved (a stream delayed by
+    # that many frames): the weight shift before a step starts that much earlier (BalancePlanner.plan)
+    preview: int = 0
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
     """min_d ½ dᵀHd + gᵀd  s.t. lo ≤ d ≤ hi, H positive definite (n ≤ ~50), by a primal active set.
@@ -275,6 +278,19 @@ class StreamingRetargeter:
         if self.planner is not None:
             self.planner.reset()
 
+    def resume(self, x1: np.ndarray, x2: np.ndarray) -> None:
+        """Continue a stream from two frames emitted elsewhere (x1 the last, x2 the one before;
+        (nx,) each), e.g. frames an offline solve settled: the next :meth:`step` is limited by
+        their velocity bounds and its feet in contact stay where x1 put them. Plain streaming
+        only (the balance planner's contact history cannot be rebuilt from two frames)."""
+        if self.balance:
+            raise RetargetError("streaming resume: not available with balance (StreamingConfig.balance); "
+                                "reset() and stream from the start instead")
+        self._x1, self._x2 = np.array(x1, dtype=np.float64), np.array(x2, dtype=np.float64)
+        self._residual(self._x1)
+        if self._has_feet:
+            self._anchor[:] = self._solebuf[0:2, :]
+
     @property
     def planted(self) -> np.ndarray:
         """(2,) bool: the robot's feet held on the ground in the last frame (balance; else the
@@ -354,10 +370,12 @@ class StreamingRetargeter:
                 best, best_cost = x, cost
         return best
 
-    def step(self, targets: np.ndarray, contact=(False, False)) -> np.ndarray:
+    def step(self, targets: np.ndarray, contact=(False, False), ahead=None) -> np.ndarray:
         """targets (K, 3) m, contact (2,) bool (the human's left, right foot) → configuration
         x (nx,) within all limits. With balance the robot's own foot contacts are in
-        :attr:`planted` afterwards (see the module docstring)."""
+        :attr:`planted` afterwards (see the module docstring). ``ahead`` (2,) bool: the person's
+        contacts ``config.preview`` frames later, where the caller has them (balance with steps
+        uses them to shift the weight before a step; :meth:`run` passes them)."""
         targets = np.asarray(targets, dtype=np.float64)
         if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
             raise RetargetError(f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}")
@@ -387,7 +405,7 @@ class StreamingRetargeter:
                 self._residual(x)
                 contact = self.planner.start(self._solebuf, self._combuf[0:2])
             else:
-                contact = self.planner.next(contact, targets)
+                contact = self.planner.next(contact, targets, ahead)
         self._contact = np.array(contact, dtype=bool)
         x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi, rtol=self._first_rtol if first else 0.0)
         x = np.clip(x, lo, hi)  # a no-op (every iterate is in the box) but exact in floating point
@@ -423,7 +441,9 @@ class StreamingRetargeter:
             raise RetargetError(f"{motion.name or 'motion'}: is {motion.fps:g} fps but this retargeter runs at {self.fps:g}; resample the motion")
         tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()
-        X = np.stack([self.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
+        T, P = motion.n_frames, self.config.preview
+        ahead = (lambda t: tg.contacts[min(t + P, T - 1)]) if P > 0 and self.balance else (lambda t: None)
+        X = np.stack([self.step(tg.keypoints[t], tg.contacts[t], ahead(t)) for t in range(T)])
         return trajectory_from_x(self.robot, X, motion.fps, {"mode": "streaming", "source": motion.name,
                                                                  "compiled": self.compile_info})
 

@@ -62,7 +62,7 @@ from pathlib import Path
 
 MOTION_SUFFIXES = (".bvh", ".npz", ".npy")
 COLUMNS = ("clip", "actor", "status", "stage", "reason", "first_failure_s", "frames", "duration_s", "retime",
-           "keypoint_error_mm", "skate_share", "jerk_ratio", "limit_violations", "check_reason", "seconds")
+           "keypoint_error_mm", "skate_share", "jerk_ratio", "limit_violations", "check_reason", "changed", "seconds")
 #: Columns that depend on the machine and its load, not on the clip (left out when two tables are compared).
 TIMING_COLUMNS = ("seconds",)
 #: The marker a clip's output folder gets last: its row, once every other output is written.
@@ -86,6 +86,10 @@ class ClipResult:
     jerk_ratio: float | None = None
     limit_violations: int | None = None
     check_reason: str = ""
+    #: what the robot plays differently from the person (retarget.schedule's changes: a jump kept on
+    #: the ground, a spin on one foot, ...): "what start-end s (keypoint error there)", seconds
+    #: into the motion file; "" when nothing was changed
+    changed: str = ""
     seconds: float = 0.0
     actor: str = ""  #: a pair's actor file (relative to the folder, like ``clip``); "" for one person
     files: dict = field(default_factory=dict)  #: output name -> file name in the clip's folder (not a column)
@@ -411,6 +415,7 @@ def _retarget_report(robot, traj, motion, res: ClipResult, out: Path):
     res.skate_share = round(report.skate_share, 4)
     res.jerk_ratio = None if report.jerk_ratio is None else round(report.jerk_ratio, 3)
     res.limit_violations = report.limit_violations + report.velocity_violations
+    res.changed = changes_summary(report.changes, res.retime)
     res.files.update(trajectory="trajectory.npz", retarget_report="retarget.report.md")
     if not report.passed:
         res.status, res.stage, res.first_failure_s = "fail", "retarget", _clip_time(report.first_failure_s, res)
@@ -816,6 +821,22 @@ def _usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def changes_summary(changes, retime: float = 1.0) -> str:
+    """One cell for the ``changed`` column: per kind of change (retarget.schedule / offline: step
+    skipped, speed-limited, slower travel, flight, pivot, standing start), in order of first
+    appearance, "what: N× T s from a s (up to E mm)", times in seconds into the motion file
+    (a re-timed clip's divided by ``retime``), E the worst mean keypoint error over one part."""
+    kinds: dict[str, list] = {}
+    for c in changes:
+        kinds.setdefault(c["what"], []).append(c)
+    cells = []
+    for what, cs in kinds.items():
+        total = sum(c["end_s"] - c["start_s"] for c in cs) / retime
+        worst = max(c.get("keypoint_error_mm", 0.0) for c in cs)
+        cells.append(f"{what}: {len(cs)}x {total:.2f} s from {cs[0]['start_s'] / retime:.2f} s (up to {worst:.0f} mm)")
+    return "; ".join(cells)
+
+
 def write_results(results: list[ClipResult], out: Path) -> dict[str, Path]:
     """results.csv and results.md in the order given (complete or absent: written under a
     temporary name and renamed)."""
@@ -830,11 +851,13 @@ def write_results(results: list[ClipResult], out: Path) -> dict[str, Path]:
 def markdown_table(results: list[ClipResult]) -> str:
     n_pass = sum(r.status == "pass" for r in results)
     lines = [f"# Retarget-and-check: {n_pass} of {len(results)} clips pass", "",
-             "| clip | status | stage | first failure (s) | frames | retime | kp err (mm) | skate | jerk ratio | reason |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| clip | status | stage | first failure (s) | frames | retime | kp err (mm) | skate | jerk ratio | reason "
+             "| changed from the person |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         cells = [r.clip, r.status.upper(), r.stage or "-", _fmt(r.first_failure_s), str(r.frames), _fmt(r.retime),
-                 _fmt(r.keypoint_error_mm), _fmt(r.skate_share), _fmt(r.jerk_ratio), (r.reason or "-").replace("|", "/")]
+                 _fmt(r.keypoint_error_mm), _fmt(r.skate_share), _fmt(r.jerk_ratio), (r.reason or "-").replace("|", "/"),
+                 (r.changed or "-").replace("|", "/")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -30,7 +30,8 @@ INDEX_COLUMNS = (
     ("duration_s", "length (s)", "num"), ("retime", "retime", "num"),
     ("keypoint_error_mm", "kp error (mm)", "num"), ("skate_share", "foot skate", "num"),
     ("jerk_ratio", "jerk ratio", "num"), ("limit_violations", "limit hits", "num"),
-    ("check_reason", "physics check", "text"), ("seconds", "took (s)", "num"),
+    ("check_reason", "physics check", "text"), ("changed", "changed from the person", "text"),
+    ("seconds", "took (s)", "num"),
 )
 #: What the column heads mean (their tooltips).
 HINTS = {
@@ -41,6 +42,7 @@ HINTS = {
     "jerk_ratio": "keypoint jerk of the robot over the source motion's",
     "limit_violations": "joint-limit and velocity-limit violations in the retargeted trajectory",
     "check_reason": "the physics check's verdict, also when the retarget stage failed first",
+    "changed": "parts the robot plays differently from the person (a jump kept on the ground, a spin on one foot)",
     "seconds": "compute time of the clip (retarget, check, video)",
 }
 
@@ -228,6 +230,7 @@ def clip_page(r, folder: Path, settings: dict) -> str:
                ("jerk ratio (robot / source)", _cell(r.jerk_ratio) or "-"),
                ("limit + velocity violations", _cell(r.limit_violations) or "-"),
                ("physics check", r.check_reason or ("pass" if r.status == "pass" else "-")),
+               ("changed from the person (s into the file)", getattr(r, "changed", "") or "-"),
                ("compute (s)", _cell(r.seconds))]
     if r.actor:
         figures.insert(0, ("actor (the robot plays the other person)", r.actor))

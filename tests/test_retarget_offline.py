@@ -123,12 +123,13 @@ def test_balance_keeps_the_com_over_the_shrunk_support_polygon(toy_with_contacts
 
 
 def test_zmp_balance_keeps_the_zmp_over_the_shrunk_support_polygon():
-    """With ``zmp`` the point kept over the polygon is c_xy − (c_z/g)·c̈_xy (cart-table ZMP),
+    """With ``zmp`` and ``zmp_model="cart-table"`` the point kept over the polygon is c_xy − (c_z/g)·c̈_xy,
     which a swaying clip moves away from the CoM; checked on interior frames of each window."""
     rb = toy_robot()
     motion = _noisy_walk(T=30, seed=2)
     margin = 0.005
-    traj = OfflineRetargeter(rb, OfflineConfig(window=0, balance=True, balance_margin=margin, zmp=True, **FAST)).retarget(motion)
+    traj = OfflineRetargeter(rb, OfflineConfig(window=0, balance=True, balance_margin=margin, zmp=True,
+                                              zmp_model="cart-table", **FAST)).retarget(motion)
     tg = make_targets(rb, motion)
     ev = rb.evaluate(configurations(rb, traj))
     com = ev["com"]

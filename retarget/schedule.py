@@ -1,0 +1,356 @@
+"""The robot's foot-contact schedule, made from the person's, and what it changed.
+
+:func:`robot_contacts` turns the person's side contacts (T, 2) (left, right) into the robot's,
+which the offline solver holds as hard constraints (a foot in contact stays flat, does not slide
+and does not turn), with these rules (lengths m, angles rad, times s; :class:`StepConfig`):
+
+- *Turns and slides by stepping.* A person often pivots or slides on a foot that stays on the
+  floor (a dancer turning, generated motion skating). The robot's planted foot cannot, so when
+  the person's foot, while down, has turned ``step_turn`` or moved ``step_distance`` (at robot
+  scale) from where it touched down, and the other foot is down and has stood ``min_stance``,
+  the robot re-steps: the foot lifts for ``swing`` and lands where the person's is then.
+- *No flight.* Frames with both of the person's feet off the ground (a jump, a run's flight)
+  keep the feet that were down before them down (both, at the clip's start): the robot cannot
+  leave the ground. Reported as a change.
+- *No pivot on one foot.* A foot that must re-step while the other is in the air cannot: the
+  robot's stays planted and its turn waits. Reported when the person's foot turned more than
+  ``2 step_turn`` that way (a spin faster than the robot's feet allow).
+- Swings shorter than ``min_swing`` are filled (contact flicker).
+- *A standing start* (``standing_start``). The physics check and the bridge bring the robot
+  from its standing pose to the first frame by moving the joints; with both feet on the floor
+  that cannot change where the feet stand relative to each other, so a first frame whose feet
+  are apart, turned or staggered differently from standing (a clip starting mid-step) tips the
+  robot over during that move. The robot therefore starts in its own standing footprint
+  (centred on the person's feet, turned with them: :func:`standing_start` moves the foot
+  targets until each foot's first lift), and a foot whose person's foot stands elsewhere
+  re-steps there by the rule above, once the weight can shift (``start_double``).
+- *The robot's pace.* Before a foot lifts, the weight must move over the other foot, and the
+  robot's small feet and compliant servos need time for that: a foot lifts only after both
+  feet have been down ``min_double`` (``start_double`` at the clip's start, so a clip that
+  starts mid-step begins on both feet and shifts its weight first), and only for a swing of
+  at least ``robot_swing`` (the lift waits, or comes early when the person's swing is shorter
+  and the double support before it is long enough; it lands when the person's foot does). A
+  swing that would still be shorter is skipped: the foot stays down, reported as
+  ``step skipped`` (the person stepped faster than the robot can), and a skipped foot whose
+  person's foot moved re-steps by the rule above when the robot has time.
+
+Each change is a :class:`Change` (start and end in seconds, what, why); the retarget-check
+report lists them with how far the robot's keypoints were from the person's there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StepConfig:
+    """Rules of :func:`robot_contacts` (see the module docstring)."""
+
+    step_turn: float = 0.3  # rad
+    step_distance: float = 0.04  # m, at robot scale
+    swing: float = 0.3  # s
+    min_stance: float = 0.25  # s
+    min_swing: float = 0.1  # s
+    # The robot's pace, the standing start, the swing clearance, the start from rest and the eased
+    # travel are off by default (0 / False): on the op3 in MuJoCo (bench/stepping.py, /tmp figures
+    # in the retarget note) they did not raise the physics pass rate: they fixed the fall at the
+    # entry of a clip that starts mid-step (cmu18_01: 0.21 s -> 0.95 s) but made cmu19_01 fall,
+    # which passes without them. Values that were measured: min_double 0.13, start_double 0.4,
+    # robot_swing 0.13, swing_clearance 0.02, standing_start True, start_ramp 0.3, travel_zmp_shift 0.015
+    min_double: float = 0.0  # s, both feet down before a lift (the weight shift)
+    start_double: float = 0.0  # s, both feet down at the clip's start
+    robot_swing: float = 0.0  # s, the shortest swing the robot makes
+    # the offline solver's swing (retarget.offline.swing_floor): the sole clears the floor by this
+    # share of the robot's standing height in a swing's middle frames; lift-off and touch-down are vertical
+    swing_clearance: float = 0.0
+    standing_start: bool = False
+    # the offline solver starts the clip from rest over this long (s; 0: at the clip's speed):
+    # the robot stands still when the clip begins (retarget.offline.OfflineRetargeter.solve)
+    start_ramp: float = 0.0
+    # the pelvis target's horizontal acceleration is bounded so that it moves the ZMP at most this
+    # far (m; retarget.shaping.ease_travel, from rest at the start); 0: the person's as it is
+    travel_zmp_shift: float = 0.0
+
+
+@dataclass(frozen=True)
+class Change:
+    """A part of a clip the robot plays differently from the person: seconds [start_s, end_s),
+    ``what`` (a short label: ``flight``, ``pivot``, ``restep``, ...) and ``why`` (one sentence)."""
+
+    start_s: float
+    end_s: float
+    what: str
+    why: str
+
+    def to_dict(self) -> dict:
+        return {"start_s": self.start_s, "end_s": self.end_s, "what": self.what, "why": self.why}
+
+
+def _runs(c: np.ndarray):
+    """(start, stop, value) of the runs of a bool array."""
+    out, start = [], 0
+    for i in range(1, len(c) + 1):
+        if i == len(c) or c[i] != c[start]:
+            out.append((start, i, bool(c[start])))
+            start = i
+    return out
+
+
+def foot_poses(robot, keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per frame, each foot's ankle xy (T, 2, 2) and heading (T, 2) rad (ankle → toe; the hips'
+    facing for a profile without toe keypoints), from robot keypoint targets (T, K, 3); None
+    for a robot without ankle keypoints."""
+    names = list(robot.keypoint_names)
+    if not all(n in names for n in ("left_ankle", "right_ankle")):
+        return None
+    kp = np.asarray(keypoints, dtype=np.float64)
+    ank = kp[:, [names.index("left_ankle"), names.index("right_ankle")], 0:2]
+    if all(n in names for n in ("left_foot", "right_foot")):
+        toe = kp[:, [names.index("left_foot"), names.index("right_foot")], 0:2]
+        d = toe - ank
+        head = np.arctan2(d[..., 1], d[..., 0])
+    elif all(n in names for n in ("left_hip", "right_hip")):
+        across = kp[:, names.index("left_hip"), 0:2] - kp[:, names.index("right_hip"), 0:2]
+        h = np.arctan2(-across[:, 0], across[:, 1])
+        head = np.stack([h, h], axis=1)
+    else:
+        return None
+    return ank, head
+
+
+def robot_contacts(robot, keypoints: np.ndarray, contacts: np.ndarray, fps: float,
+                   config: StepConfig = StepConfig()) -> tuple[np.ndarray, list[Change]]:
+    """The robot's contacts (T, 2) bool and the changes made (see the module docstring).
+
+    keypoints (T, K, 3) m: the robot-scale targets; contacts (T, 2) bool: the person's."""
+    cfg = config
+    c = np.array(contacts, dtype=bool, copy=True)
+    T = c.shape[0]
+    changes: list[Change] = []
+    if T == 0:
+        return c, changes
+    sec = lambda a, b: (round(a / fps, 3), round(b / fps, 3))  # noqa: E731
+    # 1. flight: both feet up -> the feet that were down before stay down
+    prev = np.array([True, True])
+    start = None
+    for t in range(T):
+        if not c[t].any():
+            if start is None:
+                start = t
+            c[t] = prev
+        else:
+            if start is not None:
+                changes.append(Change(*sec(start, t), "flight",
+                                      "both of the person's feet were off the ground (a jump or a run): the robot "
+                                      "kept its feet down"))
+                start = None
+            prev = c[t].copy()
+    if start is not None:
+        changes.append(Change(*sec(start, T), "flight", "both of the person's feet were off the ground (a jump or a "
+                              "run): the robot kept its feet down"))
+    # 2. fill swings shorter than min_swing (only between two stances of the same foot)
+    n_swing = max(1, int(round(cfg.min_swing * fps)))
+    for s in range(2):
+        for a, b, v in _runs(c[:, s]):
+            if not v and b - a < n_swing and a > 0 and b < T and c[a:b, 1 - s].all():
+                c[a:b, s] = True
+    # 3. the robot's pace: double support before every lift, no swing shorter than robot_swing
+    c = _pace(c, fps, cfg, changes)
+    # 4. pivots and slides on a planted foot -> re-steps
+    poses = foot_poses(robot, keypoints)
+    if poses is None:
+        return c, changes
+    ank, head = poses
+    start_n = int(round(cfg.start_double * fps))
+    swing_n = max(1, int(round(cfg.swing * fps)))
+    stance_n = max(1, int(round(cfg.min_stance * fps)))
+    ref_xy = ank[0].copy()
+    ref_h = head[0].copy()
+    if cfg.standing_start:
+        ref_xy, ref_h = _standing_footprint(robot, ank[0], head[0])
+    since = np.zeros(2, dtype=int)  # frames since touch-down (planted) or lift
+    lifted_until = np.full(2, -1)  # a re-step's swing ends at this frame (exclusive)
+    pivot_start = [None, None]
+    out = c.copy()
+    for t in range(T):
+        for s in range(2):
+            if t < lifted_until[s]:
+                out[t, s] = False
+                continue
+            if t > 0 and out[t, s] and not out[t - 1, s]:  # touch-down: new reference
+                ref_xy[s], ref_h[s], since[s] = ank[t, s], head[t, s], 0
+            if not out[t, s]:
+                continue
+            since[s] += 1
+            turn = abs((head[t, s] - ref_h[s] + math.pi) % (2 * math.pi) - math.pi)
+            slide = float(np.hypot(*(ank[t, s] - ref_xy[s])))
+            if turn <= cfg.step_turn and slide <= cfg.step_distance:
+                _end_pivot(changes, pivot_start, s, t, fps)
+                continue
+            o = 1 - s
+            other_ok = (out[t, o] and t >= lifted_until[o] and since[o] >= stance_n
+                        and c[t:min(T, t + swing_n), o].all())
+            if since[s] >= stance_n and other_ok and t >= start_n:
+                end = min(T, t + swing_n)
+                out[t:end, s] = False
+                lifted_until[s] = end
+                since[s] = 0
+                _end_pivot(changes, pivot_start, s, t, fps)
+            elif turn > 2 * cfg.step_turn and not out[t, o] and pivot_start[s] is None:
+                pivot_start[s] = t
+    for s in range(2):
+        _end_pivot(changes, pivot_start, s, T, fps)
+    out = _pace(out, fps, cfg, changes)
+    changes.sort(key=lambda ch: ch.start_s)
+    return out, changes
+
+
+def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarray:
+    """Contacts (T, 2) bool at the robot's pace (module docstring): a lift waits until both feet
+    have been down ``min_double`` (``start_double`` from the first frame) and is skipped when the
+    swing left is shorter than ``robot_swing``; appends a ``step skipped`` Change per skipped swing."""
+    T = c.shape[0]
+    out = c.copy()
+    n_start = int(round(cfg.start_double * fps))
+    n_double = int(round(cfg.min_double * fps))
+    n_swing = max(1, int(round(cfg.robot_swing * fps)))
+    double = 0  # frames both feet have been down (the robot's), up to the last frame
+    lifted = np.zeros(2, dtype=bool)  # the robot's foot is in the air
+    early = np.zeros(2, dtype=bool)  # ... lifted before the person's, which has not lifted yet
+    skip_until = np.zeros(2, dtype=int)  # a skipped swing keeps the foot down until this frame
+    for t in range(T):
+        for s in range(2):
+            if lifted[s]:
+                if not c[t, s]:
+                    early[s] = False
+                elif not early[s]:  # the person's foot is down again: land
+                    lifted[s] = False
+                continue
+            if t < skip_until[s]:
+                continue
+            o = 1 - s
+            need = n_start if double == t else n_double  # still on both feet since the first frame
+            if c[t, s]:
+                # a person's swing shorter than the robot's starts early enough, where the double
+                # support before it is long enough: lift n_swing frames before its landing
+                a = t + 1
+                while a < T and a < t + n_swing and c[a, s]:
+                    a += 1
+                e = a
+                while e < T and not c[e, s]:
+                    e += 1
+                if (a < T and not c[a, s] and e < T and e - t == n_swing and not lifted[o] and double >= need
+                        and c[t:e, o].all()):
+                    lifted[s] = early[s] = True
+                continue
+            # the person's foot is up and the robot's down: lift now, wait, or skip this swing
+            end = t
+            while end < T and not c[end, s]:
+                end += 1
+            a = t  # the person's lift
+            while a > 0 and not c[a - 1, s]:
+                a -= 1
+            if lifted[o] or double < need:
+                if end - (t + 1) < n_swing:  # waiting one more frame leaves too short a swing
+                    skip_until[s] = end
+                    changes.append(Change(round(a / fps, 3), round(end / fps, 3), "step skipped",
+                                          f"the person's {('left', 'right')[s]} foot stepped faster than the robot "
+                                          f"can (it needs {cfg.min_double:g} s on both feet before a step and "
+                                          f"{cfg.robot_swing:g} s in the air); the robot's foot stayed down"))
+                continue
+            if end - t < n_swing and end < T:
+                skip_until[s] = end
+                changes.append(Change(round(a / fps, 3), round(end / fps, 3), "step skipped",
+                                      f"the person's {('left', 'right')[s]} foot was up {(end - a) / fps:.2f} s, less "
+                                      f"than the robot's shortest swing ({cfg.robot_swing:g} s); the robot's foot "
+                                      "stayed down"))
+                continue
+            lifted[s] = True
+        for s in range(2):
+            out[t, s] = not lifted[s]
+        double = double + 1 if out[t].all() else 0
+    return out
+
+
+def _standing_footprint(robot, ank0: np.ndarray, head0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's standing feet (ankle xy (2, 2), heading (2,)) moved to stand centred on the
+    person's first-frame ankles ``ank0`` (2, 2) and turned to their mean heading ``head0`` (2,)."""
+    st = foot_poses(robot, robot.evaluate(robot.x_stand[None])["keypoints"])
+    ank_s, head_s = st[0][0], st[1][0]
+    mean = lambda h: math.atan2(np.sin(h).sum(), np.cos(h).sum())  # noqa: E731
+    d = mean(head0) - mean(head_s)
+    R = np.array([[math.cos(d), -math.sin(d)], [math.sin(d), math.cos(d)]])
+    return ank0.mean(axis=0) + (ank_s - ank_s.mean(axis=0)) @ R.T, head_s + d
+
+
+def standing_soles(robot, keypoints: np.ndarray) -> np.ndarray | None:
+    """Where the robot's soles stand in its standing footprint centred on the person's first
+    frame (:func:`_standing_footprint`): per foot (2, 4) its sole corner 0 xy and the sole
+    diagonal (corner 2 − corner 0) xy, m; None for a robot without ankle keypoints."""
+    poses = foot_poses(robot, keypoints)
+    if poses is None:
+        return None
+    ev = robot.evaluate(robot.x_stand[None])
+    st = foot_poses(robot, ev["keypoints"])
+    ank_s, head_s = st[0][0], st[1][0]
+    new_xy, new_h = _standing_footprint(robot, poses[0][0], poses[1][0])
+    d = float(new_h[0] - head_s[0])
+    R = np.array([[math.cos(d), -math.sin(d)], [math.sin(d), math.cos(d)]])
+    sole = ev["sole"][0][:, 0:2]  # (8, 2)
+    placed = new_xy.mean(axis=0) + (sole - ank_s.mean(axis=0)) @ R.T
+    return np.array([np.concatenate([placed[4 * f], placed[4 * f + 2] - placed[4 * f]]) for f in range(2)])
+
+
+def standing_start(robot, keypoints: np.ndarray, planned: np.ndarray) -> tuple[np.ndarray, int, float, float]:
+    """Keypoint targets (T, K, 3) with each foot standing in the robot's standing footprint
+    (:func:`_standing_footprint`) until its first lift in the schedule ``planned`` (T, 2): the
+    ankle and toe targets move rigidly with the foot (turned about the ankle), the knee by half
+    the shift. Returns the targets, the last frame changed + 1 (0: none) and how far the first
+    frame's feet moved: the largest ankle shift (m) and turn (rad)."""
+    poses = foot_poses(robot, keypoints)
+    if poses is None:
+        return keypoints, 0, 0.0, 0.0
+    ank, head = poses
+    new_xy, new_h = _standing_footprint(robot, ank[0], head[0])
+    moved = float(np.max(np.linalg.norm(new_xy - ank[0], axis=1)))
+    turned = float(np.max(np.abs((new_h - head[0] + math.pi) % (2 * math.pi) - math.pi)))
+    names = list(robot.keypoint_names)
+    out = np.array(keypoints, dtype=np.float64, copy=True)
+    last = 0
+    for s, side in enumerate(("left", "right")):
+        up = np.flatnonzero(~np.asarray(planned[:, s], dtype=bool))
+        n = int(up[0]) if up.size else len(planned)
+        last = max(last, n)
+        for t in range(n):
+            d = new_h[s] - head[t, s]
+            R = np.array([[math.cos(d), -math.sin(d)], [math.sin(d), math.cos(d)]])
+            shift = new_xy[s] - ank[t, s]
+            for j, share in (("ankle", 1.0), ("foot", 1.0), ("knee", 0.5)):
+                name = f"{side}_{j}"
+                if name in names:
+                    k = names.index(name)
+                    rel = out[t, k, 0:2] - ank[t, s]
+                    there = ank[t, s] + (rel @ R.T if j != "knee" else rel) + shift
+                    out[t, k, 0:2] = (1 - share) * out[t, k, 0:2] + share * there
+    return out, last, moved, turned
+
+
+def _end_pivot(changes: list, pivot_start: list, s: int, t: int, fps: float) -> None:
+    """Close foot s's pivot (started at pivot_start[s], if any) at frame t as a Change."""
+    if pivot_start[s] is None:
+        return
+    a = pivot_start[s]
+    pivot_start[s] = None
+    changes.append(Change(round(a / fps, 3), round(t / fps, 3), "pivot",
+                          f"the person turned on the {('left', 'right')[s]} foot alone (a spin faster than the robot's "
+                          "feet allow); the robot's foot stayed planted and its turn waited for the next step"))
+
+
+def count_steps(contacts: np.ndarray) -> int:
+    """Touch-downs after the first frame: rising edges of the side contacts (T, 2)."""
+    c = np.asarray(contacts, dtype=bool)
+    return int(np.sum(c[1:] & ~c[:-1]))

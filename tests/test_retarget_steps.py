@@ -1,0 +1,231 @@
+"""The robot's contact schedule (retarget.schedule), the offline solver's per-window warm start
+(the root-yaw "infeasible" verdict on a person turning slowly), and stepping on the bundled op3.
+
+The clips are SYNTHETIC, from bench/stepping_leaders.py: a person in the rest pose turning
+rigidly about the vertical axis through the pelvis (feet pivoting on the floor, so contact
+detection keeps them down), and stepping leaders (turning, walking)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dualflow.motion import REST_POSE, Motion
+from retarget import RetargetError
+from retarget.offline import OfflineConfig, OfflineRetargeter, mass_groups, speed_limited, swing_floor
+from retarget.report import configurations, evaluate
+from retarget.robot import load_robot
+from retarget.schedule import StepConfig, count_steps, foot_poses, robot_contacts, standing_start
+from retarget.streaming import StreamingConfig, StreamingRetargeter
+from retarget.targets import make_targets
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.stepping_leaders import count_steps as leader_steps  # noqa: E402
+from bench.stepping_leaders import pivot_turn, turning_leader, walking_leader  # noqa: E402
+
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def op3():
+    return load_robot("op3")
+
+
+# -- the schedule on hand-made contacts ------------------------------------------------
+def still_targets(op3, T: int) -> np.ndarray:
+    return np.repeat(op3.evaluate(op3.x_stand[None])["keypoints"], T, axis=0)
+
+
+def test_flight_keeps_the_feet_down_and_is_reported(op3):
+    T = 60
+    person = np.ones((T, 2), dtype=bool)
+    person[20:26] = False  # a jump: both feet up for 0.2 s
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS)
+    assert planned.all(axis=1).all(), "the robot must not leave the ground"
+    assert [c.what for c in changes] == ["flight"]
+    assert changes[0].start_s == pytest.approx(20 / FPS, abs=1e-3) and changes[0].end_s == pytest.approx(26 / FPS, abs=1e-3)
+
+
+def test_a_real_step_is_kept_and_flicker_is_filled(op3):
+    T = 60
+    person = np.ones((T, 2), dtype=bool)
+    person[20:30, 0] = False  # a 0.33 s step of the left foot
+    person[40:41, 1] = False  # a one-frame contact flicker of the right
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS)
+    assert not planned[20:30, 0].any() and planned[:20, 0].all() and planned[30:, 0].all()
+    assert planned[:, 1].all()
+    assert changes == [] and count_steps(planned) == 1
+
+
+def test_a_clip_starting_mid_step_starts_on_both_feet(op3):
+    """The person's right foot is up in the first 0.3 s: the robot cannot be put into that pose
+    from standing, so it starts on both feet (its weight shift takes start_double) and reports
+    the step it skipped."""
+    T = 60
+    person = np.ones((T, 2), dtype=bool)
+    person[0:9, 1] = False
+    cfg = StepConfig(start_double=0.4, min_double=0.13, robot_swing=0.13)
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS, cfg)
+    assert planned.all(), "both feet down: the person's first swing ends before the robot could lift"
+    assert [c.what for c in changes] == ["step skipped"] and changes[0].start_s == 0.0
+
+
+def test_the_robot_keeps_its_own_pace(op3):
+    """A lift right after a landing waits for min_double on both feet; a person's swing shorter
+    than robot_swing starts early where the double support before it allows; one that cannot
+    is skipped and reported; never both feet up."""
+    cfg = StepConfig(min_double=0.2, robot_swing=0.2, start_double=0.4)
+    T = 120
+    person = np.ones((T, 2), dtype=bool)
+    person[20:30, 0] = False   # a normal step
+    person[32:42, 1] = False   # lifts 2 frames after the left lands: waits until frame 36
+    person[60:64, 0] = False   # a 4-frame swing after a long double support: starts 2 frames early
+    person[66:69, 1] = False   # a 3-frame swing 2 frames later: no time, skipped
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS, cfg)
+    assert planned[32:36, 1].all() and not planned[36:42, 1].any() and planned[42:, 1].all()
+    assert planned[:58, 0].sum() == 58 - 10 and not planned[58:64, 0].any()
+    assert planned[64:, 0].all() and planned[60:, 1].all()
+    assert not (~planned).all(axis=1).any()
+    assert [c.what for c in changes] == ["step skipped"] and changes[0].start_s == pytest.approx(66 / FPS, abs=1e-3)
+
+
+def test_the_robot_starts_in_its_standing_footprint(op3):
+    """Feet staggered 8 cm and turned apart in the first frame: until each foot's first lift its
+    targets stand where the robot's standing feet would, centred on the person's."""
+    T = 30
+    kp = still_targets(op3, T).copy()
+    names = list(op3.keypoint_names)
+    for j in ("right_ankle", "right_foot"):
+        kp[:, names.index(j), 0] += 0.08
+    planned = np.ones((T, 2), dtype=bool)
+    planned[20:, 1] = False
+    out, n, moved, turned = standing_start(op3, kp, planned)
+    assert n == T and moved == pytest.approx(0.04, abs=1e-6)  # n: the left foot never lifts and turned == pytest.approx(0.0, abs=1e-9)
+    stand = foot_poses(op3, still_targets(op3, 1))[0][0]
+    ank = foot_poses(op3, out)[0]
+    rel = lambda a: a[1] - a[0]  # noqa: E731
+    assert np.allclose(rel(ank[0]), rel(stand), atol=1e-9), "the standing stance, relative"
+    assert np.allclose(ank[25, 1], foot_poses(op3, kp)[0][25, 1]), "after the lift: the person's"
+
+
+def test_swing_floor_and_segments_and_speed_limited_parts(op3):
+    c = np.ones((12, 2), dtype=bool)
+    c[2:9, 0] = False  # a 7-frame swing
+    f = swing_floor(c, 0.01)
+    assert np.allclose(f[:, 0], [0, 0, 0, 0.005, 0.01, 0.01, 0.01, 0.005, 0, 0, 0, 0]) and not f[:, 1].any()
+    m = op3.kin.model
+    groups = mass_groups(m)
+    assert sum(len(g) for g in groups) == sum(m.body_mass[1:] > 0), "every body with mass in one segment"
+    assert len(groups) == 6  # OP3: trunk, 2 legs, 2 arms, head
+    X = np.tile(op3.x_stand, (20, 1))
+    v = op3.velocity_limits[0] / FPS
+    X[:, op3.n_root] += v * np.clip(np.arange(20) - 5, 0, 6)  # the first joint at its speed limit, frames 5-11
+    parts = speed_limited(op3, X, FPS)
+    assert len(parts) == 1 and parts[0].what == "speed-limited" and op3.joint_names[0] in parts[0].why
+    assert parts[0].start_s == pytest.approx(5 / FPS, abs=1e-3) and parts[0].end_s == pytest.approx(12 / FPS, abs=1e-3)
+
+
+def test_a_pivot_on_planted_feet_becomes_steps(op3):
+    m = pivot_turn(0.8, 1.0)
+    tg = make_targets(op3, m)
+    assert tg.contacts.all(), "the pivoting person's feet stay down (detected contacts)"
+    planned, changes = robot_contacts(op3, tg.keypoints, tg.contacts, FPS, StepConfig())
+    n = count_steps(planned)
+    # one turn with re-steps every ~0.3 rad of foot turn: at least 2π/0.3/2 per foot... both feet alternate
+    assert n >= int(2 * np.pi / 0.45), f"only {n} re-steps for a full turn"
+    assert not (~planned).all(axis=1).any(), "never both feet up"
+    assert changes == []
+
+
+# -- offline: the root-yaw verdict -----------------------------------------------------
+@pytest.mark.slow
+def test_a_slow_pivot_turn_is_feasible_offline_and_turned_by_steps(op3):
+    """2.5 turns at 0.8 rad/s: before, the warm start made once for the whole clip kept turning
+    with the person while the solved, planted robot did not, and the next window started with
+    a root-yaw jump of that size: "infeasible at its speed: ... velocity of root yaw" (and
+    the same at 2x slower). Now: solved, within the velocity limits, the robot turning by steps."""
+    m = pivot_turn(0.8, 2.5)
+    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True))
+    traj = off.retarget(m)
+    X = configurations(op3, traj)
+    yaw = np.unwrap(X[:, 3])
+    vmax = op3.root_velocity_limits[3] / FPS
+    assert np.max(np.abs(np.diff(yaw))) <= vmax * (1 + 1e-6)
+    person_yaw = 0.8 * (m.n_frames / FPS - 1.0)  # the turn done by the end (lead-in 0.5 s, 0.5 s still)
+    assert abs((yaw[-1] - yaw[0]) - 2.5 * 2 * np.pi) < 0.6, f"robot turned {yaw[-1] - yaw[0]:.2f} rad of {person_yaw:.2f}"
+    assert traj.meta["steps"]["person"] == 0 and traj.meta["steps"]["robot"] >= 20
+    rep = evaluate(op3, traj, make_targets(op3, m))
+    assert rep.passed, rep.to_markdown()
+    assert rep.limit_violations == 0 and rep.velocity_violations == 0
+
+
+@pytest.mark.slow
+def test_the_person_holding_the_contacts_as_given_cannot_turn(op3):
+    """The same clip with the person's contacts held as they are (no schedule): the planted robot
+    cannot follow 2.5 turns; the per-window warm start still leaves no root-yaw jump, so IPOPT's
+    verdict, if any, is not a velocity violation of root yaw."""
+    m = pivot_turn(0.8, 1.0)
+    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, steps=None))
+    try:
+        traj = off.retarget(m)
+    except RetargetError as exc:
+        assert "velocity of root yaw" not in str(exc)
+    else:
+        X = configurations(op3, traj)
+        assert np.max(np.abs(np.diff(np.unwrap(X[:, 3])))) <= op3.root_velocity_limits[3] / FPS * (1 + 1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("make", [lambda: turning_leader(1.0, 0.6), lambda: walking_leader(6.0, 0.3)],
+                         ids=["turning", "walking"])
+def test_offline_steps_when_the_person_steps(op3, make):
+    m = make()
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
+    person = leader_steps(m.contacts)
+    X = configurations(op3, traj)
+    sole = op3.evaluate(X)["sole"][..., 2]
+    up = np.stack([sole[:, 0:4].max(axis=1) > 0.002, sole[:, 4:8].max(axis=1) > 0.002], axis=1)
+    robot = count_steps(~up)
+    assert abs(robot - person) <= 0.2 * person, f"robot {robot} steps, person {person}"
+    rep = evaluate(op3, traj, make_targets(op3, m))
+    assert rep.passed, rep.to_markdown()
+
+
+def test_streaming_resume_continues_from_given_frames(op3):
+    st = StreamingRetargeter(op3, FPS, StreamingConfig())
+    kp = still_targets(op3, 1)[0]
+    x0 = st.step(kp)
+    x1 = x0.copy()
+    x1[3] += 2 * np.pi  # the same pose a full turn on: the next frame must stay near this yaw
+    st.resume(x1, x1)
+    x2 = st.step(kp)
+    assert abs(x2[3] - x1[3]) <= op3.root_velocity_limits[3] / FPS + 1e-9
+    with pytest.raises(RetargetError, match="balance"):
+        StreamingRetargeter(op3, FPS, StreamingConfig(balance=True)).resume(x0, x0)
+
+
+@pytest.mark.slow
+def test_a_jump_is_played_on_the_ground_and_reported(op3):
+    """A person standing, jumping 10 cm for 0.3 s, standing: the clip is still produced, the robot's
+    feet stay down (the flight replaced by the closest thing on the ground) and the report says
+    which seconds and how far from the person."""
+    T = 60
+    pos = np.repeat(REST_POSE[None], T, axis=0).copy()
+    lift = np.zeros(T)
+    lift[25:34] = 0.10 * np.sin(np.pi * (np.arange(9) + 1) / 10)
+    pos[..., 2] += lift[:, None]
+    m = Motion(pos, FPS, name="jump")
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
+    flights = [c for c in traj.meta["changes"] if c["what"] == "flight"]
+    assert len(flights) == 1
+    c = flights[0]
+    assert 0.75 <= c["start_s"] <= 0.9 and 1.05 <= c["end_s"] <= 1.2
+    sole = op3.evaluate(configurations(op3, traj))["sole"][..., 2]
+    assert sole.max() < 0.005, "the robot's feet stay on the ground"
+    rep = evaluate(op3, traj, make_targets(op3, m))
+    flight = next(c for c in rep.changes if c["what"] == "flight")
+    assert flight["keypoint_error_mm"] > 10  # the person is 10 cm up there
+    assert "What the robot does differently" in rep.to_markdown() and "flight" in rep.changes_text()
