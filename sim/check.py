@@ -1,71 +1,10 @@
 """Physical check of a robot trajectory: play it through the servos in MuJoCo and judge it.
 
-The question it answers is "can the robot do this?": a motion fails only for an outcome
-that would hurt the robot, the person or the performance; what merely looks marginal is
-measured and reported as a warning.
-
-The trajectory (:class:`retarget.RobotTrajectory`) is resampled to the control rate
-(default 100 Hz, like the bridge) by linear or cubic (PCHIP, no overshoot)
-interpolation; each control tick writes the goal angles to the position servos and
-advances physics ``physics_hz / control_hz`` steps (default 500 Hz). Commands are
-held between ticks (zero-order hold), as a servo bus does.
-
-Modes: ``free`` (the robot stands on its own feet; only gravity, contacts and its
-servos act on it; the root pose of the trajectory sets the start pose only) and
-``fixed`` (the root body is bolted at the trajectory's first root pose).
-
-Balance stabilizer (``stabilizer=True``, the default): a free-standing robot's goals pass
-through the same :class:`sim.stabilizer.Stabilizer` the bridge's control loop runs, fed with
-the simulated IMU (:class:`sim.virtual_robot.ImuProbe`) and joint angles one control tick old
-(as the bridge's split-phase bus reads them), from the first settle on; so the check judges
-what the bridge would send (``q_cmd`` is the corrected command; ``series["correction"]`` and
-``metrics["stabilizer"]`` say how much it changed). A correction never adds a joint-limit or servo-speed breach: it is
-kept inside the limits of a joint whose reference is, and the corrected command moves no
-faster than the reference or the servo's no-load speed, whichever is faster (the bridge's
-safety filter does the same). ``stabilizer=False`` (``check --no-stabilizer``) plays the
-reference open loop. It is off for a fixed base and for a robot whose legs are not found.
-
-Entry (``entry="stand"``, the default): a clip may start mid-motion, in a pose the robot
-cannot be dropped into. The robot starts in its standing pose (the scene's ``stand``
-keyframe, or the derived one: :mod:`sim.scene`), feet on the floor, at the first frame's root
-position and heading; it stands for ``settle_s`` (not judged) and then moves to the clip's
-first pose along a minimum-jerk path, q(s) = q_stand + (q_0 - q_stand) (10 s^3 - 15 s^4 + 6 s^5),
-as the bridge ramps a real robot to a pose. The move makes its fastest joint peak at
-``entry_speed_frac`` of its servo's no-load speed (the profile's peak speed is 1.875 |dq| / T):
-T = max(``entry_min_s``, max_j 1.875 |dq_j| / (``entry_speed_frac`` v_j)). The transition is
-judged like the clip: its ticks have negative times (the clip's first frame is t = 0); a failure there,
-or a fall whose tipping began there, is reported with ``phase="entry"`` (the clip's first pose
-cannot be reached from standing, or not held: a mid-step pose needs the step's momentum).
-``entry="first_frame"`` puts the robot straight into the first frame's pose, lowest point on
-the floor, and holds it for ``settle_s`` (not judged) instead.
-
-Failures (each with the time of its first occurrence, s in the clip's time):
-``joint_limit`` (a command outside the joint's range), ``speed_limit`` (a commanded joint
-speed above the servo's no-load speed), ``fall`` (a robot part other than a foot touches the
-floor, e.g. a knee, a hand or the torso, however deep; or the torso tilts beyond
-``fall_tilt_deg``; optionally the root below ``fall_height_frac`` of its standing height),
-``self_collision`` (two robot parts deeper into each other than ``self_collision_depth``),
-``human_penetration`` (the robot inside the human figure by more than
-``human_penetration_depth``), ``torque_saturation`` (a servo at its stall torque for
-``saturation_window_s``) and ``tracking_error`` (|q - q_cmd| above ``max_tracking_error``
-for ``tracking_window_s``). The first in time is the reason.
-
-Warnings (measured, never a failure; ``CheckResult.warnings``): ``foot_slip`` (a foot's
-largest slide within one stance, i.e. one contact phase of that foot, above
-``foot_slip_frac`` of the robot's height; never summed over a clip, so a long clip does
-not fail where a short one passes), ``com_outside_support`` (the centre of mass outside
-the support polygon for ``balance_window_s``: fine while moving, a static robot would
-tip), ``zmp_near_edge`` (the measured ZMP, the centre of pressure of the foot-floor contact
-forces, within ``zmp_edge_margin`` of the support polygon's edge for ``balance_window_s``:
-the feet are about to roll over an edge) and ``foot_in_floor`` (a foot deeper than
-``ground_penetration_depth`` in the floor: soft-contact compliance under load, not a fall).
-
-The robot is read as published (:mod:`sim.robot_index`, :mod:`sim.scene`): feet are the
-lowest contact bodies, limits of unranged joints come from the robot's profile or
-hardware config, force limits from the actuators or the joints. A test that cannot run
-for lack of data (a joint with no known limit, a servo with no known no-load speed or
-force limit, a free-standing robot without feet) passes nothing silently: it is listed
-in ``CheckResult.not_checked`` (reason -> why), in the JSON and the markdown report.
+``check_trajectory(traj, CheckConfig())`` returns a :class:`CheckResult`: FAIL only for an
+outcome (a fall, self-collision, a limit or servo-speed breach, sustained stall torque or
+tracking error, penetrating the human), each at its first time in the clip (negative while
+entering the clip's first pose from standing); slip and balance margins are warnings. A
+free robot plays through the bridge's balance stabilizer. Reference: docs/simulation.md.
 """
 
 from __future__ import annotations

@@ -1,31 +1,9 @@
 """The scene: floor, lights, the robot partner and the human figures, compiled once.
 
-A :class:`Scene` owns one ``MjModel``/``MjData`` pair. The robot comes from its
-MJCF (found through :mod:`firmware_cfg.registry`); ``fixed_base=True`` removes its freejoint and
-bolts the root body at ``base_pos``/``base_quat`` (an upper-body partner, or a
-free robot checked with its torso held). The human actor (and optionally the
-generated reactor, drawn as a thin stick figure) are kinematic capsule figures
-(:class:`sim.human_figure.HumanFigure`) that never exert forces.
-
-A model as published works unmodified:
-
-- the floor: a horizontal plane at z = 0 added by the scene, unless the file already has
-  one attached to the world (a Menagerie-style ``scene.xml`` that ``<include>``s the robot
-  and adds ``<geom name="floor" type="plane">``): that floor is kept as it is (its
-  friction, its look; ``floor_friction`` applies to the scene's own floor only) and named
-  ``floor`` if it has no name. A world plane that is not horizontal at z = 0 is refused;
-- the standing pose: the keyframe named ``stand`` when the model has one. Otherwise one is
-  derived: every joint at its MJCF reference angle (0) clipped into its limits
-  (:class:`sim.robot_index.RobotIndex`), the root at the MJCF's pose raised or lowered so
-  the lowest contact geom touches z = 0, each position servo's goal = its joint angle;
-  ``stand_source`` says which ("keyframe" or "derived");
-- joint limits and servo speeds the MJCF lacks come from the robot's folder or the config
-  (:mod:`sim.robot_facts`); feet from the lowest contact geoms (:func:`sim.robot_index.find_feet`).
-
-Geom groups: 0 floor, 1 robot (moved there after compiling), 3 the actor, 4 the
-reactor stick figure, 5 the robot's contact-only geoms in a body that also has geoms
-that only show (visual meshes): hidden in videos, so a published model's collision
-hulls are not drawn over its visual meshes.
+A :class:`Scene` owns one ``MjModel``/``MjData`` pair built from the robot's MJCF as published
+(found through :mod:`firmware_cfg.registry`): a floor at z = 0 unless the model brings one,
+the ``stand`` keyframe or a derived standing pose, optionally a bolted base, and kinematic
+figures of the people that exert no forces. Reference: docs/simulation.md.
 """
 
 from __future__ import annotations

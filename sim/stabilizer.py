@@ -1,44 +1,10 @@
 """Balance stabilizer: body IMU + joint readings -> bounded corrections on the legs' joints.
 
-Used by the bridge's control loop (after target interpolation, before the safety filter) and
-by the physics check (:mod:`sim.check`), so the check judges what the bridge sends. The
-per-tick part (:class:`Stabilizer`) is numpy and plain Python; building its
-:class:`BalanceModel` from a robot (:func:`balance_model`) reads the MJCF with MuJoCo, once.
-
-What it corrects. The servos are P-only position servos: under the robot's weight each leg
-joint sags by tau / kp (the OP3's XM430s at kp 17.5 N m/rad), the centre of mass drifts
-back and the robot tips over. Two terms act, each bounded:
-
-1. attitude + rate feedback with integral action on the torso's tilt error (the ankle
-   strategy; the gyro term also on the hips, as the ROBOTIS OP3 framework's balance control
-   feeds the gyro back to hips and ankles). The reference tilt is the torso's attitude that
-   the reference joint angles give with the stance foot flat on the floor (forward
-   kinematics of the legs, per tick); the measured one comes from the IMU's quaternion
-   (else its accelerometer). With u_ref, u_meas the world's up axis seen in the root frame,
-   the body rotation that brings the measured attitude to the reference one is
-   e = u_ref x u_meas (small angles), and the commanded body rotation is
-       w = kp e + ki integral(e) dt + kd (w_ref - w_gyro)        (root frame, rad)
-   where w_gyro is the low-passed gyro rate (tilt components) and w_ref the reference
-   attitude's rate. A hinge j of a stance leg with unit axis a_j (root frame) turns the body
-   above it by -dq_j a_j when the foot stays put, so the joint correction is
-   dq_j = -a_j . w on the ankle joints (pitch and roll), and dq_j = -a_j . w_d on the hip
-   joints with the rate term w_d = kd_hip (w_ref - w_gyro) only;
-2. sag compensation: an integrator per leg joint (hips, knees, ankles; pitch and roll) on the
-   measured tracking error, c_j += ki_sag (q_ref_j - q_j) dt, which at steady state is the
-   feed-forward tau_gravity / kp that makes the servo hold its reference under load,
-   without a model of the support forces.
-
-Bounds: every correction within +-``max_correction`` rad (each joint also inside its
-limits where its reference is), changing at most ``max_rate`` rad/s; integrators stop
-growing in the direction of a clamp (anti-windup) and are themselves clamped. A leg whose
-foot is above the other foot (swinging) gets its stance weight (0..1) times the
-corrections. Gains scale with the robot (:func:`default_gains`); any of them can be given
-explicitly (``StabilizerGains`` fields, ``LoopConfig.stabilizer_gains`` in the bridge,
-``CheckConfig.stabilizer_gains`` in the check).
-
-Frames: the IMU's own axes are x forward, y left, z up (``ImuReading``); ``imu_to_root`` (3, 3)
-rotates IMU-frame vectors into the robot's root body frame. Angles rad, rates rad/s,
-lengths m, times s, arrays (n,) in the robot's joint order.
+The same component in the bridge's control loop (after interpolation, before the safety
+filter) and in the physics check. :func:`balance_model` reads a robot's legs and IMU frame
+from its MJCF once (None for a fixed base); :meth:`Stabilizer.step` maps (reference (n,) rad,
+measured (n,) rad, IMU reading, dt s) to corrected targets (n,) rad, every correction within
+``max_correction`` rad, ``max_rate`` rad/s and the joint limits. Reference: docs/simulation.md.
 """
 
 from __future__ import annotations

@@ -1,38 +1,10 @@
 """The virtual robot: a MuJoCo robot that behaves like a servo bus.
 
-Method names mirror ``ros_free_bridge.transports.base.Transport`` (open,
-read_state, write_goal, set_torque, safe_stop, close) so the bridge can wrap it as
-its sim transport; readings are :class:`firmware_cfg.readings.JointState`, the type every
-transport returns.
-Units: rad, rad/s, N m, deg C, V; arrays (n,) in the robot's joint (actuator) order.
-
-Time. ``clock="realtime"``: every call advances physics to the wall clock (times
-``speed``), at most ``max_catchup_s`` per call. ``clock="lockstep"``: each
-``write_goal`` advances exactly ``1 / control_hz`` s of physics, as fast as the
-CPU allows (tests, faster-than-real-time runs). A free-standing robot rests in its
-"stand" keyframe, as if on its stand, until torque is first switched on; physics
-starts then.
-
-Servo figures per joint: present position and velocity from MuJoCo; effort = the
-servo's drive torque (actuator force, N m); temperature from a first-order
-thermal model of the motor winding driven by the current the torque needs:
-    I = |tau| / tau_stall * I_stall
-    C dT/dt = I^2 R - (T - T_ambient) / R_th,   C = tau_th / R_th
-with I_stall = 2.1 A (XM430-W350 datasheet: 2.3 A at 12 V, scaled to 11.1 V),
-R = V / I_stall, and R_th = 5 K/W, tau_th = 120 s (our estimates: a servo at stall
-overheats in a few minutes, as XM430s do). Above ``max_temperature_c`` (the
-Dynamixel default shutdown temperature, 80 C) the servo switches its torque off and
-reports "overheating", as a real one does, until :meth:`reboot`.
-
-IMU: each reading carries the body IMU's sample (``JointState.imu``, :class:`ImuProbe`): the
-model's gyro / accelerometer / framequat sensors on a site of the root body (the OP3's
-``imu`` site), else a site of the root body named like "imu", else the root body's frame,
-with the rate and attitude computed from the simulation and the specific force taken as
-gravity alone (R^T (0, 0, 9.81): the quasi-static value) where no accelerometer is declared.
-
-Faults (:meth:`inject_fault`): ``"stuck"`` locks the joint mechanically where it
-is (a seized gearbox; goals are ignored); ``"torque_limit"`` lowers the servo's
-torque limit to ``value`` N m (a weak battery, a worn motor).
+Method names mirror ``ros_free_bridge.transports.base.Transport`` so the bridge wraps it as
+its sim transport; readings are :class:`firmware_cfg.readings.JointState` (IMU sample
+included; units rad, rad/s, N m, deg C, V; arrays (n,) in the robot's joint order).
+``clock="realtime"`` follows the wall clock, ``"lockstep"`` advances one control period per
+write. Servo temperatures and faults are modelled. Reference: docs/simulation.md.
 """
 
 from __future__ import annotations
