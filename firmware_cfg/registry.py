@@ -1,27 +1,9 @@
 """The robot registry: one place that turns ``--robot NAME|DIR|FILE`` into a robot's files.
 
-A robot is one folder (DESIGN.md)::
-
-    <dir>/
-      <name>.xml      the MJCF (or any one *.xml; or the ``mjcf:`` key of profile.yaml,
-                      relative to the folder, for a model kept elsewhere with its meshes)
-      profile.yaml    the retarget profile (retarget/profile.py)      optional for check/render/view
-      hardware.yaml   the hardware config (firmware_cfg/config.py)    optional: simulation only
-      README.md       optional; its first heading is the robot's one-line description
-
-Bundled robots are such folders under ``firmware_cfg/robots/``. A reference resolves as:
-
-- a bundled name (``op3``): that folder;
-- a directory: that folder, whatever its name (a folder called ``op3`` elsewhere is the
-  user's, never the bundled one);
-- an MJCF file: its model only; the profile and hardware config come from beside it only
-  when that folder is a robot folder (it holds ``profile.yaml`` naming this MJCF, or the
-  MJCF is the folder's own), never from a bundled robot of the same name;
-- a hardware config (``.yaml``): the config, its ``mjcf:`` model, and the profile beside it
-  (``profile.yaml`` or ``<robot>.profile.yaml``).
-
-Only the standard library is used (no mujoco): the MJCF is read as XML, following
-``<include>``, for the joint order (the actuator order) and joint ranges.
+A robot is one folder (its MJCF, ``profile.yaml``, ``hardware.yaml``, an optional README);
+bundled ones live under ``firmware_cfg/robots/``. :func:`resolve` gives a :class:`Robot`;
+a path never picks up a bundled robot's files. Standard library only (the MJCF is read as
+XML, following ``<include>``). How a reference resolves: docs/robots.md.
 """
 
 from __future__ import annotations

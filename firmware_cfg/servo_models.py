@@ -1,30 +1,9 @@
 """Servo model tables: control-table registers, units and ratings, loaded from data.
 
-Each model is one YAML file in ``firmware_cfg/servo_models/`` (the numbers come from the
-ROBOTIS e-Manual; each file cites its pages). This module reads and validates them and
-gives a :class:`ServoModel` with lookups and unit conversions::
-
-    from firmware_cfg.servo_models import load_servo_model
-    xm = load_servo_model("XM430-W350")          # or load_servo_model(1020)
-    reg = xm.register("goal_position")           # Register(address=116, size=4, ...)
-    xm.rad_to_ticks(0.5)                         # 2048 + 0.5 * 4096 / (2 pi) -> 2374
-    xm.ticks_to_rad(2374)                        # ~0.5 rad
-
-File format (one model per file)::
-
-    name, model_number, protocol (1 or 2), firmware_version
-    position: {ticks_per_turn, min_tick, max_tick, center_tick}
-    units: {velocity_rpm, current_ma | load_percent, voltage_v, temperature_c, return_delay_us}
-    ratings: {stall_torque_nm, stall_current_a, no_load_speed_rpm, rated_voltage_v, voltage_range_v}
-    baud_rates: {register value: bits per second}
-    registers: {name: {address, size (1|2|4), access (R|RW), area (EEPROM|RAM),
-                       initial, range: [lo, hi] (optional), signed (two's complement,
-                       optional), sign_bit (sign-magnitude, protocol 1.0, optional), unit}}
-
-Position convention: ``tick = center_tick + direction * (rad * ticks_per_turn / 2 pi) + offset``,
-positive radians counter-clockwise seen from the horn (the servo's own positive direction).
-
-Depends on nothing else of this project (numpy and PyYAML only).
+Each model is one YAML file in ``firmware_cfg/servo_models/`` (numbers from the ROBOTIS
+e-Manual); :func:`load_servo_model` validates it into a :class:`ServoModel` with register
+lookups and rad <-> tick conversions. Depends on nothing else of this project (numpy and
+PyYAML only). The file format and the position convention: docs/robots.md.
 """
 
 from __future__ import annotations

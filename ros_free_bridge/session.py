@@ -1,36 +1,12 @@
 """One bridge session, assembled from options: robot, actor source, partner, transport,
 telemetry. The ``run`` and ``demo`` commands are thin layers over :func:`run_session`.
 
-Transports (``SessionOptions.transport``):
-
-- ``sim``: the MuJoCo virtual robot (physics in real time, or lock-step with ``sim_clock``);
-- ``record``: dry run, commands kept and saved, nothing moves;
-- ``dynamixel``: the robot's Dynamixel bus from its hardware config (``port`` overrides the
-  config's; ``emulate`` starts the byte-level bus emulator instead of opening hardware);
-- ``serial``: the robot's serial-link microcontroller bus (``emulate``: the board emulator);
-- ``sim+dynamixel``: both at once, the virtual robot as the primary (the demo).
-
-Generator (``SessionOptions.generator``): ``process`` (default) runs DualFlow and the
-retargeter in a child process (:mod:`ros_free_bridge.generator_process`), ``thread`` in a
-thread of this one; either way :class:`~ros_free_bridge.stages.PartnerCore` keeps it up with
-the actor's clock (wide catch-up windows, then drop to the newest actor frames, reported as
-``generator_behind`` events and ``SessionResult.pipeline_info``).
-
-Latency (actor frame i's arrival to the bus write of partner frame i's command; measured by
-bench/bridge_loop.py): L frames of look-ahead (the model's; 10 for the bundled one) plus
-what the bridge adds, kept small by the defaults: every frame generated as soon as actor
-frame i + L is in (``hop`` 1, ``predict_next``: the newest feature row does not wait for the
-next frame), 2 Euler steps on incremental windows (only the new frame runs through the
-network, ``dualflow.incremental``), and a playback clock that plays a frame by the median of
-the frames' measured arrival (``adaptive_playback``, ``playback_quantile``), the newest frame
-continued while the next is on its way (``extrapolate_frames``) and the curve's change when
-it comes smoothed into the commands (``revision_smoothing``). ``OLD_DEFAULTS`` in bench/bridge_loop.py
-are the settings before (5 steps every 5 frames on re-run 60-frame windows, clock fixed by
-the first frame).
-
-Outputs in ``out``: ``telemetry.dftl`` (+ ``.events.jsonl``), ``actor.npz`` and
-``partner.npz`` (the human motions, our npz format), ``robot.npz`` (the simulated robot's
-measured motion, sim transports) and ``commands.npz`` (record transport).
+Transports (``SessionOptions.transport``): ``sim`` (the MuJoCo virtual robot), ``record``
+(dry run), ``dynamixel`` and ``serial`` (the robot's buses; ``emulate`` starts an emulator),
+``sim+dynamixel`` (both; the demo). The generator runs in a child process by default
+(:mod:`ros_free_bridge.generator_process`). Outputs in ``out``: ``telemetry.dftl``,
+``actor.npz``, ``partner.npz``, ``robot.npz`` (sim) or ``commands.npz`` (record). The
+latency budget and the defaults that keep it: docs/bridge_timing.md.
 """
 
 from __future__ import annotations

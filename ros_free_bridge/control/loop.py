@@ -1,35 +1,11 @@
 """The fixed-rate control loop and its safety supervisor.
 
-One tick (default 100 Hz), never blocking on the slow stages:
-
-1. wait for the tick's absolute deadline (:class:`~ros_free_bridge.control.clock.FixedRateClock`);
-2. read the transport's state; check e-stop, watchdogs and servo health;
-3. pick the target: the start ramp, the interpolated stream from the
-   :class:`~ros_free_bridge.control.targets.TargetBuffer` (a late frame's change to the curve
-   smoothed by :class:`~ros_free_bridge.control.targets.RevisionSmoother`), a hold, or the stop ramp;
-4. balance stabilizer (free-standing robots whose transport reads an IMU,
-   ``LoopConfig.stabilizer``): :class:`sim.stabilizer.Stabilizer` adds bounded corrections on
-   the legs' joints from the IMU and the measured joint angles (telemetry ``correction``);
-5. pass it through the :class:`~ros_free_bridge.control.safety.SafetyFilter` and write it;
-6. record the tick in telemetry.
-
-With a transport that offers it (``pipeline``: the Dynamixel transport), the bus cycle is
-split: step 4's write also sends the position read request, whose reply step 2 of the next
-tick takes without waiting (``LoopConfig.split_phase_bus``); the measured positions in
-telemetry are then those sampled one tick earlier.
-
-While ticking, :mod:`ros_free_bridge.control.realtime` keeps the loop on time: the heap is frozen
-and young objects are collected only in a tick's slack after the bus write (no collector
-pause inside a tick), the GIL switch interval is 0.5 ms (a generator thread cannot hold the
-loop off for the default 5 ms), and ``LoopConfig.realtime_priority`` puts the loop thread in
-SCHED_FIFO where permitted. All of it is undone when :meth:`ControlLoop.run` returns.
-
-Life cycle: open → read present → goal = present → torque on → minimum-jerk ramp to the
-rest pose → ``ready`` is set (actor replay may start) → stream → minimum-jerk ramp back
-to the rest pose → stop policy (``hold`` or ``limp``) → close. An e-stop (SIGINT,
-SIGTERM, a key, a UDP e-stop packet, :meth:`ControlLoop.estop`) skips the ramp and applies
-the e-stop policy at once. Any exception applies the e-stop policy before it propagates,
-and an ``atexit`` hook covers a process exit that bypasses ``finally``.
+:class:`ControlLoop` drives a transport from a :class:`~ros_free_bridge.control.targets.TargetBuffer`
+at ``LoopConfig.rate_hz``: each tick reads the transport, checks e-stop, watchdogs and health,
+picks the target (start ramp, interpolated stream, hold, stop ramp), passes it through the
+balance stabilizer (free robots with an IMU) and the safety filter, writes it and records the
+tick. It never blocks on the slow stages, and any exit applies the stop or e-stop policy.
+The tick, the life cycle and the timing: docs/bridge_timing.md.
 """
 
 from __future__ import annotations

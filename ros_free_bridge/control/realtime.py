@@ -1,24 +1,6 @@
-"""Keeping a Python control loop on time: garbage collection, GIL hand-off, scheduling.
-
-What delays a tick of a plain-Python loop, besides its own work, and what this module does
-about it while a loop runs (everything is restored afterwards):
-
-- **Garbage-collection pauses.** CPython's cyclic collector runs whenever container
-  allocations pass a threshold, in whichever thread allocates: a full (generation 2)
-  pass walks every tracked object, tens of milliseconds with torch and a model loaded.
-  :class:`LoopGc` freezes the heap that exists when the loop starts (``gc.freeze``: those
-  objects are never scanned again), switches automatic collection off, and collects the
-  young generations itself, in a tick's slack after the bus write
-  (:meth:`LoopGc.collect_in_slack`); it is forced past ``hard_limit`` pending
-  allocations so memory stays bounded whatever the other threads do.
-- **GIL hand-off.** A thread woken from ``sleep`` must take the GIL back from a running
-  Python thread (the motion generator), which lets go only every
-  ``sys.getswitchinterval()`` (5 ms by default, longer than a 250 Hz period).
-  :func:`switch_interval` lowers it while the loop runs.
-- **Scheduling.** On a busy machine a runnable loop waits for a core. With the privilege
-  (root, CAP_SYS_NICE or an rtprio limit), :func:`realtime_priority` puts the loop's
-  thread in SCHED_FIFO so it preempts ordinary processes when its tick is due; without
-  it the call reports why and the loop runs at normal priority.
+"""Keeping a Python control loop on time while it runs: garbage collection in the ticks'
+slack (:class:`LoopGc`), a short GIL switch interval (:func:`switch_interval`) and SCHED_FIFO
+where permitted (:func:`realtime_priority`); all undone afterwards. Why: docs/bridge_timing.md.
 """
 
 from __future__ import annotations

@@ -1,36 +1,6 @@
-"""The live actor stream's UDP packet format, version 1 (all fields little-endian).
-
-Every packet starts with an 16-byte header:
-
-====== ====== ==========================================================
-offset size   field
-====== ====== ==========================================================
-0      4      magic ``b"DFA1"``
-4      1      version = 1
-5      1      type: 1 = actor frame, 2 = e-stop
-6      2      reserved, 0
-8      4      sequence number (uint32, increases by 1 per packet, wraps)
-12     4      stream id (uint32): a number the sender draws at random when it starts
-              and keeps while it runs (0: a sender that does not say)
-====== ====== ==========================================================
-
-then, for type 1 (actor frame, 288 bytes in all):
-
-====== ====== ==========================================================
-16     8      sender timestamp, seconds (float64, the sender's clock)
-24     264    22 × 3 float32 joint positions, metres, SMPL-22 order, Z-up
-              world frame (DESIGN.md), row-major (joint, xyz)
-====== ====== ==========================================================
-
-and for type 2 (e-stop, 24 bytes in all): the sender timestamp (float64) only.
-
-A receiver drops, and counts by kind (:mod:`ros_free_bridge.sources.udp`), any datagram
-whose size, magic, version or type is wrong (``garbage``), whose timestamp or positions are
-not finite or whose positions lie beyond ``MAX_ABS_M`` = 10 m of the origin (``out_of_range``:
-3e38 is finite in float32, but its square is not), or whose sequence number is not newer
-than the last accepted one (modulo 2³²: newer means 1 ≤ (seq - last) mod 2³² < 2³¹) or
-jumps ahead by more than ``MAX_SEQ_JUMP`` (see the receiver for how a restarted sender is
-recognised: by its stream id, never by a higher number alone).
+"""The live actor stream's UDP packet format, version 1: encode and decode actor frames and
+e-stops (16-byte header with magic, version, type, sequence number and stream id; 22 x 3
+float32 positions in metres). The byte layout and the receiver's drop rules: docs/actor_stream.md.
 """
 
 from __future__ import annotations
