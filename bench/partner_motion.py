@@ -3,6 +3,7 @@
     python bench/partner_motion.py [CHECKPOINT ...] [--seeds 0,1] [--seconds 8] [--window 60]
                                    [--steps 2] [--hop 1] [--sliding] [--exact-rows]
                                    [--texts none,rule] [--json out.json]
+    python bench/partner_motion.py [CHECKPOINT ...] --cmu [--cmu-seeds 8] [--json out.json]
 
 A quality check, not a speed benchmark (the figures do not depend on the machine's load).
 For each leader seed: the SYNTHETIC leader of ``dualflow.synthetic.make_leader_clip`` (8 s,
@@ -26,6 +27,12 @@ Figures per stream (world frame, Z up, metres; partner frame k pairs with actor 
 * err: MPJPE of the partner against the rule follower (text none: against the nearest rule),
   also over the first second and after it; root and arms (elbows, wrists) alone;
   the follower's own mean pose gives the error of the best pose that does not move.
+
+``--cmu`` (issue 28): on the real CMU actor 18_01, the plausibility figures of
+``dualflow.evaluation.plausibility`` (skate, jerk, bone-length CV, facing error, MPJPE to the
+real partner 19_01, distance, diversity across seeds and texts) for the real partner, a static
+first pose, the mirrored actor, and each checkpoint offline and streamed, raw and cleaned
+(``dualflow.body``); also the cleanup's cost per streamed frame.
 """
 
 from __future__ import annotations
@@ -111,6 +118,104 @@ def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: in
     return rows
 
 
+CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap" / "cmu"
+CUE_TEXTS = ("the partner mirrors the leader face to face.",
+             "the partner keeps a hand-hold distance facing the leader and moves with them.",
+             "the partner circles around the leader, copying the arm waves.",
+             "the partner walks up to the leader and holds a hand out.")
+
+
+def _mirror_baseline(actor: np.ndarray, real: np.ndarray) -> np.ndarray:
+    """The actor reflected in the vertical plane halfway between the two pelvises at frame 0."""
+    from dualflow.synthetic import _reflect
+
+    gap = real[0, 0, :2] - actor[0, 0, :2]
+    normal = gap / np.linalg.norm(gap)
+    mid = actor[0, 0, :2] + 0.5 * gap
+    n = len(actor)
+    return _reflect(actor, np.broadcast_to(mid, (n, 2)), np.broadcast_to(normal, (n, 2)))
+
+
+def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: int = 20) -> list[dict]:
+    """The issue-28 table on the real CMU actor 18_01 against its real partner 19_01 (30 fps):
+    baselines (real, static first pose, mirrored actor) and, per checkpoint, offline generation
+    (``seeds`` seeds, no text; then the four CUE_TEXTS at seed 0) and the bridge's streamer
+    (demo settings, ``stream_seeds`` seeds), each raw (``clean=False``) and cleaned
+    (``dualflow.body``). Diversity: mean pairwise MPJPE across seeds / across texts."""
+    import time
+
+    from dualflow.conditioning import DuetGenerator
+    from dualflow.evaluation.plausibility import diversity, plausibility
+    from dualflow.motion.io.formats import load_pair
+    from dualflow.streaming import StreamConfig
+    from ros_free_bridge.session import SessionOptions
+    from ros_free_bridge.stages import ReactorStage
+
+    pair = load_pair(CMU_DIR / "18_01.bvh", CMU_DIR / "19_01.bvh", fps=30.0)
+    actor, real = pair.actor.positions, pair.reactor.positions
+    rows = []
+
+    def add(name, clips, **extra):
+        figs = [plausibility(c, actor, real) for c in clips]
+        row = {"partner": name, **{k: float(np.mean([f[k] for f in figs])) for k in figs[0]}, **extra}
+        if len(clips) > 1:
+            row.setdefault("diversity_seeds", diversity(clips))
+        rows.append(row)
+        return row
+
+    add("real 19_01", [real])
+    add("static first pose", [np.broadcast_to(real[0], real.shape).copy()])
+    add("mirrored actor", [_mirror_baseline(actor, real)])
+    d = SessionOptions()
+    for ck in checkpoints:
+        label = Path(ck).name if ck else "bundled"
+        gen = DuetGenerator.from_checkpoint(ck)
+        for clean in (False, True):
+            tag = "clean" if clean else "raw"
+            seeded = [gen.generate(actor=pair.actor, seed=s, steps=steps, clean=clean)[0].reactor.positions
+                      for s in range(seeds)]
+            texted = [gen.generate(actor=pair.actor, text=t, seed=0, steps=steps, clean=clean)[0].reactor.positions
+                      for t in CUE_TEXTS]
+            add(f"{label} offline {seeds} seeds, no text, {tag}", seeded, diversity_texts=diversity(texted))
+            streamed, per_frame = [], []
+            for s in range(stream_seeds):
+                cfg = StreamConfig(window=d.window, steps=d.steps, hop=d.hop, incremental=True, seed=s)
+                stage = ReactorStage(30.0, ck, cfg, None, None, clean=clean)
+                out, t_clean = [], 0.0
+                for k, p in enumerate(actor):
+                    out += stage.push(p, 0.0, k)
+                out += stage.flush(0.0, len(actor) - 1)
+                streamed.append(np.stack([f.positions for f in sorted(out, key=lambda f: f.index)]))
+                if clean:  # the cleaner's own cost per frame, replayed on this stream's raw frames
+                    from dualflow.body import BodyCleaner
+
+                    raw = ReactorStage(30.0, ck, cfg, None, None, clean=False)
+                    frames = []
+                    for k, p in enumerate(actor):
+                        frames += raw.push(p, 0.0, k)
+                    frames += raw.flush(0.0, len(actor) - 1)
+                    cleaner = BodyCleaner(30.0)
+                    t0 = time.perf_counter()
+                    for f in frames:
+                        cleaner.step(f.positions)
+                    per_frame.append((time.perf_counter() - t0) / len(frames))
+            extra = {"clean_ms_per_frame": 1e3 * float(np.mean(per_frame))} if per_frame else {}
+            add(f"{label} streaming (demo settings), {tag}", streamed, **extra)
+    return rows
+
+
+def print_cmu_table(rows: list[dict]) -> None:
+    print("| partner | skate | jerk m/s^3 | bone-length CV | facing error | MPJPE to real (m) | distance (m) | "
+          "in 0.5-1.5 m | diversity seeds (m) | diversity texts (m) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        div = lambda k: f"{r[k]:.3f}" if k in r else "-"  # noqa: E731
+        print(f"| {r['partner']} | {r['skate']:.2f} | {r['jerk']:.0f} | {r['bone_cv']:.4f} | {r['facing_deg']:.0f}° | "
+              f"{r['mpjpe_real']:.2f} | {r['dist_mean']:.2f} | {100 * r['dist_in_range']:.0f} % | "
+              f"{div('diversity_seeds')} | {div('diversity_texts')} |"
+              + (f" cleanup {r['clean_ms_per_frame']:.2f} ms/frame" if "clean_ms_per_frame" in r else ""))
+
+
 def main(argv: list[str] | None = None) -> int:
     import tempfile
 
@@ -130,8 +235,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--exact-rows", action="store_true", help="the newest actor row waits for the next frame")
     ap.add_argument("--texts", default="none,rule", help="none (no cue), rule (each rule's sentence), or both")
     ap.add_argument("--json", help="also write every row to this json file")
+    ap.add_argument("--cmu", action="store_true",
+                    help="instead: the plausibility table on the real CMU actor 18_01 vs its partner 19_01 "
+                         "(../shared/data/mocap/cmu), baselines and each checkpoint raw / cleaned")
+    ap.add_argument("--cmu-seeds", type=int, default=8, help="offline seeds for --cmu (default 8)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.cmu:
+        if not (CMU_DIR / "18_01.bvh").is_file():
+            print(f"error: {CMU_DIR}/18_01.bvh not found; --cmu needs the CMU pair in ../shared/data", file=sys.stderr)
+            return 2
+        rows = cmu_table(args.checkpoints or [None], seeds=args.cmu_seeds)
+        print_cmu_table(rows)
+        if args.json:
+            Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+        return 0
     texts = [t for t in args.texts.split(",") if t]
     if not texts or set(texts) - {"none", "rule"}:
         print(f"error: --texts must list none and/or rule, got {args.texts!r}", file=sys.stderr)

@@ -36,7 +36,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from dualflow.errors import DualFlowError
-from dualflow.model import DualFlow, DualFlowConfig
+from dualflow.model import DualFlow, DualFlowConfig, fuse_old_modulations
 from dualflow.motion.normalization import NormStats
 
 FORMAT = "dualflow-checkpoint"
@@ -59,7 +59,9 @@ class Checkpoint:
     config: the model's DualFlowConfig; state_dict: weights to build it with;
     stats: NormStats of the training features; meta: the rest of config.json;
     ema_state: the EMA model's state (training checkpoints), else None;
-    optimizer_state / trainer_state: for resuming, else None; path: the directory.
+    optimizer_state / trainer_state: for resuming, else None; path: the directory;
+    converted: the weights predate the fused adaptive-LayerNorm linear and were converted on
+    load (same function; ``dualflow.model.fuse_old_modulations``).
     """
 
     config: DualFlowConfig
@@ -70,6 +72,7 @@ class Checkpoint:
     ema_state: dict[str, torch.Tensor] | None = None
     optimizer_state: dict | None = None
     trainer_state: dict = field(default_factory=dict)
+    converted: bool = False  # weights written before issue 28's fused modulation, converted on load
 
     @property
     def text_encoder(self) -> str:
@@ -339,16 +342,23 @@ def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpo
         raise DualFlowError(f"{path / CONFIG_FILE}: checkpoint version {version} is newer than this code ({VERSION}); update the package")
     config = _model_config(meta["model"], path / CONFIG_FILE)
     state = _load_tensors(path / MODEL_FILE)
+    converted = fuse_old_modulations(state)  # a checkpoint from before issue 28: same weights, fused
     reference = _reference_state(config)
     _check_weights(state, reference, path / MODEL_FILE)
     stats = NormStats.load(path / STATS_FILE)
     ema = _load_tensors(path / EMA_FILE) if (path / EMA_FILE).is_file() else None
     if ema is not None:
+        fuse_old_modulations(ema)
         _check_weights(ema_module_state(ema), reference, path / EMA_FILE)
-    ckpt = Checkpoint(config=config, state_dict=state, stats=stats, meta=meta, path=path, ema_state=ema)
+    ckpt = Checkpoint(config=config, state_dict=state, stats=stats, meta=meta, path=path, ema_state=ema,
+                      converted=converted)
     if resume:
         if not (path / TRAINER_STATE_FILE).is_file():
             raise DualFlowError(f"{path}: lacks {TRAINER_STATE_FILE}; this is an exported checkpoint and cannot be resumed")
+        if converted and (path / OPTIMIZER_FILE).is_file():
+            raise DualFlowError(f"{path}: written before the fused adaptive-LayerNorm linear (issue 28); its optimizer "
+                                f"state has one entry per old linear and cannot be resumed. Start a new run from its "
+                                f"weights instead: --set init_from={path}")
         ckpt.trainer_state = _read_json(path / TRAINER_STATE_FILE)
         if (path / OPTIMIZER_FILE).is_file():
             ckpt.optimizer_state = optimizer_from_tensors(

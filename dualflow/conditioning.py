@@ -282,7 +282,10 @@ class DuetGenerator:
     @torch.no_grad()
     def generate(self, *, actor: Motion | None = None, text: str | None = None, music=None,
                  n_frames: int | None = None, steps: int = 20, cfg_scale: float = 1.0, seed: int = 0,
-                 method: str = "euler") -> tuple[TwoPersonMotion, GeneratorInputs]:
+                 method: str = "euler", clean: bool = True) -> tuple[TwoPersonMotion, GeneratorInputs]:
+        """clean: pass the generated reactor through :func:`dualflow.body.clean_positions` (constant
+        bone lengths, planted feet, less jitter; its contacts are the cleaner's); False: the raw
+        decoded features, as before issue 28."""
         from dualflow.flow import generate
 
         inputs = self.builder.build(actor=actor, text=text, music=music, n_frames=n_frames)
@@ -297,6 +300,11 @@ class DuetGenerator:
         a = stats.denormalize(x_a[0].cpu().numpy().astype(np.float64))
         b = stats.denormalize(x_b[0].cpu().numpy().astype(np.float64))
         reactor = decode_person(b, fps, inputs.canonical, append_last_frame=True, name="reactor")
+        if clean:
+            from dualflow.body import clean_positions
+
+            pos, contacts = clean_positions(reactor.positions, fps)
+            reactor = Motion(positions=pos, fps=fps, contacts=contacts, name="reactor")
         if actor is not None:
             actor_motion = actor if abs(actor.fps - fps) < 1e-6 else actor.resample(fps)
         else:

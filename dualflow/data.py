@@ -94,7 +94,7 @@ def template_text_embedding(texts: Sequence[str], dim: int, seed: int = 0) -> np
 #: :data:`dualflow.datasets.LOADERS` entry read from ``data.root``.
 SYNTHETIC = "synthetic"
 #: The fields that describe the synthetic clips (the data cache key uses only these).
-SYNTHETIC_FIELDS = ("n_clips", "val_clips", "frames", "fps", "rules", "seed")
+SYNTHETIC_FIELDS = ("n_clips", "val_clips", "frames", "fps", "rules", "seed", "varied")
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,10 @@ class SyntheticDataConfig:
 
     Synthetic clips: n_clips training clips; val_clips validation clips (disjoint seeds);
     frames: feature rows per clip or window (the model's window, T); fps: frame rate;
-    rules: follower rules to cycle through; seed: base seed of the split seeds.
+    rules: follower rules to cycle through; seed: base seed of the split seeds; varied: share
+    of clips (0-1) drawn from the wider repertoire of :mod:`dualflow.synthetic_varied` (leaders
+    that walk up, turn and reach out a hand, responsive followers, mirrored duets); 0 = the
+    classic clips only (what every checkpoint before it was trained on).
     """
 
     n_clips: int = 512
@@ -124,6 +127,7 @@ class SyntheticDataConfig:
     splits: tuple[str, ...] | None = None
     stride: int | None = None
     options: dict = field(default_factory=dict)
+    varied: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rules", tuple(self.rules))
@@ -138,6 +142,8 @@ class SyntheticDataConfig:
             raise DualFlowError(f"data.val_clips must be >= 0, got {self.val_clips!r}")
         if not float(self.fps) > 0:
             raise DualFlowError(f"data.fps must be > 0, got {self.fps!r}")
+        if not 0.0 <= float(self.varied) <= 1.0:
+            raise DualFlowError(f"data.varied is a share of clips, 0 to 1; got {self.varied!r}")
         self._check_dataset()
 
     def _check_dataset(self) -> None:
@@ -222,14 +228,22 @@ def clip_seed(config: SyntheticDataConfig, split: str, index: int) -> int:
     return int(config.seed) * 1_000_000 + (500_000 if split == "val" else 0) + int(index)
 
 
+def is_varied_clip(config: SyntheticDataConfig, index: int) -> bool:
+    """Whether clip ``index`` comes from the varied repertoire: a share ``config.varied`` of the
+    clips, spread evenly over the rule cycle (clips of one cycle agree)."""
+    share = float(getattr(config, "varied", 0.0))
+    return share > 0 and ((index // len(config.rules)) * 0.6180339887498949) % 1.0 < share
+
+
 def _cache_file(config: SyntheticDataConfig, split: str, cache_dir: Path) -> Path:
     """Cache name from the config, the split and the source of the generator and encoder
     (editing either invalidates the cache)."""
     import dualflow.motion.features as features_module
     import dualflow.synthetic as synthetic_module
+    import dualflow.synthetic_varied as varied_module
 
     h = hashlib.sha1(json.dumps([config.synthetic_dict(), split], sort_keys=True).encode())
-    for module in (synthetic_module, features_module):
+    for module in (synthetic_module, varied_module, features_module):
         h.update(Path(module.__file__).read_bytes())
     return cache_dir / f"synthetic_{split}_{h.hexdigest()[:16]}.npz"
 
@@ -263,7 +277,8 @@ def build_split(config: SyntheticDataConfig, split: str = "train", cache_dir: st
     for i in range(n):
         rule_index = i % len(config.rules)
         seed = clip_seed(config, split, i)
-        pair = make_duet(config.rules[rule_index], seconds=seconds, fps=float(config.fps), seed=seed)
+        pair = make_duet(config.rules[rule_index], seconds=seconds, fps=float(config.fps), seed=seed,
+                         varied=is_varied_clip(config, i))
         f, _ = encode_pair(pair)
         if f.shape[0] != frames:
             raise DualFlowError(f"synthetic clip {i}: expected {frames} feature rows, got {f.shape[0]} (fps/frames mismatch)")
@@ -333,7 +348,20 @@ class DuetDataset(torch.utils.data.Dataset):
                "beats": self.beats[indices], "rule": self.rule[indices], "index": indices}
         if self.music is not None:
             out["music"] = self.music[indices]
+        if getattr(self, "_pin", False):  # a gathered batch is pageable again: pin it for a non-blocking copy
+            out = {k: v.pin_memory() for k, v in out.items()}
         return out
+
+    def place(self, device: torch.device, max_bytes: int = 4 << 30) -> None:
+        """Keep the samples on ``device`` (a GPU) so that ``batch`` gathers there, without a host
+        copy per step; a set larger than ``max_bytes`` stays on the host in pinned memory
+        (its batches are then pinned too, for asynchronous copies)."""
+        names = [n for n in ("actor", "reactor", "text", "beats", "rule", "music") if getattr(self, n) is not None]
+        size = sum(getattr(self, n).numel() * getattr(self, n).element_size() for n in names)
+        self._pin = size > max_bytes
+        for n in names:
+            t = getattr(self, n)
+            setattr(self, n, t.pin_memory() if self._pin else t.to(device))
 
     def music_of(self, kind: str) -> torch.Tensor:
         """(N, T, D) per-frame music of ``kind`` ("beats4": the beat track), or a DualFlowError
@@ -353,8 +381,10 @@ def make_datasets(
     text_embedder: TextEmbedder = template_text_embedding,
     cache_dir: str | os.PathLike | None = None,
     music_kind: str | None = None,
+    stats: NormStats | None = None,
 ) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
     """(train, val or None, NormStats fitted on the train split's raw features); cache_dir: see build_split.
+    stats: normalise with these instead (fine-tuning keeps the checkpoint's statistics; synthetic data only).
 
     ``config.dataset`` other than "synthetic": the named dataset read from ``config.root``
     (:func:`dualflow.datasets.windows.make_training_sets`). music_kind "edge35" / "duolando54"
@@ -378,12 +408,22 @@ def make_datasets(
         return with_click_music(out, music_kind, float(config.fps)) if music_kind in ("edge35", "duolando54") else out
 
     train = split_of("train")
-    stats = NormStats.from_features(train.features)
+    fitted = NormStats.from_features(train.features)
+    stats = fitted if stats is None else widen_stats(stats, fitted)
     train_ds = DuetDataset(train, stats, text_dim, text_embedder)
     val_ds = None
     if int(config.val_clips) > 0:
         val_ds = DuetDataset(split_of("val"), stats, text_dim, text_embedder)
     return train_ds, val_ds, stats
+
+
+def widen_stats(kept: NormStats, fitted: NormStats, factor: float = 3.0) -> NormStats:
+    """``kept`` statistics, except in the columns where the new data spreads more than ``factor``
+    times their std (a column the old data held constant, e.g. a shoulder rotation component the
+    classic clips never use): there the new data's mean and std. Fine-tuning keeps every other
+    column's scale, so the starting model sees the inputs it was trained on."""
+    wide = np.asarray(fitted.std) > factor * np.asarray(kept.std)
+    return NormStats(np.where(wide, fitted.mean, kept.mean), np.where(wide, fitted.std, kept.std))
 
 
 def click_track_music(beats: np.ndarray, kind: str = "edge35", fps: float = 30.0) -> np.ndarray:

@@ -87,11 +87,18 @@ class TimeSampler:
             raise DualFlowError(f"TimeSampler.std must be > 0, got {self.std}")
 
     def sample(self, n: int, generator: torch.Generator | None = None, device="cpu") -> torch.Tensor:
+        """(n,) times on ``device``, drawn on the generator's device (no copy when they agree)."""
+        where = _draw_device(generator)
         if self.kind == "uniform":
-            t = torch.rand(n, generator=generator)
+            t = torch.rand(n, generator=generator, device=where)
         else:
-            t = torch.sigmoid(self.mean + self.std * torch.randn(n, generator=generator))
+            t = torch.sigmoid(self.mean + self.std * torch.randn(n, generator=generator, device=where))
         return t.to(device)
+
+
+def _draw_device(generator: torch.Generator | None) -> torch.device:
+    """Where random numbers of ``generator`` are drawn: its own device (CPU when None)."""
+    return torch.device("cpu") if generator is None else generator.device
 
 
 def flow_loss(v_pred: torch.Tensor, v_target: torch.Tensor, frame_mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -144,19 +151,21 @@ def flow_training_step(
     L_flow = MSE over [v_a; v_b] (eq. 17's 524-d output).
     reactive: the actor stays clean (x_a = x0_a), its velocity is 0 by construction, and
     L_flow = MSE over the reactor only.
-    Noise and t come from ``generator`` (CPU) so a seeded step is reproducible.
+    Noise and t come from ``generator`` so a seeded step is reproducible; they are drawn on the
+    generator's device (a CUDA generator keeps them on the GPU: no host copy per step).
     """
     b = x0_a.shape[0]
     device = x0_a.device
+    where = _draw_device(generator)
     t = time_sampler.sample(b, generator, device).to(x0_a.dtype)
-    eps_b = torch.randn(x0_b.shape, generator=generator).to(device, x0_b.dtype)
+    eps_b = torch.randn(x0_b.shape, generator=generator, device=where).to(device, x0_b.dtype)
     x_b = path.interpolate(x0_b, eps_b, t)
     target_b = path.target_velocity(x0_b, eps_b)
     if mode == "reactive":
         x_a = x0_a
         target_a = torch.zeros_like(x0_a)
     else:
-        eps_a = torch.randn(x0_a.shape, generator=generator).to(device, x0_a.dtype)
+        eps_a = torch.randn(x0_a.shape, generator=generator, device=where).to(device, x0_a.dtype)
         x_a = path.interpolate(x0_a, eps_a, t)
         target_a = path.target_velocity(x0_a, eps_a)
     v_a, v_b = model(x_a, x_b, t, cond, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask)

@@ -201,10 +201,9 @@ class IncrementalModel:
         return self._last_taps[key]
 
 
-def _ada(norm, z_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(1 + scale, shift) of an ``AdaLayerNorm`` for the conditioning z_d (1, W)."""
-    scale, shift = norm.modulation(F.silu(z_d)).unsqueeze(1).chunk(2, dim=-1)
-    return 1 + scale, shift
+def _ada(block, z_d: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(1 + scale, shift) of each of a block's five adaptive LayerNorms for the conditioning z_d (1, W)."""
+    return [(1 + scale, shift) for scale, shift in block.modulations(z_d)]
 
 
 class WindowCache:
@@ -239,8 +238,8 @@ class WindowCache:
         self.music = [_Fixed(b.music_attn, z_m) for b in model.blocks]
         self.retrieval = [_Fixed(b.retrieval_attn, z_r) for b in model.blocks]
         # per stream (actor, then each grid time) and block: the five norms' (1 + scale, shift)
-        self.mod_actor = [[_ada(n, z_actor) for n in b.norms] for b in model.blocks]
-        self.mod_steps = [[[_ada(n, z) for n in b.norms] for b in model.blocks] for z in z_steps]
+        self.mod_actor = [_ada(b, z_actor) for b in model.blocks]
+        self.mod_steps = [[_ada(b, z) for b in model.blocks] for z in z_steps]
         self.pe = sinusoidal_encoding(torch.arange(self.window, device=dev), cfg.width).to(dt)
         pos = torch.arange(self.window, device=dev)
         #: [r, c]: window position r may attend to position c in self-attention (c <= r) and in
@@ -314,9 +313,9 @@ class WindowCache:
     # -- network passes --------------------------------------------------------------------
     @staticmethod
     def _norm(block, i: int, z: torch.Tensor, mod) -> torch.Tensor:
-        """AdaLayerNorm i of ``block``: LN(z) (1 + scale) + shift, in two operations."""
+        """Adaptive LayerNorm i of ``block``: LN(z) (1 + scale) + shift, in two operations."""
         scale, shift = mod[i]
-        norm = block.norms[i].norm
+        norm = block.norm
         return torch.addcmul(shift, F.layer_norm(z, norm.normalized_shape, None, None, norm.eps), scale)
 
     def _temporal(self, j: int, streams: list) -> list[torch.Tensor]:

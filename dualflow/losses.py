@@ -276,12 +276,11 @@ def triplet_loss(
         pos, neg = (sim >= positive_similarity) & ~eye, (sim <= negative_similarity) & ~eye
     else:
         return zero
-    # valid[i, p, n]: p is a positive and n a negative of anchor i.
-    valid = pos[:, :, None] & neg[:, None, :]
-    if not valid.any():
-        return zero
+    # valid[i, p, n]: p is a positive and n a negative of anchor i. A weighted mean rather than
+    # `valid.any()` and boolean indexing: no data-dependent shape, so no host sync on a GPU.
+    valid = (pos[:, :, None] & neg[:, None, :]).to(dist.dtype)
     hinge = F.relu(dist[:, :, None] - dist[:, None, :] + margin)
-    return hinge[valid].mean()
+    return (hinge * valid).sum() / valid.sum().clamp_min(1.0) + zero
 
 
 # ---------------------------------------------------------------------------------------------

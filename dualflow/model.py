@@ -53,7 +53,9 @@ Design choices where the paper is silent (see also the issue notes)
   a small transformer encoder (``music_layers``), as in the paper. Time: sinusoidal embedding
   of 1000 t + MLP. The text latent z_d = text + time + task (eq. 11-15's LN(., z_d)).
 * Adaptive LayerNorm LN(x, z_d) = LayerNorm(x) * (1 + scale(z_d)) + shift(z_d), one
-  (scale, shift) linear per sub-layer, zero-initialised (the block starts as plain LayerNorm).
+  (scale, shift) per sub-layer, zero-initialised (the block starts as plain LayerNorm); the five
+  sub-layers' linears are one fused linear per block (``DualFlowBlock.modulation``; checkpoints
+  with the five separate ``norms.k.modulation`` linears load into it unchanged).
 * Motion cross-attention keys/values (eq. 13) come from the other person's latent passed
   through a plain LayerNorm (the paper writes the raw latent; normalising keeps attention
   logits bounded over 20 blocks). A final LayerNorm precedes each output linear; the output
@@ -231,7 +233,7 @@ def sample_condition_drop(
     """
     if p_both + p_text + p_music > 1.0 or min(p_both, p_text, p_music) < 0:
         raise DualFlowError("condition drop probabilities must be >= 0 and sum to <= 1")
-    u = torch.rand(batch, generator=generator).to(device)
+    u = torch.rand(batch, generator=generator, device=None if generator is None else generator.device).to(device)
     both = u < p_both
     text_only = (u >= p_both) & (u < p_both + p_text)
     music_only = (u >= p_both + p_text) & (u < p_both + p_text + p_music)
@@ -254,22 +256,14 @@ def sinusoidal_encoding(positions: torch.Tensor, dim: int) -> torch.Tensor:
     return pe
 
 
-class AdaLayerNorm(nn.Module):
-    """LN(x, z_d) = LayerNorm(x) * (1 + scale) + shift, [scale, shift] = W SiLU(z_d) + b.
+#: Adaptive LayerNorms per DualFlow block (self-attn, music, motion, retrieval, feed-forward).
+N_ADA = 5
 
-    x (N, T, W), z (N, W). Zero-initialised so the layer starts as a plain LayerNorm.
-    """
 
-    def __init__(self, width: int):
-        super().__init__()
-        self.norm = nn.LayerNorm(width, elementwise_affine=False)
-        self.modulation = nn.Linear(width, 2 * width)
-        nn.init.zeros_(self.modulation.weight)
-        nn.init.zeros_(self.modulation.bias)
-
-    def forward(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        scale, shift = self.modulation(F.silu(z)).unsqueeze(1).chunk(2, dim=-1)
-        return self.norm(x) * (1 + scale) + shift
+def ada_norm(norm: nn.LayerNorm, x: torch.Tensor, mod: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """LN(x, z_d) = LayerNorm(x) * (1 + scale) + shift for one (scale, shift) of ``DualFlowBlock.modulations``."""
+    scale, shift = mod
+    return norm(x) * (1 + scale) + shift
 
 
 class Attention(nn.Module):
@@ -277,6 +271,7 @@ class Attention(nn.Module):
 
     query (N, Tq, W), context (N, Tk, W); mask broadcastable to (N, heads, Tq, Tk), bool,
     True = may attend (app. D.4's M_ij). Every query row must keep at least one key.
+    is_causal (mask None, Tq == Tk): attend to j <= i without a mask tensor.
     """
 
     def __init__(self, width: int, n_heads: int, dropout: float):
@@ -287,13 +282,14 @@ class Attention(nn.Module):
         self.out = nn.Linear(width, width)
         self.dropout = dropout
 
-    def forward(self, query: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    def forward(self, query: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None,
+                is_causal: bool = False) -> torch.Tensor:
         n, tq, w = query.shape
         h = self.n_heads
         q = self.q(query).view(n, tq, h, w // h).transpose(1, 2)
         k, v = self.kv(context).view(n, context.shape[1], 2, h, w // h).permute(2, 0, 3, 1, 4)
         y = F.scaled_dot_product_attention(
-            q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0
+            q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0, is_causal=is_causal
         )
         return self.out(y.transpose(1, 2).reshape(n, tq, w))
 
@@ -344,13 +340,16 @@ class BlockMasks:
 
     self_mask: (N, 1, T, T), (T, T) or None (= full); cross_mask: the same for the motion
     cross-attention to the other person's keys; causal: left-padded convolutions;
-    frame_mask: (N, T) float, 1 on real frames (zeroes padding before the convolutions).
+    frame_mask: (N, T) float, 1 on real frames (zeroes padding before the convolutions);
+    self_causal: self-attention is plain causal (j <= i) with no mask tensor, SDPA's
+    ``is_causal`` (which keeps it on its fused kernels; a boolean mask tensor does not).
     """
 
     self_mask: torch.Tensor | None
     cross_mask: torch.Tensor | None
     causal: bool
     frame_mask: torch.Tensor | None
+    self_causal: bool = False
 
 
 class DualFlowBlock(nn.Module):
@@ -373,7 +372,13 @@ class DualFlowBlock(nn.Module):
         super().__init__()
         w = cfg.width
         self.conv = MultiScaleConv(w, cfg.conv_kernels, cfg.dropout)
-        self.norms = nn.ModuleList(AdaLayerNorm(w) for _ in range(5))
+        # the five adaptive LayerNorms' [scale, shift] = W SiLU(z_d) + b as ONE linear (W: 10 W x W,
+        # rows [scale_0, shift_0, ..., scale_4, shift_4]); zero-initialised: plain LayerNorms at first
+        self.norm = nn.LayerNorm(w, elementwise_affine=False)
+        self.modulation = nn.Linear(w, 2 * N_ADA * w)
+        nn.init.zeros_(self.modulation.weight)
+        nn.init.zeros_(self.modulation.bias)
+        self.register_load_state_dict_pre_hook(_fuse_old_modulations)
         self.self_attn = Attention(w, cfg.n_heads, cfg.dropout)
         self.music_attn = Attention(w, cfg.n_heads, cfg.dropout)
         self.motion_attn = Attention(w, cfg.n_heads, cfg.dropout)
@@ -382,34 +387,66 @@ class DualFlowBlock(nn.Module):
         self.ffn = FeedForward(w, cfg.ff_dim, cfg.dropout)
         self.drop = nn.Dropout(cfg.dropout)
 
-    def temporal(self, z, z_d, z_m, masks: BlockMasks) -> torch.Tensor:
-        """Conv, self-attention (11) and music cross-attention (12): z^(j) -> z^(j,2)."""
+    def modulations(self, z_d: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The five (scale, shift) pairs, each (N, 1, W), of the block's adaptive LayerNorms for
+        the conditioning latent z_d (N, W): one matrix product for all five."""
+        parts = self.modulation(F.silu(z_d)).unsqueeze(1).chunk(2 * N_ADA, dim=-1)
+        return [(parts[2 * k], parts[2 * k + 1]) for k in range(N_ADA)]
+
+    def temporal(self, z, mods, z_m, masks: BlockMasks) -> torch.Tensor:
+        """Conv, self-attention (11) and music cross-attention (12): z^(j) -> z^(j,2).
+        mods: ``modulations(z_d)``."""
         z = self.conv(z, causal=masks.causal, frame_mask=masks.frame_mask)
-        h = self.norms[0](z, z_d)
-        z = z + self.drop(self.self_attn(h, h, masks.self_mask))
-        return z + self.drop(self.music_attn(self.norms[1](z, z_d), z_m, None))
+        h = ada_norm(self.norm, z, mods[0])
+        z = z + self.drop(self.self_attn(h, h, masks.self_mask, is_causal=masks.self_causal))
+        return z + self.drop(self.music_attn(ada_norm(self.norm, z, mods[1]), z_m, None))
 
     def keys_of(self, z2: torch.Tensor) -> torch.Tensor:
         """What the other person's motion cross-attention reads: LN0(z^(j,2))."""
         return self.other_norm(z2)
 
-    def motion_cross(self, z2, z_d, other_keys, mask) -> torch.Tensor:
+    def motion_cross(self, z2, mods, other_keys, mask) -> torch.Tensor:
         """z^(3) = z^(2) + Attn(Q=LN(z^(2), z_d), K=V=other_keys)  (13; causal in reactive mode)."""
-        return z2 + self.drop(self.motion_attn(self.norms[2](z2, z_d), other_keys, mask))
+        return z2 + self.drop(self.motion_attn(ada_norm(self.norm, z2, mods[2]), other_keys, mask))
 
-    def finish(self, z, z_d, z_r) -> torch.Tensor:
+    def finish(self, z, mods, z_r) -> torch.Tensor:
         """Retrieval cross-attention (14) and feed-forward (15): z^(j,3) -> z^(j+1)."""
-        z = z + self.drop(self.retrieval_attn(self.norms[3](z, z_d), z_r, None))
-        return z + self.drop(self.ffn(self.norms[4](z, z_d)))
+        z = z + self.drop(self.retrieval_attn(ada_norm(self.norm, z, mods[3]), z_r, None))
+        return z + self.drop(self.ffn(ada_norm(self.norm, z, mods[4])))
 
     def forward(self, z, z_d, z_m, z_r, masks: BlockMasks) -> torch.Tensor:
         """Interactive: stacked z (2B, T, W), rows [0, B) person A, [B, 2B) person B."""
         n = z.shape[0] // 2
-        z2 = self.temporal(z, z_d, z_m, masks)
+        mods = self.modulations(z_d)
+        z2 = self.temporal(z, mods, z_m, masks)
         keys = self.keys_of(z2)
         swapped = torch.cat([keys[n:], keys[:n]], dim=0)
-        z3 = self.motion_cross(z2, z_d, swapped, masks.cross_mask)
-        return self.finish(z3, z_d, z_r)
+        z3 = self.motion_cross(z2, mods, swapped, masks.cross_mask)
+        return self.finish(z3, mods, z_r)
+
+
+def _fuse_old_modulations(module, state_dict, prefix, *_args) -> None:
+    """``load_state_dict`` hook: a block's weights from before the fused modulation (issue 28)."""
+    _fuse_block(state_dict, prefix)
+
+
+def _fuse_block(state_dict: dict, prefix: str) -> bool:
+    old = [f"{prefix}norms.{k}.modulation." for k in range(N_ADA)]
+    if f"{old[0]}weight" not in state_dict:
+        return False
+    for name in ("weight", "bias"):
+        state_dict[f"{prefix}modulation.{name}"] = torch.cat([state_dict.pop(o + name) for o in old], 0)
+    return True
+
+
+def fuse_old_modulations(state_dict: dict) -> bool:
+    """Convert, in place, weights from before the fused modulation (issue 28): each block's five
+    per-norm linears ``blocks.j.norms.k.modulation.{weight,bias}`` (2W x W, 2W) are stacked into
+    ``blocks.j.modulation`` (10W x W, 10W) in the same order, which computes the same (scale,
+    shift) pairs. Works under any key prefix (an EMA's ``module.``). True if anything changed."""
+    suffix = "norms.0.modulation.weight"
+    prefixes = [k[: -len(suffix)] for k in list(state_dict) if k.endswith(suffix)]
+    return any([_fuse_block(state_dict, p) for p in prefixes])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -567,17 +604,19 @@ class DualFlow(nn.Module):
         z = self.in_a(x_a) + self._pe(n_frames, device)
         keys = []
         for block in self.blocks:
-            z2 = block.temporal(z, z_d, z_m, masks)
+            mods = block.modulations(z_d)
+            z2 = block.temporal(z, mods, z_m, masks)
             keys.append(block.keys_of(z2))
-            z = block.finish(z2, z_d, z_r)
+            z = block.finish(z2, mods, z_r)
         return ActorContext(keys=keys, shape=(b, n_frames))
 
     def _reactive_masks(self, n_frames, look_ahead, frame_mask, device, dtype) -> BlockMasks:
-        causal = look_ahead_mask(n_frames, n_frames, 0, device)
         cross = look_ahead_mask(n_frames, n_frames, look_ahead, device)
-        if frame_mask is not None:
-            key_mask = frame_mask.bool()[:, None, None, :]  # (B, 1, 1, T)
-            causal, cross = causal & key_mask, cross & key_mask
+        if frame_mask is None:  # plain causal self-attention: SDPA's is_causal, no mask tensor
+            return BlockMasks(None, cross, causal=True, frame_mask=None, self_causal=True)
+        causal = look_ahead_mask(n_frames, n_frames, 0, device)
+        key_mask = frame_mask.bool()[:, None, None, :]  # (B, 1, 1, T)
+        causal, cross = causal & key_mask, cross & key_mask
         return BlockMasks(causal, cross, causal=True, frame_mask=self._frame_mask(frame_mask, dtype))
 
     def forward(
@@ -622,9 +661,10 @@ class DualFlow(nn.Module):
             masks = self._reactive_masks(n_frames, look_ahead, frame_mask, device, x_b.dtype)
             z = self.in_b(x_b) + pe
             for block, keys in zip(self.blocks, actor_context.keys):
-                z2 = block.temporal(z, z_d, z_m, masks)
-                z3 = block.motion_cross(z2, z_d, keys, masks.cross_mask)
-                z = block.finish(z3, z_d, z_r)
+                mods = block.modulations(z_d)
+                z2 = block.temporal(z, mods, z_m, masks)
+                z3 = block.motion_cross(z2, mods, keys, masks.cross_mask)
+                z = block.finish(z3, mods, z_r)
             return torch.zeros_like(x_a), self._velocity(self.out_b(self.out_norm(z)), x_b, t)
 
         # Interactive: both persons noised at the same t, stacked along the batch.
@@ -688,7 +728,7 @@ def parameter_breakdown(config: DualFlowConfig | str) -> dict[str, int]:
         in_block = name.startswith("blocks.")
         if in_block and ".conv." in name:
             key = "temporal convolutions"
-        elif in_block and ".norms." in name:
+        elif in_block and ".modulation." in name:
             key = "adaptive LayerNorms"
         elif in_block and ("_attn." in name or ".other_norm." in name):
             key = "attention (4 per block)"

@@ -177,6 +177,8 @@ class _BodyPlan:
     beat_times: np.ndarray                         # (K,) seconds, beats covering the clip
     first_foot: int                                # foot stepping on beat 0 (0 left, 1 right)
     steps_per_beat: int = 1                        # 2 = double time (a step on every half beat)
+    reach_left: Callable[[np.ndarray], np.ndarray] | None = None   # (n,) -> (n,) in [0, 1]: hand held out forward
+    reach_right: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -269,10 +271,21 @@ def _synthesise(plan: _BodyPlan, times: np.ndarray, period: float, rng_phase: fl
     for j in _SPINE:
         local[:, j] = _rot(2, twist)
     local[:, _HEAD] = _rot(1, 0.06 * (0.5 + 0.5 * np.cos(2 * np.pi * beat_phase)))
-    local[:, _SHOULDER[_LEFT]] = _rot(0, arm_l)
-    local[:, _SHOULDER[_RIGHT]] = _rot(0, -arm_r)
     bend_l = 0.3 + 0.35 * (arm_l - _ARM_DOWN)
     bend_r = 0.3 + 0.35 * (arm_r - _ARM_DOWN)
+    if plan.reach_left is None and plan.reach_right is None:
+        local[:, _SHOULDER[_LEFT]] = _rot(0, arm_l)
+        local[:, _SHOULDER[_RIGHT]] = _rot(0, -arm_r)
+    else:  # a hand held out forward: blend the raise towards _REACH_RAISE and swing the arm to the front
+        zero = np.zeros(n)
+        w_l = zero if plan.reach_left is None else _smoothstep(plan.reach_left(times))
+        w_r = zero if plan.reach_right is None else _smoothstep(plan.reach_right(times))
+        arm_l = (1 - w_l) * arm_l + w_l * _REACH_RAISE
+        arm_r = (1 - w_r) * arm_r + w_r * _REACH_RAISE
+        local[:, _SHOULDER[_LEFT]] = _rot(2, -_REACH_SWING * w_l) @ _rot(0, arm_l)
+        local[:, _SHOULDER[_RIGHT]] = _rot(2, _REACH_SWING * w_r) @ _rot(0, -arm_r)
+        bend_l = (1 - w_l) * bend_l + w_l * 0.15
+        bend_r = (1 - w_r) * bend_r + w_r * 0.15
     local[:, _ELBOW[_LEFT]] = _rot(2, -bend_l)
     local[:, _ELBOW[_RIGHT]] = _rot(2, bend_r)
 
@@ -282,6 +295,8 @@ def _synthesise(plan: _BodyPlan, times: np.ndarray, period: float, rng_phase: fl
 
 
 _ARM_DOWN = -1.25  # shoulder raise of a relaxed arm, rad (0 = T-pose, arm horizontal)
+_REACH_RAISE = -0.35  # shoulder raise of a hand held out to the partner (slightly below horizontal), rad
+_REACH_SWING = 1.3    # swing of that arm from the side to the front about the vertical, rad
 
 
 def _beat_phase(times: np.ndarray, beat_times: np.ndarray) -> np.ndarray:
@@ -524,16 +539,23 @@ def beat_features(times: np.ndarray, beat_times: np.ndarray, fps: float) -> tupl
 # ---------------------------------------------------------------------------
 # public entry point
 # ---------------------------------------------------------------------------
-def make_duet(rule: str = "mirror", seconds: float = 4.0, fps: float = 30.0, seed: int = 0) -> TwoPersonMotion:
+def make_duet(rule: str = "mirror", seconds: float = 4.0, fps: float = 30.0, seed: int = 0,
+              varied: bool = False) -> TwoPersonMotion:
     """A SYNTHETIC two-person clip: procedural leader (actor) + rule-driven follower (reactor).
 
     rule: one of :data:`RULES`; seconds: length; fps: frame rate; seed: the clip
     is a deterministic function of (rule, seconds, fps, seed). Returns a
     :class:`TwoPersonMotion` in the Z-up world frame with ``text`` and ``meta``
-    as described in the module docstring.
+    as described in the module docstring. varied: the wider repertoire of
+    :mod:`dualflow.synthetic_varied` (walking up, turning to a side, reaching out a hand,
+    followers that keep a personal distance, mirrored duets); False gives the classic clips.
     """
     if rule not in RULES:
         raise DualFlowError(f"synthetic duet: unknown rule {rule!r}; choose one of {', '.join(RULES)}")
+    if varied:
+        from dualflow.synthetic_varied import make_varied_duet
+
+        return make_varied_duet(rule, seconds, fps, seed)
     clip = make_leader_clip(seconds, fps, seed)
     rng = np.random.default_rng([int(seed), 2, RULES.index(rule)])
     f_pos, f_contacts = _follower(rule, clip, rng)

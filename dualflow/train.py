@@ -48,6 +48,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import itertools
 import datetime as _dt
 import json
 import math
@@ -157,6 +158,8 @@ class TrainConfig:
     text_encoder: str = "hashed"
     text_cache: str = ""
     export_dtype: str = "float32"
+    init_from: str = ""
+    compile: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))
@@ -420,6 +423,25 @@ class TrainResult:
 # ---------------------------------------------------------------------------------------------
 
 
+def ema_update(ema: AveragedModel, model: torch.nn.Module, decay: float) -> None:
+    """``ema.update_parameters(model)`` for an EMA made with ``get_ema_multi_avg_fn(decay)``, the
+    same arithmetic (a copy at the first update, then lerp(ema, theta, 1 - decay) for parameters and
+    buffers) without reading ``n_averaged`` on the host each step (two device syncs per step on a
+    GPU). Whether the EMA has started is read once per EMA and kept (``_dualflow_started``)."""
+    started = getattr(ema, "_dualflow_started", None)
+    if started is None:
+        started = bool(ema.n_averaged > 0)
+    mine = [p.detach() for p in itertools.chain(ema.module.parameters(), ema.module.buffers())]
+    theirs = [p.detach().to(q.device) for p, q in zip(itertools.chain(model.parameters(), model.buffers()), mine)]
+    with torch.no_grad():
+        if started:
+            torch._foreach_lerp_(mine, theirs, 1.0 - decay)
+        else:
+            torch._foreach_copy_(mine, theirs)
+        ema.n_averaged += 1
+    ema._dualflow_started = True
+
+
 class Trainer:
     """Builds data, model, optimiser, EMA from a TrainConfig and runs the loop (module docstring)."""
 
@@ -433,21 +455,36 @@ class Trainer:
         self.data_config = config.data_config()
         self.text_encoder = checkpoint_text_encoder(
             {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None)
+        init = None
+        if config.init_from:
+            init = load_checkpoint(config.init_from)
+            if init.config != self.model_config:
+                raise DualFlowError(f"init_from {config.init_from}: its model config differs from this training "
+                                    "config's; fine-tune with the same preset and model overrides")
         self.train_set, self.val_set, self.stats = make_datasets(
             self.data_config, self.model_config.text_dim, as_text_embedder(self.text_encoder),
-            cache_dir=config.data_cache or None, music_kind=MUSIC_KIND.get(config.music))
+            cache_dir=config.data_cache or None, music_kind=MUSIC_KIND.get(config.music),
+            stats=None if init is None else init.stats)
         self.music_kind = MUSIC_KIND.get(config.music)
         if self.music_kind is not None:
             self.train_set.music_of(self.music_kind)  # a clear error now when the data lacks that music
+        if self.ctx.device.type == "cuda":  # batches gathered on the GPU (no per-step host copy), or pinned
+            for ds in (self.train_set, self.val_set):
+                if ds is not None:
+                    ds.place(self.ctx.device)
 
         torch.manual_seed(step_seed(config.seed, 0xA11CE))  # identical initial weights on every rank
         self.model = DualFlow(self.model_config).to(self.ctx.device)
+        if init is not None:
+            self.model.load_state_dict(init.state_dict)
         self.rag = config.rag_config()
         self.retrieval_encoder = self.retriever = self.val_retriever = None
         if self.rag.enabled:
             self._build_retrieval()
+        # fused AdamW on a GPU: one kernel for all parameters, step counters on the device (no host reads)
         self.optimizer = torch.optim.AdamW(
-            self._parameters(), lr=config.lr, weight_decay=config.weight_decay, betas=config.betas
+            self._parameters(), lr=config.lr, weight_decay=config.weight_decay, betas=config.betas,
+            fused=True if self.ctx.device.type == "cuda" else None,
         )
         self.ema = self.retrieval_ema = None
         if config.ema_decay > 0:
@@ -459,13 +496,22 @@ class Trainer:
         self.resumed_from: Path | None = None
         if resume:
             self._resume()
+        if config.compile:  # after the EMA copy: only the trained model runs compiled
+            from dualflow.compile import compile_blocks
+
+            compile_blocks(self.model)
         self.ddp = self.model
         self.retrieval_ddp = self.retrieval_encoder
+        if config.music == "none":  # never fed: frozen, so that every trainable weight gets a gradient
+            for part in (self.model.music_in, self.model.music_encoder, self.model.music_norm):
+                part.requires_grad_(False)
         if self.ctx.distributed:
             ids = [self.ctx.device.index] if self.ctx.device.type == "cuda" else None
-            # find_unused_parameters: a reactive step leaves the actor's output head and
-            # (with music absent) the music encoder out of the graph.
-            self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=True)
+            # Every trainable weight takes part in every step (the music encoder is frozen when music
+            # is absent; a reactive step touches the actor's output head with weight 0, train_step),
+            # so DDP need not search the graph for unused ones after each backward. With retrieval,
+            # a step whose cues are all dropped leaves parts of it out: there the search stays on.
+            self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=self.rag.enabled)
             if self.retrieval_encoder is not None:
                 self.retrieval_ddp = DistributedDataParallel(self.retrieval_encoder, device_ids=ids,
                                                              find_unused_parameters=True)
@@ -632,13 +678,19 @@ class Trainer:
         return Conditions(text=batch["text"].to(dev), music=music, retrieval=retrieval, drop_text=drop_text,
                           drop_music=drop_music if music is not None else None)
 
-    def train_step(self) -> dict:
+    def train_step(self, sync: bool = True) -> dict:
+        """One optimiser step; returns its log row. sync=False: the row's loss terms and gradient
+        norm stay tensors on the device (no host synchronisation, no cross-rank loss mean);
+        ``run`` syncs only on the steps it logs (``row_values``)."""
         cfg, ctx = self.config, self.ctx
         shared = torch.Generator().manual_seed(step_seed(cfg.seed, self.step))
         mode = "reactive" if torch.rand(1, generator=shared).item() < cfg.reactive_prob else "interactive"
-        gen = torch.Generator().manual_seed(step_seed(cfg.seed, self.step, ctx.rank + 1))
+        seed = step_seed(cfg.seed, self.step, ctx.rank + 1)
+        gen = torch.Generator().manual_seed(seed)
         torch.manual_seed(step_seed(cfg.seed, self.step, ctx.rank + 1, 7))  # dropout masks
         idx = torch.randint(len(self.train_set), (cfg.batch_size,), generator=gen)
+        if ctx.device.type != "cpu":  # noise, t and CFG drops drawn where the batch lives (CPU: one stream, as before)
+            gen = torch.Generator(device=ctx.device).manual_seed(seed)
         batch = self.train_set.batch(idx)
         lr = warmup_lr(cfg.lr, self.step, cfg.warmup_steps)
         for group in self.optimizer.param_groups:
@@ -650,7 +702,8 @@ class Trainer:
                else contextlib.nullcontext())
         with amp:
             cond = self._conditions(batch, gen, mode)
-            x_a, x_b = batch["actor"].to(ctx.device), batch["reactor"].to(ctx.device)
+            x_a = batch["actor"].to(ctx.device, non_blocking=True)
+            x_b = batch["reactor"].to(ctx.device, non_blocking=True)
             out = flow_training_step(self.ddp, x_a, x_b, cond, mode=mode, look_ahead=cfg.look_ahead,
                                      time_sampler=self.time_sampler, generator=gen)
             terms = {"flow": out.loss}
@@ -661,27 +714,37 @@ class Trainer:
             else:
                 loss = out.loss
         loss = loss.float()
+        if ctx.distributed and mode == "reactive":  # the actor's output head, with weight 0 (see __init__)
+            head = self.model.out_a
+            loss = loss + 0.0 * (head.weight.sum() + head.bias.sum())
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        params = self._parameters()
+        params = [p for p in self._parameters() if p.requires_grad]
         if cfg.grad_clip > 0:
-            grad_norm = float(torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip))
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
         else:
-            grad_norm = float(torch.linalg.vector_norm(torch.stack(
-                [p.grad.norm() for p in params if p.grad is not None])))
+            grad_norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in params if p.grad is not None]))
         self.optimizer.step()
         if self.ema is not None:
-            self.ema.update_parameters(self.model)
+            ema_update(self.ema, self.model, cfg.ema_decay)
         if self.retrieval_ema is not None:
-            self.retrieval_ema.update_parameters(self.retrieval_encoder)
+            ema_update(self.retrieval_ema, self.retrieval_encoder, cfg.ema_decay)
         self.step += 1
-        loss_value = loss.detach()
-        if ctx.distributed:
-            dist.all_reduce(loss_value)
-            loss_value /= ctx.world_size
-        row = {"step": self.step, "mode": mode, "loss": float(loss_value), "lr": lr, "grad_norm": grad_norm}
-        row.update({k: float(v.detach()) for k, v in terms.items()})  # this rank's terms (the loss is the rank mean)
-        return row
+        row = {"step": self.step, "mode": mode, "loss": loss.detach(), "lr": lr, "grad_norm": grad_norm.detach()}
+        row.update({k: v.detach() for k, v in terms.items()})  # this rank's terms (the loss is the rank mean)
+        return self.row_values(row) if sync else row
+
+    def row_values(self, row: dict) -> dict:
+        """A ``train_step(sync=False)`` row with its tensors as floats (one host sync); the loss
+        averaged over the ranks (a collective: every rank calls it on the same steps)."""
+        out = dict(row)
+        if torch.is_tensor(out["loss"]):
+            loss_value = out["loss"].clone()
+            if self.ctx.distributed:
+                dist.all_reduce(loss_value)
+                loss_value /= self.ctx.world_size
+            out["loss"] = loss_value
+        return {k: float(v) if torch.is_tensor(v) else v for k, v in out.items()}
 
     @torch.no_grad()
     def validation_loss(self, n_batches: int = 4) -> float:
@@ -749,13 +812,16 @@ class Trainer:
         while self.step < cfg.steps:
             if self._out_of_time(t0):
                 break
-            last = self.train_step()
-            if not math.isfinite(last["loss"]):
-                raise DualFlowError(
-                    f"training diverged at step {self.step} (loss {last['loss']}); lower lr or raise warmup_steps"
-                )
+            step = self.step + 1  # sync (tensors -> floats) only on the steps that are logged or shown
+            logged = step % cfg.log_every == 0 or step == cfg.steps or (cfg.val_every and step % cfg.val_every == 0)
+            last = self.train_step(sync=False)
             bar.update(1)
-            bar.set_postfix(loss=f"{last['loss']:.4f}", lr=f"{last['lr']:.1e}", mode=last["mode"][0])
+            if logged or cfg.progress:  # the same steps on every rank (row_values is a collective)
+                last = self.row_values(last)
+                if not math.isfinite(last["loss"]):
+                    raise DualFlowError(
+                        f"training diverged by step {self.step} (loss {last['loss']}); lower lr or raise warmup_steps")
+                bar.set_postfix(loss=f"{last['loss']:.4f}", lr=f"{last['lr']:.1e}", mode=last["mode"][0])
             val = None
             if cfg.val_every and self.step % cfg.val_every == 0:
                 val = self.validation_loss()
@@ -773,6 +839,7 @@ class Trainer:
                     self.save()
                 ctx.barrier()
         bar.close()
+        last = self.row_values(last) if any(torch.is_tensor(v) for v in last.values()) else last
         final = None
         if ctx.is_main:
             self.save()

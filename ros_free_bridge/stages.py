@@ -82,7 +82,8 @@ class ReactorStage:
     """
 
     def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, text: str | None = None,
-                 music=None, music_frames: int = 30 * 60 * 30, threads: int = 1, predict_next: bool = True):
+                 music=None, music_frames: int = 30 * 60 * 30, threads: int = 1, predict_next: bool = True,
+                 clean: bool = True):
         import torch
 
         from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
@@ -112,6 +113,10 @@ class ReactorStage:
         self._last_in = (0.0, -1)  # arrival and index of the newest actor frame pushed
         self._n_out = 0
         self._torch = torch
+        # clean: each partner frame through dualflow.body.BodyCleaner (bone lengths, planted feet, jitter)
+        from dualflow.body import BodyCleaner
+
+        self.cleaner = BodyCleaner(self.fps) if clean else None
 
     @staticmethod
     def _conditions(ckpt, text, music, music_frames: int):
@@ -273,7 +278,10 @@ class ReactorStage:
         motion = decode_person(self.stats.denormalize(rows), self.fps, self._canonical)
         frames = []
         for k in range(rows.shape[0]):
-            frames.append(ReactorFrame(self._n_out, motion.positions[k], motion.contacts[k], arrival, actor_index, latency))
+            pos, contacts = motion.positions[k], motion.contacts[k]
+            if self.cleaner is not None:
+                pos, contacts = self.cleaner.step(pos)
+            frames.append(ReactorFrame(self._n_out, pos, contacts, arrival, actor_index, latency))
             self._n_out += 1
         return frames
 

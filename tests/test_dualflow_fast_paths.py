@@ -1,0 +1,150 @@
+"""Issue 28's speed changes compute what the code before them computed, and old checkpoints load."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from safetensors.torch import save_file
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from dualflow.checkpoint import load_checkpoint, load_model
+from dualflow.errors import DualFlowError
+from dualflow.losses import triplet_loss
+from dualflow.model import N_ADA, Conditions, DualFlow, DualFlowConfig
+from dualflow.train import ema_update, load_train_config, train
+
+
+def _random_model(seed: int = 0, **over) -> DualFlow:
+    torch.manual_seed(seed)
+    model = DualFlow(DualFlowConfig.preset("tiny", **over)).eval()
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if name.startswith(("out_a", "out_b")) or ".modulation." in name:
+                p.normal_(0.0, 0.2)
+    return model
+
+
+def _split(state: dict) -> dict:
+    """The same weights in the layout before the fused modulation: five linears per block."""
+    old = {}
+    for key, value in state.items():
+        if key.endswith(("modulation.weight", "modulation.bias")) and ".norms." not in key:
+            prefix, name = key.rsplit("modulation.", 1)
+            for k, part in enumerate(value.chunk(N_ADA, 0)):
+                old[f"{prefix}norms.{k}.modulation.{name}"] = part.clone()
+        else:
+            old[key] = value
+    return old
+
+
+def test_weights_of_five_separate_modulations_load_into_the_fused_one():
+    model = _random_model()
+    old = _split(model.state_dict())
+    assert not any(k.endswith(".modulation.weight") and ".norms." not in k for k in old)
+    again = DualFlow(model.config).eval()
+    again.load_state_dict(old)  # the block's load hook stacks them
+    x = torch.randn(2, 12, 262)
+    for mode in ("interactive", "reactive"):
+        with torch.no_grad():
+            want = model(x, x.flip(1), 0.3, mode=mode)
+            got = again(x, x.flip(1), 0.3, mode=mode)
+        for a, b in zip(want, got):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_an_old_checkpoint_directory_loads_and_an_old_training_run_says_how_to_go_on(tmp_path):
+    run = train(load_train_config(None, ["preset=tiny", "data.n_clips=8", "data.val_clips=0", "data.frames=16",
+                                         "batch_size=4", "threads=1", "progress=false", "ckpt_every=0", "steps=2",
+                                         f"out_dir={tmp_path / 'run'}"]))
+    final = run.final_checkpoint
+    model, ckpt = load_model(final)
+    assert not ckpt.converted
+    save_file(_split({k: v.contiguous() for k, v in ckpt.state_dict.items()}), str(final / "model.safetensors"))
+    old_model, old = load_model(final)
+    assert old.converted
+    x = torch.randn(1, 16, 262)
+    with torch.no_grad():
+        torch.testing.assert_close(old_model(x, x, 0.5, mode="reactive")[1], model(x, x, 0.5, mode="reactive")[1])
+    step_dir = sorted((tmp_path / "run" / "checkpoints").glob("step_*"))[-1]
+    state = load_checkpoint(step_dir).state_dict
+    save_file(_split({k: v.contiguous() for k, v in state.items()}), str(step_dir / "model.safetensors"))
+    with pytest.raises(DualFlowError, match="init_from"):
+        load_checkpoint(step_dir, resume=True)
+    assert json.loads((final / "config.json").read_text())["format"] == "dualflow-checkpoint"
+
+
+def test_causal_self_attention_without_a_mask_tensor_equals_the_boolean_mask():
+    model = _random_model(1)
+    x = torch.randn(2, 14, 262)
+    with torch.no_grad():
+        fast = model(x, x.flip(1), 0.6, mode="reactive")[1]  # no frame mask: SDPA is_causal
+        masked = model(x, x.flip(1), 0.6, mode="reactive", frame_mask=torch.ones(2, 14, dtype=torch.bool))[1]
+    torch.testing.assert_close(fast, masked, rtol=1e-5, atol=1e-5)
+
+
+def test_triplet_loss_is_the_mean_over_valid_triplets_and_zero_without_any():
+    torch.manual_seed(0)
+    v = torch.randn(6, 5, 3, requires_grad=True)
+    labels = torch.tensor([0, 0, 1, 1, 2, 0])
+    flat = torch.nn.functional.normalize(v.reshape(6, -1), dim=-1)
+    dist = 1 - flat @ flat.T
+    terms = [torch.relu(dist[i, p] - dist[i, n] + 0.2) for i in range(6) for p in range(6) for n in range(6)
+             if p != i and labels[p] == labels[i] and labels[n] != labels[i]]
+    torch.testing.assert_close(triplet_loss(v, labels=labels), torch.stack(terms).mean())
+    none = triplet_loss(v, labels=torch.arange(6))  # no positives
+    assert none.item() == 0.0 and none.requires_grad
+
+
+def test_ema_update_matches_averaged_model():
+    model = _random_model(2)
+    a = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.9), use_buffers=True)
+    b = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.9), use_buffers=True)
+    for _ in range(3):
+        with torch.no_grad():
+            for p in model.parameters():
+                p.add_(torch.randn_like(p))
+        a.update_parameters(model)
+        ema_update(b, model, 0.9)
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        torch.testing.assert_close(x, y, rtol=0, atol=0, msg=name)
+
+
+def test_train_step_without_sync_keeps_tensors_and_logs_the_same_numbers(tmp_path):
+    from dualflow.train import Trainer
+
+    args = ["preset=tiny", "data.n_clips=8", "data.val_clips=0", "data.frames=16", "batch_size=4", "threads=1",
+            "progress=false"]
+    one = Trainer(load_train_config(None, args + [f"out_dir={tmp_path / 'a'}"]))
+    two = Trainer(load_train_config(None, args + [f"out_dir={tmp_path / 'b'}"]))
+    for _ in range(3):
+        synced = one.train_step()
+        raw = two.train_step(sync=False)
+        assert torch.is_tensor(raw["loss"]) and torch.is_tensor(raw["grad_norm"])
+        assert two.row_values(raw) == synced
+    assert not one.model.music_in.weight.requires_grad  # music "none": its encoder is frozen
+
+
+def test_compiled_blocks_share_their_graphs_and_compute_the_same():
+    torch._dynamo.reset()
+    from torch._dynamo.utils import counters
+
+    from dualflow.compile import compile_blocks
+
+    graphs = []
+    for n_blocks in (2, 4):
+        torch._dynamo.reset()
+        counters.clear()
+        model = _random_model(3, n_blocks=n_blocks)
+        x = torch.randn(1, 10, 262)
+        cond = Conditions(text=torch.randn(1, model.config.text_dim))
+        with torch.no_grad():
+            want = model(x, x, 0.4, cond, mode="reactive")[1]
+            compile_blocks(model, backend="eager")
+            got = model(x, x, 0.4, cond, mode="reactive")[1]
+        torch.testing.assert_close(got, want)
+        assert sum(counters["graph_break"].values()) == 0
+        graphs.append(counters["stats"]["unique_graphs"])
+    assert graphs[0] == graphs[1]  # twice the blocks, no more graphs: one compile serves every block
+    torch._dynamo.reset()
