@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 from dualflow.checkpoint import bundled_checkpoint, load_checkpoint  # noqa: E402
-from dualflow.data import positions_from_normalized, template_text_embedding  # noqa: E402
+from dualflow.datasets.training import positions_from_normalized  # noqa: E402
+from dualflow.text import template_text_embedding  # noqa: E402
 from dualflow.flow import generate  # noqa: E402
 from dualflow.model import Conditions  # noqa: E402
 from dualflow.motion.features import encode_pair  # noqa: E402

@@ -29,7 +29,7 @@ def measure(seconds: float, repeats: int, clean: bool | None) -> dict:
     from dualflow.streaming import StreamConfig
     from dualflow.synthetic import make_leader
     from ros_free_bridge.session import SessionOptions
-    from ros_free_bridge.stages import ReactorStage
+    from ros_free_bridge.partner.reactor import ReactorStage
 
     torch.set_num_threads(1)
     leader = make_leader(seconds, 30.0, 0).positions

@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
-from dualflow.data import template_text_embedding  # noqa: E402
+from dualflow.text import template_text_embedding  # noqa: E402
 from dualflow.flow import generate  # noqa: E402
 from dualflow.model import Conditions, DualFlow, DualFlowConfig  # noqa: E402
 from dualflow.motion.features import encode_person  # noqa: E402

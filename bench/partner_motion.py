@@ -74,10 +74,10 @@ def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None,
                    hop: int = 1, incremental: bool = True, predict_next: bool = True) -> np.ndarray:
     """Partner positions (N, 22, 3) streamed by the bridge's ReactorStage (demo settings)."""
     from dualflow.streaming import StreamConfig
-    from ros_free_bridge.stages import ReactorStage
+    from ros_free_bridge.partner.reactor import Cues, ReactorStage
 
     stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=steps, hop=hop, incremental=incremental),
-                         text, music, music_frames=len(leader) + 60, predict_next=predict_next)
+                         Cues(text, music, music_frames=len(leader) + 60), predict_next=predict_next)
     out = []
     for k, p in enumerate(leader):
         out += stage.push(p, 0.0, k)
@@ -144,12 +144,12 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
     (``dualflow.body``). Diversity: mean pairwise MPJPE across seeds / across texts."""
     import time
 
-    from dualflow.conditioning import DuetGenerator
+    from dualflow.duet_generator import DuetGenerator
     from dualflow.evaluation.plausibility import diversity, plausibility
     from dualflow.motion.io.formats import load_pair
     from dualflow.streaming import StreamConfig
     from ros_free_bridge.session import SessionOptions
-    from ros_free_bridge.stages import ReactorStage
+    from ros_free_bridge.partner.reactor import ReactorStage
 
     pair = load_pair(CMU_DIR / "18_01.bvh", CMU_DIR / "19_01.bvh", fps=30.0)
     actor, real = pair.actor.positions, pair.reactor.positions
@@ -172,15 +172,16 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
         gen = DuetGenerator.from_checkpoint(ck)
         for clean in (False, True):
             tag = "clean" if clean else "raw"
-            seeded = [gen.generate(actor=pair.actor, seed=s, steps=steps, clean=clean)[0].reactor.positions
+            gen.clean = clean
+            seeded = [gen.generate(actor=pair.actor, seed=s, steps=steps)[0].reactor.positions
                       for s in range(seeds)]
-            texted = [gen.generate(actor=pair.actor, text=t, seed=0, steps=steps, clean=clean)[0].reactor.positions
+            texted = [gen.generate(actor=pair.actor, text=t, seed=0, steps=steps)[0].reactor.positions
                       for t in CUE_TEXTS]
             add(f"{label} offline {seeds} seeds, no text, {tag}", seeded, diversity_texts=diversity(texted))
             streamed, per_frame = [], []
             for s in range(stream_seeds):
                 cfg = StreamConfig(window=d.window, steps=d.steps, hop=d.hop, incremental=True, seed=s)
-                stage = ReactorStage(30.0, ck, cfg, None, None, clean=clean)
+                stage = ReactorStage(30.0, ck, cfg, clean=clean)
                 out, t_clean = [], 0.0
                 for k, p in enumerate(actor):
                     out += stage.push(p, 0.0, k)
@@ -189,7 +190,7 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
                 if clean:  # the cleaner's own cost per frame, replayed on this stream's raw frames
                     from dualflow.body import BodyCleaner
 
-                    raw = ReactorStage(30.0, ck, cfg, None, None, clean=False)
+                    raw = ReactorStage(30.0, ck, cfg, clean=False)
                     frames = []
                     for k, p in enumerate(actor):
                         frames += raw.push(p, 0.0, k)

@@ -1,27 +1,10 @@
 """A body that holds together: causal, per-frame cleanup of generated joint positions.
 
-:class:`BodyCleaner` takes one generated frame at a time (SMPL-22 positions (22, 3), metres,
-Z up, floor at z = ``floor``) and returns a cleaned frame with
-
-1. less jitter: ``order`` one-euro filters in a row per joint (cutoff ``min_cutoff`` Hz when
-   still, rising by ``beta`` Hz per m/s of joint speed, so fast moves lag little);
-2. constant bone lengths: every bone keeps the generated direction and gets the skeleton's
-   length, walking the tree from the pelvis outwards (the first frame's bone lengths, left and
-   right averaged, or ``lengths``); this is
-   forward kinematics of the swing rotations that point each rest bone along the generated one;
-3. feet that stay put: a foot whose ankle is below ``lock_ankle_m`` or toe below ``lock_toe_m``
-   is locked where it touched down; it is released when the generated foot rises above
-   ``release_ankle_m`` / ``release_toe_m`` (blending back to it, no jump), or, when the generated
-   foot has walked more than ``max_drift_m`` away, it takes a step there (lifted ``step_lift_m``,
-   moving only while lifted, over ``step_frames``). The feet follow these targets through a
-   low-pass (``foot_blend`` per frame, 1 = none) so that touch-down and take-off are soft (a
-   planted foot settles within a few millimetres). The legs reach the feet by two-bone inverse
-   kinematics (thigh and shin lengths kept, knee bent towards the generated knee); when a locked
-   foot is out of reach the pelvis is lowered (at most ``max_drop_m``).
-
-Frame i of the output depends on input frames <= i only (no delay). :func:`clean_positions`
-runs the same filter over a whole clip, so offline generation and the live streamer agree.
-numpy only; about 0.3 ms per frame on one CPU core.
+Contract: :class:`BodyCleaner` takes one generated frame (22, 3) (SMPL-22, metres, Z up, floor
+at z = ``floor``) and returns a cleaned frame with less jitter (one-euro filters), constant bone
+lengths and planted feet (locked on touch-down, two-bone leg IK, pelvis lowered when a locked
+foot is out of reach). Output frame i depends on input frames <= i only; :func:`clean_positions`
+runs the same filter over a clip. numpy only. How it works: docs/model.md.
 """
 
 from __future__ import annotations

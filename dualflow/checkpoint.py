@@ -1,24 +1,11 @@
 """DualFlow checkpoints: safetensors weights + json config + npz statistics. No pickle.
 
-A checkpoint is a directory::
-
-    model.safetensors      network weights (the EMA weights in exported checkpoints)
-    config.json            {"format", "version", "model": DualFlowConfig dict, "text_encoder",
-                            "music", "weights", "step", "train", "data", ...}
-    norm_stats.npz         NormStats of the training features (mean, std; allow_pickle=False)
-  training checkpoints also hold, for resuming:
-    ema.safetensors        the EMA model's state (when EMA is on)
-    optimizer.safetensors  AdamW moments, keys "state/<param index>/<name>"
-    trainer_state.json     step, the optimizer's param_groups, anything else json-able
-
-Everything is read back with ``safetensors.torch.load_file``, ``json`` and
-``np.load(allow_pickle=False)``; a checkpoint cannot execute code when loaded.
-Directories are written under a temporary name and renamed, so a checkpoint is
-complete or absent.
-
-The package ships one exported checkpoint, :data:`BUNDLED_CHECKPOINT` (the
-``small`` preset trained on the synthetic duets; see its README.md for the
-command that reproduces it).
+Contract: a checkpoint is a folder ``model.safetensors`` (EMA weights when exported),
+``config.json`` ({"format", "version", "model", "text_encoder", "music", "data", "train", ...})
+and ``norm_stats.npz``; training checkpoints add ``ema.safetensors``, ``optimizer.safetensors``
+and ``trainer_state.json`` for resuming. Loading runs no code; folders are written under a
+temporary name and renamed (complete or absent). :data:`BUNDLED_CHECKPOINT` is the shipped
+``small`` model trained on the synthetic duets (its README.md reproduces it).
 """
 
 from __future__ import annotations

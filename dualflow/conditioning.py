@@ -1,34 +1,12 @@
-"""Any subset of (actor motion, text, music file) -> DualFlow inputs, and a generator on top.
+"""Any subset of (actor motion, text, music) -> the network's inputs (:class:`GeneratorInputs`).
 
-The rest of the system (CLI, bridge, evaluation) hands the generator whatever it has:
-
-=================  ==================================================================
-given               what is generated
-=================  ==================================================================
-actor               the reactor, reactive mode (paper app. D.3), as long as the actor
-actor + text/music  the same, conditioned on them
-text and/or music   both persons, interactive mode; length from the music, else n_frames
-nothing             an unconditional interactive duet of ``n_frames`` (default 120)
-=================  ==================================================================
-
-:class:`ConditionBuilder` does the conversion. Absent inputs are None in
-:class:`dualflow.model.Conditions`, which the network reads as its learned null (the same
-null classifier-free guidance trains), so no input is ever faked.
-
-* text -> ``text_encoder.encode([text])`` (1, D_text); the encoder must be the one the model
-  was trained with (:func:`text_encoder_for` resolves a checkpoint's ``text_encoder`` id).
-* music file (wav/ogg/mp3, or a Jukebox .npy) -> (1, T, D_music) with
-  :func:`dualflow.music.music_features` of the model's music kind (checkpoint meta
-  ``music``: "beats" -> "beats4", "none" -> music is ignored with a note).
-* actor :class:`~dualflow.motion.Motion` -> resampled to ``fps``, encoded in its own canonical
-  frame (:func:`dualflow.motion.features.encode_person`), normalised with the model's NormStats
-  -> (1, T-1, 262); the canonical frame maps the generated reactor back to the actor's world.
-* retrieval (optional; needs a :class:`dualflow.retrieval.RetrievalDatabase` and a trained
-  :class:`dualflow.retrieval.RetrievalEncoder`): text decomposed into spatial/body/rhythm
-  queries and the music embedding, top-k per cue (5 interactive, 3 reactive) -> z_R.
-
-:class:`DuetGenerator` samples with :func:`dualflow.flow.generate` and decodes to a
-:class:`~dualflow.motion.TwoPersonMotion` in world coordinates.
+Contract: :meth:`ConditionBuilder.build` takes what the caller has (None = absent) and returns
+the :class:`dualflow.model.Conditions` plus the mode: an actor makes it reactive (the reactor
+is generated as long as the actor), otherwise interactive (both persons; length from the music,
+else ``n_frames``, default 120). Absent inputs stay None, which the network reads as its learned
+null; given inputs the model cannot use are listed in ``notes``, never faked. The builder must
+match the checkpoint (text encoder, music kind, fps): :meth:`ConditionBuilder.from_checkpoint`.
+The generator on top is :class:`dualflow.duet_generator.DuetGenerator`; details: docs/model.md.
 """
 
 from __future__ import annotations
@@ -40,12 +18,12 @@ import numpy as np
 import torch
 
 from dualflow.errors import DualFlowError
-from dualflow.model import Conditions, DualFlow, DualFlowConfig
-from dualflow.motion.container import Motion, TwoPersonMotion
-from dualflow.motion.features import CanonicalFrame, canonical_frame, decode_person, encode_person
+from dualflow.model import Conditions, DualFlowConfig
+from dualflow.motion.container import Motion
+from dualflow.motion.features import CanonicalFrame, canonical_frame, encode_person
 from dualflow.motion.normalization import NormStats
 from dualflow.music import MUSIC_DIMS, MUSIC_KINDS, music_features
-from dualflow.retrieval import CUES, DEFAULT_K, DEFAULT_LAMBDA, TEXT_CUES, RetrievalDatabase
+from dualflow.retrieval import CUES, TEXT_CUES, RagConfig, RetrievalDatabase, load_rag
 
 DEFAULT_FRAMES = 120
 #: Checkpoint meta "music" -> music feature kind (None: the model never heard music).
@@ -98,16 +76,17 @@ class ConditionBuilder:
     model_config: the network's DualFlowConfig (text_dim, music_dim, width); stats: its NormStats;
     text_encoder: a TextEncoder with ``dim == text_dim`` (None: text is ignored with a note);
     music_kind: a dualflow.music kind with ``MUSIC_DIMS[kind] == music_dim``, or None (music
-    ignored); fps: the model's frame rate; retrieval_db / retrieval_encoder / decomposer / k /
-    lam: optional RAG (both db and encoder, or neither); k: one depth for both tasks, a
-    {mode: depth} dict, or None (5 interactive, 3 reactive). :meth:`from_checkpoint` loads a
-    RAG checkpoint's database, encoder and depths (:func:`dualflow.rag.load_rag`).
+    ignored); fps: the model's frame rate; retrieval_db / retrieval_encoder: optional RAG (both
+    or neither); retrieval_config: its depths per mode and λ (None: :class:`RagConfig` defaults,
+    5 interactive, 3 reactive); ``decomposer`` (attribute): splits a text into the three cue
+    queries. :meth:`from_checkpoint` loads a RAG checkpoint's database, encoder and config
+    (:func:`dualflow.retrieval.load_rag`).
     """
 
     def __init__(self, model_config: DualFlowConfig, stats: NormStats, *, text_encoder=None,
                  music_kind: str | None = "edge35", fps: float = 30.0,
-                 retrieval_db: RetrievalDatabase | None = None, retrieval_encoder=None, decomposer=None,
-                 k: int | dict | None = None, lam: float = DEFAULT_LAMBDA):
+                 retrieval_db: RetrievalDatabase | None = None, retrieval_encoder=None,
+                 retrieval_config: RagConfig | None = None):
         self.config = model_config
         self.stats = stats
         self.text_encoder = text_encoder
@@ -125,12 +104,12 @@ class ConditionBuilder:
         if (retrieval_db is None) != (retrieval_encoder is None):
             raise DualFlowError("retrieval needs both retrieval_db and retrieval_encoder (or neither)")
         self.retrieval_db, self.retrieval_encoder = retrieval_db, retrieval_encoder
-        if decomposer is None and retrieval_db is not None:
+        self.retrieval_config = retrieval_config or RagConfig()
+        self.decomposer = None
+        if retrieval_db is not None:
             from dualflow.decompose import KeywordDecomposer
 
-            decomposer = KeywordDecomposer()
-        self.decomposer = decomposer
-        self.k, self.lam = k, float(lam)
+            self.decomposer = KeywordDecomposer()
 
     @classmethod
     def from_checkpoint(cls, ckpt, **overrides) -> "ConditionBuilder":
@@ -143,12 +122,9 @@ class ConditionBuilder:
         if "text_encoder" not in overrides:
             kw["text_encoder"] = text_encoder_for(ckpt.text_encoder, ckpt.config.text_dim)
         if "retrieval_db" not in overrides and "retrieval_encoder" not in overrides:
-            from dualflow.rag import load_rag
-
             rag = load_rag(ckpt)
             if rag is not None:
-                kw.update(retrieval_db=rag.db, retrieval_encoder=rag.encoder, lam=rag.config.lam,
-                          k={m: rag.config.depth(m) for m in ("interactive", "reactive")})
+                kw.update(retrieval_db=rag.db, retrieval_encoder=rag.encoder, retrieval_config=rag.config)
         kw.update(overrides)
         return cls(ckpt.config, ckpt.stats, **kw)
 
@@ -196,8 +172,8 @@ class ConditionBuilder:
             queries["music"] = db.music_query(music, n_frames)
         if not queries:
             return None, []
-        depth = self.k.get(mode, DEFAULT_K[mode]) if isinstance(self.k, dict) else (self.k or DEFAULT_K[mode])
-        res = db.query(queries, n_frames, k=int(depth), lam=self.lam)
+        config = self.retrieval_config
+        res = db.query(queries, n_frames, k=config.depth(mode), lam=float(config.lam))
         idx, cue_ids = res.flat()
         motions, lengths = db.gather(idx)
         param = next(self.retrieval_encoder.parameters())
@@ -259,57 +235,4 @@ class ConditionBuilder:
         return GeneratorInputs(cond, mode, n_frames, x_actor, frame, used_in_order, notes, retrieved)
 
 
-class DuetGenerator:
-    """The generator the rest of the system calls: any subset of (actor, text, music) in,
-    a :class:`TwoPersonMotion` (Z-up world, metres, ``builder.fps``) out.
-
-    With an actor the result's actor is the given motion (resampled to fps) and the reactor is
-    generated in the actor's world; otherwise both persons are generated in a canonical world
-    (person A starts at the origin facing +X).
-    """
-
-    def __init__(self, model: DualFlow, builder: ConditionBuilder):
-        self.model = model.eval()
-        self.builder = builder
-
-    @classmethod
-    def from_checkpoint(cls, path: str | Path | None = None, device: str = "cpu", **builder_kw) -> "DuetGenerator":
-        from dualflow.checkpoint import load_model
-
-        model, ckpt = load_model(path, device)
-        return cls(model, ConditionBuilder.from_checkpoint(ckpt, **builder_kw))
-
-    @torch.no_grad()
-    def generate(self, *, actor: Motion | None = None, text: str | None = None, music=None,
-                 n_frames: int | None = None, steps: int = 20, cfg_scale: float = 1.0, seed: int = 0,
-                 method: str = "euler", clean: bool = True) -> tuple[TwoPersonMotion, GeneratorInputs]:
-        """clean: pass the generated reactor through :func:`dualflow.body.clean_positions` (constant
-        bone lengths, planted feet, less jitter; its contacts are the cleaner's); False: the raw
-        decoded features, as before issue 28."""
-        from dualflow.flow import generate
-
-        inputs = self.builder.build(actor=actor, text=text, music=music, n_frames=n_frames)
-        param = next(self.model.parameters())
-        cond = Conditions(**{name: None if getattr(inputs.cond, name) is None else getattr(inputs.cond, name).to(param)
-                             for name in ("text", "music", "retrieval")})
-        x_a, x_b = generate(self.model, inputs.n_frames, cond, mode=inputs.mode,
-                            x_actor=None if inputs.actor is None else inputs.actor.to(param),
-                            steps=steps, method=method, cfg_scale=cfg_scale, seed=seed)
-        fps = self.builder.fps
-        stats = self.builder.stats
-        a = stats.denormalize(x_a[0].cpu().numpy().astype(np.float64))
-        b = stats.denormalize(x_b[0].cpu().numpy().astype(np.float64))
-        reactor = decode_person(b, fps, inputs.canonical, append_last_frame=True, name="reactor")
-        if clean:
-            from dualflow.body import clean_positions
-
-            pos, contacts = clean_positions(reactor.positions, fps)
-            reactor = Motion(positions=pos, fps=fps, contacts=contacts, name="reactor")
-        if actor is not None:
-            actor_motion = actor if abs(actor.fps - fps) < 1e-6 else actor.resample(fps)
-        else:
-            actor_motion = decode_person(a, fps, None, append_last_frame=True, name="actor")
-        return TwoPersonMotion(actor_motion, reactor, text or ""), inputs
-
-
-__all__ = ["ConditionBuilder", "DuetGenerator", "GeneratorInputs", "text_encoder_for", "CUES"]
+__all__ = ["ConditionBuilder", "GeneratorInputs", "text_encoder_for", "CUES"]

@@ -1,29 +1,11 @@
 """Text decomposition into the paper's three focused descriptions (sec. 3.2, app. C).
 
-A free-form interaction text is split into
-  (1) **spatial** relationship: proximity, orientation, handholds;
-  (2) **body** movement: actions, body parts, posture;
-  (3) **rhythm**: tempo, timing, stepping.
-Each becomes a retrieval query of its own (:mod:`dualflow.retrieval`).
-
-Backends
---------
-* :class:`KeywordDecomposer` (default; offline, deterministic). The text is cut into clauses
-  (sentences, then ``,`` ``;`` and the conjunctions "while", "then", "and then"); a clause goes
-  to every aspect whose keyword clusters (:data:`KEYWORD_CLUSTERS`) it mentions, and each
-  description ends with a summary of the clusters found ("closed position; facing each other").
-  An aspect with no cue gets a fixed "not specified" sentence, so the three strings are never
-  empty and never invent content.
-* :class:`LLMDecomposer` (optional, off by default): an OpenAI-compatible ``/chat/completions``
-  endpoint named by the environment variable ``DUALFLOW_LLM_URL`` (e.g.
-  ``http://127.0.0.1:8000/v1``; model ``DUALFLOW_LLM_MODEL``, optional bearer token
-  ``DUALFLOW_LLM_API_KEY``). The request follows app. C.1: the analyst system prompt with the
-  genre, reference guidelines built from the same keyword clusters, three worked examples for
-  the genre as user/assistant turns, then the text; the reply must be a JSON object with keys
-  ``spatial``, ``body``, ``rhythm``. Replies are cached in a JSONL file keyed by
-  SHA-256(model, genre, prompt version, text), so a dataset is decomposed once.
-
-:func:`make_decomposer` picks the backend by name ("keywords" | "llm").
+Contract: ``decomposer.decompose(text, genre=None)`` returns :class:`FocusedDescriptions`
+(spatial relationship, body movement, rhythm), three non-empty strings, each a retrieval query
+of its own (:mod:`dualflow.retrieval`). :class:`KeywordDecomposer` (default) is offline and
+deterministic; :class:`LLMDecomposer` (optional) asks an OpenAI-compatible endpoint named by
+``DUALFLOW_LLM_URL`` and caches replies. :func:`make_decomposer` picks one by name
+("keywords" | "llm"). How each works: docs/model.md.
 """
 
 from __future__ import annotations

@@ -34,8 +34,8 @@ longest, P - D .. P - 1 frames), the others are fed every emitted frame's record
 (teacher forcing, outputs unused; ``WindowCache.feed``: every grid step's rows in one pass,
 like the shared-weight products below) so that they are ready when the oldest runs out.
 Cost: ``bases`` times the rows per frame and step; context never shorter than P - D.
-The music latent of a start is computed once over its frames [s, s + W) (the bridge's
-music is a file, known ahead); text, retrieval and the time embeddings once per start.
+The music latent of a start is computed once over its frames [s, s + W) (the stream's
+music track is known ahead); text, retrieval and the time embeddings once per start.
 
 A CPU spends most of a one-row pass on per-operation overhead, so a pass does the same
 arithmetic in fewer operations (equal to the full forward up to float rounding):

@@ -1,40 +1,12 @@
 """DualFlow's training losses (paper eq. 2-10, appendix D.5), in metric units.
 
-Every geometric / interaction loss works on the predicted clean motion
-x0_hat = x_t + (1 - t) v_hat (``dualflow.flow.FlowStep``), de-normalised to the 262-d
-feature's own units with the dataset's mean / std (``denormalize``): joint positions in
-metres in the canonical **Y-up** feature frame (``FEATURE_SLICES`` of
-:mod:`dualflow.motion.features`), frame differences in metres per frame, contacts 0/1.
-
-Terms and their weights (``LossWeights``; defaults are the paper's):
-
-    L_total = L_flow + 0.1 L_triplet                                    (eq. 4, 10)
-            + geo   * (30 L_foot + 30 L_vel + 10 L_BL)                  (eq. 5, D.5)
-            + inter * (3 L_DM + 0.01 L_RO + 5 L_sync)                   (eq. 9, D.5)
-
-with geo = inter = 1 (eq. 10's lambda_geo, lambda_inter; the paper does not give them).
-Definitions (per-person quantities are averaged over the persons that are generated:
-both in interactive mode, the reactor only in reactive mode; the interaction losses pair
-the predicted reactor with the *ground-truth* actor in reactive mode, eq. 9's note):
-
-* L_foot  = mean_{b,t,f} c_gt[t, f] || p_hat[t+1, f] - p_hat[t, f] ||^2, f over the 4 foot
-  joints (left ankle, left foot, right ankle, right foot); predicted feet must not slide when
-  the ground truth says they touch the ground (MDM).
-* L_vel   = mean_{b,t,j} || (p_hat[t+1] - p_hat[t]) - (p[t+1] - p[t]) ||^2  (MDM).
-* L_BL    = mean_{b,t,bone} (|bone_hat| - |bone|)^2 over the 21 SMPL bones (InterGen).
-* L_DM    = mean over (b, t, j1, j2) with d_gt < dm_threshold of (d_p - d_gt)^2, d(j1, j2) =
-  || p_A[j1] - p_B[j2] ||; the joint distance map of InterGen, restricted to near pairs
-  (default 1 m) where contact and proximity matter.
-* L_RO    = mean_{b,t} || r_hat - r_gt ||^2, r = (cos psi, sin psi) of the relative yaw psi
-  between the two facing directions (forward = up x across, across = (r_hip - l_hip) +
-  (r_shoulder - l_shoulder), projected on the ground plane); InterGen's relative orientation.
-* L_sync  = mean_{b,t} sum_{j1,j2} w_d w_j (d_p - d_gt)^2 / (22 * 22)  (eq. 6; we average over
-  the 484 pairs so the weight 5 does not scale with the skeleton), w_d = exp(-alpha d_gt)
-  (eq. 7), w_j by anatomical group (eq. 8, ``SyncWeights``).
-* L_triplet: see ``triplet_loss`` (eq. 3).
-
-All losses take an optional frame_mask (B, T) bool (True = real frame); frame differences
-count only when both frames are real.
+Contract: every geometric and interaction term works on the predicted clean motion
+x0_hat = x_t + (1 - t) v_hat de-normalised to the feature's units (metres in the canonical Y-up
+frame, metres per frame, contacts 0/1); :class:`LossWeights` defaults are the paper's
+(L_flow + 0.1 L_triplet + 30 L_foot + 30 L_vel + 10 L_BL + 3 L_DM + 0.01 L_RO + 5 L_sync).
+Per-person terms average over the generated people; in reactive mode the interaction terms pair
+the predicted reactor with the true actor. Every loss takes an optional frame_mask (B, T) bool.
+Each term's definition: docs/model.md.
 """
 
 from __future__ import annotations

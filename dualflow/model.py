@@ -1,66 +1,13 @@
 """The DualFlow network: a two-person velocity field v_theta(x_t, t, c) (paper sec. 3.3, app. D).
 
-Read top to bottom: config -> conditioning -> building blocks -> DualFlow block -> model.
-
-Public API (stable; the trainer, the sampler and the streamer build on it)
--------------------------------------------------------------------------
-``DualFlowConfig``            dataclass; ``DualFlowConfig.preset("paper" | "small" | "tiny")``.
-``Conditions``                the conditioning tensors of one batch (all optional):
-    text        (B, D_text)       float, a sentence embedding (default D_text = 384, MiniLM;
-                                   the paper uses CLIP ViT-L/14, 768 -> set ``text_dim``).
-    music       (B, T, D_music)   float, per-frame music features aligned with the motion
-                                   frames (default D_music = 35, EDGE's librosa set).
-    retrieval   (B, R, width)     float, retrieval latent tokens z_R, already in the model width.
-    drop_text   (B,) bool          True -> that sample's text is replaced by the learned null.
-    drop_music  (B,) bool          True -> that sample's music is replaced by the learned null.
-  A missing tensor (None) means "absent" and uses the learned null embedding, the same
-  one classifier-free guidance training drops to (``sample_condition_drop``).
-``DualFlow(config)``          ``model(x_a, x_b, t, cond, mode=..., look_ahead=..., frame_mask=...)``
-    x_a, x_b    (B, T, 262)   normalised InterGen features of person A (actor) and B (reactor).
-    t           (B,) or float  flow time in [0, 1]; 0 = pure noise, 1 = data.
-    mode        "interactive" | "reactive"   (one set of weights, the task is a call-time switch).
-    look_ahead  int L >= 0 (reactive only; default ``config.look_ahead`` = 10, the paper's value).
-    frame_mask  (B, T) bool, True on real frames (padding at the end of a clip); optional.
-  returns (v_a, v_b), each (B, T, 262). In reactive mode x_a is the clean actor motion and
-  v_a is exactly zero (paper app. D.3: v = [0; v_reactor]).
-  actor_context: optional ``model.actor_context(x_a, cond, frame_mask=...)`` (reactive only):
-  the actor stream does not depend on t or on the reactor, so samplers compute it once.
-``sample_condition_drop(batch, generator)``  CFG drop masks: both 10 %, text 20 %, music 20 %.
-``count_parameters(config)`` / ``parameter_breakdown`` / ``parameter_report()`` / ``python -m dualflow.model``.
-
-Design choices where the paper is silent (see also the issue notes)
--------------------------------------------------------------------
-* Person branches share block weights ("symmetric updates for z_b", app. D.1, as in InterGen);
-  the input projections and the output linears are per person (sec. 3.3, eq. 16).
-* Causality in reactive mode. The paper's causal cross-attention (app. D.4) alone does not
-  make the reactor causal: the reactor's self-attention and its temporal convolutions mix
-  reactor frame i with frames i' > i, which attend to actor frames up to i' + L. So in
-  reactive mode *every* temporal mixing inside both streams is causal:
-    - self-attention: frame i attends to frames j <= i (both streams);
-    - the multi-scale convolutions are left-padded (output i sees inputs i-k+1 .. i);
-    - the actor stream does not attend to the reactor at all (it is conditioning only);
-    - the reactor attends to actor latents with M_ij = 1 iff j <= i + L (eq. in app. D.4).
-  By induction over blocks, the reactor's latent at frame i depends on reactor inputs at
-  frames <= i and actor inputs at frames <= i + L only, and so does v_b[i]. Music and
-  retrieval are not the actor and are attended to in full. In interactive mode all mixing is
-  bidirectional and the convolutions are centred. ``tests/test_model_causality.py`` checks the
-  property with gradients and with perturbations.
-* The clean actor in reactive mode is embedded at flow time t = 1 (it *is* data), so the actor
-  stream does not depend on the reactor's t; a learned task embedding (interactive/reactive)
-  is added to the conditioning latent so one set of weights can tell the tasks apart.
-* Text: the paper runs a transformer over CLIP token features; we receive one pooled sentence
-  embedding (B, D_text), so a two-layer MLP projects it. Music: linear + positional encoding +
-  a small transformer encoder (``music_layers``), as in the paper. Time: sinusoidal embedding
-  of 1000 t + MLP. The text latent z_d = text + time + task (eq. 11-15's LN(., z_d)).
-* Adaptive LayerNorm LN(x, z_d) = LayerNorm(x) * (1 + scale(z_d)) + shift(z_d), one
-  (scale, shift) per sub-layer, zero-initialised (the block starts as plain LayerNorm); the five
-  sub-layers' linears are one fused linear per block (``DualFlowBlock.modulation``; checkpoints
-  with the five separate ``norms.k.modulation`` linears load into it unchanged).
-* Motion cross-attention keys/values (eq. 13) come from the other person's latent passed
-  through a plain LayerNorm (the paper writes the raw latent; normalising keeps attention
-  logits bounded over 20 blocks). A final LayerNorm precedes each output linear; the output
-  linears are zero-initialised (with velocity prediction the untrained field is v = 0).
-* Gates gamma_k of the convolutions start at 0.1 each.
+Contract: ``DualFlow(config)(x_a, x_b, t, cond, mode=, look_ahead=, frame_mask=)`` with x_a,
+x_b (B, T, 262) normalised features of actor and reactor, t (B,) or float in [0, 1] (0 = noise),
+``cond`` a :class:`Conditions` (text (B, D_text), music (B, T, D_music), retrieval (B, R, width),
+drop masks; None = the learned null), mode "interactive" | "reactive" → (v_a, v_b), each
+(B, T, 262); in reactive mode x_a is the clean actor and v_a is exactly 0, and reactor frame i
+depends on actor frames <= i + L only. :class:`DualFlowConfig` has presets "paper" / "small" /
+"tiny"; :func:`sample_condition_drop` draws the guidance drop masks. Design choices where the
+paper is silent: docs/model.md. Read top to bottom: config, conditioning, blocks, model.
 """
 
 from __future__ import annotations
@@ -207,7 +154,7 @@ class Conditions:
 
     def unconditional(self) -> "Conditions":
         """The classifier-free-guidance null: text, music and retrieval dropped, as training drops
-        them together (dualflow/rag.py: a sample with both cues dropped equals one without
+        them together (dualflow/retrieval.py: a sample with both cues dropped equals one without
         retrieval)."""
         return Conditions()
 

@@ -1,28 +1,11 @@
 """Music features at the motion frame rate, and beat times, with librosa (paper sec. 3.2-3.3).
 
-Frame alignment
----------------
-Audio is resampled to ``sr = round(fps · hop)`` (hop = 512 samples, so 15 360 Hz at 30 fps,
-EDGE's choice) and every librosa feature uses that hop with centred frames, so feature row i
-describes the audio around t_i = i · hop / sr = i / fps seconds: row i belongs to motion frame
-i. ``n_frames`` trims the rows or repeats the last one to match a motion clip exactly.
-
-Feature sets (``kind``)
------------------------
-``"edge35"`` (EDGE; :data:`EDGE35_LAYOUT`)   35 = onset envelope 1 | MFCC 20 | chroma (CENS) 12 |
-                                                   onset peaks (one-hot) 1 | beats (one-hot) 1
-``"duolando54"`` (Duolando/Bailando)         54 = MFCC 20 | ΔMFCC 20 | chroma (CQT) 12 |
-                                                   onset envelope 1 | beats (one-hot) 1
-``"beats4"``                                 4 = the synthetic duets' beat track (beat impulse, sin/cos of
-                                                   the beat phase, downbeat) on the tracked beats, so a model
-                                                   trained with ``music: beats`` can hear a real song
-``"jukebox"``                                4800, precomputed Jukebox activations read from
-                                                   .npy files (:func:`load_jukebox`); never computed here.
-
-Beats: librosa's dynamic-programming tracker on the onset envelope of the same analysis
-(:func:`analyse_music` returns the features, beat times and tempo together), so the rhythm
-metrics and the beat one-hot column agree by construction.
-Unreadable, missing or silent-length audio raises :class:`DualFlowError` naming the file.
+Contract: :func:`music_features` / :func:`analyse_music` return (n_frames, D) float32 rows where
+row i describes the audio around t = i / fps (audio resampled to fps · 512 Hz, hop 512), of a
+kind: "edge35" (:data:`EDGE35_LAYOUT`), "duolando54" (:data:`DUOLANDO54_LAYOUT`), "beats4"
+(beat impulse, sin/cos of the beat phase, downbeat) or "jukebox" (precomputed 4800-d .npy,
+never computed here). Beats come from the same analysis, so metrics and beat columns agree.
+Unreadable or missing audio raises :class:`DualFlowError` naming the file.
 """
 
 from __future__ import annotations

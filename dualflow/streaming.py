@@ -55,7 +55,8 @@ Incremental windows (``StreamConfig(incremental=True)``, ``dualflow.incremental`
 same inpainting, but each frame's network activations are kept per fixed window start and
 ODE step, so a window runs only its new frames through the network (about W times less
 work at hop 1); window starts are staggered so that a frame still sees P - P / bases .. P - 1
-frames of context (P = W - L). ``prepare`` does the other starts' catch-up in idle time.
+frames of context (P = W - L). The other starts' catch-up can be done ahead, in a caller's
+idle time: the catch-up protocol, ``CatchUpWork``.
 
 Continuity: the new frames attend (causal self-attention, causal convolutions) to the context
 frames at every ODE step, so the motion continues across window seams. ``seam_report``
@@ -66,8 +67,9 @@ prints it for trajectory context, straight-path context, per-window frames and n
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -210,8 +212,48 @@ class StreamTiming:
         return max((w[2] for w in self.windows), default=0.0)
 
 
+class CatchUpWork(Protocol):
+    """The catch-up protocol: work a streamer can do ahead, in its caller's idle time.
+
+    An incremental stream has work that no emitted frame waits for yet: feeding emitted
+    frames' recorded states to the window starts that take over later, making the next
+    start, and the next pass's convolution prefetch. The window that needs a piece does it
+    itself if it is still left, so doing it earlier only moves compute off a frame's
+    critical path. The streamer says what work exists; its caller decides when it runs.
+
+    The caller may use, on the streamer's thread between ``push`` / ``flush`` calls:
+
+    * ``idle_jobs() -> list[str]``: the kinds of work due now, in the order to do them
+      (``ReactiveStreamer.IDLE_JOBS``). Bookkeeping only, no network pass. Empty when
+      nothing is due, and always for a stream that is not incremental. What is due changes
+      with every ``push``: ask again after each.
+    * ``urgent_jobs``: the kinds that the next window would do in full itself if left
+      ("takeover", "start"): started in a gap too short for it, such a piece delays the next
+      frame by less than its own cost, which that frame would otherwise pay whole. The
+      other kinds only pay off when they end before the caller's next input.
+    * ``prepare(max_passes=1, kinds=None) -> bool``: do up to ``max_passes`` pieces, each
+      the first kind due (among ``kinds`` if given); returns whether work is still due.
+      One piece, in one-row network passes (every ODE step in the same pass): "takeover"
+      about one (the frames the start about to take over lacks), "start" about one (a new
+      start caching its actor rows), "feed" about 1.5 (``FEED_BATCH`` or more rows per step
+      for a background start), "prefetch" a fraction of one. The costs differ several-fold,
+      so a caller timing pieces should time each kind on its own.
+
+    Guarantees: the emitted frames are the same, to float rounding, whether catch-up work
+    is done, when and how much (tests/test_incremental.py); each piece is complete, so the
+    caller may stop after any one. ``has_catch_up`` is ``bool(idle_jobs())``.
+    """
+
+    urgent_jobs: tuple[str, ...]
+
+    def idle_jobs(self) -> list[str]: ...
+
+    def prepare(self, max_passes: int = 1, kinds: Iterable[str] | None = None) -> bool: ...
+
+
 class ReactiveStreamer:
     """Feed actor frames, get reactor frames (module docstring). One stream, batch 1.
+    Offers its catch-up work through ``CatchUpWork``.
 
     model: a DualFlow (its reactive mode). cond: Conditions for the whole stream with batch 1:
     text (1, D_text), music (1, T_track, D_music) covering every frame the stream will reach
@@ -481,22 +523,18 @@ class ReactiveStreamer:
     #: (still in idle time), so that the window that switches to it has only its own passes
     TAKEOVER_FRAMES = 3
 
-    #: the kinds of catch-up work, in the order ``prepare`` takes them when several are due
+    #: the kinds of catch-up work (``CatchUpWork``), in the order ``prepare`` takes them when several are due
     IDLE_JOBS = ("takeover", "start", "feed", "prefetch")
-    #: the kinds that a frame within ``TAKEOVER_FRAMES`` does itself, in full, if idle time
-    #: has not: done in idle time even when it overruns the gap, a piece delays the next
-    #: frame by less than its own cost, which the takeover frame would otherwise pay
-    URGENT_JOBS = ("takeover", "start")
+    #: ``CatchUpWork.urgent_jobs``: the kinds that a frame within ``TAKEOVER_FRAMES`` does itself,
+    #: in full, if they were left
+    urgent_jobs: tuple[str, ...] = ("takeover", "start")
 
     def idle_jobs(self) -> list[str]:
-        """Incremental mode: the kinds of catch-up work due now, in ``IDLE_JOBS`` order.
-        "takeover": one pass of the frames that the start taking over within
-        ``TAKEOVER_FRAMES`` has not seen (usually one row per grid step); "start": make the
-        next window start and cache the actor rows it holds (about a pass); "feed": one pass
-        of ``FEED_BATCH`` or more rows per grid step for a background start; "prefetch": the
-        next generator's share of its next pass's convolutions (a fraction of a pass). Their
-        costs differ several-fold, so an idle-time scheduler can time each kind on its own
-        (``ros_free_bridge.idle_slots``)."""
+        """``CatchUpWork.idle_jobs``. "takeover": one pass of the frames that the start taking
+        over within ``TAKEOVER_FRAMES`` has not seen (usually one row per grid step); "start":
+        make the next window start and cache the actor rows it holds; "feed": one pass of
+        ``FEED_BATCH`` or more rows per grid step for a background start; "prefetch": the next
+        generator's share of its next pass's convolutions."""
         return [kind for kind, _ in self._idle_work()]
 
     def _idle_work(self) -> list[tuple[str, object]]:
@@ -518,10 +556,9 @@ class ReactiveStreamer:
 
     @torch.no_grad()
     def prepare(self, max_passes: int = 1, kinds=None) -> bool:
-        """Incremental mode: do up to ``max_passes`` pieces of catch-up work now (``idle_jobs``:
-        each the first kind due, among ``kinds`` if given), so that a window has only its own
-        passes to do. For idle time (e.g. waiting for the next actor frame). Returns whether
-        more catch-up work is due."""
+        """``CatchUpWork.prepare``: up to ``max_passes`` pieces of catch-up work now (each the
+        first kind due, among ``kinds`` if given), so that a window has only its own passes to
+        do. Returns whether more catch-up work is due."""
         for _ in range(max(0, int(max_passes))):
             work = [(kind, on) for kind, on in self._idle_work() if kinds is None or kind in kinds]
             if not work:
@@ -573,7 +610,7 @@ class ReactiveStreamer:
 
     @property
     def has_catch_up(self) -> bool:
-        """Incremental mode: whether ``prepare`` has work due (``idle_jobs``)."""
+        """Whether ``prepare`` has work due (``idle_jobs`` is not empty)."""
         return bool(self.idle_jobs())
 
     @torch.no_grad()

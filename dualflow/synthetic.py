@@ -1,54 +1,12 @@
 """SYNTHETIC two-person duets: a procedural leader and a rule-driven follower.
 
-Everything in this module is made up by a program; none of it is captured human
-motion. It exists so that the DualFlow generator can be trained and tested
-without any dataset (unit tests, the learning test, the small checkpoint bundled
-with the package) and so that the bridge has an actor to react to offline.
-numpy only: importing this module never imports torch.
-
-What a clip contains
---------------------
-* The **leader** (the actor, person A) is built from joint rotations through
-  :func:`dualflow.motion.kinematics.forward_kinematics` on the skeleton's
-  rest-pose bone offsets, so every bone
-  keeps its length exactly. It
-    - steps on the beat, left and right foot alternately: the swing foot lifts
-      6 cm and lands exactly on the beat, the stance foot stays planted on the
-      ground plane (two-bone leg IK places the ankle, the foot stays flat);
-    - waves its arms (both, left, right, alternating or not at all) on a
-      two-beat period, elbows bending with the wave;
-    - optionally turns (a quarter turn left or right and back, or a full spin);
-    - optionally approaches and retreats along its initial facing direction,
-      and sways sideways on the beat.
-* The **follower** (the reactor, person B) is a known function of the leader,
-  one of :data:`RULES`:
-    - ``"mirror"``: the leader reflected in a fixed vertical plane 0.65 m in
-      front of the leader's start (face to face, left and right swapped, like a
-      mirror); the follower faces the leader.
-    - ``"follow"``: the leader's motion 0.5 s later, standing 1.0 m to the
-      leader's initial left (before 0.5 s it holds the leader's first frame).
-    - ``"hand_hold"``: the follower's pelvis stays 1.0 m in front of the
-      leader's pelvis along the leader's facing direction (a hand-hold
-      distance), facing the leader, turning and backing off with them, stepping
-      in double time (on every half beat) and mirroring the arm waves.
-    - ``"orbit"``: the follower walks round the leader on a 1.1 m circle (one
-      turn every 16 beats, anticlockwise seen from above), always facing them,
-      stepping in double time and copying the leader's arm waves.
-  The follower at frame i depends on the leader at frames <= i only (no
-  look-ahead is ever needed): a causal generator can learn every rule.
-* ``pair.text``: a template sentence naming the leader's steps, arms, turn,
-  travel, tempo and the follower's rule. ``pair.meta`` holds ``"synthetic":
-  True``, ``"rule"``, ``"bpm"``, ``"seed"``, ``"slots"`` (the template slot
-  values), ``"beat_frames"`` (int array of frames on a beat) and ``"beats"``, a
-  (T, 4) float32 per-frame beat-feature track:
-  ``[beat impulse, sin(2π·phase), cos(2π·phase), downbeat impulse]`` where
-  phase ∈ [0, 1) is the fraction of the current beat elapsed and the downbeat
-  is the first beat of each bar of 4.
-
-Frames and units follow DESIGN.md: metres, seconds, Z up, ground z = 0; a person
-in the rest pose faces +X with their left towards +Y. Clips are deterministic
-for a given ``seed`` (and the leader of ``make_duet(rule, seed=s)`` is the same
-for every rule).
+Nothing here is captured motion: it lets the generator be trained and tested without a
+dataset and gives the bridge an actor offline. Contract: ``make_duet(rule, seconds, fps, seed,
+varied=False)`` returns a deterministic :class:`TwoPersonMotion` (DESIGN.md frames: metres,
+Z up, ground z = 0) whose leader steps on the beat with planted feet and exact bone lengths and
+whose follower is a causal function of the leader, one of :data:`RULES` (mirror, follow,
+hand_hold, orbit); ``pair.text`` is a template sentence and ``pair.meta`` holds the rule, bpm,
+seed, template slots, beat frames and the (T, 4) beat track. numpy only. Details: docs/model.md.
 """
 
 from __future__ import annotations

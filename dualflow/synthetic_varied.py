@@ -1,26 +1,11 @@
 """A wider repertoire of SYNTHETIC duets: leaders that walk up, turn and reach out a hand,
 followers that respond to them, and mirrored copies.
 
-Made up by a program like :mod:`dualflow.synthetic` (same body synthesis, same rules, same
-:class:`~dualflow.motion.container.TwoPersonMotion` layout and ``meta``), for training a
-partner that reacts to a real actor rather than to one fixed template. numpy only.
-
-What differs from the classic clips (``make_duet(..., varied=False)``):
-
-* leader: tempo 70-150 bpm; travel ``walk_up`` (starts 0.4-1.0 m back and walks up to its
-  spot at 0.6-1.2 m/s); turn ``turn_to`` (turns 30-115 degrees to one side and stays); arms
-  ``reach_left`` / ``reach_right`` (holds that hand out to the front for 0.8-2.5 s);
-* follower, the same four rules with their free parameters drawn per clip (so one leader has
-  many right answers and a generator must vary across seeds): mirror gap 1.0-1.5 m; follow
-  lag 0.3-0.8 s on either side; orbit radius 0.9-1.3 m either way round; ``hand_hold`` becomes
-  a personal-distance rule: the follower starts 0.9-1.9 m away, walks up (0.8-1.3 m/s) when the leader is
-  further than a comfortable distance (1.0-1.3 m), backs off when closer than 0.7-0.9 m,
-  always faces the leader, answers a held-out hand with its own 0.3 s later and sometimes
-  offers one itself. Every follower is causal (frame i uses leader frames <= i);
-* half the clips are mirrored as a whole (both people reflected left-right, the text's left
-  and right swapped).
-
-Clips are deterministic in (rule, seconds, fps, seed) and never equal a classic clip.
+Made up by a program like :mod:`dualflow.synthetic` (same body synthesis, rules, layout and
+``meta``; ``make_duet(..., varied=True)``), for training a partner that reacts to a real actor
+rather than to one template: wider tempi, travel, turns and held-out hands; follower parameters
+drawn per clip (one leader, many right answers); half the clips mirrored left-right. Every
+follower is causal; clips are deterministic in (rule, seconds, fps, seed). numpy only.
 """
 
 from __future__ import annotations

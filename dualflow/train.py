@@ -1,46 +1,16 @@
 """Training DualFlow: config file, AdamW with warm-up, clipping, EMA, checkpoints, DDP, AMP.
 
-Run one process::
+Run::
 
     dualflow-bridge train --config dualflow/configs/small_synthetic.yaml [--set steps=200 ...]
-    python -m dualflow.train --config FILE            (the same, without the bridge CLI)
-
-or several with torchrun (gloo on CPU, NCCL on GPU, chosen from the device)::
-
     torchrun --standalone --nproc_per_node 2 -m dualflow.train --config FILE
 
-What one optimisation step does (rank r of W processes, step s):
-
-1. a batch of ``batch_size`` windows drawn with replacement from the training set
-   by a generator seeded with (seed, s, r), so ranks see different samples;
-2. the task — reactive with probability ``reactive_prob``, else interactive — drawn
-   from (seed, s), the same on every rank (one set of weights, both tasks);
-3. classifier-free-guidance drop masks (text and music: both 10 %, text 20 %,
-   music 20 %; :func:`dualflow.model.sample_condition_drop`); with ``retrieval.enabled``
-   the batch's precomputed neighbours (k per cue by task, own clip excluded) are encoded
-   into z_R by the jointly trained retrieval encoder and dropped per cue with the same
-   masks (:mod:`dualflow.rag`);
-4. :func:`dualflow.flow.flow_training_step`: t ~ U(0, 1) (or logit-normal),
-   x_t = (1 − t) ε + t x0, loss = ‖v_θ − (x0 − ε)‖²; under ``torch.autocast``
-   with bfloat16 on CUDA (``amp``), float32 on the CPU;
-5. backward (DDP averages gradients over ranks), gradient clipping to
-   ``grad_clip`` (global L2 norm), AdamW (lr 2e-4, weight decay 2e-5 by default)
-   with linear warm-up: lr_s = lr · min(1, (s + 1) / warmup_steps);
-6. EMA of the weights: θ_ema ← d θ_ema + (1 − d) θ (``ema_decay`` d; 0 = off),
-   via ``torch.optim.swa_utils.AveragedModel``.
-
-Data: ``data.dataset`` picks the synthetic duets (default) or any loader of
-:mod:`dualflow.datasets` by name, read from ``data.root`` and cut into ``data.frames``-row
-windows (``data.splits``: [train] or [train, validation]); ``music`` picks the per-frame
-music condition (beat track, spectral EDGE/Duolando features, or precomputed Jukebox).
-
-Every random draw is seeded from (seed, step, rank), so a run resumed from a
-checkpoint continues exactly as the uninterrupted run (same batches, noise,
-dropout masks). Outputs under ``out_dir``: ``checkpoints/step_XXXXXXX/`` (see
-:mod:`dualflow.checkpoint`), ``latest.json`` (the newest one), ``final/`` (the
-exported inference checkpoint: EMA weights when EMA is on), ``train_log.csv``
-(one row per ``log_every`` steps) and, with ``save_replicas``, every rank's final
-weights (``replica_rank<r>.safetensors``, for checking that DDP replicas agree).
+Contract: :class:`TrainConfig` is the YAML file (every field optional; ``data`` is a
+:class:`dualflow.datasets.config.TrainingDataConfig`, ``retrieval`` a
+:class:`dualflow.retrieval.RagConfig`). Every random draw is seeded from (seed, step, rank), so
+a resumed run continues exactly as the uninterrupted one. Outputs under ``out_dir``:
+``checkpoints/step_*`` (:mod:`dualflow.checkpoint`), ``latest.json``, ``final/`` (EMA weights)
+and ``train_log.csv``. What one step does: docs/model.md.
 """
 
 from __future__ import annotations
@@ -66,12 +36,13 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from dualflow.checkpoint import checkpoint_text_encoder, load_checkpoint, replace_directory, save_checkpoint
-from dualflow.data import SyntheticDataConfig, make_datasets
+from dualflow.datasets.config import TrainingDataConfig
+from dualflow.datasets.training import make_datasets
 from dualflow.errors import DualFlowError
 from dualflow.flow import TimeSampler, flow_training_step
 from dualflow.losses import LossWeights, step_losses
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, sample_condition_drop
-from dualflow.rag import RagConfig
+from dualflow.retrieval import RagConfig
 from dualflow.text import as_text_embedder
 
 #: music condition: none; beats (the 4-d beat track, any dataset); edge35 / duolando54 (spectral
@@ -96,11 +67,11 @@ class TrainConfig:
     """Everything a training run needs; loadable from yaml/json (:func:`load_train_config`).
 
     preset / model: the DualFlowConfig preset and field overrides (e.g. {"width": 64}).
-    data: :class:`dualflow.data.DataConfig` fields: the synthetic duets (default) or any dataset
+    data: :class:`dualflow.datasets.config.TrainingDataConfig` fields: the synthetic duets (default) or any dataset
     by name (``dataset``, ``root``, ``splits``, ``stride``, ``options``). music: "none" (music
     absent, learned null), "beats" (the 4-d beat track; model.music_dim = 4), "edge35" /
     "duolando54" (spectral features, music_dim 35 / 54) or "jukebox" (precomputed, 4800).
-    retrieval: :class:`dualflow.rag.RagConfig` fields ({enabled: true} trains with RAG).
+    retrieval: :class:`dualflow.retrieval.RagConfig` fields ({enabled: true} trains with RAG).
     steps, batch_size (per process), lr, weight_decay, warmup_steps, betas, grad_clip
     (0 = off), ema_decay (0 = off), reactive_prob, look_ahead (None = model default),
     time_sampler ("uniform" | "logit_normal" with time_mean, time_std: t = sigmoid(N(mean, std));
@@ -117,7 +88,7 @@ class TrainConfig:
     across ranks), then checkpoint and export as at the end; the step reached is in the
     checkpoint, so ``--steps`` reproduces the run. data_cache: a directory where the generated
     synthetic splits are kept as npz (empty = regenerate every run). text_encoder: "hashed"
-    (the bag-of-words stand-in, dualflow.data.template_text_embedding) or "minilm"
+    (the bag-of-words stand-in, dualflow.text.template_text_embedding) or "minilm"
     (dualflow.text, 384-d; model.text_dim must match); text_cache: its embedding cache dir.
     """
 
@@ -223,9 +194,9 @@ class TrainConfig:
             known = sorted(f.name for f in fields(LossWeights))
             raise DualFlowError(f"train config: bad loss_weights {self.loss_weights}; valid keys: {known}") from None
 
-    def data_config(self) -> SyntheticDataConfig:
+    def data_config(self) -> TrainingDataConfig:
         try:
-            return SyntheticDataConfig.from_dict(self.data, "train config 'data'")
+            return TrainingDataConfig.from_dict(self.data, "train config 'data'")
         except TypeError as exc:
             raise DualFlowError(f"train config 'data': {exc}") from None
 
@@ -526,8 +497,8 @@ class Trainer:
 
     def _build_retrieval(self) -> None:
         """Database of the training windows, neighbours of every training (and validation) window
-        with its own clip excluded, and the retrieval encoder (dualflow.rag)."""
-        from dualflow.rag import NeighbourTable, RetrievalConditioner, build_training_database, cue_queries
+        with its own clip excluded, and the retrieval encoder (dualflow.retrieval)."""
+        from dualflow.retrieval import NeighbourTable, RetrievalConditioner, build_training_database, cue_queries
 
         def music_of(ds):
             return None if self.music_kind is None else ds.music_of(self.music_kind).numpy()
@@ -551,7 +522,7 @@ class Trainer:
         return params
 
     def _retrieval_tokens(self, batch: dict, mode: str, drop_text=None, drop_music=None, validation: bool = False):
-        """z_R (B, 2K, width) of the batch's windows, or None without RAG (dualflow.rag)."""
+        """z_R (B, 2K, width) of the batch's windows, or None without RAG (dualflow.retrieval)."""
         if self.retrieval_encoder is None:
             return None
         if validation:
@@ -568,7 +539,7 @@ class Trainer:
         def with_rag(path: Path) -> Path:
             if self.retrieval_encoder is None:
                 return write(path)
-            from dualflow.rag import save_rag_files
+            from dualflow.retrieval import save_rag_files
 
             tmp = path.with_name(f".{path.name}.rag-{os.getpid()}")
             write(tmp)
@@ -613,7 +584,7 @@ class Trainer:
         if self.retrieval_encoder is not None:
             from safetensors.torch import load_file
 
-            from dualflow.rag import ENCODER_EMA_FILE, ENCODER_FILE
+            from dualflow.retrieval import ENCODER_EMA_FILE, ENCODER_FILE
 
             if not (ckpt.path / ENCODER_FILE).is_file():
                 raise DualFlowError(f"{ckpt.path}: lacks {ENCODER_FILE}; it was trained without retrieval, "

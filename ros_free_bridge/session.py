@@ -4,7 +4,7 @@ telemetry. The ``run`` and ``demo`` commands are thin layers over :func:`run_ses
 Transports (``SessionOptions.transport``): ``sim`` (the MuJoCo virtual robot), ``record``
 (dry run), ``dynamixel`` and ``serial`` (the robot's buses; ``emulate`` starts an emulator),
 ``sim+dynamixel`` (both; the demo). The generator runs in a child process by default
-(:mod:`ros_free_bridge.generator_process`). Outputs in ``out``: ``telemetry.dftl``,
+(:mod:`ros_free_bridge.partner.process`). Outputs in ``out``: ``telemetry.dftl``,
 ``actor.npz``, ``partner.npz``, ``robot.npz`` (sim) or ``commands.npz`` (record). The
 latency budget and the defaults that keep it: docs/bridge_timing.md.
 """
@@ -44,7 +44,7 @@ class SessionOptions:
     # steps (the partner's error to the rule follower and its jitter as at 5 steps), windows of
     # 60 frames (the training clip length; shorter ones jitter more) computed incrementally
     # (only the new frame runs through the network). When the generator falls behind it
-    # catches up with wider windows (up to 25 new frames); see stages.PartnerCore.
+    # catches up with wider windows (up to 25 new frames); see partner.core.PartnerCore.
     steps: int = 2  #: ODE steps per streamed window
     hop: int = 1  #: generate once this many partner frames are due (adds hop - 1 frames of delay)
     window: int = 60  #: frames per generation window (context + new frames + look-ahead)
@@ -53,7 +53,7 @@ class SessionOptions:
     generator: str = "process"
     max_lag: int | None = None  #: frames of generator backlog before dropping to the newest actor frames (None: hop + max_new)
     #: encode the newest actor frame with a predicted next frame (revised when it arrives):
-    #: partner frame i waits for actor frame i + L instead of i + L + 1 (stages.ReactorStage)
+    #: partner frame i waits for actor frame i + L instead of i + L + 1 (partner.reactor.ReactorStage)
     predict_next: bool = True
     #: cache each frame's activations in fixed-start windows and compute only new frames
     #: (dualflow.incremental): ~3x less compute per frame than re-running 60-frame windows
@@ -278,12 +278,13 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
 
 def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits, stack: ExitStack):
     """(core, rest pose): a PartnerCore here, or the generator process (started, model loaded)."""
-    from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
+    from ros_free_bridge.partner.core import PartnerCore
+    from ros_free_bridge.partner.retarget_stage import RetargetStage
 
     stand = np.asarray(robot.x_stand)[robot.n_root:]
     rest = limits.clip(stand[[robot.joint_names.index(n) for n in names]])
     if opts.partner == "dualflow" and opts.generator == "process":
-        from ros_free_bridge.generator_process import GeneratorConfig, GeneratorProcess
+        from ros_free_bridge.partner.process import GeneratorConfig, GeneratorProcess
 
         gen = GeneratorProcess(GeneratorConfig(
             robot=opts.robot, joint_names=list(names), fps=MOTION_FPS, checkpoint=opts.model, window=opts.window,
@@ -295,10 +296,11 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
     reactor = None
     if opts.partner == "dualflow":
         from dualflow.streaming import StreamConfig
+        from ros_free_bridge.partner.reactor import Cues, ReactorStage
 
         stream = StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop, incremental=opts.incremental)
-        reactor = ReactorStage(MOTION_FPS, opts.model, stream,
-                               opts.text, opts.music, predict_next=opts.predict_next)
+        reactor = ReactorStage(MOTION_FPS, opts.model, stream, Cues(opts.text, opts.music),
+                               predict_next=opts.predict_next)
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
 
@@ -335,7 +337,7 @@ def _loop_config(opts: SessionOptions, rb: _Robot, core) -> LoopConfig:
 
 
 def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready, actor_motion=None) -> SessionResult:
-    from ros_free_bridge.stages import PartnerPipeline
+    from ros_free_bridge.partner.pipeline import PartnerPipeline
 
     config = _loop_config(opts, rb, core)
     # cubic (Hermite, causal tangents) interpolation: linear would jump in velocity at every 30 fps frame,

@@ -1,7 +1,7 @@
 """The partner generator in its own process, and the catch-up policy of the partner core.
 
 Real parts: a real (tiny, untrained) DualFlow checkpoint on disk, run by a real child
-process (``python -m ros_free_bridge.generator_process``) over pipes; the bundled op3
+process (``python -m ros_free_bridge.partner.child``) over pipes; the bundled op3
 model's CasADi retargeter; the op3 hardware config's limits; the record-only transport.
 """
 
@@ -15,16 +15,18 @@ import pytest
 
 from dualflow.streaming import StreamConfig
 from dualflow.synthetic import make_leader
-from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.generator_process import (
-    Channel, GeneratorConfig, GeneratorProcess, decode_actor, decode_target, encode_actor, encode_target,
-)
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig
+from ros_free_bridge.control.targets import TargetBuffer
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.partner.core import PartnerCore, PartnerTarget
+from ros_free_bridge.partner.pipeline import PartnerPipeline
+from ros_free_bridge.partner.process import GeneratorConfig, GeneratorProcess
+from ros_free_bridge.partner.reactor import ReactorStage
+from ros_free_bridge.partner.retarget_stage import RetargetStage
+from ros_free_bridge.partner.wire import Channel, decode_actor, decode_target, encode_actor, encode_target
 from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.sources.replay import MotionReplaySource
 from ros_free_bridge.sources.udp import ActorFrame
-from ros_free_bridge.stages import PartnerCore, PartnerPipeline, PartnerTarget, ReactorStage, RetargetStage
-from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.transports.record import RecordTransport
 
 
@@ -83,7 +85,7 @@ def test_messages_round_trip_through_a_pipe_in_pieces():
 
 
 def _framed(kind: bytes, payload: bytes) -> bytes:
-    from ros_free_bridge.generator_process import HEADER
+    from ros_free_bridge.partner.wire import HEADER
 
     return HEADER.pack(len(payload), kind[0]) + payload
 

@@ -1,8 +1,9 @@
-"""The generator's catch-up passes run only in the gap before the next actor frame (ros_free_bridge.idle_slots)."""
+"""The generator's catch-up passes run only in the gap before the next actor frame
+(ros_free_bridge.partner.idle_slots)."""
 
 import pytest
 
-from ros_free_bridge.idle_slots import IdleSlots
+from ros_free_bridge.partner.idle_slots import IdleSlots
 
 PERIOD = 1 / 30
 
@@ -80,21 +81,24 @@ def test_a_bad_period_is_refused():
 def test_urgent_catch_up_runs_in_any_gap_other_work_only_where_it_fits(tiny_checkpoint):
     """The generator's scheduler (PartnerCore) on a real incremental stream, every kind of
     piece timed far longer than a frame gap: only the pieces that a frame would otherwise do
-    in full (the streamer's URGENT_JOBS: feeding the start about to take over, making the
-    next start) still run; feeds of the background start and the prefetch wait."""
+    in full (the streamer's ``urgent_jobs``, dualflow.streaming.CatchUpWork: feeding the start
+    about to take over, making the next start) still run; feeds of the background start and
+    the prefetch wait."""
     from dualflow.streaming import StreamConfig
     from dualflow.synthetic import make_leader
     from retarget.robot import load_robot
+    from ros_free_bridge.partner.core import PartnerCore
+    from ros_free_bridge.partner.reactor import ReactorStage
+    from ros_free_bridge.partner.retarget_stage import RetargetStage
     from ros_free_bridge.robots import resolve_robot
     from ros_free_bridge.sources.udp import ActorFrame
-    from ros_free_bridge.stages import PartnerCore, ReactorStage, RetargetStage
 
     files = resolve_robot("op3")
     reactor = ReactorStage(30.0, tiny_checkpoint, StreamConfig(window=40, steps=2, hop=1, incremental=True))
     core = PartnerCore(reactor, RetargetStage(load_robot(files.mjcf, files.profile), 30.0))
     assert reactor.urgent_jobs == ("takeover", "start")
     for kind in reactor.streamer.IDLE_JOBS:
-        core.idle_slots.ran(1.0, kind)  # no piece fits a 33 ms gap
+        core.catch_up.slots.ran(1.0, kind)  # no piece fits a 33 ms gap
     leader = make_leader(3.0, 30.0, seed=2)
     ran, waited = set(), set()
     for k in range(leader.n_frames):

@@ -10,7 +10,7 @@ from dualflow.motion import Motion
 from dualflow.motion.features import canonical_frame, encode_person
 from dualflow.streaming import StreamConfig
 from dualflow.synthetic import make_leader
-from ros_free_bridge.stages import ReactorStage
+from ros_free_bridge.partner.reactor import ReactorStage
 
 
 def _emitted_at(stage, leader):

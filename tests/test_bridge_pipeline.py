@@ -16,10 +16,12 @@ from dualflow.motion.normalization import NormStats
 from dualflow.streaming import StreamConfig
 from dualflow.synthetic import make_duet, make_leader
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig
+from ros_free_bridge.control.targets import TargetBuffer
+from ros_free_bridge.partner.pipeline import PartnerPipeline
+from ros_free_bridge.partner.reactor import Cues, ReactorStage
+from ros_free_bridge.partner.retarget_stage import RetargetStage
 from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.sources.replay import MotionReplaySource
-from ros_free_bridge.stages import PartnerPipeline, ReactorStage, RetargetStage
-from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.transports.record import RecordTransport
 
 pytestmark = pytest.mark.slow
@@ -90,7 +92,7 @@ def test_text_and_music_reach_the_generator(tmp_path):
     leader = make_leader(1.0, 30.0, seed=5)
 
     def stream(**cond):
-        stage = ReactorStage(30.0, ckpt, StreamConfig(window=16, steps=2), music_frames=100, **cond)
+        stage = ReactorStage(30.0, ckpt, StreamConfig(window=16, steps=2), Cues(music_frames=100, **cond))
         out = []
         for k in range(leader.n_frames):
             out += stage.push(leader.positions[k], 0.0, k)
@@ -107,4 +109,4 @@ def test_a_model_without_music_refuses_a_music_file(tiny_checkpoint, tmp_path):
     from ros_free_bridge.errors import BridgeError
 
     with pytest.raises(BridgeError, match="without music"):
-        ReactorStage(30.0, tiny_checkpoint, StreamConfig(window=16, steps=2), music=tmp_path / "x.wav")
+        ReactorStage(30.0, tiny_checkpoint, StreamConfig(window=16, steps=2), Cues(music=tmp_path / "x.wav"))

@@ -39,7 +39,7 @@ def test_looping_replay_wraps_and_never_finishes():
 
 
 def test_next_due_says_when_the_next_frame_comes_and_the_pipeline_waits_no_longer():
-    from ros_free_bridge.stages import PartnerPipeline
+    from ros_free_bridge.partner.pipeline import PartnerPipeline
 
     leader = make_leader(seconds=0.2, fps=30.0, seed=2)  # 6 frames
     now = [100.0]

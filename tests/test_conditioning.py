@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from dualflow.conditioning import ConditionBuilder, DuetGenerator, text_encoder_for
+from dualflow.conditioning import ConditionBuilder, text_encoder_for
+from dualflow.duet_generator import DuetGenerator
 from dualflow.errors import DualFlowError
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
 from dualflow.motion.features import encode_pair

@@ -278,10 +278,11 @@ def test_bvh_pairs_on_the_cmu_trial(tmp_path, cmu_pair_paths):
 
 
 def test_synthetic_matches_trainer_clips():
-    from dualflow.data import SyntheticDataConfig, build_split
+    from dualflow.datasets.config import TrainingDataConfig
+    from dualflow.datasets.synthetic import build_split
 
     ds = load_dataset("synthetic", split="val", n_clips=3, frames=20)
-    ref = build_split(SyntheticDataConfig(n_clips=1, val_clips=3, frames=20), "val")
+    ref = build_split(TrainingDataConfig(n_clips=1, val_clips=3, frames=20), "val")
     np.testing.assert_allclose(np.stack([s.features() for s in ds]), ref.features, atol=1e-6)
     assert [s.text for s in ds] == ref.texts
     assert ds[1].style == "follow" and ds[0].music_kind == "beats4"

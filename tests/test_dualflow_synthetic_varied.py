@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from dualflow.data import SyntheticDataConfig, build_split, is_varied_clip, widen_stats
+from dualflow.datasets.config import TrainingDataConfig
+from dualflow.datasets.synthetic import build_split, is_varied_clip
+from dualflow.datasets.training import widen_stats
 from dualflow.errors import DualFlowError
 from dualflow.evaluation.plausibility import distance, facing_error
 from dualflow.motion.normalization import NormStats
@@ -72,16 +74,16 @@ def test_mirrored_duets_swap_the_sides_in_the_text():
 
 
 def test_varied_share_of_a_split_and_the_classic_split_is_unchanged():
-    cfg = SyntheticDataConfig(n_clips=400, varied=0.6)
+    cfg = TrainingDataConfig(n_clips=400, varied=0.6)
     share = np.mean([is_varied_clip(cfg, i) for i in range(400)])
     assert 0.5 < share < 0.7
-    assert not any(is_varied_clip(SyntheticDataConfig(), i) for i in range(64))
-    small = SyntheticDataConfig(n_clips=8, val_clips=0, frames=20)
+    assert not any(is_varied_clip(TrainingDataConfig(), i) for i in range(64))
+    small = TrainingDataConfig(n_clips=8, val_clips=0, frames=20)
     split = build_split(small)
     want = make_duet(RULES[1], seconds=21 / 30, fps=30.0, seed=1)
     assert split.texts[1] == want.text
     with pytest.raises(DualFlowError, match="data.varied"):
-        SyntheticDataConfig(varied=1.5)
+        TrainingDataConfig(varied=1.5)
 
 
 def test_widen_stats_changes_only_the_columns_the_old_data_held_still():

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dualflow.checkpoint import save_checkpoint
-from dualflow.data import TEXT_ENCODER_ID
+from dualflow.text import TEXT_ENCODER_ID
 from dualflow.datasets import load_dataset
 from dualflow.errors import DualFlowError
 from dualflow.evaluation.evaluator import EvaluatorConfig, EvaluatorTraining, MotionTextEvaluator, train_evaluator, word_ids

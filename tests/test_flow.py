@@ -167,7 +167,7 @@ def test_classifier_free_guidance_combines_conditional_and_unconditional_fields(
 
 
 def test_guidance_null_drops_retrieval_like_training_does():
-    # training drops the retrieval tokens together with text and music (dualflow/rag.py), so the
+    # training drops the retrieval tokens together with text and music (dualflow/retrieval.py), so the
     # guidance null must not keep them
     cond = Conditions(text=torch.randn(2, 384), music=torch.randn(2, 6, 35), retrieval=torch.randn(2, 4, 32))
     null = cond.unconditional()

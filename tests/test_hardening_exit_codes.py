@@ -76,7 +76,7 @@ def test_a_crashed_generator_exits_1(tmp_path, tiny_checkpoint, capsys):
         for stat in Path("/proc").glob("[0-9]*/cmdline"):
             try:
                 cmd = stat.read_bytes()
-                if b"ros_free_bridge.generator_process" in cmd and f"--parent\0{os.getpid()}\0".encode() in cmd:
+                if b"ros_free_bridge.partner.child" in cmd and f"--parent\0{os.getpid()}\0".encode() in cmd:
                     os.kill(int(stat.parent.name), signal.SIGKILL)
             except OSError:
                 pass

@@ -240,7 +240,7 @@ def test_balance_needs_ankle_keypoints():
 
 
 def test_bridge_retarget_stage_balances_free_standing_robots_only(op3):
-    from ros_free_bridge.stages import RetargetStage
+    from ros_free_bridge.partner.retarget_stage import RetargetStage
 
     assert RetargetStage(op3, FPS).streamer.balance
     assert not RetargetStage(load_robot("ub14"), FPS).streamer.balance

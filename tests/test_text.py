@@ -1,5 +1,5 @@
 """Text encoders: our MiniLM forward and WordPiece against the reference packages, the disk cache,
-the CLIP gate and the adapter to dualflow.data's TextEmbedder boundary."""
+the CLIP gate and the adapter to the training data's TextEmbedder boundary."""
 
 from __future__ import annotations
 
@@ -125,11 +125,12 @@ def test_cache_rejects_a_corrupt_or_foreign_file(tmp_path, minilm):
 
 
 def test_adapter_feeds_the_training_data_and_checks_dim():
-    pytest.importorskip("dualflow.data", reason="dualflow.data (training data) not in this tree yet")
-    from dualflow.data import SyntheticDataConfig, build_split, DuetDataset
+    from dualflow.datasets.config import TrainingDataConfig
+    from dualflow.datasets.synthetic import build_split
+    from dualflow.datasets.training import DuetDataset
     from dualflow.motion.normalization import NormStats
 
-    split = build_split(SyntheticDataConfig(n_clips=3, val_clips=0, frames=20), "train")
+    split = build_split(TrainingDataConfig(n_clips=3, val_clips=0, frames=20), "train")
     enc = HashedBagOfWordsEncoder(24)
     ds = DuetDataset(split, NormStats.from_features(split.features), 24, as_text_embedder(enc))
     np.testing.assert_array_equal(ds.text.numpy(), enc.encode(split.texts))

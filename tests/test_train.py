@@ -14,7 +14,10 @@ from safetensors.torch import load_file
 
 from dualflow import DualFlowError
 from dualflow.checkpoint import load_checkpoint, load_model, save_checkpoint
-from dualflow.data import TEXT_ENCODER_ID, SyntheticDataConfig, build_split, make_datasets, template_text_embedding
+from dualflow.datasets.config import TrainingDataConfig
+from dualflow.datasets.synthetic import build_split
+from dualflow.datasets.training import make_datasets
+from dualflow.text import TEXT_ENCODER_ID, template_text_embedding
 from dualflow.model import DualFlow, DualFlowConfig
 from dualflow.train import Trainer, TrainConfig, load_train_config, train, warmup_lr
 
@@ -52,7 +55,7 @@ def test_config_file_and_overrides(tmp_path):
     assert cfg.lr == pytest.approx(3e-4) and isinstance(cfg.lr, float)  # YAML reads 3e-4 as a string
     assert cfg.steps == 9 and cfg.model == {"width": 48, "n_heads": 4}
     assert cfg.model_config().width == 48 and cfg.model_config().n_blocks == DualFlowConfig.preset("tiny").n_blocks
-    assert cfg.data_config() == SyntheticDataConfig(n_clips=5, frames=20, rules=("mirror", "orbit"))
+    assert cfg.data_config() == TrainingDataConfig(n_clips=5, frames=20, rules=("mirror", "orbit"))
     # the paper's optimiser settings are the defaults
     d = TrainConfig()
     assert (d.lr, d.weight_decay, d.warmup_steps) == (2e-4, 2e-5, 1000)
@@ -108,7 +111,7 @@ def test_text_embedding_is_deterministic_and_reflects_words():
 
 
 def test_dataset_is_normalised_with_training_stats():
-    cfg = SyntheticDataConfig(n_clips=8, val_clips=4, frames=16)
+    cfg = TrainingDataConfig(n_clips=8, val_clips=4, frames=16)
     train_ds, val_ds, stats = make_datasets(cfg, text_dim=32)
     raw = build_split(cfg, "train").features
     assert train_ds.actor.shape == (8, 16, 262) and train_ds.text.shape == (8, 32)
@@ -121,7 +124,7 @@ def test_dataset_is_normalised_with_training_stats():
 
 
 def test_split_cache_round_trips_without_pickle(tmp_path):
-    cfg = SyntheticDataConfig(n_clips=5, frames=12)
+    cfg = TrainingDataConfig(n_clips=5, frames=12)
     fresh = build_split(cfg, "train", tmp_path)
     (cache,) = tmp_path.glob("synthetic_train_*.npz")
     with np.load(cache, allow_pickle=False) as z:
@@ -130,7 +133,7 @@ def test_split_cache_round_trips_without_pickle(tmp_path):
     np.testing.assert_array_equal(fresh.features, again.features)
     np.testing.assert_array_equal(fresh.beats, again.beats)
     assert fresh.texts == again.texts and list(fresh.seeds) == list(again.seeds)
-    build_split(SyntheticDataConfig(n_clips=5, frames=12, seed=1), "train", tmp_path)
+    build_split(TrainingDataConfig(n_clips=5, frames=12, seed=1), "train", tmp_path)
     assert len(list(tmp_path.glob("synthetic_train_*.npz"))) == 2  # another config, another file
 
 
@@ -143,7 +146,7 @@ def _tiny_model_and_stats():
     with torch.no_grad():
         for p in model.parameters():
             p.add_(0.01 * torch.randn_like(p))
-    _, _, stats = make_datasets(SyntheticDataConfig(n_clips=4, val_clips=0, frames=8), text_dim=384)
+    _, _, stats = make_datasets(TrainingDataConfig(n_clips=4, val_clips=0, frames=8), text_dim=384)
     return model, stats
 
 

@@ -13,7 +13,7 @@ from test_datasets import make_dd100, make_interhuman, make_mdd
 
 from dualflow import DualFlowError
 from dualflow.checkpoint import load_checkpoint
-from dualflow.data import click_track_music
+from dualflow.datasets.synthetic import click_track_music
 from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.datasets import load_dataset
 from dualflow.datasets.windows import window_split

@@ -1,4 +1,4 @@
-"""Retrieval-augmented training (dualflow.rag + the Trainer): databases built from the training
+"""Retrieval-augmented training (dualflow.retrieval + the Trainer): databases built from the training
 windows, top-k per cue with the query's own clip excluded (eq. 1; k = 5 interactive, 3 reactive),
 z_R fed as Conditions.retrieval with the CFG drop, gradients into the retrieval encoder, and the
 retrieval parts travelling with checkpoints (resume, export, ConditionBuilder, evaluation)."""
@@ -16,8 +16,8 @@ from dualflow.checkpoint import load_checkpoint
 from dualflow.datasets import load_dataset
 from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
-from dualflow.rag import (DB_FILE, ENCODER_FILE, NeighbourTable, RagConfig, drop_retrieval_tokens, load_rag)
-from dualflow.retrieval import CUES, RetrievalDatabase
+from dualflow.retrieval import (CUES, DB_FILE, ENCODER_FILE, NeighbourTable, RagConfig, RetrievalDatabase,
+                                drop_retrieval_tokens, load_rag)
 from dualflow.train import Trainer, load_train_config
 
 FAST = ["preset=tiny", "data.n_clips=12", "data.val_clips=2", "data.frames=12", "batch_size=4", "threads=1",

@@ -13,9 +13,10 @@ name                layout                                                 modul
 ``synthetic``       generated duets (:mod:`dualflow.synthetic`), no root   :mod:`.synthetic`
 ==================  =====================================================  =========================
 
-numpy only: importing this package never imports torch. The torch adapter
-that turns a :class:`DuetSet` into the trainer's fixed-length windows is
-:mod:`dualflow.datasets.windows`.
+Training data: :mod:`.config` (the ``data`` section of a training config),
+:mod:`.synthetic` (the generated duets as arrays), :mod:`.windows` (fixed-length windows
+of any DuetSet) and :mod:`.training` (the torch datasets the trainer reads). Importing this
+package never imports torch; only :mod:`.training` does.
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
 """DD100 (Duolando, Siyao et al. 2024) in the layout Duolando's loader reads.
 
-Layout after Duolando's ``_train_test_split.py`` / ``_prepare_motion_data.py`` /
-``_prepare_music_data.py`` (lisiyao21/Duolando, README and
-``datasets/dd100lf_all2.py``)::
+Layout (after Duolando's ``_train_test_split.py`` and ``_prepare_*_data.py``)::
 
     ROOT/
       motion/pos3d/{train,test}/<GENRE>_<CHOREO>_<TAKE>_00.npy   the follower (lady)
@@ -10,14 +8,11 @@ Layout after Duolando's ``_train_test_split.py`` / ``_prepare_motion_data.py`` /
       music/feature/{train,test}/<GENRE>_<CHOREO>_<TAKE>.npy     (T, 54) music features
       music/mp3/{train,test}/<take>.mp3                          optional audio
 
-``pos3d`` arrays are SMPL-X joint positions, (T, 165) = (T, 55 x 3) or
-(T, 55, 3), metres, Y up, 30 fps; the first 22 joints are the SMPL body. The
-music features are Duolando's 54-d set at the motion rate (20 MFCC, 20 delta
-MFCC, 12 chroma, onset envelope, beat one-hot in column 53), the layout of
-:data:`dualflow.music.DUOLANDO54_LAYOUT`. The leader is the actor. Like
-Duolando's loader, a take whose partner or music file is missing is skipped
-(``DuetSet.skipped``); ``music=False`` loads motion only. The genre is the
-take name's first field.
+``pos3d``: SMPL-X joint positions (T, 165) or (T, 55, 3), metres, Y up, 30 fps (the first 22
+are the SMPL body); music: :data:`dualflow.music.DUOLANDO54_LAYOUT`, beat one-hot in column 53.
+The leader is the actor; the genre is the take name's first field. Like Duolando's loader, a
+take without its partner or music file is skipped (``DuetSet.skipped``); ``music=False``
+loads motion only.
 """
 
 from __future__ import annotations

@@ -1,29 +1,19 @@
 """InterHuman and InterHuman-AS in InterGen's layout.
 
-Layout (as read by InterGen's ``datasets/interhuman.py``, tr3e/InterGen)::
+Layout (InterGen's ``datasets/interhuman.py``)::
 
     ROOT/
-      train.txt  val.txt  test.txt     clip names, one per line (e.g. ``1024``)
-      ignore_list.txt                  optional; clip names to leave out
-      motions_processed/person1/<name>.npy
-      motions_processed/person2/<name>.npy
-      annots/<name>.txt                one description per line (usually three)
-      actor_reactor.json               InterHuman-AS only (see below)
+      train.txt  val.txt  test.txt     clip names, one per line
+      ignore_list.txt                  optional; clips to leave out
+      motions_processed/person{1,2}/<name>.npy   (T, 492) at 30 fps, first 22 positions used
+      annots/<name>.txt                one description per line
+      actor_reactor.json               InterHuman-AS only: clip -> actor
 
-Motion files are (T, 492) float arrays at 30 fps (InterGen's processed SMPL-X
-output: 62 joint positions, then 51 joint rotations in 6D); the first 22
-positions are the SMPL body joints. They are read by
-:func:`dualflow.motion.io.load_motion`, which applies InterGen's own axis
-change ((x, y, z) -> (x, z, -y), Z up to Y up, as in its ``process_motion_np``)
-and then ours, so both people stay in the capture's shared frame. Clips shorter
-than ``min_frames`` (InterGen: 15) are skipped, as InterGen does.
-
-InterHuman-AS (ReGenNet, Xu et al. 2024) labels who acts and who reacts. Its
-annotation file was not available to check; this loader reads a JSON object
-mapping each clip name to the actor, written as ``"person1"`` / ``"person2"``,
-``1`` / ``2``, or ``{"actor": "person1"}``. The actor becomes
-``DuetSample.motion.actor``; clips without a label are skipped (listed in
-``DuetSet.skipped``). Plain InterHuman keeps person1 as the actor.
+Motion files go through :func:`dualflow.motion.io.load_motion` (InterGen's axis change, then
+ours), so both people stay in the capture's shared frame; clips shorter than ``min_frames``
+(InterGen: 15) are skipped. InterHuman-AS (ReGenNet) labels the actor as ``"person1"`` /
+``"person2"``, ``1`` / ``2`` or ``{"actor": "person1"}`` (the file was not available to check);
+unlabelled clips are skipped. Plain InterHuman keeps person1 as the actor.
 """
 
 from __future__ import annotations

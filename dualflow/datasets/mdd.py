@@ -1,27 +1,18 @@
 """MDD (Gupta et al., ICCV 2025) in the layout its authors' loader reads.
 
-Layout (the ``Text2Duet`` dataset class of the MDD / DualFlow authors, which
-takes ``motion_root``, ``music_root`` and ``text_root``; here one ROOT holds the
-three as ``motion/``, ``music/`` and ``text/``)::
+Layout (the authors' ``Text2Duet`` motion / music / text roots under one ROOT)::
 
     ROOT/
       motion/pos3d/{split}/{genre}/{take}_Lead.npy      (T, 165) SMPL-X joints, 120 fps
       motion/pos3d/{split}/{genre}/{take}_Follow.npy
-      music/feature/{split}/{genre}/{take}.npy          (T/4, 54) Duolando-style features, 30 fps
-      music/Juke_features/{split}/{genre}/{take}.npy    (T/4, 4800) Jukebox features, 30 fps
+      music/feature/{split}/{genre}/{take}.npy          (T/4, 54) Duolando-style, 30 fps
+      music/Juke_features/{split}/{genre}/{take}.npy    (T/4, 4800) Jukebox, 30 fps
       music/WAV/all/{genre}/{take}.wav                  optional audio
-      text/processed/{split}/{genre}/{take}.txt         one or more descriptions
-      text/spatial/{split}/{genre}/{take}.txt           focused descriptions (paper app. C):
-      text/body_move/{split}/{genre}/{take}.txt         spatial relationship, body movement,
-      text/rhythm/{split}/{genre}/{take}.txt            rhythm
+      text/{processed,spatial,body_move,rhythm}/{split}/{genre}/{take}.txt
 
-Motion is taken every ``120 / fps``-th frame (120 -> 30 fps, as the authors'
-loader does with ``np_dance[::skip]``); the first 66 columns are the 22 SMPL
-body joints, metres, Y up. The leader (``_Lead``) is the actor. Music features
-are already at 30 fps and are trimmed to the motion length. A take must have
-both people and its ``processed`` text; its music file must exist for the
-chosen ``music`` kind (else it is skipped, as the authors' loader skips it);
-the three focused texts are read when all three exist.
+Motion is taken every ``120 / fps``-th frame; the leader is the actor. A take needs both people,
+its ``processed`` text and the music file of the chosen ``music`` kind (else it is skipped, as
+the authors' loader does); the focused texts are read when all three exist.
 """
 
 from __future__ import annotations

@@ -1,30 +1,11 @@
 """One sample format for every two-person dataset: :class:`DuetSample`.
 
-Every loader in :mod:`dualflow.datasets` turns its own on-disk layout into a list
-of ``DuetSample`` objects, so training, retrieval and evaluation read one thing:
-
-* ``motion``: a :class:`~dualflow.motion.TwoPersonMotion` in the project's world
-  frame (metres, Z up, ground z = 0), 22 SMPL joints, at the dataset's motion
-  rate (30 fps for InterHuman, DD100 and MDD after down-sampling). ``actor`` is
-  person A (InterHuman-AS actor, DD100/MDD leader), ``reactor`` is person B.
-* ``features()``: the InterGen 262-d features of both people, (T-1, 2, 262)
-  float32 in the actor's canonical Y-up frame, computed on first use by
-  :func:`dualflow.motion.features.encode_pair` (one code path for all datasets:
-  rotations come from inverse kinematics on the positions, so every dataset's
-  features mean the same thing).
-* ``texts``: every annotation sentence (InterHuman has three per clip, MDD one
-  or more); ``text`` is the first. ``focused``: the spatial / body / rhythm
-  descriptions (:class:`dualflow.decompose.FocusedDescriptions`) when the
-  dataset ships them (MDD), else None (decompose with :mod:`dualflow.decompose`).
-* ``music``: per-frame music features (T, D) float32 aligned with the motion
-  frames, with ``music_kind`` naming them ("duolando54", "jukebox", "edge35",
-  "beats4"), or None; ``music_path``: the audio file when known.
-* ``genre`` / ``style``: labels (dance genre, InterHuman action class, synthetic
-  rule); ``roles``: the dataset's names of the two people, actor first
-  (e.g. ("person1", "person2"), ("leader", "follower")).
-* ``source``: the dataset name and ``name`` the clip id within it.
-
-numpy only; importing this module never imports torch.
+Contract: every loader of :mod:`dualflow.datasets` returns DuetSamples, so training, retrieval
+and evaluation read one thing: ``motion`` (a TwoPersonMotion in the project's world frame,
+22 SMPL joints, actor = person A), ``features()`` ((T-1, 2, 262) float32 InterGen features,
+one code path for every dataset), ``texts`` / ``focused`` descriptions, per-frame ``music``
+(T, D) with its ``music_kind``, ``genre`` / ``style`` labels, ``roles`` (the dataset's names of
+the two people, actor first), ``source`` and ``name``. numpy only.
 """
 
 from __future__ import annotations

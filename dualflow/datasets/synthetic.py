@@ -1,21 +1,166 @@
-"""The SYNTHETIC duet dataset (:mod:`dualflow.synthetic`) as :class:`DuetSample` objects.
+"""The SYNTHETIC duets (:mod:`dualflow.synthetic`): the trainer's arrays and a DuetSet loader.
 
 Nothing here is captured motion. Clip ``i`` of a split is
-``make_duet(rules[i % len(rules)], seconds=(frames + 1) / fps, fps, seed)`` with the
-seeds of :func:`dualflow.data.clip_seed` for "train" and "val" (so these samples are
-the clips the trainer sees) and ``seed·10⁶ + 750000 + i`` for "test". Each sample
-carries the template sentence, the (T, 4) beat track as ``music`` ("beats4"), the
-follower rule as ``style`` and the rule index in ``meta["rule"]``.
+``make_duet(rules[i % len(rules)], seconds=(frames + 1) / fps, fps, seed)`` with the split's
+seed ``seed·10⁶ + offset + i`` (offsets: train 0, val 500000, test 750000, so splits never
+share a clip). :func:`build_split` gives the trainer's raw arrays (:class:`SyntheticSplit`,
+optionally cached as npz); :func:`load_synthetic` gives the same clips as :class:`DuetSample`
+objects (template sentence, (T, 4) beat track as "beats4" music, rule as ``style``).
+numpy only (librosa is imported only for :func:`click_track_music`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
 from dualflow.datasets.collection import DuetSet
 from dualflow.datasets.sample import DuetSample
 from dualflow.errors import DualFlowError
+from dualflow.motion.features import encode_pair
 from dualflow.synthetic import RULES, make_duet
 
+if TYPE_CHECKING:  # the config imports this package's loader registry, which imports this module
+    from dualflow.datasets.config import TrainingDataConfig
+
 SPLIT_OFFSETS = {"train": 0, "val": 500_000, "test": 750_000}
+
+
+@dataclass
+class SyntheticSplit:
+    """Raw (un-normalised) features of one split, the layout the trainer reads.
+
+    features (N, T, 2, 262) float32; texts: N sentences; beats (N, T, 4) float32
+    [beat impulse, sin 2π·phase, cos 2π·phase, downbeat impulse]; rules (N,) int64 index into
+    the config's rules; seeds (N,) int64; music (N, T, D) float32 per-frame music features of
+    kind ``music_kind`` (dualflow.music) or None.
+    """
+
+    features: np.ndarray
+    texts: list[str]
+    beats: np.ndarray
+    rules: np.ndarray
+    seeds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    music: np.ndarray | None = None
+    music_kind: str | None = None
+
+
+def clip_seed(config: TrainingDataConfig, split: str, index: int) -> int:
+    """Seed of clip ``index`` of ``split`` ('train' or 'val'); the splits never share a seed."""
+    if split not in ("train", "val"):
+        raise DualFlowError(f"split must be 'train' or 'val', got {split!r}")
+    return int(config.seed) * 1_000_000 + SPLIT_OFFSETS[split] + int(index)
+
+
+def is_varied_clip(config: TrainingDataConfig, index: int) -> bool:
+    """Whether clip ``index`` comes from the varied repertoire: a share ``config.varied`` of the
+    clips, spread evenly over the rule cycle (clips of one cycle agree)."""
+    share = float(getattr(config, "varied", 0.0))
+    return share > 0 and ((index // len(config.rules)) * 0.6180339887498949) % 1.0 < share
+
+
+def _cache_file(config: TrainingDataConfig, split: str, cache_dir: Path) -> Path:
+    """Cache name from the config, the split and the source of the generator and encoder
+    (editing either invalidates the cache)."""
+    import dualflow.motion.features as features_module
+    import dualflow.synthetic as synthetic_module
+    import dualflow.synthetic_varied as varied_module
+
+    h = hashlib.sha1(json.dumps([config.synthetic_dict(), split], sort_keys=True).encode())
+    for module in (synthetic_module, varied_module, features_module):
+        h.update(Path(module.__file__).read_bytes())
+    return cache_dir / f"synthetic_{split}_{h.hexdigest()[:16]}.npz"
+
+
+def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path) -> SyntheticSplit:
+    path = _cache_file(config, split, cache_dir)
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            return SyntheticSplit(z["features"], [str(t) for t in z["texts"]], z["beats"], z["rules"], z["seeds"])
+    out = build_split(config, split)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial.npz")
+    np.savez(tmp, features=out.features, texts=np.array(out.texts, dtype=np.str_), beats=out.beats,
+             rules=out.rules, seeds=out.seeds)
+    os.replace(tmp, path)
+    return out
+
+
+def build_split(config: TrainingDataConfig, split: str = "train",
+                cache_dir: str | os.PathLike | None = None) -> SyntheticSplit:
+    """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core).
+
+    Features come from :func:`dualflow.motion.features.encode_pair` (actor's canonical Y-up
+    frame; InterGen drops the last motion frame, hence ``frames + 1`` generated frames).
+    cache_dir: when given, the split is read from / written to an npz there (no pickle:
+    texts are stored as a unicode array), keyed by the config and the generator's source.
+    """
+    if cache_dir is not None:
+        return _cached_split(config, split, Path(cache_dir))
+    n = int(config.n_clips if split == "train" else config.val_clips)
+    frames = int(config.frames)
+    seconds = (frames + 1) / float(config.fps)
+    feats = np.empty((n, frames, 2, 262), dtype=np.float32)
+    beats = np.empty((n, frames, 4), dtype=np.float32)
+    texts: list[str] = []
+    rules = np.empty(n, dtype=np.int64)
+    seeds = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        rule_index = i % len(config.rules)
+        seed = clip_seed(config, split, i)
+        pair = make_duet(config.rules[rule_index], seconds=seconds, fps=float(config.fps), seed=seed,
+                         varied=is_varied_clip(config, i))
+        f, _ = encode_pair(pair)
+        if f.shape[0] != frames:
+            raise DualFlowError(f"synthetic clip {i}: expected {frames} feature rows, got {f.shape[0]} (fps/frames mismatch)")
+        feats[i] = f
+        beats[i] = pair.meta["beats"][:frames]
+        texts.append(pair.text)
+        rules[i] = rule_index
+        seeds[i] = seed
+    return SyntheticSplit(feats, texts, beats, rules, seeds)
+
+
+def click_track_music(beats: np.ndarray, kind: str = "edge35", fps: float = 30.0) -> np.ndarray:
+    """Spectral music features (T, D) of a click track rendered from a (T, 4) beat track.
+
+    The synthetic duets have no audio, only beat times; to train and evaluate the *spectral*
+    music path (EDGE 35-d / Duolando 54-d, :func:`dualflow.music.analyse_waveform`) on them,
+    each beat impulse (column 0) becomes a 1 kHz click (librosa.clicks, 0.1 s), downbeats
+    (column 3) a louder 1.5 kHz click, at sr = fps · 512, and the audio is analysed like a song.
+    """
+    import librosa
+
+    from dualflow.music import analyse_waveform, analysis_rate
+
+    b = np.asarray(beats, dtype=np.float64)
+    if b.ndim != 2 or b.shape[1] != 4:
+        raise DualFlowError(f"click_track_music: expected a (T, 4) beat track, got {b.shape}")
+    sr = analysis_rate(fps)
+    n = len(b)
+    length = int(round(n / fps * sr))
+    times = np.flatnonzero(b[:, 0] > 0.5) / float(fps)
+    down = np.flatnonzero(b[:, 3] > 0.5) / float(fps)
+    y = librosa.clicks(times=times, sr=sr, length=length, click_freq=1000.0) if len(times) else np.zeros(length)
+    if len(down):
+        y = y + librosa.clicks(times=down, sr=sr, length=length, click_freq=1500.0)
+    y = y + 1e-4 * np.random.default_rng(n).standard_normal(length)  # a noise floor keeps chroma/MFCC finite
+    with warnings.catch_warnings():  # librosa warns about its low CQT octaves on clips of a few seconds
+        warnings.filterwarnings("ignore", message="n_fft=.*is too large", category=UserWarning)
+        return analyse_waveform(y.astype(np.float32), sr, kind, fps, n_frames=n).features
+
+
+def with_click_music(split: SyntheticSplit, kind: str, fps: float) -> SyntheticSplit:
+    """The same split with ``music`` = :func:`click_track_music` of every clip's beat track."""
+    music = np.stack([click_track_music(b, kind, fps) for b in split.beats]).astype(np.float32)
+    return SyntheticSplit(split.features, split.texts, split.beats, split.rules, split.seeds, music, kind)
 
 
 def load_synthetic(root=None, split: str = "train", *, n_clips: int = 64, frames: int = 60, fps: float = 30.0,
@@ -35,11 +180,11 @@ def load_synthetic(root=None, split: str = "train", *, n_clips: int = 64, frames
     samples = []
     for i in range(n):
         rule = rules[i % len(rules)]
-        clip_seed = int(seed) * 1_000_000 + SPLIT_OFFSETS[split] + i
-        pair = make_duet(rule, seconds=(int(frames) + 1) / float(fps), fps=float(fps), seed=clip_seed)
+        seed_i = int(seed) * 1_000_000 + SPLIT_OFFSETS[split] + i
+        pair = make_duet(rule, seconds=(int(frames) + 1) / float(fps), fps=float(fps), seed=seed_i)
         samples.append(DuetSample(source="synthetic", name=f"{split}_{i:05d}", motion=pair, texts=(pair.text,),
                                   music=pair.meta["beats"], music_kind="beats4", style=rule,
                                   roles=("leader", "follower"),
-                                  meta={"rule": RULES.index(rule), "seed": clip_seed, "bpm": pair.meta["bpm"],
+                                  meta={"rule": RULES.index(rule), "seed": seed_i, "bpm": pair.meta["bpm"],
                                         "beat_frames": pair.meta["beat_frames"]}))
     return DuetSet("synthetic", split, None, samples, {})

@@ -1,26 +1,10 @@
-"""Fixed-length training windows from any :class:`DuetSet` (the trainer's data layout).
+"""Fixed-length training windows cut from any :class:`DuetSet` (numpy only).
 
-The trainer (:mod:`dualflow.train`) reads :class:`dualflow.data.SyntheticSplit`
-arrays: features (N, T, 2, 262), texts, beats (N, T, 4) and an int label per
-window. :func:`window_split` cuts every clip of a DuetSet into windows of
-``frames + 1`` motion frames (so ``frames`` feature rows, InterGen drops the
-last) every ``stride`` frames, encodes each window on its own (canonical frame
-of the window's first actor frame, as InterGen crops then canonicalises), and
-fills the other arrays:
-
-* beats: the sample's (T, 4) beat track when ``music_kind == "beats4"``; else,
-  from the beat one-hot column of Duolando's 54-d (column 53) or EDGE's 35-d
-  (column 34) features, :func:`beat_track`; zeros when the clip has no beats.
-* label: the index of the sample's style, else its genre, in the sorted set of
-  labels over the DuetSet (0 for all when neither exists), for the triplet loss.
-* music: the window's rows of the sample's per-frame music features when every
-  clip of the split carries the same kind (``music_kind``), else None.
-* groups: the index of the source clip of each window (retrieval at training
-  time excludes every window of the query's own clip).
-
-:func:`make_training_sets` loads a dataset by name, windows the train and
-validation splits and returns what :func:`dualflow.data.make_datasets` returns,
-so the trainer can take any loader by name (``data: {dataset: dd100, root: ...}``).
+:func:`window_split` cuts every clip into windows of ``frames + 1`` motion frames (``frames``
+feature rows; InterGen drops the last) every ``stride`` frames, each encoded in its own
+canonical frame, and returns a :class:`WindowSplit`: the arrays of
+:class:`dualflow.datasets.synthetic.SyntheticSplit` plus each window's source clip. The torch
+side is :mod:`dualflow.datasets.training`. How beats, labels and music are filled: docs/model.md.
 """
 
 from __future__ import annotations
@@ -29,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dualflow.datasets import load_dataset
 from dualflow.datasets.collection import DuetSet
 from dualflow.errors import DualFlowError
 
@@ -63,7 +46,14 @@ def beat_track(impulses: np.ndarray) -> np.ndarray:
 
 @dataclass
 class WindowSplit:
-    """Arrays of :class:`dualflow.data.SyntheticSplit` plus where each window came from."""
+    """Arrays of :class:`dualflow.datasets.synthetic.SyntheticSplit` plus where each window came from.
+
+    features (N, T, 2, 262) float32; texts N; beats (N, T, 4) (the sample's beat track, or one
+    derived from the beat column of its music features, :func:`beat_track`, else zeros); rules
+    (N,) int64 index of the sample's style, else genre, in ``labels``; seeds (N,) window index;
+    sources: window names; music (N, T, D) when every clip has the same kind, else None;
+    groups (N,) int64 index of the source clip (retrieval excludes the query's own clip).
+    """
 
     features: np.ndarray
     texts: list[str]
@@ -122,29 +112,3 @@ def window_split(dset: DuetSet, frames: int, stride: int | None = None, labels: 
                        np.asarray(rules, dtype=np.int64), np.arange(len(feats), dtype=np.int64), sources, labels,
                        np.stack(music).astype(np.float32) if music else None, music_kind if music else None,
                        np.asarray(groups, dtype=np.int64))
-
-
-def make_training_sets(name: str, root=None, *, frames: int = 60, text_dim: int, text_embedder=None,
-                       train_split: str = "train", val_split: str | None = "val", stride: int | None = None,
-                       **options):
-    """(train DuetDataset, val DuetDataset | None, NormStats) from dataset ``name`` (module docstring).
-
-    The NormStats are fitted on the training windows; ``options`` go to the loader.
-    """
-    from dualflow.data import DuetDataset, template_text_embedding
-    from dualflow.motion.normalization import NormStats
-
-    embed = text_embedder or template_text_embedding
-    train_set = load_dataset(name, root, train_split, **options)
-    if len(train_set) == 0:
-        raise DualFlowError(f"dataset {name!r} at {root}: split {train_split!r} has no usable clips "
-                            f"({len(train_set.skipped)} skipped, e.g. {dict(list(train_set.skipped.items())[:2])}); "
-                            "check data.root and data.splits")
-    train = window_split(train_set, frames, stride)
-    stats = NormStats.from_features(train.features)
-    train_ds = DuetDataset(train, stats, text_dim, embed)
-    val_ds = None
-    if val_split:
-        val = window_split(load_dataset(name, root, val_split, **options), frames, stride, train.labels)
-        val_ds = DuetDataset(val, stats, text_dim, embed)
-    return train_ds, val_ds, stats

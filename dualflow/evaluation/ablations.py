@@ -1,24 +1,9 @@
 """The paper's ablation switches as training-config overrides (Tables 4, 6, 7, 8; app. D).
 
-Each switch is a list of ``dualflow-bridge train --set KEY=VALUE`` overrides applied on top of
-the full model's config (which trains with retrieval: ``retrieval.enabled=true``), and the row
-label ``dualflow-bridge eval`` prints for it. ``{v}`` is the switch's value (L or k).
-
-==============  ==========================================  =====================================
-switch          overrides                                   paper
-==============  ==========================================  =====================================
-full            retrieval.enabled=true                      DualFlow
-no_rag          retrieval.enabled=false                     w/o RAG (Table 7)
-no_triplet      loss_weights.triplet=0                      w/o L_triplet
-no_sync         loss_weights.sync=0                         w/o L_sync (Table 8)
-spectral        music=edge35, model.music_dim=35            spectral music features
-                (or duolando54 / 54)
-jukebox         music=jukebox, model.music_dim=4800         Jukebox features (the paper's); needs
-                                                            precomputed .npy (e.g. MDD's
-                                                            Juke_features: data.options.music=jukebox)
-look_ahead      model.look_ahead={v}                        L = 0 / 20 vs 10 (Table 6)
-retrieval_k     retrieval.k={v}                             k = 1, 3, 7 vs 5 / 3 (Table 7)
-==============  ==========================================  =====================================
+Contract: :data:`ABLATION_SWITCHES` maps a switch (full, no_rag, no_triplet, no_sync, spectral,
+jukebox, look_ahead, retrieval_k) to the ``dualflow-bridge train --set KEY=VALUE`` overrides
+applied on top of the full model's config (which trains with retrieval) and to the row label
+``dualflow-bridge eval`` prints; ``{v}`` in an override is the switch's value (L or k).
 """
 
 from __future__ import annotations

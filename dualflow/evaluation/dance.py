@@ -1,35 +1,10 @@
-"""DD100's solo and interactive dance metrics where the data allows (numpy only).
+"""DD100's duet and solo dance metrics where the data allows (numpy only).
 
-Duolando (Siyao et al. 2024) reports, over generated followers against the test set:
-
-* **FID_cd / Div_cd** (interactive): the *duet feature* of a clip is the matrix of
-  distances between 10 key joints of the follower and 10 of the leader, averaged
-  over time (100 numbers; joints pelvis, ankles, feet, head, shoulders, wrists =
-  SMPL 0, 7, 8, 10, 11, 15, 16, 17, 20, 21, as in Duolando's ``metrics_duet.py``).
-  Generated and ground-truth features are standardised with the ground truth's
-  per-dimension mean and std; FID_cd is the Fréchet distance between the two
-  sets, Div_cd the mean pairwise distance within the generated set.
-* **FID_k / Div_k** (solo, kinetic): per-joint kinetic features of the follower
-  in the fairmotion/Bailando spirit — positions relative to the root; per joint
-  the mean horizontal kinetic energy ½‖v_h‖², the mean vertical kinetic energy
-  ½v_z² and the mean energy expenditure ‖a‖·‖v‖ (v, a by finite differences in
-  m/s, m/s²), 66 numbers for 22 joints. This is our own implementation of the
-  idea, so its values are comparable between our runs, not to published tables.
-* **FID_g / Div_g** (solo, geometric): Bailando/Duolando's FID_g uses boolean
-  *relational* pose features in the style of Müller et al. (2005) ("is the right
-  hand above the neck", "is the left knee bent", "is the left foot moving fast"),
-  averaged over the clip. :func:`geometric_feature` is our own set of
-  :data:`GEOMETRIC_FEATURES` such relations, measured in a body frame (up =
-  pelvis → neck, right = the hips' and shoulders' left → right, forward = up ×
-  right) with thresholds in units of the clip's own humerus length, shoulder and
-  hip widths, so it does not depend on the world axes, position or body size.
-  Each number is the fraction of frames where the relation holds; they are
-  standardised like the others but with a std floor of 0.01
-  (:data:`GEOMETRIC_STD_FLOOR`). Like FID_k, its values compare our runs, not
-  published tables.
-
-Positions here are the project's Z-up world (or canonical) metres; only
-distances and the vertical axis matter.
+Contract: FID_cd / Div_cd over duet features (mean distances between 10 key joints of follower
+and leader), FID_k / Div_k over per-joint kinetic features, FID_g / Div_g over boolean
+relational pose features measured in a body frame (:data:`GEOMETRIC_FEATURES`). Positions are
+metres (Z-up world or canonical). The kinetic and geometric features are our own
+implementations: their values compare our runs, not published tables. Details: docs/model.md.
 """
 
 from __future__ import annotations

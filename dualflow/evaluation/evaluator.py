@@ -1,26 +1,10 @@
 """A contrastive motion-text evaluator after InterGen's InterCLIP, trainable offline.
 
-No public evaluator weights can be downloaded here, so the metrics' embedding
-space is learned by :func:`train_evaluator` (CLI: ``dualflow-bridge eval
-train-evaluator``). Design (InterCLIP, ``datasets/evaluator_models.py`` of
-tr3e/InterGen: two transformers, normalised embeddings, symmetric CLIP loss):
-
-* **motion encoder**: both people's 262-d features of a frame, standardised
-  with the evaluator's own :class:`NormStats`, concatenated (524) and projected
-  to ``width``; sinusoidal positions; a learned query token is prepended; a
-  ``layers``-deep transformer encoder (GELU, pre-norm) with a padding mask; the
-  query token's output -> Linear -> ``dim``.
-* **text encoder**: InterCLIP runs a trainable transformer over CLIP's frozen
-  token embeddings. Without CLIP weights, words (lower-case ``[a-z0-9]+``) are
-  hashed into ``vocab`` buckets (BLAKE2b, stable across runs) with a learned
-  embedding table; sinusoidal positions; a learned query token; a transformer
-  encoder; the query output -> Linear -> ``dim``.
-* both embeddings are L2-normalised and scaled by a learned s: e = s · u/‖u‖;
-  loss = ½ [CE(s² U_m U_tᵀ, I) + CE(s² U_t U_mᵀ, I)] over the batch (matched
-  pairs on the diagonal).
-
-Saved as a directory: ``evaluator.safetensors``, ``evaluator.json`` (config and
-training summary), ``norm_stats.npz``; loaded without pickle.
+Contract: :func:`train_evaluator` (CLI ``dualflow-bridge eval train-evaluator``) learns the
+metrics' embedding space, since no public evaluator weights can be downloaded here; a motion
+transformer (both people's 262-d features) and a text transformer (hashed words) give
+L2-normalised embeddings trained with a symmetric CLIP loss. Saved as a folder
+(``evaluator.safetensors``, ``evaluator.json``, ``norm_stats.npz``) and loaded without pickle.
 """
 
 from __future__ import annotations

@@ -1,26 +1,9 @@
 """Distribution and text-alignment metrics on evaluator embeddings (numpy only).
 
-These follow the text-to-motion protocol used by InterGen (Liang et al. 2024;
-``tools/eval.py`` and ``utils/metrics.py`` of tr3e/InterGen, which in turn follow
-Guo et al. 2022):
-
-* **FID** between two sets of embeddings, each summarised by its mean μ and
-  covariance Σ::
-
-      FID = ‖μ₁ − μ₂‖² + tr(Σ₁ + Σ₂ − 2 (Σ₁ Σ₂)^½)
-
-* **R-precision** (top-1/2/3) inside batches of ``batch_size`` (96) matched
-  (text, motion) pairs: the Euclidean distance matrix D[i, j] = ‖t_i − m_j‖;
-  pair i counts for top-k when m_i is among the k motions nearest t_i. Chance
-  level for top-k is k / batch_size.
-* **MM distance**: the mean of ‖t_i − m_i‖ over matched pairs (trace of D / N).
-* **Diversity**: two random index sets of ``times`` (300) samples drawn without
-  replacement; the mean of ‖m_a − m_b‖ over the paired draws.
-* **Multimodality**: embeddings (S, R, d) of R generations for each of S
-  conditions (100 × 30); per condition, ``times`` (10) random pairs of
-  generations; the mean of their distances.
-* **Replications**: every figure is reported as mean and 95 % confidence
-  half-width 1.96 · std / √n over n replications (InterGen: 20).
+Contract: InterGen's text-to-motion protocol (after Guo et al. 2022): FID between two embedding
+sets, R-precision top-1/2/3 in batches of 96 matched pairs, MM distance, diversity (300
+samples), multimodality (R generations per condition) and the mean with 95 % half-width
+1.96 std / sqrt(n) over replications.
 """
 
 from __future__ import annotations

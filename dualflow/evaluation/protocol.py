@@ -1,24 +1,10 @@
 """The evaluation run: generate for every test clip, embed, score, replicate (InterGen's protocol).
 
-One row of the results table comes from :func:`evaluate`:
-
-1. ground truth: :class:`EvalSet` — the test clips cut into windows
-   (:func:`dualflow.datasets.windows.window_split`), raw 262-d features
-   (N, T, 2, 262), one text each, the music beat frames per clip (from the beat
-   column of the clip's music features) and the per-frame beat track;
-2. a generator maps (clip indices, seed) to raw features (B, T, 2, 262):
-   :class:`CheckpointGenerator` wraps a DualFlow checkpoint in interactive mode
-   (both people from text/music) or reactive mode (the reactor from the clean
-   ground-truth actor); ``None`` scores the ground truth itself;
-3. per replication r (seed r): R-precision top-1/2/3 and MM distance in
-   shuffled batches of 96, FID against the ground-truth embeddings, diversity
-   over 300 samples, multimodality over ``mm_samples`` × ``mm_repeats``
-   generations (:mod:`.metrics`), BAS of the generated person(s) against the
-   music beats and BED between the two people (:mod:`.rhythm`);
-4. each metric is reported as mean ± 1.96 σ/√n over the replications.
-
-For the ground-truth row the generated set *is* the ground truth: FID is 0 up
-to round-off and multimodality is undefined (NaN, printed "-").
+Contract: :func:`evaluate` gives one results-table row from an :class:`EvalSet` (test clips cut
+into windows, with texts and beats) and a generator mapping (clip indices, seed) to raw
+features (B, T, 2, 262): :class:`CheckpointGenerator` (interactive or reactive) or ``None``
+(the ground truth scores itself: FID about 0, multimodality NaN). Each metric is the mean
+± 1.96 σ/√n over seeded replications.
 """
 
 from __future__ import annotations
@@ -70,14 +56,14 @@ class EvalSet:
     def music_for(self, kind: str) -> np.ndarray:
         """(N, T, D) music condition of ``kind`` for every window: the beat track ("beats4"), the
         windows' own features, or, where the data has only a beat track (the synthetic duets),
-        the spectral features of its rendered click track (:func:`dualflow.data.click_track_music`,
+        the spectral features of its rendered click track (:func:`dualflow.datasets.synthetic.click_track_music`,
         as in training)."""
         if kind == "beats4":
             return self.beats
         if self.music is not None and self.music_kind == kind:
             return self.music
         if kind in ("edge35", "duolando54") and self.music_kind in (None, "beats4"):
-            from dualflow.data import click_track_music
+            from dualflow.datasets.synthetic import click_track_music
 
             self.music = np.stack([click_track_music(b, kind, self.fps) for b in self.beats]).astype(np.float32)
             self.music_kind = kind
@@ -188,12 +174,12 @@ class CheckpointGenerator:
         actor = self.stats.normalize(data.features[:, :, 0].astype(np.float64)).astype(np.float32)
         self.actor = torch.from_numpy(actor)
         self.retriever = self.retrieval_encoder = None
-        from dualflow.rag import load_rag
+        from dualflow.retrieval import load_rag
 
         rag = load_rag(self.ckpt, device)
         if rag is not None:
             from dualflow.conditioning import text_encoder_for
-            from dualflow.rag import NeighbourTable, RetrievalConditioner, cue_queries
+            from dualflow.retrieval import NeighbourTable, RetrievalConditioner, cue_queries
 
             encoder = text_encoder_for(self.ckpt.text_encoder, self.ckpt.config.text_dim)
             queries = cue_queries(rag.db, data.texts, music, encoder)
@@ -228,7 +214,7 @@ class CheckpointGenerator:
 
 def text_embedding(encoder_id: str, texts: Sequence[str], dim: int) -> np.ndarray:
     """Embed ``texts`` the way a checkpoint with ``encoder_id`` was trained."""
-    from dualflow.data import TEXT_ENCODER_ID, template_text_embedding
+    from dualflow.text import TEXT_ENCODER_ID, template_text_embedding
 
     if encoder_id in ("", TEXT_ENCODER_ID) or encoder_id.startswith(TEXT_ENCODER_ID):
         return template_text_embedding(list(texts), dim)

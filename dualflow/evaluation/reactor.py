@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dualflow.data import DuetDataset, positions_from_normalized
+from dualflow.datasets.training import DuetDataset, positions_from_normalized
 from dualflow.flow import generate
 from dualflow.model import Conditions, DualFlow
 
@@ -109,7 +109,8 @@ def evaluate_checkpoint(path=None, *, n_clips: int = 32, steps: int = 20, seed: 
     from dataclasses import replace
 
     from dualflow.checkpoint import load_model
-    from dualflow.data import DuetDataset, SyntheticDataConfig, build_split
+    from dualflow.datasets.config import TrainingDataConfig
+    from dualflow.datasets.synthetic import build_split
 
     model, ck = load_model(path)
     data = ck.meta.get("data")
@@ -117,7 +118,7 @@ def evaluate_checkpoint(path=None, *, n_clips: int = 32, steps: int = 20, seed: 
         from dualflow.errors import DualFlowError
 
         raise DualFlowError(f"{ck.path}: config.json has no 'data' section; it was not trained on synthetic duets")
-    cfg = replace(SyntheticDataConfig.from_dict(data), n_clips=n_clips, val_clips=n_clips)
+    cfg = replace(TrainingDataConfig.from_dict(data), n_clips=n_clips, val_clips=n_clips)
     from dualflow.text import as_text_embedder
 
     embed = as_text_embedder(ck.make_text_encoder())

@@ -1,71 +1,11 @@
 """The InterGen 262-d per-person motion feature, to and from :class:`Motion`.
 
-This module is the one place where the project's Z-up world meets InterGen's
-Y-up feature frame (DESIGN.md)::
-
-    yup = zup[..., [1, 2, 0]]        zup = yup[..., [2, 0, 1]]
-
-a proper rotation: Z-up "facing +X, left +Y" becomes Y-up "facing +Z, left +X",
-which is also SMPL's own rest frame.
-
-Layout of one feature row (one person, one frame ``t``), :data:`FEATURE_SLICES`:
-
-=============  =========  ==========================================================
-name           columns    content (canonical Y-up frame, metres)
-=============  =========  ==========================================================
-positions      0:66       ``p[t]`` of the 22 joints, joint-major (x, y, z per joint)
-velocities     66:132     ``p[t+1] - p[t]``, metres per *frame* (not per second)
-rotations      132:258    local rotations of joints 1..21 in 6D (first two columns
-                          of the Y-up matrix, :func:`rotations.matrix_to_6d`)
-contacts       258:262    1.0 / 0.0 for left ankle, left foot, right ankle, right foot
-=============  =========  ==========================================================
-
-Frame-count convention (InterGen's): velocities look one frame ahead, so a
-motion of ``T`` frames gives ``T - 1`` rows and the last frame is dropped.
-:func:`decode_person` returns one frame per row; ``append_last_frame=True``
-rebuilds the dropped frame as ``p[T-2] + v[T-2]`` so that encode → decode gives
-back all ``T`` frames.
-
-Canonicalisation (InterGen's ``process_motion_np``), :func:`canonical_frame`:
-
-1. floor: the person's lowest joint over all frames is moved to height 0;
-2. the first frame's root (pelvis) is moved to the origin of the ground plane
-   (x = z = 0 in Y-up; its height is kept);
-3. the body is turned about the vertical axis so that at frame 0 it faces +Z:
-   ``across = (p_rhip - p_lhip) + (p_rsho - p_lsho)`` (:data:`FACE_JOINTS`),
-   ``forward = up x across``, the yaw takes ``forward`` onto +Z. (InterGen's code
-   uses the hips only; HumanML3D adds the shoulders, as here, which is steadier
-   when the pelvis is twisted.) A person whose hips and shoulders are vertical
-   at frame 0 has no defined facing; the yaw is then 0.
-
-For a pair (:func:`encode_pair`) the frame is computed from person A alone and
-the *same* rigid transform is applied to person B, so B is expressed relative
-to A's canonical frame and the pair's relative placement (including B's height
-over A's floor) is kept exactly. (InterGen floors each person on their own
-lowest joint before the relative transform; for two people on one floor the
-two differ only by capture noise.)
-
-Rotations: InterGen reads them from SMPL parameters, which joint positions do not
-have. They are computed here by :func:`kinematics.inverse_kinematics` against the
-rest pose :data:`REST_POSE_YUP` (swing-only for single-child joints, least
-squares over the children for pelvis and spine3, identity for the leaf joints:
-feet, head, wrists). They are local (parent-relative), so invariant to the
-canonical transform. The root's own orientation is not in the feature (as in
-InterGen); decoding with ``use_rotations=True`` takes it from the pelvis and its
-children in the position part.
-
-Measured accuracy (float32 features; tests/test_features.py, tests/test_features_cmu.py):
-
-* positions → 262 → positions: about 1e-7 m in the original world frame
-  (tests require < 1 mm), for synthetic motion and the CMU pair alike;
-* FK of the rotation part against the stored positions, decoding with
-  ``use_rotations=True`` (offsets fitted by :func:`kinematics.fit_offsets`):
-  below 1e-6 m for any rigid skeleton, whatever its proportions or pelvis /
-  chest shape (tests require < 1e-4 m); on the CMU pair 18_01 / 19_01 at 30 fps,
-  max 14 mm (actor) / 17 mm (reactor), mean 3-4 mm (tests require max < 30 mm,
-  mean < 8 mm). The residual is the non-rigid part of the pelvis triangle (hips,
-  spine1) and of the chest (neck, collars) in the mapped skeleton, which one
-  rotation per joint cannot follow; it is passed down the chains as an offset.
+Contract: the one place where the project's Z-up world meets InterGen's Y-up feature frame
+(``yup = zup[..., [1, 2, 0]]``). A row is positions 0:66, velocities 66:132 (metres per frame),
+6D local rotations 132:258, foot contacts 258:262 (:data:`FEATURE_SLICES`), in the person's
+canonical frame (:func:`canonical_frame`: floored, first pelvis at the origin, facing +Z); a
+pair uses person A's frame for both. T frames give T - 1 rows (``append_last_frame`` rebuilds
+the last on decoding). Conventions, rotations and measured accuracy: docs/model.md.
 """
 
 from __future__ import annotations

@@ -1,28 +1,10 @@
 """Rotation utilities for the human-motion contract (numpy + scipy, batched).
 
-Every function takes arrays with arbitrary leading batch dimensions ``...`` and
-works on float64. Conventions:
-
-* A rotation matrix ``R`` (..., 3, 3) acts on column vectors: ``v' = R @ v``.
-* Quaternions are ``wxyz`` (scalar first), the order of
-  :class:`retarget.RobotTrajectory`; scipy's ``xyzw`` order is converted here.
-* The 6D representation (Zhou et al., 2019, "On the Continuity of Rotation
-  Representations in Neural Networks") is the first two *columns* of ``R``,
-  flattened column after column: ``[R00, R10, R20, R01, R11, R21]``. The way
-  back is Gram-Schmidt:
-
-      b1 = a1 / |a1|
-      b2 = (a2 - (b1 . a2) b1) / |a2 - (b1 . a2) b1|
-      b3 = b1 x b2,        R = [b1 b2 b3]  (as columns)
-
-  (PyTorch3D's ``matrix_to_rotation_6d`` takes the first two *rows*, i.e. the
-  6D of ``R.T``; convert with ``matrix_to_6d(sixd_to_matrix(x).swapaxes(-1, -2))``
-  when reading data written that way.)
-
-Conversions between matrices, quaternions, rotation vectors and Euler angles use
-:class:`scipy.spatial.transform.Rotation`; only the batched helpers scipy lacks
-(6D, the minimal "swing" rotation between two directions, least-squares
-alignment of vector sets) are written here.
+Contract: arrays with any leading batch dimensions, float64. Matrices act on column vectors;
+quaternions are w-x-y-z (scipy's x-y-z-w is converted here); the 6D form is the first two
+*columns* of R, column after column, recovered by Gram-Schmidt (PyTorch3D stores rows: convert
+through the transpose). scipy does the standard conversions; this module adds batched 6D,
+swing rotations between directions and least-squares alignment of vector sets.
 """
 
 from __future__ import annotations

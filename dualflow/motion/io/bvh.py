@@ -1,24 +1,11 @@
 """The BVH format: a robust reader, forward kinematics, and a writer.
 
-This module knows BVH only: any hierarchy, any channel order and any Euler order
-per joint, End Sites, CRLF / CR / LF line endings (mixed in one file), position
-channels on any joint. It does not know SMPL, units or up axes; that is
-:mod:`dualflow.motion.io.bvh_motion`.
-
-Semantics (the common convention, also Blender's importer):
-
-* A joint's local transform is ``T(t_j) · R_j`` where ``t_j`` is its OFFSET with
-  every component that has a position channel replaced by that channel's value
-  (so a root with ``Xposition Yposition Zposition`` is placed absolutely), and
-  ``R_j = R_c1 · R_c2 · R_c3`` is the product of its rotation channels in the
-  order they are listed (intrinsic rotations, degrees). ``Zrotation Yrotation
-  Xrotation`` thus means ``R = Rz(z) · Ry(y) · Rx(x)``.
-* Global pose: ``G_j = G_parent(j) · R_j`` and ``p_j = p_parent(j) + G_parent(j) t_j``.
-* An End Site is kept as a joint without channels, named ``<parent>_end``
-  (``<parent>_end2`` ... if a joint has several), so that a joint map can use the
-  tip of the head or of a toe.
-
-Errors are :class:`dualflow.DualFlowError` naming the file and line.
+Contract: any hierarchy, channel order and Euler order per joint, End Sites (kept as joints
+named ``<parent>_end``), any line endings, position channels on any joint. A joint's local
+transform is T(offset, with channel values where they exist) · R_c1 · R_c2 · R_c3 (rotation
+channels in listed order, intrinsic, degrees). It knows nothing of SMPL, units or up axes
+(that is :mod:`dualflow.motion.io.bvh_motion`). Errors are :class:`dualflow.DualFlowError`
+naming the file and line.
 """
 
 from __future__ import annotations

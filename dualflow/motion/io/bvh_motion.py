@@ -1,30 +1,10 @@
 """BVH <-> :class:`~dualflow.motion.Motion`: joint maps, units, axes, and an SMPL-22 BVH writer.
 
-Import (:func:`bvh_to_motion`): parse, forward kinematics of every joint, pick the
-SMPL-22 joints with a joint map (:mod:`.joint_maps`), convert units (detected from
-the person's height, or given) and axes (detected from the rest pose, or given),
-and optionally drop a reference first frame. The data is **not moved**: no
-re-centring and no floor shift, so two files captured in one world frame stay in
-it. (:func:`dualflow.motion.io.formats.put_on_ground` shifts a motion vertically
-when wanted.)
-
-Export (:func:`motion_to_bvh`): an SMPL-22 skeleton in metres, Y up (the axes
-Blender's BVH importer expects by default), joints named as in
-:data:`dualflow.motion.JOINT_NAMES`, ``Zrotation Yrotation Xrotation`` channels.
-Rotations come from positions by aligning bones:
-
-* a joint with one child gets the shortest-arc rotation taking its rest bone
-  direction (already carried by the parent's rotation) onto the observed one,
-  ``G_j = S(G_p o_c -> d_c) G_p``, so twist follows the parent;
-* a branching joint (pelvis, spine3) gets the least-squares rotation (Kabsch)
-  mapping its children's offsets onto the observed vectors; those offsets are
-  the mean body-frame vectors of the clip, so a rigid branch is reproduced exactly;
-* bone lengths are medians over the clip.
-
-So positions read back equal the input up to each bone's deviation from its
-median length (exact for rigid skeletons, e.g. anything read from BVH). With
-``translations="all"`` every joint also gets position channels holding its exact
-local offset per frame, and the round trip is exact for any input.
+Contract: :func:`bvh_to_motion` picks the SMPL-22 joints with a joint map
+(:mod:`.joint_maps`), converts units and axes (detected or given) and never moves the data, so
+two files of one capture stay in one world frame. :func:`motion_to_bvh` writes an SMPL-22
+skeleton in metres, Y up, ``Zrotation Yrotation Xrotation`` channels, rotations from bone
+alignment and median bone lengths; ``translations="all"`` makes the round trip exact.
 """
 
 from __future__ import annotations

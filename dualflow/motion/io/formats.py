@@ -1,34 +1,11 @@
-"""One entry point for motion files: :func:`load_motion`, :func:`load_pair`,
-:func:`load_any`, :func:`save_motion`.
+"""One entry point for motion files: :func:`load_motion`, :func:`load_pair`, :func:`load_any`,
+:func:`save_motion`.
 
-Formats, chosen by extension and then by content:
-
-======================  =============================================================
-file                    content
-======================  =============================================================
-``.bvh``                any BVH skeleton with a joint map (:mod:`.bvh_motion`)
-``.npz`` (ours)         ``format = "dualflow-motion-1"``: ``positions`` (T, 22, 3) m Z up,
-                        ``fps``, optional ``contacts`` (T, 4), ``name``, ``joint_names``;
-                        ``format = "dualflow-duet-1"``: ``actor_positions``,
-                        ``reactor_positions``, ``fps``, optional ``*_contacts``,
-                        ``text``, ``meta`` (a JSON string)
-``.npz`` (AMASS/SMPL)   joint positions under ``joints`` / ``positions`` /
-                        ``joint_positions`` / ``Jtr``: (T, J >= 22, 3) or (T, 3J), the
-                        first 22 being the SMPL body joints; fps from
-                        ``mocap_framerate`` / ``mocap_frame_rate`` / ``fps``; Z up (AMASS)
-``.npy`` (T, 22, 3)     HumanML3D ``new_joints``: Y up, 20 fps
-``.npy`` (T, 492)       InterGen raw: 62 joint positions then 51 6D rotations; the first
-                        22 positions are used; Z up with InterGen's own horizontal axes,
-                        mapped to ours by InterGen's Y-up conversion
-                        ``(x, y, z) -> (x, z, -y)`` followed by ours; 30 fps
-``.npy`` (T, 262)       InterGen processed per-person features, decoded by
-                        :func:`dualflow.motion.features.decode_person`; 30 fps
-``.npy`` (T, 2, 262)    a pair of such features (actor, reactor)
-======================  =============================================================
-
-Readers never move the data (no re-centring, no floor shift); use
-:func:`put_on_ground` to put the lowest foot joint at z = 0. All npz files are
-read with ``allow_pickle=False``; writes are atomic (temp file + rename).
+Contract: the format is chosen by extension, then content: ``.bvh`` (with a joint map), our
+``.npz`` (``dualflow-motion-1`` / ``dualflow-duet-1``), AMASS-style ``.npz`` joints, and
+``.npy`` HumanML3D joints, InterGen raw (T, 492), InterGen features (T, 262) or a pair
+(T, 2, 262). Readers never move the data (:func:`put_on_ground` does); npz is read without
+pickle; writes are atomic. The table of layouts: docs/model.md.
 """
 
 from __future__ import annotations

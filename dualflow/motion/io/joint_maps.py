@@ -1,30 +1,10 @@
 """Joint-name maps from BVH skeletons to the SMPL-22 joints, kept as data.
 
-A map assigns each SMPL joint a *source* in the BVH hierarchy: either one joint
-name (End Sites are named ``<parent>_end``) or a point between two joints,
-``{"between": [A, B], "t": 0.4}`` meaning ``p = (1 - t) p_A + t p_B``. Between-
-points stand in where the BVH skeleton has no joint at the SMPL location.
-
-Built-in maps (see the choices documented next to each):
-
-* ``cmu`` -- the CMU "cgspeed" 31-joint skeleton (Hips, LHipJoint, LeftUpLeg,
-  LowerBack, Spine, Spine1, Neck, Neck1, Head, LeftShoulder, LeftArm, ...).
-* ``mixamo`` -- Mixamo-style (Hips, Spine, Spine1, Spine2, Neck, Head,
-  LeftShoulder, LeftArm, LeftForeArm, LeftHand, LeftUpLeg, LeftLeg, LeftFoot,
-  LeftToeBase, ...); a ``mixamorig:`` style namespace prefix is ignored.
-* ``mixamo_spine3`` -- the same with four spine joints Spine, Spine1, Spine2,
-  Spine3 (InteractionGraph-style exports).
-* ``smpl`` -- our own names (``pelvis``, ``left_hip`` ...), as written by
-  :func:`dualflow.motion.io.bvh_motion.motion_to_bvh`.
-
-A user map file (YAML or JSON) overrides or replaces a built-in one::
-
-    base: mixamo            # optional: start from a built-in map
-    joints:                 # SMPL joint -> source; these entries win
-      spine3: Chest
-      left_collar: {between: [LeftShoulder, LeftArm], t: 0.5}
-
-Without ``base`` the ``joints`` mapping must name all 22 SMPL joints.
+Contract: a map gives each SMPL joint a source in the BVH hierarchy: one joint name (End Sites
+are ``<parent>_end``) or a point ``{"between": [A, B], "t": 0.4}`` = (1 - t) p_A + t p_B.
+Built in: ``cmu``, ``mixamo`` (namespace prefixes ignored), ``mixamo_spine3``, ``smpl``. A user
+YAML/JSON file may start from a built-in map (``base: mixamo``) and override ``joints``;
+without ``base`` it must name all 22 joints.
 """
 
 from __future__ import annotations
