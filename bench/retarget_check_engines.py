@@ -79,11 +79,12 @@ def make_clips(folder: Path, n: int) -> tuple[list[Path], str]:
 def timed_batch(files, cfg, engine: str, workers: int):
     """(wall seconds, rows) of one batch, started afresh (its output folder emptied, no robot
     cached in this process: forked workers load it as Ray's workers do)."""
-    from ros_free_bridge import batch
+    from ros_free_bridge.batch import clip_check
+    from ros_free_bridge.batch.run import run_batch
 
-    batch._ROBOT.clear()
+    clip_check._ROBOT.clear()
     t0 = time.perf_counter()
-    rows = batch.run_batch(files, cfg, jobs=workers, progress=False, engine=engine)
+    rows = run_batch(files, cfg, jobs=workers, progress=False, engine=engine)
     return time.perf_counter() - t0, rows
 
 
@@ -91,8 +92,9 @@ RAY_CHILD = """
 import json, sys, time
 from pathlib import Path
 import ray
-from ros_free_bridge.batch import BatchConfig, run_batch
-from ros_free_bridge.batch_ray import start
+from ros_free_bridge.batch.config import BatchConfig
+from ros_free_bridge.batch.ray_engine import start
+from ros_free_bridge.batch.run import run_batch
 files, out, robot, workers = [Path(f) for f in json.loads(sys.argv[1])], Path(sys.argv[2]), sys.argv[3], int(sys.argv[4])
 t0 = time.perf_counter(); start(jobs=workers); up = time.perf_counter() - t0
 t0 = time.perf_counter()
@@ -109,7 +111,7 @@ def ray_batch(files, cfg, workers: int):
     gRPC threads do not survive the forks of the local engine's pool."""
     import json
 
-    from ros_free_bridge.batch import ClipResult
+    from ros_free_bridge.batch.results import ClipResult
 
     done = subprocess.run([sys.executable, "-c", RAY_CHILD, json.dumps([str(f) for f in files]), str(cfg.out),
                            str(cfg.robot), str(workers)], capture_output=True, text=True,
@@ -133,7 +135,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                     "(default 1)")
     args = parse_args(ap, argv, quick, QUICK)
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from ros_free_bridge.batch import BatchConfig
+    from ros_free_bridge.batch.config import BatchConfig
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_rc_"))
     src = tmp / "clips"
@@ -146,9 +148,11 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     cfg = lambda name, video=False: BatchConfig(robot=args.robot, out=tmp / name, video=video)  # noqa: E731
     # compile (or find cached) the robot's C code before any timing, in another process so that
     # the local engine's forked workers inherit nothing that Ray's workers must load themselves
-    subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path; from ros_free_bridge.batch import "
-                    "BatchConfig, check_clip; check_clip(Path(sys.argv[1]), BatchConfig(robot=sys.argv[2], "
-                    "out=Path(sys.argv[3]), video=False))", str(files[0]), args.robot, str(tmp / "warmup")],
+    subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path; "
+                    "from ros_free_bridge.batch.config import BatchConfig; "
+                    "from ros_free_bridge.batch.clip_check import check_clip; "
+                    "check_clip(Path(sys.argv[1]), BatchConfig(robot=sys.argv[2], out=Path(sys.argv[3]), video=False))",
+                    str(files[0]), args.robot, str(tmp / "warmup")],
                    check=True, cwd=str(Path(__file__).resolve().parents[1]))
     print(f"{n} clips ({what}), {frames} frames at 30 fps, robot {args.robot}; "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")

@@ -13,6 +13,12 @@ retargeters in the same run, on one core (sched_setaffinity, single-threaded BLA
   contact schedule (retarget.schedule) and per-window warm starts; its baseline, *offline before*:
   the person's contacts held as they are and one streamed warm start for the whole clip (the
   code before this change);
+- *offline with the lead-in* (``--modes offline,offline-lead-in``; its baseline is *offline*):
+  the same with ``OfflineConfig.lead_in=LeadInConfig()`` (off by default): a clip that starts
+  mid-motion is started from the robot's standing stance at rest by retarget.lead_in instead of
+  the check's joint-space entry transition. The figures are over the clip's frames (after the
+  lead-in); the lead-in's own steps are not counted; physics failure times are after the clip's
+  first frame (the check's own times start at the lead-in);
 - *offline previous* (``--modes offline-prev``): the same with every change of the physics
   root-cause work off: the cart-table ZMP (one point mass at the CoM), no CoM-over-the-stance-foot
   rows in single support, and a schedule without the robot's pace, standing start, swing
@@ -56,8 +62,9 @@ from bench.retarget_speed import Clock, load_clips  # noqa: E402
 from bench.stepping_leaders import leaders  # noqa: E402
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 from retarget.errors import RetargetError  # noqa: E402
+from retarget.lead_in import LeadInConfig  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter, _Infeasible, feet_apart  # noqa: E402
-from retarget.report import evaluate  # noqa: E402
+from retarget.report import clip_targets, evaluate  # noqa: E402
 from retarget.robot import load_robot  # noqa: E402
 from retarget.schedule import StepConfig, count_steps  # noqa: E402
 from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x  # noqa: E402
@@ -150,6 +157,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     height = float(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2].max())
     print(f"robot {rb.name} (height {height:.3f} m), {len(clips)} clips, load {os.getloadavg()[0]:.2f}")
     off = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True))
+    off_lead = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig()))
     prev = StepConfig(min_double=0.0, start_double=0.0, robot_swing=0.0, swing_clearance=0.0, standing_start=False,
                       start_ramp=0.0, travel_zmp_shift=0.0)
     off_prev = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True, zmp_model="cart-table",
@@ -169,6 +177,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 with Clock() as ck:
                     if mode == "offline":
                         traj = off.retarget(motion)
+                    elif mode == "offline-lead-in":
+                        traj = off_lead.retarget(motion)
                     elif mode == "offline-prev":
                         traj = off_prev.retarget(motion)
                     elif mode == "offline-before":
@@ -182,14 +192,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 from retarget.report import configurations
 
                 X = configurations(rb, traj)
-                s["frames"] += motion.n_frames
+                tk, _, clip_t = clip_targets(traj, tg)  # the clip's frames (after a lead-in) and targets there
+                X, tk = X[clip_t >= -1e-9], tk[clip_t >= -1e-9]
+                s["frames"] += traj.n_frames
                 s["cpu"] += ck.cpu
                 s["done"] += 1
                 n, down = robot_steps(rb, X, motion.fps)
                 s["steps"] += n
                 s["person"] += person
                 s["step_ratio"].append(n / max(person, 1))
-                s["err"].append(pelvis_relative_error(rb, X, tg.keypoints) / height)
+                s["err"].append(pelvis_relative_error(rb, X, tk) / height)
                 rep = evaluate(rb, traj, tg)
                 if motion.name in clean and rep.jerk_ratio is not None:
                     s["jerk"].append(rep.jerk_ratio)
@@ -203,7 +215,11 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
 
                     res = check_trajectory(traj, CheckConfig(mode="free"), robot=rb.name)
                     s["phys"].append(res.passed)
-                    note += ", physics " + ("pass" if res.passed else f"{res.reason} at {res.first_failure_time:.2f} s")
+                    t0 = float(traj.meta.get("t0_s", 0.0))  # the check's times start at the trajectory's start
+                    after = f"{res.first_failure_time - t0:.2f} s after the clip's start" if not res.passed else ""
+                    note += ", physics " + ("pass" if res.passed else f"{res.reason} at {after}")
+                    if t0:
+                        note += f" (lead-in {t0:.2f} s)"
             elif args.physics:
                 s["phys"].append(False)
             print(f"  {motion.name:34s} {mode:17s} {note}", flush=True)
@@ -211,6 +227,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     for mode in modes:
         s = stats[mode]
         base = {"offline": "offline-prev" if "offline-prev" in stats else "offline-before",
+                "offline-lead-in": "offline",
                 "streaming": "streaming-before"}.get(mode)
         b = stats.get(base) if base else None
 
@@ -224,7 +241,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                        f"{b['done']}/{len(clips)}" if b else ""))
         v, bv = fig("step_ratio", lambda a: float(np.mean([abs(r - 1) <= 0.2 for r in a])))
         out.append(Row(f"{label}: share of clips with robot steps within 20 % of the person's", v, bv, "1.0",
-                       verdict(v >= 1.0) if mode in ("offline", "streaming") else "n/a"))
+                       verdict(v >= 1.0) if mode in ("offline", "offline-lead-in", "streaming") else "n/a"))
         out.append(Row(f"{label}: robot steps / person steps (all clips)", f"{s['steps']}/{s['person']}",
                        f"{b['steps']}/{b['person']}" if b else ""))
         v, bv = fig("err", mean)

@@ -1,46 +1,12 @@
-"""The balance planner of the streaming retargeter: which feet are planted, where, the
-support region the CoM, capture point and ZMP must stay in, and the targets' anchoring.
+"""The streaming retargeter's balance planner: planted feet, the support region, the targets' anchoring.
 
-:class:`retarget.streaming.StreamingRetargeter` owns the per-frame least squares; with
-``StreamingConfig.balance`` it asks a :class:`BalancePlanner`, once per frame, for
-
-- the targets moved by the anchoring transform (:meth:`BalancePlanner.anchor`; on the first
-  frame also with the feet at the robot's own stance, :meth:`BalancePlanner.neutral_stance`);
-- the feet held on the ground this frame (:meth:`BalancePlanner.plan`), writing the planted
-  feet's level footprints into the contact rows' anchor and the support region's half-planes
-  and the CoM/DCM/ZMP row parameters into the compiled function's parameter buffer (numpy
-  views bound once, :meth:`BalancePlanner.bind`).
-
-Rules (lengths m, times s, the fields of :class:`retarget.streaming.StreamingConfig`):
-
-- *Planted* feet are held on their level footprint: the sole's rectangle flat on the ground
-  (z = 0), at the centre and heading the foot had when it touched down
-  (:func:`retarget.support.level_footprint`).
-- The support region (:mod:`retarget.support`): on two feet, the hull of the feet's long centre
-  lines, ``balance_margin`` in from toe and heel and ``double_support_inset`` towards each
-  other (a compliant servo robot with its CoM over one foot unloads the other and sags over);
-  on one foot, the inner half (towards the lifted foot) of its footprint shrunk by
-  ``stance_margin``: a servo leg alone sags outwards, so the CoM stays on the inner side.
-- Steps (``steps``, off by default): without them both feet stay planted whatever the person
-  does. The bundled op3's position servos (kp 17.5 N m/rad) make one leg a soft spring: ankle
-  roll and hip roll in series give ≈ 8.8 N m/rad against the m g h ≈ 8 N m/rad a 3.4 kg body
-  at 0.24 m asks, so the robot survives standing on one leg but not the sway of getting there
-  open loop (sim's check topples it), while on two feet it is stiff. With steps on, contacts
-  come from the person (the motion's labels, or detected). A robot foot lifts only when the
-  person's leaves (rises ``lift_height`` above the other, or moves ``step_distance`` / turns
-  ``step_turn`` from where the robot's was put down) while the person's other foot is down,
-  after ``min_stance``; and only once the CoM has been over the other foot's stance region
-  for ``settle``. Until then the robot shifts its weight: the region becomes the stance
-  region plus one point p = c₋₁ moved towards it (at most ``shift_speed``, speeding up by at
-  most ``shift_accel``). A lifted foot's targets stay within ``swing_height`` of standing
-  height; it touches down (flat, where it is) when the person's foot is down, or after
-  ``max_swing``. The last planted foot never lifts: a jump or a glide is played on both feet.
-  With ``preview`` > 0 (the stream delayed by that many frames; :meth:`plan`'s ``ahead``) the
-  shift starts when the person's foot *will* leave, and the foot lifts when the person's is up.
-  Measured on the op3 (bench/stepping.py): with preview 9 (0.3 s) the CoM still does not reach
-  the stance region within a 0.3 s human swing, so the robot does not step yet; off by default.
-- The person's translation and heading are anchored to the planted feet
-  (:meth:`BalancePlanner.anchor`): the robot follows steps, not sliding.
+Contract: with ``StreamingConfig.balance`` the :class:`retarget.streaming.StreamingRetargeter`
+asks a :class:`BalancePlanner` once per frame for the anchored targets (:meth:`BalancePlanner.anchor`),
+the feet held down (:meth:`BalancePlanner.plan`) and the support region's half-planes and the
+CoM/DCM/ZMP row parameters, which it writes into the compiled function's parameter buffer
+(numpy views bound once, :meth:`BalancePlanner.bind`). Lengths m, times s. The rules (footprints,
+the two-foot and one-foot regions, when a foot may lift, the weight shift, preview) and why
+steps are off by default: docs/retargeting.md, section 4.
 """
 
 from __future__ import annotations

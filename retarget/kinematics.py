@@ -1,29 +1,16 @@
 """Symbolic forward kinematics in CasADi, built from any MuJoCo model.
 
-Nothing here is written per robot: the kinematic tree, body offsets, hinge axes
-and anchors, joint reference angles, masses and geoms are read from a
-``mujoco.MjModel`` and composed exactly as MuJoCo's ``mj_kinematics`` does.
+Contract: :class:`RobotKinematics` reads the kinematic tree, body offsets, hinge axes and
+anchors, reference angles, masses and geoms from an ``mujoco.MjModel`` and composes them as
+MuJoCo's ``mj_kinematics`` does (no per-robot code), as CasADi expressions of one frame's
+configuration vector
 
-Frames and units: world frame Z up, metres, radians. Body ``b`` with parent
-``p`` (before its joints):
+    x = [root position (3) m, root yaw, pitch, roll (3) rad, hinge angles (n) rad]   (free root)
+    x = [hinge angles (n) rad]                                                         (fixed root)
 
-    x_b = x_p + R_p · body_pos_b,        R_b = R_p · R(body_quat_b)
-
-then, for each hinge joint ``j`` of the body in order (axis ``a`` and anchor
-``c`` in the body frame, angle θ = q_j − qpos0_j):
-
-    anchor = x_b + R_b · c,   R_b ← R_b · Rot(a, θ),   x_b ← anchor − R_b · c
-
-where Rot(a, θ) = I + sinθ·[a]× + (1 − cosθ)·[a]×² (Rodrigues). A slide joint
-moves x_b by R_b·a·(q − qpos0). A free joint sets x_b, R_b from the root pose.
-
-The optimisation variable of one frame is the *configuration vector*
-
-    x = [root position (3), root yaw-pitch-roll (3), hinge angles (n)]   (free root)
-    x = [hinge angles (n)]                                                 (fixed root)
-
-with R_root = Rz(yaw) · Ry(pitch) · Rx(roll). Pitch stays inside ±80° (a bound
-the solvers set), away from the Euler singularity.
+with R_root = Rz(yaw) · Ry(pitch) · Rx(roll); pitch stays within ±80° (a bound the solvers
+set). World frame Z up, metres. Hinge j of a body turns it about its axis through its anchor by
+θ = q_j − qpos0_j (Rodrigues); a slide joint moves it along its axis; see docs/retargeting.md, section 2.
 """
 
 from __future__ import annotations

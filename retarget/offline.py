@@ -1,87 +1,13 @@
-"""Offline retargeting: the whole clip, or long overlapping windows, solved with IPOPT.
+"""Offline retargeting: a whole clip solved as long overlapping windows of one IPOPT problem.
 
-Per window of W frames, with X = [x_0 … x_{W−1}] (nx, W) and, with balance, convex weights
-Λ = [λ_0 … λ_{W−1}] (8, W) over the shrunk sole corners:
-
-    min  Σ_t f_t Σ_k w_k ‖p_k(x_t) − target_kt‖²                        keypoint tracking (m²)
-       + w_a Σ_t ‖fps² (x_{t+1} − 2x_t + x_{t−1})‖²                     acceleration
-       + w_j Σ_t ‖fps³ (x_{t+2} − 3x_{t+1} + 3x_t − x_{t−1})‖²          jerk
-       + w_p Σ_t ‖q_t − q_stand‖²  + w_fix Σ_{t<n_fix} ‖x_t − x̄_t‖²     posture; continuity with the previous window
-    s.t. lb ≤ x_t ≤ ub                                                    joint position limits (bounds)
-         |x_{t+1} − x_t| ≤ v_max / fps                                    joint and root velocity limits (linear)
-         z_c(x_t) ≥ 0, and = 0 for corners 0-2 while the foot is in contact  no sole corner below the ground; flat contact
-         xy_0(x_{t+1}) = xy_0(x_t), (d_t × d_{t+1})_z / |d|² = 0          no sliding or turning while it stays in contact
-              (d = xy_2 − xy_0, the sole diagonal). Exactly 6 equations fix a planted foot's 6 DOF:
-              the redundant 8 + 8 of fixing all four corners break the constraint qualification
-              (rank-deficient Jacobian), which slowed IPOPT (≈21 → ≈15 iterations per window on CMU)
-         b_t = Σ_i λ_ti s̃_i(x_t), Σ_i λ_ti = 1, λ ≥ 0                     balance: the point b over the support polygon
-              (λ_ti = 0 for corners of a foot in the air)                   shrunk by ``balance_margin``
-              b_t = zmp_t = Σ_k m_k (c_k,xy (c̈_k,z + g) − c_k,z c̈_k,xy) / Σ_k m_k (c̈_k,z + g)   (``zmp=True``:
-              the multibody ZMP of the segments k, c̈ by second differences, one-sided at window ends;
-              ``zmp_model="cart-table"``: one mass at the CoM), else (default) the static CoM b_t = c_xy,t
-         ‖seg_a − seg_b‖² ≥ (r_a + r_b + margin)²                         self-collision between capsule pairs
-         n·(a_i − b_j) ≥ r_a + r_b + margin                               the pairs between the two feet
-              (``collision_model="sole-plane"``, default): every capsule end point a_i on the left
-              foot and b_j on the right on their own sides of a plane along the feet, n their
-              common lateral axis (retarget.robot.Separation). Smooth and conservative; the
-              segment distance's closest-point case switches (the soles are near contact in most
-              frames) cost IPOPT 34 instead of 22 iterations per window on the CMU pair
-
-f_t is 1 for real frames and 0 for padding (also masking the acceleration and jerk terms
-that reach into the padding, so a padded window ends like the clip; f_t and w_fix enter as
-0/1 parameters), x̄ are the frames already fixed by the
-previous window (w_fix = 0 in the first), so consecutive windows share n_fix frames and
-the acceleration/jerk terms run across the seam: there is no seam to blend.
-
-Per-frame quantities come from one CasADi function ``frame(x)`` mapped over the W frames
-(``Function.map``), so the problem is a handful of matrix expressions whatever W is. Its
-structure depends only on the robot, the profile and W (contacts enter as constraint
-bounds, padding as f_t), so IPOPT's problem functions (objective, gradient, constraint
-Jacobian, Lagrangian Hessian) are compiled to C once per robot and cached on disk
-(:mod:`retarget.codegen`). The constraint Jacobian and the Gauss-Newton Hessian 2 J_Rᵀ J_R are
-built by the chain rule, dg/dw = ∂g/∂Y · blockdiag_t(∂y_t/∂x_t) + ∂g/∂w with Y the per-frame
-outputs, from one SX frame Jacobian mapped over the window (CasADi's AD of the mapped graph
-took ~100 directional sweeps: 2-3x slower Jacobians). Each window is warm-started from the
-streaming solver, run on from the last two frames the earlier windows solved
-(:meth:`retarget.streaming.StreamingRetargeter.resume`): one streamed start for the whole clip
-turned and slid its contact feet with the person while the solved robot kept them planted, so a
-person turning slowly on the spot left the next window a root-yaw jump of all the turn not
-followed, which IPOPT reported as "infeasible ... velocity of root yaw" at any speed.
-
-Contacts: the robot's own schedule (``steps``, :mod:`retarget.schedule`) from the person's: a
-foot the person pivots or slides on re-steps, frames with both feet in the air (a jump) keep
-the feet down; the changes are in ``meta["changes"]`` (seconds, what, why), the schedule in
-``meta["contacts"]`` and the step counts in ``meta["steps"]``. With ``zmp`` the balance rows
-keep the ZMP over the support polygon of the feet the schedule holds down, through double
-support between steps (the window sees 80 frames, 2.7 s at 30 fps: the preview the weight shift
-before a step needs). The ZMP is the multibody one (``zmp_model="multibody"``): the robot's
-segments (:func:`mass_groups`: trunk, legs, arms, head) as point masses, so the angular momentum
-of swinging legs and arms counts; on the generated duets the cart-table ZMP of the CoM alone was
-29 mm (mean) from MuJoCo's full-model ZMP and the full ZMP left the polygon in 30 % of the
-frames the cart-table one held; the 6-segment model is 6 mm from it. Parts where the solution
-runs at a speed limit are reported as ``speed-limited`` changes (:func:`speed_limited`).
-
-If IPOPT reports the window infeasible (limits and contacts cannot all hold at the clip's
-speed), :class:`RetargetError` says which frames and offers re-timing (``retime``: play the
-clip that many times slower); ``auto_retime`` tries 1.25×, 1.5×, 2× by itself. IPOPT's status
-per window is kept in the trajectory's ``meta["ipopt_status"]``. Only a converged window
-(``Solve_Succeeded``, ``Solved_To_Acceptable_Level``) is ever kept: an unfinished one
-(``Maximum_Iterations_Exceeded``, ``Restoration_Failed``, ``Infeasible_Problem_Detected``, …) is a
-failed retarget, a :class:`RetargetError` naming the window's frames and IPOPT's status, with
-``time_s`` at the worst constraint violation or, when the constraints hold, at the window's first
-frame (its point may satisfy every constraint and still be far from the tracking optimum, so it
-is never passed on as a result; ``auto_retime`` retries it slower like an infeasible one). A solver
-error (``Invalid_Option``, ``Error_In_Step_Computation``, …) always raises at once, even when the
-point it returned (the untouched warm start) looks feasible.
-
-Speed: IPOPT's own linear algebra (MUMPS on the KKT system, ~0.3 ms per frame and
-iteration) dominates. The adaptive barrier parameter is chosen by IPOPT's quality-function
-oracle (``mu_oracle``), not Mehrotra's probing: with the smooth sole rows that takes 17-19
-iterations per CMU window instead of 22 (with the segment-distance rows it does not help).
-MUMPS gets its workspace estimate + 100 % (``MUMPS_MEM_PERCENT``), not IPOPT's 1000 %, which made it
-allocate and touch 11x the estimate at every factorisation (page faults ~11 % of the time).
-See :func:`retarget.codegen.single_threaded_linear_algebra` for the thread setting. fatrop (the structure-exploiting solver shipped with CasADi) was tried on a
-stage-wise version of this problem and was slower (see bench/retarget_speed.py's docstring).
+Contract: :meth:`OfflineRetargeter.retarget` takes a :class:`dualflow.motion.Motion` and returns a
+:class:`retarget.trajectory.RobotTrajectory` that keeps every joint position and speed limit, the
+feet flat and still while the robot's contact schedule holds them down, the capsule pairs apart
+and (``balance``) the CoM or multibody ZMP over the support polygon; ``meta`` holds IPOPT's
+status per window, the schedule, step counts and what the robot does differently. A clip it
+cannot do at its speed raises :class:`retarget.errors.RetargetError` naming the frames and the
+fix (``retime``). The formulation, warm start, balance rows and speed work:
+docs/retargeting.md (sections 3, 4, 5 and 9).
 """
 
 from __future__ import annotations
@@ -96,10 +22,11 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.codegen import compiled_nlpsol, single_threaded_linear_algebra
 from retarget.errors import RetargetError
+from retarget.lead_in import LeadInConfig, lead_in, with_lead_in
 from retarget.schedule import Change, StepConfig, count_steps, robot_contacts, standing_soles, standing_start
 from retarget.shaping import ease_travel
 from retarget.streaming import StreamingConfig, StreamingRetargeter, hash_config, trajectory_from_x
-from retarget.targets import Targets, check_motion, make_targets
+from retarget.targets import KeypointScaler, Targets, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
 _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
@@ -157,6 +84,68 @@ class OfflineConfig:
     # the robot's contact schedule from the person's (retarget.schedule: re-steps for pivots and
     # slides, no flight); None holds the person's contacts as they are
     steps: StepConfig | None = StepConfig()
+    # LeadInConfig(): a clip whose first frame is not a standing double support at rest is started
+    # from the robot's standing stance at rest (retarget.lead_in: stand, step, move into the first
+    # pose, ease the clip in); the trajectory then starts before the clip: meta["t0_s"] is the
+    # clip's first frame, meta["lead_in"] what was added. None (default): the clip as it is. Off
+    # by default: on the op3 (bench/stepping.py --modes offline,offline-lead-in --physics) it took
+    # the physics pass rate from 6/9 to 5/9: cmu18_01 still falls (0.62 s after the clip's start
+    # instead of 0.24 s), cmu19_01, which passes without, falls at the ease-in (standing at rest on
+    # one foot in a mid-step pose, then starting to walk), duet_hand_hold did not converge
+    lead_in: LeadInConfig | None = None
+
+
+@dataclass(frozen=True)
+class _WindowSymbols:
+    """The symbols of one window's problem: decision variables X (nx, W) and balance weights L
+    (8 or 16, W); parameters TGT (3K, W) targets, FW (1, W) 1 for real frames, XF (nx, n_fix)
+    frames fixed by the previous window, WF (1) 1 when they are, ANC (8) the feet's first-frame
+    placement, REST (1) 1 when the window starts the clip from rest; and which row blocks exist."""
+
+    X: ca.MX
+    L: ca.MX
+    TGT: ca.MX
+    FW: ca.MX
+    XF: ca.MX
+    WF: ca.MX
+    REST: ca.MX
+    ANC: ca.MX
+    feet: bool
+    balance: bool
+    static: bool
+
+    @classmethod
+    def make(cls, rb, cfg: "OfflineConfig", W: int) -> "_WindowSymbols":
+        feet = bool(rb.has_feet and rb.floating and cfg.contacts)
+        balance = feet and cfg.balance
+        static = balance and cfg.zmp and cfg.single_support_com
+        X = ca.MX.sym("X", rb.nx, W)
+        L = ca.MX.sym("L", (16 if static else 8) if balance else 0, W)
+        return cls(X, L, ca.MX.sym("TGT", 3 * rb.n_keypoints, W), ca.MX.sym("FW", 1, W),
+                   ca.MX.sym("XF", rb.nx, cfg.n_fix), ca.MX.sym("WF", 1, 1), ca.MX.sym("REST", 1, 1),
+                   ca.MX.sym("ANC", 8 if feet else 0, 1), feet, balance, static)
+
+    def decision(self) -> ca.MX:
+        return ca.vertcat(ca.vec(self.X), ca.vec(self.L))
+
+    def parameters(self) -> ca.MX:
+        return ca.vertcat(ca.vec(self.TGT), ca.vec(self.FW), ca.vec(self.XF), self.WF, self.ANC, self.REST)
+
+
+@dataclass(frozen=True)
+class _Window:
+    """One window of a clip of T frames: frames s … s+W−1 (``idx`` (W,) clamped to the clip),
+    ``fixed`` (it continues a solved window), the robot's contacts there (W, 2) bool, ``pin``
+    (the feet's first-frame placement is held) and ``from_rest`` (it starts the clip from rest)."""
+
+    s: int
+    W: int
+    T: int
+    fixed: bool
+    idx: np.ndarray
+    contact: np.ndarray
+    pin: bool
+    from_rest: bool
 
 
 class OfflineRetargeter:
@@ -218,25 +207,34 @@ class OfflineRetargeter:
         return ca.Function("frame_jac", [x], [y, ca.jacobian(y, x)]).map(W, "serial")
 
     def _solver(self, W: int, fps: float):
+        """The IPOPT solver for windows of W frames at ``fps`` (built, compiled and cached once):
+        (solver, row layout, collision pairs P, balance, feet, compile info)."""
         key = (W, round(fps, 6))
         if key in self._solvers:
             return self._solvers[key]
         rb, cfg = self.robot, self.config
-        nx, nr, K = rb.nx, rb.n_root, rb.n_keypoints
-        feet = rb.has_feet and rb.floating and cfg.contacts
-        balance = feet and cfg.balance
-        X = ca.MX.sym("X", nx, W)
-        static = balance and cfg.zmp and cfg.single_support_com
-        L = ca.MX.sym("L", (16 if static else 8) if balance else 0, W)
-        TGT = ca.MX.sym("TGT", 3 * K, W)
-        FW = ca.MX.sym("FW", 1, W)
-        XF = ca.MX.sym("XF", nx, cfg.n_fix)
-        WF = ca.MX.sym("WF", 1, 1)
-        REST = ca.MX.sym("REST", 1, 1)  # 1: the window starts the clip from rest (the ZMP at frame 0)
-        ANC = ca.MX.sym("ANC", 8 if feet else 0, 1)  # per foot: corner 0 xy, sole diagonal xy (frame 0)
-        # the per-frame outputs as a symbol Y (ny, W) (column t = the frame's outputs, stacked):
-        # R and g are written once in the mapped outputs (f, g and the gradient) and once in Y
-        # (their Jacobians by the chain rule, below)
+        sym = _WindowSymbols.make(rb, cfg, W)
+        Y, parts = self._output_symbol(W)
+        R_x, J_x, g_x, layout, P = self._terms(sym, W, fps, self._frame_fn.map(W, "serial")(sym.X))
+        R, _, g, _, _ = self._terms(sym, W, fps, parts)
+        w, par = sym.decision(), sym.parameters()
+        nlp = {"x": w, "p": par, "f": J_x, "g": g_x}
+        jac_g, hess = self._chain_rule_derivatives(sym, W, Y, R, g)
+        name = f"rtw{W}"
+        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=(), steps=None))}_{int(round(fps * 1000))}"
+        solver, info = compiled_nlpsol(name, nlp, self._ipopt_options(), ckey, enable=cfg.compile, hess_lag=hess,
+                                       jac_g=jac_g)
+        # the problem and its hand-made derivatives, kept for checks against CasADi's own AD
+        self._problems[key] = {"nlp": nlp, "R": R_x, "jac_g": jac_g, "hess": hess}
+        entry = (solver, layout, P, sym.balance, sym.feet, info)
+        self._solvers[key] = entry
+        return entry
+
+    def _output_symbol(self, W: int) -> tuple:
+        """The per-frame outputs as one symbol Y (ny, W) (column t = frame t's outputs stacked)
+        and its parts in the layout ``Function.map`` gives ((r, c·W) each): R and g are written
+        once in the mapped outputs (f, g and the gradient) and once in Y (their Jacobians by the
+        chain rule, :meth:`_chain_rule_derivatives`)."""
         fr = self._frame_fn
         shapes = [fr.sparsity_out(i).shape for i in range(fr.n_out())]
         ny = sum(r * c for r, c in shapes)
@@ -245,120 +243,153 @@ class OfflineRetargeter:
         for r, c in shapes:  # (r*c, W) rows → (r, c*W), the layout Function.map gives
             parts.append(ca.reshape(Y[i0:i0 + r * c, :], r, c * W))
             i0 += r * c
+        return Y, parts
 
-        def terms(kp, sole, shr, com, coll):
-            """R (residuals), J = ‖R‖², g and its row layout from the per-frame outputs (as Function.map lays them out)."""
-            # objective J = ‖R‖² with R the stacked weighted residuals (module docstring)
-            wk = np.sqrt(np.repeat(rb.keypoint_weights, 3))[:, None]
-            wp = rb.profile.posture_weight if cfg.posture_weight is None else cfg.posture_weight
-            acc = (X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]) * fps ** 2
-            jerk = (X[:, 3:] - 3 * X[:, 2:-1] + 3 * X[:, 1:-2] - X[:, :-3]) * fps ** 3
-            R = ca.vertcat(
-                ca.vec((ca.reshape(kp, 3 * K, W) - TGT) * ca.repmat(ca.DM(wk), 1, W) * ca.repmat(FW, 3 * K, 1)),
-                np.sqrt(wp) * ca.vec(X[nr:, :] - ca.repmat(ca.DM(rb.x_stand[nr:]), 1, W)),
-                np.sqrt(cfg.accel_weight) * ca.vec(acc * ca.repmat(FW[:, 2:], nx, 1)),
-                np.sqrt(cfg.jerk_weight) * ca.vec(jerk * ca.repmat(FW[:, 3:], nx, 1)),
-                WF * np.sqrt(cfg.fix_weight) * ca.vec(X[:, :cfg.n_fix] - XF),
-            )
-            J = ca.sumsqr(R)
-            g = [ca.vec(X[:, 1:] - X[:, :-1])]
-            layout = {"vel": nx * (W - 1)}
-            if feet:
-                g.append(ca.vec(ca.reshape(sole[2, :], 8, W)))
-                layout["sole_z"] = 8 * W
-                xy = ca.reshape(sole[0:2, :], 16, W)  # per frame: x0 y0 x1 y1 ... of the 8 corners
-                slide = []
-                for f, foot in enumerate(rb.feet):
-                    c0, c2 = 8 * f, 8 * f + 4           # rows of corner 0 and corner 2 of this foot
-                    d = xy[c2:c2 + 2, :] - xy[c0:c0 + 2, :]
-                    diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
-                    slide += [xy[c0:c0 + 2, 1:] - xy[c0:c0 + 2, :-1],
-                              (d[0, :-1] * d[1, 1:] - d[1, :-1] * d[0, 1:]) / diag2]
-                g.append(ca.vec(ca.vertcat(*slide)))
-                layout["slide"] = 6 * (W - 1)
-                # the feet's placement in the window's first frame (the standing start): corner 0
-                # at ANC's point, the sole diagonal along ANC's direction (bounds switch it on)
-                anchor = []
-                for f, foot in enumerate(rb.feet):
-                    c0, c2 = 8 * f, 8 * f + 4
-                    d = xy[c2:c2 + 2, 0] - xy[c0:c0 + 2, 0]
-                    a = ANC[4 * f + 2:4 * f + 4]
-                    diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
-                    anchor += [xy[c0:c0 + 2, 0] - ANC[4 * f:4 * f + 2], (d[0] * a[1] - d[1] * a[0]) / diag2]
-                g.append(ca.vertcat(*anchor))
-                layout["anchor"] = 6
-            if balance:
-                s = ca.reshape(shr, 16, W)
-                sx, sy = s[0::2, :], s[1::2, :]
-                if cfg.zmp and W >= 3:
-                    # multibody ZMP of the segments as point masses m_k at c_k (3, W) each:
-                    # p = Σ_k m_k (c_k,xy (c̈_k,z + g) − c_k,z c̈_k,xy) / Σ_k m_k (c̈_k,z + g), with c̈
-                    # the central second difference (one-sided at the window's ends)
-                    G = len(self._group_mass)
-                    cg = ca.reshape(com, 3 * G, W)  # rows 3k..3k+2: segment k's CoM
-                    acc = (cg[:, 2:] - 2 * cg[:, 1:-1] + cg[:, :-2]) * fps ** 2
-                    # frame 0: from rest (c_−1 = c_0) when REST, else one-sided
-                    acc0 = REST * (cg[:, 1] - cg[:, 0]) * fps ** 2 + (1 - REST) * acc[:, 0]
-                    acc = ca.horzcat(acc0, acc, acc[:, -1])
-                    num, den = 0, 0
-                    for k, mk in enumerate(self._group_mass):
-                        c, a = cg[3 * k:3 * k + 3, :], acc[3 * k:3 * k + 3, :]
-                        lift = mk * (a[2, :] + GRAVITY)
-                        num = num + ca.repmat(lift, 2, 1) * c[0:2, :] - mk * ca.repmat(c[2, :], 2, 1) * a[0:2, :]
-                        den = den + lift
-                    comxy = num / ca.repmat(den, 2, 1)
-                else:
-                    comxy = ca.reshape(com, 3, W)[0:2, :]
-                L1 = L[0:8, :]
-                g.append(ca.vec(ca.vertcat(comxy[0, :] - ca.sum1(L1 * sx), comxy[1, :] - ca.sum1(L1 * sy), ca.sum1(L1) - 1)))
-                layout["balance"] = 3 * W
-                if static:  # the CoM over the stance foot in single support (bounds switch it on)
-                    G = len(self._group_mass)
-                    cg = ca.reshape(com, 3 * G, W)
-                    ctot = sum(float(mk) * cg[3 * k:3 * k + 2, :] for k, mk in enumerate(self._group_mass)) / float(
-                        np.sum(self._group_mass))
-                    L2 = L[8:16, :]
-                    g.append(ca.vec(ca.vertcat(ctot[0, :] - ca.sum1(L2 * sx), ctot[1, :] - ca.sum1(L2 * sy),
-                                               ca.sum1(L2) - 1)))
-                    layout["static"] = 3 * W
-            P = coll.shape[0]
-            if P:
-                g.append(ca.vec(coll))
-                layout["collision"] = P * W
-            return R, J, ca.vertcat(*g), layout, P
+    def _terms(self, sym: "_WindowSymbols", W: int, fps: float, outs) -> tuple:
+        """R (residuals), J = ‖R‖², g and its row layout, P, from the per-frame outputs ``outs``
+        (keypoints, sole, shrunk sole, com, collision, as Function.map lays them out)."""
+        kp, sole, shr, com, coll = outs
+        R = self._residuals(sym, W, fps, kp)
+        J = ca.sumsqr(R)
+        X = sym.X
+        g = [ca.vec(X[:, 1:] - X[:, :-1])]
+        layout = {"vel": self.robot.nx * (W - 1)}
+        if sym.feet:
+            self._contact_rows(sym, W, sole, g, layout)
+        if sym.balance:
+            self._balance_rows(sym, W, fps, shr, com, g, layout)
+        P = coll.shape[0]
+        if P:
+            g.append(ca.vec(coll))
+            layout["collision"] = P * W
+        return R, J, ca.vertcat(*g), layout, P
 
-        R_x, J_x, g_x, layout, P = terms(*fr.map(W, "serial")(X))
-        R, _, g, _, _ = terms(*parts)
-        w = ca.vertcat(ca.vec(X), ca.vec(L))
-        par = ca.vertcat(ca.vec(TGT), ca.vec(FW), ca.vec(XF), WF, ANC, REST)
-        nlp = {"x": w, "p": par, "f": J_x, "g": g_x}
+    def _residuals(self, sym: "_WindowSymbols", W: int, fps: float, kp):
+        """The stacked weighted residuals R of the objective J = ‖R‖² (module docstring)."""
+        rb, cfg, X = self.robot, self.config, sym.X
+        nx, nr, K = rb.nx, rb.n_root, rb.n_keypoints
+        wk = np.sqrt(np.repeat(rb.keypoint_weights, 3))[:, None]
+        wp = rb.profile.posture_weight if cfg.posture_weight is None else cfg.posture_weight
+        acc = (X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]) * fps ** 2
+        jerk = (X[:, 3:] - 3 * X[:, 2:-1] + 3 * X[:, 1:-2] - X[:, :-3]) * fps ** 3
+        return ca.vertcat(
+            ca.vec((ca.reshape(kp, 3 * K, W) - sym.TGT) * ca.repmat(ca.DM(wk), 1, W) * ca.repmat(sym.FW, 3 * K, 1)),
+            np.sqrt(wp) * ca.vec(X[nr:, :] - ca.repmat(ca.DM(rb.x_stand[nr:]), 1, W)),
+            np.sqrt(cfg.accel_weight) * ca.vec(acc * ca.repmat(sym.FW[:, 2:], nx, 1)),
+            np.sqrt(cfg.jerk_weight) * ca.vec(jerk * ca.repmat(sym.FW[:, 3:], nx, 1)),
+            sym.WF * np.sqrt(cfg.fix_weight) * ca.vec(X[:, :cfg.n_fix] - sym.XF),
+        )
+
+    def _contact_rows(self, sym: "_WindowSymbols", W: int, sole, g: list, layout: dict) -> None:
+        """Append the feet's rows to g: sole corner heights (8 per frame), no slide or turn between
+        frames (6 per frame pair) and the first frame's placement (6; bounds switch them on)."""
+        g.append(ca.vec(ca.reshape(sole[2, :], 8, W)))
+        layout["sole_z"] = 8 * W
+        xy = ca.reshape(sole[0:2, :], 16, W)  # per frame: x0 y0 x1 y1 ... of the 8 corners
+        slide = []
+        for f, foot in enumerate(self.robot.feet):
+            c0, c2 = 8 * f, 8 * f + 4           # rows of corner 0 and corner 2 of this foot
+            d = xy[c2:c2 + 2, :] - xy[c0:c0 + 2, :]
+            diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
+            slide += [xy[c0:c0 + 2, 1:] - xy[c0:c0 + 2, :-1],
+                      (d[0, :-1] * d[1, 1:] - d[1, :-1] * d[0, 1:]) / diag2]
+        g.append(ca.vec(ca.vertcat(*slide)))
+        layout["slide"] = 6 * (W - 1)
+        # the feet's placement in the window's first frame (the standing start): corner 0
+        # at ANC's point, the sole diagonal along ANC's direction (bounds switch it on)
+        anchor = []
+        for f, foot in enumerate(self.robot.feet):
+            c0, c2 = 8 * f, 8 * f + 4
+            d = xy[c2:c2 + 2, 0] - xy[c0:c0 + 2, 0]
+            a = sym.ANC[4 * f + 2:4 * f + 4]
+            diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
+            anchor += [xy[c0:c0 + 2, 0] - sym.ANC[4 * f:4 * f + 2], (d[0] * a[1] - d[1] * a[0]) / diag2]
+        g.append(ca.vertcat(*anchor))
+        layout["anchor"] = 6
+
+    def _zmp_terms(self, sym: "_WindowSymbols", W: int, fps: float, com) -> tuple:
+        """(num (2, W), den (1, W) or None, scale): the balance point num / den, the multibody ZMP of
+        the segments as point masses m_k at c_k, p = Σ_k m_k (c_k,xy (c̈_k,z + g) − c_k,z c̈_k,xy) /
+        Σ_k m_k (c̈_k,z + g), c̈ the central second difference (one-sided at the window's ends);
+        without ``zmp`` the static CoM (den None)."""
+        if not (self.config.zmp and W >= 3):
+            return ca.reshape(com, 3, W)[0:2, :], None, 1.0
+        G = len(self._group_mass)
+        cg = ca.reshape(com, 3 * G, W)  # rows 3k..3k+2: segment k's CoM
+        acc = (cg[:, 2:] - 2 * cg[:, 1:-1] + cg[:, :-2]) * fps ** 2
+        # frame 0: from rest (c_−1 = c_0) when REST, else one-sided
+        acc0 = sym.REST * (cg[:, 1] - cg[:, 0]) * fps ** 2 + (1 - sym.REST) * acc[:, 0]
+        acc = ca.horzcat(acc0, acc, acc[:, -1])
+        num, den = 0, 0
+        for k, mk in enumerate(self._group_mass):
+            c, a = cg[3 * k:3 * k + 3, :], acc[3 * k:3 * k + 3, :]
+            lift = mk * (a[2, :] + GRAVITY)
+            num = num + ca.repmat(lift, 2, 1) * c[0:2, :] - mk * ca.repmat(c[2, :], 2, 1) * a[0:2, :]
+            den = den + lift
+        return num, den, 1.0 / (float(np.sum(self._group_mass)) * GRAVITY)
+
+    def _balance_rows(self, sym: "_WindowSymbols", W: int, fps: float, shr, com, g: list, layout: dict) -> None:
+        """Append the balance rows to g: the balance point b = Σ_i λ_i s̃_i over the shrunk sole
+        corners s̃ (3 per frame), and with ``single_support_com`` the CoM over the stance foot."""
+        s = ca.reshape(shr, 16, W)
+        sx, sy = s[0::2, :], s[1::2, :]
+        num, den, scale = self._zmp_terms(sym, W, fps, com)
+        L1 = sym.L[0:8, :]
+        # zmp = num / den = b (b = Σ_i λ_i s̃_i) as num − b·den = 0, scaled by 1 / (M g) to stay
+        # in metres: the same zeros while den = Σ_k m_k (c̈_k,z + g) > 0 (no free fall), but
+        # polynomial, not rational: a walk off from frame 0 took IPOPT 89 iterations in the
+        # first window with num / den − b, 15 with this (the solution within 3e-6 rad)
+        b = ca.vertcat(ca.sum1(L1 * sx), ca.sum1(L1 * sy))
+        zrow = num - b if den is None else (num - b * ca.repmat(den, 2, 1)) * scale
+        g.append(ca.vec(ca.vertcat(zrow, ca.sum1(L1) - 1)))
+        layout["balance"] = 3 * W
+        if sym.static:  # the CoM over the stance foot in single support (bounds switch it on)
+            G = len(self._group_mass)
+            cg = ca.reshape(com, 3 * G, W)
+            ctot = sum(float(mk) * cg[3 * k:3 * k + 2, :] for k, mk in enumerate(self._group_mass)) / float(
+                np.sum(self._group_mass))
+            L2 = sym.L[8:16, :]
+            g.append(ca.vec(ca.vertcat(ctot[0, :] - ca.sum1(L2 * sx), ctot[1, :] - ca.sum1(L2 * sy),
+                                       ca.sum1(L2) - 1)))
+            layout["static"] = 3 * W
+
+    def _chain_rule_derivatives(self, sym: "_WindowSymbols", W: int, Y, R, g) -> tuple:
+        """(jac_g, hess): the constraint Jacobian and the Gauss-Newton Hessian (None with
+        ``hessian="exact"``) as functions of (w, p), from R and g written in Y (:meth:`_output_symbol`)."""
+        nx, cfg = self.robot.nx, self.config
+        w, par, X = sym.decision(), sym.parameters(), sym.X
         dy_dx = self._frame_jacobian(W)
         # constraint Jacobian by the chain rule: dg/dw = ∂g/∂Y · blockdiag_t(∂y_t/∂x_t) + ∂g/∂w, with
         # each frame's Jacobian from one SX function mapped over the W frames. CasADi's own AD
         # of the mapped graph needs ~100 directional sweeps over all frames (~4-7 ms per call
         # against ~1 ms for the W frame Jacobians); the values are the same
         JYs = ca.MX.sym("JY", dy_dx.sparsity_out(1))
-        BD = ca.horzcat(ca.diagcat(*ca.horzsplit(JYs, nx)), ca.MX(ny * W, w.shape[0] - nx * W))
+        BD = ca.horzcat(ca.diagcat(*ca.horzsplit(JYs, nx)), ca.MX(Y.shape[0] * W, w.shape[0] - nx * W))
         Jg = ca.mtimes(ca.jacobian(g, Y), BD) + ca.jacobian(g, w)
         Yv, JYv = dy_dx(X)
         g_v, Jg_v = ca.Function("jg", [Y, JYs, w, par], [g, Jg])(Yv, JYv, w, par)
         jac_g = ca.Function(f"rtw{W}_jac_g", [w, par], [g_v, Jg_v], ["x", "p"], ["g", "jac_g_x"])
-        opts = {}
-        hess = None
-        if cfg.hessian == "gauss-newton":
-            # H ≈ 2 λ_f J_Rᵀ J_R: first derivatives only (smaller code, faster compile); the
-            # constraints' curvature is left out, as in generalised Gauss-Newton SQP
-            # (J_R by the same chain rule as the constraint Jacobian)
-            JR = ca.mtimes(ca.jacobian(R, Y), BD) + ca.jacobian(R, w)
-            lam_f = ca.MX.sym("lam_f")
-            lam_g = ca.MX.sym("lam_g", nlp["g"].shape[0])
-            H = ca.triu(2 * lam_f * ca.mtimes(JR.T, JR))
-            H_v = ca.Function("h", [Y, JYs, w, par, lam_f], [H])(Yv, JYv, w, par, lam_f)
-            hess = ca.Function(f"rtw{W}_hess", [w, par, lam_f, lam_g], [H_v],
-                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-        elif cfg.hessian != "exact":
+        if cfg.hessian == "exact":
+            return jac_g, None
+        if cfg.hessian != "gauss-newton":
             raise RetargetError(f"offline config: hessian must be 'gauss-newton' or 'exact', got {cfg.hessian!r}")
-        opts |= {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
+        # H ≈ 2 λ_f J_Rᵀ J_R: first derivatives only (smaller code, faster compile); the
+        # constraints' curvature is left out, as in generalised Gauss-Newton SQP
+        # (J_R by the same chain rule as the constraint Jacobian)
+        JR = ca.mtimes(ca.jacobian(R, Y), BD) + ca.jacobian(R, w)
+        lam_f = ca.MX.sym("lam_f")
+        lam_g = ca.MX.sym("lam_g", g.shape[0])
+        H = ca.triu(2 * lam_f * ca.mtimes(JR.T, JR))
+        H_v = ca.Function("h", [Y, JYs, w, par, lam_f], [H])(Yv, JYv, w, par, lam_f)
+        hess = ca.Function(f"rtw{W}_hess", [w, par, lam_f, lam_g], [H_v], ["x", "p", "lam_f", "lam_g"],
+                           ["hess_gamma_x_x"])
+        return jac_g, hess
+
+    def _ipopt_options(self) -> dict:
+        """IPOPT's options: the tuned defaults (reasons inline, figures in docs/retargeting.md) and
+        ``OfflineConfig.ipopt_options`` on top."""
+        cfg = self.config
+        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
                 "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-3,
                 "ipopt.acceptable_iter": 3, "ipopt.acceptable_constr_viol_tol": 1e-6,
                 "ipopt.mu_strategy": "adaptive", "ipopt.mu_oracle": "quality-function", "ipopt.bound_relax_factor": 1e-10,
@@ -377,28 +408,27 @@ class OfflineRetargeter:
                 # of IPOPT's time on the CMU pair, for a start it then threw away (same
                 # iterations and solution to 1e-11 with or without it)
                 "ipopt.constr_mult_init_max": 0.0}
-        opts |= {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
-        name = f"rtw{W}"
-        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=(), steps=None))}_{int(round(fps * 1000))}"
-        solver, info = compiled_nlpsol(name, nlp, opts, ckey, enable=cfg.compile, hess_lag=hess, jac_g=jac_g)
-        # the problem and its hand-made derivatives, kept for checks against CasADi's own AD
-        self._problems[key] = {"nlp": nlp, "R": R_x, "jac_g": jac_g, "hess": hess}
-        entry = (solver, layout, P, balance, feet, info)
-        self._solvers[key] = entry
-        return entry
-
+        return opts | {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
     # -- solving ---------------------------------------------------------------------
     def retarget(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
         """Retarget a clip; raises RetargetError if it is infeasible at its speed (see ``retime``).
         ``contacts`` (T, 4) or (T, 2) bool overrides the motion's; ``scaler`` a KeypointScaler
-        (default: fitted on this clip's own bone lengths)."""
+        (default: fitted on this clip's own bone lengths). With ``OfflineConfig.lead_in`` set, a clip
+        that starts mid-motion gets a lead-in from standing at rest (:mod:`retarget.lead_in`)."""
         check_motion(motion, min_frames=2)
         cfg = self.config
+        lead = None
+        if cfg.lead_in is not None and self.robot.floating and self.robot.has_feet:
+            clip = motion
+            motion, lead = lead_in(clip, cfg.lead_in, contacts)
+            if lead is not None:  # the lead-in's motion carries its contacts; bones scaled as the clip's
+                contacts, scaler = None, scaler or KeypointScaler(self.robot, clip.positions)
         factors = [cfg.retime] + ([cfg.retime * f for f in (1.25, 1.5, 2.0)] if cfg.auto_retime else [])
         last = None
         for factor in factors:
             try:
-                return self._retarget_at(motion, contacts, factor, scaler)
+                traj = self._retarget_at(motion, contacts, factor, scaler)
+                return traj if lead is None else with_lead_in(traj, lead, motion.contacts)
             except _Infeasible as exc:
                 last, last_factor = exc, factor
         speed = "its speed" if factors[-1] == 1.0 else f"{factors[-1]:g}x slower"
@@ -526,75 +556,94 @@ class OfflineRetargeter:
 
     def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool, swing=None, anchor=None,
                       ramp=None):
+        """Solve frames s … s+W−1 (padded past the clip's end) from X's values there; returns
+        (X_w (W, nx), IPOPT iterations, compile info, status). Raises _Infeasible or RetargetError."""
         cfg, rb = self.config, self.robot
         solver, layout, P, balance, feet, info = self._solver(W, tg.fps)
-        T, nx = X.shape[0], rb.nx
+        T = X.shape[0]
         idx = np.minimum(np.arange(s, s + W), T - 1)
+        win = _Window(s, W, T, fixed, idx, tg.contacts[idx], pin=anchor is not None and not fixed and feet,
+                      from_rest=ramp is not None and not fixed)
         real = (np.arange(s, s + W) < T).astype(float)
         tgt = tg.keypoints[idx].reshape(W, -1).T  # (3K, W): column t = (k0x k0y k0z k1x …)
-        x0 = X[idx].T
         xf = X[s:s + cfg.n_fix].T if fixed else np.tile(X[s], (cfg.n_fix, 1)).T
-        pin = anchor is not None and not fixed and feet
-        anc = np.asarray(anchor, dtype=np.float64).ravel() if pin else np.zeros(8 if feet else 0)
-        rest = 1.0 if (ramp is not None and not fixed) else 0.0
-        p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0], anc, [rest]])
-        contact = tg.contacts[idx]
-        lbg, ubg = [], []
-        v = np.concatenate([rb.root_velocity_limits, rb.velocity_limits])[:, None] * cfg.velocity_safety / tg.fps
-        vb = np.tile(v, (1, W - 1))
-        if ramp is not None and not fixed:  # from rest: the speed limits open over ``ramp`` frames
-            vb = vb * np.minimum(1.0, (np.arange(W - 1) + 1) / max(ramp, 1))[None, :]
-        lbg.append((-vb).ravel(order="F"))
-        ubg.append(vb.ravel(order="F"))
-        lam0 = np.zeros((0, W))
+        anc = np.asarray(anchor, dtype=np.float64).ravel() if win.pin else np.zeros(8 if feet else 0)
+        p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0], anc,
+                            [1.0 if win.from_rest else 0.0]])
+        lbg, ubg = self._velocity_bounds(tg.fps, win, ramp)
         if feet:
-            cz = np.repeat(contact, 4, axis=1).T  # (8, W)
-            free = cz & np.tile([False, False, False, True], 2)[:, None]  # corner 3 of a foot in contact
-            low = np.zeros((8, W)) if swing is None else np.repeat(swing[idx], 4, axis=1).T
-            lbg.append(np.where(free, -np.inf, np.where(cz, 0.0, low)).ravel(order="F"))
-            ubg.append(np.where(cz & ~free, 0.0, np.inf).ravel(order="F"))
-            # a foot in contact in both frames does not slide or turn; with ``swing`` also between
-            # a contact frame and the air frame next to it (a vertical lift-off and touch-down)
-            both = contact[1:] & contact[:-1] if swing is None else contact[1:] | contact[:-1]  # (W-1, 2)
-            cs = np.repeat(both, 3, axis=1).T        # (6, W-1)
-            lbg.append(np.where(cs, 0.0, -np.inf).ravel(order="F"))
-            ubg.append(np.where(cs, 0.0, np.inf).ravel(order="F"))
-            lbg.append(np.zeros(6) if pin else np.full(6, -np.inf))
-            ubg.append(np.zeros(6) if pin else np.full(6, np.inf))
-        lbx = np.tile(rb.x_lower[:, None], (1, W))
-        ubx = np.tile(rb.x_upper[:, None], (1, W))
-        lbl = np.zeros((0, W))
-        ubl = np.zeros((0, W))
+            self._contact_bounds(win, swing, lbg, ubg)
+        lam = (np.zeros((0, W)),) * 3  # balance weights: lower, upper bound, start
         if balance:
-            active = contact.any(axis=1)
-            b = np.where(active, 0.0, np.inf)
-            lbg.append(np.stack([-b, -b, -b]).ravel(order="F"))
-            ubg.append(np.stack([b, b, b]).ravel(order="F"))
-            cl = np.repeat(contact, 4, axis=1).T
-            lbl = np.zeros((8, W))
-            ubl = np.where(cl, 1.0, 0.0)
-            n_on = np.maximum(cl.sum(axis=0, keepdims=True), 1)
-            lam0 = cl / n_on
-            if layout.get("static"):
-                stance = _static_stance(tg.contacts, int(round(cfg.pre_lift_s * tg.fps)))[idx]  # (W, 2)
-                on = stance.any(axis=1)
-                b2 = np.where(on, 0.0, np.inf)
-                lbg.append(np.stack([-b2, -b2, -b2]).ravel(order="F"))
-                ubg.append(np.stack([b2, b2, b2]).ravel(order="F"))
-                cl2 = np.repeat(np.where(on[:, None], stance, contact), 4, axis=1).T
-                lbl, ubl = np.vstack([lbl, np.zeros((8, W))]), np.vstack([ubl, np.where(cl2, 1.0, 0.0)])
-                lam0 = np.vstack([lam0, cl2 / np.maximum(cl2.sum(axis=0, keepdims=True), 1)])
+            lam = self._balance_bounds(tg, win, layout, lbg, ubg)
         if P:
             lbg.append(np.zeros(P * W))
             ubg.append(np.full(P * W, np.inf))
-        args = dict(x0=np.concatenate([x0.ravel(order="F"), lam0.ravel(order="F")]), p=p,
-                    lbx=np.concatenate([lbx.ravel(order="F"), lbl.ravel(order="F")]),
-                    ubx=np.concatenate([ubx.ravel(order="F"), ubl.ravel(order="F")]),
+        lbx, ubx = np.tile(rb.x_lower[:, None], (1, W)), np.tile(rb.x_upper[:, None], (1, W))
+        args = dict(x0=np.concatenate([X[idx].T.ravel(order="F"), lam[2].ravel(order="F")]), p=p,
+                    lbx=np.concatenate([lbx.ravel(order="F"), lam[0].ravel(order="F")]),
+                    ubx=np.concatenate([ubx.ravel(order="F"), lam[1].ravel(order="F")]),
                     lbg=np.concatenate(lbg), ubg=np.concatenate(ubg))
         # a warm start must lie inside the box
         args["x0"] = np.clip(args["x0"], args["lbx"], args["ubx"])
         sol = solver(**args)
         single_threaded_linear_algebra()  # MUMPS's BLAS is loaded by the first solve
+        xs, iters, status = self._outcome(solver, sol, args, layout, win)
+        return xs[:rb.nx * W].reshape(W, rb.nx), iters, info, status
+
+    def _velocity_bounds(self, fps: float, win: "_Window", ramp) -> tuple[list, list]:
+        """Bounds of the velocity rows |x_{t+1} − x_t| ≤ v_max / fps, opening linearly over ``ramp``
+        frames in a window that starts the clip from rest: ([lower], [upper])."""
+        rb, cfg = self.robot, self.config
+        v = np.concatenate([rb.root_velocity_limits, rb.velocity_limits])[:, None] * cfg.velocity_safety / fps
+        vb = np.tile(v, (1, win.W - 1))
+        if win.from_rest:  # from rest: the speed limits open over ``ramp`` frames
+            vb = vb * np.minimum(1.0, (np.arange(win.W - 1) + 1) / max(ramp, 1))[None, :]
+        return [(-vb).ravel(order="F")], [vb.ravel(order="F")]
+
+    @staticmethod
+    def _contact_bounds(win: "_Window", swing, lbg: list, ubg: list) -> None:
+        """Append the bounds of the feet's rows (sole heights, slide, first-frame placement)."""
+        W, contact = win.W, win.contact
+        cz = np.repeat(contact, 4, axis=1).T  # (8, W)
+        free = cz & np.tile([False, False, False, True], 2)[:, None]  # corner 3 of a foot in contact
+        low = np.zeros((8, W)) if swing is None else np.repeat(swing[win.idx], 4, axis=1).T
+        lbg.append(np.where(free, -np.inf, np.where(cz, 0.0, low)).ravel(order="F"))
+        ubg.append(np.where(cz & ~free, 0.0, np.inf).ravel(order="F"))
+        # a foot in contact in both frames does not slide or turn; with ``swing`` also between
+        # a contact frame and the air frame next to it (a vertical lift-off and touch-down)
+        both = contact[1:] & contact[:-1] if swing is None else contact[1:] | contact[:-1]  # (W-1, 2)
+        cs = np.repeat(both, 3, axis=1).T        # (6, W-1)
+        lbg.append(np.where(cs, 0.0, -np.inf).ravel(order="F"))
+        ubg.append(np.where(cs, 0.0, np.inf).ravel(order="F"))
+        lbg.append(np.zeros(6) if win.pin else np.full(6, -np.inf))
+        ubg.append(np.zeros(6) if win.pin else np.full(6, np.inf))
+
+    def _balance_bounds(self, tg: Targets, win: "_Window", layout: dict, lbg: list, ubg: list) -> tuple:
+        """Append the balance rows' bounds (on while a foot is down); return the balance weights'
+        (lower, upper, start) (8 or 16, W): weight only on corners of feet in contact, shared evenly."""
+        W, contact = win.W, win.contact
+        b = np.where(contact.any(axis=1), 0.0, np.inf)
+        lbg.append(np.stack([-b, -b, -b]).ravel(order="F"))
+        ubg.append(np.stack([b, b, b]).ravel(order="F"))
+        cl = np.repeat(contact, 4, axis=1).T
+        lbl, ubl = np.zeros((8, W)), np.where(cl, 1.0, 0.0)
+        lam0 = cl / np.maximum(cl.sum(axis=0, keepdims=True), 1)
+        if layout.get("static"):
+            stance = _static_stance(tg.contacts, int(round(self.config.pre_lift_s * tg.fps)))[win.idx]  # (W, 2)
+            on = stance.any(axis=1)
+            b2 = np.where(on, 0.0, np.inf)
+            lbg.append(np.stack([-b2, -b2, -b2]).ravel(order="F"))
+            ubg.append(np.stack([b2, b2, b2]).ravel(order="F"))
+            cl2 = np.repeat(np.where(on[:, None], stance, contact), 4, axis=1).T
+            lbl, ubl = np.vstack([lbl, np.zeros((8, W))]), np.vstack([ubl, np.where(cl2, 1.0, 0.0)])
+            lam0 = np.vstack([lam0, cl2 / np.maximum(cl2.sum(axis=0, keepdims=True), 1)])
+        return lbl, ubl, lam0
+
+    def _outcome(self, solver, sol, args: dict, layout: dict, win: "_Window") -> tuple:
+        """(x, iterations, status) of a converged window; a solver error raises RetargetError, an
+        unconverged window _Infeasible (module docstring)."""
+        s, W, T = win.s, win.W, win.T
         st = solver.stats()
         status = str(st.get("return_status", ""))
         xs = np.array(sol["x"]).ravel()
@@ -603,8 +652,8 @@ class OfflineRetargeter:
             raise RetargetError(
                 f"offline retarget: IPOPT failed on frames {s}..{min(s + W, T) - 1} with status {status or 'unknown'} "
                 f"(a solver error, not a verdict on the clip); check OfflineConfig.ipopt_options "
-                f"{dict(cfg.ipopt_options) or '(none set)'}, e.g. a linear_solver this IPOPT build lacks (mumps is "
-                "always there)")
+                f"{dict(self.config.ipopt_options) or '(none set)'}, e.g. a linear_solver this IPOPT build lacks "
+                "(mumps is always there)")
         viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
         if status not in _OK and viol > 1e-5:
             worst, frame = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s, T - 1)
@@ -615,9 +664,7 @@ class OfflineRetargeter:
             raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status or 'unknown status'} after "
                               f"{int(st.get('iter_count', 0))} iterations (the constraints hold, to {viol:.2g}, but "
                               "the optimum was not reached)", s, feasible=True)
-        Xw = xs[:nx * W].reshape(W, nx)
-        return Xw, int(st.get("iter_count", 0)), info, status
-
+        return xs, int(st.get("iter_count", 0)), status
 
     def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int,
                             s: int, last: int) -> tuple[str, int | None]:
@@ -707,7 +754,6 @@ def _static_stance(contacts: np.ndarray, pre: int) -> np.ndarray:
     support before the other lifts. contacts (T, 2) bool."""
     c = np.asarray(contacts, dtype=bool)
     out = c & ~c[:, ::-1]  # single support: the foot down
-    T = c.shape[0]
     for s in range(2):
         lifts = np.flatnonzero(c[:-1, s] & ~c[1:, s]) + 1  # first frame in the air
         for t in lifts:

@@ -1,73 +1,13 @@
 """A first retarget profile (and a hardware-config skeleton) for any MJCF humanoid, from the model alone.
 
-``init_robot_folder(mjcf, out_dir)`` writes a robot folder (see :mod:`firmware_cfg.registry`):
-``profile.yaml`` that retargets without edits, ``hardware.yaml`` with what the model cannot
-say marked ``# FILL IN``, and ``README.md``. The model is not copied: ``mjcf:`` in the profile
-(and the hardware config) points to it, relative to the folder.
-
-How the anatomy is found (no body or joint name is ever read for meaning):
-
-1. Rest pose. The model at ``qpos0`` (MuJoCo's zero pose). The rest frame is the root body's
-   heading: forward = its x axis made horizontal, left = up × forward, up = world +z. Left
-   and right below are signs of y in that frame.
-2. Ends. An *end* is a body with a hinge joint and no hinge below it. The tree's root is the
-   body with the free joint (else the world's child with the most hinges below it).
-3. Legs: on each side, the end whose geometry reaches lowest, if it reaches within 10 % of
-   the robot's height H of the lowest point of the whole model and at least 0.2 H below the
-   root. The bodies where the two leg paths meet is the pelvis body.
-4. Arms: of the remaining ends at least 0.06 H off the mid-plane, on each side the one with
-   the longest path from the root (a finger tip, if the hand has fingers). The arms' paths
-   meet at the chest body. Each limb's chain runs from there to its end, stopping at the
-   first body that branches (a hand with fingers).
-5. Joints of a limb. Its hinges' anchors, in order, then its end point (leg: the sole's
-   centre; arm: the tip of the last body's geometry, see below) make a polyline of length S. A *twist* joint turns about the limb (|cos(axis, limb)| > 0.8).
-   - knee / elbow: the non-twist hinge (|cos| < 0.6) between 20 % and 80 % of S nearest 50 %;
-   - hip / shoulder: walking up from it, the first hinge that is not a twist;
-   - ankle / wrist: walking down from it, the first non-twist hinge at least 35 % of the
-     way to the end point; else the last hinge at least 60 % of the way (a wrist with only
-     a twist joint); none (an arm without a wrist joint): the end point itself, i.e. the end
-     of the forearm's geometry (as far as it reaches from the shoulder, through the middle
-     of its last fifth).
-6. Feet: the contact geoms (contype or conaffinity set) of each leg within
-   max(2 mm, 1 % H) of its lowest point, on the body nearest the ankle that holds one. The
-   lowest points of those geoms (box corners, sphere bottoms, mesh vertices) give the sole's
-   bounding box in the rest frame: four ``corners`` at the sole's height, in the foot body's
-   frame. The toe keypoint is the middle of the sole's front edge.
-7. Pelvis, chest, head. pelvis: between the hips, raised by 9 % of the hips' height above
-   the sole (SMPL's rest pose); without legs, the first waist hinge's anchor. spine3: on the
-   chest body below the shoulders' midpoint, two thirds of the way up from the pelvis (SMPL
-   again). head: the centre of the geometry of the remaining end that reaches highest above
-   the shoulders, or, with no head joint, of the chest geometry above the shoulders.
-8. Capsules. A capsule is fitted to a point cloud (mesh vertices, box corners, points on
-   spheres/capsules/cylinders) of the collision geoms of a limb segment (thigh = hip to knee,
-   shin, upper arm, forearm, hand) in the frame of its last body: axis = the principal axis,
-   radius = the 90th percentile of the distance to it, end points inset by the radius.
-   The torso (the chest body's collision geometry) gets a vertical capsule whose radius is
-   the smaller of its half depth and half width (forearms cross in front of a chest that is
-   wider than deep; a capsule as wide as the chest would push them off it). Each foot gets the sole edge facing the other
-   foot (a thin segment), three small spheres on it (heel, middle, toe) and a sphere at the
-   sole's centre, paired as in the bundled op3 profile. Pairs: forearm and hand against the
-   torso and the thigh of their side, both forearms, both thighs, both shins, the feet. A
-   pair that already touches in the zero or stand pose has its capsules shrunk (to at
-   least half their radius) or, failing that, is left out and said so in a comment.
-9. Limits. MJCF ranges stand; an unranged hinge takes its position actuator's ``ctrlrange``
-   (else ±π), and an unranged knee is kept to its bending side (the side that moves the
-   foot backwards) from its zero angle. Velocity: the MJCF's ``servo_no_load_speed`` less
-   10 % if it has one (per joint where it gives one per actuator), else 5 rad/s (a
-   servo-class guess, marked ``# FILL IN``).
-10. Stand pose: the model's keyframe named stand/home (or its only one); without a
-    keyframe the solvers fall back to the zero pose (:meth:`RetargetRobot._stand_pose`).
-
-A scene file that only ``<include>``s the robot and adds a floor is replaced by the included
-robot model (the profile and the hardware config point to the robot, not the scene).
-
-The hardware config is a skeleton that :func:`firmware_cfg.config.load_config` parses as
-written: one Dynamixel protocol 2.0 bus, one XM430-W350 per actuated joint in the actuator
-order, IDs 1..n, direction 1, zero offset 0, limits = the MJCF range (or the profile's, for an
-unranged joint) clipped to the servo's range. Each guessed value carries a ``# FILL IN``
-comment; ``robot check`` lists them as to-dos and ``robot check --hardware`` fails on them
-(see :mod:`retarget.robot_check`). A parsing skeleton keeps the folder usable in simulation
-(``run --transport sim``) before anyone has looked at the wiring.
+Contract: ``init_robot_folder(mjcf, out_dir)`` writes a robot folder (see
+:mod:`firmware_cfg.registry`): ``profile.yaml`` that retargets without edits, ``hardware.yaml``
+that :func:`firmware_cfg.config.load_config` parses as written, with every guessed value marked
+``# FILL IN`` (listed by ``robot check``, failed by ``robot check --hardware``), and ``README.md``.
+The model is not copied: ``mjcf:`` points to it, relative to the folder; a scene that only
+includes the robot is replaced by the robot's file. No body or joint name is read for meaning:
+how the legs, arms, joints, feet, capsules, limits and stand pose are found is in
+docs/retargeting.md, section 8.
 """
 
 from __future__ import annotations
@@ -358,9 +298,58 @@ def _dca(rest: _Rest, a: int, b: int) -> int:
 
 def infer_anatomy(m) -> Anatomy:
     """Legs, arms, head, pelvis and chest of model ``m`` (see the module docstring)."""
+    rest = _Rest(m)
+    root, free = _pick_root(m, rest)
+    Rr = rest.R(root)
+    fwd = np.array([Rr[0, 0], Rr[1, 0], 0.0])
+    fwd = fwd / np.linalg.norm(fwd) if np.linalg.norm(fwd) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    left = np.cross(np.array([0.0, 0.0, 1.0]), fwd)
+    subtree = _subtree(rest, root)
+    everything = rest.points(rest.geoms(subtree))
+    if not len(everything):
+        everything = np.array([rest.d.xpos[b] for b in subtree])
+    zmin, zmax = float(everything[:, 2].min()), float(everything[:, 2].max())
+    fr = _BodyFrame(np.array(rest.d.xpos[root]), fwd, left, max(zmax - zmin, 1e-3), zmin)
+    an = Anatomy(root=root, floating=free, height=fr.height, forward=fwd, left=left)
+    ends = [b for b in subtree if b != root and rest.hinges[b] and all(rest.hinges_below(c) == 0 for c in rest.children[b])]
+    info = {e: _end_info(m, rest, e, root) for e in ends}
+    legs, in_legs = _find_legs(an, rest, ends, info, fr)
+    in_arms = _find_arms(an, rest, ends, info, in_legs, fr)
+    # legs: feet first (the leg's end point is the sole's centre), then the joints
+    for side, limb in an.legs.items():
+        _find_foot(rest, limb, fwd, left, fr.height)
+        _assign_joints(limb)
+    for side, limb in an.arms.items():
+        _assign_joints(limb)
+    _place_points(rest, an, ends, info, in_legs | in_arms)
+    # the toes are farther in front of the ankle than the heel is behind it, on a robot facing +x
+    if legs and any(limb.sole["x1"] + limb.sole["x0"] < 2 * float(limb.points_ankle @ fwd) - 1e-3
+                    for limb in an.legs.values()):
+        an.notes.append("the feet point backwards in the root's frame: the retargeter expects the robot to face its "
+                        "root body's +x (MuJoCo's convention); check the keypoints' left/right")
+    return an
+
+
+@dataclass(frozen=True)
+class _BodyFrame:
+    """The robot's frame at rest for telling limbs apart: root body position (3,) m, forward and
+    left (3,) horizontal unit vectors, height m (lowest to highest geometry point) and its lowest z m."""
+
+    origin: np.ndarray
+    forward: np.ndarray
+    left: np.ndarray
+    height: float
+    zmin: float
+
+    def lateral(self, p) -> float:
+        """How far p (3,) m is to the root's left (m)."""
+        return float((np.asarray(p) - self.origin) @ self.left)
+
+
+def _pick_root(m, rest: _Rest) -> tuple[int, bool]:
+    """(root body id, floating): the free joint's body, else the top body with most hinges below."""
     import mujoco
 
-    rest = _Rest(m)
     free = [j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
     if free:
         root = int(m.jnt_bodyid[free[0]])
@@ -371,45 +360,28 @@ def infer_anatomy(m) -> Anatomy:
         root = max(tops, key=rest.hinges_below)
     if rest.hinges_below(root) == 0:
         raise RetargetError("the model has no hinge joints: nothing to retarget")
-    Rr = rest.R(root)
-    fwd = np.array([Rr[0, 0], Rr[1, 0], 0.0])
-    fwd = fwd / np.linalg.norm(fwd) if np.linalg.norm(fwd) > 1e-6 else np.array([1.0, 0.0, 0.0])
-    up = np.array([0.0, 0.0, 1.0])
-    left = np.cross(up, fwd)
-    origin = np.array(rest.d.xpos[root])
+    return root, bool(free)
 
-    subtree = set()
-    stack = [root]
-    while stack:
-        x = stack.pop()
-        subtree.add(x)
-        stack += rest.children[x]
-    everything = rest.points(rest.geoms(subtree))
-    if not len(everything):
-        everything = np.array([rest.d.xpos[b] for b in subtree])
-    zmin, zmax = float(everything[:, 2].min()), float(everything[:, 2].max())
-    H = max(zmax - zmin, 1e-3)
-    an = Anatomy(root=root, floating=bool(free), height=H, forward=fwd, left=left)
 
-    def lateral(p):
-        return float((np.asarray(p) - origin) @ left)
+def _end_info(m, rest: _Rest, e: int, root: int) -> dict:
+    """A chain end e: its geometry's lowest and highest z, centre (3,), the chain's arc length from
+    the root (m) and its path of bodies."""
+    pts = rest.points(rest.geoms(rest.rigid(e)))
+    if not len(pts):
+        pts = np.array([rest.d.xpos[e]])
+    path = rest.path(e, root)
+    arc = sum(float(np.linalg.norm(m.body_pos[b])) for b in path)
+    return dict(low=float(pts[:, 2].min()), top=float(pts[:, 2].max()), centre=pts.mean(axis=0), arc=arc, path=path)
 
-    ends = [b for b in subtree if b != root and rest.hinges[b] and all(rest.hinges_below(c) == 0 for c in rest.children[b])]
-    info = {}
-    for e in ends:
-        pts = rest.points(rest.geoms(rest.rigid(e)))
-        if not len(pts):
-            pts = np.array([rest.d.xpos[e]])
-        path = rest.path(e, root)
-        arc = sum(float(np.linalg.norm(m.body_pos[b])) for b in path)
-        info[e] = dict(low=float(pts[:, 2].min()), top=float(pts[:, 2].max()), centre=pts.mean(axis=0), arc=arc, path=path)
 
-    # legs: the lowest-reaching end on each side
-    z_root = float(origin[2])
+def _find_legs(an: Anatomy, rest: _Rest, ends: list, info: dict, fr: _BodyFrame) -> tuple[dict, set]:
+    """Legs: the lowest-reaching chain end on each side (both or none); sets an.pelvis_body and
+    an.legs. Returns (side -> end body, the bodies in the legs)."""
+    H, z_root = fr.height, float(fr.origin[2])
     legs = {}
     for side, sign in (("left", 1), ("right", -1)):
-        cand = [e for e in ends if sign * lateral(info[e]["centre"]) > 0.02 * H
-                and info[e]["low"] < zmin + 0.1 * H and info[e]["low"] < z_root - 0.2 * H]
+        cand = [e for e in ends if sign * fr.lateral(info[e]["centre"]) > 0.02 * H
+                and info[e]["low"] < fr.zmin + 0.1 * H and info[e]["low"] < z_root - 0.2 * H]
         if cand:
             legs[side] = min(cand, key=lambda e: (info[e]["low"], -info[e]["arc"]))
     if len(legs) == 1:
@@ -422,11 +394,15 @@ def infer_anatomy(m) -> Anatomy:
             chain = _truncate(rest, rest.path(e, an.pelvis_body))
             an.legs[side] = _limb(rest, "leg", side, chain, None)
             in_legs |= _subtree(rest, chain[0])
+    return legs, in_legs
 
-    # arms: the longest path on each side among the other ends
+
+def _find_arms(an: Anatomy, rest: _Rest, ends: list, info: dict, in_legs: set, fr: _BodyFrame) -> set:
+    """Arms: the longest chain on each side among the ends outside the legs (both or none); sets
+    an.chest_body and an.arms. Returns the bodies in the arms."""
     arms = {}
     for side, sign in (("left", 1), ("right", -1)):
-        cand = [e for e in ends if e not in in_legs and sign * lateral(info[e]["centre"]) > 0.06 * H]
+        cand = [e for e in ends if e not in in_legs and sign * fr.lateral(info[e]["centre"]) > 0.06 * fr.height]
         if cand:
             arms[side] = max(cand, key=lambda e: info[e]["arc"])
     if len(arms) == 2:
@@ -439,21 +415,7 @@ def infer_anatomy(m) -> Anatomy:
     in_arms = set()
     for limb in an.arms.values():
         in_arms |= _subtree(rest, limb.bodies[0])
-
-    # legs: feet first (the leg's end point is the sole's centre), then the joints
-    for side, limb in an.legs.items():
-        _find_foot(rest, limb, fwd, left, H)
-        _assign_joints(limb)
-    for side, limb in an.arms.items():
-        _assign_joints(limb)
-
-    _place_points(rest, an, ends, info, in_legs | in_arms)
-    # the toes are farther in front of the ankle than the heel is behind it, on a robot facing +x
-    if legs and any(limb.sole["x1"] + limb.sole["x0"] < 2 * float(limb.points_ankle @ fwd) - 1e-3
-                    for limb in an.legs.values()):
-        an.notes.append("the feet point backwards in the root's frame: the retargeter expects the robot to face its "
-                        "root body's +x (MuJoCo's convention); check the keypoints' left/right")
-    return an
+    return in_arms
 
 
 def _subtree(rest: _Rest, b: int) -> set:
@@ -887,8 +849,6 @@ ORDER = ("pelvis", "spine3", "head", "left_hip", "right_hip", "left_knee", "righ
 
 def init_robot_folder(mjcf: str | Path, out_dir: str | Path, name: str | None = None, force: bool = False) -> InitResult:
     """Write ``profile.yaml``, ``hardware.yaml`` and ``README.md`` for the MJCF into ``out_dir``."""
-    import mujoco
-
     from firmware_cfg.registry import HARDWARE_FILE, PROFILE_FILE, README_FILE
 
     given = Path(mjcf)
@@ -900,76 +860,111 @@ def init_robot_folder(mjcf: str | Path, out_dir: str | Path, name: str | None = 
     if existing and not force:
         raise RetargetError(f"{out}: already holds {', '.join(existing)}; choose another -o folder or pass --force to overwrite")
     out.mkdir(parents=True, exist_ok=True)
-    robot = name or out.resolve().name
-    rel = _relative(model_path, out.resolve())
-    model_name = (ET.parse(model_path).getroot().get("model") or model_path.stem)
+    draft = _draft_profile(m, model_path, name or out.resolve().name, _relative(model_path, out.resolve()))
+    notes = list(draft.an.notes) + ([scene_note] if scene_note else []) + draft.pair_notes
+    files[0].write_text(_profile_text(draft))
+    files[1].write_text(_hardware_text(m, draft.robot, draft.model_name, draft.rel, draft.limits))
+    files[2].write_text(_readme_text(draft.model_name, model_path, given, draft.an, notes, draft.body_name))
+    _self_check(model_path, files[0])
+    return InitResult(out, model_path, files[0], files[1], files[2], draft.an, notes)
 
+
+@dataclass
+class _ProfileDraft:
+    """What ``robot init`` found in the model for the profile it writes: the robot's and model's
+    names, the model's path relative to the folder, the anatomy, keypoint frames, joint and speed
+    limits with their reasons, capsules and pairs (with notes), the margin and the stand keyframe."""
+
+    m: object
+    robot: str
+    model_name: str
+    model_path: Path
+    rel: str
+    an: Anatomy
+    rest: _Rest
+    limits: dict
+    limit_why: dict
+    speed: float
+    speeds: dict
+    speed_why: str
+    caps: dict
+    pairs: list
+    pair_notes: list
+    margin: float
+    stand: tuple
+
+    def body_name(self, b: int) -> str:
+        import mujoco
+
+        return _name(self.m, mujoco.mjtObj.mjOBJ_BODY, b)
+
+
+def _draft_profile(m, model_path: Path, robot: str, rel: str) -> _ProfileDraft:
+    """Infer the anatomy, capsules and pairs clear in the rest poses, limits and the stand keyframe."""
+    import mujoco
+
+    model_name = (ET.parse(model_path).getroot().get("model") or model_path.stem)
     an = infer_anatomy(m)
-    notes = list(an.notes) + ([scene_note] if scene_note else [])
     rest = _Rest(m)
     stand_name, stand_why = stand_keyframe(m)
     kid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, stand_name)
     poses = [np.array(m.qpos0)] + ([np.array(m.key_qpos[kid])] if kid >= 0 else [])
-
-    H = an.height
-    margin = float(np.clip(round(0.008 * H, 3), 0.003, 0.01))
+    margin = float(np.clip(round(0.008 * an.height, 3), 0.003, 0.01))
     caps = build_capsules(rest, an)
     pairs, pair_notes = clear_rest_collisions(m, caps, collision_pairs(caps), poses, margin)
     used = {c for p in pairs for c in p}
     caps = {k: v for k, v in caps.items() if k in used}
     limits, limit_why = joint_limits(m, an)
     speed, speeds, speed_why = speed_limits(m)
+    draft = _ProfileDraft(m, robot, model_name, model_path, rel, an, rest, limits, limit_why, speed, speeds, speed_why,
+                          caps, pairs, pair_notes, margin, (stand_name, stand_why))
+    _require_names(draft)
+    return draft
 
+
+def _require_names(d: _ProfileDraft) -> None:
+    """Every hinge joint, and every body the profile names, has a name in the MJCF."""
+    import mujoco
+
+    m = d.m
     nameless = [j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
                 and not _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)]
     if nameless:
-        raise RetargetError(f"{model_path}: hinge joints {nameless} (in file order) have no name; give every joint "
+        raise RetargetError(f"{d.model_path}: hinge joints {nameless} (in file order) have no name; give every joint "
                             "a name= in the MJCF (trajectories and the hardware config refer to joints by name)")
-    B = lambda b: _name(m, mujoco.mjtObj.mjOBJ_BODY, b)  # noqa: E731
-    unnamed = [b for b in {p[0] for p in an.points.values()} | {c.body for c in caps.values()}
-               | {limb.foot_body for limb in an.legs.values()} if not B(b)]
+    unnamed = [b for b in {p[0] for p in d.an.points.values()} | {c.body for c in d.caps.values()}
+               | {limb.foot_body for limb in d.an.legs.values()} if not d.body_name(b)]
     if unnamed:
-        raise RetargetError(f"{model_path}: bodies {sorted(unnamed)} that the profile needs have no name; "
+        raise RetargetError(f"{d.model_path}: bodies {sorted(unnamed)} that the profile needs have no name; "
                             "give every body a name= in the MJCF")
 
-    L = []
-    L.append(f"# Retarget profile of {model_name} ({model_path.name}), written by `dualflow-bridge robot init`")
-    L.append("# from the model alone: keypoints from the kinematic tree and the geometry, capsules fitted to the")
-    L.append("# collision geoms, feet from the lowest contact geoms (retarget/profile_init.py says how). Check")
-    L.append("# it, edit freely (schema: retarget/profile.py), then run `dualflow-bridge robot check DIR`.")
-    L.append(f"robot: {robot}")
-    L.append(f"mjcf: {rel}")
-    L.append("root: pelvis")
-    L.append("# human joint (SMPL): robot body + point in that body's frame (m), tracking weight")
-    L.append("keypoints:")
+
+def _profile_text(d: _ProfileDraft) -> str:
+    """The profile.yaml text, with a comment on where each value came from."""
+    B, an, rest = d.body_name, d.an, d.rest
+    L = [f"# Retarget profile of {d.model_name} ({d.model_path.name}), written by `dualflow-bridge robot init`",
+         "# from the model alone: keypoints from the kinematic tree and the geometry, capsules fitted to the",
+         "# collision geoms, feet from the lowest contact geoms (docs/retargeting.md says how). Check",
+         "# it, edit freely (schema: retarget/profile.py), then run `dualflow-bridge robot check DIR`.",
+         f"robot: {d.robot}", f"mjcf: {d.rel}", "root: pelvis",
+         "# human joint (SMPL): robot body + point in that body's frame (m), tracking weight", "keypoints:"]
     for h in ORDER:
         if h not in an.points:
             continue
         b, pw, why = an.points[h]
         off = rest.to_local(b, pw)
         L.append(f"  {h + ':':16s}{{body: {B(b)}, offset: {_vec(off)}, weight: {WEIGHTS.get(h, 1.0)}}}  # {why}")
-    if limits:
+    if d.limits:
         L.append("# Joints the MJCF leaves unranged (ranged ones keep the MJCF's range):")
         L.append("joint_limits:")
-        for j, (lo, hi) in limits.items():
+        for j, (lo, hi) in d.limits.items():
             lo, hi = _inward(lo, hi)
-            L.append(f"  {j}: [{lo:.6f}, {hi:.6f}]  # {limit_why[j]}")
+            L.append(f"  {j}: [{lo:.6f}, {hi:.6f}]  # {d.limit_why[j]}")
     L.append("velocity_limits:")
-    L.append(f"  default: {speed}  # {speed_why}")
-    for j, v in speeds.items():
+    L.append(f"  default: {d.speed}  # {d.speed_why}")
+    for j, v in d.speeds.items():
         L.append(f"  {j}: {v}")
-    L.append("# Self-collision: capsules in a body's frame (m), and the pairs kept apart.")
-    L.append("capsules:")
-    for c in caps.values():
-        L.append(f"  {c.name + ':':13s}{{body: {B(c.body)}, from: {_vec(c.p0)}, to: {_vec(c.p1)}, radius: {_f(c.radius)}}}")
-    L.append("collision_pairs:")
-    for a, b in pairs:
-        L.append(f"  - [{a}, {b}]")
-    for n in pair_notes:
-        L.append(f"  # {n}")
-    if not pairs:
-        L[-1] = "collision_pairs: []"
-    L.append(f"collision_margin: {margin}")
+    L += _collision_lines(d)
     if len(an.legs) == 2:
         L.append("# Feet: the sole's four corners (m, foot body frame) from its lowest contact geoms.")
         L.append("feet:")
@@ -981,17 +976,25 @@ def init_robot_folder(mjcf: str | Path, out_dir: str | Path, name: str | None = 
     L.append("# Hips and shoulders at the robot's own offsets, turned with the person's pelvis and chest.")
     L.append(f"rigid_offsets: [{', '.join(rigid)}]")
     L.append("posture_weight: 0.02")
-    L.append(f"stand_keyframe: {stand_name}  # {stand_why}")
-    profile_text = "\n".join(L) + "\n"
+    L.append(f"stand_keyframe: {d.stand[0]}  # {d.stand[1]}")
+    return "\n".join(L) + "\n"
 
-    hardware_text = _hardware_text(m, robot, model_name, rel, limits)
-    readme_text = _readme_text(model_name, model_path, given, an, notes + pair_notes, B)
 
-    files[0].write_text(profile_text)
-    files[1].write_text(hardware_text)
-    files[2].write_text(readme_text)
-    _self_check(model_path, files[0])
-    return InitResult(out, model_path, files[0], files[1], files[2], an, notes + pair_notes)
+def _collision_lines(d: _ProfileDraft) -> list[str]:
+    """The capsules, collision_pairs (with notes) and collision_margin lines."""
+    L = ["# Self-collision: capsules in a body's frame (m), and the pairs kept apart.", "capsules:"]
+    for c in d.caps.values():
+        L.append(f"  {c.name + ':':13s}{{body: {d.body_name(c.body)}, from: {_vec(c.p0)}, to: {_vec(c.p1)}, "
+                 f"radius: {_f(c.radius)}}}")
+    L.append("collision_pairs:")
+    for a, b in d.pairs:
+        L.append(f"  - [{a}, {b}]")
+    for n in d.pair_notes:
+        L.append(f"  # {n}")
+    if not d.pairs:
+        L[-1] = "collision_pairs: []"
+    L.append(f"collision_margin: {d.margin}")
+    return L
 
 
 def _self_check(model_path: Path, profile_path: Path) -> None:

@@ -1,27 +1,11 @@
 """The retarget report of one clip: how well, how smooth, how safe. JSON, markdown and a figure.
 
-Definitions (all at robot scale, i.e. against the scaled targets of :mod:`retarget.targets`):
-
-- keypoint error (mm): ‖p_k(x_t) − target_kt‖ over frames and keypoints (mean, max);
-- foot skate: over frames t where a foot is in contact at t − 1 and t (the robot's contact
-  schedule, ``meta["contacts"]``, when the retargeter planned one; else the person's), the horizontal
-  displacement of its sole centre; ``skate_share`` is the share of those frames sliding more
-  than 5 mm in one frame, ``worst_slide_mm`` the largest slide;
-- ground penetration (mm): the deepest sole corner below z = 0 over the clip (0 if none);
-- limit violations: (frame, joint) pairs outside the joint range (profile ∩ MJCF) by more
-  than 1e-9 rad; velocity violations: frame steps with |Δq|·fps above the profile's speed
-  limit by more than 1e-6 relative. Both must be 0;
-- jerk: mean absolute third difference of position, |Δ³p|·fps³ (m/s³), over every keypoint
-  coordinate. The robot's is taken on its forward-kinematics keypoints, the source's on the
-  scaled targets, so both are the same quantity at the same scale and ``jerk_ratio`` =
-  robot / source (≤ 1 means the robot moves no less smoothly than the person). For a
-  motionless source (jerk 0) the ratio is undefined: ``None`` (JSON null, 'n/a' in the
-  markdown), never NaN. The mean absolute joint jerk |Δ³q|·fps³ (rad/s³) is reported too;
-- self-collisions: (frame, capsule pair) with the capsules overlapping (distance of their
-  axes below the sum of radii, no margin);
-- first failure (s): for a clip that fails (see ``passed``), the earliest moment of a failing
-  criterion: a joint or velocity limit exceeded, a sole more than 5 mm below the ground, a
-  foot sliding more than 5 mm in a frame (when skate fails); ``None`` when the clip passes.
+Contract: :func:`evaluate` measures a :class:`retarget.trajectory.RobotTrajectory` against the
+robot-scale :class:`retarget.targets.Targets` it was made from and returns a
+:class:`RetargetReport` (keypoint error mm, foot skate, ground penetration mm, limit and speed
+violations, jerk ratio, self-collisions, the first failing moment, what the robot does
+differently); ``passed`` is the verdict. The definitions and thresholds of each figure:
+docs/retargeting.md, section 7.
 """
 
 from __future__ import annotations
@@ -71,6 +55,8 @@ class RetargetReport:
     changes: tuple = ()
     #: touch-downs of the person's feet and of the robot's planned contacts (None: no schedule)
     steps: dict | None = None
+    #: the lead-in before the clip (retarget.lead_in.LeadIn.to_dict: frames, t0_s, ease_s, ...), None: none
+    lead_in: dict | None = None
 
     @property
     def passed(self) -> bool:
@@ -100,6 +86,10 @@ class RetargetReport:
                  f"{'PASS' if self.passed else 'FAIL'}"
                  + ("" if self.first_failure_s is None else f", first failure at {self.first_failure_s:g} s"),
                  "", "| figure | value |", "|---|---|"]
+        if self.lead_in is not None:
+            li = self.lead_in
+            lines += [f"| lead-in before the clip | {li['t0_s']:.2f} s ({li['frames']} frames), eased in over "
+                      f"{li['ease_s']:.2f} s |"]
         if self.steps is not None:
             lines += [f"| steps robot / person | {self.steps.get('robot')} / {self.steps.get('person')} |"]
         lines += [f"| {a} | {b} |" for a, b in rows]
@@ -107,7 +97,8 @@ class RetargetReport:
             lines += ["", "## What the robot does differently", "", "| seconds | what | why | keypoint error there |",
                       "|---|---|---|---|"]
             lines += [f"| {c['start_s']:.2f}-{c['end_s']:.2f} | {c['what']} | {c['why']} | "
-                      f"{c.get('keypoint_error_mm', float('nan')):.1f} mm |" for c in self.changes]
+                      + (f"{c['keypoint_error_mm']:.1f} mm |" if c.get('keypoint_error_mm') is not None else "n/a |")
+                      for c in self.changes]
         return "\n".join(lines) + "\n"
 
     def changes_text(self) -> str:
@@ -178,13 +169,20 @@ def _jerk(p: np.ndarray, fps: float) -> float:
 
 
 def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> RetargetReport:
-    """Measure a trajectory against its targets (see the module docstring)."""
+    """Measure a trajectory against its targets (see the module docstring). A trajectory that
+    starts with a lead-in (``meta["lead_in"]``, :mod:`retarget.lead_in`) is measured against
+    the clip's ``targets`` from the clip's first frame on (tracking, jerk) and as a whole
+    (limits, skate, penetration, collisions: the robot does the lead-in too); times are clip
+    times (negative in the lead-in)."""
+    clip_name = clip
     X = configurations(robot, traj)
     ev = robot.evaluate(X)
     T, fps = X.shape[0], traj.fps
-    err = 1000 * np.linalg.norm(ev["keypoints"] - targets.keypoints, axis=-1)
+    tk, person, clip_t = clip_targets(traj, targets)
+    clip = clip_t >= -1e-9  # frames of the clip (after a lead-in)
+    err = 1000 * np.linalg.norm(ev["keypoints"] - tk, axis=-1)  # NaN in a lead-in: no person there
     contact_frames, slides, slide_frames = 0, [], []
-    on = robot_schedule(traj, targets.contacts)
+    on = robot_schedule(traj, person)
     if robot.has_feet and robot.floating:
         for side in range(2):
             centre = ev["sole"][:, 4 * side:4 * side + 4, 0:2].mean(axis=1)
@@ -210,7 +208,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     if skate_share >= SKATE_SHARE:
         failing.append(slide_frames[slides > SKATE_MM_PER_FRAME])
     failing = np.concatenate(failing)
-    first_failure = round(float(failing.min()) / fps, 3) if failing.size else None
+    first_failure = round(float(clip_t[int(failing.min())]), 3) if failing.size else None
     coll = 0
     if robot.collision_pairs:
         # overlap without the profile's margin: d² − (r_a + r_b + m)² < (r_a + r_b)² − (r_a + r_b + m)²
@@ -218,23 +216,51 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         radii = np.array([robot.capsules[a].radius + robot.capsules[b].radius for a, b in robot.collision_pairs])
         thresh = radii ** 2 - (radii + m) ** 2
         coll = int(np.sum(ev["collision"] < thresh[None] - 1e-9))
-    jr, js = _jerk(ev["keypoints"], fps), _jerk(targets.keypoints, fps)
+    jr, js = _jerk(ev["keypoints"][clip], fps), _jerk(targets.keypoints, fps)
     meta = dict(traj.meta)
     changes = []
     for c in meta.get("changes", []) or []:
-        a, b = int(round(c["start_s"] * fps)), int(round(c["end_s"] * fps))
-        a, b = min(max(a, 0), T - 1), min(max(b, a + 1), T)
-        changes.append({**c, "keypoint_error_mm": float(err[a:b].mean())})
+        there = (clip_t >= c["start_s"] - 1e-9) & (clip_t < c["end_s"] - 1e-9) & clip
+        if not there.any() and c["start_s"] >= 0:  # shorter than a frame: the nearest one
+            there[int(np.argmin(np.abs(clip_t - c["start_s"])))] = True
+        changes.append({**c, "keypoint_error_mm": float(err[there].mean())} if there.any() else dict(c))
     return RetargetReport(
-        clip=clip or str(meta.get("source", "")), robot=robot.name, mode=str(meta.get("mode", "")), frames=T, fps=fps,
-        keypoint_error_mean_mm=float(err.mean()), keypoint_error_max_mm=float(err.max()),
+        clip=clip_name or str(meta.get("source", "")), robot=robot.name, mode=str(meta.get("mode", "")), frames=T,
+        fps=fps, keypoint_error_mean_mm=float(err[clip].mean()), keypoint_error_max_mm=float(err[clip].max()),
         contact_frames=contact_frames, skate_share=skate_share,
         worst_slide_mm=float(slides.max()) if slides.size else 0.0, penetration_mm=penetration,
         limit_violations=limit_v, velocity_violations=vel_v, jerk_robot=jr, jerk_source=js,
         jerk_ratio=jerk_ratio(jr, js), joint_jerk_mean=_jerk(q, fps),
-        self_collisions=coll, solver={k: v for k, v in meta.items() if k not in ("source", "contacts", "changes", "steps")},
-        first_failure_s=first_failure, changes=tuple(changes), steps=meta.get("steps"),
+        self_collisions=coll,
+        solver={k: v for k, v in meta.items()
+                if k not in ("source", "contacts", "changes", "steps", "lead_in", "t0_s")},
+        first_failure_s=first_failure, changes=tuple(changes), steps=meta.get("steps"), lead_in=meta.get("lead_in"),
     )
+
+
+def clip_targets(traj: RobotTrajectory, targets: Targets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per trajectory frame: the targets (T, K, 3), the person's side contacts (T, 2) and the clip
+    time (T,) s. Without a lead-in these are the clip's own. After a lead-in
+    (:func:`retarget.lead_in.lead_in_of`) each frame's clip time is the lead-in's (negative
+    before the clip, warped in the ease-in); targets are the clip's interpolated there, NaN in
+    the lead-in, and the person's feet are down in the lead-in."""
+    from retarget.lead_in import lead_in_of
+
+    T, fps = traj.n_frames, traj.fps
+    lead = lead_in_of(traj)
+    if lead is None:
+        return targets.keypoints, targets.contacts, np.arange(T) / fps
+    t = lead.clip_time(traj.times)
+    n = targets.keypoints.shape[0]
+    f = np.clip(t * targets.fps, 0.0, n - 1)
+    i = np.minimum(np.floor(f).astype(int), n - 1)
+    j = np.minimum(i + 1, n - 1)
+    a = (f - i)[:, None, None]
+    tk = (1 - a) * targets.keypoints[i] + a * targets.keypoints[j]
+    tk[t < -1e-9] = np.nan
+    person = np.asarray(targets.contacts, dtype=bool)[np.where(a[:, 0, 0] > 0.5, j, i)]
+    person[t < -1e-9] = True
+    return tk, person, t
 
 
 def plot_joints(robot, traj: RobotTrajectory, path) -> Path:

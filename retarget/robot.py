@@ -181,10 +181,22 @@ class RetargetRobot:
         self.ref = self.name
         src = profile.source or "profile"
         self._mjcf_hash = hashlib.sha256(mjcf_text.encode()).hexdigest() if mjcf_text else kin.fingerprint()
+        self._bind_keypoints(src)
+        self.x_lower, self.x_upper = self._position_limits(src)
+        self.velocity_limits = self._velocity_limits(src)
+        self.x_stand = self._stand_pose(src)
+        self.feet: list[Foot] = [self._foot(side, src) for side in ("left", "right")] if profile.feet else []
+        self.capsules: dict[str, Capsule] = self._bind_capsules(src)
+        self.collision_pairs = tuple(profile.collision_pairs)
+        self._build_functions()
+        self._rest_scales()
 
-        # keypoints
+    # -- construction helpers --------------------------------------------------
+    def _bind_keypoints(self, src: str) -> None:
+        """The profile's keypoints as (body id, point in the body frame (3,) m), their human joints and weights."""
+        kin = self.kin
         pts, self.keypoint_names, self.human_index, weights = [], [], [], []
-        for spec in profile.keypoints:
+        for spec in self.profile.keypoints:
             if spec.site is not None:
                 sid = kin.site_id(spec.site, f"{src}: field keypoints.{spec.human}.site")
                 body, local = int(kin.model.site_bodyid[sid]), np.array(kin.model.site_pos[sid])
@@ -199,11 +211,13 @@ class RetargetRobot:
         self.human_index = np.array(self.human_index)
         self.keypoint_weights = np.array(weights, dtype=float)
         self.n_keypoints = len(pts)
-        self.root_keypoint = self.keypoint_names.index(profile.root_joint)
+        self.root_keypoint = self.keypoint_names.index(self.profile.root_joint)
 
-        # limits
+    def _position_limits(self, src: str) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) (nx,) of x: the MJCF ranges narrowed by the profile's joint_limits."""
+        kin = self.kin
         lo, hi = kin.x_bounds()
-        for jname, (jlo, jhi) in profile.joint_limits.items():
+        for jname, (jlo, jhi) in self.profile.joint_limits.items():
             i = kin.n_root + kin.joint_index(jname, f"{src}: field joint_limits.{jname}")
             if jlo < lo[i] - 1e-9 or jhi > hi[i] + 1e-9:
                 raise RetargetError(
@@ -213,7 +227,11 @@ class RetargetRobot:
         unlimited = [h.name for h in kin.joints if not (np.isfinite(lo[kin.n_root + h.index]) and np.isfinite(hi[kin.n_root + h.index]))]
         if unlimited:
             raise RetargetError(f"{kin.source or kin.name}: joints {unlimited} have no range; give them range= in the MJCF or joint_limits in {src}")
-        self.x_lower, self.x_upper = lo, hi
+        return lo, hi
+
+    def _velocity_limits(self, src: str) -> np.ndarray:
+        """Joint speed limits (n_joints,) rad/s: the profile's, never above the MJCF's servo speed."""
+        kin, profile = self.kin, self.profile
         ceiling = self._mjcf_speed_limits()
         vel = np.minimum(np.full(kin.n_joints, profile.velocity_default), ceiling)
         for jname, v in profile.velocity_limits.items():
@@ -222,43 +240,34 @@ class RetargetRobot:
                 raise RetargetError(f"{src}: field velocity_limits.{jname}: {v} rad/s is above the MJCF's servo no-load "
                                     f"speed {ceiling[i]} rad/s; profile limits may only narrow the MJCF's")
             vel[i] = v
-        self.velocity_limits = vel
+        return vel
 
-        # stand pose
-        self.x_stand = self._stand_pose(src)
+    def _foot(self, side: str, src: str) -> Foot:
+        """One foot from the profile: its body and sole corners (a box geom's lowest face, or given)."""
+        kin, spec = self.kin, self.profile.feet[side]
+        body = kin.body_id(spec.body, f"{src}: field feet.{side}.body")
+        if spec.geom is not None:
+            gid = kin.geom_id(spec.geom, f"{src}: field feet.{side}.geom")
+            if int(kin.model.geom_bodyid[gid]) != body:
+                raise RetargetError(f"{src}: field feet.{side}.geom: geom {spec.geom!r} is not on body {spec.body!r}")
+            corners, normal = self._sole_from_box(gid, src, side)
+        else:
+            corners = np.array(spec.corners, dtype=float)
+            n = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+            normal = -n / np.linalg.norm(n)
+        return Foot(side, body, corners, normal)
 
-        # feet
-        self.feet: list[Foot] = []
-        if profile.feet:
-            for side in ("left", "right"):
-                spec = profile.feet[side]
-                body = kin.body_id(spec.body, f"{src}: field feet.{side}.body")
-                if spec.geom is not None:
-                    gid = kin.geom_id(spec.geom, f"{src}: field feet.{side}.geom")
-                    if int(kin.model.geom_bodyid[gid]) != body:
-                        raise RetargetError(f"{src}: field feet.{side}.geom: geom {spec.geom!r} is not on body {spec.body!r}")
-                    corners, normal = self._sole_from_box(gid, src, side)
-                else:
-                    corners = np.array(spec.corners, dtype=float)
-                    n = np.cross(corners[1] - corners[0], corners[2] - corners[0])
-                    normal = -n / np.linalg.norm(n)
-                self.feet.append(Foot(side, body, corners, normal))
-
-        # capsules
-        self.capsules: dict[str, Capsule] = {}
-        for name, spec in profile.capsules.items():
+    def _bind_capsules(self, src: str) -> dict:
+        """name -> Capsule, from an MJCF geom or the profile's segment and radius."""
+        kin, caps = self.kin, {}
+        for name, spec in self.profile.capsules.items():
             if spec.geom is not None:
                 gid = kin.geom_id(spec.geom, f"{src}: field capsules.{name}.geom")
-                self.capsules[name] = kin.capsule_from_geom(gid, name)
+                caps[name] = kin.capsule_from_geom(gid, name)
             else:
                 body = kin.body_id(spec.body, f"{src}: field capsules.{name}.body")
-                self.capsules[name] = Capsule(name, body, np.array(spec.p0), np.array(spec.p1), float(spec.radius))
-        self.collision_pairs = tuple(profile.collision_pairs)
-
-        self._build_functions()
-        self._rest_scales()
-
-    # -- construction helpers --------------------------------------------------
+                caps[name] = Capsule(name, body, np.array(spec.p0), np.array(spec.p1), float(spec.radius))
+        return caps
     def _mjcf_speed_limits(self) -> np.ndarray:
         """Per-joint speed ceiling (rad/s) from the MJCF's ``<numeric name="servo_no_load_speed">``
         (one value for all joints, or one per actuator in actuator = joint order); +inf if absent."""

@@ -1,41 +1,11 @@
 """The robot's foot-contact schedule, made from the person's, and what it changed.
 
-:func:`robot_contacts` turns the person's side contacts (T, 2) (left, right) into the robot's,
-which the offline solver holds as hard constraints (a foot in contact stays flat, does not slide
-and does not turn), with these rules (lengths m, angles rad, times s; :class:`StepConfig`):
-
-- *Turns and slides by stepping.* A person often pivots or slides on a foot that stays on the
-  floor (a dancer turning, generated motion skating). The robot's planted foot cannot, so when
-  the person's foot, while down, has turned ``step_turn`` or moved ``step_distance`` (at robot
-  scale) from where it touched down, and the other foot is down and has stood ``min_stance``,
-  the robot re-steps: the foot lifts for ``swing`` and lands where the person's is then.
-- *No flight.* Frames with both of the person's feet off the ground (a jump, a run's flight)
-  keep the feet that were down before them down (both, at the clip's start): the robot cannot
-  leave the ground. Reported as a change.
-- *No pivot on one foot.* A foot that must re-step while the other is in the air cannot: the
-  robot's stays planted and its turn waits. Reported when the person's foot turned more than
-  ``2 step_turn`` that way (a spin faster than the robot's feet allow).
-- Swings shorter than ``min_swing`` are filled (contact flicker).
-- *A standing start* (``standing_start``). The physics check and the bridge bring the robot
-  from its standing pose to the first frame by moving the joints; with both feet on the floor
-  that cannot change where the feet stand relative to each other, so a first frame whose feet
-  are apart, turned or staggered differently from standing (a clip starting mid-step) tips the
-  robot over during that move. The robot therefore starts in its own standing footprint
-  (centred on the person's feet, turned with them: :func:`standing_start` moves the foot
-  targets until each foot's first lift), and a foot whose person's foot stands elsewhere
-  re-steps there by the rule above, once the weight can shift (``start_double``).
-- *The robot's pace.* Before a foot lifts, the weight must move over the other foot, and the
-  robot's small feet and compliant servos need time for that: a foot lifts only after both
-  feet have been down ``min_double`` (``start_double`` at the clip's start, so a clip that
-  starts mid-step begins on both feet and shifts its weight first), and only for a swing of
-  at least ``robot_swing`` (the lift waits, or comes early when the person's swing is shorter
-  and the double support before it is long enough; it lands when the person's foot does). A
-  swing that would still be shorter is skipped: the foot stays down, reported as
-  ``step skipped`` (the person stepped faster than the robot can), and a skipped foot whose
-  person's foot moved re-steps by the rule above when the robot has time.
-
-Each change is a :class:`Change` (start and end in seconds, what, why); the retarget-check
-report lists them with how far the robot's keypoints were from the person's there.
+Contract: :func:`robot_contacts` turns the person's side contacts (T, 2) bool (left, right)
+into the robot's (T, 2), which the offline solver holds as hard constraints, and returns the
+changes it made as :class:`Change` (start and end s, what, why): turns and slides become
+re-steps, frames with both feet up keep the feet down, swings too short are filled, and the
+opt-in rules of :class:`StepConfig` (standing start, the robot's pace). Lengths m, angles rad,
+times s. The rules in full: docs/retargeting.md, section 5.
 """
 
 from __future__ import annotations
@@ -133,25 +103,7 @@ def robot_contacts(robot, keypoints: np.ndarray, contacts: np.ndarray, fps: floa
     changes: list[Change] = []
     if T == 0:
         return c, changes
-    sec = lambda a, b: (round(a / fps, 3), round(b / fps, 3))  # noqa: E731
-    # 1. flight: both feet up -> the feet that were down before stay down
-    prev = np.array([True, True])
-    start = None
-    for t in range(T):
-        if not c[t].any():
-            if start is None:
-                start = t
-            c[t] = prev
-        else:
-            if start is not None:
-                changes.append(Change(*sec(start, t), "flight",
-                                      "both of the person's feet were off the ground (a jump or a run): the robot "
-                                      "kept its feet down"))
-                start = None
-            prev = c[t].copy()
-    if start is not None:
-        changes.append(Change(*sec(start, T), "flight", "both of the person's feet were off the ground (a jump or a "
-                              "run): the robot kept its feet down"))
+    _keep_feet_down_in_flight(c, fps, changes)  # 1. both feet up -> the feet down before stay down
     # 2. fill swings shorter than min_swing (only between two stances of the same foot)
     n_swing = max(1, int(round(cfg.min_swing * fps)))
     for s in range(2):
@@ -164,7 +116,40 @@ def robot_contacts(robot, keypoints: np.ndarray, contacts: np.ndarray, fps: floa
     poses = foot_poses(robot, keypoints)
     if poses is None:
         return c, changes
+    out = _restep_pivots(robot, poses, c, fps, cfg, changes)
+    out = _pace(out, fps, cfg, changes)
+    changes.sort(key=lambda ch: ch.start_s)
+    return out, changes
+
+
+def _keep_feet_down_in_flight(c: np.ndarray, fps: float, changes: list) -> None:
+    """In place on contacts c (T, 2) bool: frames with both feet up keep the feet that were down
+    before (both at the start); one "flight" change per such run."""
+    why = "both of the person's feet were off the ground (a jump or a run): the robot kept its feet down"
+    T = c.shape[0]
+    prev = np.array([True, True])
+    start = None
+    for t in range(T):
+        if not c[t].any():
+            if start is None:
+                start = t
+            c[t] = prev
+        else:
+            if start is not None:
+                changes.append(Change(round(start / fps, 3), round(t / fps, 3), "flight", why))
+                start = None
+            prev = c[t].copy()
+    if start is not None:
+        changes.append(Change(round(start / fps, 3), round(T / fps, 3), "flight", why))
+
+
+def _restep_pivots(robot, poses: tuple, c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarray:
+    """Contacts (T, 2) bool in which a planted foot the person turns more than ``step_turn`` or
+    slides more than ``step_distance`` on lifts for a ``swing`` and comes down at its new place,
+    once it has stood ``min_stance`` and the other foot stands for the whole swing (else a pivot
+    beyond twice the turn is reported). poses: the feet's ankle xy (T, 2, 2) m and heading (T, 2) rad."""
     ank, head = poses
+    T = c.shape[0]
     start_n = int(round(cfg.start_double * fps))
     swing_n = max(1, int(round(cfg.swing * fps)))
     stance_n = max(1, int(round(cfg.min_stance * fps)))
@@ -204,9 +189,7 @@ def robot_contacts(robot, keypoints: np.ndarray, contacts: np.ndarray, fps: floa
                 pivot_start[s] = t
     for s in range(2):
         _end_pivot(changes, pivot_start, s, T, fps)
-    out = _pace(out, fps, cfg, changes)
-    changes.sort(key=lambda ch: ch.start_s)
-    return out, changes
+    return out
 
 
 def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarray:

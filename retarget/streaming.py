@@ -1,45 +1,11 @@
-"""Streaming retargeting: one frame at a time, warm-started, limits as hard bounds.
+"""Streaming retargeting: one frame at a time, a few bounded Gauss-Newton steps from the last frame.
 
-Each frame solves a small bounded nonlinear least-squares problem in the configuration
-x (nx,) (see :mod:`retarget.kinematics`):
-
-    min_x ½‖r(x)‖²   s.t.   lb ≤ x ≤ ub
-
-    r = [ √w_k (p_k(x) − target_k)                 keypoint tracking, m
-          √w_a · fps² (x − 2 x₋₁ + x₋₂)             acceleration against the two frames already emitted
-          √w_p (q − q_stand)                        posture
-          √w_c · c_s · (z_sole, xy_sole − xy_sole₋₁) a foot in contact stays on the ground and put
-          √w_g · min(z_sole, 0)                     no sole corner below the ground
-          balance rows (optional, below) ]
-
-    lb, ub = joint range ∩ [x₋₁ − v_max/fps, x₋₁ + v_max/fps]  (position and velocity limits,
-                                                               the root's speed limits too)
-
-solved by a few projected Gauss-Newton steps from the previous frame: each step solves
-the box-constrained quadratic model (JᵀJ + μI) d = −Jᵀr with a primal active set (free
-variables solved exactly, variables at a bound fixed there until their multiplier says
-release), then accepts the step if the cost falls (else halves it). r and J come from one
-CasADi function, compiled to C and cached (:mod:`retarget.codegen`). Every iterate stays
-in the box, so no emitted frame can violate a position or velocity limit; a final clip
-makes that exact in floating point.
-
-Balance (``StreamingConfig.balance``; free-base robots with feet, a fixed base ignores it)
-keeps a free-standing robot on its feet while it plays the frames open loop (weights w_* are
-the config's; c(x) is the CoM, h its standing height, ω = √(g/h)):
-
-    √w_b · max(0, A c_xy(x) − b)                          CoM inside the support region A c ≤ b
-    √w_dcm · max(0, A ξ(x) − b),  ξ = c + (c − c₋₁) fps/ω   capture point (DCM) inside it: the
-                                                          robot could still stop where it is
-    √w_zl · max(0, A z(x) − b),   z = c − (h/g) c̈         ZMP inside it, c̈ = fps² (c − 2c₋₁ + c₋₂)
-    √w_z · (h/g) fps² (c_xy − 2c₋₁ + c₋₂)                  ZMP offset: the CoM moves smoothly
-    √w_pl · (z_sole, xy_sole − footprint)  (planted feet)  flat on their level footprint
-    √w_lv · (z_corner − mean z_corner)  (each foot)        soles level, lifted ones too
-    √w_up · (root pitch, root roll)                        trunk upright
-    √w_col · min(0, (d² − r²) / 2r)  (profile pairs)       capsules apart (feet, arms and legs;
-                                                          the feet by ``feet_clearance`` more)
-
-Which feet are planted (and where), the support region A c ≤ b and the anchoring of the
-person's translation to the planted feet come from :class:`retarget.balance.BalancePlanner`.
+Contract: :meth:`StreamingRetargeter.step` takes one frame's robot-scale keypoint targets (K, 3)
+and the person's foot contacts (2,) and returns a configuration x (nx,) that is inside the joint
+range and within one frame's speed limit of the previous frame (every iterate stays in the box).
+With ``StreamingConfig.balance`` a :class:`retarget.balance.BalancePlanner` keeps the feet planted
+and the CoM, capture point and ZMP over the support region. The residual rows and the balance
+rules: docs/retargeting.md (sections 4 and 6).
 """
 
 from __future__ import annotations
@@ -133,6 +99,43 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, m
 
 
 
+@dataclass(frozen=True)
+class _FrameSymbols:
+    """The per-frame parameters of the streaming residual: targets (3, K), the two frames
+    emitted before (nx,) each, √w_a·fps² (0 without history), contacts (2,), the planted
+    feet's sole corners xy (2, 8)."""
+
+    tgt: ca.SX
+    x1: ca.SX
+    x2: ca.SX
+    acc_scale: ca.SX
+    contact: ca.SX
+    anchor: ca.SX
+
+    @classmethod
+    def make(cls, rb) -> "_FrameSymbols":
+        return cls(ca.SX.sym("tgt", 3, rb.n_keypoints), ca.SX.sym("x1", rb.nx), ca.SX.sym("x2", rb.nx),
+                   ca.SX.sym("acc_scale"), ca.SX.sym("contact", 2), ca.SX.sym("anchor", 2, 8))
+
+
+@dataclass(frozen=True)
+class _BalanceSymbols:
+    """The balance rows' parameters: support edges (3, N_EDGES) (rows a_x, a_y, b: inside ⇔
+    a·c ≤ b); the CoM, DCM and ZMP as affine maps α c_xy + β of the CoM (3, 3) (columns α, β_x,
+    β_y) and their √weights (3,) (0 turns one off); 2 c₋₁ − c₋₂ (2,); √w_z (h/g) fps²."""
+
+    edges: ca.SX
+    points: ca.SX
+    point_w: ca.SX
+    c_pred: ca.SX
+    zmp_scale: ca.SX
+
+    @classmethod
+    def make(cls) -> "_BalanceSymbols":
+        return cls(ca.SX.sym("edges", 3, N_EDGES), ca.SX.sym("points", 3, 3), ca.SX.sym("point_w", 3),
+                   ca.SX.sym("c_pred", 2), ca.SX.sym("zmp_scale"))
+
+
 class StreamingRetargeter:
     """Call :meth:`step` once per frame with the frame's robot-scale keypoint targets (K, 3)
     and side contacts (2,); it returns the configuration x (nx,) to emit."""
@@ -148,106 +151,26 @@ class StreamingRetargeter:
         self.scaler = KeypointScaler(robot)
 
     def _build(self) -> None:
+        """The per-frame residual r(x; p) and its Jacobian as one compiled function, with numpy
+        buffers bound to its inputs and outputs (see the module docstring for the rows)."""
         rb, cfg = self.robot, self.config
-        x = rb.kin.x_sym
-        K, nx, nr = rb.n_keypoints, rb.nx, rb.n_root
         #: balance rows are built only where they mean something: a free base with feet
         self.balance = bool(cfg.balance and rb.floating and rb.has_feet)
-        tgt = ca.SX.sym("tgt", 3, K)
-        x1, x2 = ca.SX.sym("x1", nx), ca.SX.sym("x2", nx)
-        acc_scale = ca.SX.sym("acc_scale")  # √w_a · fps² (0 without history)
-        contact = ca.SX.sym("contact", 2)
-        anchor = ca.SX.sym("anchor", 2, 8)
-        wk = np.sqrt(rb.keypoint_weights)
-        res = [ca.reshape((rb.keypoints_expr - tgt) @ ca.diag(ca.DM(wk)), -1, 1)]
-        res.append(acc_scale * (x - 2 * x1 + x2))
-        wp = rb.profile.posture_weight if cfg.posture_weight is None else cfg.posture_weight
-        res.append(np.sqrt(wp) * (x[nr:] - ca.DM(rb.x_stand[nr:])))
-        if rb.has_feet:
-            sole = rb.sole_expr
-            w_contact = cfg.balance_contact_weight if self.balance else cfg.contact_weight
-            for s in range(2):
-                cols = slice(4 * s, 4 * s + 4)
-                wc = np.sqrt(w_contact) * contact[s]
-                res.append(wc * ca.reshape(sole[2, cols], -1, 1))
-                res.append(wc * ca.reshape(sole[0:2, cols] - anchor[:, cols], -1, 1))
-            w_ground = max(cfg.ground_weight, cfg.balance_contact_weight) if self.balance else cfg.ground_weight
-            res.append(np.sqrt(w_ground) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
-            if self.balance and cfg.upright_weight > 0 and nr:  # trunk upright: root pitch and roll
-                res.append(np.sqrt(cfg.upright_weight) * x[4:6])
-            if self.balance and cfg.level_weight > 0:  # soles level, in the air too (a foot lands flat)
-                for s in range(2):
-                    z = sole[2, 4 * s:4 * s + 4]
-                    res.append(np.sqrt(cfg.level_weight) * ca.reshape(z - ca.sum2(z) / 4, -1, 1))
-        p_parts = [ca.reshape(tgt, -1, 1), x1, x2, acc_scale, contact, ca.reshape(anchor, -1, 1)]
+        sym = _FrameSymbols.make(rb)
+        res = self._tracking_rows(sym)
+        p_parts = [ca.reshape(sym.tgt, -1, 1), sym.x1, sym.x2, sym.acc_scale, sym.contact, ca.reshape(sym.anchor, -1, 1)]
         com = ca.SX.zeros(3, 1)
         if self.balance:
-            edges = ca.SX.sym("edges", 3, N_EDGES)  # rows a_x, a_y, b: inside ⇔ a·c ≤ b
-            # the CoM, the DCM and the ZMP, each an affine map α c_xy + β of the CoM (columns α, β_x, β_y)
-            points = ca.SX.sym("points", 3, 3)
-            point_w = ca.SX.sym("point_w", 3)  # their √weights (0 turns one off)
-            c_pred = ca.SX.sym("c_pred", 2)  # 2 c₋₁ − c₋₂
-            zmp_scale = ca.SX.sym("zmp_scale")  # √w_z (h/g) fps² (0 without history)
+            bal = _BalanceSymbols.make()
             com = rb.com_expr
-            for i in range(3):
-                pt = points[0, i] * com[0:2] + points[1:3, i]
-                outside = edges[0, :].T * pt[0] + edges[1, :].T * pt[1] - edges[2, :].T
-                res.append(point_w[i] * ca.fmax(outside, 0))
-            res.append(zmp_scale * (com[0:2] - c_pred))
-            if rb.collision_pairs and cfg.collision_weight > 0:
-                # (d² − r²) / 2r ≈ d − r (m) for the profile's capsule pairs, penalised below 0;
-                # two feet keep feet_clearance more (a servo leg sags, a lifted foot swings in)
-                feet = {f.body for f in rb.feet}
-                for a, b in rb.collision_pairs:
-                    cap_a, cap_b = rb.capsules[a], rb.capsules[b]
-                    rr = cap_a.radius + cap_b.radius + rb.profile.collision_margin
-                    if cap_a.body in feet and cap_b.body in feet:
-                        rr += cfg.feet_clearance
-                    d2 = segment_distance_sq(*rb.kin.capsule_segment(cap_a), *rb.kin.capsule_segment(cap_b))
-                    res.append(np.sqrt(cfg.collision_weight) * ca.fmin((d2 - rr * rr) / (2 * rr), 0))
-            p_parts += [ca.reshape(edges, -1, 1), ca.reshape(points, -1, 1), point_w, c_pred, zmp_scale]
+            res += self._balance_rows(bal, com)
+            p_parts += [ca.reshape(bal.edges, -1, 1), ca.reshape(bal.points, -1, 1), bal.point_w, bal.c_pred,
+                        bal.zmp_scale]
         r = ca.vertcat(*res)
-        J = ca.jacobian(r, x)
         p = ca.vertcat(*p_parts)
         sole = rb.sole_expr if rb.has_feet else ca.SX.zeros(3, 0)
-        fn = ca.Function("stream_rj", [x, p], [ca.densify(r), ca.densify(J), ca.densify(sole), ca.densify(com)])
-        # the cache key names only what shapes the expression graph (weights that enter as
-        # parameters, iteration counts and the step rules do not), so configs share binaries
-        shape = (wp, cfg.contact_weight, cfg.ground_weight, self.balance)
-        if self.balance:
-            shape += (cfg.balance_contact_weight, cfg.level_weight, cfg.collision_weight, cfg.feet_clearance,
-                      cfg.upright_weight)
-        key = f"{rb.fingerprint()}_{hash_config(shape)}"
-        self._fn, self.compile_info = compiled_function(fn, key, enable=cfg.compile)
-        # zero-copy evaluation: bind numpy buffers once (CasADi reads/writes column-major)
-        self._xbuf = np.zeros(nx)
-        self._pbuf = np.zeros(p.numel())
-        self._rbuf = np.zeros(r.numel())
-        self._Jbuf = np.zeros((r.numel(), nx), order="F")
-        self._solebuf = np.zeros((3, sole.shape[1]), order="F")
-        self._combuf = np.zeros(3)
-        buf, self._eval = self._fn.buffer()
-        buf.set_arg(0, memoryview(self._xbuf))
-        buf.set_arg(1, memoryview(self._pbuf))
-        buf.set_res(0, memoryview(self._rbuf))
-        buf.set_res(1, memoryview(self._Jbuf.reshape(-1, order="F")))
-        buf.set_res(2, memoryview(self._solebuf.reshape(-1, order="F")))
-        buf.set_res(3, memoryview(self._combuf))
-        self._buffer = buf  # keep alive
-        n_t = 3 * K
-        self._p_tgt = slice(0, n_t)
-        self._p_x1 = slice(n_t, n_t + nx)
-        self._p_x2 = slice(n_t + nx, n_t + 2 * nx)
-        self._p_acc = n_t + 2 * nx
-        self._p_contact = slice(n_t + 2 * nx + 1, n_t + 2 * nx + 3)
-        self._p_anchor = slice(n_t + 2 * nx + 3, n_t + 2 * nx + 19)
-        n_b = n_t + 2 * nx + 19
-        self._p_edges = slice(n_b, n_b + 3 * N_EDGES)
-        n_b += 3 * N_EDGES
-        self._p_points = slice(n_b, n_b + 9)
-        self._p_point_w = slice(n_b + 9, n_b + 12)
-        self._p_cpred = slice(n_b + 12, n_b + 14)
-        self._p_zmp = n_b + 14
+        self._compile(r, p, sole, com)
+        self._index_parameters(rb.n_keypoints, rb.nx)
         self._has_feet = rb.has_feet
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
@@ -262,6 +185,105 @@ class StreamingRetargeter:
             pb = self._pbuf
             self.planner.bind(self._anchor, pb[self._p_edges], pb[self._p_points], pb[self._p_point_w],
                               pb[self._p_cpred], pb[self._p_zmp:self._p_zmp + 1])
+
+    def _posture_weight(self) -> float:
+        return self.robot.profile.posture_weight if self.config.posture_weight is None else self.config.posture_weight
+
+    def _tracking_rows(self, sym: "_FrameSymbols") -> list:
+        """Keypoint, acceleration and posture rows, and the feet's rows (contact, ground; with
+        balance also trunk upright and soles level)."""
+        rb, cfg, x = self.robot, self.config, self.robot.kin.x_sym
+        wk = np.sqrt(rb.keypoint_weights)
+        res = [ca.reshape((rb.keypoints_expr - sym.tgt) @ ca.diag(ca.DM(wk)), -1, 1)]
+        res.append(sym.acc_scale * (x - 2 * sym.x1 + sym.x2))
+        res.append(np.sqrt(self._posture_weight()) * (x[rb.n_root:] - ca.DM(rb.x_stand[rb.n_root:])))
+        if not rb.has_feet:
+            return res
+        sole = rb.sole_expr
+        w_contact = cfg.balance_contact_weight if self.balance else cfg.contact_weight
+        for s in range(2):
+            cols = slice(4 * s, 4 * s + 4)
+            wc = np.sqrt(w_contact) * sym.contact[s]
+            res.append(wc * ca.reshape(sole[2, cols], -1, 1))
+            res.append(wc * ca.reshape(sole[0:2, cols] - sym.anchor[:, cols], -1, 1))
+        w_ground = max(cfg.ground_weight, cfg.balance_contact_weight) if self.balance else cfg.ground_weight
+        res.append(np.sqrt(w_ground) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
+        if self.balance and cfg.upright_weight > 0 and rb.n_root:  # trunk upright: root pitch and roll
+            res.append(np.sqrt(cfg.upright_weight) * x[4:6])
+        if self.balance and cfg.level_weight > 0:  # soles level, in the air too (a foot lands flat)
+            for s in range(2):
+                z = sole[2, 4 * s:4 * s + 4]
+                res.append(np.sqrt(cfg.level_weight) * ca.reshape(z - ca.sum2(z) / 4, -1, 1))
+        return res
+
+    def _balance_rows(self, bal: "_BalanceSymbols", com) -> list:
+        """The CoM, DCM and ZMP outside the support region, the ZMP offset, and the capsule pairs."""
+        rb, cfg = self.robot, self.config
+        res = []
+        for i in range(3):
+            pt = bal.points[0, i] * com[0:2] + bal.points[1:3, i]
+            outside = bal.edges[0, :].T * pt[0] + bal.edges[1, :].T * pt[1] - bal.edges[2, :].T
+            res.append(bal.point_w[i] * ca.fmax(outside, 0))
+        res.append(bal.zmp_scale * (com[0:2] - bal.c_pred))
+        if rb.collision_pairs and cfg.collision_weight > 0:
+            # (d² − r²) / 2r ≈ d − r (m) for the profile's capsule pairs, penalised below 0;
+            # two feet keep feet_clearance more (a servo leg sags, a lifted foot swings in)
+            feet = {f.body for f in rb.feet}
+            for a, b in rb.collision_pairs:
+                cap_a, cap_b = rb.capsules[a], rb.capsules[b]
+                rr = cap_a.radius + cap_b.radius + rb.profile.collision_margin
+                if cap_a.body in feet and cap_b.body in feet:
+                    rr += cfg.feet_clearance
+                d2 = segment_distance_sq(*rb.kin.capsule_segment(cap_a), *rb.kin.capsule_segment(cap_b))
+                res.append(np.sqrt(cfg.collision_weight) * ca.fmin((d2 - rr * rr) / (2 * rr), 0))
+        return res
+
+    def _compile(self, r, p, sole, com) -> None:
+        """Compile (x, p) → (r, J, sole, com) (cached) and bind numpy buffers to it once (zero-copy
+        evaluation; CasADi reads and writes column-major)."""
+        rb, cfg, x = self.robot, self.config, self.robot.kin.x_sym
+        J = ca.jacobian(r, x)
+        fn = ca.Function("stream_rj", [x, p], [ca.densify(r), ca.densify(J), ca.densify(sole), ca.densify(com)])
+        # the cache key names only what shapes the expression graph (weights that enter as
+        # parameters, iteration counts and the step rules do not), so configs share binaries
+        shape = (self._posture_weight(), cfg.contact_weight, cfg.ground_weight, self.balance)
+        if self.balance:
+            shape += (cfg.balance_contact_weight, cfg.level_weight, cfg.collision_weight, cfg.feet_clearance,
+                      cfg.upright_weight)
+        key = f"{rb.fingerprint()}_{hash_config(shape)}"
+        self._fn, self.compile_info = compiled_function(fn, key, enable=cfg.compile)
+        nx = rb.nx
+        self._xbuf = np.zeros(nx)
+        self._pbuf = np.zeros(p.numel())
+        self._rbuf = np.zeros(r.numel())
+        self._Jbuf = np.zeros((r.numel(), nx), order="F")
+        self._solebuf = np.zeros((3, sole.shape[1]), order="F")
+        self._combuf = np.zeros(3)
+        buf, self._eval = self._fn.buffer()
+        buf.set_arg(0, memoryview(self._xbuf))
+        buf.set_arg(1, memoryview(self._pbuf))
+        buf.set_res(0, memoryview(self._rbuf))
+        buf.set_res(1, memoryview(self._Jbuf.reshape(-1, order="F")))
+        buf.set_res(2, memoryview(self._solebuf.reshape(-1, order="F")))
+        buf.set_res(3, memoryview(self._combuf))
+        self._buffer = buf  # keep alive
+
+    def _index_parameters(self, K: int, nx: int) -> None:
+        """Slices of the parameter vector p, in the order _build stacks it."""
+        n_t = 3 * K
+        self._p_tgt = slice(0, n_t)
+        self._p_x1 = slice(n_t, n_t + nx)
+        self._p_x2 = slice(n_t + nx, n_t + 2 * nx)
+        self._p_acc = n_t + 2 * nx
+        self._p_contact = slice(n_t + 2 * nx + 1, n_t + 2 * nx + 3)
+        self._p_anchor = slice(n_t + 2 * nx + 3, n_t + 2 * nx + 19)
+        n_b = n_t + 2 * nx + 19
+        self._p_edges = slice(n_b, n_b + 3 * N_EDGES)
+        n_b += 3 * N_EDGES
+        self._p_points = slice(n_b, n_b + 9)
+        self._p_point_w = slice(n_b + 9, n_b + 12)
+        self._p_cpred = slice(n_b + 12, n_b + 14)
+        self._p_zmp = n_b + 14
 
     def _residual(self, x: np.ndarray) -> float:
         """Evaluate r, J (and the sole corners) at x into the bound buffers; returns ½‖r‖²."""
@@ -316,11 +338,9 @@ class StreamingRetargeter:
                 x[3] = np.arctan2(-across[0], across[1])
         return x
 
-    def _solve(self, x, x1, x2, acc, targets, contact, iters, lo, hi, rtol: float = 0.0) -> np.ndarray:
-        """Levenberg-Marquardt with box constraints from x (see the module docstring); stops early
-        when a step moves no variable by 1e-6 or lowers the cost by no more than ``rtol`` of it."""
-        cfg = self.config
-        x = np.clip(x, lo, hi)
+    def _load_frame(self, x1, x2, acc: float, targets: np.ndarray, contact) -> None:
+        """Write one frame's parameters into the bound buffer: the two frames before (nx,) each,
+        √w_a·fps² (0 without history), targets (K, 3), contacts (2,) and the planted feet's anchor."""
         pb = self._pbuf
         pb[self._p_tgt] = targets.reshape(-1)  # (K, 3) row-major = (3, K) column-major
         pb[self._p_x1] = x1
@@ -328,6 +348,13 @@ class StreamingRetargeter:
         pb[self._p_acc] = acc
         pb[self._p_contact] = np.asarray(contact, dtype=np.float64)
         pb[self._p_anchor] = self._anchor.reshape(-1, order="F")
+
+    def _solve(self, x, iters: int, lo, hi, rtol: float = 0.0) -> np.ndarray:
+        """Levenberg-Marquardt with box constraints lo ≤ x ≤ hi from x, for the frame
+        :meth:`_load_frame` loaded (see the module docstring); stops early when a step moves no
+        variable by 1e-6 or lowers the cost by no more than ``rtol`` of it."""
+        cfg = self.config
+        x = np.clip(x, lo, hi)
         cost = self._residual(x)
         damping = cfg.damping
         eye = np.eye(x.shape[0])
@@ -363,8 +390,8 @@ class StreamingRetargeter:
         for start in (x_stand,) if self.balance else (x_stand, x_zero):
             self.reset()
             self._x1 = None
-            x = self._solve(start, start, start, 0.0, targets, contact, self.config.first_iterations,
-                            self._lo_pos, self._hi_pos, rtol=self._first_rtol)
+            self._load_frame(start, start, 0.0, targets, contact)
+            x = self._solve(start, self.config.first_iterations, self._lo_pos, self._hi_pos, rtol=self._first_rtol)
             cost = self._residual(x)
             if cost < best_cost:
                 best, best_cost = x, cost
@@ -407,7 +434,8 @@ class StreamingRetargeter:
             else:
                 contact = self.planner.next(contact, targets, ahead)
         self._contact = np.array(contact, dtype=bool)
-        x = self._solve(x, x1, x2, acc, targets, contact, iters, lo, hi, rtol=self._first_rtol if first else 0.0)
+        self._load_frame(x1, x2, acc, targets, contact)
+        x = self._solve(x, iters, lo, hi, rtol=self._first_rtol if first else 0.0)
         x = np.clip(x, lo, hi)  # a no-op (every iterate is in the box) but exact in floating point
         if self._has_feet:
             # the buffers hold r, J, the soles and the CoM at the returned x: _solve evaluates

@@ -1,24 +1,11 @@
 """Human motion → robot keypoint targets at robot scale, and foot contacts.
 
-Scaling (:class:`KeypointScaler`) walks the keypoint tree from the root (the profile's ``root``,
-normally the pelvis):
-
-    target_root(t) = s_root · h_root(t)                                   (free base)
-    target_k(t)    = target_parent(k)(t) + s_k · (h_k(t) − h_parent(k)(t))
-
-where h are human joint positions (m), parent(k) the nearest ancestor keypoint and
-s_k = (robot rest bone length) / (this human's bone length), s_root the ratio of standing
-root heights (robot rest lengths from :class:`retarget.robot.RetargetRobot`).
-Directions are the human's, lengths the robot's; nothing depends on joint frames.
-
-For a fixed base the root is the robot's (fixed) root keypoint, and the human's bone
-vectors are first turned by the inverse of the human's heading (yaw from the hips), so
-an upper-body partner mirrors the person's posture, not their walking.
-
-Contacts: the motion's labels (T, 4) when present, else detected: a foot joint is in
-contact when it is within ``height_tol`` of its rest height above the ground and moves
-slower than ``speed_tol``. A side is in contact when its ankle or toe is. Flickers
-shorter than ``min_frames`` are removed and gaps as short are filled.
+Contract: :func:`make_targets` turns a :class:`dualflow.motion.Motion` (SMPL-22 positions
+(T, 22, 3) m, Z up) into :class:`Targets`: keypoints (T, K, 3) m at the robot's bone lengths and
+side contacts (T, 2) bool (the motion's labels, else detected). :class:`KeypointScaler` keeps the
+person's bone directions and the robot's rest bone lengths, walking the profile's keypoint tree
+from its root; a fixed base mirrors the posture in the person's heading. Scaling and contact
+detection in full: docs/retargeting.md, section 1.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dualflow.errors import DualFlowError
-from ros_free_bridge.batch import PairPattern, clip_name, find_clips, find_motion_files
+from ros_free_bridge.batch.clips import PairPattern, clip_name, find_clips, find_motion_files
 from ros_free_bridge.errors import BridgeError
 
 

@@ -15,8 +15,9 @@ import pytest
 from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
 from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_leader
-from ros_free_bridge import batch
-from ros_free_bridge.batch import BatchConfig, run_batch
+from ros_free_bridge.batch import clip_check
+from ros_free_bridge.batch.config import BatchConfig
+from ros_free_bridge.batch.run import run_batch
 from ros_free_bridge.cli import main
 
 pytestmark = pytest.mark.slow
@@ -64,7 +65,7 @@ def test_a_folder_gives_one_row_per_clip_and_a_failure_never_stops_the_batch(tmp
     assert "too_fast.npz" in capsys.readouterr().out
 
 
-REAL_CHECK_CLIP = batch.check_clip
+REAL_CHECK_CLIP = clip_check.check_clip
 
 
 def check_clip_killing_stand0(path, cfg, name=None, **kw):
@@ -83,7 +84,7 @@ def test_a_clip_that_kills_its_worker_costs_only_its_own_row(tmp_path, monkeypat
     for k in range(4):
         clips.append(tmp_path / f"stand{k}.npz")
         save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clips[-1])
-    monkeypatch.setattr(batch, "check_clip", check_clip_killing_stand0)
+    monkeypatch.setattr(clip_check, "check_clip", check_clip_killing_stand0)
     rows = run_batch(clips, BatchConfig(out=tmp_path / "out", compile=False, video=False), jobs=jobs, progress=False)
     assert [r.clip for r in rows] == [f"stand{k}.npz" for k in range(4)]
     assert rows[0].status == "error" and "worker process died" in rows[0].reason

@@ -25,7 +25,7 @@ import pytest
 from dualflow.motion import REST_POSE, Motion
 from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_duet, make_leader
-from ros_free_bridge.batch import TIMING_COLUMNS
+from ros_free_bridge.batch.results import TIMING_COLUMNS
 from ros_free_bridge.cli import main
 
 pytestmark = [pytest.mark.slow,
@@ -78,12 +78,14 @@ def test_ray_gives_the_local_engines_rows_and_files(tmp_path):
 #: The driver of a batch whose per-clip function kills its Ray worker: the real check, except
 #: that the worker checking ``once`` dies the first time (as a crash in a native library would
 #: kill it) and the one checking ``always`` dies every time. The function lives in the driver's
-#: ``__main__``, so Ray sends it to the workers by value; there ``batch.check_clip`` is the real one.
+#: ``__main__``, so Ray sends it to the workers by value; there ``clip_check.check_clip`` is the real one.
 DYING_WORKERS = textwrap.dedent("""
     import json, os, signal, sys
     from pathlib import Path
     import ray
-    from ros_free_bridge import batch
+    from ros_free_bridge.batch import clip_check
+    from ros_free_bridge.batch.config import BatchConfig
+    from ros_free_bridge.batch.run import run_batch
 
     def check_clip_with_dying_workers(path, cfg, name=None, **kw):
         path = Path(path)
@@ -91,13 +93,13 @@ DYING_WORKERS = textwrap.dedent("""
         if path.stem == "always" or (path.stem == "once" and not flag.exists()):
             flag.touch()
             os.kill(os.getpid(), signal.SIGKILL)
-        return batch.check_clip(path, cfg, name, **kw)
+        return clip_check.check_clip(path, cfg, name, **kw)
 
     folder, out = Path(sys.argv[1]), Path(sys.argv[2])
-    batch.check_clip = check_clip_with_dying_workers  # what the engine sends to the workers
+    clip_check.check_clip = check_clip_with_dying_workers  # what the engine sends to the workers
     files = sorted(folder.glob("*.npz"))
-    cfg = batch.BatchConfig(robot="ub14", out=out, compile=False, video=False)
-    rows = batch.run_batch(files, cfg, jobs=2, progress=False, engine="ray")
+    cfg = BatchConfig(robot="ub14", out=out, compile=False, video=False)
+    rows = run_batch(files, cfg, jobs=2, progress=False, engine="ray")
     print(json.dumps({"rows": [r.row() for r in rows], "ray_still_up": ray.is_initialized()}))
 """)
 

@@ -17,9 +17,9 @@ import pytest
 
 from dualflow.motion import REST_POSE, Motion
 from dualflow.motion.io import save_motion
-from ros_free_bridge.batch import read_results
+from ros_free_bridge.batch.report_html import markdown_to_html
+from ros_free_bridge.batch.results import read_results
 from ros_free_bridge.cli import main
-from ros_free_bridge.report_html import markdown_to_html
 
 from conftest import CMU_DIR, _require
 

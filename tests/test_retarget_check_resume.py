@@ -19,7 +19,9 @@ import pytest
 from dualflow.motion import REST_POSE, Motion
 from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_leader
-from ros_free_bridge.batch import MARKER, TIMING_COLUMNS, BatchConfig, Clip, ClipResult, ResultLog
+from ros_free_bridge.batch.clips import Clip
+from ros_free_bridge.batch.config import BatchConfig
+from ros_free_bridge.batch.results import MARKER, TIMING_COLUMNS, ClipResult, ResultLog
 from ros_free_bridge.cli import main
 from ros_free_bridge.errors import BridgeError
 

@@ -71,7 +71,10 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ros_free_bridge.batch import BatchConfig, PairPattern, find_clips, markdown_table, run_batch
+    from ros_free_bridge.batch.clips import PairPattern, find_clips
+    from ros_free_bridge.batch.config import BatchConfig
+    from ros_free_bridge.batch.results import markdown_table
+    from ros_free_bridge.batch.run import run_batch
     from ros_free_bridge.errors import BridgeError
 
     if args.jobs is not None and args.jobs < 1:

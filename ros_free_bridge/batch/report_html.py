@@ -1,18 +1,9 @@
-"""The browsable report of a ``retarget-check`` batch: plain static HTML that opens from disk.
+"""The browsable report of a ``retarget-check`` batch: static HTML pages that open from disk.
 
-``OUT/index.html``: one row per clip (verdict, stage, reason, time of the first failure and the
-key figures), sortable by clicking a column head and filtered by a verdict menu and a search
-box (a few lines of inline JavaScript; without JavaScript the table is still all there). The
-view is kept in the address, so a link can open it filtered and sorted:
-``index.html#status=fail&q=balance&sort=-first_failure_s`` (``sort``: a column's key, ``-`` for
-descending; ``status``: pass, fail or error; ``q``: text in the row). Each
-clip links to ``OUT/clips/<clip>/index.html``: its verdict, its figures, the video of the
-person and the robot side by side (``video.mp4`` beside the page), the physics check's report
-with its plots and the retarget report (both converted from their markdown).
-
-No server, no network, nothing fetched: every link is a relative path to a file in ``OUT``.
-The pages are rebuilt from the rows whenever a batch ends, so they can be regenerated at any
-time from ``results.jsonl`` (:func:`write_html_report` with :func:`ros_free_bridge.batch.read_results`).
+``OUT/index.html`` (one sortable, filterable row per clip) and ``OUT/clips/<clip>/index.html`` (its
+figures, video and reports), made from the rows alone, so they can be rebuilt at any time from
+``results.jsonl`` (:func:`ros_free_bridge.batch.results.read_results`). Every link is a relative path
+inside ``OUT``; nothing is fetched. What the pages show: docs/retarget_check.md.
 """
 
 from __future__ import annotations
@@ -22,6 +13,8 @@ import json
 import re
 from pathlib import Path
 from urllib.parse import quote
+
+from ros_free_bridge.batch.results import SETTINGS, ClipResult, atomic_write
 
 #: (row key, column head, kind) of the index table; kind "num" sorts numerically.
 INDEX_COLUMNS = (
@@ -152,10 +145,8 @@ def clip_href(name: str) -> str:
 
 def write_html_report(out, results, total: int | None = None) -> Path:
     """Write ``OUT/index.html`` and one page per clip; the index's path. ``results``:
-    :class:`ros_free_bridge.batch.ClipResult` objects (or row dicts) in table order;
+    :class:`ClipResult` objects (or row dicts) in table order;
     ``total``: the clips in the batch, when some have no row yet (an interrupted run)."""
-    from ros_free_bridge.batch import SETTINGS, ClipResult, _atomic_write
-
     out = Path(out)
     rows = [r if isinstance(r, ClipResult) else ClipResult.from_row(r) for r in results]
     try:
@@ -165,9 +156,9 @@ def write_html_report(out, results, total: int | None = None) -> Path:
     for r in rows:
         folder = out / "clips" / r.clip
         folder.mkdir(parents=True, exist_ok=True)
-        _atomic_write(folder / "index.html", clip_page(r, folder, settings), sync=False)
+        atomic_write(folder / "index.html", clip_page(r, folder, settings), sync=False)
     index = out / "index.html"
-    _atomic_write(index, index_page(rows, settings, total), sync=False)
+    atomic_write(index, index_page(rows, settings, total), sync=False)
     return index
 
 
@@ -251,7 +242,8 @@ def clip_page(r, folder: Path, settings: dict) -> str:
     sections = []
     for name, title in (("check.md", "Physics check"), ("retarget.report.md", "Retarget report")):
         if (folder / name).is_file():
-            sections.append(f"<section><h2>{title}</h2>{markdown_to_html((folder / name).read_text(), shift=2)}</section>")
+            body = markdown_to_html((folder / name).read_text(), shift=2)
+            sections.append(f"<section><h2>{title}</h2>{body}</section>")
     robot = f" on {_e(settings['robot'])}" if settings.get("robot") else ""
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{_e(r.clip)}: {_e(r.status.upper())}</title>

@@ -1,28 +1,8 @@
-"""The Ray engine of ``retarget-check``: each clip is one Ray task.
+"""The Ray engine of ``retarget-check``: each clip is one Ray task, on a cluster or a local instance.
 
-    dualflow-bridge retarget-check clips/ --engine ray                    # a local Ray instance
-    dualflow-bridge retarget-check clips/ --engine ray --address auto     # the cluster this node belongs to
-    dualflow-bridge retarget-check clips/ --engine ray --address ray://head:10001
-
-Only this module imports Ray (``pip install -e ".[cluster]"``); the local engine never does.
-
-The task runs the same per-clip function as the local engine (:func:`ros_free_bridge.batch.check_clip`)
-and needs no shared filesystem: the clip's motion file(s) travel with the task (a worker reads
-the original path where it exists on its node, so a single machine or a shared filesystem
-gives the same messages as the local engine, and the shipped copy elsewhere), the outputs are
-written to a scratch folder on the worker and come back as bytes, and the driver writes them
-under ``OUT/clips/<clip>/`` before recording the row. What every node needs: this package
-installed (the same version), the same Ray version, and for ``--robot DIR`` that folder at the
-same path.
-
-Failures: a task whose worker process dies (a crash in a native library, out of memory, a
-lost node) is run once more (Ray's ``max_retries=1``); if it dies again the clip gets an
-``error`` row and the batch goes on. Ctrl-C cancels the tasks in flight (``ray.cancel``,
-force: their workers are killed), stops a Ray instance this run started (``ray.shutdown``;
-on a cluster it only disconnects), and leaves every finished clip recorded for ``--resume``.
-
-At most a few tasks per CPU are in flight at a time, so a dataset of any size keeps the
-driver's memory and Ray's object store small, and Ctrl-C has little to cancel.
+The only module that imports Ray. A task carries the clip's motion files and returns its outputs as
+bytes, which the driver writes under ``OUT/clips/<clip>/``: no shared filesystem needed. A task whose
+worker dies is retried once, then gets an ``error`` row. Setup and failure handling: docs/retarget_check.md.
 """
 
 from __future__ import annotations
@@ -35,8 +15,11 @@ from pathlib import Path
 
 import ray
 
-from ros_free_bridge import batch
-from ros_free_bridge.batch import BatchConfig, Clip, ClipResult, _usable_cores, clip_dir
+from ros_free_bridge.batch import clip_check
+from ros_free_bridge.batch.clips import Clip
+from ros_free_bridge.batch.config import BatchConfig, clip_dir
+from ros_free_bridge.batch.local import usable_cores
+from ros_free_bridge.batch.results import ClipResult
 
 #: Object store of a Ray instance this engine starts (bytes): clips and their outputs are small.
 LOCAL_OBJECT_STORE_BYTES = 256 * 1024 * 1024
@@ -58,7 +41,7 @@ def start(jobs: int | None = None, address: str | None = None) -> bool:
     if address:
         ray.init(address=address, **common)
     else:
-        ray.init(address="local", num_cpus=jobs or _usable_cores(), object_store_memory=LOCAL_OBJECT_STORE_BYTES,
+        ray.init(address="local", num_cpus=jobs or usable_cores(), object_store_memory=LOCAL_OBJECT_STORE_BYTES,
                  **common)
     return True
 
@@ -85,7 +68,8 @@ def _run_clip(work, clip: Clip, cfg: BatchConfig, inputs: dict[str, bytes]):
         res = work(local(clip.path, "reactor"), cfg, clip.name, actor=local(clip.actor, "actor"), workdir=workdir)
         files = {}
         if workdir.is_dir():
-            files = {p.relative_to(workdir).as_posix(): p.read_bytes() for p in sorted(workdir.rglob("*")) if p.is_file()}
+            files = {p.relative_to(workdir).as_posix(): p.read_bytes()
+                     for p in sorted(workdir.rglob("*")) if p.is_file()}
         return res, files
 
 
@@ -112,10 +96,10 @@ def run_ray(clips: list[Clip], cfg: BatchConfig, done, jobs: int | None = None, 
             work=None) -> None:
     """Run ``clips`` as Ray tasks, calling ``done(clip, result)`` in the driver as each ends (after
     its outputs are written under ``OUT``). ``work``: the per-clip function (default
-    :func:`ros_free_bridge.batch.check_clip`), sent to the workers with the task."""
+    :func:`ros_free_bridge.batch.clip_check.check_clip`), sent to the workers with the task."""
     if not clips:
         return
-    work = work or batch.check_clip  # looked up now, as the local engine does
+    work = work or clip_check.check_clip  # looked up now, as the local engine does
     owner = start(jobs, address)
     try:
         task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES)(_run_clip)
