@@ -34,12 +34,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 from dualflow.checkpoint import bundled_checkpoint, load_checkpoint  # noqa: E402
 from dualflow.datasets.training import positions_from_normalized  # noqa: E402
-from dualflow.text import template_text_embedding  # noqa: E402
 from dualflow.flow import generate  # noqa: E402
 from dualflow.model import Conditions  # noqa: E402
 from dualflow.motion.features import encode_pair  # noqa: E402
 from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report  # noqa: E402
 from dualflow.synthetic import make_duet  # noqa: E402
+from dualflow.text import template_text_embedding  # noqa: E402
 
 REALTIME_MS = 1000.0 / 30.0
 # Smoke run only: a 3 s clip and 5 Euler steps instead of 20 (the rows say how many).

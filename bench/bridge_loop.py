@@ -105,9 +105,9 @@ def run_loop(transport, limits, rate_hz: float, seconds: float, realtime: int = 
 def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dict]:
     """(ours: the op3 bus of 20 emulated servos at 2 Mbit/s, baseline: record-only) at
     ``rate_hz``. ``realtime``: SCHED_FIFO priority for the loop and the emulator (0: off)."""
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
     from ros_free_bridge.emulators.process import EmulatorProcess
     from ros_free_bridge.robots import bridge_limits, resolve_robot
-    from ros_free_bridge.dynamixel.transport import DynamixelTransport
     from ros_free_bridge.transports.record import RecordTransport
 
     cfg = resolve_robot("op3").hardware_config()
@@ -164,7 +164,8 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     partner = (e2e + stamp - arrivals[c - ahead]) * 1e3
     gen = rec["generator_latency"]
     gen = np.unique(gen[np.isfinite(gen)])  # one value per window (its frames share it)
-    pct = (lambda a, q: float(np.percentile(a, q)) if a.size else float("nan"))
+    def pct(a, q):
+        return (float(np.percentile(a, q)) if a.size else float("nan"))
     # smoothness of what the bus got while streaming: the commands' mean |acceleration| and the
     # share of ticks the safety filter had to change (a rougher target means more of both)
     from ros_free_bridge.control.loop import Fault, State

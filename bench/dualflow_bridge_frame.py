@@ -28,8 +28,8 @@ def measure(seconds: float, repeats: int, clean: bool | None) -> dict:
 
     from dualflow.streaming import StreamConfig
     from dualflow.synthetic import make_leader
-    from ros_free_bridge.session import SessionOptions
     from ros_free_bridge.partner.reactor import ReactorStage
+    from ros_free_bridge.session import SessionOptions
 
     torch.set_num_threads(1)
     leader = make_leader(seconds, 30.0, 0).positions
@@ -43,10 +43,10 @@ def measure(seconds: float, repeats: int, clean: bool | None) -> dict:
         if cleaner is not None:
             step = cleaner.step
 
-            def timed(p, contacts=None, _step=step):
+            def timed(p, contacts=None, _step=step, _acc=t_clean):
                 t0 = time.perf_counter()
                 out = _step(p, contacts)
-                t_clean[0] += time.perf_counter() - t0
+                _acc[0] += time.perf_counter() - t0
                 return out
 
             cleaner.step = timed

@@ -74,10 +74,9 @@ def _median_time(fn, repeats: int) -> float:
 def measure(preset: str, repeats: int, root: str, width: int | None = None) -> dict:
     """The figures of the module docstring for the code under ``root`` (imported from there)."""
     sys.path.insert(0, root)
+    import dualflow.model
     from dualflow.model import Conditions, DualFlow, DualFlowConfig
     from dualflow.train import Trainer, load_train_config
-
-    import dualflow.model
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -94,7 +93,7 @@ def measure(preset: str, repeats: int, root: str, width: int | None = None) -> d
             with counter:
                 model(x, x, 0.5, cond, mode=mode)
             out[f"ops_forward_{mode}"] = counter.total
-            out[f"ms_forward_{mode}"] = 1e3 * _median_time(lambda: model(x, x, 0.5, cond, mode=mode), repeats)
+            out[f"ms_forward_{mode}"] = 1e3 * _median_time(lambda mode=mode: model(x, x, 0.5, cond, mode=mode), repeats)
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_train_config(None, [f"preset={preset}", "data.n_clips=16", "data.val_clips=0", "data.frames=60",
                                        "batch_size=8", "threads=1", "progress=false", "music=beats",
@@ -122,7 +121,7 @@ def measure(preset: str, repeats: int, root: str, width: int | None = None) -> d
             out[f"ops_step_{mode}"] = counter.total
             out[f"syncs_step_{mode}"] = counter.syncs("step")
             out[f"scalar_reads_optimizer_{mode}"] = counter.syncs("optimizer")
-            out[f"ms_step_{mode}"] = 1e3 * _median_time(lambda: trainer.train_step(**kwargs), repeats)
+            out[f"ms_step_{mode}"] = 1e3 * _median_time(lambda kwargs=kwargs: trainer.train_step(**kwargs), repeats)
     return out
 
 

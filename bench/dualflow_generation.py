@@ -34,12 +34,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
-from dualflow.text import template_text_embedding  # noqa: E402
 from dualflow.flow import generate  # noqa: E402
 from dualflow.model import Conditions, DualFlow, DualFlowConfig  # noqa: E402
 from dualflow.motion.features import encode_person  # noqa: E402
 from dualflow.streaming import ReactiveStreamer, StreamConfig  # noqa: E402
 from dualflow.synthetic import make_leader  # noqa: E402
+from dualflow.text import template_text_embedding  # noqa: E402
 
 PAPER_AITS_S = {"DualFlow, 20 RF steps, RTX 5090": 1.24, "InterGen, 50 DDIM steps, RTX 5090": 1.92}
 # Smoke run only: 5 Euler steps instead of 20 (the rows say how many), a 2 s clip, 1 repeat.

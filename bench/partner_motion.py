@@ -148,8 +148,8 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
     from dualflow.evaluation.plausibility import diversity, plausibility
     from dualflow.motion.io.formats import load_pair
     from dualflow.streaming import StreamConfig
-    from ros_free_bridge.session import SessionOptions
     from ros_free_bridge.partner.reactor import ReactorStage
+    from ros_free_bridge.session import SessionOptions
 
     pair = load_pair(CMU_DIR / "18_01.bvh", CMU_DIR / "19_01.bvh", fps=30.0)
     actor, real = pair.actor.positions, pair.reactor.positions
@@ -182,7 +182,7 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
             for s in range(stream_seeds):
                 cfg = StreamConfig(window=d.window, steps=d.steps, hop=d.hop, incremental=True, seed=s)
                 stage = ReactorStage(30.0, ck, cfg, clean=clean)
-                out, t_clean = [], 0.0
+                out, _t_clean = [], 0.0
                 for k, p in enumerate(actor):
                     out += stage.push(p, 0.0, k)
                 out += stage.flush(0.0, len(actor) - 1)
@@ -210,7 +210,9 @@ def print_cmu_table(rows: list[dict]) -> None:
           "in 0.5-1.5 m | diversity seeds (m) | diversity texts (m) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        div = lambda k: f"{r[k]:.3f}" if k in r else "-"  # noqa: E731
+        def div(k, r=r):
+            return f"{r[k]:.3f}" if k in r else "-"
+
         print(f"| {r['partner']} | {r['skate']:.2f} | {r['jerk']:.0f} | {r['bone_cv']:.4f} | {r['facing_deg']:.0f}° | "
               f"{r['mpjpe_real']:.2f} | {r['dist_mean']:.2f} | {100 * r['dist_in_range']:.0f} % | "
               f"{div('diversity_seeds')} | {div('diversity_texts')} |"

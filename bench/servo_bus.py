@@ -293,9 +293,9 @@ def host_cpu(baud: int, cycles: int) -> dict:
     import dynamixel_sdk as sdk
 
     from firmware_cfg.config import load_config, robot_config_path
-    from ros_free_bridge.emulators import DynamixelBusEmulator
     from ros_free_bridge.dynamixel import protocol as dp
     from ros_free_bridge.dynamixel.transport import DynamixelTransport
+    from ros_free_bridge.emulators import DynamixelBusEmulator
 
     bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud,
                               devices=())

@@ -44,8 +44,8 @@ def pin_one_core() -> str:
 def dance(seconds: float):
     import numpy as np
 
-    from retarget import RobotTrajectory
     from firmware_cfg.registry import joint_names
+    from retarget import RobotTrajectory
     from sim.scene import Scene
 
     names = joint_names("op3")

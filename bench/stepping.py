@@ -231,7 +231,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 "streaming": "streaming-before"}.get(mode)
         b = stats.get(base) if base else None
 
-        def fig(key, fn):
+        def fig(key, fn, mode=mode, b=b):
             v = fn(stats[mode][key]) if stats[mode][key] else float("nan")
             return v, (fn(b[key]) if b and b[key] else "")
 

@@ -19,11 +19,11 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Callable, Sequence, Union
 
-Cell = Union[str, int, float, None]
+Cell = str | int | float | None
 
 MET, NOT_MET, NA = "met", "not met", "n/a"
 VERDICTS = (MET, NOT_MET, NA)
@@ -64,7 +64,7 @@ class Row:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Row":
+    def from_dict(cls, data: dict) -> Row:
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
 

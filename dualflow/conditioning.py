@@ -112,7 +112,7 @@ class ConditionBuilder:
             self.decomposer = KeywordDecomposer()
 
     @classmethod
-    def from_checkpoint(cls, ckpt, **overrides) -> "ConditionBuilder":
+    def from_checkpoint(cls, ckpt, **overrides) -> ConditionBuilder:
         """Builder matching a :class:`dualflow.checkpoint.Checkpoint` (its text encoder and music kind)."""
         music_meta = str(ckpt.meta.get("music", "none"))
         if music_meta not in MUSIC_FROM_META:

@@ -36,7 +36,7 @@ class DuetGenerator:
         self.clean = bool(clean)
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path | None = None, device: str = "cpu", **builder_kw) -> "DuetGenerator":
+    def from_checkpoint(cls, path: str | Path | None = None, device: str = "cpu", **builder_kw) -> DuetGenerator:
         """The generator of a checkpoint folder (None: the bundled one); builder_kw override the
         :class:`ConditionBuilder`'s (e.g. text_encoder=...)."""
         from dualflow.checkpoint import load_model

@@ -20,8 +20,8 @@ on the CPU, so a given seed gives the same sample on any device.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 
@@ -143,7 +143,7 @@ def flow_training_step(
     frame_mask: torch.Tensor | None = None,
     time_sampler: TimeSampler = TimeSampler(),
     generator: torch.Generator | None = None,
-    path: RectifiedPath = RectifiedPath(),
+    path: RectifiedPath | None = None,
 ) -> FlowStep:
     """Noise a clean batch along the path, call the model, return L_flow and x0_hat.
 
@@ -154,6 +154,7 @@ def flow_training_step(
     Noise and t come from ``generator`` so a seeded step is reproducible; they are drawn on the
     generator's device (a CUDA generator keeps them on the GPU: no host copy per step).
     """
+    path = path if path is not None else RectifiedPath()
     b = x0_a.shape[0]
     device = x0_a.device
     where = _draw_device(generator)

@@ -96,7 +96,7 @@ class DualFlowConfig:
             raise DualFlowError(f"DualFlowConfig.dropout must be in [0, 1), got {self.dropout}")
 
     @staticmethod
-    def preset(name: str, **overrides) -> "DualFlowConfig":
+    def preset(name: str, **overrides) -> DualFlowConfig:
         """``paper`` (the published model), ``small`` (CPU training in minutes), ``tiny`` (tests)."""
         if name not in PRESETS:
             raise DualFlowError(f"unknown DualFlow preset {name!r}; choose one of {', '.join(PRESETS)}")
@@ -109,7 +109,7 @@ class DualFlowConfig:
         return d
 
     @staticmethod
-    def from_dict(d: dict) -> "DualFlowConfig":
+    def from_dict(d: dict) -> DualFlowConfig:
         known = {f.name for f in fields(DualFlowConfig)}
         unknown = set(d) - known
         if unknown:
@@ -152,13 +152,13 @@ class Conditions:
     drop_text: torch.Tensor | None = None
     drop_music: torch.Tensor | None = None
 
-    def unconditional(self) -> "Conditions":
+    def unconditional(self) -> Conditions:
         """The classifier-free-guidance null: text, music and retrieval dropped, as training drops
         them together (dualflow/retrieval.py: a sample with both cues dropped equals one without
         retrieval)."""
         return Conditions()
 
-    def slice_frames(self, start: int, stop: int) -> "Conditions":
+    def slice_frames(self, start: int, stop: int) -> Conditions:
         """The same conditions restricted to motion frames [start, stop) (music is per frame)."""
         music = None if self.music is None else self.music[:, start:stop]
         return replace(self, music=music)

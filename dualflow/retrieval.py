@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -150,7 +150,7 @@ class RetrievalDatabase:
     @staticmethod
     def build(motions: np.ndarray, lengths: Sequence[int], texts: Sequence[str] | None = None,
               music: Sequence[np.ndarray] | None = None, *, text_encoder=None, decomposer=None,
-              ids: Sequence[str] | None = None, genre: str | None = None) -> "RetrievalDatabase":
+              ids: Sequence[str] | None = None, genre: str | None = None) -> RetrievalDatabase:
         """Embed a dataset's clips per cue.
 
         motions (N, T, 2, 262) normalised features; lengths (N,); texts: N strings (decomposed by
@@ -178,7 +178,7 @@ class RetrievalDatabase:
         if music is not None:
             if len(music) != n:
                 raise DualFlowError(f"retrieval build: {len(music)} music arrays for {n} motions")
-            raw = np.stack([music_embedding(m, l) for m, l in zip(music, lengths)])
+            raw = np.stack([music_embedding(m, n_frames) for m, n_frames in zip(music, lengths)])
             std = raw.std(0)
             stats = (raw.mean(0), np.where(std > 1e-6, std, 1.0).astype(np.float32))  # constant dims stay 0
             emb["music"] = (raw - stats[0]) / stats[1]
@@ -244,7 +244,7 @@ class RetrievalDatabase:
         return p
 
     @staticmethod
-    def load(path: str | Path) -> "RetrievalDatabase":
+    def load(path: str | Path) -> RetrievalDatabase:
         p = Path(path)
         if not p.is_file():
             raise DualFlowError(f"{p}: retrieval database not found; build one with RetrievalDatabase.build(...).save(path)")
@@ -392,7 +392,7 @@ class RagConfig:
         return d
 
     @staticmethod
-    def from_dict(d: dict | None, where: str = "retrieval") -> "RagConfig":
+    def from_dict(d: dict | None, where: str = "retrieval") -> RagConfig:
         d = dict(d or {})
         known = {f.name for f in fields(RagConfig)}
         unknown = sorted(set(d) - known)
@@ -493,7 +493,7 @@ class NeighbourTable:
     @staticmethod
     def compute(db: RetrievalDatabase, queries: dict[str, np.ndarray], lengths, depth: int,
                 lam: float = DEFAULT_LAMBDA, query_groups: np.ndarray | None = None,
-                db_groups: np.ndarray | None = None, chunk: int = 1024) -> "NeighbourTable":
+                db_groups: np.ndarray | None = None, chunk: int = 1024) -> NeighbourTable:
         """Eq. 1 top-``depth`` for every query and cue, computed once before training.
 
         query_groups (Q,) / db_groups (N,): entries whose group equals the query's are never

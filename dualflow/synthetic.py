@@ -11,8 +11,8 @@ seed, template slots, beat frames and the (T, 4) beat track. numpy only. Details
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

@@ -13,9 +13,23 @@ from __future__ import annotations
 import numpy as np
 
 from dualflow.motion.container import Motion, TwoPersonMotion
-from dualflow.synthetic import (_ARM_DOWN, _CONTACT_MIRROR, _ARM_TEXT, _RULE_TEXT, _STEP_TEXT, _TRAVEL_TEXT,
-                                _TURN_TEXT, LeaderClip, _BodyPlan, _check_clip_args, _reflect, _smoothstep,
-                                _synthesise, _tempo_word, beat_features)
+from dualflow.synthetic import (
+    _ARM_DOWN,
+    _ARM_TEXT,
+    _CONTACT_MIRROR,
+    _RULE_TEXT,
+    _STEP_TEXT,
+    _TRAVEL_TEXT,
+    _TURN_TEXT,
+    LeaderClip,
+    _BodyPlan,
+    _check_clip_args,
+    _reflect,
+    _smoothstep,
+    _synthesise,
+    _tempo_word,
+    beat_features,
+)
 
 VARIED_ARMS = ("both", "left", "right", "alternate", "none", "reach_left", "reach_right")
 VARIED_TURNS = ("none", "left", "right", "turn_to")

@@ -17,8 +17,9 @@ import json
 import os
 import re
 import unicodedata
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -375,7 +376,7 @@ class HashedBagOfWordsEncoder:
 
 def text_key(encoder_id: str, text: str) -> str:
     """Cache key: hex SHA-256 of ``encoder_id + NUL + text`` (64 characters)."""
-    return hashlib.sha256(f"{encoder_id}\0{text}".encode("utf-8")).hexdigest()
+    return hashlib.sha256(f"{encoder_id}\0{text}".encode()).hexdigest()
 
 
 class CachedTextEncoder:

@@ -18,8 +18,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
-import itertools
 import datetime as _dt
+import itertools
 import json
 import math
 import os
@@ -304,7 +304,7 @@ class DistContext:
         return self.world_size > 1
 
     @staticmethod
-    def from_env(device: str = "auto") -> "DistContext":
+    def from_env(device: str = "auto") -> DistContext:
         """Read torchrun's RANK / WORLD_SIZE / LOCAL_RANK; start the process group
         (NCCL for CUDA, gloo for CPU) when more than one process runs."""
         world = int(os.environ.get("WORLD_SIZE", "1"))

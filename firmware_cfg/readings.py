@@ -53,6 +53,6 @@ class JointState:
     imu: ImuReading | None = None
 
     @classmethod
-    def unknown(cls, n: int, stamp: float = 0.0) -> "JointState":
+    def unknown(cls, n: int, stamp: float = 0.0) -> JointState:
         nan = np.full(n, np.nan)
         return cls(nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), np.zeros(n, bool), stamp)

@@ -183,7 +183,7 @@ class Hello:
         return struct.pack("<BH", self.version, self.watchdog_ms)
 
     @classmethod
-    def unpack(cls, p: bytes) -> "Hello":
+    def unpack(cls, p: bytes) -> Hello:
         _need(p, 3, "HELLO")
         return cls(*struct.unpack("<BH", p))
 
@@ -204,7 +204,7 @@ class HelloAck:
         return struct.pack("<BBBB", self.version, self.fw_major, self.fw_minor, self.n_channels) + name
 
     @classmethod
-    def unpack(cls, p: bytes) -> "HelloAck":
+    def unpack(cls, p: bytes) -> HelloAck:
         _need(p, 4, "HELLO_ACK", exact=False)
         v, ma, mi, n = struct.unpack_from("<BBBB", p)
         return cls(v, ma, mi, n, p[4:20].decode("ascii", "replace"))
@@ -222,7 +222,7 @@ class Targets:
         return struct.pack(f"<BB{len(self.cdeg)}h", self.first, len(self.cdeg), *self.cdeg)
 
     @classmethod
-    def unpack(cls, p: bytes) -> "Targets":
+    def unpack(cls, p: bytes) -> Targets:
         _need(p, 2, "TARGETS", exact=False)
         first, count = p[0], p[1]
         _need(p, 2 + 2 * count, "TARGETS")
@@ -240,7 +240,7 @@ class Enable:
         return struct.pack("<I", self.mask)
 
     @classmethod
-    def unpack(cls, p: bytes) -> "Enable":
+    def unpack(cls, p: bytes) -> Enable:
         _need(p, 4, "ENABLE")
         return cls(*struct.unpack("<I", p))
 
@@ -258,7 +258,7 @@ class SetLimits:
         return struct.pack(f"<BB{len(flat)}h", self.first, len(self.limits), *flat)
 
     @classmethod
-    def unpack(cls, p: bytes) -> "SetLimits":
+    def unpack(cls, p: bytes) -> SetLimits:
         _need(p, 2, "SET_LIMITS", exact=False)
         first, count = p[0], p[1]
         _need(p, 2 + 4 * count, "SET_LIMITS")
@@ -276,7 +276,7 @@ class Ack:
         return bytes((self.acked_type,))
 
     @classmethod
-    def unpack(cls, p: bytes) -> "Ack":
+    def unpack(cls, p: bytes) -> Ack:
         _need(p, 1, "ACK")
         return cls(p[0])
 
@@ -291,7 +291,7 @@ class HeartbeatAck:
         return struct.pack("<I", self.uptime_ms)
 
     @classmethod
-    def unpack(cls, p: bytes) -> "HeartbeatAck":
+    def unpack(cls, p: bytes) -> HeartbeatAck:
         _need(p, 4, "HEARTBEAT_ACK")
         return cls(*struct.unpack("<I", p))
 
@@ -322,7 +322,7 @@ class Telemetry:
         )
 
     @classmethod
-    def unpack(cls, p: bytes) -> "Telemetry":
+    def unpack(cls, p: bytes) -> Telemetry:
         _need(p, 15, "TELEMETRY", exact=False)
         up, mv, en, fault, n = struct.unpack_from("<IHIIB", p)
         _need(p, 15 + 3 * n, "TELEMETRY")
@@ -342,7 +342,7 @@ class Error:
         return bytes((self.code, self.detail))
 
     @classmethod
-    def unpack(cls, p: bytes) -> "Error":
+    def unpack(cls, p: bytes) -> Error:
         _need(p, 2, "ERROR")
         return cls(p[0], p[1])
 

@@ -9,10 +9,11 @@ PyYAML only). The file format and the position convention: docs/robots.md.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -365,7 +366,7 @@ def load_servo_model_file(path: str | Path) -> ServoModel:
     return parse_servo_model(data, str(path))
 
 
-@lru_cache(maxsize=None)
+@cache
 def _bundled() -> tuple[ServoModel, ...]:
     return tuple(load_servo_model_file(p) for p in sorted(MODELS_DIR.glob("*.yaml")))
 

@@ -16,8 +16,15 @@ import math
 import numpy as np
 
 from retarget.errors import RetargetError
-from retarget.support import (closest_point, convex_hull, double_support_points, halfplanes, level_footprint,
-                              stance_points, support_polygon)
+from retarget.support import (
+    closest_point,
+    convex_hull,
+    double_support_points,
+    halfplanes,
+    level_footprint,
+    stance_points,
+    support_polygon,
+)
 
 #: half-planes of the balance region passed to the compiled function: the two-foot region has
 #: 4 corners, the stance region 4 plus the weight-shift point; unused rows are 0·c ≤ 1

@@ -195,7 +195,7 @@ class RobotKinematics:
 
     # -- construction -------------------------------------------------------
     @classmethod
-    def from_xml(cls, path, name: str = "", fixed_base: bool = False) -> "RobotKinematics":
+    def from_xml(cls, path, name: str = "", fixed_base: bool = False) -> RobotKinematics:
         import mujoco
 
         path = Path(path)

@@ -115,7 +115,7 @@ class _WindowSymbols:
     static: bool
 
     @classmethod
-    def make(cls, rb, cfg: "OfflineConfig", W: int) -> "_WindowSymbols":
+    def make(cls, rb, cfg: OfflineConfig, W: int) -> _WindowSymbols:
         feet = bool(rb.has_feet and rb.floating and cfg.contacts)
         balance = feet and cfg.balance
         static = balance and cfg.zmp and cfg.single_support_com
@@ -245,7 +245,7 @@ class OfflineRetargeter:
             i0 += r * c
         return Y, parts
 
-    def _terms(self, sym: "_WindowSymbols", W: int, fps: float, outs) -> tuple:
+    def _terms(self, sym: _WindowSymbols, W: int, fps: float, outs) -> tuple:
         """R (residuals), J = ‖R‖², g and its row layout, P, from the per-frame outputs ``outs``
         (keypoints, sole, shrunk sole, com, collision, as Function.map lays them out)."""
         kp, sole, shr, com, coll = outs
@@ -264,7 +264,7 @@ class OfflineRetargeter:
             layout["collision"] = P * W
         return R, J, ca.vertcat(*g), layout, P
 
-    def _residuals(self, sym: "_WindowSymbols", W: int, fps: float, kp):
+    def _residuals(self, sym: _WindowSymbols, W: int, fps: float, kp):
         """The stacked weighted residuals R of the objective J = ‖R‖² (module docstring)."""
         rb, cfg, X = self.robot, self.config, sym.X
         nx, nr, K = rb.nx, rb.n_root, rb.n_keypoints
@@ -280,7 +280,7 @@ class OfflineRetargeter:
             sym.WF * np.sqrt(cfg.fix_weight) * ca.vec(X[:, :cfg.n_fix] - sym.XF),
         )
 
-    def _contact_rows(self, sym: "_WindowSymbols", W: int, sole, g: list, layout: dict) -> None:
+    def _contact_rows(self, sym: _WindowSymbols, W: int, sole, g: list, layout: dict) -> None:
         """Append the feet's rows to g: sole corner heights (8 per frame), no slide or turn between
         frames (6 per frame pair) and the first frame's placement (6; bounds switch them on)."""
         g.append(ca.vec(ca.reshape(sole[2, :], 8, W)))
@@ -307,7 +307,7 @@ class OfflineRetargeter:
         g.append(ca.vertcat(*anchor))
         layout["anchor"] = 6
 
-    def _zmp_terms(self, sym: "_WindowSymbols", W: int, fps: float, com) -> tuple:
+    def _zmp_terms(self, sym: _WindowSymbols, W: int, fps: float, com) -> tuple:
         """(num (2, W), den (1, W) or None, scale): the balance point num / den, the multibody ZMP of
         the segments as point masses m_k at c_k, p = Σ_k m_k (c_k,xy (c̈_k,z + g) − c_k,z c̈_k,xy) /
         Σ_k m_k (c̈_k,z + g), c̈ the central second difference (one-sided at the window's ends);
@@ -328,7 +328,7 @@ class OfflineRetargeter:
             den = den + lift
         return num, den, 1.0 / (float(np.sum(self._group_mass)) * GRAVITY)
 
-    def _balance_rows(self, sym: "_WindowSymbols", W: int, fps: float, shr, com, g: list, layout: dict) -> None:
+    def _balance_rows(self, sym: _WindowSymbols, W: int, fps: float, shr, com, g: list, layout: dict) -> None:
         """Append the balance rows to g: the balance point b = Σ_i λ_i s̃_i over the shrunk sole
         corners s̃ (3 per frame), and with ``single_support_com`` the CoM over the stance foot."""
         s = ca.reshape(shr, 16, W)
@@ -353,7 +353,7 @@ class OfflineRetargeter:
                                        ca.sum1(L2) - 1)))
             layout["static"] = 3 * W
 
-    def _chain_rule_derivatives(self, sym: "_WindowSymbols", W: int, Y, R, g) -> tuple:
+    def _chain_rule_derivatives(self, sym: _WindowSymbols, W: int, Y, R, g) -> tuple:
         """(jac_g, hess): the constraint Jacobian and the Gauss-Newton Hessian (None with
         ``hessian="exact"``) as functions of (w, p), from R and g written in Y (:meth:`_output_symbol`)."""
         nx, cfg = self.robot.nx, self.config
@@ -591,7 +591,7 @@ class OfflineRetargeter:
         xs, iters, status = self._outcome(solver, sol, args, layout, win)
         return xs[:rb.nx * W].reshape(W, rb.nx), iters, info, status
 
-    def _velocity_bounds(self, fps: float, win: "_Window", ramp) -> tuple[list, list]:
+    def _velocity_bounds(self, fps: float, win: _Window, ramp) -> tuple[list, list]:
         """Bounds of the velocity rows |x_{t+1} − x_t| ≤ v_max / fps, opening linearly over ``ramp``
         frames in a window that starts the clip from rest: ([lower], [upper])."""
         rb, cfg = self.robot, self.config
@@ -602,7 +602,7 @@ class OfflineRetargeter:
         return [(-vb).ravel(order="F")], [vb.ravel(order="F")]
 
     @staticmethod
-    def _contact_bounds(win: "_Window", swing, lbg: list, ubg: list) -> None:
+    def _contact_bounds(win: _Window, swing, lbg: list, ubg: list) -> None:
         """Append the bounds of the feet's rows (sole heights, slide, first-frame placement)."""
         W, contact = win.W, win.contact
         cz = np.repeat(contact, 4, axis=1).T  # (8, W)
@@ -619,7 +619,7 @@ class OfflineRetargeter:
         lbg.append(np.zeros(6) if win.pin else np.full(6, -np.inf))
         ubg.append(np.zeros(6) if win.pin else np.full(6, np.inf))
 
-    def _balance_bounds(self, tg: Targets, win: "_Window", layout: dict, lbg: list, ubg: list) -> tuple:
+    def _balance_bounds(self, tg: Targets, win: _Window, layout: dict, lbg: list, ubg: list) -> tuple:
         """Append the balance rows' bounds (on while a foot is down); return the balance weights'
         (lower, upper, start) (8 or 16, W): weight only on corners of feet in contact, shared evenly."""
         W, contact = win.W, win.contact
@@ -640,7 +640,7 @@ class OfflineRetargeter:
             lam0 = np.vstack([lam0, cl2 / np.maximum(cl2.sum(axis=0, keepdims=True), 1)])
         return lbl, ubl, lam0
 
-    def _outcome(self, solver, sol, args: dict, layout: dict, win: "_Window") -> tuple:
+    def _outcome(self, solver, sol, args: dict, layout: dict, win: _Window) -> tuple:
         """(x, iterations, status) of a converged window; a solver error raises RetargetError, an
         unconverged window _Infeasible (module docstring)."""
         s, W, T = win.s, win.W, win.T

@@ -77,7 +77,7 @@ class RetargetProfile:
 
     # -- loading ----------------------------------------------------------------
     @classmethod
-    def load(cls, path) -> "RetargetProfile":
+    def load(cls, path) -> RetargetProfile:
         path = Path(path)
         if not path.is_file():
             raise RetargetError(f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, or run `dualflow-bridge robot init MODEL.xml -o DIR`)")
@@ -92,7 +92,7 @@ class RetargetProfile:
         return cls.from_dict(data, source=str(path))
 
     @classmethod
-    def from_dict(cls, data, source: str = "profile") -> "RetargetProfile":
+    def from_dict(cls, data, source: str = "profile") -> RetargetProfile:
         """A profile from its parsed YAML ``data``; every error names ``source`` and the field."""
         if not isinstance(data, dict):
             raise RetargetError(f"{source}: the profile must be a YAML mapping with keys robot, keypoints, feet, ...")

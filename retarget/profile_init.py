@@ -316,10 +316,10 @@ def infer_anatomy(m) -> Anatomy:
     legs, in_legs = _find_legs(an, rest, ends, info, fr)
     in_arms = _find_arms(an, rest, ends, info, in_legs, fr)
     # legs: feet first (the leg's end point is the sole's centre), then the joints
-    for side, limb in an.legs.items():
+    for _side, limb in an.legs.items():
         _find_foot(rest, limb, fwd, left, fr.height)
         _assign_joints(limb)
-    for side, limb in an.arms.items():
+    for _side, limb in an.arms.items():
         _assign_joints(limb)
     _place_points(rest, an, ends, info, in_legs | in_arms)
     # the toes are farther in front of the ankle than the heel is behind it, on a robot facing +x
@@ -385,7 +385,7 @@ def _find_legs(an: Anatomy, rest: _Rest, ends: list, info: dict, fr: _BodyFrame)
         if cand:
             legs[side] = min(cand, key=lambda e: (info[e]["low"], -info[e]["arc"]))
     if len(legs) == 1:
-        an.notes.append("only one leg-like chain found (on the %s): treated as a robot without legs" % next(iter(legs)))
+        an.notes.append(f"only one leg-like chain found (on the {next(iter(legs))}): treated as a robot without legs")
         legs = {}
     in_legs = set()
     if legs:
@@ -651,7 +651,7 @@ def build_capsules(rest: _Rest, an: Anatomy) -> dict:
             y_in = so["y0"] if side == "left" else so["y1"]
             z = so["z"] + edge_r
 
-            def at(x, y):
+            def at(x, y, b=b, z=z):
                 return rest.to_local(b, x * an.forward + y * an.left + [0, 0, z])
 
             heel, toe, xm = at(so["x0"], y_in), at(so["x1"], y_in), 0.5 * (so["x0"] + so["x1"])

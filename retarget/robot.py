@@ -34,7 +34,6 @@ from retarget.kinematics import Capsule, RobotKinematics, quat_to_mat
 from retarget.profile import RetargetProfile
 
 
-
 def segment_distance_sq(p0, p1, q0, q1, eps: float = 1e-12):
     """Squared distance between segments p0p1 and q0q1 ((3,1) CasADi or numpy).
 

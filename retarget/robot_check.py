@@ -15,7 +15,6 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 from retarget.errors import RetargetError
 
 #: What ``robot init`` puts after a value it had to guess (a comment-only line is not a marker).
@@ -106,7 +105,7 @@ class _ModelFacts:
     ctrl: dict
 
     @classmethod
-    def of(cls, m) -> "_ModelFacts":
+    def of(cls, m) -> _ModelFacts:
         import mujoco
 
         names = {kind: {mujoco.mj_id2name(m, obj, i) for i in range(n)} - {None}

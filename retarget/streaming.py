@@ -16,10 +16,10 @@ import casadi as ca
 import numpy as np
 
 from dualflow.motion import Motion
+from retarget.balance import N_EDGES, BalancePlanner
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
 from retarget.robot import segment_distance_sq
-from retarget.balance import N_EDGES, BalancePlanner
 from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
@@ -113,7 +113,7 @@ class _FrameSymbols:
     anchor: ca.SX
 
     @classmethod
-    def make(cls, rb) -> "_FrameSymbols":
+    def make(cls, rb) -> _FrameSymbols:
         return cls(ca.SX.sym("tgt", 3, rb.n_keypoints), ca.SX.sym("x1", rb.nx), ca.SX.sym("x2", rb.nx),
                    ca.SX.sym("acc_scale"), ca.SX.sym("contact", 2), ca.SX.sym("anchor", 2, 8))
 
@@ -131,7 +131,7 @@ class _BalanceSymbols:
     zmp_scale: ca.SX
 
     @classmethod
-    def make(cls) -> "_BalanceSymbols":
+    def make(cls) -> _BalanceSymbols:
         return cls(ca.SX.sym("edges", 3, N_EDGES), ca.SX.sym("points", 3, 3), ca.SX.sym("point_w", 3),
                    ca.SX.sym("c_pred", 2), ca.SX.sym("zmp_scale"))
 
@@ -189,7 +189,7 @@ class StreamingRetargeter:
     def _posture_weight(self) -> float:
         return self.robot.profile.posture_weight if self.config.posture_weight is None else self.config.posture_weight
 
-    def _tracking_rows(self, sym: "_FrameSymbols") -> list:
+    def _tracking_rows(self, sym: _FrameSymbols) -> list:
         """Keypoint, acceleration and posture rows, and the feet's rows (contact, ground; with
         balance also trunk upright and soles level)."""
         rb, cfg, x = self.robot, self.config, self.robot.kin.x_sym
@@ -216,7 +216,7 @@ class StreamingRetargeter:
                 res.append(np.sqrt(cfg.level_weight) * ca.reshape(z - ca.sum2(z) / 4, -1, 1))
         return res
 
-    def _balance_rows(self, bal: "_BalanceSymbols", com) -> list:
+    def _balance_rows(self, bal: _BalanceSymbols, com) -> list:
         """The CoM, DCM and ZMP outside the support region, the ZMP offset, and the capsule pairs."""
         rb, cfg = self.robot, self.config
         res = []

@@ -21,7 +21,6 @@ import numpy as np
 
 from retarget.errors import RetargetError
 
-
 #: Frame rates a trajectory file may have (frames/s): a motion clip at 1 fps to a control loop's
 #: telemetry at 1 kHz.
 FPS_RANGE = (1.0, 1000.0)
@@ -108,7 +107,7 @@ class RobotTrajectory:
         return np.arange(self.n_frames) / self.fps
 
     @classmethod
-    def standing(cls, joint_names, pose, n_frames: int, fps: float, root_pos=(0.0, 0.0, 0.0), robot: str = "") -> "RobotTrajectory":
+    def standing(cls, joint_names, pose, n_frames: int, fps: float, root_pos=(0.0, 0.0, 0.0), robot: str = "") -> RobotTrajectory:
         """A constant trajectory holding ``pose`` (n,) for ``n_frames`` frames."""
         q = np.tile(np.asarray(pose, dtype=np.float64), (n_frames, 1))
         return cls(tuple(joint_names), q, np.tile(np.asarray(root_pos, float), (n_frames, 1)),
@@ -131,7 +130,7 @@ class RobotTrajectory:
         return path
 
     @classmethod
-    def load_npz(cls, path) -> "RobotTrajectory":
+    def load_npz(cls, path) -> RobotTrajectory:
         """Read a file written by :meth:`save_npz`. Anything that cannot be a robot trajectory
         raises RetargetError naming the file and the field: a damaged archive, a missing
         field, array headers declaring absurd sizes (checked before allocating), non-float

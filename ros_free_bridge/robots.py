@@ -14,8 +14,8 @@ from firmware_cfg.config import RobotConfig, load_config
 from firmware_cfg.errors import ConfigError
 from firmware_cfg.registry import Robot, reference, resolve
 from firmware_cfg.servo_models import load_servo_model
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.safety import JointLimits
+from ros_free_bridge.errors import BridgeError
 
 #: Fraction of a servo's no-load speed the bridge may command (the rest is headroom
 #: for the position loop to catch up under load).

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-
 #: Closest the drawn actor's pelvis may come to the robot's root in the video (m, scene units).
 #: The robot keeps its feet planted while the generated partner may travel, so the actor,
 #: placed relative to the partner's first frame, can otherwise walk into the robot.

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig, RunSummary
-from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, resolve_robot
 from ros_free_bridge.control.targets import TargetBuffer
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, resolve_robot
 from ros_free_bridge.telemetry.log import TelemetryWriter
 
 TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
@@ -197,8 +197,8 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
             # In its own process, like real hardware: its Python must not compete with the
             # control loop for the GIL. It counts any goal outside the config's limits.
             from firmware_cfg.servo_models import load_servo_model
-            from ros_free_bridge.emulators.process import EmulatorProcess
             from ros_free_bridge.dynamixel.servos import servo_tick_limits
+            from ros_free_bridge.emulators.process import EmulatorProcess
 
             allowed = {s.id: servo_tick_limits(s, load_servo_model(s.model)) for s in bus.servos}
             emu = EmulatorProcess([(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices],

@@ -291,7 +291,7 @@ class _Recording:
     root_xmat: np.ndarray | None = None
 
     @classmethod
-    def empty(cls, t: np.ndarray, q_ref: np.ndarray, model, n_feet: int, k0: int) -> "_Recording":
+    def empty(cls, t: np.ndarray, q_ref: np.ndarray, model, n_feet: int, k0: int) -> _Recording:
         K, n = q_ref.shape
         return cls(t, q_ref, q_ref.copy(), np.zeros((K, n)), k0, np.full((K, model.nq), np.nan),
                    np.full((K, model.nv), np.nan), np.full((K, model.nu), np.nan), np.full((K, 3), np.nan),

@@ -25,7 +25,7 @@ class ContactClassifier:
         self.is_foot_body = np.zeros(model.nbody, bool)
         self.is_foot_body[list(foot_bodies)] = True
 
-    def classify_many(self, n_ticks: int, counts: np.ndarray, geoms, dists, points) -> "ContactLog":
+    def classify_many(self, n_ticks: int, counts: np.ndarray, geoms, dists, points) -> ContactLog:
         """All ticks at once: ``counts`` (K,) contacts per tick and, for the ticks with
         contacts, lists of their arrays (geom (c, 2), dist (c,), pos (c, 3)), as
         recorded by the checker."""

@@ -106,7 +106,7 @@ class RobotIndex:
         return tuple(j for j, b in zip(self.joint_names, bad) if b)
 
     @classmethod
-    def from_model(cls, model: mujoco.MjModel, root_body: str, facts=None) -> "RobotIndex":
+    def from_model(cls, model: mujoco.MjModel, root_body: str, facts=None) -> RobotIndex:
         """Index the robot under body ``root_body``; ``facts`` (:class:`sim.robot_facts.RobotFacts`,
         optional) fills in limits and speeds the MJCF does not give."""
         try:

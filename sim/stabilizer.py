@@ -35,7 +35,7 @@ class StabilizerGains:
     reference_cutoff_hz: float | None = None
     stance_band: float | None = None
 
-    def resolved(self, defaults: "StabilizerGains") -> "StabilizerGains":
+    def resolved(self, defaults: StabilizerGains) -> StabilizerGains:
         return StabilizerGains(**{k: (getattr(self, k) if getattr(self, k) is not None else getattr(defaults, k))
                                   for k in self.__dataclass_fields__})
 
@@ -92,7 +92,7 @@ class BalanceModel:
     gains: StabilizerGains
     notes: tuple = ()
 
-    def with_gains(self, gains: StabilizerGains | None) -> "BalanceModel":
+    def with_gains(self, gains: StabilizerGains | None) -> BalanceModel:
         """This model with ``gains``' given fields replacing the current ones."""
         if gains is None:
             return self

@@ -103,8 +103,8 @@ class VirtualRobot:
     def __init__(self, config: VirtualRobotConfig | None = None, clock=time.monotonic):
         self.config = config = config or VirtualRobotConfig()
         config.validate()
-        from sim.scene import robot_model_path
         from firmware_cfg.registry import joint_names
+        from sim.scene import robot_model_path
 
         self.joint_names: tuple[str, ...] = joint_names(robot_model_path(config.robot))
         self._clock = clock
@@ -305,7 +305,7 @@ class VirtualRobot:
         if not self._opened:
             raise SimError("virtual robot: call open() first (or it was closed)")
 
-    def __enter__(self) -> "VirtualRobot":
+    def __enter__(self) -> VirtualRobot:
         self.open()
         return self
 

@@ -840,8 +840,8 @@ def run_case(case: Case, timeout_s: float = 0.0) -> Outcome:
         return Outcome("hang", None, text[-300:], dt)
     if exc is not None:
         return Outcome("traceback", None, f"{type(exc).__name__}: {str(exc)[:200]}", dt)
-    lines = [l for l in text.splitlines() if l.strip()]
-    errors = [l for l in lines if l.startswith("error:")]
+    lines = [line for line in text.splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("error:")]
     if code == 2:
         if len(errors) == 1 and any(n in errors[0] for n in case.names) and len(errors[0]) < 2000:
             return Outcome("ok", 2, errors[0], dt)

@@ -18,7 +18,15 @@ if str(ROOT) not in sys.path:
 
 from bench import run_all  # noqa: E402
 from bench.table import (  # noqa: E402
-    COLUMNS, Row, cpu_counters, format_csv, format_markdown, format_table, parse_args, steal_percent, verdict,
+    COLUMNS,
+    Row,
+    cpu_counters,
+    format_csv,
+    format_markdown,
+    format_table,
+    parse_args,
+    steal_percent,
+    verdict,
     write_table,
 )
 

@@ -15,15 +15,15 @@ from dualflow.motion.io import save_motion
 from dualflow.synthetic import make_leader
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.commands.servo import start_emulator
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.loop import ControlLoop, Fault, LoopConfig
+from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
+from ros_free_bridge.dynamixel.servos import servo_tick_limits
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
+from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.session import SessionOptions, run_session
 from ros_free_bridge.sources import udp_packet
-from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
 from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
-from ros_free_bridge.dynamixel.servos import servo_tick_limits
-from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
 pytestmark = pytest.mark.slow
 XM = load_servo_model("XM430-W350")

@@ -32,7 +32,8 @@ def test_the_fixed_clock_keeps_where_the_first_frame_put_it():
 def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
     delay = 0.120  # frame k arrives 120 ms after its ideal time k / fps (a steady generator)
     first_late = 0.400  # the first frame was 400 ms late (a slow first window)
-    arrival = (lambda k: k / FPS + delay + (first_late - delay if k == 0 else 0.0))
+    def arrival(k):
+        return (k / FPS + delay + (first_late - delay if k == 0 else 0.0))
     clock = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=1.0, window_s=1.0))
     track = _drive(clock, arrival, 8.0)
     speed = np.diff(track[:, 1]) / np.diff(track[:, 0])
@@ -47,10 +48,12 @@ def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
 
 
 def test_the_adaptive_clock_slows_down_for_late_frames_and_catches_up_after():
-    arrival = (lambda k: k / FPS + (0.3 if 60 <= k < 70 else 0.05))  # a stall of 250 ms around 2 s
+    def arrival(k):
+        return (k / FPS + (0.3 if 60 <= k < 70 else 0.05))  # a stall of 250 ms around 2 s
     clock = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0, window_s=1.0))
     track = _drive(clock, arrival, 8.0)
-    delay_at = (lambda t: t - track[np.searchsorted(track[:, 0], t), 1])  # now - motion time
+    def delay_at(t):
+        return (t - track[np.searchsorted(track[:, 0], t), 1])  # now - motion time
     assert max(delay_at(t) for t in np.arange(2.3, 3.5, 0.05)) > 0.2  # it waited for the late frames
     assert 0.05 + 0.02 <= delay_at(7.9) <= 0.05 + 0.02 + 0.01  # and came back down (to the tick)
 
@@ -88,11 +91,13 @@ def test_without_extrapolation_the_buffer_holds():
 
 def test_one_late_frame_does_not_hold_the_clock_back_but_a_late_run_does():
     # frame 60 is 50 ms late (the next one, in order behind it, 17 ms)
-    arrival = (lambda k: k / FPS + (0.10 if k == 60 else 0.05))
+    def arrival(k):
+        return (k / FPS + (0.10 if k == 60 else 0.05))
     robust = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0))  # q = 0.9
     strict = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0, quantile=1.0))
     a, b = _drive(robust, arrival, 2.6), _drive(strict, arrival, 2.6)
-    lag = (lambda track: np.max(track[:, 0] - track[:, 1]))
+    def lag(track):
+        return (np.max(track[:, 0] - track[:, 1]))
     assert lag(a[a[:, 0] > 1.5]) < 0.05 + 0.02 + 0.011
     assert lag(b[b[:, 0] > 1.5]) > 0.1 + 0.02
 
@@ -115,8 +120,8 @@ def test_the_clock_target_is_the_quantile_of_the_recent_arrival_offsets(quantile
 
 
 def test_the_playback_quantile_is_checked_where_it_is_set():
-    from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.control.loop import LoopConfig
+    from ros_free_bridge.errors import BridgeError
 
     assert LoopConfig(playback_quantile=0.5).playback_quantile == 0.5
     for bad in (0.0, 1.5, float("nan")):
@@ -232,7 +237,8 @@ def test_a_late_frame_joins_the_command_to_the_new_curve_without_a_jump():
     t, smooth = _late_frame_commands(15.0)
     _, raw = _late_frame_commands(0.0)
     _, ideal = _late_frame_commands(0.0, late=False)
-    vel = (lambda c: np.diff(c) / 0.01)
+    def vel(c):
+        return (np.diff(c) / 0.01)
     # without smoothing the late frame's curve replaces the extrapolated one at once: a step in
     # velocity far beyond any in the curve itself; with it the velocity changes no more than the
     # in-time curve's does
@@ -255,8 +261,8 @@ def test_without_revisions_the_smoother_is_the_curve_itself():
 
 
 def test_the_revision_smoothing_is_checked_where_it_is_set():
-    from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.control.loop import LoopConfig
+    from ros_free_bridge.errors import BridgeError
 
     assert LoopConfig(revision_smoothing=0.0).revision_smoothing == 0.0
     for bad in (-1.0, float("inf"), float("nan")):

@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.safety import Intervention, JointLimits, SafetyFilter, min_jerk, min_jerk_duration
+from ros_free_bridge.errors import BridgeError
 
 DT = 0.01
 LIMITS = JointLimits(("a", "b", "c"), [-1.0, -0.5, 0.0], [1.0, 0.5, 2.0], [2.0, 4.0, 1.0], [20.0, 40.0, 10.0])

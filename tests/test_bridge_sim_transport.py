@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig
-from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
+from ros_free_bridge.robots import bridge_limits, resolve_robot
 from ros_free_bridge.transports.base import Transport
 from ros_free_bridge.transports.sim import SimTransport
 

@@ -25,7 +25,7 @@ def test_deadlines_do_not_drift_when_work_takes_time():
     ft = FakeTime()
     clock = FixedRateClock(100.0, now=ft.now, sleep=ft.sleep, spin_s=0.0)
     dues = []
-    for k in range(500):
+    for _k in range(500):
         tick = clock.wait()
         dues.append(tick.due)
         ft.t += 0.004  # 4 ms of work per 10 ms tick

@@ -48,7 +48,8 @@ def test_an_actor_walking_into_the_robot_is_kept_at_the_minimum_gap():
     robot = _robot(n)
     plain = actor_placement_for_robot(partner, robot)
     kept = actor_placement_for_robot(partner, robot, actor, min_gap=0.35)
-    gap = lambda pl: np.linalg.norm(place(actor.positions, pl.scale, pl)[:, 0, :2] - robot.root_pos[:, :2], axis=1)
+    def gap(pl):
+        return np.linalg.norm(place(actor.positions, pl.scale, pl)[:, 0, :2] - robot.root_pos[:, :2], axis=1)
     assert gap(plain).min() < 0.05  # without the actor, the drawn actor ends inside the robot
     assert gap(kept).min() >= 0.35 - 1e-6
     assert gap(kept).min() <= 0.35 + 1e-3  # moved just enough, straight away from the robot
@@ -56,9 +57,8 @@ def test_an_actor_walking_into_the_robot_is_kept_at_the_minimum_gap():
 
 
 def test_the_video_camera_looks_across_the_robot_actor_line_not_along_it():
-    from sim.render import CameraConfig
-
     from ros_free_bridge.run_video import side_view
+    from sim.render import CameraConfig
 
     n = 30
     partner = _person(np.zeros((n, 2)), 0.0)

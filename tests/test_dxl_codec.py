@@ -15,11 +15,11 @@ from hypothesis import strategies as st
 from firmware_cfg.config import parse_config
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.commands.servo import start_emulator
+from ros_free_bridge.dynamixel import protocol as dp
 from ros_free_bridge.dynamixel.group_codec import FastSyncReadDecoder, SyncWriteEncoder
 from ros_free_bridge.dynamixel.protocol import PacketError, encode_instruction
-from ros_free_bridge.dynamixel import protocol as dp
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.dynamixel.transport import DynamixelTransport
+from ros_free_bridge.errors import BridgeError
 
 XM = load_servo_model("XM430-W350")
 IDS = list(range(1, 21))

@@ -12,8 +12,8 @@ import serial
 
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge import BridgeError
-from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 from ros_free_bridge.dynamixel import protocol as dp
+from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 
 # XM430-W350 control table addresses (e-Manual).
 TORQUE, LED, SRL, HW_ERR = 64, 65, 68, 70

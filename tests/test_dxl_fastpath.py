@@ -9,19 +9,19 @@ import math
 
 import numpy as np
 import pytest
+import test_dxl_pipeline
 from dynamixel_sdk import GroupBulkRead, PacketHandler, PortHandler
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_dxl_codec import CapturePort, sdk_sync_write  # tests/ is on sys.path (pytest, prepend mode)
+from test_dxl_transport import XM, make, wait_for
 
 from firmware_cfg.config import load_config, robot_config_path
+from ros_free_bridge.dynamixel import protocol as dp
 from ros_free_bridge.dynamixel.group_codec import FastBulkReadDecoder, FastSyncReadDecoder, SyncWriteEncoder
 from ros_free_bridge.dynamixel.protocol import PacketError, crc16
-from ros_free_bridge.dynamixel import protocol as dp
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.dynamixel.transport import DynamixelTransport
-from test_dxl_codec import CapturePort, sdk_sync_write  # tests/ is on sys.path (pytest, prepend mode)
-import test_dxl_pipeline
-from test_dxl_transport import XM, make, wait_for
+from ros_free_bridge.errors import BridgeError
 
 IDS = list(range(1, 21))
 
@@ -93,7 +93,7 @@ def test_fast_bulk_read_fields_equal_the_sdk_parse():
     group.makeParam()  # what fastBulkReadTxPacket would do before sending
     assert group.fastBulkReadRxPacket() == 0
     expect = []
-    for sid, addr, size in items:
+    for sid, addr, _size in items:
         for off, fsize, signed in (fields[5] if sid == 7 else [(0, 4, True)]):
             raw = group.getData(sid, addr + off, fsize)
             expect.append(raw - (1 << 8 * fsize) if signed and raw >= 1 << (8 * fsize - 1) else raw)
@@ -173,7 +173,7 @@ def run_ticks(t, n: int, fast: bool):
         t.write_goal(t.lower * 0)
         j = t.cycle.pending[1]
         need = (t.cycle.bulk[j][0] if j >= 0 else t.cycle.fast).reply_length
-        assert wait_for(lambda: t.bus.port.ser.in_waiting >= need)
+        assert wait_for(lambda need=need: t.bus.port.ser.in_waiting >= need)
         out.append(t.read_state())
     del t._read_arrived
     return out, taken[0]

@@ -17,9 +17,9 @@ from firmware_cfg.device_models import OPENCR, STANDARD_GRAVITY, find_device_mod
 from firmware_cfg.errors import ConfigError
 from ros_free_bridge.commands.servo import start_emulator
 from ros_free_bridge.dynamixel.imu import quat_from_rpy, rotate_into
+from ros_free_bridge.dynamixel.transport import DynamixelTransport
 from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
 LAT = 30.0
 GYRO_LSB = 2000.0 / 32800.0 * math.pi / 180.0   # rad/s per count

@@ -9,10 +9,16 @@ import time
 
 import numpy as np
 import pytest
+from test_dxl_transport import (  # tests/ is on sys.path (pytest, prepend mode)
+    XM,
+    guarded_emulator,
+    make,
+    small_bus,
+    wait_for,
+)
 
 from ros_free_bridge.dynamixel import protocol as dp
 from ros_free_bridge.errors import BridgeError
-from test_dxl_transport import XM, guarded_emulator, make, small_bus, wait_for  # tests/ is on sys.path (pytest, prepend mode)
 
 
 @pytest.fixture

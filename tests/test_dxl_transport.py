@@ -13,13 +13,13 @@ import pytest
 from firmware_cfg.config import load_config, parse_config, robot_config_path
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.commands.servo import start_emulator
-from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
-from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.transports.base import Transport
 from ros_free_bridge.dynamixel.port import set_latency_timer
 from ros_free_bridge.dynamixel.protocol import decode_hardware_error
 from ros_free_bridge.dynamixel.servos import servo_register_settings, servo_tick_limits
 from ros_free_bridge.dynamixel.transport import DynamixelTransport
+from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
+from ros_free_bridge.errors import BridgeError
+from ros_free_bridge.transports.base import Transport
 
 XM = load_servo_model("XM430-W350")
 LAT = 30.0  # ms of reply-timeout latency: generous, the emulator shares this process's GIL
@@ -82,7 +82,7 @@ def test_units_direction_offset_and_settings():
             t.write_goal(goal)
             for i, sv in enumerate(bus.servos):  # SYNC_WRITE has no reply: wait for the emulator to take it
                 want = round(2048 + (sv.direction * goal[i] + sv.zero_offset) * 4096 / (2 * math.pi))
-                assert wait_for(lambda: emu.read_register(sv.id, "goal_position") == want), (sv.id, want)
+                assert wait_for(lambda sv=sv, want=want: emu.read_register(sv.id, "goal_position") == want), (sv.id, want)
             assert wait_for(lambda: np.allclose(t.read_state().position, goal, atol=2e-3))
             # every slow field gets refreshed within n cycles
             for _ in range(len(bus.servos)):

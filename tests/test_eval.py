@@ -10,13 +10,19 @@ import pytest
 import torch
 
 from dualflow.checkpoint import save_checkpoint
-from dualflow.text import TEXT_ENCODER_ID
 from dualflow.datasets import load_dataset
 from dualflow.errors import DualFlowError
-from dualflow.evaluation.evaluator import EvaluatorConfig, EvaluatorTraining, MotionTextEvaluator, train_evaluator, word_ids
+from dualflow.evaluation.evaluator import (
+    EvaluatorConfig,
+    EvaluatorTraining,
+    MotionTextEvaluator,
+    train_evaluator,
+    word_ids,
+)
 from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet, ProtocolConfig, evaluate
 from dualflow.model import DualFlow, DualFlowConfig
 from dualflow.motion.normalization import NormStats
+from dualflow.text import TEXT_ENCODER_ID
 
 FRAMES = 30
 TINY_EVAL = EvaluatorConfig(width=64, layers=2, heads=4, ff_dim=128, dim=64, vocab=1024)

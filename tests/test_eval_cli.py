@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from dualflow.checkpoint import save_checkpoint
-from dualflow.text import TEXT_ENCODER_ID
 from dualflow.datasets import load_dataset
 from dualflow.model import DualFlow, DualFlowConfig
 from dualflow.motion.normalization import NormStats
+from dualflow.text import TEXT_ENCODER_ID
 from ros_free_bridge.cli import main
 
 DATA = ["--dataset", "synthetic", "--frames", "20", "--clips", "12"]

@@ -175,8 +175,8 @@ def test_canonical_frame_properties(seed, yaw, x):
 def test_facing_is_undefined_for_a_vertical_across_vector():
     pos = np.repeat(REST_POSE[None], 2, axis=0).copy()
     r_hip, l_hip, r_sho, l_sho = FACE_JOINTS
-    for r, l in ((r_hip, l_hip), (r_sho, l_sho)):
-        pos[:, r, :2] = pos[:, l, :2]  # right exactly above/below left
+    for right, left in ((r_hip, l_hip), (r_sho, l_sho)):
+        pos[:, right, :2] = pos[:, left, :2]  # right exactly above/below left
     assert canonical_frame(Motion(pos)).yaw == 0.0
 
 

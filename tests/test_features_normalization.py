@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dualflow.errors import DualFlowError
-from dualflow.motion import Motion, REST_POSE, TwoPersonMotion
+from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
 from dualflow.motion.features import FEATURE_SLICES, encode_pair
 from dualflow.motion.normalization import STD_FLOOR, NormStats
 

@@ -10,7 +10,11 @@ import pytest
 import yaml
 
 from firmware_cfg.config import (
-    load_config, mjcf_joint_ranges, parse_config, robot_config_path, save_config,
+    load_config,
+    mjcf_joint_ranges,
+    parse_config,
+    robot_config_path,
+    save_config,
 )
 from firmware_cfg.errors import ConfigError
 

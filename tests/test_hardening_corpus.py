@@ -8,9 +8,9 @@ from __future__ import annotations
 import os
 from collections import Counter
 
+import hardening_corpus as hc
 import pytest
 
-import hardening_corpus as hc
 from ros_free_bridge.cli import main
 
 os.environ.setdefault("MUJOCO_GL", "egl")

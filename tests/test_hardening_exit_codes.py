@@ -119,7 +119,7 @@ def test_a_failed_physics_check_exits_1_and_bad_input_exits_2(tmp_path, capsys):
 
     assert main(["run", "--transport", "dynamixel", "--port", str(tmp_path / "no-such-port"), "--partner",
                  "imitate", "--quiet", "-o", str(tmp_path / "r")]) == 2
-    err = [l for l in capsys.readouterr().err.splitlines() if l.startswith("error")]
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and "no-such-port" in err[0]
     with pytest.raises(SystemExit) as exc:
         main(["run", "--transport", "teleport"])

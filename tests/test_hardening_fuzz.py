@@ -240,7 +240,7 @@ def test_telemetry_headers_and_records_read_or_raise_the_package_error(tmp_path,
 
 
 @FUZZ
-@given(data=st.one_of(st.binary(max_size=400), st.lists(JSON.map(json.dumps), max_size=5).map(lambda l: "\n".join(l).encode())))
+@given(data=st.one_of(st.binary(max_size=400), st.lists(JSON.map(json.dumps), max_size=5).map(lambda lines: "\n".join(lines).encode())))
 def test_events_files_read_or_raise_the_package_error(tmp_path, data):
     path = tmp_path / "t.dftl.events.jsonl"
     path.write_bytes(data)

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.loop import ControlLoop, Fault, LoopConfig
 from ros_free_bridge.control.safety import JointLimits
 from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
+from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
 from ros_free_bridge.transports.record import RecordTransport
 

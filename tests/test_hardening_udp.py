@@ -214,7 +214,7 @@ def test_attacks_from_another_local_sender_do_not_stop_the_genuine_stream(tmp_pa
     tel = read_telemetry(out / "telemetry.dftl")
     (end,) = [e for e in tel.events if e["kind"] == "end"]
     assert end["summary"]["frames_played"] >= 45  # of the 90 the genuine sender sent in those 3 s
-    (summary_line,) = [l for l in printed.splitlines() if l.startswith("udp input:")]
+    (summary_line,) = [line for line in printed.splitlines() if line.startswith("udp input:")]
     assert "dropped" in summary_line and "foreign" in summary_line
     (final,) = [e for e in tel.events if e["kind"] == "input"]
     assert final["dropped"]["foreign"] > 0 and final["senders"] == 1

@@ -15,8 +15,8 @@ from dualflow.music import (
     analyse_music,
     analyse_waveform,
     analysis_rate,
-    beat_track_features,
     beat_times,
+    beat_track_features,
     load_jukebox,
     music_features,
 )

@@ -15,8 +15,17 @@ from dualflow.motion.skeleton import JOINT_NAMES
 from retarget import RetargetError
 from retarget.robot import load_robot
 from retarget.streaming import StreamingConfig, StreamingRetargeter
-from retarget.support import (closest_point, com_margins, convex_hull, double_support_points, halfplanes,
-                              level_footprint, margin, shrink_footprint, stance_points)
+from retarget.support import (
+    closest_point,
+    com_margins,
+    convex_hull,
+    double_support_points,
+    halfplanes,
+    level_footprint,
+    margin,
+    shrink_footprint,
+    stance_points,
+)
 
 FPS = 30.0
 J = {n: i for i, n in enumerate(JOINT_NAMES)}
@@ -226,9 +235,9 @@ def test_fixed_base_robots_ignore_balance():
 def test_balance_needs_ankle_keypoints():
     import yaml
 
+    from firmware_cfg.registry import resolve
     from retarget.kinematics import RobotKinematics
     from retarget.profile import RetargetProfile
-    from firmware_cfg.registry import resolve
     from retarget.robot import RetargetRobot
 
     data = yaml.safe_load(resolve("op3").profile.read_text())

@@ -14,14 +14,13 @@ from urllib.parse import unquote
 
 import numpy as np
 import pytest
+from conftest import CMU_DIR, _require
 
 from dualflow.motion import REST_POSE, Motion
 from dualflow.motion.io import save_motion
 from ros_free_bridge.batch.report_html import markdown_to_html
 from ros_free_bridge.batch.results import read_results
 from ros_free_bridge.cli import main
-
-from conftest import CMU_DIR, _require
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 

@@ -3,14 +3,12 @@
 import json
 
 import numpy as np
-import pytest
 import yaml
 
 from dualflow.motion import REST_POSE, Motion, TwoPersonMotion
-from ros_free_bridge.cli import main
-from retarget import RobotTrajectory
 from firmware_cfg.registry import resolve
-
+from retarget import RobotTrajectory
+from ros_free_bridge.cli import main
 
 
 def _clip(T=24, shift=0.0):

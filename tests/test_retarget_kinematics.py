@@ -5,12 +5,12 @@ import casadi as ca
 import mujoco
 import numpy as np
 import pytest
+from retarget_toy import TOY_XML
 
+from firmware_cfg.registry import resolve
 from retarget import RetargetError
 from retarget.kinematics import RobotKinematics, euler_to_mat, mat_to_euler, mat_to_quat, quat_to_mat
-from firmware_cfg.registry import resolve
 from retarget.robot import segment_distance_sq
-from retarget_toy import TOY_XML
 
 ROBOTS = [resolve(name).mjcf for name in ("op3", "ub14")]
 

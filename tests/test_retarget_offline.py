@@ -8,14 +8,15 @@ import re
 
 import numpy as np
 import pytest
+from retarget_toy import toy_robot
+from test_retarget_streaming import op3_for_round_trip, robot_clip
 
+from dualflow.errors import DualFlowError
 from dualflow.motion import REST_POSE, Motion
 from retarget import RetargetError
 from retarget.offline import OfflineConfig, OfflineRetargeter
 from retarget.report import configurations, evaluate
 from retarget.targets import KeypointScaler, human_from_keypoints, make_targets
-from retarget_toy import toy_robot
-from test_retarget_streaming import op3_for_round_trip, robot_clip
 
 FAST = dict(compile=False, self_collision=False)
 
@@ -212,7 +213,7 @@ def test_retiming_plays_the_clip_slower_within_limits():
 def test_short_clips_are_refused(frames, match):
     rb = toy_robot()
     if frames == 0:
-        with pytest.raises(Exception):
+        with pytest.raises(DualFlowError):
             Motion(np.zeros((0, 22, 3)))
         return
     with pytest.raises(RetargetError, match=match):

@@ -6,10 +6,10 @@ Hessian 2·J_Rᵀ·J_R, at random points and parameters."""
 import casadi as ca
 import numpy as np
 import pytest
-
-from retarget.offline import OfflineConfig, OfflineRetargeter
 from retarget_toy import toy_robot
 from test_retarget_streaming import op3_for_round_trip
+
+from retarget.offline import OfflineConfig, OfflineRetargeter
 
 
 @pytest.mark.parametrize("robot, zmp", [(toy_robot, False), (toy_robot, True), (op3_for_round_trip, False)])

@@ -7,10 +7,10 @@ from (IPOPT doubles it and refactorises), so the solution is the same whatever t
 
 import numpy as np
 import pytest
-
-from retarget.offline import MUMPS_MEM_PERCENT, OfflineConfig, OfflineRetargeter
 from retarget_toy import toy_robot
 from test_retarget_offline import FAST, _noisy_walk
+
+from retarget.offline import MUMPS_MEM_PERCENT, OfflineConfig, OfflineRetargeter
 
 
 def _solve(mem_percent=None):

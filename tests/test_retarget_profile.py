@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 import yaml
+from retarget_toy import TOY_PROFILE, toy_robot
 
 from dualflow.motion import REST_POSE, Motion
+from firmware_cfg.registry import resolve
 from retarget import RetargetError
 from retarget.profile import RetargetProfile
-from firmware_cfg.registry import resolve
 from retarget.robot import load_robot
 from retarget.targets import KeypointScaler, detect_contacts, make_targets
-from retarget_toy import TOY_PROFILE, toy_robot
 
 
 def _with(path, value):

@@ -3,12 +3,12 @@
 import json
 
 import numpy as np
+from retarget_toy import toy_robot
 
 from dualflow.motion import REST_POSE, Motion
 from retarget.report import evaluate, jerk_ratio
 from retarget.streaming import trajectory_from_x
 from retarget.targets import make_targets
-from retarget_toy import toy_robot
 
 
 def _standing(rb, T=12):

@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
+from retarget_toy import toy_robot
 from scipy.optimize import lsq_linear
 
 from dualflow.motion import REST_POSE, Motion
 from retarget import RetargetError
 from retarget.streaming import StreamingConfig, StreamingRetargeter, solve_box_qp
 from retarget.targets import KeypointScaler, human_from_keypoints
-from retarget_toy import toy_robot
 
 
 def test_box_qp_matches_scipy_bounded_least_squares():
@@ -52,9 +52,9 @@ def op3_for_round_trip():
     """The bundled op3 with no posture pull and no rigid offsets, so targets invert exactly."""
     import yaml
 
+    from firmware_cfg.registry import resolve
     from retarget.kinematics import RobotKinematics
     from retarget.profile import RetargetProfile
-    from firmware_cfg.registry import resolve
     from retarget.robot import RetargetRobot
 
     op3 = resolve("op3")  # bundled: its absence is a broken install and fails here

@@ -15,9 +15,9 @@ from firmware_cfg.config import load_config, robot_config_path
 from firmware_cfg.servo_models import load_servo_model
 from ros_free_bridge.cli import main
 from ros_free_bridge.commands.servo import start_emulator
-from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 from ros_free_bridge.dynamixel.servos import servo_register_settings, servo_tick_limits
 from ros_free_bridge.dynamixel.transport import DynamixelTransport
+from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 
 OP3 = str(robot_config_path("op3"))
 XM = load_servo_model("XM430-W350")

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from dualflow.motion import REST_POSE, Motion
+from firmware_cfg.registry import joint_names
 from retarget import RobotTrajectory
 from sim import SimError
 from sim.check import HUMAN_DISTANCE_CAP, CheckConfig, check_trajectory, resample
 from sim.human_figure import Placement
 from sim.report import write_report
-from firmware_cfg.registry import joint_names
 from sim.scene import Scene, SceneConfig
 
 FPS = 30.0

@@ -39,7 +39,7 @@ def test_many_equals_one_tick_at_a_time():
     ticks and degenerate polygons: the vectorised margins equal the per-tick ones."""
     rng = np.random.default_rng(3)
     polys, cur = [], SQUARE
-    for k in range(400):
+    for _ in range(400):
         r = rng.random()
         if r < 0.15:
             n = int(rng.choice([0, 1, 2, 3, 4, 8]))

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from dualflow.motion import REST_POSE, Motion
+from firmware_cfg.registry import joint_names
 from retarget import RobotTrajectory
 from ros_free_bridge.cli import main
 from sim import SimError
 from sim.render import CameraConfig, RenderConfig, render_trajectory
-from firmware_cfg.registry import joint_names
 from sim.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim import SimError
 from firmware_cfg.readings import JointState
+from sim import SimError
 from sim.virtual_robot import VirtualRobot, VirtualRobotConfig
 
 

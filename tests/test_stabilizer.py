@@ -79,7 +79,7 @@ def test_corrections_stay_bounded_in_size_rate_and_joint_limits(op3):
     q = scene.stand_ctrl.copy()
     rng = np.random.default_rng(0)
     prev = np.zeros_like(q)
-    for k in range(200):
+    for _k in range(200):
         imu = _Imu(_pitched(rng.uniform(-1.0, 1.0)), gyro=rng.normal(0, 5, 3))
         out = stab.step(q, q + rng.normal(0, 0.05, q.size), imu, 0.01)
         c = out - q
@@ -132,8 +132,8 @@ def test_the_check_runs_the_stabilizer_by_default_and_not_with_it_off():
 @pytest.mark.slow
 def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_correction(tmp_path):
     from ros_free_bridge.control.loop import ControlLoop, LoopConfig
-    from ros_free_bridge.robots import bridge_limits, resolve_robot
     from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
+    from ros_free_bridge.robots import bridge_limits, resolve_robot
     from ros_free_bridge.telemetry.log import TelemetryWriter, read_telemetry
     from ros_free_bridge.transports.sim import SimTransport
 

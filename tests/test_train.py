@@ -17,9 +17,9 @@ from dualflow.checkpoint import load_checkpoint, load_model, save_checkpoint
 from dualflow.datasets.config import TrainingDataConfig
 from dualflow.datasets.synthetic import build_split
 from dualflow.datasets.training import make_datasets
-from dualflow.text import TEXT_ENCODER_ID, template_text_embedding
 from dualflow.model import DualFlow, DualFlowConfig
-from dualflow.train import Trainer, TrainConfig, load_train_config, train, warmup_lr
+from dualflow.text import TEXT_ENCODER_ID, template_text_embedding
+from dualflow.train import TrainConfig, Trainer, load_train_config, train, warmup_lr
 
 FAST = [
     "preset=tiny",

@@ -13,10 +13,10 @@ from test_datasets import make_dd100, make_interhuman, make_mdd
 
 from dualflow import DualFlowError
 from dualflow.checkpoint import load_checkpoint
-from dualflow.datasets.synthetic import click_track_music
-from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.datasets import load_dataset
+from dualflow.datasets.synthetic import click_track_music
 from dualflow.datasets.windows import window_split
+from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.motion.io import write_bvh_motion
 from dualflow.synthetic import make_duet
 from dualflow.train import Trainer, load_train_config

@@ -11,13 +11,21 @@ import torch
 from test_datasets import make_interhuman
 
 from dualflow import DualFlowError
-from dualflow.conditioning import ConditionBuilder
 from dualflow.checkpoint import load_checkpoint
+from dualflow.conditioning import ConditionBuilder
 from dualflow.datasets import load_dataset
 from dualflow.evaluation.protocol import CheckpointGenerator, EvalSet
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
-from dualflow.retrieval import (CUES, DB_FILE, ENCODER_FILE, NeighbourTable, RagConfig, RetrievalDatabase,
-                                drop_retrieval_tokens, load_rag)
+from dualflow.retrieval import (
+    CUES,
+    DB_FILE,
+    ENCODER_FILE,
+    NeighbourTable,
+    RagConfig,
+    RetrievalDatabase,
+    drop_retrieval_tokens,
+    load_rag,
+)
 from dualflow.train import Trainer, load_train_config
 
 FAST = ["preset=tiny", "data.n_clips=12", "data.val_clips=2", "data.frames=12", "batch_size=4", "threads=1",

@@ -21,8 +21,8 @@ package never imports torch; only :mod:`.training` does.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from dualflow.datasets.bvh_pairs import load_bvh_pairs
 from dualflow.datasets.collection import DuetSet

@@ -114,7 +114,7 @@ class TrainingDataConfig:
         return {k: d[k] for k in SYNTHETIC_FIELDS}
 
     @staticmethod
-    def from_dict(d: dict, where: str = "data") -> "TrainingDataConfig":
+    def from_dict(d: dict, where: str = "data") -> TrainingDataConfig:
         known = {f.name for f in fields(TrainingDataConfig)}
         unknown = sorted(set(d) - known)
         if unknown:

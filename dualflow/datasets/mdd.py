@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from dualflow.datasets.collection import DuetSet
 from dualflow.datasets.dd100 import check_up_axis
 from dualflow.datasets.files import load_array, load_features, read_lines, require_dir

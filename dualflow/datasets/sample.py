@@ -95,7 +95,7 @@ class DuetSample:
             m = np.concatenate([m, np.repeat(m[-1:], n_frames - len(m), axis=0)])
         return m
 
-    def window(self, start: int, length: int) -> "DuetSample":
+    def window(self, start: int, length: int) -> DuetSample:
         """Frames [start, start + length) of the clip (music cut alike), as a new sample."""
         if start < 0 or length < 2 or start + length > self.n_frames:
             raise DualFlowError(

@@ -16,9 +16,9 @@ import os
 import re
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -185,7 +185,7 @@ class MotionTextEvaluator(nn.Module):
         return path
 
     @staticmethod
-    def load(path: str | os.PathLike, device: str = "cpu") -> "MotionTextEvaluator":
+    def load(path: str | os.PathLike, device: str = "cpu") -> MotionTextEvaluator:
         path = Path(path)
         for name in (WEIGHTS_FILE, CONFIG_FILE, STATS_FILE):
             if not (path / name).is_file():

@@ -124,7 +124,7 @@ class Estimate:
     n: int
 
     @staticmethod
-    def of(values) -> "Estimate":
+    def of(values) -> Estimate:
         v = np.asarray(values, dtype=np.float64).reshape(-1)
         if len(v) == 0:
             return Estimate(float("nan"), float("nan"), 0)

@@ -9,8 +9,8 @@ features (B, T, 2, 262): :class:`CheckpointGenerator` (interactive or reactive) 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class EvalSet:
         return len(self.features)
 
     @staticmethod
-    def from_duet_set(dset: DuetSet, frames: int, stride: int | None = None) -> "EvalSet":
+    def from_duet_set(dset: DuetSet, frames: int, stride: int | None = None) -> EvalSet:
         ws = window_split(dset, frames, stride)
         beat_frames = [np.flatnonzero(b[:, 0] > 0.5) for b in ws.beats]
         fps = dset[0].fps if len(dset) else 30.0

@@ -10,7 +10,7 @@ Section rows (a label with no metrics) print as headings, e.g. "Reactive Task".
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 from dualflow.evaluation.metrics import Estimate
 from dualflow.evaluation.protocol import METRIC_KEYS

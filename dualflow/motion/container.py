@@ -89,21 +89,21 @@ class Motion:
         return np.arange(self.n_frames) / self.fps
 
     # -- derived motions --------------------------------------------------
-    def replace(self, **changes) -> "Motion":
+    def replace(self, **changes) -> Motion:
         fields = {"positions": self.positions, "fps": self.fps, "contacts": self.contacts, "name": self.name}
         fields.update(changes)
         return Motion(**fields)
 
-    def slice(self, start: int, stop: int | None = None) -> "Motion":
+    def slice(self, start: int, stop: int | None = None) -> Motion:
         """Frames [start, stop) as a new motion."""
         contacts = None if self.contacts is None else self.contacts[start:stop]
         return self.replace(positions=self.positions[start:stop], contacts=contacts)
 
-    def translated(self, offset) -> "Motion":
+    def translated(self, offset) -> Motion:
         """The same motion moved by ``offset`` (3,) metres."""
         return self.replace(positions=self.positions + np.asarray(offset, dtype=np.float64))
 
-    def resample(self, fps: float) -> "Motion":
+    def resample(self, fps: float) -> Motion:
         """Resample to ``fps`` by linear interpolation of positions over time.
 
         The new clip spans the same duration (its last frame is at or before the
@@ -166,14 +166,14 @@ class TwoPersonMotion:
     def __len__(self) -> int:
         return self.n_frames
 
-    def resample(self, fps: float) -> "TwoPersonMotion":
+    def resample(self, fps: float) -> TwoPersonMotion:
         return TwoPersonMotion(self.actor.resample(fps), self.reactor.resample(fps), self.text, dict(self.meta))
 
-    def slice(self, start: int, stop: int | None = None) -> "TwoPersonMotion":
+    def slice(self, start: int, stop: int | None = None) -> TwoPersonMotion:
         return TwoPersonMotion(self.actor.slice(start, stop), self.reactor.slice(start, stop), self.text, dict(self.meta))
 
     @classmethod
-    def from_pair(cls, actor: Motion, reactor: Motion, text: str = "") -> "TwoPersonMotion":
+    def from_pair(cls, actor: Motion, reactor: Motion, text: str = "") -> TwoPersonMotion:
         """Pair two motions recorded in one world frame, resampling the reactor to the
         actor's fps and trimming both to the shorter length."""
         if abs(actor.fps - reactor.fps) > 1e-9:

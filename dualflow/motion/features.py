@@ -108,7 +108,7 @@ class CanonicalFrame:
         return {"yaw": self.yaw, "origin": [float(v) for v in self.origin]}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "CanonicalFrame":
+    def from_dict(cls, data: dict) -> CanonicalFrame:
         if not isinstance(data, dict) or "yaw" not in data or "origin" not in data:
             raise DualFlowError(
                 f"canonical frame: expected a mapping with keys 'yaw' and 'origin', got {data!r}"

@@ -59,7 +59,7 @@ class NormStats:
         object.__setattr__(self, "std", std)
 
     @classmethod
-    def from_features(cls, features, std_floor: float = STD_FLOOR) -> "NormStats":
+    def from_features(cls, features, std_floor: float = STD_FLOOR) -> NormStats:
         """Statistics over every row of ``features`` (..., 262): one person (T, 262),
         a pair (T, 2, 262), a batch (N, T, 2, 262), or a list of such arrays
         (all persons and frames pooled). ``std = max(std, std_floor)``."""
@@ -95,7 +95,7 @@ class NormStats:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "NormStats":
+    def load(cls, path: str | os.PathLike) -> NormStats:
         """Read stats written by :meth:`save`; bad files raise DualFlowError naming the file."""
         from dualflow.motion.io.npfile import open_npz
 

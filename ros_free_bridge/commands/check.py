@@ -44,12 +44,12 @@ def add_placement_options(p, prefix: str, what: str, partner: bool = True) -> No
     p.add_argument(f"--{prefix}", help=what)
     p.add_argument(f"--{prefix}-scale", default="robot",
                    help="'robot' (shrunk to the robot's height), 'human' (life size) or a number (default robot)")
-    where = ("(default: face to face with the robot, see --%s-distance)" % prefix if partner
+    where = (f"(default: face to face with the robot, see --{prefix}-distance)" if partner
              else "(default 0 0 0: as the file has them)")
     p.add_argument(f"--{prefix}-offset", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                    help=f"move the person by this much after scaling, metres, instead of placing them {where}")
     p.add_argument(f"--{prefix}-yaw", type=float, default=None,
-                   help="turn the person about +Z, degrees, with --%s-offset (default 0)" % prefix)
+                   help=f"turn the person about +Z, degrees, with --{prefix}-offset (default 0)")
     if partner:
         p.add_argument(f"--{prefix}-distance", type=float, default=None, metavar="M",
                        help="face to face: from the robot's root to the person's pelvis at the first frame, metres, "

@@ -70,13 +70,12 @@ def click_track(beat_times: np.ndarray, seconds: float, path: Path, sr: int = 22
 def demo(args) -> int:
     from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
     from ros_free_bridge.commands.run import StatusLine, generator_options, print_summary
+    from ros_free_bridge.robots import resolve_robot
     from ros_free_bridge.run_video import render_video
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry.log import read_telemetry
     from sim.check import CheckConfig, check_trajectory
     from sim.report import stabilizer_line, write_report
-
-    from ros_free_bridge.robots import resolve_robot
 
     files = resolve_robot(args.robot)
     if files.hardware is None and not args.no_bus:

@@ -87,8 +87,7 @@ def describe(motion) -> str:
         lines.append(f"  height (standing estimate)  {estimate_height(pos):.2f} m")
         lines.append(f"  pelvis height               {pos[:, 0, 2].min():.2f} .. {pos[:, 0, 2].max():.2f} m")
         lines.append(f"  lowest foot joint           {pos[:, list(FOOT_JOINTS), 2].min():+.3f} m")
-        lines.append("  extents  x {:+.2f} .. {:+.2f}   y {:+.2f} .. {:+.2f}   z {:+.2f} .. {:+.2f} m".format(
-            lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
+        lines.append(f"  extents  x {lo[0]:+.2f} .. {hi[0]:+.2f}   y {lo[1]:+.2f} .. {hi[1]:+.2f}   z {lo[2]:+.2f} .. {hi[2]:+.2f} m")
         path = np.linalg.norm(np.diff(pos[:, 0, :2], axis=0), axis=-1).sum()
         lines.append(f"  pelvis ground path          {path:.2f} m")
     if isinstance(motion, TwoPersonMotion):

@@ -203,9 +203,9 @@ def start_emulator(bus, *, provisioned: bool = False, wire_timing: bool = False)
     """A :class:`DynamixelBusEmulator` with the bus's servos (IDs and models) and devices
     (e.g. the OP3's OpenCR IMU), started. ``provisioned``: the servos' control tables
     already hold the config's settings."""
-    from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
-    from ros_free_bridge.dynamixel.servos import servo_register_settings
     from firmware_cfg.servo_models import load_servo_model
+    from ros_free_bridge.dynamixel.servos import servo_register_settings
+    from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 
     specs = [ServoSpec(s.id, s.model) for s in bus.servos] + [ServoSpec(d.id, d.model) for d in bus.devices]
     emu = DynamixelBusEmulator(servos=specs, baud=bus.baud, protocol=int(float(bus.protocol)),
@@ -489,7 +489,7 @@ def monitor_rows(dxl, bus) -> list[list[str]]:
     for s in bus.servos:
         m = load_servo_model(s.model)
 
-        def get(*names):
+        def get(*names, m=m, s=s):
             for n in names:
                 if m.has(n):
                     return dxl.read(s.id, m.register(n))[0]

@@ -87,11 +87,11 @@ def replay_on_transport(tel, traj, robot: str, args) -> bool:
     import time
     from contextlib import ExitStack
 
-    from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.control.loop import ControlLoop, LoopConfig
+    from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
+    from ros_free_bridge.errors import BridgeError
     from ros_free_bridge.robots import bridge_limits, model_limits, resolve_robot
     from ros_free_bridge.session import MODEL_ONLY_TRANSPORTS, SessionOptions, open_transport
-    from ros_free_bridge.control.targets import TargetBuffer, TargetFrame
 
     files = resolve_robot(robot)
     if files.hardware is None and args.transport in MODEL_ONLY_TRANSPORTS:

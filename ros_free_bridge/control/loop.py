@@ -22,11 +22,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ros_free_bridge.control.clock import FixedRateClock
-from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.control.playback import PlaybackClock, PlaybackPolicy
 from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
 from ros_free_bridge.control.safety import JointLimits, SafetyFilter, min_jerk, min_jerk_duration
 from ros_free_bridge.control.targets import RevisionSmoother, TargetBuffer
+from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.telemetry.log import TelemetryWriter
 from ros_free_bridge.transports.base import STOP_POLICIES
 

@@ -42,7 +42,7 @@ class LoopGc:
         self._was_enabled = True
         self._last_full = 0.0
 
-    def __enter__(self) -> "LoopGc":
+    def __enter__(self) -> LoopGc:
         self._was_enabled = gc.isenabled()
         gc.disable()
         gc.collect()  # start clean: what is left now is long-lived

@@ -72,7 +72,7 @@ class JointLimits:
     def n(self) -> int:
         return len(self.names)
 
-    def intersect(self, other: "JointLimits") -> "JointLimits":
+    def intersect(self, other: JointLimits) -> JointLimits:
         """The tighter of two limit sets for the same joints (by name)."""
         idx = [other.names.index(n) if n in other.names else -1 for n in self.names]
         missing = [n for n, i in zip(self.names, idx) if i < 0]

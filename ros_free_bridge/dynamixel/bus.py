@@ -74,7 +74,7 @@ class DynamixelBus:
             except Exception:
                 pass
 
-    def __enter__(self) -> "DynamixelBus":
+    def __enter__(self) -> DynamixelBus:
         self.open()
         return self
 

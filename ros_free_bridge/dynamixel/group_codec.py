@@ -17,7 +17,15 @@ import struct
 import numpy as np
 
 from ros_free_bridge.dynamixel.protocol import (
-    BROADCAST_ID, FAST_BULK_READ, FAST_SYNC_READ, HEADER2, INT_FORMAT, STATUS, SYNC_WRITE, PacketError, crc16,
+    BROADCAST_ID,
+    FAST_BULK_READ,
+    FAST_SYNC_READ,
+    HEADER2,
+    INT_FORMAT,
+    STATUS,
+    SYNC_WRITE,
+    PacketError,
+    crc16,
     encode_instruction,
 )
 

@@ -146,7 +146,7 @@ class DynamixelTransport:
                 atexit.unregister(self._atexit)
                 self._atexit = None
 
-    def __enter__(self) -> "DynamixelTransport":
+    def __enter__(self) -> DynamixelTransport:
         self.open()
         return self
 

@@ -19,8 +19,8 @@ import termios
 import threading
 import time
 import tty
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
 
 from firmware_cfg.device_models import find_device_model
 from firmware_cfg.servo_models import BAUD_TOLERANCE, load_servo_model
@@ -211,7 +211,7 @@ class DynamixelBusEmulator:
         raise BridgeError(f"emulator servo entry must be an ID, (id, model) or ServoSpec, got {item!r}")
 
     # ------------------------------------------------------------------ life cycle
-    def start(self, threaded: bool = True) -> "DynamixelBusEmulator":
+    def start(self, threaded: bool = True) -> DynamixelBusEmulator:
         """Open the pty and, with ``threaded``, start the reader thread. With
         ``threaded=False`` nothing answers until the caller calls :meth:`pump`."""
         if self._master is not None:
@@ -263,7 +263,7 @@ class DynamixelBusEmulator:
 
     close = stop
 
-    def __enter__(self) -> "DynamixelBusEmulator":
+    def __enter__(self) -> DynamixelBusEmulator:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -717,7 +717,7 @@ class DynamixelBusEmulator:
         announced = 1 + sum(4 + length for _, _, length in items)
         raw = bytearray(dp.encode_fast_status(parts, announced))
         pos = 8
-        for (err, i, data), s in zip(parts, owners):
+        for (_err, _i, data), s in zip(parts, owners):
             if s.faults.take("corrupt_replies"):
                 raw[pos + 2 if data else pos] ^= 0xFF  # flip a byte; the packet CRC no longer holds
             pos += 4 + len(data)

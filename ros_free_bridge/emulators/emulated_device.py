@@ -14,13 +14,13 @@ board mounting, exactly inverting what the transport does.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from firmware_cfg.device_models import STANDARD_GRAVITY, DeviceModel
-from ros_free_bridge.emulators.emulated_servo import Faults, WriteResult
 from ros_free_bridge.dynamixel.imu import imu_raw_values, rotate_into
+from ros_free_bridge.emulators.emulated_servo import Faults, WriteResult
 
 ImuSource = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
 

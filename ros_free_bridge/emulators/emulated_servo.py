@@ -14,8 +14,8 @@ from __future__ import annotations
 import math
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from firmware_cfg.servo_models import ServoModel
 

@@ -110,7 +110,7 @@ class EmulatorProcess:
                 self._proc.kill()
         return self.stats
 
-    def __enter__(self) -> "EmulatorProcess":
+    def __enter__(self) -> EmulatorProcess:
         return self
 
     def __exit__(self, *exc) -> None:

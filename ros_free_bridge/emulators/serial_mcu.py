@@ -91,7 +91,7 @@ class SerialMcuEmulator:
         self.port = ""
 
     # ------------------------------------------------------------------ life cycle
-    def start(self) -> "SerialMcuEmulator":
+    def start(self) -> SerialMcuEmulator:
         master, slave = os.openpty()
         tty.setraw(slave)
         self._master, self._slave = master, slave
@@ -114,7 +114,7 @@ class SerialMcuEmulator:
                     pass
         self._master = self._slave = None
 
-    def __enter__(self) -> "SerialMcuEmulator":
+    def __enter__(self) -> SerialMcuEmulator:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -111,7 +111,7 @@ class SerialLinkTransport:
         """False: no split-phase bus cycle here (see transports.base)."""
         return False
 
-    def __enter__(self) -> "SerialLinkTransport":
+    def __enter__(self) -> SerialLinkTransport:
         self.open()
         return self
 

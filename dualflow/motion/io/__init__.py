@@ -13,8 +13,6 @@ from dualflow.motion.io.bvh_motion import (
     read_bvh_motion,
     write_bvh_motion,
 )
-from dualflow.motion.io.joint_maps import BUILTIN_MAPS, JointMap, load_joint_map, resolve_joint_map
-from dualflow.motion.io.units import HEIGHT_RANGE, KNOWN_UNITS, estimate_height
 from dualflow.motion.io.formats import (
     DUET_FORMAT,
     MOTION_FORMAT,
@@ -24,3 +22,12 @@ from dualflow.motion.io.formats import (
     put_on_ground,
     save_motion,
 )
+from dualflow.motion.io.joint_maps import BUILTIN_MAPS, JointMap, load_joint_map, resolve_joint_map
+from dualflow.motion.io.units import HEIGHT_RANGE, KNOWN_UNITS, estimate_height
+
+__all__ = [
+    "BUILTIN_MAPS", "DUET_FORMAT", "HEIGHT_RANGE", "KNOWN_UNITS", "MOTION_FORMAT", "BvhClip", "BvhImport",
+    "BvhImportOptions", "BvhJoint", "JointMap", "bvh_to_motion", "estimate_height", "load_any", "load_joint_map",
+    "load_motion", "load_pair", "motion_to_bvh", "put_on_ground", "read_bvh", "read_bvh_motion", "resolve_joint_map",
+    "save_motion", "write_bvh", "write_bvh_motion",
+]

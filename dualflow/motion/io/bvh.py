@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from dualflow.errors import DualFlowError
 
 #: Deepest joint chain accepted (a human skeleton is about 10 deep; hands and face rigs 30).
@@ -118,7 +119,7 @@ class BvhClip:
                 f"{self.source}: no joint named {name!r}; the file has: {', '.join(self.names)}"
             ) from None
 
-    def slice(self, start: int, stop: int | None = None) -> "BvhClip":
+    def slice(self, start: int, stop: int | None = None) -> BvhClip:
         return BvhClip(self.joints, self.frame_time, self.motion[start:stop], self.source,
                        self.first_motion_line + start)
 

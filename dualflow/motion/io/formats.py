@@ -22,9 +22,7 @@ from dualflow.motion.io.bvh import atomic_write_bytes
 from dualflow.motion.io.bvh_motion import BvhImportOptions, read_bvh_motion, write_bvh_motion
 from dualflow.motion.io.npfile import open_npz, read_npy, scalar, text
 from dualflow.motion.io.units import (
-    FPS_RANGE,
     HEIGHT_RANGE,
-    MAX_COORDINATE_M,
     MIN_FRAMES,
     Y_UP,
     axes_matrix,

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -45,7 +45,8 @@ def _sided(left: dict) -> dict:
     for smpl, src in left.items():
         if not smpl.startswith("left_"):
             continue
-        swap = lambda n: n.replace("Left", "Right").replace("LHip", "RHip").replace("LThumb", "RThumb")
+        def swap(n):
+            return n.replace("Left", "Right").replace("LHip", "RHip").replace("LThumb", "RThumb")
         if isinstance(src, str):
             out["right_" + smpl[5:]] = swap(src)
         else:
