@@ -84,9 +84,11 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     cond = Conditions(text=text, music=music)
     n = actor.shape[0]
     L = model.config.look_ahead
-    print(f"model: {ckpt.path} ({sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params), L = {L} frames, "
-          f"{n} frames ({args.seconds:.0f} s at 30 fps), rule {args.rule!r}, {args.steps} Euler steps, "
-          f"window {args.window}, device {args.device}, {torch.get_num_threads()} thread(s)")
+    print(
+        f"model: {ckpt.path} ({sum(p.numel() for p in model.parameters()) / 1e6:.2f}M params), L = {L} frames, "
+        f"{n} frames ({args.seconds:.0f} s at 30 fps), rule {args.rule!r}, {args.steps} Euler steps, "
+        f"window {args.window}, device {args.device}, {torch.get_num_threads()} thread(s)"
+    )
 
     # 1. timing --------------------------------------------------------------------------
     with torch.no_grad():
@@ -100,12 +102,18 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     sh = stream(model, actor, cond, stats, window=args.window, hop=args.hop, steps=args.steps)
     print("\ncompute time per emitted frame (ms):")
     print(f"  baseline: one offline {args.window}-frame window / {args.window} frames   {offline_ms:8.2f}")
-    print(f"  streamer hop 1  (delay L = {L} frames + compute)      {s1.timing.per_frame_s * 1000:8.2f}"
-          f"   (worst window {s1.timing.max_window_s * 1000:.1f} ms)")
-    print(f"  streamer hop 1, incremental windows             {si.timing.per_frame_s * 1000:8.2f}"
-          f"   (worst window {si.timing.max_window_s * 1000:.1f} ms; catch-up of the second start included)")
-    print(f"  streamer hop {args.hop:<2d} (delay up to {L + args.hop - 1} frames + compute) {sh.timing.per_frame_s * 1000:8.2f}"
-          f"   (worst window {sh.timing.max_window_s * 1000:.1f} ms)")
+    print(
+        f"  streamer hop 1  (delay L = {L} frames + compute)      {s1.timing.per_frame_s * 1000:8.2f}"
+        f"   (worst window {s1.timing.max_window_s * 1000:.1f} ms)"
+    )
+    print(
+        f"  streamer hop 1, incremental windows             {si.timing.per_frame_s * 1000:8.2f}"
+        f"   (worst window {si.timing.max_window_s * 1000:.1f} ms; catch-up of the second start included)"
+    )
+    print(
+        f"  streamer hop {args.hop:<2d} (delay up to {L + args.hop - 1} frames + compute) {sh.timing.per_frame_s * 1000:8.2f}"
+        f"   (worst window {sh.timing.max_window_s * 1000:.1f} ms)"
+    )
     print(f"  target: < {REALTIME_MS:.1f} ms per frame for 30 fps real time")
 
     # 2. seams ---------------------------------------------------------------------------
@@ -123,9 +131,13 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     print(f"\nvelocity jump (mm/frame^2, mean over joints), windows of {args.hop} new frames:")
     print(f"  {'':40s} {'at seams':>9s} {'inside':>9s} {'ratio':>7s}")
     r_p = seam_report(positions_from_normalized(sp.emitted, stats), [w[0] for w in sp.timing.windows])
-    for label, r in (("ground-truth follower (scale)", r_gt), ("baseline: windows without context", r_n),
-                     ("streamer + window frames (opt-in)", r_g), ("streamer, straight-path context", r_p),
-                     ("streamer, trajectory context (default)", r_h)):
+    for label, r in (
+        ("ground-truth follower (scale)", r_gt),
+        ("baseline: windows without context", r_n),
+        ("streamer + window frames (opt-in)", r_g),
+        ("streamer, straight-path context", r_p),
+        ("streamer, trajectory context (default)", r_h),
+    ):
         print(f"  {label:40s} {r.seam_mean * 1000:9.2f} {r.within_mean * 1000:9.2f} {r.ratio:7.2f}")
     print("  target: seam jump about the within-window jump (ratio about 1)")
 
@@ -149,25 +161,52 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     out = []
     for label, st in (("hop 1", s1), ("hop 1, incremental windows", si), (f"hop {args.hop}", sh)):
         ms = st.timing.per_frame_s * 1000
-        out.append(Row(f"streamer compute per emitted frame, {label}, {setting} (ms)", ms, base_ms, rt,
-                       verdict(ms < REALTIME_MS)))
+        out.append(
+            Row(
+                f"streamer compute per emitted frame, {label}, {setting} (ms)",
+                ms,
+                base_ms,
+                rt,
+                verdict(ms < REALTIME_MS),
+            )
+        )
     out += [
-        Row(f"seam / inside velocity-jump ratio, streamer hop {args.hop}, trajectory context (baseline {no_ctx})",
-            r_h.ratio, r_n.ratio, "about 1"),
-        Row(f"seam / inside velocity-jump ratio, streamer, straight-path context (baseline {no_ctx})", r_p.ratio,
-            r_n.ratio, "about 1"),
-        Row(f"seam / inside velocity-jump ratio, streamer + window frames (baseline {no_ctx})", r_g.ratio,
-            r_n.ratio, "about 1"),
+        Row(
+            f"seam / inside velocity-jump ratio, streamer hop {args.hop}, trajectory context (baseline {no_ctx})",
+            r_h.ratio,
+            r_n.ratio,
+            "about 1",
+        ),
+        Row(
+            f"seam / inside velocity-jump ratio, streamer, straight-path context (baseline {no_ctx})",
+            r_p.ratio,
+            r_n.ratio,
+            "about 1",
+        ),
+        Row(
+            f"seam / inside velocity-jump ratio, streamer + window frames (baseline {no_ctx})",
+            r_g.ratio,
+            r_n.ratio,
+            "about 1",
+        ),
         Row("seam / inside velocity-jump ratio, ground-truth follower (the natural scale)", r_gt.ratio),
-        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop} (m; baseline {no_ctx})", mpjpe(pos_h),
-            mpjpe(pos_n)),
-        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop}, straight-path context (m)",
-            mpjpe(positions_from_normalized(sp.emitted, stats)), mpjpe(pos_n)),
-        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop} + window frames (m)", mpjpe(pos_g),
-            mpjpe(pos_n)),
+        Row(
+            f"reactor MPJPE vs rule follower, streamer hop {args.hop} (m; baseline {no_ctx})",
+            mpjpe(pos_h),
+            mpjpe(pos_n),
+        ),
+        Row(
+            f"reactor MPJPE vs rule follower, streamer hop {args.hop}, straight-path context (m)",
+            mpjpe(positions_from_normalized(sp.emitted, stats)),
+            mpjpe(pos_n),
+        ),
+        Row(f"reactor MPJPE vs rule follower, streamer hop {args.hop} + window frames (m)", mpjpe(pos_g), mpjpe(pos_n)),
         Row("reactor MPJPE vs rule follower, streamer hop 1 (m)", mpjpe(pos_1), mpjpe(pos_n)),
-        Row("reactor MPJPE vs rule follower, streamer hop 1, incremental windows (m)",
-            mpjpe(positions_from_normalized(si.emitted, stats)), mpjpe(pos_n)),
+        Row(
+            "reactor MPJPE vs rule follower, streamer hop 1, incremental windows (m)",
+            mpjpe(positions_from_normalized(si.emitted, stats)),
+            mpjpe(pos_n),
+        ),
     ]
     return out
 

@@ -87,19 +87,31 @@ def run_loop(transport, limits, rate_hz: float, seconds: float, realtime: int = 
         if now > tick.due + loop.dt:
             overruns[0] += 1
 
-    loop = ControlLoop(transport, limits, buf, LoopConfig(rate_hz=rate_hz, rest_pose=mid, min_ramp=0.5,
-                                                          handle_signals=False, realtime_priority=realtime),
-                       on_status=on_status)
+    loop = ControlLoop(
+        transport,
+        limits,
+        buf,
+        LoopConfig(rate_hz=rate_hz, rest_pose=mid, min_ramp=0.5, handle_signals=False, realtime_priority=realtime),
+        on_status=on_status,
+    )
     threading.Thread(target=_producer, args=(buf, loop, seconds, limits), daemon=True).start()
     cpu0, wall0, host0 = time.thread_time(), time.monotonic(), cpu_counters()
     summary = loop.run()
     cpu, wall = time.thread_time() - cpu0, time.monotonic() - wall0
     steal = steal_percent(host0, cpu_counters())
     lat = np.asarray(lateness) * 1e3
-    return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)), "overruns": overruns[0],
-            "work_p50": float(np.percentile(work, 50)) * 1e3, "work_p99": float(np.percentile(work, 99)) * 1e3,
-            "misses": summary.deadline_misses, "ticks": summary.ticks, "cpu": cpu / wall, "state": summary.end_state,
-            "steal": steal}
+    return {
+        "p50": float(np.percentile(lat, 50)),
+        "p99": float(np.percentile(lat, 99)),
+        "overruns": overruns[0],
+        "work_p50": float(np.percentile(work, 50)) * 1e3,
+        "work_p99": float(np.percentile(work, 99)) * 1e3,
+        "misses": summary.deadline_misses,
+        "ticks": summary.ticks,
+        "cpu": cpu / wall,
+        "state": summary.end_state,
+        "steal": steal,
+    }
 
 
 def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dict]:
@@ -112,8 +124,9 @@ def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dic
 
     cfg = resolve_robot("op3").hardware_config()
     limits = bridge_limits(cfg)
-    base = run_loop(RecordTransport(limits.names, initial=0.5 * (limits.lower + limits.upper)), limits, rate_hz, seconds,
-                    realtime)
+    base = run_loop(
+        RecordTransport(limits.names, initial=0.5 * (limits.lower + limits.upper)), limits, rate_hz, seconds, realtime
+    )
     bus = cfg.bus()
     units = [(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices]  # + the OpenCR IMU
     with EmulatorProcess(units, baud=bus.baud, wire_timing=True, realtime=realtime) as emu:
@@ -129,8 +142,16 @@ def jitter(rate_hz: float, seconds: float, realtime: int = 0) -> tuple[dict, dic
 #: --smoothing 0, extrapolation over one frame at full speed): a frame waited for 90 % of the recent
 #: frames' arrival plus 20 ms, so that the loop seldom extrapolated
 PREVIOUS_PLAYBACK = dict(playback_quantile=0.9, playback_margin=0.02, extrapolate_frames=1.0, revision_smoothing=0.0)
-OLD_DEFAULTS = dict(steps=5, hop=5, window=60, incremental=False, predict_next=False, adaptive_playback=False,
-                    extrapolate_frames=0.0, revision_smoothing=0.0)
+OLD_DEFAULTS = dict(
+    steps=5,
+    hop=5,
+    window=60,
+    incremental=False,
+    predict_next=False,
+    adaptive_playback=False,
+    extrapolate_frames=0.0,
+    revision_smoothing=0.0,
+)
 
 
 def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
@@ -145,8 +166,15 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     from ros_free_bridge.session import SessionOptions, run_session
     from ros_free_bridge.telemetry.log import read_telemetry
 
-    opts = SessionOptions(actor="synthetic", seconds=seconds, transport="record", generator=generator,
-                          out=Path(f"/tmp/bench_e2e_{generator}"), handle_signals=False, **options)
+    opts = SessionOptions(
+        actor="synthetic",
+        seconds=seconds,
+        transport="record",
+        generator=generator,
+        out=Path(f"/tmp/bench_e2e_{generator}"),
+        handle_signals=False,
+        **options,
+    )
     cpu0 = cpu_counters()
     res = run_session(opts)
     steal = steal_percent(cpu0, cpu_counters())
@@ -164,36 +192,58 @@ def end_to_end(seconds: float, generator: str = "process", **options) -> dict:
     partner = (e2e + stamp - arrivals[c - ahead]) * 1e3
     gen = rec["generator_latency"]
     gen = np.unique(gen[np.isfinite(gen)])  # one value per window (its frames share it)
+
     def pct(a, q):
-        return (float(np.percentile(a, q)) if a.size else float("nan"))
+        return float(np.percentile(a, q)) if a.size else float("nan")
+
     # smoothness of what the bus got while streaming: the commands' mean |acceleration| and the
     # share of ticks the safety filter had to change (a rougher target means more of both)
     from ros_free_bridge.control.loop import Fault, State
 
     running = rec["state"] == int(State.RUNNING)
     cmd = rec["command"][running]
-    acc = np.abs(np.diff(cmd, 2, axis=0)).mean() * opts.rate_hz ** 2 if cmd.shape[0] > 2 else float("nan")
+    acc = np.abs(np.diff(cmd, 2, axis=0)).mean() * opts.rate_hz**2 if cmd.shape[0] > 2 else float("nan")
     clipped = float(np.mean(np.any(rec["intervention"][running] != 0, axis=1))) if running.any() else float("nan")
-    extrapolated = float(np.mean((rec["faults"][running] & int(Fault.EXTRAPOLATED)) != 0)) if running.any() else float("nan")
-    return {"frames_ahead": ahead, "look_ahead": ahead - (0 if opts.predict_next else 1),
-            "e2e_p50": pct(e2e * 1e3, 50), "e2e_p99": pct(e2e * 1e3, 99),
-            "partner_p50": pct(partner, 50), "partner_p99": pct(partner, 99),
-            "window_p50": pct(gen * 1e3, 50), "frames": res.summary.frames_played,
-            "dropped": res.pipeline_info.get("frames_dropped", 0), "end": res.summary.end_state,
-            "cpu": res.pipeline_info.get("generator_cpu_per_s", float("nan")),
-            "acc": float(acc), "clipped": clipped, "extrapolated": extrapolated, "steal": steal,
-            "load": Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?"}
+    extrapolated = (
+        float(np.mean((rec["faults"][running] & int(Fault.EXTRAPOLATED)) != 0)) if running.any() else float("nan")
+    )
+    return {
+        "frames_ahead": ahead,
+        "look_ahead": ahead - (0 if opts.predict_next else 1),
+        "e2e_p50": pct(e2e * 1e3, 50),
+        "e2e_p99": pct(e2e * 1e3, 99),
+        "partner_p50": pct(partner, 50),
+        "partner_p99": pct(partner, 99),
+        "window_p50": pct(gen * 1e3, 50),
+        "frames": res.summary.frames_played,
+        "dropped": res.pipeline_info.get("frames_dropped", 0),
+        "end": res.summary.end_state,
+        "cpu": res.pipeline_info.get("generator_cpu_per_s", float("nan")),
+        "acc": float(acc),
+        "clipped": clipped,
+        "extrapolated": extrapolated,
+        "steal": steal,
+        "load": Path("/proc/loadavg").read_text().split()[0] if Path("/proc/loadavg").exists() else "?",
+    }
 
 
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="streaming time per jitter run (default 5 s)")
-    ap.add_argument("--e2e-seconds", type=float, default=15.0,
-                    help="streaming time per end-to-end latency run (default 15 s: 450 frames)")
+    ap.add_argument(
+        "--e2e-seconds",
+        type=float,
+        default=15.0,
+        help="streaming time per end-to-end latency run (default 15 s: 450 frames)",
+    )
     ap.add_argument("--skip-e2e", action="store_true", help="skip the end-to-end run with the bundled model")
-    ap.add_argument("--rt", type=int, default=0,
-                    help="SCHED_FIFO priority (1-99, needs CAP_SYS_NICE) for the control loop and the bus emulator "
-                         "in the jitter runs; default 0 (normal scheduling)")
+    ap.add_argument(
+        "--rt",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority (1-99, needs CAP_SYS_NICE) for the control loop and the bus emulator "
+        "in the jitter runs; default 0 (normal scheduling)",
+    )
     args = parse_args(ap, argv, quick, QUICK)
     out = []
     sched = f", SCHED_FIFO {args.rt}" if args.rt else ""
@@ -202,19 +252,56 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         period = 1e3 / rate
         load = f"load {os.getloadavg()[0]:.1f}{sched}; CPU time stolen by the host {ours['steal']:.1f} %"
         print(f"{rate:.0f} Hz ({load}): ours {ours}; record-only {base}")
-        out.append(Row(f"loop jitter p50 @ {rate:.0f} Hz, 20 emulated servos at 2 Mbit/s (ms; baseline record-only; {load})",
-                       ours["p50"], base["p50"]))
-        out.append(Row(f"loop jitter p99 @ {rate:.0f} Hz, 20 emulated servos at 2 Mbit/s (ms; baseline record-only; {load})",
-                       ours["p99"], base["p99"], f"< {0.2 * period:.1f}",
-                       verdict(ours["p99"] < 0.2 * period and ours["misses"] == 0)))
-        out.append(Row(f"skipped ticks @ {rate:.0f} Hz", f"{ours['misses']} / {ours['ticks']}",
-                       f"{base['misses']} / {base['ticks']}", "0", verdict(ours["misses"] == 0)))
-        out.append(Row(f"overrun ticks (work past the next deadline) @ {rate:.0f} Hz", f"{ours['overruns']} / {ours['ticks']}",
-                       f"{base['overruns']} / {base['ticks']}", "0", verdict(ours["overruns"] == 0)))
-        out.append(Row(f"work per tick p50 / p99 @ {rate:.0f} Hz (ms, wake-up to end of tick; baseline record-only)",
-                       f"{ours['work_p50']:.2f} / {ours['work_p99']:.2f}", f"{base['work_p50']:.2f} / {base['work_p99']:.2f}"))
-        out.append(Row(f"loop CPU @ {rate:.0f} Hz (% of a core)", 100 * ours["cpu"], 100 * base["cpu"],
-                       "< 50" if rate == 100 else "", verdict(ours["cpu"] < 0.5) if rate == 100 else NA))
+        out.append(
+            Row(
+                f"loop jitter p50 @ {rate:.0f} Hz, 20 emulated servos at 2 Mbit/s (ms; baseline record-only; {load})",
+                ours["p50"],
+                base["p50"],
+            )
+        )
+        out.append(
+            Row(
+                f"loop jitter p99 @ {rate:.0f} Hz, 20 emulated servos at 2 Mbit/s (ms; baseline record-only; {load})",
+                ours["p99"],
+                base["p99"],
+                f"< {0.2 * period:.1f}",
+                verdict(ours["p99"] < 0.2 * period and ours["misses"] == 0),
+            )
+        )
+        out.append(
+            Row(
+                f"skipped ticks @ {rate:.0f} Hz",
+                f"{ours['misses']} / {ours['ticks']}",
+                f"{base['misses']} / {base['ticks']}",
+                "0",
+                verdict(ours["misses"] == 0),
+            )
+        )
+        out.append(
+            Row(
+                f"overrun ticks (work past the next deadline) @ {rate:.0f} Hz",
+                f"{ours['overruns']} / {ours['ticks']}",
+                f"{base['overruns']} / {base['ticks']}",
+                "0",
+                verdict(ours["overruns"] == 0),
+            )
+        )
+        out.append(
+            Row(
+                f"work per tick p50 / p99 @ {rate:.0f} Hz (ms, wake-up to end of tick; baseline record-only)",
+                f"{ours['work_p50']:.2f} / {ours['work_p99']:.2f}",
+                f"{base['work_p50']:.2f} / {base['work_p99']:.2f}",
+            )
+        )
+        out.append(
+            Row(
+                f"loop CPU @ {rate:.0f} Hz (% of a core)",
+                100 * ours["cpu"],
+                100 * base["cpu"],
+                "< 50" if rate == 100 else "",
+                verdict(ours["cpu"] < 0.5) if rate == 100 else NA,
+            )
+        )
     if not args.skip_e2e:
         secs = args.e2e_seconds
         new = end_to_end(secs, "process")
@@ -223,33 +310,70 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         previous = end_to_end(secs, "process", **PREVIOUS_PLAYBACK)
         L = new["look_ahead"]
         budget = L / 30.0 * 1e3 + 50.0
-        load = (f"load avg {old['load']} after; CPU time stolen by the host during the runs: "
-                f"{new['steal']:.1f} % and {old['steal']:.1f} %")
+        load = (
+            f"load avg {old['load']} after; CPU time stolen by the host during the runs: "
+            f"{new['steal']:.1f} % and {old['steal']:.1f} %"
+        )
         print(f"latency (ms): new defaults {new}; old defaults {old}; generator thread {thread}")
         for q in ("p50", "p99"):
-            out.append(Row(f"partner latency {q}, actor frame i -> its command on the bus, bundled model, generator "
-                           f"process, {secs:.0f} s runs (ms; baseline: the old defaults, 5 steps, hop 5, sliding windows; "
-                           f"{load})",
-                           new[f"partner_{q}"], old[f"partner_{q}"], f"<= {budget:.0f} (L = {L} frames + 50 ms)",
-                           verdict(new[f"partner_{q}"] <= budget)))
-        out.append(Row("partner latency p50 / p99 with the generator in a thread (new defaults; ms)",
-                       f"{thread['partner_p50']:.0f} / {thread['partner_p99']:.0f}"))
-        out.append(Row("partner latency p50 / p99 with the previous playback settings (0.9 of the frames in + 20 ms, "
-                       "no smoothing; ms; baseline the defaults, same run)",
-                       f"{previous['partner_p50']:.0f} / {previous['partner_p99']:.0f}",
-                       f"{new['partner_p50']:.0f} / {new['partner_p99']:.0f}"))
-        out.append(Row("commands while streaming: mean |acceleration| rad/s^2, ticks the safety filter changed, ticks "
-                       "extrapolated (defaults; baseline the previous playback settings, same run)",
-                       f"{new['acc']:.1f}, {100 * new['clipped']:.0f} %, {100 * new['extrapolated']:.0f} %",
-                       f"{previous['acc']:.1f}, {100 * previous['clipped']:.0f} %, {100 * previous['extrapolated']:.0f} %"))
-        out.append(Row("end-to-end p50 / p99 beyond the look-ahead (loop's figure, from actor frame i + A; ms; "
-                       "new, baseline old defaults)", f"{new['e2e_p50']:.0f} / {new['e2e_p99']:.0f} (A = {new['frames_ahead']})",
-                       f"{old['e2e_p50']:.0f} / {old['e2e_p99']:.0f} (A = {old['frames_ahead']})"))
-        out.append(Row("partner frames played / dropped to keep up (new; baseline old defaults)",
-                       f"{new['frames']} / {new['dropped']}", f"{old['frames']} / {old['dropped']}"))
-        out.append(Row("generation window compute p50 (ms; new: 1 frame, 2 steps, incremental; old: 5 frames, 5 steps)",
-                       new["window_p50"], old["window_p50"]))
-        out.append(Row("generator CPU seconds per second of motion (new; baseline old defaults)", new["cpu"], old["cpu"]))
+            out.append(
+                Row(
+                    f"partner latency {q}, actor frame i -> its command on the bus, bundled model, generator "
+                    f"process, {secs:.0f} s runs (ms; baseline: the old defaults, 5 steps, hop 5, sliding windows; "
+                    f"{load})",
+                    new[f"partner_{q}"],
+                    old[f"partner_{q}"],
+                    f"<= {budget:.0f} (L = {L} frames + 50 ms)",
+                    verdict(new[f"partner_{q}"] <= budget),
+                )
+            )
+        out.append(
+            Row(
+                "partner latency p50 / p99 with the generator in a thread (new defaults; ms)",
+                f"{thread['partner_p50']:.0f} / {thread['partner_p99']:.0f}",
+            )
+        )
+        out.append(
+            Row(
+                "partner latency p50 / p99 with the previous playback settings (0.9 of the frames in + 20 ms, "
+                "no smoothing; ms; baseline the defaults, same run)",
+                f"{previous['partner_p50']:.0f} / {previous['partner_p99']:.0f}",
+                f"{new['partner_p50']:.0f} / {new['partner_p99']:.0f}",
+            )
+        )
+        out.append(
+            Row(
+                "commands while streaming: mean |acceleration| rad/s^2, ticks the safety filter changed, ticks "
+                "extrapolated (defaults; baseline the previous playback settings, same run)",
+                f"{new['acc']:.1f}, {100 * new['clipped']:.0f} %, {100 * new['extrapolated']:.0f} %",
+                f"{previous['acc']:.1f}, {100 * previous['clipped']:.0f} %, {100 * previous['extrapolated']:.0f} %",
+            )
+        )
+        out.append(
+            Row(
+                "end-to-end p50 / p99 beyond the look-ahead (loop's figure, from actor frame i + A; ms; "
+                "new, baseline old defaults)",
+                f"{new['e2e_p50']:.0f} / {new['e2e_p99']:.0f} (A = {new['frames_ahead']})",
+                f"{old['e2e_p50']:.0f} / {old['e2e_p99']:.0f} (A = {old['frames_ahead']})",
+            )
+        )
+        out.append(
+            Row(
+                "partner frames played / dropped to keep up (new; baseline old defaults)",
+                f"{new['frames']} / {new['dropped']}",
+                f"{old['frames']} / {old['dropped']}",
+            )
+        )
+        out.append(
+            Row(
+                "generation window compute p50 (ms; new: 1 frame, 2 steps, incremental; old: 5 frames, 5 steps)",
+                new["window_p50"],
+                old["window_p50"],
+            )
+        )
+        out.append(
+            Row("generator CPU seconds per second of motion (new; baseline old defaults)", new["cpu"], old["cpu"])
+        )
     return out
 
 

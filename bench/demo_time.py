@@ -43,8 +43,9 @@ def time_demo(extra: list[str], seconds: float) -> tuple[float, float, str]:
         if done.returncode not in (0, 1):
             raise RuntimeError(f"{' '.join(cmd)} exited with {done.returncode}:\n{done.stderr[-2000:]}")
         verdict_line = next((ln for ln in done.stdout.splitlines() if ln.startswith("physics check:")), "?")
-        if not (Path(tmp) / "telemetry.dftl").stat().st_size or ("--no-video" not in extra
-                                                                  and not (Path(tmp) / "demo.mp4").stat().st_size):
+        if not (Path(tmp) / "telemetry.dftl").stat().st_size or (
+            "--no-video" not in extra and not (Path(tmp) / "demo.mp4").stat().st_size
+        ):
             raise RuntimeError(f"{' '.join(cmd)}: an output is missing or empty")
     return wall, steal, verdict_line
 
@@ -55,12 +56,19 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     args = parse_args(ap, argv, quick, QUICK)
     full, full_steal, full_check = time_demo([], args.seconds)
     bare, bare_steal, _ = time_demo(["--no-bus", "--no-video"], args.seconds)
-    print(f"demo, {args.seconds:g} s leader: {full:.1f} s wall ({full_check}; host steal {full_steal:.1f} %); "
-          f"without bus and video: {bare:.1f} s (steal {bare_steal:.1f} %); {os.cpu_count()} CPUs")
+    print(
+        f"demo, {args.seconds:g} s leader: {full:.1f} s wall ({full_check}; host steal {full_steal:.1f} %); "
+        f"without bus and video: {bare:.1f} s (steal {bare_steal:.1f} %); {os.cpu_count()} CPUs"
+    )
     default = args.seconds == 8.0
     return [
-        Row(f"demo, embedded defaults, {args.seconds:g} s leader, bus + video (s wall)", round(full, 1),
-            round(bare, 1), f"< {TARGET_S:g}" if default else "", verdict(full < TARGET_S) if default else NA),
+        Row(
+            f"demo, embedded defaults, {args.seconds:g} s leader, bus + video (s wall)",
+            round(full, 1),
+            round(bare, 1),
+            f"< {TARGET_S:g}" if default else "",
+            verdict(full < TARGET_S) if default else NA,
+        ),
     ]
 
 

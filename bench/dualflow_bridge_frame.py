@@ -56,8 +56,12 @@ def measure(seconds: float, repeats: int, clean: bool | None) -> dict:
         walls.append((time.perf_counter() - t0) / max(n, 1))
         cpus.append((time.process_time() - c0) / max(n, 1))
         cleans.append(t_clean[0] / max(n, 1))
-    return {"ms_per_frame_wall": 1e3 * statistics.median(walls), "ms_per_frame_cpu": 1e3 * statistics.median(cpus),
-            "cleanup_ms_per_frame": 1e3 * statistics.median(cleans), "frames": n}
+    return {
+        "ms_per_frame_wall": 1e3 * statistics.median(walls),
+        "ms_per_frame_cpu": 1e3 * statistics.median(cpus),
+        "cleanup_ms_per_frame": 1e3 * statistics.median(cleans),
+        "frames": n,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,18 +76,38 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(measure(args.seconds, args.repeats, None)))
         return 0
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    rows = {"this tree, cleanup on (default)": measure(args.seconds, args.repeats, True),
-            "this tree, cleanup off": measure(args.seconds, args.repeats, False)}
+    rows = {
+        "this tree, cleanup on (default)": measure(args.seconds, args.repeats, True),
+        "this tree, cleanup off": measure(args.seconds, args.repeats, False),
+    }
     if args.baseline_src:
-        proc = subprocess.run([sys.executable, __file__, "--seconds", str(args.seconds), "--repeats",
-                               str(args.repeats), "--baseline-src", args.baseline_src, "--json-only"],
-                              capture_output=True, text=True, check=True, cwd=args.baseline_src)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--seconds",
+                str(args.seconds),
+                "--repeats",
+                str(args.repeats),
+                "--baseline-src",
+                args.baseline_src,
+                "--json-only",
+            ],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=args.baseline_src,
+        )
         rows["baseline copy"] = json.loads(proc.stdout.strip().splitlines()[-1])
-    print(f"bridge generator stage, demo stream settings, {args.seconds:g} s synthetic leader, 1 thread, "
-          f"median of {args.repeats}")
+    print(
+        f"bridge generator stage, demo stream settings, {args.seconds:g} s synthetic leader, 1 thread, "
+        f"median of {args.repeats}"
+    )
     print(f"{'setting':34s} {'ms/frame wall':>14s} {'ms/frame CPU':>13s} {'cleanup ms/frame':>17s}")
     for name, r in rows.items():
-        print(f"{name:34s} {r['ms_per_frame_wall']:14.2f} {r['ms_per_frame_cpu']:13.2f} {r['cleanup_ms_per_frame']:17.3f}")
+        print(
+            f"{name:34s} {r['ms_per_frame_wall']:14.2f} {r['ms_per_frame_cpu']:13.2f} {r['cleanup_ms_per_frame']:17.3f}"
+        )
     return 0
 
 

@@ -95,10 +95,23 @@ def measure(preset: str, repeats: int, root: str, width: int | None = None) -> d
             out[f"ops_forward_{mode}"] = counter.total
             out[f"ms_forward_{mode}"] = 1e3 * _median_time(lambda mode=mode: model(x, x, 0.5, cond, mode=mode), repeats)
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = load_train_config(None, [f"preset={preset}", "data.n_clips=16", "data.val_clips=0", "data.frames=60",
-                                       "batch_size=8", "threads=1", "progress=false", "music=beats",
-                                       "model.music_dim=4", f"out_dir={tmp}", "text_encoder=hashed"]
-                                + ([] if width is None else [f"model.width={width}", f"model.ff_dim={2 * width}"]))
+        cfg = load_train_config(
+            None,
+            [
+                f"preset={preset}",
+                "data.n_clips=16",
+                "data.val_clips=0",
+                "data.frames=60",
+                "batch_size=8",
+                "threads=1",
+                "progress=false",
+                "music=beats",
+                "model.music_dim=4",
+                f"out_dir={tmp}",
+                "text_encoder=hashed",
+            ]
+            + ([] if width is None else [f"model.width={width}", f"model.ff_dim={2 * width}"]),
+        )
         trainer = Trainer(cfg)
         trainer.train_step()  # warm-up
         counter = OpCounter()
@@ -165,8 +178,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--baseline-src", help="a directory holding another copy of the dualflow package")
     ap.add_argument("--compile", action="store_true", help="also graph breaks and one block's compile time")
-    ap.add_argument("--width", type=int, help="override the width (and ff_dim = 2 width): op and sync counts do "
-                    "not depend on it, so e.g. --preset paper --width 64 counts the paper model's on a small machine")
+    ap.add_argument(
+        "--width",
+        type=int,
+        help="override the width (and ff_dim = 2 width): op and sync counts do "
+        "not depend on it, so e.g. --preset paper --width 64 counts the paper model's on a small machine",
+    )
     ap.add_argument("--json-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     root = str(Path(__file__).resolve().parents[1])
@@ -178,16 +195,32 @@ def main(argv: list[str] | None = None) -> int:
         if not (Path(args.baseline_src) / "dualflow" / "model.py").is_file():
             print(f"error: --baseline-src {args.baseline_src} has no dualflow/model.py", file=sys.stderr)
             return 2
-        proc = subprocess.run([sys.executable, __file__, "--preset", args.preset, "--repeats", str(args.repeats),
-                               "--baseline-src", args.baseline_src, "--json-only"]
-                              + ([] if args.width is None else ["--width", str(args.width)]),
-                              capture_output=True, text=True, check=True, cwd=args.baseline_src)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--preset",
+                args.preset,
+                "--repeats",
+                str(args.repeats),
+                "--baseline-src",
+                args.baseline_src,
+                "--json-only",
+            ]
+            + ([] if args.width is None else ["--width", str(args.width)]),
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=args.baseline_src,
+        )
         runs["baseline"] = json.loads(proc.stdout.strip().splitlines()[-1])
     for name, run in runs.items():
         print(f"{name}: code from {run['root']}")
     keys = [k for k in runs["this tree"] if k != "root"]
-    print(f"DualFlow '{args.preset}' preset{'' if args.width is None else f' at width {args.width}'}, CPU, one "
-          f"thread (median of {args.repeats}); forward: batch 2, 60 frames; train step: batch 8, 60 frames, paper losses")
+    print(
+        f"DualFlow '{args.preset}' preset{'' if args.width is None else f' at width {args.width}'}, CPU, one "
+        f"thread (median of {args.repeats}); forward: batch 2, 60 frames; train step: batch 8, 60 frames, paper losses"
+    )
     print(f"{'figure':28s} " + " ".join(f"{name:>12s}" for name in runs))
     for k in keys:
         vals = [runs[name].get(k, float("nan")) for name in runs]

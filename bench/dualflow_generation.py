@@ -93,19 +93,25 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     cfg = model.config
     n = int(round(args.seconds * args.fps))
     leader = make_leader(seconds=(n + 1) / args.fps, fps=args.fps, seed=0)
-    feats = encode_person(leader)                                # (n, 262) raw
+    feats = encode_person(leader)  # (n, 262) raw
     if mean is not None:
         feats = (feats - mean) / std
     actor = torch.tensor(feats, dtype=torch.float32, device=args.device)[None]
-    text = torch.tensor(template_text_embedding(["The leader steps in place on the beat; the partner mirrors the leader face to face."],
-                                                cfg.text_dim), device=args.device)
+    text = torch.tensor(
+        template_text_embedding(
+            ["The leader steps in place on the beat; the partner mirrors the leader face to face."], cfg.text_dim
+        ),
+        device=args.device,
+    )
     music = torch.zeros(1, n, cfg.music_dim, device=args.device)
     cond = Conditions(text=text, music=music)
 
     print(f"DualFlow generation benchmark: {what}")
     n_params = sum(p.numel() for p in model.parameters())
-    print(f"model: {cfg.n_blocks} blocks x width {cfg.width} ({n_params / 1e6:.2f}M parameters, prediction={cfg.prediction}), "
-          f"device {args.device}, torch {torch.__version__}, {torch.get_num_threads()} threads")
+    print(
+        f"model: {cfg.n_blocks} blocks x width {cfg.width} ({n_params / 1e6:.2f}M parameters, prediction={cfg.prediction}), "
+        f"device {args.device}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+    )
     print(f"clip: {n} frames ({args.seconds:g} s at {args.fps:g} fps), look-ahead L = {cfg.look_ahead}")
 
     def offline(steps: int, mode: str):
@@ -115,6 +121,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                     generate(model, n, cond, mode="reactive", x_actor=actor, steps=steps, seed=0)
                 else:
                     generate(model, n, cond, mode="interactive", batch=1, steps=steps, seed=0)
+
         return run
 
     aits = timed(offline(args.steps, "reactive"), args.repeats, args.device)
@@ -133,28 +140,46 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         print(f"{'paper: ' + name:52s} {s:9.3f} {args.seconds / s:11.1f}")
 
     paper = PAPER_AITS_S["DualFlow, 20 RF steps, RTX 5090"]
-    out = [Row(f"reactive generation, {args.seconds:g} s clip, {args.steps} Euler steps, {args.device} (s; baseline "
-               f"interactive, both persons, {args.steps} steps)", aits, inter,
-               f"ref. {paper:g} (paper, RTX 5090, 20-block model)", NA),
-           Row(f"reactive generation, {args.seconds:g} s clip, 1 Euler step (s; one network call over the clip)", one)]
+    out = [
+        Row(
+            f"reactive generation, {args.seconds:g} s clip, {args.steps} Euler steps, {args.device} (s; baseline "
+            f"interactive, both persons, {args.steps} steps)",
+            aits,
+            inter,
+            f"ref. {paper:g} (paper, RTX 5090, 20-block model)",
+            NA,
+        ),
+        Row(f"reactive generation, {args.seconds:g} s clip, 1 Euler step (s; one network call over the clip)", one),
+    ]
 
     print()
     period_ms = 1000.0 / args.fps
-    print(f"{'streaming (window 60, ' + str(args.steps) + ' steps)':40s} {'ms/frame':>9s} {'max window ms':>14s} {'delay':>14s}")
+    print(
+        f"{'streaming (window 60, ' + str(args.steps) + ' steps)':40s} {'ms/frame':>9s} {'max window ms':>14s} {'delay':>14s}"
+    )
     with torch.inference_mode():
         for hop in (1, 8):
             streamer = ReactiveStreamer(model, StreamConfig(window=60, hop=hop, steps=args.steps), cond)
             limit = min(n, args.stream_frames + streamer.look_ahead + 16)
-            streamer.push(actor[0, :8])                            # warm-up window
+            streamer.push(actor[0, :8])  # warm-up window
             streamer.timing.windows.clear()
             for i in range(8, limit):
                 streamer.push(actor[0, i])
             t = streamer.timing
-            print(f"{'hop ' + str(hop):40s} {1000 * t.per_frame_s:9.1f} {1000 * t.max_window_s:14.1f} "
-                  f"{streamer.delay_frames:>5d} frames + compute   ({t.frames} frames timed)")
-            out.append(Row(f"streaming compute per emitted frame, hop {hop}, window 60, {args.steps} steps, "
-                           f"{torch.get_num_threads()} threads (ms)", 1000 * t.per_frame_s, "",
-                           f"< {period_ms:.1f} (real time)", verdict(1000 * t.per_frame_s < period_ms)))
+            print(
+                f"{'hop ' + str(hop):40s} {1000 * t.per_frame_s:9.1f} {1000 * t.max_window_s:14.1f} "
+                f"{streamer.delay_frames:>5d} frames + compute   ({t.frames} frames timed)"
+            )
+            out.append(
+                Row(
+                    f"streaming compute per emitted frame, hop {hop}, window 60, {args.steps} steps, "
+                    f"{torch.get_num_threads()} threads (ms)",
+                    1000 * t.per_frame_s,
+                    "",
+                    f"< {period_ms:.1f} (real time)",
+                    verdict(1000 * t.per_frame_s < period_ms),
+                )
+            )
     print(f"{'real time needs':40s} {period_ms:9.1f}")
     return out
 

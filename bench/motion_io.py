@@ -82,8 +82,15 @@ def baseline_preview(pair, path: Path, cfg: PreviewConfig) -> None:
     people = [pair.actor.positions, pair.reactor.positions]
     allpos = np.concatenate([p.reshape(-1, 3) for p in people])
     lo, hi = allpos.min(axis=0), allpos.max(axis=0)
-    writer = imageio_ffmpeg.write_frames(str(path), (cfg.width, cfg.height), fps=pair.fps, codec="libx264",
-                                         pix_fmt_out="yuv420p", macro_block_size=2, ffmpeg_log_level="error")
+    writer = imageio_ffmpeg.write_frames(
+        str(path),
+        (cfg.width, cfg.height),
+        fps=pair.fps,
+        codec="libx264",
+        pix_fmt_out="yuv420p",
+        macro_block_size=2,
+        ffmpeg_log_level="error",
+    )
     writer.send(None)
     for i in range(pair.n_frames):
         ax.cla()
@@ -114,8 +121,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     print(f"BVH FK, {what}: {clip.n_frames} frames x {len(clip.joints)} joints")
     print(f"  vectorised  {ours * 1e3:8.1f} ms   ({clip.n_frames / ours:,.0f} frames/s)")
     print(f"  baseline    {base * 1e3:8.1f} ms   per-frame scipy loop   -> {base / ours:.0f}x faster")
-    out = [Row(f"BVH forward kinematics, {clip.n_frames} frames x {len(clip.joints)} joints (ms; baseline per-frame "
-               "scipy loop)", ours * 1e3, base * 1e3, "", NA)]
+    out = [
+        Row(
+            f"BVH forward kinematics, {clip.n_frames} frames x {len(clip.joints)} joints (ms; baseline per-frame "
+            "scipy loop)",
+            ours * 1e3,
+            base * 1e3,
+            "",
+            NA,
+        )
+    ]
 
     pair = make_duet("hand_hold", args.seconds, 30.0, 0)
     cfg = PreviewConfig()
@@ -129,8 +144,15 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     print(f"preview, {args.seconds:g} s two-person clip, {pair.n_frames} frames, {cfg.width}x{cfg.height} mp4")
     print(f"  ours        {ours:8.2f} s    ({pair.n_frames / ours:.0f} frames/s)   target: seconds")
     print(f"  baseline    {base:8.2f} s    Axes3D full redraw     -> {base / ours:.1f}x faster")
-    out.append(Row(f"stick-figure preview, {args.seconds:g} s two-person clip, 640x480 mp4 (s; baseline Axes3D "
-                   "full redraw)", ours, base, "seconds (no number given)", NA))
+    out.append(
+        Row(
+            f"stick-figure preview, {args.seconds:g} s two-person clip, 640x480 mp4 (s; baseline Axes3D full redraw)",
+            ours,
+            base,
+            "seconds (no number given)",
+            NA,
+        )
+    )
     return out
 
 

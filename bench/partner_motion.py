@@ -70,14 +70,28 @@ def jitter(p: np.ndarray) -> float:
     return float(np.linalg.norm(p[2:] - 2 * p[1:-1] + p[:-2], axis=-1).mean() * 1e3)
 
 
-def stream_partner(checkpoint, leader: np.ndarray, music: str, text: str | None, window: int, steps: int = 2,
-                   hop: int = 1, incremental: bool = True, predict_next: bool = True) -> np.ndarray:
+def stream_partner(
+    checkpoint,
+    leader: np.ndarray,
+    music: str,
+    text: str | None,
+    window: int,
+    steps: int = 2,
+    hop: int = 1,
+    incremental: bool = True,
+    predict_next: bool = True,
+) -> np.ndarray:
     """Partner positions (N, 22, 3) streamed by the bridge's ReactorStage (demo settings)."""
     from dualflow.streaming import StreamConfig
     from ros_free_bridge.partner.reactor import Cues, ReactorStage
 
-    stage = ReactorStage(30.0, checkpoint, StreamConfig(window=window, steps=steps, hop=hop, incremental=incremental),
-                         Cues(text, music, music_frames=len(leader) + 60), predict_next=predict_next)
+    stage = ReactorStage(
+        30.0,
+        checkpoint,
+        StreamConfig(window=window, steps=steps, hop=hop, incremental=incremental),
+        Cues(text, music, music_frames=len(leader) + 60),
+        predict_next=predict_next,
+    )
     out = []
     for k, p in enumerate(leader):
         out += stage.push(p, 0.0, k)
@@ -98,8 +112,9 @@ def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: in
     music = str(click_track(clip.beat_times, seconds, tmp / f"click_{seed}.wav"))
     followers = {r: make_duet(r, seconds, 30.0, seed).reactor.positions for r in RULES}
     prompts = {r: make_duet(r, seconds, 30.0, seed).text for r in RULES}
-    cases = ([("none", None, None)] if "none" in texts else []) + \
-        ([("rule", r, prompts[r]) for r in RULES] if "rule" in texts else [])
+    cases = ([("none", None, None)] if "none" in texts else []) + (
+        [("rule", r, prompts[r]) for r in RULES] if "rule" in texts else []
+    )
     rows = []
     for mode, rule, text in cases:
         pos = stream_partner(checkpoint, leader, music, text, window, **stream)
@@ -107,22 +122,38 @@ def evaluate(checkpoint, seed: int, seconds: float, texts: list[str], window: in
         errs = {r: _mpjpe(pos[:n], f[:n]) for r, f in followers.items()}
         target = rule or min(errs, key=errs.get)
         truth = followers[target][:n]
-        rows.append(dict(
-            checkpoint=str(checkpoint or "bundled"), seed=seed, text=mode, rule=target,
-            speed=joint_speed(pos[:n]), rule_speed=joint_speed(truth), smooth=smooth_speed(pos[:n]),
-            rule_smooth=smooth_speed(truth), excursion=excursion(pos[:n]), rule_excursion=excursion(truth),
-            jitter=jitter(pos[:n]), rule_jitter=jitter(truth),
-            err=errs[target], err_first_s=_mpjpe(pos[:30], truth[:30]), err_after=_mpjpe(pos[30:n], truth[30:]),
-            root_err=_mpjpe(pos[:n, 0], truth[:, 0]), arm_err=_mpjpe(pos[:n, ARM_JOINTS], truth[:, ARM_JOINTS]),
-            still_err=_mpjpe(np.broadcast_to(truth.mean(0), truth.shape), truth)))
+        rows.append(
+            dict(
+                checkpoint=str(checkpoint or "bundled"),
+                seed=seed,
+                text=mode,
+                rule=target,
+                speed=joint_speed(pos[:n]),
+                rule_speed=joint_speed(truth),
+                smooth=smooth_speed(pos[:n]),
+                rule_smooth=smooth_speed(truth),
+                excursion=excursion(pos[:n]),
+                rule_excursion=excursion(truth),
+                jitter=jitter(pos[:n]),
+                rule_jitter=jitter(truth),
+                err=errs[target],
+                err_first_s=_mpjpe(pos[:30], truth[:30]),
+                err_after=_mpjpe(pos[30:n], truth[30:]),
+                root_err=_mpjpe(pos[:n, 0], truth[:, 0]),
+                arm_err=_mpjpe(pos[:n, ARM_JOINTS], truth[:, ARM_JOINTS]),
+                still_err=_mpjpe(np.broadcast_to(truth.mean(0), truth.shape), truth),
+            )
+        )
     return rows
 
 
 CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap" / "cmu"
-CUE_TEXTS = ("the partner mirrors the leader face to face.",
-             "the partner keeps a hand-hold distance facing the leader and moves with them.",
-             "the partner circles around the leader, copying the arm waves.",
-             "the partner walks up to the leader and holds a hand out.")
+CUE_TEXTS = (
+    "the partner mirrors the leader face to face.",
+    "the partner keeps a hand-hold distance facing the leader and moves with them.",
+    "the partner circles around the leader, copying the arm waves.",
+    "the partner walks up to the leader and holds a hand out.",
+)
 
 
 def _mirror_baseline(actor: np.ndarray, real: np.ndarray) -> np.ndarray:
@@ -173,10 +204,10 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
         for clean in (False, True):
             tag = "clean" if clean else "raw"
             gen.clean = clean
-            seeded = [gen.generate(actor=pair.actor, seed=s, steps=steps)[0].reactor.positions
-                      for s in range(seeds)]
-            texted = [gen.generate(actor=pair.actor, text=t, seed=0, steps=steps)[0].reactor.positions
-                      for t in CUE_TEXTS]
+            seeded = [gen.generate(actor=pair.actor, seed=s, steps=steps)[0].reactor.positions for s in range(seeds)]
+            texted = [
+                gen.generate(actor=pair.actor, text=t, seed=0, steps=steps)[0].reactor.positions for t in CUE_TEXTS
+            ]
             add(f"{label} offline {seeds} seeds, no text, {tag}", seeded, diversity_texts=diversity(texted))
             streamed, per_frame = [], []
             for s in range(stream_seeds):
@@ -206,17 +237,22 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
 
 
 def print_cmu_table(rows: list[dict]) -> None:
-    print("| partner | skate | jerk m/s^3 | bone-length CV | facing error | MPJPE to real (m) | distance (m) | "
-          "in 0.5-1.5 m | diversity seeds (m) | diversity texts (m) |")
+    print(
+        "| partner | skate | jerk m/s^3 | bone-length CV | facing error | MPJPE to real (m) | distance (m) | "
+        "in 0.5-1.5 m | diversity seeds (m) | diversity texts (m) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+
         def div(k, r=r):
             return f"{r[k]:.3f}" if k in r else "-"
 
-        print(f"| {r['partner']} | {r['skate']:.2f} | {r['jerk']:.0f} | {r['bone_cv']:.4f} | {r['facing_deg']:.0f}° | "
-              f"{r['mpjpe_real']:.2f} | {r['dist_mean']:.2f} | {100 * r['dist_in_range']:.0f} % | "
-              f"{div('diversity_seeds')} | {div('diversity_texts')} |"
-              + (f" cleanup {r['clean_ms_per_frame']:.2f} ms/frame" if "clean_ms_per_frame" in r else ""))
+        print(
+            f"| {r['partner']} | {r['skate']:.2f} | {r['jerk']:.0f} | {r['bone_cv']:.4f} | {r['facing_deg']:.0f}° | "
+            f"{r['mpjpe_real']:.2f} | {r['dist_mean']:.2f} | {100 * r['dist_in_range']:.0f} % | "
+            f"{div('diversity_seeds')} | {div('diversity_texts')} |"
+            + (f" cleanup {r['clean_ms_per_frame']:.2f} ms/frame" if "clean_ms_per_frame" in r else "")
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -231,16 +267,21 @@ def main(argv: list[str] | None = None) -> int:
     from ros_free_bridge.session import SessionOptions
 
     d = SessionOptions()
-    ap.add_argument("--window", type=int, default=d.window, help=f"frames per streamed window (default {d.window}, the demo's)")
+    ap.add_argument(
+        "--window", type=int, default=d.window, help=f"frames per streamed window (default {d.window}, the demo's)"
+    )
     ap.add_argument("--steps", type=int, default=d.steps, help=f"Euler steps per window (default {d.steps})")
     ap.add_argument("--hop", type=int, default=d.hop, help=f"frames per window (default {d.hop})")
     ap.add_argument("--sliding", action="store_true", help="re-run whole windows (not incremental)")
     ap.add_argument("--exact-rows", action="store_true", help="the newest actor row waits for the next frame")
     ap.add_argument("--texts", default="none,rule", help="none (no cue), rule (each rule's sentence), or both")
     ap.add_argument("--json", help="also write every row to this json file")
-    ap.add_argument("--cmu", action="store_true",
-                    help="instead: the plausibility table on the real CMU actor 18_01 vs its partner 19_01 "
-                         "(../shared/data/mocap/cmu), baselines and each checkpoint raw / cleaned")
+    ap.add_argument(
+        "--cmu",
+        action="store_true",
+        help="instead: the plausibility table on the real CMU actor 18_01 vs its partner 19_01 "
+        "(../shared/data/mocap/cmu), baselines and each checkpoint raw / cleaned",
+    )
     ap.add_argument("--cmu-seeds", type=int, default=8, help="offline seeds for --cmu (default 8)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -261,27 +302,44 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
             for ck in args.checkpoints or [None]:
-                for r in evaluate(ck, seed, args.seconds, texts, args.window, Path(tmp), steps=args.steps, hop=args.hop,
-                                  incremental=not args.sliding, predict_next=not args.exact_rows):
+                for r in evaluate(
+                    ck,
+                    seed,
+                    args.seconds,
+                    texts,
+                    args.window,
+                    Path(tmp),
+                    steps=args.steps,
+                    hop=args.hop,
+                    incremental=not args.sliding,
+                    predict_next=not args.exact_rows,
+                ):
                     rows.append(r)
-                    print(f"{Path(r['checkpoint']).name} seed {seed} text {r['text']:4s} rule {r['rule']:9s} "
-                          f"speed {r['speed']:.3f} (rule {r['rule_speed']:.3f}) smooth {r['smooth']:.3f} "
-                          f"({r['rule_smooth']:.3f}) excursion {r['excursion']:.3f} ({r['rule_excursion']:.3f}) | "
-                          f"err {r['err']:.3f} [first s {r['err_first_s']:.3f}, after {r['err_after']:.3f}] "
-                          f"root {r['root_err']:.3f} arms {r['arm_err']:.3f} (still at the rule's mean pose "
-                          f"{r['still_err']:.3f})", flush=True)
+                    print(
+                        f"{Path(r['checkpoint']).name} seed {seed} text {r['text']:4s} rule {r['rule']:9s} "
+                        f"speed {r['speed']:.3f} (rule {r['rule_speed']:.3f}) smooth {r['smooth']:.3f} "
+                        f"({r['rule_smooth']:.3f}) excursion {r['excursion']:.3f} ({r['rule_excursion']:.3f}) | "
+                        f"err {r['err']:.3f} [first s {r['err_first_s']:.3f}, after {r['err_after']:.3f}] "
+                        f"root {r['root_err']:.3f} arms {r['arm_err']:.3f} (still at the rule's mean pose "
+                        f"{r['still_err']:.3f})",
+                        flush=True,
+                    )
     print("\nmean over seeds and rules (partner | rule follower):")
     keys = ("speed", "smooth", "excursion", "err", "err_first_s", "err_after", "still_err", "jitter")
     for ck in args.checkpoints or [None]:
         for mode in texts:
             sel = [r for r in rows if r["checkpoint"] == str(ck or "bundled") and r["text"] == mode]
-            m = {k: float(np.mean([r[k] for r in sel])) for k in keys + ("rule_speed", "rule_smooth", "rule_excursion",
-                                                                         "rule_jitter")}
-            print(f"  {ck or 'bundled'} text {mode}: speed {m['speed']:.3f} | {m['rule_speed']:.3f} m/s, smooth "
-                  f"{m['smooth']:.3f} | {m['rule_smooth']:.3f} m/s, excursion {m['excursion']:.3f} | "
-                  f"{m['rule_excursion']:.3f} m; err {m['err']:.3f} m (first s {m['err_first_s']:.3f}, after "
-                  f"{m['err_after']:.3f}; still {m['still_err']:.3f}); jitter {m['jitter']:.1f} | "
-                  f"{m['rule_jitter']:.1f} mm/frame^2")
+            m = {
+                k: float(np.mean([r[k] for r in sel]))
+                for k in keys + ("rule_speed", "rule_smooth", "rule_excursion", "rule_jitter")
+            }
+            print(
+                f"  {ck or 'bundled'} text {mode}: speed {m['speed']:.3f} | {m['rule_speed']:.3f} m/s, smooth "
+                f"{m['smooth']:.3f} | {m['rule_smooth']:.3f} m/s, excursion {m['excursion']:.3f} | "
+                f"{m['rule_excursion']:.3f} m; err {m['err']:.3f} m (first s {m['err_first_s']:.3f}, after "
+                f"{m['err_after']:.3f}; still {m['still_err']:.3f}); jitter {m['jitter']:.1f} | "
+                f"{m['rule_jitter']:.1f} mm/frame^2"
+            )
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0

@@ -89,11 +89,20 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 gmr_style(rb, xml, tg)
         fps_base = n / c_base.cpu
     out = [
-        Row("streaming with balance, frames/s (CPU, 1 core)", fps_bal, fps_base if fps_base else "",
+        Row(
+            "streaming with balance, frames/s (CPU, 1 core)",
+            fps_bal,
+            fps_base if fps_base else "",
             ">= 1000 and >= 4x baseline",
-            verdict(fps_bal >= 1000 and (fps_base is None or fps_bal >= 4 * fps_base))),
-        Row("streaming without balance, frames/s (CPU, 1 core)", fps_plain, fps_base if fps_base else "", ">= 1000",
-            verdict(fps_plain >= 1000)),
+            verdict(fps_bal >= 1000 and (fps_base is None or fps_bal >= 4 * fps_base)),
+        ),
+        Row(
+            "streaming without balance, frames/s (CPU, 1 core)",
+            fps_plain,
+            fps_base if fps_base else "",
+            ">= 1000",
+            verdict(fps_plain >= 1000),
+        ),
         Row("balance cost: time per frame with / without", fps_plain / fps_bal),
     ]
     feet = [f.corners for f in rb.feet]
@@ -104,8 +113,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
             m = com_margins(ev["com"][:, :2], ev["sole"], feet, P)
             inside += int(np.sum(m >= 0))
             total += int(np.sum(np.isfinite(m)))
-        out.append(Row(f"frames with the CoM over the planted feet, {label} balance (%)",
-                       100.0 * inside / max(total, 1)))
+        out.append(
+            Row(f"frames with the CoM over the planted feet, {label} balance (%)", 100.0 * inside / max(total, 1))
+        )
     if not args.no_physics:
         from sim.check import CheckConfig, check_trajectory
 
@@ -113,11 +123,18 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
             verdicts, fell = [], False
             for clip, X in zip(clips, xs):
                 res = check_trajectory(trajectory_from_x(rb, X, 30.0, {}), CheckConfig(mode="free"), robot=rb.name)
-                verdicts.append(f"{clip.name}: " + ("pass" if res.passed else f"{res.reason} at {res.first_failure_time:.2f} s"))
+                verdicts.append(
+                    f"{clip.name}: " + ("pass" if res.passed else f"{res.reason} at {res.first_failure_time:.2f} s")
+                )
                 fell |= any(f.reason == "fall" for f in res.failures)
-            out.append(Row(f"sim check, free-standing, {label} balance", "; ".join(verdicts),
-                           target="no fall" if label == "with" else "",
-                           verdict=verdict(not fell) if label == "with" else "n/a"))
+            out.append(
+                Row(
+                    f"sim check, free-standing, {label} balance",
+                    "; ".join(verdicts),
+                    target="no fall" if label == "with" else "",
+                    verdict=verdict(not fell) if label == "with" else "n/a",
+                )
+            )
     return out
 
 

@@ -67,8 +67,12 @@ def make_clips(folder: Path, n: int) -> tuple[list[Path], str]:
     clips = []
     for k, m in enumerate(people):
         mm = mirrored(m)
-        clips += [(f"p{k}_whole", m), (f"p{k}_mirror", mm), (f"p{k}_mirror_head", mm.slice(0, 45)),
-                  (f"p{k}_mirror_tail", mm.slice(mm.n_frames - 45))]
+        clips += [
+            (f"p{k}_whole", m),
+            (f"p{k}_mirror", mm),
+            (f"p{k}_mirror_head", mm.slice(0, 45)),
+            (f"p{k}_mirror_tail", mm.slice(mm.n_frames - 45)),
+        ]
     paths = []
     for name, m in clips[:n]:
         paths.append(folder / f"{name}.npz")
@@ -113,9 +117,21 @@ def ray_batch(files, cfg, workers: int):
 
     from ros_free_bridge.batch.results import ClipResult
 
-    done = subprocess.run([sys.executable, "-c", RAY_CHILD, json.dumps([str(f) for f in files]), str(cfg.out),
-                           str(cfg.robot), str(workers)], capture_output=True, text=True,
-                          cwd=str(Path(__file__).resolve().parents[1]), check=False)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            RAY_CHILD,
+            json.dumps([str(f) for f in files]),
+            str(cfg.out),
+            str(cfg.robot),
+            str(workers),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=str(Path(__file__).resolve().parents[1]),
+        check=False,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"the Ray batch failed: {done.stderr[-2000:]}")
     got = json.loads(done.stdout.strip().splitlines()[-1])
@@ -131,8 +147,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap.add_argument("--robot", default="op3")
     ap.add_argument("--clips", type=int, default=8, help="how many of the 8 clips (default 8)")
     ap.add_argument("--video", action="store_true", help="also time the local engine with videos")
-    ap.add_argument("--repeats", type=int, default=1, help="best of this many runs of each engine, interleaved "
-                    "(default 1)")
+    ap.add_argument(
+        "--repeats", type=int, default=1, help="best of this many runs of each engine, interleaved (default 1)"
+    )
     args = parse_args(ap, argv, quick, QUICK)
     os.environ.setdefault("MUJOCO_GL", "egl")
     from ros_free_bridge.batch.config import BatchConfig
@@ -148,14 +165,25 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     cfg = lambda name, video=False: BatchConfig(robot=args.robot, out=tmp / name, video=video)  # noqa: E731
     # compile (or find cached) the robot's C code before any timing, in another process so that
     # the local engine's forked workers inherit nothing that Ray's workers must load themselves
-    subprocess.run([sys.executable, "-c", "import sys; from pathlib import Path; "
-                    "from ros_free_bridge.batch.config import BatchConfig; "
-                    "from ros_free_bridge.batch.clip_check import check_clip; "
-                    "check_clip(Path(sys.argv[1]), BatchConfig(robot=sys.argv[2], out=Path(sys.argv[3]), video=False))",
-                    str(files[0]), args.robot, str(tmp / "warmup")],
-                   check=True, cwd=str(Path(__file__).resolve().parents[1]))
-    print(f"{n} clips ({what}), {frames} frames at 30 fps, robot {args.robot}; "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from pathlib import Path; "
+            "from ros_free_bridge.batch.config import BatchConfig; "
+            "from ros_free_bridge.batch.clip_check import check_clip; "
+            "check_clip(Path(sys.argv[1]), BatchConfig(robot=sys.argv[2], out=Path(sys.argv[3]), video=False))",
+            str(files[0]),
+            args.robot,
+            str(tmp / "warmup"),
+        ],
+        check=True,
+        cwd=str(Path(__file__).resolve().parents[1]),
+    )
+    print(
+        f"{n} clips ({what}), {frames} frames at 30 fps, robot {args.robot}; "
+        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}"
+    )
 
     import importlib.util
 
@@ -170,11 +198,14 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 took, up, results[(engine, w)] = ray_batch(files, cfg(f"ray{w}"), w)
                 ray_up[w] = min(ray_up.get(w, float("inf")), up)
             else:
-                took, results[(engine, w)] = timed_batch(files, cfg(f"{engine}{w}", video=engine == "video"),
-                                                         "local", w)
+                took, results[(engine, w)] = timed_batch(
+                    files, cfg(f"{engine}{w}", video=engine == "video"), "local", w
+                )
             wall[(engine, w)] = min(wall.get((engine, w), float("inf")), took)
-            print(f"  run {rep + 1}: {engine} engine{' (local, with videos)' if engine == 'video' else ''}, "
-                  f"{w} worker(s): {took:.1f} s")
+            print(
+                f"  run {rep + 1}: {engine} engine{' (local, with videos)' if engine == 'video' else ''}, "
+                f"{w} worker(s): {took:.1f} s"
+            )
     ray_start_stop = min(ray_up.values()) if ray_up else float("nan")
     steal = steal_percent(steal0, cpu_counters())
     same = all(comparable(r) == comparable(results[("local", 1)]) for r in results.values())
@@ -183,21 +214,33 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
 
     per_min = {k: 60.0 * n / v for k, v in wall.items()}
     label = f"{n} clips, {frames} frames, {args.robot}, no video"
-    out = [Row(f"clips per minute, local engine, 1 worker ({label})", per_min[("local", 1)]),
-           Row("clips per minute, local engine, 2 workers", per_min[("local", 2)], per_min[("local", 1)])]
+    out = [
+        Row(f"clips per minute, local engine, 1 worker ({label})", per_min[("local", 1)]),
+        Row("clips per minute, local engine, 2 workers", per_min[("local", 2)], per_min[("local", 1)]),
+    ]
     for w in (1, 2):
         if ("ray", w) in wall:
-            out.append(Row(f"clips per minute, Ray, {w} worker{'s' if w > 1 else ''} (baseline: local, same workers)",
-                           per_min[("ray", w)], per_min[("local", w)]))
-            out.append(Row(f"Ray overhead per clip, {w} worker{'s' if w > 1 else ''} (s, wall, vs local)",
-                           (wall[("ray", w)] - wall[("local", w)]) / n))
+            out.append(
+                Row(
+                    f"clips per minute, Ray, {w} worker{'s' if w > 1 else ''} (baseline: local, same workers)",
+                    per_min[("ray", w)],
+                    per_min[("local", w)],
+                )
+            )
+            out.append(
+                Row(
+                    f"Ray overhead per clip, {w} worker{'s' if w > 1 else ''} (s, wall, vs local)",
+                    (wall[("ray", w)] - wall[("local", w)]) / n,
+                )
+            )
         else:
             out.append(Row(f"clips per minute, Ray, {w} worker(s)", "Ray not installed", per_min[("local", w)]))
     if has_ray:
         out.append(Row("local Ray instance start + shutdown, once per batch (s)", ray_start_stop))
     if ("video", 2) in wall:
-        out.append(Row("clips per minute, local engine, 2 workers, with videos", per_min[("video", 2)],
-                       per_min[("local", 2)]))
+        out.append(
+            Row("clips per minute, local engine, 2 workers, with videos", per_min[("video", 2)], per_min[("local", 2)])
+        )
     # the dataset estimate from the steady state of one worker (the robot loaded: the median clip),
     # which other programs on the machine disturb less than the 2-worker walls, plus Ray's overhead
     import statistics
@@ -210,10 +253,12 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     out.append(Row(f"compute per clip, median, one worker ({seconds:.1f} s clips, robot loaded; s)", per_clip))
     out.append(Row(f"{DATASET_CLIPS:,} such clips with Ray (core-hours: divide by the cluster's cores)", core_hours))
     out.append(Row("rows identical across engines", "yes" if same else "NO", "", "", NA))
-    print(f"  estimate: {DATASET_CLIPS:,} clips of {seconds:.1f} s = {DATASET_CLIPS:,} x ({per_clip:.2f} s per clip + "
-          f"{overhead:.2f} s Ray overhead) = {core_hours:.1f} core-hours; on N nodes of C cores about "
-          f"{core_hours:.1f} h / (N C) + {ray_start_stop:.0f} s to start Ray "
-          f"({per_clip / seconds / 30:.3f} core-seconds per frame)")
+    print(
+        f"  estimate: {DATASET_CLIPS:,} clips of {seconds:.1f} s = {DATASET_CLIPS:,} x ({per_clip:.2f} s per clip + "
+        f"{overhead:.2f} s Ray overhead) = {core_hours:.1f} core-hours; on N nodes of C cores about "
+        f"{core_hours:.1f} h / (N C) + {ray_start_stop:.0f} s to start Ray "
+        f"({per_clip / seconds / 30:.3f} core-seconds per frame)"
+    )
     return out
 
 

@@ -99,8 +99,10 @@ def gmr_style(rb, xml: Path, tg) -> np.ndarray:
     kid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "stand")
     conf.update(model.key_qpos[kid] if kid >= 0 else model.qpos0)
     sites = [s.site for s in rb.profile.keypoints]
-    tasks = [mink.FrameTask(site, "site", position_cost=float(w), orientation_cost=0.0, lm_damping=1.0)
-             for site, w in zip(sites, rb.keypoint_weights)]
+    tasks = [
+        mink.FrameTask(site, "site", position_cost=float(w), orientation_cost=0.0, lm_damping=1.0)
+        for site, w in zip(sites, rb.keypoint_weights)
+    ]
     stage1_names = {"pelvis", "left_ankle", "right_ankle", "left_foot", "right_foot", "left_wrist", "right_wrist"}
     stage1 = [t for t, n in zip(tasks, rb.keypoint_names) if n in stage1_names]
     limits = [mink.ConfigurationLimit(model)]
@@ -169,14 +171,18 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         if off_zmp is not None:
             off_zmp._solver(offline_cfg.window, 30.0)
         stream = StreamingRetargeter(rb, 30.0)
-    print(f"compile/load: {c_build.wall:.1f} s wall ({off._solver(offline_cfg.window, 30.0)[-1]}; streaming {stream.compile_info})")
+    print(
+        f"compile/load: {c_build.wall:.1f} s wall ({off._solver(offline_cfg.window, 30.0)[-1]}; streaming {stream.compile_info})"
+    )
     warm_up(rb, xml, clips[0], (off, off_dist, off_zmp))
 
     noise_rng = np.random.default_rng(0)
     results = {"ours_stream": [], "ours_off": [], "base": [], "ours_zmp": [], "ours_dist": []}
     times = {k: [0.0, 0.0] for k in results}
-    reports = {k: [] for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy", "stream_noisy", "ours_zmp",
-                               "ours_dist")}
+    reports = {
+        k: []
+        for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy", "stream_noisy", "ours_zmp", "ours_dist")
+    }
     jerk_clean, ipopt, ipopt_dist = {}, {}, {}
     for clip in clips:
         tg = make_targets(rb, clip)
@@ -216,17 +222,24 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         reports["base"].append(evaluate(rb, trajectory_from_x(rb, Xb, clip.fps, {"mode": "gmr-style"}), tg, clip.name))
         jerk_clean[clip.name] = reports["base"][-1].jerk_source
         # the same clip with 1 cm of noise on every joint
-        noisy = clip.replace(positions=clip.positions + noise_rng.normal(scale=0.01, size=clip.positions.shape),
-                             name=clip.name + "+1cm")
+        noisy = clip.replace(
+            positions=clip.positions + noise_rng.normal(scale=0.01, size=clip.positions.shape), name=clip.name + "+1cm"
+        )
         tgn = make_targets(rb, noisy, contacts=tg.contacts, scaler=scaler)
-        reports["off_noisy"].append(evaluate(rb, off.retarget(noisy, contacts=tg.contacts, scaler=scaler), tgn, noisy.name))
+        reports["off_noisy"].append(
+            evaluate(rb, off.retarget(noisy, contacts=tg.contacts, scaler=scaler), tgn, noisy.name)
+        )
         stream.reset()
         Xsn = np.stack([stream.step(tgn.keypoints[t], tgn.contacts[t]) for t in range(clip.n_frames)])
         reports["stream_noisy"].append(evaluate(rb, trajectory_from_x(rb, Xsn, clip.fps, {}), tgn, noisy.name))
-        reports["base_noisy"].append(evaluate(rb, trajectory_from_x(rb, gmr_style(rb, xml, tgn), clip.fps, {}), tgn, noisy.name))
+        reports["base_noisy"].append(
+            evaluate(rb, trajectory_from_x(rb, gmr_style(rb, xml, tgn), clip.fps, {}), tgn, noisy.name)
+        )
 
-    print("offline IPOPT per clip (iterations, status per window): "
-          + "; ".join(f"{name} {it} {st}" for name, (it, st) in ipopt.items()))
+    print(
+        "offline IPOPT per clip (iterations, status per window): "
+        + "; ".join(f"{name} {it} {st}" for name, (it, st) in ipopt.items())
+    )
     print(f"load average at end: {_loadavg()}")
 
     def agg(key, field, how=np.mean):
@@ -245,33 +258,62 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     off_fps = fps("ours_off", 0)
     jerk = {k: agg(k, "jerk_ratio") for k in ("ours_off", "ours_stream", "base", "off_noisy", "base_noisy")}
     out = [
-        r("retarget streaming frames/s (CPU time, 1 core)", stream_fps, base_fps, ">= 1000 and >= 4x baseline",
-          stream_fps >= 1000 and stream_fps >= 4 * base_fps),
+        r(
+            "retarget streaming frames/s (CPU time, 1 core)",
+            stream_fps,
+            base_fps,
+            ">= 1000 and >= 4x baseline",
+            stream_fps >= 1000 and stream_fps >= 4 * base_fps,
+        ),
         r("retarget streaming frames/s (wall)", fps("ours_stream", 1), fps("base", 1)),
-        r(f"retarget offline frames/s (CPU time; contacts{'' if args.no_balance else '+balance'})", off_fps, base_fps,
-          ">= 250", off_fps >= 250),
+        r(
+            f"retarget offline frames/s (CPU time; contacts{'' if args.no_balance else '+balance'})",
+            off_fps,
+            base_fps,
+            ">= 250",
+            off_fps >= 250,
+        ),
         r("retarget offline frames/s (wall)", fps("ours_off", 1), fps("base", 1)),
         r("offline IPOPT iterations per clip (mean)", float(np.mean([it for it, _ in ipopt.values()])), None),
         r("retarget offline frames/s (CPU time), all pairs as segment distances", fps("ours_dist", 0), base_fps),
-        r("offline IPOPT iterations per clip, all pairs as segment distances", float(np.mean(list(ipopt_dist.values()))),
-          None),
-        r("keypoint error mean mm (offline, all pairs as segment distances)",
-          agg("ours_dist", "keypoint_error_mean_mm"), agg("base", "keypoint_error_mean_mm")),
-        r("jerk ratio, clean capture: offline, all pairs as segment distances", agg("ours_dist", "jerk_ratio"),
-          agg("base", "jerk_ratio")),
+        r(
+            "offline IPOPT iterations per clip, all pairs as segment distances",
+            float(np.mean(list(ipopt_dist.values()))),
+            None,
+        ),
+        r(
+            "keypoint error mean mm (offline, all pairs as segment distances)",
+            agg("ours_dist", "keypoint_error_mean_mm"),
+            agg("base", "keypoint_error_mean_mm"),
+        ),
+        r(
+            "jerk ratio, clean capture: offline, all pairs as segment distances",
+            agg("ours_dist", "jerk_ratio"),
+            agg("base", "jerk_ratio"),
+        ),
     ]
     if off_zmp is not None:
         zj = agg("ours_zmp", "jerk_ratio")
         zr = fps("ours_zmp", 0) / base_fps
-        out += [r("retarget offline frames/s (CPU time; contacts+ZMP balance, as retarget-check runs it)",
-                  fps("ours_zmp", 0), base_fps),
-                r("offline (ZMP balance) frames/s / baseline's, same run", zr, 1.0, ">= 0.9", zr >= 0.9),
-                r("jerk ratio, clean capture: offline ZMP balance", zj, jerk["base"], "<= 1.0", zj <= 1.0)]
+        out += [
+            r(
+                "retarget offline frames/s (CPU time; contacts+ZMP balance, as retarget-check runs it)",
+                fps("ours_zmp", 0),
+                base_fps,
+            ),
+            r("offline (ZMP balance) frames/s / baseline's, same run", zr, 1.0, ">= 0.9", zr >= 0.9),
+            r("jerk ratio, clean capture: offline ZMP balance", zj, jerk["base"], "<= 1.0", zj <= 1.0),
+        ]
     out += [
         r("jerk ratio, clean capture: offline", jerk["ours_off"], jerk["base"], "<= 1.0", jerk["ours_off"] <= 1.0),
         r("jerk ratio, clean capture: streaming", jerk["ours_stream"], jerk["base"]),
-        r("jerk ratio, 1 cm noise (vs noisy source): offline", jerk["off_noisy"], jerk["base_noisy"], "<= 1.0",
-          jerk["off_noisy"] <= 1.0),
+        r(
+            "jerk ratio, 1 cm noise (vs noisy source): offline",
+            jerk["off_noisy"],
+            jerk["base_noisy"],
+            "<= 1.0",
+            jerk["off_noisy"] <= 1.0,
+        ),
         r("jerk ratio, 1 cm noise (vs clean source): offline", vs_clean("off_noisy"), vs_clean("base_noisy")),
         r("jerk ratio, 1 cm noise (vs clean source): streaming", vs_clean("stream_noisy"), vs_clean("base_noisy")),
     ]
@@ -283,14 +325,23 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     n_self = int(agg("ours_off", "self_collisions", np.sum))
     out += [
         r("foot skate share of contact frames (offline)", skate, agg("base", "skate_share"), "< 0.02", skate < 0.02),
-        r("worst slide mm/frame (offline)", agg("ours_off", "worst_slide_mm", np.max),
-          agg("base", "worst_slide_mm", np.max)),
+        r(
+            "worst slide mm/frame (offline)",
+            agg("ours_off", "worst_slide_mm", np.max),
+            agg("base", "worst_slide_mm", np.max),
+        ),
         r("worst ground penetration mm (offline)", pen, agg("base", "penetration_mm", np.max), "<= 5", pen <= 5),
         r("self-collisions (offline)", n_self, int(agg("base", "self_collisions", np.sum)), "0", n_self == 0),
-        r("keypoint error mean mm (offline)", agg("ours_off", "keypoint_error_mean_mm"),
-          agg("base", "keypoint_error_mean_mm")),
-        r("keypoint error mean mm (streaming)", agg("ours_stream", "keypoint_error_mean_mm"),
-          agg("base", "keypoint_error_mean_mm")),
+        r(
+            "keypoint error mean mm (offline)",
+            agg("ours_off", "keypoint_error_mean_mm"),
+            agg("base", "keypoint_error_mean_mm"),
+        ),
+        r(
+            "keypoint error mean mm (streaming)",
+            agg("ours_stream", "keypoint_error_mean_mm"),
+            agg("base", "keypoint_error_mean_mm"),
+        ),
     ]
     return out
 

@@ -67,8 +67,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     emb["music"] = rng.standard_normal((n, 70)).astype(np.float32)
     lengths = rng.integers(30, 300, n)
     # Motions are not touched by a query; a 1-frame placeholder keeps the database small in memory.
-    db = RetrievalDatabase(np.zeros((n, 1, 2, 262), np.float32), np.minimum(lengths, 1), emb,
-                           [str(i) for i in range(n)])
+    db = RetrievalDatabase(
+        np.zeros((n, 1, 2, 262), np.float32), np.minimum(lengths, 1), emb, [str(i) for i in range(n)]
+    )
     db.lengths = lengths  # real clip lengths for eq. 1 (the 1-frame motions are never gathered)
     q = {c: rng.standard_normal(e.shape[1]).astype(np.float32) for c, e in db.embeddings.items()}
 
@@ -84,17 +85,28 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     fast = top_k(similarity_scores(db.embeddings["body"], db.lengths, q["body"], 120), 5)[0][0].tolist()
     assert fast == python_loop_query(db.embeddings["body"], db.lengths, q["body"], 120, 5), "scorers disagree"
 
-    print(f"retrieval query against {n:,} entries (CPU, median of repeats); baseline = Python loop scorer "
-          f"({loop:.1f} ms per cue, x4 for four cues); speed-up {loop / one:.0f}x on one cue")
+    print(
+        f"retrieval query against {n:,} entries (CPU, median of repeats); baseline = Python loop scorer "
+        f"({loop:.1f} ms per cue, x4 for four cues); speed-up {loop / one:.0f}x on one cue"
+    )
     target = f"< {TARGET_MS:g}"
     return [
         Row("retrieval: one cue, 384-d, eq.1 + top-5 (ms)", one, loop, target, verdict(one < TARGET_MS)),
-        Row("retrieval: full query, 3 text cues + music, top-5 each (ms)", full, 4 * loop, target,
-            verdict(full < TARGET_MS)),
-        Row("retrieval: training batch of 32, self excluded, 4 cues (ms/query)", train / 32, 4 * loop, target,
-            verdict(train / 32 < TARGET_MS)),
-        Row("retrieval: one cue via numpy matmul (OpenBLAS; not used, for comparison) (ms)", numpy_gemv, loop,
-            "", NA),
+        Row(
+            "retrieval: full query, 3 text cues + music, top-5 each (ms)",
+            full,
+            4 * loop,
+            target,
+            verdict(full < TARGET_MS),
+        ),
+        Row(
+            "retrieval: training batch of 32, self excluded, 4 cues (ms/query)",
+            train / 32,
+            4 * loop,
+            target,
+            verdict(train / 32 < TARGET_MS),
+        ),
+        Row("retrieval: one cue via numpy matmul (OpenBLAS; not used, for comparison) (ms)", numpy_gemv, loop, "", NA),
     ]
 
 

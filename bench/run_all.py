@@ -97,8 +97,14 @@ def _failure_row(name: str, what: str, tail: Sequence[str]) -> Row:
     last = next((line.strip() for line in reversed(tail) if line.strip()), "")
     if len(last) > FAILURE_CHARS:
         last = last[: FAILURE_CHARS - 3] + "..."
-    return Row(figure=DID_NOT_FINISH, value=f"{what}: {last}" if last else what, baseline="",
-               target="runs to the end", verdict=NOT_MET, bench=name)
+    return Row(
+        figure=DID_NOT_FINISH,
+        value=f"{what}: {last}" if last else what,
+        baseline="",
+        target="runs to the end",
+        verdict=NOT_MET,
+        bench=name,
+    )
 
 
 def is_failure(row: Row) -> bool:
@@ -106,8 +112,15 @@ def is_failure(row: Row) -> bool:
     return row.figure == DID_NOT_FINISH and row.verdict == NOT_MET
 
 
-def run_bench(module: str, quick: bool = False, timeout_s: float = DEFAULT_TIMEOUT_S, *, label: str | None = None,
-              pythonpath: Sequence[str | os.PathLike] = (), verbose: bool = False) -> list[Row]:
+def run_bench(
+    module: str,
+    quick: bool = False,
+    timeout_s: float = DEFAULT_TIMEOUT_S,
+    *,
+    label: str | None = None,
+    pythonpath: Sequence[str | os.PathLike] = (),
+    verbose: bool = False,
+) -> list[Row]:
     """Run one benchmark module in a fresh process; its rows, or one row saying it failed.
 
     module:     importable name with a ``rows(quick=False)`` function (e.g. "bench.sim_speed").
@@ -126,8 +139,17 @@ def run_bench(module: str, quick: bool = False, timeout_s: float = DEFAULT_TIMEO
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", module, "--rows-json", str(out)]
         if quick:
             cmd.append("--quick")
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env=env, cwd=str(ROOT), text=True, errors="replace", start_new_session=True)
+        proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            cwd=str(ROOT),
+            text=True,
+            errors="replace",
+            start_new_session=True,
+        )
         tail: collections.deque[str] = collections.deque(maxlen=TAIL_LINES)
 
         def pump() -> None:
@@ -172,8 +194,13 @@ def _kill_group(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def run_all(benches: Sequence[tuple[str, int | None]], quick: bool = False, timeout_s: float | None = None,
-            pythonpath: Sequence[str | os.PathLike] = (), verbose: bool = False) -> list[Row]:
+def run_all(
+    benches: Sequence[tuple[str, int | None]],
+    quick: bool = False,
+    timeout_s: float | None = None,
+    pythonpath: Sequence[str | os.PathLike] = (),
+    verbose: bool = False,
+) -> list[Row]:
     """Run the benchmarks one after another, each in its own process; all their rows."""
     timeout_s = timeout_s or (QUICK_TIMEOUT_S if quick else DEFAULT_TIMEOUT_S)
     rows: list[Row] = []
@@ -184,8 +211,10 @@ def run_all(benches: Sequence[tuple[str, int | None]], quick: bool = False, time
         t0 = time.perf_counter()
         got = run_bench(module, quick, timeout_s, label=label, pythonpath=pythonpath, verbose=verbose)
         ok = not any(is_failure(r) for r in got)
-        sys.stderr.write(f"[{i}/{len(benches)}] {label}: {'done' if ok else 'FAILED'} in "
-                         f"{time.perf_counter() - t0:.0f} s, {len(got)} row(s)\n")
+        sys.stderr.write(
+            f"[{i}/{len(benches)}] {label}: {'done' if ok else 'FAILED'} in "
+            f"{time.perf_counter() - t0:.0f} s, {len(got)} row(s)\n"
+        )
         rows += got
     return rows
 
@@ -197,15 +226,24 @@ def machine_line() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python bench/run_all.py", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="python bench/run_all.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--quick", action="store_true", help="short smoke run of every benchmark")
-    ap.add_argument("--only", nargs="+", metavar="NAME",
-                    help="run only these benchmarks (names as listed above, e.g. sim_speed servo_bus)")
+    ap.add_argument(
+        "--only",
+        nargs="+",
+        metavar="NAME",
+        help="run only these benchmarks (names as listed above, e.g. sim_speed servo_bus)",
+    )
     ap.add_argument("--out", type=Path, help="also write the table here: CSV for a .csv name, markdown otherwise")
-    ap.add_argument("--timeout", type=float, default=None,
-                    help=f"seconds per benchmark before it is stopped (default {DEFAULT_TIMEOUT_S:g}, "
-                         f"{QUICK_TIMEOUT_S:g} with --quick)")
+    ap.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        help=f"seconds per benchmark before it is stopped (default {DEFAULT_TIMEOUT_S:g}, "
+        f"{QUICK_TIMEOUT_S:g} with --quick)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true", help="show each benchmark's own output as it runs")
     ap.add_argument("--child", metavar="MODULE", help=argparse.SUPPRESS)
     ap.add_argument("--rows-json", type=Path, help=argparse.SUPPRESS)
@@ -224,8 +262,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     started = machine_line()
     t0 = time.perf_counter()
     rows = run_all(benches, quick=args.quick, timeout_s=args.timeout, verbose=args.verbose)
-    head = (f"Benchmarks{' (--quick smoke run)' if args.quick else ''}: {started}; "
-            f"{time.perf_counter() - t0:.0f} s in all")
+    head = (
+        f"Benchmarks{' (--quick smoke run)' if args.quick else ''}: {started}; {time.perf_counter() - t0:.0f} s in all"
+    )
     print(head)
     print_table(rows)
     if args.out:

@@ -225,10 +225,24 @@ def bench_baud(baud: int, cycles: int) -> dict:
     finally:
         emu.stop()
     sw, fsr = theory_ms(baud)
-    return {"baud": baud, "theory_sw": sw, "theory_fsr": fsr, "cycle": cycle_ms, "sdk": sdk_ms, "host": host_ms,
-            "wait": wait_ms, "retries": retries, "fast": fast, "split": split[0][0], "split_cpu": split[0][1],
-            "late": split[0][2] + split[1][2], "split_bulk": split[1][0], "split_bulk_cpu": split[1][1],
-            "floor": floor_ms, "floor_cpu": floor_cpu}
+    return {
+        "baud": baud,
+        "theory_sw": sw,
+        "theory_fsr": fsr,
+        "cycle": cycle_ms,
+        "sdk": sdk_ms,
+        "host": host_ms,
+        "wait": wait_ms,
+        "retries": retries,
+        "fast": fast,
+        "split": split[0][0],
+        "split_cpu": split[0][1],
+        "late": split[0][2] + split[1][2],
+        "split_bulk": split[1][0],
+        "split_bulk_cpu": split[1][1],
+        "floor": floor_ms,
+        "floor_cpu": floor_cpu,
+    }
 
 
 #: the IMU's READ in each cycle: instruction 14 bytes + status 11 + 18 data bytes (OpenCR, 32..49)
@@ -297,8 +311,7 @@ def host_cpu(baud: int, cycles: int) -> dict:
     from ros_free_bridge.dynamixel.transport import DynamixelTransport
     from ros_free_bridge.emulators import DynamixelBusEmulator
 
-    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud,
-                              devices=())
+    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud, devices=())
     emu = DynamixelBusEmulator(servos=range(1, N_SERVOS + 1), baud=baud, wire_timing=False, return_delay_us=0.0).start()
     t = DynamixelTransport(bus, port=emu.port_path, slow_per_cycle=0, latency_ms=20.0)
     try:
@@ -308,7 +321,9 @@ def host_cpu(baud: int, cycles: int) -> dict:
         emu._thread.join()
         emu._thread = None
         master = emu._master
-        reply = dp.encode_fast_status([(0, sid, (2048 + 7 * sid).to_bytes(4, "little")) for sid in range(1, N_SERVOS + 1)])
+        reply = dp.encode_fast_status(
+            [(0, sid, (2048 + 7 * sid).to_bytes(4, "little")) for sid in range(1, N_SERVOS + 1)]
+        )
         port = t.bus.port
         write = port.writePort
 
@@ -411,8 +426,7 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split
     from ros_free_bridge.control.realtime import LoopGc, realtime_priority, switch_interval
     from ros_free_bridge.dynamixel.transport import DynamixelTransport
 
-    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud,
-                              devices=())
+    bus = dataclasses.replace(load_config(robot_config_path("op3"), check_mjcf=False).buses[0], baud=baud, devices=())
     emu = _Emulator(baud)
     lateness, busy = [], []
     clock = FixedRateClock(hz)
@@ -424,6 +438,7 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split
 
             def step(k: int) -> None:
                 tick(np.rint(goal0 + 65.0 * np.sin(2 * np.pi * 0.5 * k / hz)).astype(int).tolist())
+
             gc_ctx, si_ctx = contextlib.nullcontext(), contextlib.nullcontext()
         else:
             t = DynamixelTransport(bus, port=emu.port, slow_per_cycle=1, latency_ms=20.0)
@@ -435,6 +450,7 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split
             def step(k: int) -> None:  # as the control loop: read (the reply to the last request), then write
                 t.read_state()
                 t.write_goal(np.clip(q + 0.1 * np.sin(2 * np.pi * 0.5 * k / hz), t.lower, t.upper))
+
             gc_ctx, si_ctx = LoopGc(), switch_interval()
         try:
             # the stock SDK polls the port without sleeping: at SCHED_FIFO it would hold a core, so the
@@ -455,8 +471,14 @@ def sustained(baud: int, hz: float, seconds: float, use_sdk: bool = False, split
             close()
     finally:
         emu.stop()
-    return {"hz": n / elapsed, "overruns": int(np.sum(np.asarray(busy) + np.asarray(lateness) > 1e3 / hz)),
-            "skipped": clock.missed, "n": n, "busy": busy, "lateness": lateness}
+    return {
+        "hz": n / elapsed,
+        "overruns": int(np.sum(np.asarray(busy) + np.asarray(lateness) > 1e3 / hz)),
+        "skipped": clock.missed,
+        "n": n,
+        "busy": busy,
+        "lateness": lateness,
+    }
 
 
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
@@ -464,22 +486,34 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap.add_argument("--cycles", type=int, default=400)
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--bauds", default="1000000,2000000,4000000")
-    ap.add_argument("--nice", type=int, default=0,
-                    help="scheduling priority for host and emulator, e.g. -10 (needs root); default 0")
-    ap.add_argument("--rt", type=int, default=0,
-                    help="SCHED_FIFO priority (1-99, needs CAP_SYS_NICE) for the emulator and the sustained loops: "
-                         "the bus then answers like hardware on a busy machine; default 0 (normal scheduling)")
+    ap.add_argument(
+        "--nice",
+        type=int,
+        default=0,
+        help="scheduling priority for host and emulator, e.g. -10 (needs root); default 0",
+    )
+    ap.add_argument(
+        "--rt",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority (1-99, needs CAP_SYS_NICE) for the emulator and the sustained loops: "
+        "the bus then answers like hardware on a busy machine; default 0 (normal scheduling)",
+    )
     args = parse_args(ap, argv, quick, QUICK)
     NICE[0] = args.nice
     RT[0] = args.rt
     _renice()
 
-    print(f"servo bus benchmark: {N_SERVOS} × XM430-W350, emulator with wire timing in a child process; "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, nice {args.nice}, "
-          f"{'SCHED_FIFO ' + str(args.rt) if args.rt else 'normal scheduling'}")
+    print(
+        f"servo bus benchmark: {N_SERVOS} × XM430-W350, emulator with wire timing in a child process; "
+        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, nice {args.nice}, "
+        f"{'SCHED_FIFO ' + str(args.rt) if args.rt else 'normal scheduling'}"
+    )
     print("times in ms per cycle, median / p99; theory = packet bytes × 10 bits / baud")
-    hdr = (f"{'baud':>8} {'theory sw+fsr':>15} {'sdk baseline':>14} {'transport':>14} {'reply wait':>12} "
-           f"{'host (target <0.3)':>20} {'split phase':>14} retries")
+    hdr = (
+        f"{'baud':>8} {'theory sw+fsr':>15} {'sdk baseline':>14} {'transport':>14} {'reply wait':>12} "
+        f"{'host (target <0.3)':>20} {'split phase':>14} retries"
+    )
     print(hdr)
     out = []
     host_target = f"< {TARGET_HOST_MS:g}"
@@ -487,67 +521,151 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         r = bench_baud(baud, args.cycles)
         m = statistics.median
         th = r["theory_sw"] + r["theory_fsr"]
-        print(f"{baud:>8} {r['theory_sw']:6.2f}+{r['theory_fsr']:.2f}={th:4.2f} "
-              f"{m(r['sdk']):6.2f}/{_pct(r['sdk'], 99):5.2f} {m(r['cycle']):6.2f}/{_pct(r['cycle'], 99):5.2f} "
-              f"{m(r['wait']):5.2f}/{_pct(r['wait'], 99):5.2f} {m(r['host']):9.3f}/{_pct(r['host'], 99):6.3f}"
-              f"{' ok' if m(r['host']) < TARGET_HOST_MS else ' OVER':>5} {m(r['split']):7.3f}/{_pct(r['split'], 99):6.3f}"
-              f" (CPU {m(r['split_cpu']):.3f}; with a status block {m(r['split_bulk']):.3f}, CPU "
-              f"{m(r['split_bulk_cpu']):.3f}; bare I/O floor {m(r['floor']):.3f}, CPU {m(r['floor_cpu']):.3f})"
-              f" {r['retries']:>5}" + ("" if r["fast"] else "  (SYNC_READ fallback)")
-              + (f"  ({r['late']} split-phase replies not complete after theory + 3 ms)" if r["late"] else ""))
+        print(
+            f"{baud:>8} {r['theory_sw']:6.2f}+{r['theory_fsr']:.2f}={th:4.2f} "
+            f"{m(r['sdk']):6.2f}/{_pct(r['sdk'], 99):5.2f} {m(r['cycle']):6.2f}/{_pct(r['cycle'], 99):5.2f} "
+            f"{m(r['wait']):5.2f}/{_pct(r['wait'], 99):5.2f} {m(r['host']):9.3f}/{_pct(r['host'], 99):6.3f}"
+            f"{' ok' if m(r['host']) < TARGET_HOST_MS else ' OVER':>5} {m(r['split']):7.3f}/{_pct(r['split'], 99):6.3f}"
+            f" (CPU {m(r['split_cpu']):.3f}; with a status block {m(r['split_bulk']):.3f}, CPU "
+            f"{m(r['split_bulk_cpu']):.3f}; bare I/O floor {m(r['floor']):.3f}, CPU {m(r['floor_cpu']):.3f})"
+            f" {r['retries']:>5}"
+            + ("" if r["fast"] else "  (SYNC_READ fallback)")
+            + (f"  ({r['late']} split-phase replies not complete after theory + 3 ms)" if r["late"] else "")
+        )
         mbit = f"{baud / 1e6:g} Mbit/s"
-        out.append(Row(f"bus cycle, sync write + fast sync read, 20 servos @ {mbit} (ms median; theory {th:.2f}; "
-                       "baseline bare SDK)", m(r["cycle"]), m(r["sdk"]), "", NA))
-        out.append(Row(f"host-side time per bus cycle @ {mbit}, wall clock: cycle minus reply wait "
-                       "(ms median; load shows here)", m(r["host"]), "", host_target,
-                       verdict(m(r["host"]) < TARGET_HOST_MS)))
-        out.append(Row(f"host-side time per split-phase bus cycle @ {mbit}, FAST_SYNC_READ, wall clock: write_goal + "
-                       f"read_state with the reply already there (ms median; its CPU {m(r['split_cpu']):.3f}; baseline: "
-                       f"the same bytes with bare system calls; load {os.getloadavg()[0]:.1f})", m(r["split"]),
-                       m(r["floor"]), host_target, verdict(m(r["split"]) < TARGET_HOST_MS)))
-        out.append(Row(f"the same with the control loop's setting (slow_per_cycle 1: FAST_BULK_READ + one status block) "
-                       f"@ {mbit} (ms median; its CPU {m(r['split_bulk_cpu']):.3f}; baseline: bare system calls)",
-                       m(r["split_bulk"]), m(r["floor"]), host_target, verdict(m(r["split_bulk"]) < TARGET_HOST_MS)))
+        out.append(
+            Row(
+                f"bus cycle, sync write + fast sync read, 20 servos @ {mbit} (ms median; theory {th:.2f}; "
+                "baseline bare SDK)",
+                m(r["cycle"]),
+                m(r["sdk"]),
+                "",
+                NA,
+            )
+        )
+        out.append(
+            Row(
+                f"host-side time per bus cycle @ {mbit}, wall clock: cycle minus reply wait "
+                "(ms median; load shows here)",
+                m(r["host"]),
+                "",
+                host_target,
+                verdict(m(r["host"]) < TARGET_HOST_MS),
+            )
+        )
+        out.append(
+            Row(
+                f"host-side time per split-phase bus cycle @ {mbit}, FAST_SYNC_READ, wall clock: write_goal + "
+                f"read_state with the reply already there (ms median; its CPU {m(r['split_cpu']):.3f}; baseline: "
+                f"the same bytes with bare system calls; load {os.getloadavg()[0]:.1f})",
+                m(r["split"]),
+                m(r["floor"]),
+                host_target,
+                verdict(m(r["split"]) < TARGET_HOST_MS),
+            )
+        )
+        out.append(
+            Row(
+                f"the same with the control loop's setting (slow_per_cycle 1: FAST_BULK_READ + one status block) "
+                f"@ {mbit} (ms median; its CPU {m(r['split_bulk_cpu']):.3f}; baseline: bare system calls)",
+                m(r["split_bulk"]),
+                m(r["floor"]),
+                host_target,
+                verdict(m(r["split_bulk"]) < TARGET_HOST_MS),
+            )
+        )
     ic = imu_cost(2_000_000, max(40, args.cycles // 4))
     m = statistics.median
-    for mode, what in (("blocking", "blocking cycle (write_goal + read_state), wall clock"),
-                       ("split", "split-phase cycle (read_state + write_goal, replies already there), host wall clock")):
+    for mode, what in (
+        ("blocking", "blocking cycle (write_goal + read_state), wall clock"),
+        ("split", "split-phase cycle (read_state + write_goal, replies already there), host wall clock"),
+    ):
         mine, base = ic[mode]
-        print(f"IMU (OpenCR, ID 200) read in every cycle at 2 Mbit/s, {what}: with {m(mine):.3f} ms, without "
-              f"{m(base):.3f} ms (adds {m(mine) - m(base):.3f}; its bytes on the wire {ic['theory']:.3f} ms)")
-        out.append(Row(f"op3 bus cycle with the OpenCR IMU read @ 2 Mbit/s, {what} (ms median; the IMU READ's bytes "
-                       f"on the wire {ic['theory']:.3f} ms; baseline: the same bus without the IMU, same run)",
-                       m(mine), m(base), "", NA))
+        print(
+            f"IMU (OpenCR, ID 200) read in every cycle at 2 Mbit/s, {what}: with {m(mine):.3f} ms, without "
+            f"{m(base):.3f} ms (adds {m(mine) - m(base):.3f}; its bytes on the wire {ic['theory']:.3f} ms)"
+        )
+        out.append(
+            Row(
+                f"op3 bus cycle with the OpenCR IMU read @ 2 Mbit/s, {what} (ms median; the IMU READ's bytes "
+                f"on the wire {ic['theory']:.3f} ms; baseline: the same bus without the IMU, same run)",
+                m(mine),
+                m(base),
+                "",
+                NA,
+            )
+        )
     hc = host_cpu(2_000_000, args.cycles)
     m = statistics.median
-    print(f"host CPU per cycle at 2 Mbit/s (reply injected, no emulator running, nothing waited for): ours median "
-          f"{m(hc['ours']):.3f} ms (p99 {_pct(hc['ours'], 99):.3f}), bare dynamixel-sdk {m(hc['sdk']):.3f} ms "
-          f"(p99 {_pct(hc['sdk'], 99):.3f}); target < {TARGET_HOST_MS} ms")
-    out.append(Row("host CPU per bus cycle @ 2 Mbit/s, write goals + fast sync read + convert (ms median; baseline bare SDK)",
-                   m(hc["ours"]), m(hc["sdk"]), host_target, verdict(m(hc["ours"]) < TARGET_HOST_MS)))
+    print(
+        f"host CPU per cycle at 2 Mbit/s (reply injected, no emulator running, nothing waited for): ours median "
+        f"{m(hc['ours']):.3f} ms (p99 {_pct(hc['ours'], 99):.3f}), bare dynamixel-sdk {m(hc['sdk']):.3f} ms "
+        f"(p99 {_pct(hc['sdk'], 99):.3f}); target < {TARGET_HOST_MS} ms"
+    )
+    out.append(
+        Row(
+            "host CPU per bus cycle @ 2 Mbit/s, write goals + fast sync read + convert (ms median; baseline bare SDK)",
+            m(hc["ours"]),
+            m(hc["sdk"]),
+            host_target,
+            verdict(m(hc["ours"]) < TARGET_HOST_MS),
+        )
+    )
     runs = {}
-    for name, use_sdk, split in (("ours, split phase", False, True), ("ours, blocking cycle", False, False),
-                                 ("bare SDK", True, False)):
+    for name, use_sdk, split in (
+        ("ours, split phase", False, True),
+        ("ours, blocking cycle", False, False),
+        ("bare SDK", True, False),
+    ):
         cpu0 = cpu_counters()
         r = runs[name] = sustained(2_000_000, TARGET_HZ, args.seconds, use_sdk=use_sdk, split=split)
         r["steal"] = steal_percent(cpu0, cpu_counters())
-        print(f"sustained {TARGET_HZ:.0f} Hz at 2 Mbit/s, {name}: {r['hz']:.1f} Hz; {r['overruns']}/{r['n']} ticks overran, "
-              f"{r['skipped']} skipped; lateness p50 {m(r['lateness']):.3f} / p99 {_pct(r['lateness'], 99):.3f} ms; "
-              f"busy per tick p50 {m(r['busy']):.2f} / p99 {_pct(r['busy'], 99):.2f} ms of {1e3 / TARGET_HZ:.1f}; "
-              f"load {os.getloadavg()[0]:.2f}; CPU time stolen by the host {r['steal']:.1f} %")
+        print(
+            f"sustained {TARGET_HZ:.0f} Hz at 2 Mbit/s, {name}: {r['hz']:.1f} Hz; {r['overruns']}/{r['n']} ticks overran, "
+            f"{r['skipped']} skipped; lateness p50 {m(r['lateness']):.3f} / p99 {_pct(r['lateness'], 99):.3f} ms; "
+            f"busy per tick p50 {m(r['busy']):.2f} / p99 {_pct(r['busy'], 99):.2f} ms of {1e3 / TARGET_HZ:.1f}; "
+            f"load {os.getloadavg()[0]:.2f}; CPU time stolen by the host {r['steal']:.1f} %"
+        )
     mine, blocking, base = runs.values()
     sched = f"; --rt {RT[0]}: emulator and our loop SCHED_FIFO" if RT[0] else ""
     sched += f"; load {os.getloadavg()[0]:.1f}; CPU time stolen by the host {mine['steal']:.1f} % (ours), {base['steal']:.1f} % (SDK)"
-    out.append(Row(f"sustained bus loop @ 2 Mbit/s, {TARGET_HZ:.0f} Hz asked (Hz achieved; ROBOTIS OP3 framework "
-                   f"{OP3_FRAMEWORK_HZ:.0f} Hz; baseline bare SDK{sched})", mine["hz"], base["hz"], "", NA))
-    out.append(Row(f"ticks overrun + skipped in the sustained {TARGET_HZ:.0f} Hz bus loop (baseline bare SDK{sched})",
-                   f"{mine['overruns']} + {mine['skipped']} / {mine['n']}", f"{base['overruns']} + {base['skipped']} / {base['n']}",
-                   f"{TARGET_HZ:.0f} Hz sustained: 0", verdict(mine["overruns"] + mine["skipped"] == 0)))
-    out.append(Row(f"the same, ours with the blocking cycle (write, then wait for the read's reply; baseline bare SDK{sched})",
-                   f"{blocking['overruns']} + {blocking['skipped']} / {blocking['n']}",
-                   f"{base['overruns']} + {base['skipped']} / {base['n']}", "", NA))
-    out.append(Row(f"bus loop lateness p99 @ {TARGET_HZ:.0f} Hz (ms; baseline bare SDK{sched})", _pct(mine["lateness"], 99),
-                   _pct(base["lateness"], 99), f"< {0.2e3 / TARGET_HZ:.1f}", verdict(_pct(mine["lateness"], 99) < 0.2e3 / TARGET_HZ)))
+    out.append(
+        Row(
+            f"sustained bus loop @ 2 Mbit/s, {TARGET_HZ:.0f} Hz asked (Hz achieved; ROBOTIS OP3 framework "
+            f"{OP3_FRAMEWORK_HZ:.0f} Hz; baseline bare SDK{sched})",
+            mine["hz"],
+            base["hz"],
+            "",
+            NA,
+        )
+    )
+    out.append(
+        Row(
+            f"ticks overrun + skipped in the sustained {TARGET_HZ:.0f} Hz bus loop (baseline bare SDK{sched})",
+            f"{mine['overruns']} + {mine['skipped']} / {mine['n']}",
+            f"{base['overruns']} + {base['skipped']} / {base['n']}",
+            f"{TARGET_HZ:.0f} Hz sustained: 0",
+            verdict(mine["overruns"] + mine["skipped"] == 0),
+        )
+    )
+    out.append(
+        Row(
+            f"the same, ours with the blocking cycle (write, then wait for the read's reply; baseline bare SDK{sched})",
+            f"{blocking['overruns']} + {blocking['skipped']} / {blocking['n']}",
+            f"{base['overruns']} + {base['skipped']} / {base['n']}",
+            "",
+            NA,
+        )
+    )
+    out.append(
+        Row(
+            f"bus loop lateness p99 @ {TARGET_HZ:.0f} Hz (ms; baseline bare SDK{sched})",
+            _pct(mine["lateness"], 99),
+            _pct(base["lateness"], 99),
+            f"< {0.2e3 / TARGET_HZ:.1f}",
+            verdict(_pct(mine["lateness"], 99) < 0.2e3 / TARGET_HZ),
+        )
+    )
     return out
 
 

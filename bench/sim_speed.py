@@ -99,13 +99,19 @@ def bench_check(seconds: float, repeats: int) -> list[Row]:
         best_raw = min(best_raw, time.process_time() - t0)
         wall_raw = min(wall_raw, time.perf_counter() - w0)
     sim_s = traj.duration + cfg.settle_s + result.entry_transition_s
-    print(f"check: {traj.duration:.0f} s clip (+{cfg.settle_s} s settle, +{result.entry_transition_s:g} s entry from "
-          f"standing), physics {cfg.physics_hz:g} Hz, "
-          f"control {cfg.control_hz:g} Hz, best of {repeats}")
-    print(f"  validation (all metrics):      {best_check:6.3f} CPU s = {sim_s / best_check:7.1f} x real time"
-          f"   target >= {TARGET_X_REALTIME:g} x   (wall {wall_check:.3f} s = {sim_s / wall_check:.1f} x)")
-    print(f"  baseline raw mj_step:          {best_raw:6.3f} CPU s = {sim_s / best_raw:7.1f} x real time"
-          f"                   (wall {wall_raw:.3f} s = {sim_s / wall_raw:.1f} x)")
+    print(
+        f"check: {traj.duration:.0f} s clip (+{cfg.settle_s} s settle, +{result.entry_transition_s:g} s entry from "
+        f"standing), physics {cfg.physics_hz:g} Hz, "
+        f"control {cfg.control_hz:g} Hz, best of {repeats}"
+    )
+    print(
+        f"  validation (all metrics):      {best_check:6.3f} CPU s = {sim_s / best_check:7.1f} x real time"
+        f"   target >= {TARGET_X_REALTIME:g} x   (wall {wall_check:.3f} s = {sim_s / wall_check:.1f} x)"
+    )
+    print(
+        f"  baseline raw mj_step:          {best_raw:6.3f} CPU s = {sim_s / best_raw:7.1f} x real time"
+        f"                   (wall {wall_raw:.3f} s = {sim_s / wall_raw:.1f} x)"
+    )
     print(f"  metrics overhead:              {best_check / best_raw - 1:6.1%} over the baseline")
     print(f"  scene build (compile, once):   {best_build:6.3f} CPU s")
     with_build = best_check + best_build
@@ -113,10 +119,20 @@ def bench_check(seconds: float, repeats: int) -> list[Row]:
     clip = f"{traj.duration:.0f} s clip, physics {cfg.physics_hz:g} Hz"
     target = f">= {TARGET_X_REALTIME:g}"
     return [
-        Row(f"check speed, {clip} (x real time, CPU; baseline raw mj_step)", sim_s / best_check, sim_s / best_raw,
-            target, verdict(sim_s / best_check >= TARGET_X_REALTIME)),
-        Row(f"check speed incl. scene build, {clip} (x real time, CPU)", sim_s / with_build, sim_s / best_raw,
-            target, verdict(sim_s / with_build >= TARGET_X_REALTIME)),
+        Row(
+            f"check speed, {clip} (x real time, CPU; baseline raw mj_step)",
+            sim_s / best_check,
+            sim_s / best_raw,
+            target,
+            verdict(sim_s / best_check >= TARGET_X_REALTIME),
+        ),
+        Row(
+            f"check speed incl. scene build, {clip} (x real time, CPU)",
+            sim_s / with_build,
+            sim_s / best_raw,
+            target,
+            verdict(sim_s / with_build >= TARGET_X_REALTIME),
+        ),
         Row(f"check speed, {clip} (x real time, wall)", sim_s / wall_check, sim_s / wall_raw, "", NA),
     ]
 
@@ -151,9 +167,18 @@ def bench_render(frames: int) -> list[Row]:
         dt = (time.process_time() - t0) / frames
         wall = (time.perf_counter() - w0) / frames
         filmer.close()
-        print(f"  offscreen render ({quality:4s}):         {1.0 / dt:8.1f} frames/s per CPU s   (wall {1.0 / wall:.1f} frames/s)")
-        rows.append(Row(f"offscreen render 640x480, {quality} quality (frames/s per CPU s; baseline forward + "
-                        "scene update)", 1.0 / dt, 1.0 / base, "", NA))
+        print(
+            f"  offscreen render ({quality:4s}):         {1.0 / dt:8.1f} frames/s per CPU s   (wall {1.0 / wall:.1f} frames/s)"
+        )
+        rows.append(
+            Row(
+                f"offscreen render 640x480, {quality} quality (frames/s per CPU s; baseline forward + scene update)",
+                1.0 / dt,
+                1.0 / base,
+                "",
+                NA,
+            )
+        )
     return rows
 
 

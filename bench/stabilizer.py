@@ -29,8 +29,16 @@ COST_BUDGET_US = 100.0
 QUICK = ["--max-force", "15", "--ticks", "2000"]
 
 
-def survives(scene, force: float, axis: int, stabilizer: bool, duration: float = 0.2, push_at: float = 1.0,
-             control_hz: float = 100.0, gains=None) -> bool:
+def survives(
+    scene,
+    force: float,
+    axis: int,
+    stabilizer: bool,
+    duration: float = 0.2,
+    push_at: float = 1.0,
+    control_hz: float = 100.0,
+    gains=None,
+) -> bool:
     """Whether the standing robot of ``scene`` stays up (tilt < 50 deg) until 1.5 s after a push
     of ``force`` N along world axis ``axis`` (0 x, 1 y) on its root body's centre of mass for
     ``duration`` s. The stabilizer gets the readings of the tick before, as in the bridge."""
@@ -47,7 +55,7 @@ def survives(scene, force: float, axis: int, stabilizer: bool, duration: float =
     probe = ImuProbe(m, r.root_body)
     q_ref = scene.stand_ctrl.copy()
     dt = 1.0 / control_hz
-    n_sub = int(round(m.opt.timestep ** -1 / control_hz))
+    n_sub = int(round(m.opt.timestep**-1 / control_hz))
     cos_fall = math.cos(math.radians(50.0))
     reading = (d.qpos[r.qpos_adr].copy(), probe.read(d))
     for k in range(int((push_at + duration + 1.5) * control_hz)):
@@ -64,8 +72,9 @@ def survives(scene, force: float, axis: int, stabilizer: bool, duration: float =
     return bool(np.isfinite(d.qpos).all())
 
 
-def largest_push(scene, axis: int, sign: float, stabilizer: bool, max_force: float, gains=None,
-                 duration: float = 0.2) -> float:
+def largest_push(
+    scene, axis: int, sign: float, stabilizer: bool, max_force: float, gains=None, duration: float = 0.2
+) -> float:
     """The largest whole-newton push (up to ``max_force``) survived, every smaller one survived too."""
     best = 0.0
     for f in range(1, int(max_force) + 1):
@@ -117,17 +126,38 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     scene = Scene()
     out = []
     for duration in (0.2, 2.5):
-        for name, axis, sign in (("sideways, to the left (+y)", 1, 1.0), ("sideways, to the right (-y)", 1, -1.0),
-                                 ("forward (+x)", 0, 1.0), ("backward (-x)", 0, -1.0)):
+        for name, axis, sign in (
+            ("sideways, to the left (+y)", 1, 1.0),
+            ("sideways, to the right (-y)", 1, -1.0),
+            ("forward (+x)", 0, 1.0),
+            ("backward (-x)", 0, -1.0),
+        ):
             on = largest_push(scene, axis, sign, True, args.max_force, duration=duration)
             off = largest_push(scene, axis, sign, False, args.max_force, duration=duration)
-            print(f"  push {duration:g} s {name:28s} survived up to {on:5.1f} N with the stabilizer, {off:5.1f} N without")
-            out.append(Row(f"largest push survived, {duration:g} s at the torso CoM, {name}, standing op3 (N; "
-                           "baseline: no stabilizer)", on, off, ">= baseline", verdict(on >= off)))
+            print(
+                f"  push {duration:g} s {name:28s} survived up to {on:5.1f} N with the stabilizer, {off:5.1f} N without"
+            )
+            out.append(
+                Row(
+                    f"largest push survived, {duration:g} s at the torso CoM, {name}, standing op3 (N; "
+                    "baseline: no stabilizer)",
+                    on,
+                    off,
+                    ">= baseline",
+                    verdict(on >= off),
+                )
+            )
     stab_us, safety_us = tick_cost_us(args.ticks)
     print(f"  Stabilizer.step {stab_us:.1f} us per tick (safety filter step {safety_us:.1f} us)")
-    out.append(Row("stabilizer cost per control tick, op3 (CPU us; baseline: the safety filter's step)", stab_us,
-                   safety_us, f"<= {COST_BUDGET_US:g}", verdict(stab_us <= COST_BUDGET_US)))
+    out.append(
+        Row(
+            "stabilizer cost per control tick, op3 (CPU us; baseline: the safety filter's step)",
+            stab_us,
+            safety_us,
+            f"<= {COST_BUDGET_US:g}",
+            verdict(stab_us <= COST_BUDGET_US),
+        )
+    )
     return out
 
 

@@ -101,7 +101,7 @@ def zmp_shares(rb, X: np.ndarray, down: np.ndarray, fps: float) -> tuple[float, 
     ev = rb.evaluate(X)
     c = ev["com"]
     acc = np.zeros_like(c[:, 0:2])
-    acc[1:-1] = (c[2:, 0:2] - 2 * c[1:-1, 0:2] + c[:-2, 0:2]) * fps ** 2
+    acc[1:-1] = (c[2:, 0:2] - 2 * c[1:-1, 0:2] + c[:-2, 0:2]) * fps**2
     z = c[:, 0:2] - (c[:, 2:3] / GRAVITY) * acc
     m = com_margins(z, ev["sole"], [f.corners for f in rb.feet], down)
     ok = np.isfinite(m)
@@ -112,7 +112,7 @@ def pelvis_relative_error(rb, X: np.ndarray, keypoints: np.ndarray) -> float:
     """Mean ‖(p_k − p_root) − (t_k − t_root)‖ (m) over frames and keypoints."""
     kp = rb.evaluate(X)["keypoints"]
     r = rb.root_keypoint
-    return float(np.mean(np.linalg.norm((kp - kp[:, r:r + 1]) - (keypoints - keypoints[:, r:r + 1]), axis=-1)))
+    return float(np.mean(np.linalg.norm((kp - kp[:, r : r + 1]) - (keypoints - keypoints[:, r : r + 1]), axis=-1)))
 
 
 def offline_before(off: OfflineRetargeter, rb, motion, tg):
@@ -151,22 +151,47 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     if "duets" in kinds:
         from dualflow.synthetic import make_duet
 
-        clips += [make_duet(r, seconds=10.0, fps=30.0, seed=1).reactor.replace(name=f"duet_{r}") for r in ("hand_hold", "orbit")]
+        clips += [
+            make_duet(r, seconds=10.0, fps=30.0, seed=1).reactor.replace(name=f"duet_{r}")
+            for r in ("hand_hold", "orbit")
+        ]
     if args.max_clips:
-        clips = clips[:args.max_clips]
+        clips = clips[: args.max_clips]
     height = float(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2].max())
     print(f"robot {rb.name} (height {height:.3f} m), {len(clips)} clips, load {os.getloadavg()[0]:.2f}")
     off = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True))
     off_lead = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig()))
-    prev = StepConfig(min_double=0.0, start_double=0.0, robot_swing=0.0, swing_clearance=0.0, standing_start=False,
-                      start_ramp=0.0, travel_zmp_shift=0.0)
-    off_prev = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True, zmp_model="cart-table",
-                                                   single_support_com=False, steps=prev))
+    prev = StepConfig(
+        min_double=0.0,
+        start_double=0.0,
+        robot_swing=0.0,
+        swing_clearance=0.0,
+        standing_start=False,
+        start_ramp=0.0,
+        travel_zmp_shift=0.0,
+    )
+    off_prev = OfflineRetargeter(
+        rb, OfflineConfig(balance=True, zmp=True, zmp_model="cart-table", single_support_com=False, steps=prev)
+    )
     st_new = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True, preview=9))
     st_old = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True))
     modes = args.modes.split(",")
-    stats = {m: {"frames": 0, "cpu": 0.0, "steps": 0, "person": 0, "err": [], "jerk": [], "zmp": [], "zmp1": [],
-                 "done": 0, "phys": [], "step_ratio": []} for m in modes}
+    stats = {
+        m: {
+            "frames": 0,
+            "cpu": 0.0,
+            "steps": 0,
+            "person": 0,
+            "err": [],
+            "jerk": [],
+            "zmp": [],
+            "zmp1": [],
+            "done": 0,
+            "phys": [],
+            "step_ratio": [],
+        }
+        for m in modes
+    }
     for motion in clips:
         tg = make_targets(rb, motion)
         person = count_steps(tg.contacts)
@@ -182,7 +207,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                     elif mode == "offline-prev":
                         traj = off_prev.retarget(motion)
                     elif mode == "offline-before":
-                        traj = trajectory_from_x(rb, offline_before(off, rb, motion, tg), motion.fps, {"mode": "offline"})
+                        traj = trajectory_from_x(
+                            rb, offline_before(off, rb, motion, tg), motion.fps, {"mode": "offline"}
+                        )
                     else:
                         traj = (st_new if mode == "streaming" else st_old).run(motion)
             except (RetargetError, _Infeasible) as exc:  # _Infeasible: the old solve() raises it bare
@@ -208,8 +235,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 z0, z1 = zmp_shares(rb, X, down, motion.fps)
                 s["zmp"].append(z0)
                 s["zmp1"].append(z1)
-                note = (f"steps {n}/{person}, err {100 * s['err'][-1]:.1f} %, jerk {rep.jerk_ratio or 0:.2f}, "
-                        f"zmp in {100 * z0:.0f} %")
+                note = (
+                    f"steps {n}/{person}, err {100 * s['err'][-1]:.1f} %, jerk {rep.jerk_ratio or 0:.2f}, "
+                    f"zmp in {100 * z0:.0f} %"
+                )
                 if args.physics:
                     from sim.check import CheckConfig, check_trajectory
 
@@ -226,9 +255,11 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     out = []
     for mode in modes:
         s = stats[mode]
-        base = {"offline": "offline-prev" if "offline-prev" in stats else "offline-before",
-                "offline-lead-in": "offline",
-                "streaming": "streaming-before"}.get(mode)
+        base = {
+            "offline": "offline-prev" if "offline-prev" in stats else "offline-before",
+            "offline-lead-in": "offline",
+            "streaming": "streaming-before",
+        }.get(mode)
         b = stats.get(base) if base else None
 
         def fig(key, fn, mode=mode, b=b):
@@ -237,29 +268,65 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
 
         mean = lambda a: float(np.mean(a))  # noqa: E731
         label = f"{mode}"
-        out.append(Row(f"{label}: clips retargeted / all", f"{s['done']}/{len(clips)}",
-                       f"{b['done']}/{len(clips)}" if b else ""))
+        out.append(
+            Row(
+                f"{label}: clips retargeted / all",
+                f"{s['done']}/{len(clips)}",
+                f"{b['done']}/{len(clips)}" if b else "",
+            )
+        )
         v, bv = fig("step_ratio", lambda a: float(np.mean([abs(r - 1) <= 0.2 for r in a])))
-        out.append(Row(f"{label}: share of clips with robot steps within 20 % of the person's", v, bv, "1.0",
-                       verdict(v >= 1.0) if mode in ("offline", "offline-lead-in", "streaming") else "n/a"))
-        out.append(Row(f"{label}: robot steps / person steps (all clips)", f"{s['steps']}/{s['person']}",
-                       f"{b['steps']}/{b['person']}" if b else ""))
+        out.append(
+            Row(
+                f"{label}: share of clips with robot steps within 20 % of the person's",
+                v,
+                bv,
+                "1.0",
+                verdict(v >= 1.0) if mode in ("offline", "offline-lead-in", "streaming") else "n/a",
+            )
+        )
+        out.append(
+            Row(
+                f"{label}: robot steps / person steps (all clips)",
+                f"{s['steps']}/{s['person']}",
+                f"{b['steps']}/{b['person']}" if b else "",
+            )
+        )
         v, bv = fig("err", mean)
-        out.append(Row(f"{label}: pelvis-relative keypoint error (% of robot height)", 100 * v,
-                       100 * bv if bv != "" else "", "<= 8", verdict(v <= 0.08)))
+        out.append(
+            Row(
+                f"{label}: pelvis-relative keypoint error (% of robot height)",
+                100 * v,
+                100 * bv if bv != "" else "",
+                "<= 8",
+                verdict(v <= 0.08),
+            )
+        )
         if stats[mode]["jerk"]:
             v, bv = fig("jerk", max)
             out.append(Row(f"{label}: jerk ratio, clean capture (worst clip)", v, bv, "<= 1.0", verdict(v <= 1.0)))
         v, bv = fig("zmp", mean)
-        out.append(Row(f"{label}: kinematic ZMP inside the support polygon (% of frames)", 100 * v,
-                       100 * bv if bv != "" else ""))
+        out.append(
+            Row(
+                f"{label}: kinematic ZMP inside the support polygon (% of frames)",
+                100 * v,
+                100 * bv if bv != "" else "",
+            )
+        )
         v, bv = fig("zmp1", mean)
         out.append(Row(f"{label}: ... with 1 cm to spare (% of frames)", 100 * v, 100 * bv if bv != "" else ""))
         fps = s["frames"] / s["cpu"] if s["cpu"] else float("nan")
         bfps = b["frames"] / b["cpu"] if b and b["cpu"] else ""
         tgt = ">= 1000" if mode == "streaming" else ""
-        out.append(Row(f"{label}: frames/s (CPU, 1 core)", fps, bfps, tgt,
-                       verdict(fps >= 1000) if mode == "streaming" else "n/a"))
+        out.append(
+            Row(
+                f"{label}: frames/s (CPU, 1 core)",
+                fps,
+                bfps,
+                tgt,
+                verdict(fps >= 1000) if mode == "streaming" else "n/a",
+            )
+        )
         if args.physics:
             v, bv = fig("phys", lambda a: float(np.mean(a)))
             out.append(Row(f"{label}: share of clips passing sim's free check (as `check` runs it)", v, bv))

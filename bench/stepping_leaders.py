@@ -45,8 +45,9 @@ def count_steps(contacts: np.ndarray) -> int:
     return int(np.sum(c[1:] & ~c[:-1]))
 
 
-def turning_leader(turns: float = 2.5, rate: float = 0.6, fps: float = 30.0, bpm: float = 110.0,
-                   lead_in: float = 1.0) -> Motion:
+def turning_leader(
+    turns: float = 2.5, rate: float = 0.6, fps: float = 30.0, bpm: float = 110.0, lead_in: float = 1.0
+) -> Motion:
     """Turns in place, ``turns`` full turns at ``rate`` rad/s (positive: to the left), after
     ``lead_in`` s of stepping on the spot; ends with 1 s of stepping on the spot."""
     spin = 2 * np.pi * abs(turns) / abs(rate)
@@ -62,8 +63,14 @@ def turning_leader(turns: float = 2.5, rate: float = 0.6, fps: float = 30.0, bpm
     return _leader(f"synthetic_turn_{turns:g}x_{rate:g}rad_s", seconds, fps, bpm, heading, centre)
 
 
-def walking_leader(seconds: float = 8.0, speed: float = 0.35, turn_rate: float = 0.0, fps: float = 30.0,
-                   bpm: float = 100.0, lead_in: float = 1.0) -> Motion:
+def walking_leader(
+    seconds: float = 8.0,
+    speed: float = 0.35,
+    turn_rate: float = 0.0,
+    fps: float = 30.0,
+    bpm: float = 100.0,
+    lead_in: float = 1.0,
+) -> Motion:
     """Walks forward at ``speed`` m/s after ``lead_in`` s of stepping on the spot (turning at
     ``turn_rate`` rad/s while walking: a circle)."""
 
@@ -99,8 +106,13 @@ def sidestep_leader(seconds: float = 8.0, amplitude: float = 0.12, fps: float = 
 
 def leaders() -> list[Motion]:
     """The stepping leaders the figures use: two turning, two walking, one side-stepping."""
-    return [turning_leader(2.5, 0.6), turning_leader(2.0, -0.9), walking_leader(8.0, 0.3),
-            walking_leader(10.0, 0.3, 0.3), sidestep_leader(8.0)]
+    return [
+        turning_leader(2.5, 0.6),
+        turning_leader(2.0, -0.9),
+        walking_leader(8.0, 0.3),
+        walking_leader(10.0, 0.3, 0.3),
+        sidestep_leader(8.0),
+    ]
 
 
 def pivot_turn(rate: float = 0.8, turns: float = 2.5, fps: float = 30.0, lead_in: float = 0.5) -> Motion:

@@ -28,8 +28,14 @@ Cell = str | int | float | None
 MET, NOT_MET, NA = "met", "not met", "n/a"
 VERDICTS = (MET, NOT_MET, NA)
 COLUMNS = ("bench", "figure", "value", "baseline", "target", "verdict")
-HEADERS = {"bench": "bench", "figure": "figure", "value": "our value",
-           "baseline": "baseline (same run)", "target": "target", "verdict": "verdict"}
+HEADERS = {
+    "bench": "bench",
+    "figure": "figure",
+    "value": "our value",
+    "baseline": "baseline (same run)",
+    "target": "target",
+    "verdict": "verdict",
+}
 
 
 def verdict(ok: bool | None) -> str:
@@ -168,15 +174,17 @@ def script_main(rows: Callable[..., list[Row]], argv: Sequence[str] | None = Non
     return 0
 
 
-def parse_args(parser: argparse.ArgumentParser, argv: Sequence[str], quick: bool,
-               quick_args: Sequence[str]) -> argparse.Namespace:
+def parse_args(
+    parser: argparse.ArgumentParser, argv: Sequence[str], quick: bool, quick_args: Sequence[str]
+) -> argparse.Namespace:
     """Parse a bench script's options, adding ``--quick``.
 
     With ``quick`` (or ``--quick`` on the command line) the script's ``quick_args`` (fewer
     repeats, shorter clips) are parsed first, so options given explicitly still win.
     """
-    parser.add_argument("--quick", action="store_true",
-                        help="short smoke run: " + (" ".join(quick_args) or "(same as the defaults)"))
+    parser.add_argument(
+        "--quick", action="store_true", help="short smoke run: " + (" ".join(quick_args) or "(same as the defaults)")
+    )
     args = parser.parse_args(list(argv))
     if quick or args.quick:
         args = parser.parse_args([*quick_args, *argv])

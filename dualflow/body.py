@@ -20,7 +20,7 @@ _PAR = np.asarray(PARENTS)
 #: (hip, knee, ankle, toe) of the left and the right leg
 _LEGS = ((1, 4, 7, 10), (2, 5, 8, 11))
 _REST_LENGTHS = bone_lengths(REST_POSE[None])[0]  # (21,), bone ending at joint j is entry j - 1
-_MIRROR_BONE = np.asarray(MIRROR_INDEX[1:]) - 1     # the same bone on the other side
+_MIRROR_BONE = np.asarray(MIRROR_INDEX[1:]) - 1  # the same bone on the other side
 
 
 @dataclass(frozen=True)
@@ -67,8 +67,8 @@ class _Foot:
     def __init__(self) -> None:
         self.mode = "free"
         self.anchor = np.zeros(3)
-        self.toe = np.zeros(3)        # toe - ankle held while locked
-        self.offset = np.zeros(3)     # output - generated ankle while blending back after a release
+        self.toe = np.zeros(3)  # toe - ankle held while locked
+        self.offset = np.zeros(3)  # output - generated ankle while blending back after a release
         self.progress = 0.0
 
 
@@ -89,8 +89,9 @@ class BodyCleaner:
     def _check_lengths(lengths) -> np.ndarray:
         arr = np.asarray(lengths, dtype=np.float64)
         if arr.shape != (N_JOINTS - 1,) or not np.isfinite(arr).all() or (arr <= 0).any():
-            raise DualFlowError(f"body cleanup: lengths must be {N_JOINTS - 1} positive bone lengths in metres, "
-                                f"got shape {arr.shape}")
+            raise DualFlowError(
+                f"body cleanup: lengths must be {N_JOINTS - 1} positive bone lengths in metres, got shape {arr.shape}"
+            )
         return arr
 
     def reset(self) -> None:
@@ -156,7 +157,7 @@ class BodyCleaner:
         if foot.mode == "step":
             foot.progress += 1.0 / c.step_frames
             s = foot.progress
-            w = _smoothstep((s - 0.25) / 0.5)                     # moves only while lifted
+            w = _smoothstep((s - 0.25) / 0.5)  # moves only while lifted
             lift = c.step_lift_m * _smoothstep(s / 0.25) * _smoothstep((1.0 - s) / 0.25)
             out = (1 - w) * foot.anchor + w * ankle
             out[2] += lift
@@ -232,8 +233,9 @@ class BodyCleaner:
         q = self._project(p)
         if not c.feet:
             return q, np.zeros(4, dtype=bool)
-        targets = [self._foot_target(foot, q[ank].copy(), q[toe] - q[ank])
-                   for foot, (_, _, ank, toe) in zip(self._feet, _LEGS)]
+        targets = [
+            self._foot_target(foot, q[ank].copy(), q[toe] - q[ank]) for foot, (_, _, ank, toe) in zip(self._feet, _LEGS)
+        ]
         for i, (a, tv) in enumerate(targets):  # the ankle not below its standing height, the toe not below the floor
             lowest = max(c.floor + self._ankle_floor(), c.floor - tv[2])
             if a[2] < lowest:

@@ -100,7 +100,7 @@ def checkpoint_text_encoder(meta: dict, dim: int, cache_dir: str | os.PathLike |
 
 def ema_module_state(ema_state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """The wrapped model's weights from a ``torch.optim.swa_utils.AveragedModel`` state."""
-    return {k[len("module."):]: v for k, v in ema_state.items() if k.startswith("module.")}
+    return {k[len("module.") :]: v for k, v in ema_state.items() if k.startswith("module.")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,7 +240,9 @@ def _read_json(file: Path) -> dict:
     except OSError as exc:
         raise DualFlowError(f"{file}: cannot read ({exc.strerror})") from None
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise DualFlowError(f"{file}: not valid JSON ({str(exc)[:120]}); the file is damaged, re-export the checkpoint") from None
+        raise DualFlowError(
+            f"{file}: not valid JSON ({str(exc)[:120]}); the file is damaged, re-export the checkpoint"
+        ) from None
     if not isinstance(data, dict):
         raise DualFlowError(f"{file}: must hold a JSON object, got {type(data).__name__}; re-export the checkpoint")
     return data
@@ -253,13 +255,17 @@ def _model_config(section, file: Path) -> DualFlowConfig:
     from dataclasses import fields as dataclass_fields
 
     if not isinstance(section, dict):
-        raise DualFlowError(f"{file}, field 'model': must be an object of DualFlowConfig fields, got {type(section).__name__}")
+        raise DualFlowError(
+            f"{file}, field 'model': must be an object of DualFlowConfig fields, got {type(section).__name__}"
+        )
     defaults = DualFlowConfig()
     known = {f.name for f in dataclass_fields(DualFlowConfig)}
     for key, value in section.items():
         if key not in known:
-            raise DualFlowError(f"{file}, field 'model.{key}': unknown (valid: {', '.join(sorted(known))}); "
-                                "the checkpoint is from another model version")
+            raise DualFlowError(
+                f"{file}, field 'model.{key}': unknown (valid: {', '.join(sorted(known))}); "
+                "the checkpoint is from another model version"
+            )
         want = type(getattr(defaults, key))
 
         def is_int(v):
@@ -274,7 +280,9 @@ def _model_config(section, file: Path) -> DualFlowConfig:
         else:
             ok = isinstance(value, want)
         if not ok:
-            raise DualFlowError(f"{file}, field 'model.{key}': expected {want.__name__}, got {value!r:.60}; the file is damaged")
+            raise DualFlowError(
+                f"{file}, field 'model.{key}': expected {want.__name__}, got {value!r:.60}; the file is damaged"
+            )
     try:
         return DualFlowConfig.from_dict(section)
     except (TypeError, ValueError) as exc:
@@ -294,19 +302,27 @@ def _check_weights(state: dict[str, torch.Tensor], reference: dict[str, torch.Te
     missing = [k for k in reference if k not in state]
     unexpected = [k for k in state if k not in reference]
     if missing or unexpected:
-        raise DualFlowError(f"{file}: weights do not match the model in {CONFIG_FILE} (missing {missing[:3]}, unexpected "
-                            f"{unexpected[:3]}); the checkpoint is from another model version or damaged")
+        raise DualFlowError(
+            f"{file}: weights do not match the model in {CONFIG_FILE} (missing {missing[:3]}, unexpected "
+            f"{unexpected[:3]}); the checkpoint is from another model version or damaged"
+        )
     for key, ref in reference.items():
         value = state[key]
         if tuple(value.shape) != tuple(ref.shape):
-            raise DualFlowError(f"{file}, tensor {key!r}: shape {tuple(value.shape)}, but the model in {CONFIG_FILE} has "
-                                f"{tuple(ref.shape)}; the config and the weights are from different models")
+            raise DualFlowError(
+                f"{file}, tensor {key!r}: shape {tuple(value.shape)}, but the model in {CONFIG_FILE} has "
+                f"{tuple(ref.shape)}; the config and the weights are from different models"
+            )
         if ref.is_floating_point() and not value.is_floating_point():
-            raise DualFlowError(f"{file}, tensor {key!r}: dtype {value.dtype}, expected floating point; the weights are "
-                                "damaged or converted wrongly, re-export the checkpoint")
+            raise DualFlowError(
+                f"{file}, tensor {key!r}: dtype {value.dtype}, expected floating point; the weights are "
+                "damaged or converted wrongly, re-export the checkpoint"
+            )
         if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            raise DualFlowError(f"{file}, tensor {key!r}: contains NaN or inf; the training diverged or the file is "
-                                "damaged, use an earlier checkpoint")
+            raise DualFlowError(
+                f"{file}, tensor {key!r}: contains NaN or inf; the training diverged or the file is "
+                "damaged, use an earlier checkpoint"
+            )
 
 
 def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpoint:
@@ -314,19 +330,27 @@ def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpo
     optimizer and trainer state. Bad or missing files raise DualFlowError naming them."""
     path = Path(path)
     if not path.is_dir():
-        raise DualFlowError(f"{path}: checkpoint directory not found; give a directory with {MODEL_FILE}, {CONFIG_FILE}, {STATS_FILE}")
+        raise DualFlowError(
+            f"{path}: checkpoint directory not found; give a directory with {MODEL_FILE}, {CONFIG_FILE}, {STATS_FILE}"
+        )
     for name in (MODEL_FILE, CONFIG_FILE, STATS_FILE):
         if not (path / name).is_file():
             raise DualFlowError(f"{path}: checkpoint lacks {name}; it is incomplete, re-export it")
     meta = _read_json(path / CONFIG_FILE)
     if meta.get("format") != FORMAT or "model" not in meta:
-        raise DualFlowError(f"{path / CONFIG_FILE}: not a DualFlow checkpoint config (needs format={FORMAT!r} and 'model')")
+        raise DualFlowError(
+            f"{path / CONFIG_FILE}: not a DualFlow checkpoint config (needs format={FORMAT!r} and 'model')"
+        )
     version = meta.get("version")
     if isinstance(version, bool) or not isinstance(version, int) or version < 1:
-        raise DualFlowError(f"{path / CONFIG_FILE}, field 'version': must be a whole number >= 1 (this code writes "
-                            f"{VERSION}), got {version!r}; the file is damaged")
+        raise DualFlowError(
+            f"{path / CONFIG_FILE}, field 'version': must be a whole number >= 1 (this code writes "
+            f"{VERSION}), got {version!r}; the file is damaged"
+        )
     if version > VERSION:
-        raise DualFlowError(f"{path / CONFIG_FILE}: checkpoint version {version} is newer than this code ({VERSION}); update the package")
+        raise DualFlowError(
+            f"{path / CONFIG_FILE}: checkpoint version {version} is newer than this code ({VERSION}); update the package"
+        )
     config = _model_config(meta["model"], path / CONFIG_FILE)
     state = _load_tensors(path / MODEL_FILE)
     converted = fuse_old_modulations(state)  # a checkpoint from before issue 28: same weights, fused
@@ -337,15 +361,20 @@ def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpo
     if ema is not None:
         fuse_old_modulations(ema)
         _check_weights(ema_module_state(ema), reference, path / EMA_FILE)
-    ckpt = Checkpoint(config=config, state_dict=state, stats=stats, meta=meta, path=path, ema_state=ema,
-                      converted=converted)
+    ckpt = Checkpoint(
+        config=config, state_dict=state, stats=stats, meta=meta, path=path, ema_state=ema, converted=converted
+    )
     if resume:
         if not (path / TRAINER_STATE_FILE).is_file():
-            raise DualFlowError(f"{path}: lacks {TRAINER_STATE_FILE}; this is an exported checkpoint and cannot be resumed")
+            raise DualFlowError(
+                f"{path}: lacks {TRAINER_STATE_FILE}; this is an exported checkpoint and cannot be resumed"
+            )
         if converted and (path / OPTIMIZER_FILE).is_file():
-            raise DualFlowError(f"{path}: written before the fused adaptive-LayerNorm linear (issue 28); its optimizer "
-                                f"state has one entry per old linear and cannot be resumed. Start a new run from its "
-                                f"weights instead: --set init_from={path}")
+            raise DualFlowError(
+                f"{path}: written before the fused adaptive-LayerNorm linear (issue 28); its optimizer "
+                f"state has one entry per old linear and cannot be resumed. Start a new run from its "
+                f"weights instead: --set init_from={path}"
+            )
         ckpt.trainer_state = _read_json(path / TRAINER_STATE_FILE)
         if (path / OPTIMIZER_FILE).is_file():
             ckpt.optimizer_state = optimizer_from_tensors(
@@ -354,7 +383,9 @@ def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpo
     return ckpt
 
 
-def load_model(path: str | os.PathLike | None = None, device: str | torch.device = "cpu") -> tuple[DualFlow, Checkpoint]:
+def load_model(
+    path: str | os.PathLike | None = None, device: str | torch.device = "cpu"
+) -> tuple[DualFlow, Checkpoint]:
     """(model in eval mode, checkpoint) from ``path``, or the bundled checkpoint when None."""
     ckpt = load_checkpoint(bundled_checkpoint() if path is None else path)
     return ckpt.build_model(device), ckpt

@@ -45,8 +45,10 @@ def text_encoder_for(encoder_id: str, dim: int):
     if encoder_id == T.MINILM_ID or (not encoder_id and dim == T.MINILM_DIM):
         return T.MiniLMEncoder()
     if encoder_id.startswith("open_clip/"):
-        raise DualFlowError(f"the model was trained with text encoder {encoder_id!r}; pass "
-                            "text_encoder=dualflow.text.ClipTextEncoder('<local ViT-L-14 weights>')")
+        raise DualFlowError(
+            f"the model was trained with text encoder {encoder_id!r}; pass "
+            "text_encoder=dualflow.text.ClipTextEncoder('<local ViT-L-14 weights>')"
+        )
     raise DualFlowError(f"unknown text encoder id {encoder_id!r} in the checkpoint; pass text_encoder= explicitly")
 
 
@@ -83,22 +85,34 @@ class ConditionBuilder:
     (:func:`dualflow.retrieval.load_rag`).
     """
 
-    def __init__(self, model_config: DualFlowConfig, stats: NormStats, *, text_encoder=None,
-                 music_kind: str | None = "edge35", fps: float = 30.0,
-                 retrieval_db: RetrievalDatabase | None = None, retrieval_encoder=None,
-                 retrieval_config: RagConfig | None = None):
+    def __init__(
+        self,
+        model_config: DualFlowConfig,
+        stats: NormStats,
+        *,
+        text_encoder=None,
+        music_kind: str | None = "edge35",
+        fps: float = 30.0,
+        retrieval_db: RetrievalDatabase | None = None,
+        retrieval_encoder=None,
+        retrieval_config: RagConfig | None = None,
+    ):
         self.config = model_config
         self.stats = stats
         self.text_encoder = text_encoder
         if text_encoder is not None and int(text_encoder.dim) != model_config.text_dim:
-            raise DualFlowError(f"text encoder {text_encoder.encoder_id!r} gives {text_encoder.dim}-d embeddings, "
-                                f"the model's text_dim is {model_config.text_dim}; use the model's encoder")
+            raise DualFlowError(
+                f"text encoder {text_encoder.encoder_id!r} gives {text_encoder.dim}-d embeddings, "
+                f"the model's text_dim is {model_config.text_dim}; use the model's encoder"
+            )
         if music_kind is not None:
             if music_kind not in MUSIC_DIMS:
                 raise DualFlowError(f"unknown music kind {music_kind!r}; choose one of {', '.join(MUSIC_KINDS)}")
             if MUSIC_DIMS[music_kind] != model_config.music_dim:
-                raise DualFlowError(f"music kind {music_kind!r} is {MUSIC_DIMS[music_kind]}-d but the model's "
-                                    f"music_dim is {model_config.music_dim}; pick the kind it was trained with")
+                raise DualFlowError(
+                    f"music kind {music_kind!r} is {MUSIC_DIMS[music_kind]}-d but the model's "
+                    f"music_dim is {model_config.music_dim}; pick the kind it was trained with"
+                )
         self.music_kind = music_kind
         self.fps = float(fps)
         if (retrieval_db is None) != (retrieval_encoder is None):
@@ -159,8 +173,9 @@ class ConditionBuilder:
         feats = self.stats.normalize(encode_person(actor, frame)).astype(np.float32)
         return torch.from_numpy(feats)[None], frame
 
-    def retrieval_condition(self, text: str | None, music: np.ndarray | None, n_frames: int,
-                            mode: str) -> tuple[torch.Tensor | None, list[str]]:
+    def retrieval_condition(
+        self, text: str | None, music: np.ndarray | None, n_frames: int, mode: str
+    ) -> tuple[torch.Tensor | None, list[str]]:
         """z_R (1, R, width) from the text's three focused descriptions and the music, or None."""
         db = self.retrieval_db
         queries: dict[str, np.ndarray] = {}
@@ -178,14 +193,16 @@ class ConditionBuilder:
         motions, lengths = db.gather(idx)
         param = next(self.retrieval_encoder.parameters())
         with torch.no_grad():
-            z = self.retrieval_encoder(torch.from_numpy(motions).to(param), torch.from_numpy(lengths),
-                                       torch.from_numpy(cue_ids))
+            z = self.retrieval_encoder(
+                torch.from_numpy(motions).to(param), torch.from_numpy(lengths), torch.from_numpy(cue_ids)
+            )
         return z, [db.ids[i] for i in idx[0]]
 
     # -- everything -------------------------------------------------------------------------------
 
-    def build(self, *, actor: Motion | None = None, text: str | None = None, music=None,
-              n_frames: int | None = None) -> GeneratorInputs:
+    def build(
+        self, *, actor: Motion | None = None, text: str | None = None, music=None, n_frames: int | None = None
+    ) -> GeneratorInputs:
         """GeneratorInputs for any subset of the three inputs (None = absent).
 
         n_frames: feature rows to generate when there is no actor (default: the music's length,
@@ -197,8 +214,10 @@ class ConditionBuilder:
         if actor is not None:
             x_actor, frame = self.actor_condition(actor)
             if n_frames is not None and int(n_frames) != x_actor.shape[1]:
-                raise DualFlowError(f"n_frames={n_frames} but the actor gives {x_actor.shape[1]} feature rows "
-                                    "(its frames - 1); leave n_frames out with an actor")
+                raise DualFlowError(
+                    f"n_frames={n_frames} but the actor gives {x_actor.shape[1]} feature rows "
+                    "(its frames - 1); leave n_frames out with an actor"
+                )
             n_frames = x_actor.shape[1]
             used.append("actor")
         mode = "reactive" if x_actor is not None else "interactive"
@@ -226,11 +245,12 @@ class ConditionBuilder:
 
         retrieval, retrieved = None, []
         if self.retrieval_db is not None:
-            retrieval, retrieved = self.retrieval_condition(text if text_t is not None else None, music_arr,
-                                                            n_frames, mode)
-        cond = Conditions(text=text_t,
-                          music=None if music_arr is None else torch.from_numpy(music_arr)[None],
-                          retrieval=retrieval)
+            retrieval, retrieved = self.retrieval_condition(
+                text if text_t is not None else None, music_arr, n_frames, mode
+            )
+        cond = Conditions(
+            text=text_t, music=None if music_arr is None else torch.from_numpy(music_arr)[None], retrieval=retrieval
+        )
         used_in_order = tuple(name for name in ("actor", "text", "music") if name in used)
         return GeneratorInputs(cond, mode, n_frames, x_actor, frame, used_in_order, notes, retrieved)
 

@@ -44,22 +44,65 @@ KEYWORD_CLUSTERS: dict[str, dict[str, dict[str, tuple[str, ...]]]] = {
             "mirrored": ("mirror", "mirrors", "mirrored", "mirroring", "reflection"),
         },
         "connection": {
-            "hand-to-hand": ("hand hold", "handhold", "hold hands", "holds hands", "holding hands", "hand in hand",
-                             "hand-to-hand", "hands joined", "joined hands", "takes her hand", "takes his hand",
-                             "takes the hand", "grabs the hand", "handshake", "shake hands", "shakes hands"),
-            "hand-to-body": ("hand on", "on the shoulder", "on the waist", "on the back", "hand-to-shoulder",
-                             "hand-to-waist", "hand-to-head", "touches", "touch", "pats"),
+            "hand-to-hand": (
+                "hand hold",
+                "handhold",
+                "hold hands",
+                "holds hands",
+                "holding hands",
+                "hand in hand",
+                "hand-to-hand",
+                "hands joined",
+                "joined hands",
+                "takes her hand",
+                "takes his hand",
+                "takes the hand",
+                "grabs the hand",
+                "handshake",
+                "shake hands",
+                "shakes hands",
+            ),
+            "hand-to-body": (
+                "hand on",
+                "on the shoulder",
+                "on the waist",
+                "on the back",
+                "hand-to-shoulder",
+                "hand-to-waist",
+                "hand-to-head",
+                "touches",
+                "touch",
+                "pats",
+            ),
             "frame": ("frame", "connection", "connected"),
             "no contact": ("no contact", "without touching", "not touching"),
         },
     },
     "body": {
         "body part": {
-            p: (p, p + "s") for p in ("arm", "hand", "leg", "foot", "head", "torso", "hip", "shoulder",
-                                      "knee", "elbow", "waist", "chest", "body", "finger", "wrist")
-        } | {"foot": ("foot", "feet")},
+            p: (p, p + "s")
+            for p in (
+                "arm",
+                "hand",
+                "leg",
+                "foot",
+                "head",
+                "torso",
+                "hip",
+                "shoulder",
+                "knee",
+                "elbow",
+                "waist",
+                "chest",
+                "body",
+                "finger",
+                "wrist",
+            )
+        }
+        | {"foot": ("foot", "feet")},
         "action": {
-            a: tuple(w for w in forms) for a, forms in {
+            a: tuple(w for w in forms)
+            for a, forms in {
                 "spin": ("spin", "spins", "spinning", "twirl", "twirls"),
                 "turn": ("turn", "turns", "turning", "rotate", "rotates", "rotating", "pivot"),
                 "wave": ("wave", "waves", "waving"),
@@ -91,8 +134,15 @@ KEYWORD_CLUSTERS: dict[str, dict[str, dict[str, tuple[str, ...]]]] = {
         },
         "timing": {
             "on the beat": ("on the beat", "on beat", "beat", "beats", "to the music", "in time"),
-            "synchronised": ("together", "in sync", "synchronised", "synchronized", "simultaneously", "in unison",
-                             "at the same time"),
+            "synchronised": (
+                "together",
+                "in sync",
+                "synchronised",
+                "synchronized",
+                "simultaneously",
+                "in unison",
+                "at the same time",
+            ),
             "delayed / call-response": ("after", "later", "delay", "delayed", "in response", "responds", "echo"),
             "double time": ("double time", "half beat", "half beats", "every half"),
             "pause": ("pause", "pauses", "freeze", "freezes", "hold still", "stops"),
@@ -105,8 +155,23 @@ KEYWORD_CLUSTERS: dict[str, dict[str, dict[str, tuple[str, ...]]]] = {
             "footwork": ("footwork", "steps", "step", "stepping", "shuffle", "stomp", "feet"),
         },
         "style": {
-            g: (g,) for g in ("jive", "swing", "salsa", "tango", "waltz", "rumba", "cha-cha", "samba",
-                              "lindy", "hip-hop", "ballet", "foxtrot", "bachata", "merengue")
+            g: (g,)
+            for g in (
+                "jive",
+                "swing",
+                "salsa",
+                "tango",
+                "waltz",
+                "rumba",
+                "cha-cha",
+                "samba",
+                "lindy",
+                "hip-hop",
+                "ballet",
+                "foxtrot",
+                "bachata",
+                "merengue",
+            )
         },
     },
 }
@@ -139,8 +204,12 @@ def _phrase_pattern(phrase: str) -> re.Pattern:
 
 
 _COMPILED: dict[str, list[tuple[str, str, re.Pattern]]] = {
-    aspect: [(cluster, label, _phrase_pattern(p))
-             for cluster, labels in clusters.items() for label, phrases in labels.items() for p in phrases]
+    aspect: [
+        (cluster, label, _phrase_pattern(p))
+        for cluster, labels in clusters.items()
+        for label, phrases in labels.items()
+        for p in phrases
+    ]
     for aspect, clusters in KEYWORD_CLUSTERS.items()
 }
 
@@ -208,8 +277,8 @@ SYSTEM_PROMPT = (
     "two-person {genre} movement into three focused descriptions: (1) spatial: the physical positioning, "
     "orientation and handholds of the two people; (2) body: the key gestures, actions and the body parts that "
     "move; (3) rhythm: tempo, timing, rhythmic style and stepping. Use only what the description says or clearly "
-    "implies. Follow the reference guidelines. Answer with one JSON object with the string keys \"spatial\", "
-    "\"body\" and \"rhythm\" and nothing else."
+    'implies. Follow the reference guidelines. Answer with one JSON object with the string keys "spatial", '
+    '"body" and "rhythm" and nothing else.'
 )
 
 
@@ -226,48 +295,84 @@ def reference_guidelines() -> str:
 #: Three worked examples per genre (ours), used as few-shot turns.
 FEW_SHOT: dict[str, list[tuple[str, dict[str, str]]]] = {
     "social interaction": [
-        ("Two people walk towards each other and shake hands, then one pats the other on the shoulder.",
-         {"spatial": "They start apart, approach until close, face each other and join right hands; then one "
-                     "hand rests on the partner's shoulder.",
-          "body": "Both walk forward; they extend right arms to shake hands; one raises a hand to pat the "
-                  "other's shoulder.",
-          "rhythm": "A steady walking pace, the handshake a few short up-and-down beats, the pat brief."}),
-        ("One person throws a punch and the other dodges to the left and steps back.",
-         {"spatial": "Face to face at arm's length; the defender moves to their left and away.",
-          "body": "The attacker extends an arm in a punch; the defender ducks the torso sideways and steps back.",
-          "rhythm": "Fast and sudden; the dodge reacts just after the punch."}),
-        ("The two hug each other warmly and sway slowly.",
-         {"spatial": "Closed position, chest to chest, arms around each other, facing each other.",
-          "body": "Arms wrap around the partner's back; the torsos sway side to side.",
-          "rhythm": "Slow and continuous swaying, in unison."}),
+        (
+            "Two people walk towards each other and shake hands, then one pats the other on the shoulder.",
+            {
+                "spatial": "They start apart, approach until close, face each other and join right hands; then one "
+                "hand rests on the partner's shoulder.",
+                "body": "Both walk forward; they extend right arms to shake hands; one raises a hand to pat the "
+                "other's shoulder.",
+                "rhythm": "A steady walking pace, the handshake a few short up-and-down beats, the pat brief.",
+            },
+        ),
+        (
+            "One person throws a punch and the other dodges to the left and steps back.",
+            {
+                "spatial": "Face to face at arm's length; the defender moves to their left and away.",
+                "body": "The attacker extends an arm in a punch; the defender ducks the torso sideways and steps back.",
+                "rhythm": "Fast and sudden; the dodge reacts just after the punch.",
+            },
+        ),
+        (
+            "The two hug each other warmly and sway slowly.",
+            {
+                "spatial": "Closed position, chest to chest, arms around each other, facing each other.",
+                "body": "Arms wrap around the partner's back; the torsos sway side to side.",
+                "rhythm": "Slow and continuous swaying, in unison.",
+            },
+        ),
     ],
     "swing": [
-        ("The leader sends the follower out into an open position and brings her back with an underarm turn.",
-         {"spatial": "From closed to open position with a one-hand hold, then back to closed, facing each other.",
-          "body": "The leader extends the arm to send out and raises it for the follower's underarm turn.",
-          "rhythm": "Lively swing tempo with triple steps, the turn on counts five and six."}),
-        ("Both dancers kick forward together and clap.",
-         {"spatial": "Side by side, no handhold.",
-          "body": "Both kick a leg forward and clap their hands.",
-          "rhythm": "Synchronised on the beat, sharp accents on the kicks and claps."}),
-        ("The couple rock step and triple step while holding both hands.",
-         {"spatial": "Open position facing each other with a two-hand hold.",
-          "body": "Weight rocks back and forward, then small footwork with the legs and feet.",
-          "rhythm": "Rock step followed by triple steps, steady swing timing."}),
+        (
+            "The leader sends the follower out into an open position and brings her back with an underarm turn.",
+            {
+                "spatial": "From closed to open position with a one-hand hold, then back to closed, facing each other.",
+                "body": "The leader extends the arm to send out and raises it for the follower's underarm turn.",
+                "rhythm": "Lively swing tempo with triple steps, the turn on counts five and six.",
+            },
+        ),
+        (
+            "Both dancers kick forward together and clap.",
+            {
+                "spatial": "Side by side, no handhold.",
+                "body": "Both kick a leg forward and clap their hands.",
+                "rhythm": "Synchronised on the beat, sharp accents on the kicks and claps.",
+            },
+        ),
+        (
+            "The couple rock step and triple step while holding both hands.",
+            {
+                "spatial": "Open position facing each other with a two-hand hold.",
+                "body": "Weight rocks back and forward, then small footwork with the legs and feet.",
+                "rhythm": "Rock step followed by triple steps, steady swing timing.",
+            },
+        ),
     ],
     "latin": [
-        ("The follower spins twice under the leader's raised right arm and ends facing him.",
-         {"spatial": "Open position with a hand-to-hand hold through the turn, ending face to face.",
-          "body": "The leader raises his right arm; the follower spins twice with arms close to the body.",
-          "rhythm": "A fast double spin within one bar, finishing on the beat."}),
-        ("Side by side, the partners do a cha-cha chase, mirroring each other's hip movements.",
-         {"spatial": "Side by side and mirrored, no contact.",
-          "body": "Hips sway with the steps; arms held out for balance.",
-          "rhythm": "Cha-cha timing with a quick triple step, both dancers in unison."}),
-        ("The leader dips the follower slowly at the end of the phrase.",
-         {"spatial": "Closed position, the leader supporting the follower's back.",
-          "body": "The follower leans back and lowers the torso; the leader bends his knees and supports her.",
-          "rhythm": "Slow and held, on the last beat of the phrase."}),
+        (
+            "The follower spins twice under the leader's raised right arm and ends facing him.",
+            {
+                "spatial": "Open position with a hand-to-hand hold through the turn, ending face to face.",
+                "body": "The leader raises his right arm; the follower spins twice with arms close to the body.",
+                "rhythm": "A fast double spin within one bar, finishing on the beat.",
+            },
+        ),
+        (
+            "Side by side, the partners do a cha-cha chase, mirroring each other's hip movements.",
+            {
+                "spatial": "Side by side and mirrored, no contact.",
+                "body": "Hips sway with the steps; arms held out for balance.",
+                "rhythm": "Cha-cha timing with a quick triple step, both dancers in unison.",
+            },
+        ),
+        (
+            "The leader dips the follower slowly at the end of the phrase.",
+            {
+                "spatial": "Closed position, the leader supporting the follower's back.",
+                "body": "The follower leans back and lowers the torso; the leader bends his knees and supports her.",
+                "rhythm": "Slow and held, on the last beat of the phrase.",
+            },
+        ),
     ],
 }
 DEFAULT_GENRE = "social interaction"
@@ -276,8 +381,10 @@ DEFAULT_GENRE = "social interaction"
 def build_messages(text: str, genre: str | None = None) -> list[dict[str, str]]:
     """Chat messages of app. C.1: system prompt (with genre), guidelines, 3 examples, the text."""
     g = genre if genre in FEW_SHOT else DEFAULT_GENRE
-    msgs = [{"role": "system", "content": SYSTEM_PROMPT.format(genre=genre or g)},
-            {"role": "system", "content": reference_guidelines()}]
+    msgs = [
+        {"role": "system", "content": SYSTEM_PROMPT.format(genre=genre or g)},
+        {"role": "system", "content": reference_guidelines()},
+    ]
     for example, answer in FEW_SHOT[g]:
         msgs.append({"role": "user", "content": example})
         msgs.append({"role": "assistant", "content": json.dumps(answer)})
@@ -292,7 +399,9 @@ def parse_reply(content: str, where: str) -> FocusedDescriptions:
     try:
         obj = json.loads(fence.group(0) if fence else body)
     except json.JSONDecodeError as exc:
-        raise DualFlowError(f"{where}: the LLM reply is not a JSON object ({exc}); reply was {content[:120]!r}") from exc
+        raise DualFlowError(
+            f"{where}: the LLM reply is not a JSON object ({exc}); reply was {content[:120]!r}"
+        ) from exc
     missing = [k for k in ASPECTS if not isinstance(obj.get(k), str) or not obj.get(k).strip()]
     if missing:
         raise DualFlowError(f"{where}: the LLM reply lacks non-empty string field(s) {missing}")
@@ -309,12 +418,20 @@ class LLMDecomposer:
 
     name = "llm"
 
-    def __init__(self, url: str | None = None, model: str | None = None, cache_path: str | Path | None = None,
-                 timeout_s: float = 60.0, api_key: str | None = None):
+    def __init__(
+        self,
+        url: str | None = None,
+        model: str | None = None,
+        cache_path: str | Path | None = None,
+        timeout_s: float = 60.0,
+        api_key: str | None = None,
+    ):
         self.url = (url or os.environ.get("DUALFLOW_LLM_URL", "")).rstrip("/")
         if not self.url:
-            raise DualFlowError("decomposer 'llm': set DUALFLOW_LLM_URL to an OpenAI-compatible endpoint "
-                                "(e.g. http://127.0.0.1:8000/v1) or use the default 'keywords' decomposer")
+            raise DualFlowError(
+                "decomposer 'llm': set DUALFLOW_LLM_URL to an OpenAI-compatible endpoint "
+                "(e.g. http://127.0.0.1:8000/v1) or use the default 'keywords' decomposer"
+            )
         if not self.url.startswith(("http://", "https://")):
             raise DualFlowError(f"DUALFLOW_LLM_URL must start with http:// or https://, got {self.url!r}")
         self.model = model or os.environ.get("DUALFLOW_LLM_MODEL", "gpt-4o")
@@ -341,8 +458,9 @@ class LLMDecomposer:
             except (json.JSONDecodeError, KeyError, TypeError) as exc:
                 if n == len(lines):  # a write cut short by a crash: the entry is simply absent
                     break
-                raise DualFlowError(f"{self.cache_path}:{n}: malformed decomposition cache line ({exc}); "
-                                    "delete the line or the file") from exc
+                raise DualFlowError(
+                    f"{self.cache_path}:{n}: malformed decomposition cache line ({exc}); delete the line or the file"
+                ) from exc
         return out
 
     def _append(self, key: str, text: str, genre: str | None, d: FocusedDescriptions) -> None:

@@ -45,9 +45,18 @@ class DuetGenerator:
         return cls(model, ConditionBuilder.from_checkpoint(ckpt, **builder_kw))
 
     @torch.no_grad()
-    def generate(self, *, actor: Motion | None = None, text: str | None = None, music=None,
-                 n_frames: int | None = None, steps: int = 20, cfg_scale: float = 1.0, seed: int = 0,
-                 method: str = "euler") -> tuple[TwoPersonMotion, GeneratorInputs]:
+    def generate(
+        self,
+        *,
+        actor: Motion | None = None,
+        text: str | None = None,
+        music=None,
+        n_frames: int | None = None,
+        steps: int = 20,
+        cfg_scale: float = 1.0,
+        seed: int = 0,
+        method: str = "euler",
+    ) -> tuple[TwoPersonMotion, GeneratorInputs]:
         """(duet, the inputs the network got). actor / text / music / n_frames: see
         :meth:`ConditionBuilder.build`; steps / method / cfg_scale / seed: the ODE sampler
         (:func:`dualflow.flow.generate`)."""
@@ -55,11 +64,23 @@ class DuetGenerator:
 
         inputs = self.builder.build(actor=actor, text=text, music=music, n_frames=n_frames)
         param = next(self.model.parameters())
-        cond = Conditions(**{name: None if getattr(inputs.cond, name) is None else getattr(inputs.cond, name).to(param)
-                             for name in ("text", "music", "retrieval")})
-        x_a, x_b = generate(self.model, inputs.n_frames, cond, mode=inputs.mode,
-                            x_actor=None if inputs.actor is None else inputs.actor.to(param),
-                            steps=steps, method=method, cfg_scale=cfg_scale, seed=seed)
+        cond = Conditions(
+            **{
+                name: None if getattr(inputs.cond, name) is None else getattr(inputs.cond, name).to(param)
+                for name in ("text", "music", "retrieval")
+            }
+        )
+        x_a, x_b = generate(
+            self.model,
+            inputs.n_frames,
+            cond,
+            mode=inputs.mode,
+            x_actor=None if inputs.actor is None else inputs.actor.to(param),
+            steps=steps,
+            method=method,
+            cfg_scale=cfg_scale,
+            seed=seed,
+        )
         fps = self.builder.fps
         stats = self.builder.stats
         a = stats.denormalize(x_a[0].cpu().numpy().astype(np.float64))

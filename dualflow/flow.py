@@ -258,8 +258,9 @@ def guided_velocity(
             key = id(c)
             if key not in contexts:
                 contexts[key] = model.actor_context(x_actor, c, frame_mask=frame_mask)
-            return model(x_actor, x, t, c, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask,
-                         actor_context=contexts[key])[1]
+            return model(
+                x_actor, x, t, c, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask, actor_context=contexts[key]
+            )[1]
         v_a, v_b = model(x[..., :d], x[..., d:], t, c, mode=mode, look_ahead=look_ahead, frame_mask=frame_mask)
         return torch.cat([v_a, v_b], -1)
 
@@ -318,9 +319,7 @@ def generate(
     noise = noise.to(device, dtype)
     if x_actor is not None:
         x_actor = x_actor.to(device, dtype)
-    velocity = guided_velocity(
-        model, cond, mode=mode, x_actor=x_actor, cfg_scale=cfg_scale, look_ahead=look_ahead
-    )
+    velocity = guided_velocity(model, cond, mode=mode, x_actor=x_actor, cfg_scale=cfg_scale, look_ahead=look_ahead)
     was_training = model.training
     if was_training:  # Module.eval() walks every submodule: only when needed
         model.eval()

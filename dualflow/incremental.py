@@ -173,11 +173,25 @@ class IncrementalModel:
         self.ffn: list[tuple[torch.Tensor, ...]] = []
         for block in model.blocks:
             attn, net = block.self_attn, block.ffn.net
-            self.qkv.append((torch.cat([attn.q.weight, attn.kv.weight], 0).detach().contiguous(),
-                             torch.cat([attn.q.bias, attn.kv.bias], 0).detach()))
-            self.ffn.append((net[0].weight.detach(), net[0].bias.detach(), net[3].weight.detach(), net[3].bias.detach()))
-            self.conv.append([(int(k), c.weight.detach().permute(0, 2, 1).reshape(c.weight.shape[0], -1).contiguous(),
-                               c.bias.detach()) for c, k in zip(block.conv.convs, block.conv.kernels)])
+            self.qkv.append(
+                (
+                    torch.cat([attn.q.weight, attn.kv.weight], 0).detach().contiguous(),
+                    torch.cat([attn.q.bias, attn.kv.bias], 0).detach(),
+                )
+            )
+            self.ffn.append(
+                (net[0].weight.detach(), net[0].bias.detach(), net[3].weight.detach(), net[3].bias.detach())
+            )
+            self.conv.append(
+                [
+                    (
+                        int(k),
+                        c.weight.detach().permute(0, 2, 1).reshape(c.weight.shape[0], -1).contiguous(),
+                        c.bias.detach(),
+                    )
+                    for c, k in zip(block.conv.convs, block.conv.kernels)
+                ]
+            )
         self._last_taps: dict[tuple[int, int], torch.Tensor] = {}
 
     def conv_products(self, j: int, windows: torch.Tensor) -> torch.Tensor:
@@ -185,7 +199,7 @@ class IncrementalModel:
         last ``kmax`` frames (n, kmax * W) tap-major: y_k(p) = b_k + sum_{d < k} W_k[:, :, d]
         z(p - k + 1 + d), the kernels side by side."""
         width = self.width
-        return torch.cat([F.linear(windows[:, (self.kmax - k) * width:], w, b) for k, w, b in self.conv[j]], 1)
+        return torch.cat([F.linear(windows[:, (self.kmax - k) * width :], w, b) for k, w, b in self.conv[j]], 1)
 
     def last_taps(self, j: int, m: int) -> torch.Tensor:
         """Block j's convolution weights of their last m taps, every kernel side by side, as the
@@ -195,7 +209,7 @@ class IncrementalModel:
         if key not in self._last_taps:
             width, parts = self.width, []
             for k, w, _ in self.conv[j]:
-                taps = w[:, max(0, k - m) * width:]
+                taps = w[:, max(0, k - m) * width :]
                 parts.append(F.pad(taps, ((m - min(k, m)) * width, 0)))
             self._last_taps[key] = torch.cat(parts, 0).t().contiguous()
         return self._last_taps[key]
@@ -214,8 +228,9 @@ class WindowCache:
     encoded once (what the track has of it). grid: the ODE grid times t_0 .. t_{S-1}.
     """
 
-    def __init__(self, inc: IncrementalModel, start: int, window: int, look_ahead: int, cond: Conditions,
-                 grid: list[float]):
+    def __init__(
+        self, inc: IncrementalModel, start: int, window: int, look_ahead: int, cond: Conditions, grid: list[float]
+    ):
         self.inc = inc
         self.model = model = inc.model
         self.start = int(start)
@@ -302,7 +317,7 @@ class WindowCache:
             wins = []
             for cache, b in streams:
                 z_in = cache.z_in[j]
-                hist = z_in[0, max(0, b - kmax + 1):b] if z_in is not None else self.pe.new_zeros(0, width)
+                hist = z_in[0, max(0, b - kmax + 1) : b] if z_in is not None else self.pe.new_zeros(0, width)
                 wins.append(_taps(F.pad(hist, (0, 0, 0, rows)), rows, kmax))  # frames >= b as zeros
             sums = self.inc.conv_products(j, torch.cat(wins, 0)).split(rows, 0)
             for (cache, _), part in zip(streams, sums):
@@ -340,13 +355,14 @@ class WindowCache:
             # the products over the frames before b were made in idle time (``prefetch``): only
             # the taps over frames b .. p0 + n - 1 are left, for every stream in one product
             m = max(p0 + n - pre[0] for (p0, _, pre), n in zip(rows, sizes))
-            windows = _stack([_taps(z_all[0, pre[0]:p0 + n], n, m) for (p0, z_all, pre), n in zip(rows, sizes)], 0)
-            before = _stack([pre[1][p0 - pre[0]:p0 - pre[0] + n] for (p0, _, pre), n in zip(rows, sizes)], 0)
+            windows = _stack([_taps(z_all[0, pre[0] : p0 + n], n, m) for (p0, z_all, pre), n in zip(rows, sizes)], 0)
+            before = _stack([pre[1][p0 - pre[0] : p0 - pre[0] + n] for (p0, _, pre), n in zip(rows, sizes)], 0)
             y = F.gelu(torch.addmm(before, windows, self.inc.last_taps(j, m)))
         else:
             # (n, kmax * W) tap-major: row r = z(p0 + r - kmax + 1), ..., z(p0 + r) one after the other
-            windows = _stack([_taps(z_all[0, max(0, p0 - kmax + 1):], n, kmax)
-                              for (p0, z_all, _), n in zip(rows, sizes)], 0)
+            windows = _stack(
+                [_taps(z_all[0, max(0, p0 - kmax + 1) :], n, kmax) for (p0, z_all, _), n in zip(rows, sizes)], 0
+            )
             y = F.gelu(self.inc.conv_products(j, windows))
         gates = block.conv.gates
         conv = (y.view(y.shape[0], len(gates), -1) * gates[:, None]).sum(1)[None].split(sizes, 1)
@@ -362,12 +378,14 @@ class WindowCache:
             k_all = k_new if cache.k[j] is None else torch.cat([cache.k[j], k_new], 2)
             v_all = v_new if cache.v[j] is None else torch.cat([cache.v[j], v_new], 2)
             cache.k[j], cache.v[j] = k_all, v_all
-            mask = self.causal[p0:p0 + n, :p0 + n] if n > 1 else None  # row i: cached frames and new rows <= i
+            mask = self.causal[p0 : p0 + n, : p0 + n] if n > 1 else None  # row i: cached frames and new rows <= i
             y = F.scaled_dot_product_attention(_heads(q.reshape(1, n, -1), attn.n_heads), k_all, v_all, attn_mask=mask)
             ys.append(y.transpose(1, 2).reshape(1, n, -1))
         out = attn.out(_stack(ys, 1)).split(sizes, 1)
         zs = [z + o for z, o in zip(zs, out)]
-        return [z + self.music[j](lambda z=z, mod=mod: self._norm(block, 1, z, mod)) for z, (_, _, mod) in zip(zs, streams)]
+        return [
+            z + self.music[j](lambda z=z, mod=mod: self._norm(block, 1, z, mod)) for z, (_, _, mod) in zip(zs, streams)
+        ]
 
     def _finish(self, j: int, streams: list) -> list[torch.Tensor]:
         """``DualFlowBlock.finish`` (retrieval cross-attention and feed-forward) of one or more
@@ -398,8 +416,9 @@ class WindowCache:
         lo = self.start + self.actor.n
         return actor[lo:stop][None] if lo < stop else None
 
-    def reactor_rows(self, step: int, x: torch.Tensor, need_output: bool = True,
-                     actor: torch.Tensor | None = None) -> torch.Tensor | None:
+    def reactor_rows(
+        self, step: int, x: torch.Tensor, need_output: bool = True, actor: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
         """The velocity (1, n, 262) of new reactor rows x (1, n, 262) at grid step ``step``
         (time ``grid[step]``), appended to that step's cache. The actor rows up to the new
         rows' look-ahead must be cached (``sync_actor``), or be among ``actor`` (all actor
@@ -427,15 +446,15 @@ class WindowCache:
         actor = None
         if x_a is not None:
             pa, na = self.actor.n, x_a.shape[1]
-            actor = [self.actor, m.in_a(x_a) + self.pe[pa:pa + na], None]
+            actor = [self.actor, m.in_a(x_a) + self.pe[pa : pa + na], None]
         n_keys = self.actor.n + (0 if x_a is None else x_a.shape[1])
         out_streams, cross = [], []  # per reactor stream: [cache, z, mod] and its motion mask
         for step, x in reactor:
             cache = self.reactor[step]
             p0, n = cache.n, x.shape[1]
-            out_streams.append([cache, m.in_b(x) + self.pe[p0:p0 + n], None])
+            out_streams.append([cache, m.in_b(x) + self.pe[p0 : p0 + n], None])
             # None: every actor key lies within each row's look-ahead
-            cross.append(self.cross[p0:p0 + n, :n_keys] if n_keys > p0 + self.look_ahead + 1 else None)
+            cross.append(self.cross[p0 : p0 + n, :n_keys] if n_keys > p0 + self.look_ahead + 1 else None)
         streams = ([actor] if actor is not None else []) + out_streams
         steps = [step for step, _ in reactor]
         for j, block in enumerate(m.blocks):

@@ -74,8 +74,11 @@ class SyncWeights:
         group[list(LOWER_JOINTS)] = 2
         values = torch.tensor([self.hands, self.upper, self.lower])
         same = group[:, None] == group[None, :]
-        w = torch.where(same & (group[:, None] >= 0), values[group.clamp_min(0)][:, None].expand(-1, N_JOINTS),
-                        torch.tensor(self.small))
+        w = torch.where(
+            same & (group[:, None] >= 0),
+            values[group.clamp_min(0)][:, None].expand(-1, N_JOINTS),
+            torch.tensor(self.small),
+        )
         return w.to(device)
 
 
@@ -89,7 +92,9 @@ def denormalize(x: torch.Tensor, mean, std) -> torch.Tensor:
     mean = torch.as_tensor(mean, dtype=x.dtype, device=x.device)
     std = torch.as_tensor(std, dtype=x.dtype, device=x.device)
     if mean.shape != (FEATURE_DIM,) or std.shape != (FEATURE_DIM,):
-        raise DualFlowError(f"normalization mean/std must have shape ({FEATURE_DIM},), got {tuple(mean.shape)}, {tuple(std.shape)}")
+        raise DualFlowError(
+            f"normalization mean/std must have shape ({FEATURE_DIM},), got {tuple(mean.shape)}, {tuple(std.shape)}"
+        )
     return x * std + mean
 
 
@@ -337,5 +342,15 @@ def step_losses(step, x0_a: torch.Tensor, x0_b: torch.Tensor, mean, std, **kwarg
     mode=mode, text=cond.text, labels=batch["rule"])``; ``terms["total"].backward()``.
     kwargs: mode, text, labels, frame_mask, weights, sync_weights, dm_threshold.
     """
-    return dualflow_losses(flow=step.loss, v_a=step.v_a, v_b=step.v_b, x0_hat_a=step.x0_hat_a,
-                           x0_hat_b=step.x0_hat_b, x0_a=x0_a, x0_b=x0_b, mean=mean, std=std, **kwargs)
+    return dualflow_losses(
+        flow=step.loss,
+        v_a=step.v_a,
+        v_b=step.v_b,
+        x0_hat_a=step.x0_hat_a,
+        x0_hat_b=step.x0_hat_b,
+        x0_a=x0_a,
+        x0_b=x0_b,
+        mean=mean,
+        std=std,
+        **kwargs,
+    )

@@ -66,7 +66,9 @@ class DualFlowConfig:
             if isinstance(default, bool) or not isinstance(default, (int, float, str, tuple)):
                 continue
             if isinstance(default, tuple):
-                ok = isinstance(value, (tuple, list)) and all(isinstance(v, int) and not isinstance(v, bool) for v in value)
+                ok = isinstance(value, (tuple, list)) and all(
+                    isinstance(v, int) and not isinstance(v, bool) for v in value
+                )
             elif isinstance(default, int):
                 ok = isinstance(value, int) and not isinstance(value, bool)
             elif isinstance(default, float):
@@ -76,17 +78,11 @@ class DualFlowConfig:
             if not ok:
                 raise DualFlowError(f"DualFlowConfig.{f.name} must be {type(default).__name__}, got {value!r:.40}")
         if self.prediction not in PREDICTIONS:
-            raise DualFlowError(
-                f"DualFlowConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}"
-            )
+            raise DualFlowError(f"DualFlowConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
         if self.width % self.n_heads:
-            raise DualFlowError(
-                f"DualFlowConfig: width ({self.width}) must be divisible by n_heads ({self.n_heads})"
-            )
+            raise DualFlowError(f"DualFlowConfig: width ({self.width}) must be divisible by n_heads ({self.n_heads})")
         if any(k < 1 or k % 2 == 0 for k in self.conv_kernels):
-            raise DualFlowError(
-                f"DualFlowConfig.conv_kernels must be odd positive sizes, got {self.conv_kernels}"
-            )
+            raise DualFlowError(f"DualFlowConfig.conv_kernels must be odd positive sizes, got {self.conv_kernels}")
         if self.look_ahead < 0:
             raise DualFlowError(f"DualFlowConfig.look_ahead must be >= 0, got {self.look_ahead}")
         for name in ("motion_dim", "width", "n_blocks", "n_heads", "ff_dim", "text_dim", "music_dim"):
@@ -113,9 +109,7 @@ class DualFlowConfig:
         known = {f.name for f in fields(DualFlowConfig)}
         unknown = set(d) - known
         if unknown:
-            raise DualFlowError(
-                f"DualFlowConfig: unknown field(s) {sorted(unknown)}; valid fields: {sorted(known)}"
-            )
+            raise DualFlowError(f"DualFlowConfig: unknown field(s) {sorted(unknown)}; valid fields: {sorted(known)}")
         d = dict(d)
         if "conv_kernels" in d:
             d["conv_kernels"] = tuple(d["conv_kernels"])
@@ -128,8 +122,7 @@ PRESETS: dict[str, DualFlowConfig] = {
     # Trains on a 2-core CPU in minutes (a few hundred steps on 60-frame clips).
     "small": DualFlowConfig(width=128, n_blocks=4, n_heads=4, ff_dim=256, music_layers=1),
     # Unit tests: forward + backward in milliseconds.
-    "tiny": DualFlowConfig(width=32, n_blocks=2, n_heads=2, ff_dim=64, dropout=0.0, music_layers=1,
-                           look_ahead=2),
+    "tiny": DualFlowConfig(width=32, n_blocks=2, n_heads=2, ff_dim=64, dropout=0.0, music_layers=1, look_ahead=2),
 }
 
 
@@ -229,8 +222,9 @@ class Attention(nn.Module):
         self.out = nn.Linear(width, width)
         self.dropout = dropout
 
-    def forward(self, query: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None,
-                is_causal: bool = False) -> torch.Tensor:
+    def forward(
+        self, query: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None, is_causal: bool = False
+    ) -> torch.Tensor:
         n, tq, w = query.shape
         h = self.n_heads
         q = self.q(query).view(n, tq, h, w // h).transpose(1, 2)
@@ -503,14 +497,17 @@ class DualFlow(nn.Module):
             raise DualFlowError(f"x_a {tuple(x_a.shape)} and x_b {tuple(x_b.shape)} must have the same shape")
         b, t = x_a.shape[:2]
         if cond.text is not None and tuple(cond.text.shape) != (b, cfg.text_dim):
-            raise DualFlowError(f"Conditions.text must be (B, D_text) = ({b}, {cfg.text_dim}), got {tuple(cond.text.shape)}")
+            raise DualFlowError(
+                f"Conditions.text must be (B, D_text) = ({b}, {cfg.text_dim}), got {tuple(cond.text.shape)}"
+            )
         if cond.music is not None and tuple(cond.music.shape) != (b, t, cfg.music_dim):
             raise DualFlowError(
                 f"Conditions.music must be (B, T, D_music) = ({b}, {t}, {cfg.music_dim}) (per motion frame), "
                 f"got {tuple(cond.music.shape)}"
             )
-        if cond.retrieval is not None and (cond.retrieval.ndim != 3 or cond.retrieval.shape[0] != b
-                                           or cond.retrieval.shape[2] != cfg.width):
+        if cond.retrieval is not None and (
+            cond.retrieval.ndim != 3 or cond.retrieval.shape[0] != b or cond.retrieval.shape[2] != cfg.width
+        ):
             raise DualFlowError(
                 f"Conditions.retrieval must be (B, R, width) = ({b}, R, {cfg.width}), got {tuple(cond.retrieval.shape)}"
             )
@@ -668,9 +665,14 @@ def parameter_breakdown(config: DualFlowConfig | str) -> dict[str, int]:
         config = DualFlowConfig.preset(config)
     with torch.device("meta"):
         model = DualFlow(config)
-    parts = {"temporal convolutions": 0, "adaptive LayerNorms": 0, "attention (4 per block)": 0,
-             "feed-forward": 0, "condition encoders (text, music, time, task, nulls)": 0,
-             "input/output projections": 0}
+    parts = {
+        "temporal convolutions": 0,
+        "adaptive LayerNorms": 0,
+        "attention (4 per block)": 0,
+        "feed-forward": 0,
+        "condition encoders (text, music, time, task, nulls)": 0,
+        "input/output projections": 0,
+    }
     for name, p in model.named_parameters():
         in_block = name.startswith("blocks.")
         if in_block and ".conv." in name:
@@ -717,8 +719,10 @@ def parameter_report() -> str:
     lines.append("paper preset by part:")
     for part, n in parameter_breakdown("paper").items():
         lines.append(f"  {part:52s} {n / 1e6:8.2f}M")
-    lines.append("the paper reports 456M for its full model, including its text/music encoders "
-                 "(see dualflow.model.parameter_report's docstring)")
+    lines.append(
+        "the paper reports 456M for its full model, including its text/music encoders "
+        "(see dualflow.model.parameter_report's docstring)"
+    )
     return "\n".join(lines)
 
 

@@ -21,10 +21,20 @@ from dualflow.errors import DualFlowError
 HOP = 512
 MUSIC_KINDS = ("edge35", "duolando54", "jukebox", "beats4")
 MUSIC_DIMS = {"edge35": 35, "duolando54": 54, "jukebox": 4800, "beats4": 4}
-EDGE35_LAYOUT = {"envelope": slice(0, 1), "mfcc": slice(1, 21), "chroma": slice(21, 33),
-                 "peaks": slice(33, 34), "beats": slice(34, 35)}
-DUOLANDO54_LAYOUT = {"mfcc": slice(0, 20), "mfcc_delta": slice(20, 40), "chroma": slice(40, 52),
-                     "envelope": slice(52, 53), "beats": slice(53, 54)}
+EDGE35_LAYOUT = {
+    "envelope": slice(0, 1),
+    "mfcc": slice(1, 21),
+    "chroma": slice(21, 33),
+    "peaks": slice(33, 34),
+    "beats": slice(34, 35),
+}
+DUOLANDO54_LAYOUT = {
+    "mfcc": slice(0, 20),
+    "mfcc_delta": slice(20, 40),
+    "chroma": slice(40, 52),
+    "envelope": slice(52, 53),
+    "beats": slice(53, 54),
+}
 
 
 @dataclass
@@ -63,7 +73,9 @@ def load_audio(path: str | Path, sr: int, offset_s: float = 0.0, duration_s: flo
             warnings.simplefilter("ignore", (UserWarning, FutureWarning))
             y, _ = librosa.load(str(p), sr=int(sr), mono=True, offset=float(offset_s), duration=duration_s)
     except Exception as exc:  # soundfile/audioread raise many types for a bad file
-        raise DualFlowError(f"{p}: cannot read audio ({type(exc).__name__}: {exc}); use a valid wav/ogg/flac/mp3 file") from exc
+        raise DualFlowError(
+            f"{p}: cannot read audio ({type(exc).__name__}: {exc}); use a valid wav/ogg/flac/mp3 file"
+        ) from exc
     if y.size < 2 * HOP:
         raise DualFlowError(f"{p}: audio is empty or shorter than {2 * HOP / sr:.3f} s after offset {offset_s} s")
     if not np.all(np.isfinite(y)):
@@ -90,8 +102,9 @@ def _one_hot(indices: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def analyse_waveform(y: np.ndarray, sr: int, kind: str = "edge35", fps: float = 30.0,
-                     n_frames: int | None = None) -> MusicAnalysis:
+def analyse_waveform(
+    y: np.ndarray, sr: int, kind: str = "edge35", fps: float = 30.0, n_frames: int | None = None
+) -> MusicAnalysis:
     """Features + beats of a mono waveform already at ``sr = analysis_rate(fps)``.
 
     onset envelope o = librosa.onset.onset_strength (hop 512); beats b = beat_track(o) (EDGE
@@ -102,22 +115,27 @@ def analyse_waveform(y: np.ndarray, sr: int, kind: str = "edge35", fps: float = 
     import librosa
 
     if kind not in ("edge35", "duolando54"):
-        raise DualFlowError(f"music kind {kind!r} is not computed from audio; choose 'edge35' or 'duolando54' "
-                            "(Jukebox features load from .npy with load_jukebox)")
+        raise DualFlowError(
+            f"music kind {kind!r} is not computed from audio; choose 'edge35' or 'duolando54' "
+            "(Jukebox features load from .npy with load_jukebox)"
+        )
     if int(sr) != analysis_rate(fps):
         raise DualFlowError(f"waveform must be at {analysis_rate(fps)} Hz for {fps} fps (got {sr}); use load_audio")
     y = np.asarray(y, dtype=np.float32)
     env = librosa.onset.onset_strength(y=y, sr=sr, hop_length=HOP)
     t = env.shape[0]
     start_bpm = float(np.atleast_1d(librosa.feature.tempo(onset_envelope=env, sr=sr, hop_length=HOP))[0])
-    tempo, beats = librosa.beat.beat_track(onset_envelope=env, sr=sr, hop_length=HOP, start_bpm=start_bpm,
-                                           tightness=100)
+    tempo, beats = librosa.beat.beat_track(
+        onset_envelope=env, sr=sr, hop_length=HOP, start_bpm=start_bpm, tightness=100
+    )
     beats = np.asarray(beats, dtype=np.int64)
     mfcc = librosa.feature.mfcc(y=y, sr=sr, n_mfcc=20, hop_length=HOP)[:, :t].T
     if kind == "edge35":
         chroma = librosa.feature.chroma_cens(y=y, sr=sr, hop_length=HOP, n_chroma=12)[:, :t].T
         peaks = librosa.onset.onset_detect(onset_envelope=env, sr=sr, hop_length=HOP)
-        feats = np.concatenate([env[:, None], mfcc, chroma, _one_hot(peaks, t)[:, None], _one_hot(beats, t)[:, None]], 1)
+        feats = np.concatenate(
+            [env[:, None], mfcc, chroma, _one_hot(peaks, t)[:, None], _one_hot(beats, t)[:, None]], 1
+        )
     else:
         delta = librosa.feature.delta(mfcc.T, width=3).T
         chroma = librosa.feature.chroma_cqt(y=y, sr=sr, hop_length=HOP, n_chroma=12)[:, :t].T
@@ -135,12 +153,20 @@ def analyse_waveform(y: np.ndarray, sr: int, kind: str = "edge35", fps: float = 
     )
 
 
-def analyse_music(path: str | Path, kind: str = "edge35", fps: float = 30.0, n_frames: int | None = None,
-                  offset_s: float = 0.0, duration_s: float | None = None) -> MusicAnalysis:
+def analyse_music(
+    path: str | Path,
+    kind: str = "edge35",
+    fps: float = 30.0,
+    n_frames: int | None = None,
+    offset_s: float = 0.0,
+    duration_s: float | None = None,
+) -> MusicAnalysis:
     """Load ``path`` and analyse it (see :func:`analyse_waveform`); the one entry point for audio."""
     if kind not in ("edge35", "duolando54"):
-        raise DualFlowError(f"music kind {kind!r} is not an audio analysis; choose 'edge35' or 'duolando54' "
-                            f"(all kinds: {', '.join(MUSIC_KINDS)}, see music_features)")
+        raise DualFlowError(
+            f"music kind {kind!r} is not an audio analysis; choose 'edge35' or 'duolando54' "
+            f"(all kinds: {', '.join(MUSIC_KINDS)}, see music_features)"
+        )
     sr = analysis_rate(fps)
     return analyse_waveform(load_audio(path, sr, offset_s, duration_s), sr, kind, fps, n_frames)
 
@@ -164,8 +190,9 @@ def beat_track_features(beat_times_s: np.ndarray, n_frames: int, fps: float = 30
     return feats.astype(np.float32)
 
 
-def music_features(path: str | Path, kind: str = "edge35", fps: float = 30.0, n_frames: int | None = None,
-                   **kw) -> np.ndarray:
+def music_features(
+    path: str | Path, kind: str = "edge35", fps: float = 30.0, n_frames: int | None = None, **kw
+) -> np.ndarray:
     """(T, D) float32 per-motion-frame features of an audio file (``.npy`` → Jukebox features)."""
     if kind == "jukebox" or str(path).endswith(".npy"):
         return load_jukebox(path, n_frames)

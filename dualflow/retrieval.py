@@ -38,8 +38,9 @@ def _unit(x: np.ndarray) -> np.ndarray:
     return np.where(n > 0, x / np.maximum(n, 1e-12), 0.0).astype(np.float32)
 
 
-def similarity_scores(db_emb: np.ndarray, db_len: np.ndarray, query_emb: np.ndarray, query_len,
-                      lam: float = DEFAULT_LAMBDA) -> np.ndarray:
+def similarity_scores(
+    db_emb: np.ndarray, db_len: np.ndarray, query_emb: np.ndarray, query_len, lam: float = DEFAULT_LAMBDA
+) -> np.ndarray:
     """Eq. 1 for Q queries against N entries -> (Q, N) float32.
 
     db_emb (N, D) unit-norm rows; db_len (N,) frames; query_emb (Q, D) or (D,) (normalised here);
@@ -48,8 +49,10 @@ def similarity_scores(db_emb: np.ndarray, db_len: np.ndarray, query_emb: np.ndar
     """
     q = _unit(np.atleast_2d(query_emb))
     if q.shape[1] != db_emb.shape[1]:
-        raise DualFlowError(f"query embedding has {q.shape[1]} dims, the database {db_emb.shape[1]}; "
-                            "use the same encoder for queries and database")
+        raise DualFlowError(
+            f"query embedding has {q.shape[1]} dims, the database {db_emb.shape[1]}; "
+            "use the same encoder for queries and database"
+        )
     lp = np.broadcast_to(np.asarray(query_len, dtype=np.float32).reshape(-1, 1), (q.shape[0], 1))
     li = np.asarray(db_len, dtype=np.float32)[None, :]
     # (Q, D)·(D, N) through torch (zero-copy views): its CPU GEMV is ~10x faster here than
@@ -98,8 +101,11 @@ class RetrievalResult:
         """(Q, K) indices and (K,) cue ids (position in CUES), cues concatenated in CUES order."""
         cues = [c for c in CUES if c in self.indices]
         idx = np.concatenate([self.indices[c] for c in cues], axis=1) if cues else np.zeros((0, 0), np.int64)
-        cue_ids = np.concatenate([np.full(self.indices[c].shape[1], CUES.index(c)) for c in cues]) if cues \
+        cue_ids = (
+            np.concatenate([np.full(self.indices[c].shape[1], CUES.index(c)) for c in cues])
+            if cues
             else np.zeros(0, np.int64)
+        )
         return idx, cue_ids.astype(np.int64)
 
 
@@ -148,9 +154,17 @@ class RetrievalDatabase:
     # -- building ------------------------------------------------------------------------------
 
     @staticmethod
-    def build(motions: np.ndarray, lengths: Sequence[int], texts: Sequence[str] | None = None,
-              music: Sequence[np.ndarray] | None = None, *, text_encoder=None, decomposer=None,
-              ids: Sequence[str] | None = None, genre: str | None = None) -> RetrievalDatabase:
+    def build(
+        motions: np.ndarray,
+        lengths: Sequence[int],
+        texts: Sequence[str] | None = None,
+        music: Sequence[np.ndarray] | None = None,
+        *,
+        text_encoder=None,
+        decomposer=None,
+        ids: Sequence[str] | None = None,
+        genre: str | None = None,
+    ) -> RetrievalDatabase:
         """Embed a dataset's clips per cue.
 
         motions (N, T, 2, 262) normalised features; lengths (N,); texts: N strings (decomposed by
@@ -165,7 +179,9 @@ class RetrievalDatabase:
             if len(texts) != n:
                 raise DualFlowError(f"retrieval build: {len(texts)} texts for {n} motions")
             if text_encoder is None:
-                raise DualFlowError("retrieval build: texts given but no text_encoder (see dualflow.text.make_text_encoder)")
+                raise DualFlowError(
+                    "retrieval build: texts given but no text_encoder (see dualflow.text.make_text_encoder)"
+                )
             if decomposer is None:
                 from dualflow.decompose import KeywordDecomposer
 
@@ -184,9 +200,15 @@ class RetrievalDatabase:
             emb["music"] = (raw - stats[0]) / stats[1]
         if not emb:
             raise DualFlowError("retrieval build: give texts and/or music; a database needs at least one cue")
-        return RetrievalDatabase(np.asarray(motions, np.float32), np.asarray(lengths), emb,
-                                 list(ids) if ids is not None else [f"clip{i:06d}" for i in range(n)],
-                                 list(texts) if texts is not None else [], stats, meta)
+        return RetrievalDatabase(
+            np.asarray(motions, np.float32),
+            np.asarray(lengths),
+            emb,
+            list(ids) if ids is not None else [f"clip{i:06d}" for i in range(n)],
+            list(texts) if texts is not None else [],
+            stats,
+            meta,
+        )
 
     def music_query(self, features: np.ndarray, length: int | None = None) -> np.ndarray:
         """Query embedding (2·D,) of per-frame music features, z-scored like the database's."""
@@ -196,8 +218,14 @@ class RetrievalDatabase:
 
     # -- querying ------------------------------------------------------------------------------
 
-    def query(self, queries: dict[str, np.ndarray], lengths, k: int = DEFAULT_K["interactive"],
-              exclude: np.ndarray | None = None, lam: float = DEFAULT_LAMBDA) -> RetrievalResult:
+    def query(
+        self,
+        queries: dict[str, np.ndarray],
+        lengths,
+        k: int = DEFAULT_K["interactive"],
+        exclude: np.ndarray | None = None,
+        lam: float = DEFAULT_LAMBDA,
+    ) -> RetrievalResult:
         """Top-k per cue for Q queries.
 
         queries {cue: (Q, D_cue) or (D_cue,)}: any subset of the database's cues (absent cues are
@@ -214,8 +242,9 @@ class RetrievalDatabase:
             idx[cue], sc[cue] = top_k(s, k, exclude)
         return RetrievalResult(idx, sc)
 
-    def query_training(self, batch_indices: np.ndarray, k: int = DEFAULT_K["interactive"],
-                       lam: float = DEFAULT_LAMBDA) -> RetrievalResult:
+    def query_training(
+        self, batch_indices: np.ndarray, k: int = DEFAULT_K["interactive"], lam: float = DEFAULT_LAMBDA
+    ) -> RetrievalResult:
         """Queries from the database's own entries ``batch_indices`` (B,), each excluding itself."""
         b = np.asarray(batch_indices, dtype=np.int64).reshape(-1)
         return self.query({c: self.embeddings[c][b] for c in self.cues}, self.lengths[b], k, exclude=b, lam=lam)
@@ -231,9 +260,13 @@ class RetrievalDatabase:
         """Write one npz (temp file + rename): motions, lengths, ids, texts, emb_<cue>, music stats, meta JSON."""
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
-        arrays = {"motions": self.motions, "lengths": self.lengths,
-                  "ids": np.array(self.ids, dtype=str), "texts": np.array(self.texts, dtype=str),
-                  "meta": np.array(json.dumps(self.meta))}
+        arrays = {
+            "motions": self.motions,
+            "lengths": self.lengths,
+            "ids": np.array(self.ids, dtype=str),
+            "texts": np.array(self.texts, dtype=str),
+            "meta": np.array(json.dumps(self.meta)),
+        }
         for cue, e in self.embeddings.items():
             arrays[f"emb_{cue}"] = e
         if self.music_stats is not None:
@@ -247,7 +280,9 @@ class RetrievalDatabase:
     def load(path: str | Path) -> RetrievalDatabase:
         p = Path(path)
         if not p.is_file():
-            raise DualFlowError(f"{p}: retrieval database not found; build one with RetrievalDatabase.build(...).save(path)")
+            raise DualFlowError(
+                f"{p}: retrieval database not found; build one with RetrievalDatabase.build(...).save(path)"
+            )
         try:
             with np.load(p, allow_pickle=False) as z:
                 data = {k: z[k] for k in z.files}
@@ -261,8 +296,15 @@ class RetrievalDatabase:
             raise DualFlowError(f"{p}: format {meta.get('format')!r}, expected {FORMAT!r}; rebuild it")
         emb = {c: data[f"emb_{c}"] for c in CUES if f"emb_{c}" in data}
         stats = (data["music_mean"], data["music_std"]) if "music_mean" in data else None
-        return RetrievalDatabase(data["motions"], data["lengths"], emb, [str(s) for s in data["ids"]],
-                                 [str(s) for s in data.get("texts", [])], stats, meta)
+        return RetrievalDatabase(
+            data["motions"],
+            data["lengths"],
+            emb,
+            [str(s) for s in data["ids"]],
+            [str(s) for s in data.get("texts", [])],
+            stats,
+            meta,
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,8 +325,16 @@ class RetrievalEncoder(nn.Module):
     original frame index t·s), which divides the encoder's tokens by s and its attention by s².
     """
 
-    def __init__(self, width: int, n_layers: int = 2, n_heads: int = 4, ff_dim: int | None = None,
-                 dropout: float = 0.1, motion_dim: int = 262, frame_stride: int = 1):
+    def __init__(
+        self,
+        width: int,
+        n_layers: int = 2,
+        n_heads: int = 4,
+        ff_dim: int | None = None,
+        dropout: float = 0.1,
+        motion_dim: int = 262,
+        frame_stride: int = 1,
+    ):
         super().__init__()
         if width % n_heads:
             raise DualFlowError(f"RetrievalEncoder: width ({width}) must be divisible by n_heads ({n_heads})")
@@ -295,8 +345,9 @@ class RetrievalEncoder(nn.Module):
         self.proj = nn.Linear(motion_dim, width)
         self.person = nn.Embedding(2, width)
         self.cue = nn.Embedding(len(CUES), width)
-        layer = nn.TransformerEncoderLayer(width, n_heads, ff_dim or 2 * width, dropout, activation="gelu",
-                                           batch_first=True, norm_first=True)
+        layer = nn.TransformerEncoderLayer(
+            width, n_heads, ff_dim or 2 * width, dropout, activation="gelu", batch_first=True, norm_first=True
+        )
         self.encoder = nn.TransformerEncoder(layer, n_layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(width)
 
@@ -314,8 +365,12 @@ class RetrievalEncoder(nn.Module):
         cue_ids = torch.as_tensor(cue_ids, device=dev).long().expand(b, k)
         valid = torch.arange(t, device=dev)[None, None, :] < lengths.to(dev)[..., None]  # (B, K, T)
         h = self.proj(motions)  # (B, K, T, 2, W)
-        h = (h + sinusoidal_encoding(torch.arange(t, device=dev) * s, self.width)[:, None, :]
-             + self.person.weight + self.cue(cue_ids)[:, :, None, None, :])
+        h = (
+            h
+            + sinusoidal_encoding(torch.arange(t, device=dev) * s, self.width)[:, None, :]
+            + self.person.weight
+            + self.cue(cue_ids)[:, :, None, None, :]
+        )
         h = h.transpose(2, 3).reshape(b * k, 2 * t, self.width)  # person-major tokens
         key_valid = valid[:, :, None, :].expand(b, k, 2, t).reshape(b * k, 2 * t)
         h = self.encoder(h, src_key_padding_mask=~key_valid)
@@ -323,6 +378,7 @@ class RetrievalEncoder(nn.Module):
         w = valid[:, :, None, :, None].to(h.dtype)
         pooled = (h * w).sum(3) / w.sum(3).clamp(min=1.0)  # (B, K, 2, W)
         return self.norm(pooled.reshape(b, 2 * k, self.width))
+
 
 # ---------------------------------------------------------------------------------------------
 # Retrieval in a training run and in a checkpoint
@@ -383,8 +439,13 @@ class RagConfig:
         return max(self.depth("interactive"), self.depth("reactive"))
 
     def encoder(self, width: int, model_heads: int) -> RetrievalEncoder:
-        return RetrievalEncoder(int(width), n_layers=int(self.layers), n_heads=int(self.heads or model_heads),
-                                dropout=float(self.dropout), frame_stride=int(self.frame_stride))
+        return RetrievalEncoder(
+            int(width),
+            n_layers=int(self.layers),
+            n_heads=int(self.heads or model_heads),
+            dropout=float(self.dropout),
+            frame_stride=int(self.frame_stride),
+        )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -430,8 +491,9 @@ def dataset_motions(dataset) -> np.ndarray:
     return torch.stack([dataset.actor, dataset.reactor], dim=2).numpy()
 
 
-def build_training_database(dataset, config: RagConfig, text_encoder=None, music: np.ndarray | None = None,
-                            decomposer=None) -> RetrievalDatabase:
+def build_training_database(
+    dataset, config: RagConfig, text_encoder=None, music: np.ndarray | None = None, decomposer=None
+) -> RetrievalDatabase:
     """The retrieval database of a run's training windows: their normalised motions, the text
     cues (each window's text decomposed into spatial / body / rhythm descriptions, each embedded
     by the run's text encoder) and the music cue (clip statistics of the music condition).
@@ -444,15 +506,21 @@ def build_training_database(dataset, config: RagConfig, text_encoder=None, music
     want_text = any(c in config.cues for c in TEXT_CUES) and text_encoder is not None and any(dataset.texts)
     want_music = "music" in config.cues and music is not None
     if not (want_text or want_music):
-        raise DualFlowError(f"retrieval: none of the cues {list(config.cues)} can be built (text cues need texts "
-                            "and a text encoder, the music cue needs a music condition); set retrieval.cues or "
-                            "retrieval.enabled: false")
+        raise DualFlowError(
+            f"retrieval: none of the cues {list(config.cues)} can be built (text cues need texts "
+            "and a text encoder, the music cue needs a music condition); set retrieval.cues or "
+            "retrieval.enabled: false"
+        )
     frames = int(dataset.n_frames)
-    db = RetrievalDatabase.build(dataset_motions(dataset), np.full(n, frames),
-                                 texts=list(dataset.texts) if want_text else None,
-                                 music=np.asarray(music, dtype=np.float32) if want_music else None,
-                                 text_encoder=_Deduplicated(text_encoder) if want_text else None, decomposer=decomposer,
-                                 ids=list(dataset.sources))
+    db = RetrievalDatabase.build(
+        dataset_motions(dataset),
+        np.full(n, frames),
+        texts=list(dataset.texts) if want_text else None,
+        music=np.asarray(music, dtype=np.float32) if want_music else None,
+        text_encoder=_Deduplicated(text_encoder) if want_text else None,
+        decomposer=decomposer,
+        ids=list(dataset.sources),
+    )
     for cue in list(db.embeddings):
         if cue not in config.cues:
             del db.embeddings[cue]
@@ -460,8 +528,9 @@ def build_training_database(dataset, config: RagConfig, text_encoder=None, music
     return db
 
 
-def cue_queries(db: RetrievalDatabase, texts: Sequence[str] | None, music: np.ndarray | None, text_encoder=None,
-                decomposer=None) -> dict[str, np.ndarray]:
+def cue_queries(
+    db: RetrievalDatabase, texts: Sequence[str] | None, music: np.ndarray | None, text_encoder=None, decomposer=None
+) -> dict[str, np.ndarray]:
     """Query embeddings {cue: (Q, D)} for the database's cues from texts and per-frame music (Q, T, D)."""
     out: dict[str, np.ndarray] = {}
     text_cues = [c for c in TEXT_CUES if c in db.embeddings]
@@ -491,9 +560,16 @@ class NeighbourTable:
         return min(v.shape[1] for v in self.indices.values()) if self.indices else 0
 
     @staticmethod
-    def compute(db: RetrievalDatabase, queries: dict[str, np.ndarray], lengths, depth: int,
-                lam: float = DEFAULT_LAMBDA, query_groups: np.ndarray | None = None,
-                db_groups: np.ndarray | None = None, chunk: int = 1024) -> NeighbourTable:
+    def compute(
+        db: RetrievalDatabase,
+        queries: dict[str, np.ndarray],
+        lengths,
+        depth: int,
+        lam: float = DEFAULT_LAMBDA,
+        query_groups: np.ndarray | None = None,
+        db_groups: np.ndarray | None = None,
+        chunk: int = 1024,
+    ) -> NeighbourTable:
         """Eq. 1 top-``depth`` for every query and cue, computed once before training.
 
         query_groups (Q,) / db_groups (N,): entries whose group equals the query's are never
@@ -501,8 +577,9 @@ class NeighbourTable:
         of any query; a DualFlowError when some query has none.
         """
         if not queries:
-            raise DualFlowError("retrieval: no query cue matches the database's cues "
-                                f"({', '.join(db.cues)}); give texts and/or music")
+            raise DualFlowError(
+                f"retrieval: no query cue matches the database's cues ({', '.join(db.cues)}); give texts and/or music"
+            )
         q_len = np.broadcast_to(np.asarray(lengths, dtype=np.float32).reshape(-1), (len(next(iter(queries.values()))),))
         allowed = len(db)
         if query_groups is not None:
@@ -510,16 +587,18 @@ class NeighbourTable:
             counts = np.bincount(dg, minlength=int(max(dg.max(), qg.max())) + 1)
             allowed = int(len(db) - counts[qg].max())
             if allowed < 1:
-                raise DualFlowError("retrieval: every training window comes from one clip, so nothing is left "
-                                    "to retrieve once the query's own clip is excluded; use more clips")
+                raise DualFlowError(
+                    "retrieval: every training window comes from one clip, so nothing is left "
+                    "to retrieve once the query's own clip is excluded; use more clips"
+                )
         depth = min(int(depth), allowed)
         out = {}
         for cue, q in queries.items():
             rows = []
             for s0 in range(0, len(q), chunk):
-                s = similarity_scores(db.embeddings[cue], db.lengths, q[s0:s0 + chunk], q_len[s0:s0 + chunk], lam)
+                s = similarity_scores(db.embeddings[cue], db.lengths, q[s0 : s0 + chunk], q_len[s0 : s0 + chunk], lam)
                 if query_groups is not None:
-                    s = np.where(qg[s0:s0 + chunk, None] == dg[None, :], -np.inf, s)
+                    s = np.where(qg[s0 : s0 + chunk, None] == dg[None, :], -np.inf, s)
                 part = np.argpartition(-s, depth - 1, axis=1)[:, :depth]
                 order = np.argsort(-np.take_along_axis(s, part, 1), axis=1, kind="stable")
                 rows.append(np.take_along_axis(part, order, 1))
@@ -537,8 +616,13 @@ class NeighbourTable:
         return idx, cue_ids
 
 
-def drop_retrieval_tokens(z: torch.Tensor, cue_ids: np.ndarray, null: torch.Tensor,
-                          drop_text: torch.Tensor | None = None, drop_music: torch.Tensor | None = None) -> torch.Tensor:
+def drop_retrieval_tokens(
+    z: torch.Tensor,
+    cue_ids: np.ndarray,
+    null: torch.Tensor,
+    drop_text: torch.Tensor | None = None,
+    drop_music: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Classifier-free-guidance drop of z_R (B, 2K, W) per cue: tokens 2j, 2j + 1 come from
     retrieved clip j with cue ``cue_ids[j]``; null (1, 1, W) is the model's null retrieval token.
     A sample's dropped text replaces its text-cue tokens with null, its dropped music the
@@ -568,14 +652,25 @@ class RetrievalConditioner:
         """(indices (B, K), cue ids (K,)) for query rows in ``mode``."""
         return self.table.select(rows, self.config.depth(mode))
 
-    def tokens(self, encoder, rows, mode: str, device, null: torch.Tensor | None = None,
-               drop_text: torch.Tensor | None = None, drop_music: torch.Tensor | None = None) -> torch.Tensor | None:
+    def tokens(
+        self,
+        encoder,
+        rows,
+        mode: str,
+        device,
+        null: torch.Tensor | None = None,
+        drop_text: torch.Tensor | None = None,
+        drop_music: torch.Tensor | None = None,
+    ) -> torch.Tensor | None:
         """z_R (B, 2K, width) through ``encoder`` (gradients flow into it), dropped per cue when
         ``null`` and drop masks are given."""
         idx, cue_ids = self.retrieved(rows, mode)
         motions, lengths = self.db.gather(idx)
-        z = encoder(torch.from_numpy(motions).to(device), torch.from_numpy(lengths).to(device),
-                    torch.from_numpy(cue_ids).to(device))
+        z = encoder(
+            torch.from_numpy(motions).to(device),
+            torch.from_numpy(lengths).to(device),
+            torch.from_numpy(cue_ids).to(device),
+        )
         if z is None or null is None:
             return z
         return drop_retrieval_tokens(z, cue_ids, null, drop_text, drop_music)
@@ -592,8 +687,12 @@ def _chmod_public(path: Path) -> None:
     os.chmod(path, 0o644 & ~umask)
 
 
-def save_rag_files(directory: str | Path, encoder_state: dict[str, torch.Tensor],
-                   db: RetrievalDatabase | None = None, ema_state: dict[str, torch.Tensor] | None = None) -> None:
+def save_rag_files(
+    directory: str | Path,
+    encoder_state: dict[str, torch.Tensor],
+    db: RetrievalDatabase | None = None,
+    ema_state: dict[str, torch.Tensor] | None = None,
+) -> None:
     """Write the retrieval encoder (and its EMA state, and the database) into a checkpoint directory
     that is not yet published (the caller renames the directory into place afterwards)."""
     from safetensors.torch import save_file
@@ -633,6 +732,7 @@ def load_rag(ckpt, device: str | torch.device = "cpu") -> LoadedRag | None:
     try:
         encoder.load_state_dict(load_file(str(Path(ckpt.path) / ENCODER_FILE)))
     except RuntimeError as exc:
-        raise DualFlowError(f"{ckpt.path / ENCODER_FILE}: does not match retrieval config {section} "
-                            f"({str(exc).splitlines()[0]})") from None
+        raise DualFlowError(
+            f"{ckpt.path / ENCODER_FILE}: does not match retrieval config {section} ({str(exc).splitlines()[0]})"
+        ) from None
     return LoadedRag(config, encoder.to(device).eval(), RetrievalDatabase.load(Path(ckpt.path) / DB_FILE))

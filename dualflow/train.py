@@ -158,7 +158,10 @@ class TrainConfig:
             (self.keep_last >= 1, "keep_last must be >= 1"),
             (self.max_minutes >= 0, "max_minutes must be >= 0 (0 = no limit)"),
             (self.text_encoder in ("hashed", "minilm"), "text_encoder must be 'hashed' or 'minilm'"),
-            (self.export_dtype in ("float32", "float16", "bfloat16"), "export_dtype must be float32, float16 or bfloat16"),
+            (
+                self.export_dtype in ("float32", "float16", "bfloat16"),
+                "export_dtype must be float32, float16 or bfloat16",
+            ),
         ]
         for ok, message in checks:
             if not ok:
@@ -181,7 +184,9 @@ class TrainConfig:
 
             want = MUSIC_DIMS[MUSIC_KIND[self.music]]
             if cfg.music_dim != want:
-                raise DualFlowError(f"train config: music {self.music!r} gives {want}-d features; set model.music_dim: {want}")
+                raise DualFlowError(
+                    f"train config: music {self.music!r} gives {want}-d features; set model.music_dim: {want}"
+                )
         return cfg
 
     def rag_config(self) -> RagConfig:
@@ -239,7 +244,9 @@ def _coerce(name: str, value, type_name: str, where: str):
     return value
 
 
-def load_train_config(path: str | os.PathLike | None = None, overrides: list[str] | tuple[str, ...] = ()) -> TrainConfig:
+def load_train_config(
+    path: str | os.PathLike | None = None, overrides: list[str] | tuple[str, ...] = ()
+) -> TrainConfig:
     """TrainConfig from a yaml or json file (or the defaults when ``path`` is None),
     then ``key=value`` overrides (dotted keys reach into ``model`` and ``data``)."""
     raw: dict = {}
@@ -254,7 +261,9 @@ def load_train_config(path: str | os.PathLike | None = None, overrides: list[str
         except yaml.YAMLError as exc:
             raise DualFlowError(f"{p}: not valid yaml/json ({str(exc).splitlines()[0]})") from None
         except UnicodeDecodeError as exc:
-            raise DualFlowError(f"{p}: not UTF-8 text (byte {exc.start}); a training config is a yaml or json file") from None
+            raise DualFlowError(
+                f"{p}: not UTF-8 text (byte {exc.start}); a training config is a yaml or json file"
+            ) from None
         except RecursionError:
             raise DualFlowError(f"{p}: nested too deeply to be a training config; fix the syntax") from None
         if not isinstance(raw, dict):
@@ -425,17 +434,24 @@ class Trainer:
         self.model_config = config.model_config()
         self.data_config = config.data_config()
         self.text_encoder = checkpoint_text_encoder(
-            {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None)
+            {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None
+        )
         init = None
         if config.init_from:
             init = load_checkpoint(config.init_from)
             if init.config != self.model_config:
-                raise DualFlowError(f"init_from {config.init_from}: its model config differs from this training "
-                                    "config's; fine-tune with the same preset and model overrides")
+                raise DualFlowError(
+                    f"init_from {config.init_from}: its model config differs from this training "
+                    "config's; fine-tune with the same preset and model overrides"
+                )
         self.train_set, self.val_set, self.stats = make_datasets(
-            self.data_config, self.model_config.text_dim, as_text_embedder(self.text_encoder),
-            cache_dir=config.data_cache or None, music_kind=MUSIC_KIND.get(config.music),
-            stats=None if init is None else init.stats)
+            self.data_config,
+            self.model_config.text_dim,
+            as_text_embedder(self.text_encoder),
+            cache_dir=config.data_cache or None,
+            music_kind=MUSIC_KIND.get(config.music),
+            stats=None if init is None else init.stats,
+        )
         self.music_kind = MUSIC_KIND.get(config.music)
         if self.music_kind is not None:
             self.train_set.music_of(self.music_kind)  # a clear error now when the data lacks that music
@@ -454,15 +470,19 @@ class Trainer:
             self._build_retrieval()
         # fused AdamW on a GPU: one kernel for all parameters, step counters on the device (no host reads)
         self.optimizer = torch.optim.AdamW(
-            self._parameters(), lr=config.lr, weight_decay=config.weight_decay, betas=config.betas,
+            self._parameters(),
+            lr=config.lr,
+            weight_decay=config.weight_decay,
+            betas=config.betas,
             fused=True if self.ctx.device.type == "cuda" else None,
         )
         self.ema = self.retrieval_ema = None
         if config.ema_decay > 0:
             self.ema = AveragedModel(self.model, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
             if self.retrieval_encoder is not None:
-                self.retrieval_ema = AveragedModel(self.retrieval_encoder,
-                                                   multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
+                self.retrieval_ema = AveragedModel(
+                    self.retrieval_encoder, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True
+                )
         self.step = 0
         self.resumed_from: Path | None = None
         if resume:
@@ -484,8 +504,9 @@ class Trainer:
             # a step whose cues are all dropped leaves parts of it out: there the search stays on.
             self.ddp = DistributedDataParallel(self.model, device_ids=ids, find_unused_parameters=self.rag.enabled)
             if self.retrieval_encoder is not None:
-                self.retrieval_ddp = DistributedDataParallel(self.retrieval_encoder, device_ids=ids,
-                                                             find_unused_parameters=True)
+                self.retrieval_ddp = DistributedDataParallel(
+                    self.retrieval_encoder, device_ids=ids, find_unused_parameters=True
+                )
         self.time_sampler = TimeSampler(config.time_sampler, config.time_mean, config.time_std)
         self.loss_weights = config.loss_weights_config()
         self.stats_mean = torch.tensor(self.stats.mean, dtype=torch.float32, device=self.ctx.device)
@@ -513,7 +534,9 @@ class Trainer:
             vt = NeighbourTable.compute(db, vq, self.val_set.n_frames, self.rag.max_depth, self.rag.lam)
             self.val_retriever = RetrievalConditioner(db, vt, self.rag)
         torch.manual_seed(step_seed(self.config.seed, 0xBEEF))
-        self.retrieval_encoder = self.rag.encoder(self.model_config.width, self.model_config.n_heads).to(self.ctx.device)
+        self.retrieval_encoder = self.rag.encoder(self.model_config.width, self.model_config.n_heads).to(
+            self.ctx.device
+        )
 
     def _parameters(self) -> list[torch.nn.Parameter]:
         params = list(self.model.parameters())
@@ -530,12 +553,20 @@ class Trainer:
                 return None
             encoder = self.retrieval_ema.module if self.retrieval_ema is not None else self.retrieval_encoder
             return self.val_retriever.tokens(encoder, batch["index"].numpy(), mode, self.ctx.device)
-        return self.retriever.tokens(self.retrieval_ddp, batch["index"].numpy(), mode, self.ctx.device,
-                                     null=self.model.null_retrieval, drop_text=drop_text, drop_music=drop_music)
+        return self.retriever.tokens(
+            self.retrieval_ddp,
+            batch["index"].numpy(),
+            mode,
+            self.ctx.device,
+            null=self.model.null_retrieval,
+            drop_text=drop_text,
+            drop_music=drop_music,
+        )
 
     def _publish(self, write) -> Path:
         """Run ``write(directory) -> Path`` (a checkpoint writer) into a temporary sibling, add the
         retrieval files, then rename it into place: a checkpoint is complete or absent."""
+
         def with_rag(path: Path) -> Path:
             if self.retrieval_encoder is None:
                 return write(path)
@@ -544,11 +575,18 @@ class Trainer:
             tmp = path.with_name(f".{path.name}.rag-{os.getpid()}")
             write(tmp)
             final = path.name == "final"
-            encoder = self.retrieval_ema.module if (final and self.retrieval_ema is not None) else self.retrieval_encoder
-            save_rag_files(tmp, encoder.state_dict(), db=self.retriever.db if final else None,
-                           ema_state=None if final or self.retrieval_ema is None else self.retrieval_ema.state_dict())
+            encoder = (
+                self.retrieval_ema.module if (final and self.retrieval_ema is not None) else self.retrieval_encoder
+            )
+            save_rag_files(
+                tmp,
+                encoder.state_dict(),
+                db=self.retriever.db if final else None,
+                ema_state=None if final or self.retrieval_ema is None else self.retrieval_ema.state_dict(),
+            )
             replace_directory(tmp, path)
             return path
+
         return with_rag
 
     # -- checkpoints ----------------------------------------------------------------------
@@ -575,7 +613,9 @@ class Trainer:
         info = json.loads(latest.read_text())
         ckpt = load_checkpoint(self.out_dir / info["path"], resume=True)
         if ckpt.config != self.model_config:
-            raise DualFlowError(f"{ckpt.path}: its model config differs from this training config; resume with the same config")
+            raise DualFlowError(
+                f"{ckpt.path}: its model config differs from this training config; resume with the same config"
+            )
         self.model.load_state_dict(ckpt.state_dict)
         if ckpt.optimizer_state is not None:
             self.optimizer.load_state_dict(ckpt.optimizer_state)
@@ -587,8 +627,10 @@ class Trainer:
             from dualflow.retrieval import ENCODER_EMA_FILE, ENCODER_FILE
 
             if not (ckpt.path / ENCODER_FILE).is_file():
-                raise DualFlowError(f"{ckpt.path}: lacks {ENCODER_FILE}; it was trained without retrieval, "
-                                    "resume with retrieval.enabled: false")
+                raise DualFlowError(
+                    f"{ckpt.path}: lacks {ENCODER_FILE}; it was trained without retrieval, "
+                    "resume with retrieval.enabled: false"
+                )
             self.retrieval_encoder.load_state_dict(load_file(str(ckpt.path / ENCODER_FILE)))
             if self.retrieval_ema is not None and (ckpt.path / ENCODER_EMA_FILE).is_file():
                 self.retrieval_ema.load_state_dict(load_file(str(ckpt.path / ENCODER_EMA_FILE)))
@@ -599,15 +641,17 @@ class Trainer:
         """Write checkpoints/step_XXXXXXX (rank 0), update latest.json, prune old ones."""
         root = self.out_dir / "checkpoints"
         path = root / f"step_{self.step:07d}"
-        self._publish(lambda p: save_checkpoint(
-            p,
-            model=self.model,
-            stats=self.stats,
-            meta=self._meta(),
-            ema_state=None if self.ema is None else self.ema.state_dict(),
-            optimizer=self.optimizer,
-            trainer_state={"step": self.step},
-        ))(path)
+        self._publish(
+            lambda p: save_checkpoint(
+                p,
+                model=self.model,
+                stats=self.stats,
+                meta=self._meta(),
+                ema_state=None if self.ema is None else self.ema.state_dict(),
+                optimizer=self.optimizer,
+                trainer_state={"step": self.step},
+            )
+        )(path)
         tmp = self.out_dir / "latest.json.partial"
         tmp.write_text(json.dumps({"step": self.step, "path": str(path.relative_to(self.out_dir))}) + "\n")
         os.replace(tmp, self.out_dir / "latest.json")
@@ -627,9 +671,11 @@ class Trainer:
         meta = self._meta()
         meta["weights"] = "ema" if self.ema is not None else "raw"
         dtype = getattr(torch, self.config.export_dtype)
-        return self._publish(lambda p: save_checkpoint(p, model=model, stats=self.stats, meta=meta,
-                                                       weights_dtype=None if dtype == torch.float32 else dtype))(
-            self.out_dir / "final")
+        return self._publish(
+            lambda p: save_checkpoint(
+                p, model=model, stats=self.stats, meta=meta, weights_dtype=None if dtype == torch.float32 else dtype
+            )
+        )(self.out_dir / "final")
 
     # -- one step -------------------------------------------------------------------------
 
@@ -646,8 +692,13 @@ class Trainer:
         if self.config.cfg_drop:
             drop_text, drop_music = sample_condition_drop(b, gen, dev)
         retrieval = self._retrieval_tokens(batch, mode, drop_text, drop_music)
-        return Conditions(text=batch["text"].to(dev), music=music, retrieval=retrieval, drop_text=drop_text,
-                          drop_music=drop_music if music is not None else None)
+        return Conditions(
+            text=batch["text"].to(dev),
+            music=music,
+            retrieval=retrieval,
+            drop_text=drop_text,
+            drop_music=drop_music if music is not None else None,
+        )
 
     def train_step(self, sync: bool = True) -> dict:
         """One optimiser step; returns its log row. sync=False: the row's loss terms and gradient
@@ -669,18 +720,38 @@ class Trainer:
         self.ddp.train()
         if self.retrieval_ddp is not None:
             self.retrieval_ddp.train()
-        amp = (torch.autocast(ctx.device.type, dtype=self.autocast_dtype) if self.autocast_dtype is not None
-               else contextlib.nullcontext())
+        amp = (
+            torch.autocast(ctx.device.type, dtype=self.autocast_dtype)
+            if self.autocast_dtype is not None
+            else contextlib.nullcontext()
+        )
         with amp:
             cond = self._conditions(batch, gen, mode)
             x_a = batch["actor"].to(ctx.device, non_blocking=True)
             x_b = batch["reactor"].to(ctx.device, non_blocking=True)
-            out = flow_training_step(self.ddp, x_a, x_b, cond, mode=mode, look_ahead=cfg.look_ahead,
-                                     time_sampler=self.time_sampler, generator=gen)
+            out = flow_training_step(
+                self.ddp,
+                x_a,
+                x_b,
+                cond,
+                mode=mode,
+                look_ahead=cfg.look_ahead,
+                time_sampler=self.time_sampler,
+                generator=gen,
+            )
             terms = {"flow": out.loss}
             if cfg.losses == "paper":
-                terms = step_losses(out, x_a, x_b, self.stats_mean, self.stats_std, mode=mode,
-                                    text=cond.text, labels=batch["rule"].to(ctx.device), weights=self.loss_weights)
+                terms = step_losses(
+                    out,
+                    x_a,
+                    x_b,
+                    self.stats_mean,
+                    self.stats_std,
+                    mode=mode,
+                    text=cond.text,
+                    labels=batch["rule"].to(ctx.device),
+                    weights=self.loss_weights,
+                )
                 loss = terms.pop("total")
             else:
                 loss = out.loss
@@ -733,11 +804,21 @@ class Trainer:
             batch = self.val_set.batch(idx)
             if self.retrieval_encoder is not None:
                 (self.retrieval_ema.module if self.retrieval_ema is not None else self.retrieval_encoder).eval()
-            cond = Conditions(text=batch["text"].to(self.ctx.device), music=self._music(batch),
-                              retrieval=self._retrieval_tokens(batch, "reactive", validation=True))
-            out = flow_training_step(model, batch["actor"].to(self.ctx.device), batch["reactor"].to(self.ctx.device),
-                                     cond, mode="reactive", look_ahead=self.config.look_ahead,
-                                     time_sampler=self.time_sampler, generator=gen)
+            cond = Conditions(
+                text=batch["text"].to(self.ctx.device),
+                music=self._music(batch),
+                retrieval=self._retrieval_tokens(batch, "reactive", validation=True),
+            )
+            out = flow_training_step(
+                model,
+                batch["actor"].to(self.ctx.device),
+                batch["reactor"].to(self.ctx.device),
+                cond,
+                mode="reactive",
+                look_ahead=self.config.look_ahead,
+                time_sampler=self.time_sampler,
+                generator=gen,
+            )
             losses.append(float(out.loss))
         return sum(losses) / len(losses)
 
@@ -775,8 +856,14 @@ class Trainer:
             (self.out_dir / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
             log = CsvLog(self.out_dir / "train_log.csv", self.step if self.resumed_from else None)
         ctx.barrier()
-        bar = tqdm(total=cfg.steps, initial=self.step, disable=not (ctx.is_main and cfg.progress),
-                   desc="train", unit="step", dynamic_ncols=True)
+        bar = tqdm(
+            total=cfg.steps,
+            initial=self.step,
+            disable=not (ctx.is_main and cfg.progress),
+            desc="train",
+            unit="step",
+            dynamic_ncols=True,
+        )
         t0 = time.perf_counter()
         start_step = self.step
         last = {"loss": float("nan")}
@@ -791,7 +878,8 @@ class Trainer:
                 last = self.row_values(last)
                 if not math.isfinite(last["loss"]):
                     raise DualFlowError(
-                        f"training diverged by step {self.step} (loss {last['loss']}); lower lr or raise warmup_steps")
+                        f"training diverged by step {self.step} (loss {last['loss']}); lower lr or raise warmup_steps"
+                    )
                 bar.set_postfix(loss=f"{last['loss']:.4f}", lr=f"{last['lr']:.1e}", mode=last["mode"][0])
             val = None
             if cfg.val_every and self.step % cfg.val_every == 0:
@@ -799,12 +887,19 @@ class Trainer:
             if ctx.is_main and (self.step % cfg.log_every == 0 or val is not None or self.step == cfg.steps):
                 elapsed = time.perf_counter() - t0
                 done = self.step - start_step
-                log.write({**{k: f"{last[k]:.6f}" for k in CsvLog.TERMS if k in last},
-                           "step": last["step"], "mode": last["mode"],
-                           "val_loss": "" if val is None else f"{val:.6f}",
-                           "loss": f"{last['loss']:.6f}", "lr": f"{last['lr']:.3e}",
-                           "grad_norm": f"{last['grad_norm']:.4f}", "elapsed_s": f"{elapsed:.2f}",
-                           "samples_per_s": f"{done * cfg.batch_size * ctx.world_size / max(elapsed, 1e-9):.2f}"})
+                log.write(
+                    {
+                        **{k: f"{last[k]:.6f}" for k in CsvLog.TERMS if k in last},
+                        "step": last["step"],
+                        "mode": last["mode"],
+                        "val_loss": "" if val is None else f"{val:.6f}",
+                        "loss": f"{last['loss']:.6f}",
+                        "lr": f"{last['lr']:.3e}",
+                        "grad_norm": f"{last['grad_norm']:.4f}",
+                        "elapsed_s": f"{elapsed:.2f}",
+                        "samples_per_s": f"{done * cfg.batch_size * ctx.world_size / max(elapsed, 1e-9):.2f}",
+                    }
+                )
             if cfg.ckpt_every and self.step % cfg.ckpt_every == 0 and self.step < cfg.steps:
                 if ctx.is_main:
                     self.save()
@@ -821,9 +916,15 @@ class Trainer:
             weights = {k: v.detach().cpu().contiguous() for k, v in self.model.state_dict().items()}
             save_file(weights, str(self.out_dir / f"replica_rank{ctx.rank}.safetensors"))
         ctx.barrier()
-        return TrainResult(step=self.step, loss=last["loss"], out_dir=self.out_dir, final_checkpoint=final,
-                           log_path=self.out_dir / "train_log.csv", seconds=time.perf_counter() - t0,
-                           replica_max_abs_diff=replica)
+        return TrainResult(
+            step=self.step,
+            loss=last["loss"],
+            out_dir=self.out_dir,
+            final_checkpoint=final,
+            log_path=self.out_dir / "train_log.csv",
+            seconds=time.perf_counter() - t0,
+            replica_max_abs_diff=replica,
+        )
 
 
 def train(config: TrainConfig, resume: bool = False) -> TrainResult:
@@ -864,7 +965,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         print(f"checkpoint: {result.final_checkpoint}")
         print(f"log: {result.log_path}")
         if result.replica_max_abs_diff is not None:
-            print(f"replica max |diff| across {os.environ.get('WORLD_SIZE')} processes: {result.replica_max_abs_diff:.3e}")
+            print(
+                f"replica max |diff| across {os.environ.get('WORLD_SIZE')} processes: {result.replica_max_abs_diff:.3e}"
+            )
     return 0
 
 

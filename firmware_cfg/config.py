@@ -29,12 +29,31 @@ SERIAL_LINK_MAX_CHANNELS = 32
 MJCF_TOLERANCE = 1e-6
 
 _SERVO_KEYS = {
-    "id", "joint", "model", "direction", "zero_offset", "limits", "profile_velocity",
-    "profile_acceleration", "pid", "return_delay_us", "status_return_level", "bus_watchdog_ms",
-    "temperature_limit_c", "voltage_limits_v",
+    "id",
+    "joint",
+    "model",
+    "direction",
+    "zero_offset",
+    "limits",
+    "profile_velocity",
+    "profile_acceleration",
+    "pid",
+    "return_delay_us",
+    "status_return_level",
+    "bus_watchdog_ms",
+    "temperature_limit_c",
+    "voltage_limits_v",
 }
-_DXL_ONLY = {"pid", "return_delay_us", "status_return_level", "bus_watchdog_ms",
-             "profile_velocity", "profile_acceleration", "temperature_limit_c", "voltage_limits_v"}
+_DXL_ONLY = {
+    "pid",
+    "return_delay_us",
+    "status_return_level",
+    "bus_watchdog_ms",
+    "profile_velocity",
+    "profile_acceleration",
+    "temperature_limit_c",
+    "voltage_limits_v",
+}
 _BUS_KEYS = {"name", "port", "baud", "protocol", "defaults", "servos", "devices"}
 _DEVICE_KEYS = {"id", "model", "role"}
 #: What a non-servo device on a bus is for: ``imu`` = it reports the body's attitude and
@@ -134,7 +153,9 @@ class RobotConfig:
         for s in self.servos:
             if s.joint == joint:
                 return s
-        raise ConfigError(f"{self.source}: no servo drives joint {joint!r}; known joints: {', '.join(self.joint_names)}")
+        raise ConfigError(
+            f"{self.source}: no servo drives joint {joint!r}; known joints: {', '.join(self.joint_names)}"
+        )
 
     def bus(self, name: str | None = None) -> BusConfig:
         if name is None:
@@ -148,6 +169,7 @@ class RobotConfig:
 
 
 # ----------------------------------------------------------------------------- loading
+
 
 def robot_config_path(robot: str | Path) -> Path:
     """The hardware config of a robot reference (a bundled name, a robot folder, an MJCF in a
@@ -171,8 +193,10 @@ def load_config(path: str | Path, mjcf: str | Path | None = None, *, check_mjcf:
     if not path.is_file():
         from firmware_cfg.registry import bundled_names
 
-        raise ConfigError(f"{path}: hardware config not found; give a robot's hardware.yaml, a robot folder "
-                          f"or a bundled robot ({', '.join(bundled_names())})")
+        raise ConfigError(
+            f"{path}: hardware config not found; give a robot's hardware.yaml, a robot folder "
+            f"or a bundled robot ({', '.join(bundled_names())})"
+        )
     try:
         data = yaml.safe_load(path.read_bytes().decode("utf-8"))
     except yaml.YAMLError as exc:
@@ -184,8 +208,14 @@ def load_config(path: str | Path, mjcf: str | Path | None = None, *, check_mjcf:
     return parse_config(data, source=str(path), base_dir=path.parent, mjcf=mjcf, check_mjcf=check_mjcf)
 
 
-def parse_config(data: Any, *, source: str = "<config>", base_dir: Path | None = None,
-                 mjcf: str | Path | None = None, check_mjcf: bool = True) -> RobotConfig:
+def parse_config(
+    data: Any,
+    *,
+    source: str = "<config>",
+    base_dir: Path | None = None,
+    mjcf: str | Path | None = None,
+    check_mjcf: bool = True,
+) -> RobotConfig:
     """Validate an already-parsed config mapping (see :func:`load_config`)."""
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: top level must be a mapping with keys robot, buses")
@@ -207,7 +237,9 @@ def parse_config(data: Any, *, source: str = "<config>", base_dir: Path | None =
         buses.append(_parse_bus(braw, top_defaults, source, f"buses[{bi}]"))
     _check_unique([(b.name, f"buses[{i}].name") for i, b in enumerate(buses)], source, "bus name")
     _check_unique([(b.port, f"buses[{i}].port") for i, b in enumerate(buses)], source, "port")
-    joints = [(s.joint, f"buses[{bi}].servos[{si}].joint") for bi, b in enumerate(buses) for si, s in enumerate(b.servos)]
+    joints = [
+        (s.joint, f"buses[{bi}].servos[{si}].joint") for bi, b in enumerate(buses) for si, s in enumerate(b.servos)
+    ]
     _check_unique(joints, source, "joint")
 
     mjcf_path: Path | None = None
@@ -246,7 +278,9 @@ def _parse_bus(braw: Any, top_defaults: dict, source: str, where: str) -> BusCon
     if not isinstance(servos_raw, list) or not servos_raw:
         raise ConfigError(f"{source}: {where}.servos: required, a non-empty list")
     servos = tuple(
-        _parse_servo({**defaults, **_mapping(s, source, f"{where}.servos[{i}]")}, protocol, baud, source, f"{where}.servos[{i}]")
+        _parse_servo(
+            {**defaults, **_mapping(s, source, f"{where}.servos[{i}]")}, protocol, baud, source, f"{where}.servos[{i}]"
+        )
         for i, s in enumerate(servos_raw)
     )
     devices_raw = b.get("devices", [])
@@ -254,11 +288,17 @@ def _parse_bus(braw: Any, top_defaults: dict, source: str, where: str) -> BusCon
         raise ConfigError(f"{source}: {where}.devices: must be a list of {{id, model, role}}")
     if devices_raw and protocol == "serial-link":
         raise ConfigError(f"{source}: {where}.devices: a serial-link bus has no devices; remove the list")
-    devices = tuple(_parse_device(_mapping(d, source, f"{where}.devices[{i}]"), protocol, source, f"{where}.devices[{i}]")
-                    for i, d in enumerate(devices_raw))
+    devices = tuple(
+        _parse_device(_mapping(d, source, f"{where}.devices[{i}]"), protocol, source, f"{where}.devices[{i}]")
+        for i, d in enumerate(devices_raw)
+    )
     _check_unique([(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)], source, "servo ID")
-    _check_unique([(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)]
-                  + [(d.id, f"{where}.devices[{i}].id") for i, d in enumerate(devices)], source, "bus ID")
+    _check_unique(
+        [(s.id, f"{where}.servos[{i}].id") for i, s in enumerate(servos)]
+        + [(d.id, f"{where}.devices[{i}].id") for i, d in enumerate(devices)],
+        source,
+        "bus ID",
+    )
     return BusConfig(str(name), port, baud, protocol, servos, devices)
 
 
@@ -272,11 +312,15 @@ def _parse_device(d: dict, protocol: str, source: str, where: str) -> DeviceConf
         raise ConfigError(f"{source}: {where}.model: required, the device's name (e.g. OpenCR)")
     known = device_models.find_device_model(model)
     if known is None:
-        raise ConfigError(f"{source}: {where}.model: {model!r} is not a known device model; use one of "
-                          f"{device_models.device_model_names()} (firmware_cfg/device_models.py)")
+        raise ConfigError(
+            f"{source}: {where}.model: {model!r} is not a known device model; use one of "
+            f"{device_models.device_model_names()} (firmware_cfg/device_models.py)"
+        )
     if protocol != "serial-link" and float(protocol) != known.protocol:
-        raise ConfigError(f"{source}: {where}.model: {known.name} speaks protocol {known.protocol}.0 but the bus is "
-                          f"{protocol}; put it on a protocol {known.protocol}.0 bus")
+        raise ConfigError(
+            f"{source}: {where}.model: {known.name} speaks protocol {known.protocol}.0 but the bus is "
+            f"{protocol}; put it on a protocol {known.protocol}.0 bus"
+        )
     role = d.get("role")
     if role not in DEVICE_ROLES:
         raise ConfigError(f"{source}: {where}.role: {role!r} is not one of {DEVICE_ROLES}")
@@ -347,7 +391,9 @@ def _check_serial_link(s: dict, servo: ServoConfig, f: _Field) -> ServoConfig:
         raise ConfigError(f"{f(extra[0])}: not used on a serial-link bus; remove it")
     lo, hi = servo.servo_limits()
     if lo < -SERIAL_LINK_RANGE_RAD or hi > SERIAL_LINK_RANGE_RAD:
-        raise ConfigError(f"{f('limits')}: maps to servo angles [{lo:.3f}, {hi:.3f}] rad, outside the serial link's ±327.67°")
+        raise ConfigError(
+            f"{f('limits')}: maps to servo angles [{lo:.3f}, {hi:.3f}] rad, outside the serial link's ±327.67°"
+        )
     return servo
 
 
@@ -361,11 +407,15 @@ def _dynamixel_model(model: Any, protocol: str, baud: int, f: _Field) -> servo_m
     except ConfigError:
         raise ConfigError(f"{f('model')}: unknown servo model {model!r}; known: {known}") from None
     if float(spec.protocol) != float(protocol):
-        raise ConfigError(f"{f('model')}: {spec.name} speaks protocol {spec.protocol}.0, the bus is {protocol}; "
-                          "move it to a bus of its protocol")
+        raise ConfigError(
+            f"{f('model')}: {spec.name} speaks protocol {spec.protocol}.0, the bus is {protocol}; "
+            "move it to a bus of its protocol"
+        )
     if baud not in spec.baud_rates.values():
-        raise ConfigError(f"{f('model')}: {spec.name} cannot run at the bus baud {baud}; "
-                          f"it supports {sorted(set(spec.baud_rates.values()))}")
+        raise ConfigError(
+            f"{f('model')}: {spec.name} cannot run at the bus baud {baud}; "
+            f"it supports {sorted(set(spec.baud_rates.values()))}"
+        )
     return spec
 
 
@@ -431,8 +481,9 @@ def _parse_voltage_limits(volt: Any, spec: servo_models.ServoModel, f: _Field) -
     vmin, vmax = (_number(v, f("voltage_limits_v")) for v in volt)
     lo_v, hi_v = spec_voltage_range(spec)
     if not lo_v <= vmin < vmax <= hi_v:
-        raise ConfigError(f"{f('voltage_limits_v')}: [{vmin}, {vmax}] V must satisfy {lo_v} <= min < max <= {hi_v} "
-                          f"for {spec.name}")
+        raise ConfigError(
+            f"{f('voltage_limits_v')}: [{vmin}, {vmax}] V must satisfy {lo_v} <= min < max <= {hi_v} for {spec.name}"
+        )
     return (vmin, vmax)
 
 
@@ -444,10 +495,12 @@ def _check_position_range(servo: ServoConfig, spec: servo_models.ServoModel, f: 
         raise ConfigError(
             f"{f('limits')}: [{servo.lower:.4f}, {servo.upper:.4f}] rad maps to servo angles [{lo:.4f}, {hi:.4f}] rad "
             f"(direction {servo.direction}, zero_offset {servo.zero_offset}), outside {spec.name}'s position range "
-            f"[{rmin:.4f}, {rmax:.4f}]; narrow the limits or fix zero_offset")
+            f"[{rmin:.4f}, {rmax:.4f}]; narrow the limits or fix zero_offset"
+        )
 
 
 # ----------------------------------------------------------------------------- servo model views
+
 
 def spec_angle_range(spec: servo_models.ServoModel) -> tuple[float, float]:
     """Servo-side angle range (rad) of position mode, relative to the centre tick:
@@ -466,6 +519,7 @@ def spec_voltage_range(spec: servo_models.ServoModel) -> tuple[float, float]:
 
 # ----------------------------------------------------------------------------- MJCF
 
+
 def mjcf_joint_ranges(mjcf: str | Path) -> dict[str, tuple[float, float] | None]:
     """Hinge joints of an MJCF → (lower, upper) in rad, or None when unlimited.
 
@@ -477,7 +531,9 @@ def mjcf_joint_ranges(mjcf: str | Path) -> dict[str, tuple[float, float] | None]
 
     path = Path(mjcf)
     if not path.is_file():
-        raise ConfigError(f"{path}: MJCF not found; pass the robot's MJCF (firmware_cfg/robots/<robot>/) or skip the check")
+        raise ConfigError(
+            f"{path}: MJCF not found; pass the robot's MJCF (firmware_cfg/robots/<robot>/) or skip the check"
+        )
     root = parse_mjcf(path)
     comp = root.find("compiler")
     degree = (comp.get("angle", "degree") if comp is not None else "degree") == "degree"
@@ -533,18 +589,22 @@ def check_against_mjcf(cfg: RobotConfig, mjcf: str | Path) -> None:
         for si, s in enumerate(bus.servos):
             where = f"{cfg.source}: buses[{bi}].servos[{si}]"
             if s.joint not in ranges:
-                raise ConfigError(f"{where}.joint: {s.joint!r} is not a hinge joint of {mjcf}; "
-                                  f"its joints are {', '.join(ranges) or '(none)'}")
+                raise ConfigError(
+                    f"{where}.joint: {s.joint!r} is not a hinge joint of {mjcf}; "
+                    f"its joints are {', '.join(ranges) or '(none)'}"
+                )
             rng = ranges[s.joint]
             if rng is None:
                 continue
             if s.lower < rng[0] - MJCF_TOLERANCE or s.upper > rng[1] + MJCF_TOLERANCE:
                 raise ConfigError(
                     f"{where}.limits: [{s.lower:.4f}, {s.upper:.4f}] rad is wider than the MJCF range "
-                    f"[{rng[0]:.4f}, {rng[1]:.4f}] of joint {s.joint!r} in {mjcf}; narrow it to fit")
+                    f"[{rng[0]:.4f}, {rng[1]:.4f}] of joint {s.joint!r} in {mjcf}; narrow it to fit"
+                )
 
 
 # ----------------------------------------------------------------------------- saving
+
 
 def config_to_dict(cfg: RobotConfig) -> dict:
     """A plain mapping that :func:`parse_config` reads back to an equal config."""
@@ -556,8 +616,14 @@ def config_to_dict(cfg: RobotConfig) -> dict:
             if s.model is not None:
                 d["model"] = s.model
             d.update(direction=s.direction, zero_offset=float(s.zero_offset), limits=[float(s.lower), float(s.upper)])
-            for key in ("profile_velocity", "profile_acceleration", "return_delay_us", "status_return_level",
-                        "bus_watchdog_ms", "temperature_limit_c"):
+            for key in (
+                "profile_velocity",
+                "profile_acceleration",
+                "return_delay_us",
+                "status_return_level",
+                "bus_watchdog_ms",
+                "temperature_limit_c",
+            ):
                 if getattr(s, key) is not None:
                     d[key] = getattr(s, key)
             if s.pid is not None:
@@ -587,6 +653,7 @@ def save_config(cfg: RobotConfig, path: str | Path) -> Path:
 
 # ----------------------------------------------------------------------------- helpers
 
+
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
@@ -614,5 +681,7 @@ def _check_unique(items: list[tuple[Any, str]], source: str, what: str) -> None:
     seen: dict[Any, str] = {}
     for value, where in items:
         if value in seen:
-            raise ConfigError(f"{source}: {where}: duplicate {what} {value!r} (also at {seen[value]}); each must be unique")
+            raise ConfigError(
+                f"{source}: {where}: duplicate {what} {value!r} (also at {seen[value]}); each must be unique"
+            )
         seen[value] = where

@@ -125,9 +125,15 @@ OPENCR = DeviceModel(
     firmware_version=2,
     instructions=frozenset({"PING", "READ", "WRITE", "SYNC_READ", "SYNC_WRITE", "BULK_READ", "BULK_WRITE"}),
     registers={r.name: r for r in _OPENCR_REGS},
-    imu=ImuLayout(gyro=("gyro_x", "gyro_y", "gyro_z"), accel=("acc_x", "acc_y", "acc_z"), rpy=("roll", "pitch", "yaw"),
-                  gyro_rad_s=2000.0 / 32800.0 * math.pi / 180.0, accel_m_s2=2.0 / 32768.0 * STANDARD_GRAVITY,
-                  rpy_rad=0.1 * math.pi / 180.0, mount=(-1, -1, 1)),
+    imu=ImuLayout(
+        gyro=("gyro_x", "gyro_y", "gyro_z"),
+        accel=("acc_x", "acc_y", "acc_z"),
+        rpy=("roll", "pitch", "yaw"),
+        gyro_rad_s=2000.0 / 32800.0 * math.pi / 180.0,
+        accel_m_s2=2.0 / 32768.0 * STANDARD_GRAVITY,
+        rpy_rad=0.1 * math.pi / 180.0,
+        mount=(-1, -1, 1),
+    ),
     aliases=("OPEN-CR",),
 )
 

@@ -57,14 +57,17 @@ class Robot:
 
     def require_profile(self) -> Path:
         if self.profile is None:
-            raise ConfigError(f"robot {self.name} ({self.folder}): no retarget profile ({PROFILE_FILE}); "
-                              f"write one with `{INIT_HINT}`")
+            raise ConfigError(
+                f"robot {self.name} ({self.folder}): no retarget profile ({PROFILE_FILE}); write one with `{INIT_HINT}`"
+            )
         return self.profile
 
     def require_hardware(self) -> Path:
         if self.hardware is None:
-            raise ConfigError(f"robot {self.name} ({self.folder}): no hardware config ({HARDWARE_FILE}); "
-                              f"`{INIT_HINT}` writes a skeleton to fill in (servo IDs, directions, offsets)")
+            raise ConfigError(
+                f"robot {self.name} ({self.folder}): no hardware config ({HARDWARE_FILE}); "
+                f"`{INIT_HINT}` writes a skeleton to fill in (servo IDs, directions, offsets)"
+            )
         return self.hardware
 
     def __str__(self) -> str:  # what messages and telemetry headers call the robot
@@ -85,8 +88,9 @@ def resolve(ref: str | Path | Robot) -> Robot:
         return ref
     text = str(ref).strip()
     if not text:
-        raise ConfigError("--robot: empty; give a bundled robot name "
-                          f"({', '.join(bundled_names())}), a robot folder or an MJCF file")
+        raise ConfigError(
+            f"--robot: empty; give a bundled robot name ({', '.join(bundled_names())}), a robot folder or an MJCF file"
+        )
     path = Path(text).expanduser()
     looks_like_path = path.suffix != "" or "/" in text or "\\" in text or text.startswith(".")
     if not looks_like_path and (BUNDLED_DIR / text).is_dir():
@@ -101,8 +105,10 @@ def resolve(ref: str | Path | Robot) -> Robot:
         raise ConfigError(f"--robot {text}: not a robot folder, an MJCF (.xml) or a hardware config (.yaml)")
     if looks_like_path:
         raise ConfigError(f"--robot {text}: no such file or folder")
-    raise ConfigError(f"--robot {text}: unknown robot; bundled robots are {', '.join(bundled_names())}, "
-                      f"or give a robot folder (`{INIT_HINT}` makes one from an MJCF)")
+    raise ConfigError(
+        f"--robot {text}: unknown robot; bundled robots are {', '.join(bundled_names())}, "
+        f"or give a robot folder (`{INIT_HINT}` makes one from an MJCF)"
+    )
 
 
 def reference(robot: str | Path | Robot) -> str:
@@ -134,10 +140,14 @@ def _folder_mjcf(folder: Path, quiet: bool = False) -> Path | None:
     if quiet:
         return None
     if not xmls:
-        raise ConfigError(f"robot folder {folder}: no MJCF (.xml) in it; put the model there or name it with "
-                          f"'mjcf: PATH' in {PROFILE_FILE} (`{INIT_HINT}` does both)")
-    raise ConfigError(f"robot folder {folder}: several MJCF files ({', '.join(p.name for p in xmls)}); "
-                      f"name the robot's model with 'mjcf: FILE' in {PROFILE_FILE}, or call it {folder.name}.xml")
+        raise ConfigError(
+            f"robot folder {folder}: no MJCF (.xml) in it; put the model there or name it with "
+            f"'mjcf: PATH' in {PROFILE_FILE} (`{INIT_HINT}` does both)"
+        )
+    raise ConfigError(
+        f"robot folder {folder}: several MJCF files ({', '.join(p.name for p in xmls)}); "
+        f"name the robot's model with 'mjcf: FILE' in {PROFILE_FILE}, or call it {folder.name}.xml"
+    )
 
 
 def _from_folder(folder: Path, bundled: bool) -> Robot:
@@ -148,10 +158,18 @@ def _from_folder(folder: Path, bundled: bool) -> Robot:
     if profile.is_file() and hardware.is_file():  # both name the robot: they must name the same one
         p_name, h_name = _yaml_key(profile, "robot"), _yaml_key(hardware, "robot")
         if p_name and h_name and str(p_name) != str(h_name):
-            raise ConfigError(f"{profile}: field robot: {p_name!r}, but {hardware.name} beside it is for robot "
-                              f"{h_name!r}; the profile belongs to another robot, put this robot's profile here")
-    return Robot(folder.name, folder, mjcf, profile if profile.is_file() else None,
-                 hardware if hardware.is_file() else None, bundled)
+            raise ConfigError(
+                f"{profile}: field robot: {p_name!r}, but {hardware.name} beside it is for robot "
+                f"{h_name!r}; the profile belongs to another robot, put this robot's profile here"
+            )
+    return Robot(
+        folder.name,
+        folder,
+        mjcf,
+        profile if profile.is_file() else None,
+        hardware if hardware.is_file() else None,
+        bundled,
+    )
 
 
 def _from_mjcf(mjcf: Path) -> Robot:
@@ -170,8 +188,10 @@ def _from_mjcf(mjcf: Path) -> Robot:
 def _from_hardware(path: Path) -> Robot:
     mjcf_key = _yaml_key(path, "mjcf")
     if not mjcf_key:
-        raise ConfigError(f"{path}: the hardware config needs an 'mjcf' key naming the robot model "
-                          f"(or put it in a robot folder: `{INIT_HINT}`)")
+        raise ConfigError(
+            f"{path}: the hardware config needs an 'mjcf' key naming the robot model "
+            f"(or put it in a robot folder: `{INIT_HINT}`)"
+        )
     mjcf = (path.parent / str(mjcf_key)).resolve()
     if not mjcf.is_file():
         raise ConfigError(f"{path}: field mjcf: {mjcf_key} does not exist (relative to {path.parent})")
@@ -204,6 +224,7 @@ def _is_robot_mjcf(path: Path) -> bool:
 
 
 # -- reading the MJCF without mujoco ------------------------------------------------------
+
 
 @lru_cache(maxsize=64)
 def _load_xml(path: Path, mtime: float) -> ET.Element:
@@ -249,11 +270,17 @@ def joint_names(robot: str | Path | Robot) -> tuple[str, ...]:
     order: the servo order of the bundled robots, and the order of trajectories."""
     path = resolve(robot).mjcf
     root = parse_mjcf(path)
-    names = tuple(el.get("joint") for act in root.iter("actuator") for el in act
-                  if el.tag in ("position", "general", "motor", "velocity") and el.get("joint"))
+    names = tuple(
+        el.get("joint")
+        for act in root.iter("actuator")
+        for el in act
+        if el.tag in ("position", "general", "motor", "velocity") and el.get("joint")
+    )
     if not names:
-        raise ConfigError(f"robot model {path}: no joint actuators found; each driven joint needs an actuator "
-                          "(<position joint=...>) in <actuator>")
+        raise ConfigError(
+            f"robot model {path}: no joint actuators found; each driven joint needs an actuator "
+            "(<position joint=...>) in <actuator>"
+        )
     return names
 
 
@@ -267,5 +294,17 @@ def joint_limits(robot: str | Path | Robot) -> dict[str, tuple[float, float] | N
     return {j: ranges.get(j) for j in joint_names(found)}
 
 
-__all__ = ["BUNDLED_DIR", "Robot", "bundled_names", "resolve", "reference", "parse_mjcf", "joint_names", "joint_limits",
-           "mjcf_has_freejoint", "PROFILE_FILE", "HARDWARE_FILE", "INIT_HINT"]
+__all__ = [
+    "BUNDLED_DIR",
+    "Robot",
+    "bundled_names",
+    "resolve",
+    "reference",
+    "parse_mjcf",
+    "joint_names",
+    "joint_limits",
+    "mjcf_has_freejoint",
+    "PROFILE_FILE",
+    "HARDWARE_FILE",
+    "INIT_HINT",
+]

@@ -317,8 +317,14 @@ class Telemetry:
     def pack(self) -> bytes:
         n = len(self.position_cdeg)
         return struct.pack(
-            f"<IHIIB{n}h{n}b", self.uptime_ms, self.supply_mv, self.enabled_mask, self.fault_mask, n,
-            *self.position_cdeg, *self.temperature_c,
+            f"<IHIIB{n}h{n}b",
+            self.uptime_ms,
+            self.supply_mv,
+            self.enabled_mask,
+            self.fault_mask,
+            n,
+            *self.position_cdeg,
+            *self.temperature_c,
         )
 
     @classmethod

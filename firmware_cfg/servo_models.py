@@ -136,8 +136,7 @@ class ServoModel:
             return self.registers[name]
         except KeyError:
             raise ConfigError(
-                f"servo model {self.name}: no register named {name!r} "
-                f"(known: {', '.join(sorted(self.registers))})"
+                f"servo model {self.name}: no register named {name!r} (known: {', '.join(sorted(self.registers))})"
             ) from None
 
     def has(self, name: str) -> bool:
@@ -197,7 +196,9 @@ class ServoModel:
 
     def ticks_to_rad(self, ticks: Any, direction: int = 1, offset_ticks: int = 0) -> Any:
         """Inverse of :meth:`rad_to_ticks`: rad = direction * (tick - center - offset) * 2 pi / ticks_per_turn."""
-        rad = direction * (np.asarray(ticks, dtype=float) - self.position.center_tick - offset_ticks) / self.ticks_per_rad
+        rad = (
+            direction * (np.asarray(ticks, dtype=float) - self.position.center_tick - offset_ticks) / self.ticks_per_rad
+        )
         return float(rad) if np.ndim(rad) == 0 else rad
 
     def velocity_to_rad_s(self, units: Any) -> Any:
@@ -264,6 +265,7 @@ class ServoModel:
 
 # ------------------------------------------------------------------------- loading
 
+
 def _need(data: Mapping, key: str, where: str, kind: type | tuple[type, ...]) -> Any:
     if key not in data:
         raise ConfigError(f"{where}: missing field '{key}'")
@@ -299,8 +301,18 @@ def _parse_register(name: str, spec: Any, where: str) -> Register:
     if initial is not None and not isinstance(initial, int):
         raise ConfigError(f"{where}: initial must be an integer, got {initial!r}")
     unit = spec.get("unit")
-    return Register(name, address, size, access, area, initial, rng, bool(spec.get("signed", False)),
-                    spec.get("sign_bit"), None if unit is None else str(unit))
+    return Register(
+        name,
+        address,
+        size,
+        access,
+        area,
+        initial,
+        rng,
+        bool(spec.get("signed", False)),
+        spec.get("sign_bit"),
+        None if unit is None else str(unit),
+    )
 
 
 def parse_servo_model(data: Any, source: str) -> ServoModel:
@@ -316,9 +328,16 @@ def parse_servo_model(data: Any, source: str) -> ServoModel:
     units = _need(data, "units", source, dict)
     rat = _need(data, "ratings", source, dict)
     try:
-        position = PositionSpec(float(pos["ticks_per_turn"]), int(pos["min_tick"]), int(pos["max_tick"]), int(pos["center_tick"]))
-        ratings = Ratings(float(rat["stall_torque_nm"]), float(rat["stall_current_a"]), float(rat["no_load_speed_rpm"]),
-                          float(rat["rated_voltage_v"]), tuple(float(v) for v in rat["voltage_range_v"]))
+        position = PositionSpec(
+            float(pos["ticks_per_turn"]), int(pos["min_tick"]), int(pos["max_tick"]), int(pos["center_tick"])
+        )
+        ratings = Ratings(
+            float(rat["stall_torque_nm"]),
+            float(rat["stall_current_a"]),
+            float(rat["no_load_speed_rpm"]),
+            float(rat["rated_voltage_v"]),
+            tuple(float(v) for v in rat["voltage_range_v"]),
+        )
         velocity_rpm = float(units["velocity_rpm"])
         voltage_v = float(units["voltage_v"])
         temperature_c = float(units["temperature_c"])
@@ -338,17 +357,26 @@ def parse_servo_model(data: Any, source: str) -> ServoModel:
         if needed not in registers:
             raise ConfigError(f"{source}: registers must include '{needed}'")
     if registers["model_number"].initial != number:
-        raise ConfigError(f"{source}: registers.model_number.initial ({registers['model_number'].initial}) != model_number ({number})")
+        raise ConfigError(
+            f"{source}: registers.model_number.initial ({registers['model_number'].initial}) != model_number ({number})"
+        )
     return ServoModel(
-        name=name, model_number=number, protocol=protocol,
+        name=name,
+        model_number=number,
+        protocol=protocol,
         firmware_version=int(data.get("firmware_version", 0)),
-        position=position, ratings=ratings, registers=registers,
+        position=position,
+        ratings=ratings,
+        registers=registers,
         baud_rates={int(k): int(v) for k, v in bauds.items()},
-        velocity_rpm=velocity_rpm, voltage_v=voltage_v, temperature_c=temperature_c,
+        velocity_rpm=velocity_rpm,
+        voltage_v=voltage_v,
+        temperature_c=temperature_c,
         return_delay_us=return_delay_us,
         current_ma=None if units.get("current_ma") is None else float(units["current_ma"]),
         load_percent=None if units.get("load_percent") is None else float(units["load_percent"]),
-        source=source, _by_address={r.address: r for r in ordered},
+        source=source,
+        _by_address={r.address: r for r in ordered},
     )
 
 

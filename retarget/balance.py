@@ -45,9 +45,11 @@ class BalancePlanner:
         self._toes = [index[n] for n in ("left_foot", "right_foot") if n in index]
         self._hips = [index[n] for n in ("left_hip", "right_hip") if n in index]
         if len(self._ankles) < 2 or (len(self._toes) < 2 and len(self._hips) < 2):
-            raise RetargetError(f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
-                                "and right_ankle keypoints, and left/right_foot or left/right_hip ones (it follows the "
-                                "person's feet); add them or turn balance off")
+            raise RetargetError(
+                f"{rb.profile.source or rb.name}: field keypoints: streaming balance needs left_ankle "
+                "and right_ankle keypoints, and left/right_foot or left/right_hip ones (it follows the "
+                "person's feet); add them or turn balance off"
+            )
         self._toes = self._toes if len(self._toes) == 2 else None
         self._hips = self._hips if len(self._hips) == 2 else None
         self._foot_kps = [[self._ankles[s]] + ([self._toes[s]] if self._toes else []) for s in range(2)]
@@ -56,7 +58,7 @@ class BalancePlanner:
         stand = rb.evaluate(rb.x_stand[None])
         self._stand_kp = stand["keypoints"][0]
         h = float(stand["com"][0, 2] - stand["sole"][0, :, 2].min())
-        self._zmp_k = h / 9.81 * self.fps ** 2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
+        self._zmp_k = h / 9.81 * self.fps**2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
         self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
         self._zmp_scale = np.sqrt(cfg.zmp_weight) * self._zmp_k
         self._w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
@@ -71,8 +73,14 @@ class BalancePlanner:
         """Where to write: the contact rows' anchor (2, 8) and views into the parameter buffer
         for the region's half-planes (3·N_EDGES), the rows' (3, 3) points, their √weights (3),
         the CoM prediction (2) and the ZMP-offset scale (1)."""
-        self._anchor, self._edges, self._points, self._point_w, self._cpred, self._zmp = \
-            anchor, edges, points, point_w, cpred, zmp
+        self._anchor, self._edges, self._points, self._point_w, self._cpred, self._zmp = (
+            anchor,
+            edges,
+            points,
+            point_w,
+            cpred,
+            zmp,
+        )
 
     def reset(self) -> None:
         """No feet planted, no history; no balance rows until :meth:`start` plants the feet."""
@@ -226,8 +234,13 @@ class BalancePlanner:
                 if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
                     self.touch_down(s)
                     continue
-                if planted and self._since[s] >= self._min_stance_frames and self.planted[other] and contact[other] \
-                        and ((not ahead[s] and ahead[other]) or not contact[s]):
+                if (
+                    planted
+                    and self._since[s] >= self._min_stance_frames
+                    and self.planted[other]
+                    and contact[other]
+                    and ((not ahead[s] and ahead[other]) or not contact[s])
+                ):
                     want[s] = False
             return self._shift_or_lift(want, lift_ok=[not contact[0], not contact[1]])
         # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
@@ -243,14 +256,19 @@ class BalancePlanner:
             if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
                 self.touch_down(s)
                 continue
-            if (not cfg.steps or contact[s] or not contact[other]
-                    or (planted and self._since[s] < self._min_stance_frames)):
+            if (
+                not cfg.steps
+                or contact[s]
+                or not contact[other]
+                or (planted and self._since[s] < self._min_stance_frames)
+            ):
                 continue
             dz = self._ankle_z[s] - self._ankle_z[other]
             (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
             turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
-            want[s] = not (dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance
-                           or turn > cfg.step_turn)
+            want[s] = not (
+                dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
+            )
         return self._shift_or_lift(want, lift_ok=[True, True])
 
     def _shift_or_lift(self, want, lift_ok) -> tuple[bool, bool]:
@@ -266,8 +284,9 @@ class BalancePlanner:
             if want[s] or not self.planted[s] or not self.planted[other]:
                 continue
             if self._stance[other] is None:
-                self._stance[other] = support_polygon([stance_points(self._prints[other], self._prints[s],
-                                                                     cfg.stance_margin)])
+                self._stance[other] = support_polygon(
+                    [stance_points(self._prints[other], self._prints[s], cfg.stance_margin)]
+                )
             hull, A, b = self._stance[other]
             inside = float(np.min(b - A @ c1)) >= -cfg.release_tolerance
             self._settled = self._settled + 1 if inside else 0
@@ -282,7 +301,7 @@ class BalancePlanner:
                 dist = float(np.linalg.norm(gap))
                 # at most shift_speed, reached with at most shift_accel from the CoM's speed towards it
                 toward = max(0.0, float((self._c1 - self._c2) @ gap) / max(dist, 1e-12))
-                step = min(cfg.shift_speed / self.fps, toward + cfg.shift_accel / self.fps ** 2, dist)
+                step = min(cfg.shift_speed / self.fps, toward + cfg.shift_accel / self.fps**2, dist)
                 shift_point = c1 + gap * (step / max(dist, 1e-12))
                 self._region_key = None
                 self.set_region(np.concatenate([hull, shift_point[None]]))
@@ -302,10 +321,10 @@ class BalancePlanner:
         """Plant foot s flat where it is now: its level footprint, the shrunk footprint's
         half-planes, the anchor of the contact rows and the ankle target it pins."""
         self.planted[s] = True
-        fp = level_footprint(self._sole1[:, 4 * s:4 * s + 4].T, self._sole_local[s])
+        fp = level_footprint(self._sole1[:, 4 * s : 4 * s + 4].T, self._sole_local[s])
         self._prints[s] = fp
         self._stance = [None, None]
-        self._anchor[:, 4 * s:4 * s + 4] = fp.T
+        self._anchor[:, 4 * s : 4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
         self._head_ref[s] = self._heads_now[s]
         self._since[s] = 0
@@ -317,5 +336,5 @@ class BalancePlanner:
         edges = np.tile([0.0, 0.0, 1.0], (N_EDGES, 1))
         if len(hull) >= 3:
             A, b = halfplanes(hull)
-            edges[:len(b), 0:2], edges[:len(b), 2] = A, b
+            edges[: len(b), 0:2], edges[: len(b), 2] = A, b
         self._edges[:] = edges.reshape(-1)  # (3, E) column-major = rows of (E, 3)

@@ -151,8 +151,15 @@ def single_threaded_linear_algebra() -> list[str]:
     return list(_single_threaded)
 
 
-def compiled_nlpsol(name: str, nlp: dict, opts: dict, key: str, enable: bool = True,
-                    hess_lag: ca.Function | None = None, jac_g: ca.Function | None = None) -> tuple[ca.Function, str]:
+def compiled_nlpsol(
+    name: str,
+    nlp: dict,
+    opts: dict,
+    key: str,
+    enable: bool = True,
+    hess_lag: ca.Function | None = None,
+    jac_g: ca.Function | None = None,
+) -> tuple[ca.Function, str]:
     """An IPOPT solver whose problem functions (objective, constraints, their gradient and
     Jacobian, and the Lagrangian Hessian, or ``hess_lag`` / ``jac_g`` when given: (x, p) →
     (g, jac_g_x)) are compiled C loaded from the cache, or the plain CasADi solver as

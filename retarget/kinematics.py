@@ -128,20 +128,28 @@ class RobotKinematics:
         m = model
         free = [j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
         if len(free) > 1:
-            raise RetargetError(f"{source or name}: the model has {len(free)} free joints; retargeting needs one robot with at most one")
+            raise RetargetError(
+                f"{source or name}: the model has {len(free)} free joints; retargeting needs one robot with at most one"
+            )
         for j in range(m.njnt):
             if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
                 jname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
-                raise RetargetError(f"{source or name}: joint {jname!r} is a ball joint; only hinge, slide and one free root joint are supported")
+                raise RetargetError(
+                    f"{source or name}: joint {jname!r} is a ball joint; only hinge, slide and one free root joint are supported"
+                )
         self._free_joint = free[0] if free else None
-        if self._free_joint is not None and m.jnt_bodyid[self._free_joint] != 1 and m.body_parentid[m.jnt_bodyid[self._free_joint]] != 0:
+        if (
+            self._free_joint is not None
+            and m.jnt_bodyid[self._free_joint] != 1
+            and m.body_parentid[m.jnt_bodyid[self._free_joint]] != 0
+        ):
             raise RetargetError(f"{source or name}: the free joint must sit on a child of the world body")
         self.root_body = int(m.jnt_bodyid[self._free_joint]) if self._free_joint is not None else 1
         self.floating = self._free_joint is not None and not fixed_base
         self._fixed_root_pose = None
         if self._free_joint is not None and fixed_base:
             adr = m.jnt_qposadr[self._free_joint]
-            self._fixed_root_pose = (np.array(m.qpos0[adr:adr + 3]), quat_to_mat(m.qpos0[adr + 3:adr + 7]))
+            self._fixed_root_pose = (np.array(m.qpos0[adr : adr + 3]), quat_to_mat(m.qpos0[adr + 3 : adr + 7]))
 
         hinges: list[HingeJoint] = []
         self._slides: dict[int, tuple[np.ndarray, float, int]] = {}
@@ -151,11 +159,24 @@ class RobotKinematics:
                 jname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}"
                 limited = bool(m.jnt_limited[j])
                 lo, hi = (float(m.jnt_range[j, 0]), float(m.jnt_range[j, 1])) if limited else (-np.inf, np.inf)
-                hinges.append(HingeJoint(jname, int(m.jnt_bodyid[j]), np.array(m.jnt_axis[j]), np.array(m.jnt_pos[j]),
-                                         float(m.qpos0[m.jnt_qposadr[j]]), lo, hi, len(hinges), int(m.jnt_qposadr[j])))
+                hinges.append(
+                    HingeJoint(
+                        jname,
+                        int(m.jnt_bodyid[j]),
+                        np.array(m.jnt_axis[j]),
+                        np.array(m.jnt_pos[j]),
+                        float(m.qpos0[m.jnt_qposadr[j]]),
+                        lo,
+                        hi,
+                        len(hinges),
+                        int(m.jnt_qposadr[j]),
+                    )
+                )
             elif jt == mujoco.mjtJoint.mjJNT_SLIDE:
                 jname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
-                raise RetargetError(f"{source or name}: joint {jname!r} is a slide joint; only hinge joints and one free root are supported")
+                raise RetargetError(
+                    f"{source or name}: joint {jname!r} is a slide joint; only hinge joints and one free root are supported"
+                )
         hinges = self._actuator_order(hinges)
         self.joints: tuple[HingeJoint, ...] = tuple(hinges)
         self.joint_names: tuple[str, ...] = tuple(h.name for h in hinges)
@@ -166,8 +187,9 @@ class RobotKinematics:
         for j in range(m.njnt):
             self._body_joints.setdefault(int(m.jnt_bodyid[j]), []).append(j)
         by_adr = {h.qpos_adr: h for h in hinges}
-        self._hinge_by_jid = {j: by_adr[int(m.jnt_qposadr[j])] for j in range(m.njnt)
-                              if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE}
+        self._hinge_by_jid = {
+            j: by_adr[int(m.jnt_qposadr[j])] for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
+        }
         self.total_mass = float(sum(m.body_mass[b] for b in range(1, m.nbody)))
         self._x = ca.SX.sym("x", self.nx)
         self._frames = self._build_frames(self._x)
@@ -200,7 +222,9 @@ class RobotKinematics:
 
         path = Path(path)
         if not path.is_file():
-            raise RetargetError(f"{path}: MJCF file not found; give a bundled robot name, a robot folder or an existing .xml path")
+            raise RetargetError(
+                f"{path}: MJCF file not found; give a bundled robot name, a robot folder or an existing .xml path"
+            )
         try:
             model = mujoco.MjModel.from_xml_path(str(path))
         except ValueError as exc:
@@ -246,7 +270,9 @@ class RobotKinematics:
         bid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, name)
         if bid < 0:
             names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, self.model.nbody)]
-            raise RetargetError(f"{field}: the MJCF {self.source or self.name} has no body {name!r}; bodies are: {', '.join(n for n in names if n)}")
+            raise RetargetError(
+                f"{field}: the MJCF {self.source or self.name} has no body {name!r}; bodies are: {', '.join(n for n in names if n)}"
+            )
         return int(bid)
 
     def site_id(self, name: str, field: str = "site") -> int:
@@ -255,7 +281,9 @@ class RobotKinematics:
         sid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, name)
         if sid < 0:
             names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_SITE, s) for s in range(self.model.nsite)]
-            raise RetargetError(f"{field}: the MJCF {self.source or self.name} has no site {name!r}; sites are: {', '.join(n for n in names if n) or '(none)'}")
+            raise RetargetError(
+                f"{field}: the MJCF {self.source or self.name} has no site {name!r}; sites are: {', '.join(n for n in names if n) or '(none)'}"
+            )
         return int(sid)
 
     def geom_id(self, name: str, field: str = "geom") -> int:
@@ -263,12 +291,16 @@ class RobotKinematics:
 
         gid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)
         if gid < 0:
-            raise RetargetError(f"{field}: the MJCF {self.source or self.name} has no geom {name!r}; name the geom in the MJCF or give body/from/to/radius")
+            raise RetargetError(
+                f"{field}: the MJCF {self.source or self.name} has no geom {name!r}; name the geom in the MJCF or give body/from/to/radius"
+            )
         return int(gid)
 
     def joint_index(self, name: str, field: str = "joint") -> int:
         if name not in self.joint_names:
-            raise RetargetError(f"{field}: the MJCF {self.source or self.name} has no hinge joint {name!r}; joints are: {', '.join(self.joint_names)}")
+            raise RetargetError(
+                f"{field}: the MJCF {self.source or self.name} has no hinge joint {name!r}; joints are: {', '.join(self.joint_names)}"
+            )
         return self.joint_names.index(name)
 
     # -- symbolic quantities --------------------------------------------------
@@ -315,7 +347,9 @@ class RobotKinematics:
             others = [size[i] for i in range(3) if i != k]
             half, radius, axis = size[k] - min(others), float(np.hypot(*others)), R[:, k]
         else:
-            raise RetargetError(f"collision geom {name or geom}: type {int(gt)} is not a capsule, cylinder, sphere or box; give body/from/to/radius instead")
+            raise RetargetError(
+                f"collision geom {name or geom}: type {int(gt)} is not a capsule, cylinder, sphere or box; give body/from/to/radius instead"
+            )
         c = np.array(m.geom_pos[geom])
         return Capsule(name or f"geom{geom}", int(m.geom_bodyid[geom]), c - half * axis, c + half * axis, float(radius))
 
@@ -337,8 +371,8 @@ class RobotKinematics:
         if not self.floating:
             return joints
         adr = self.model.jnt_qposadr[self._free_joint]
-        R = quat_to_mat(qpos[adr + 3:adr + 7])
-        return np.concatenate([qpos[adr:adr + 3], mat_to_euler(R), joints])
+        R = quat_to_mat(qpos[adr + 3 : adr + 7])
+        return np.concatenate([qpos[adr : adr + 3], mat_to_euler(R), joints])
 
     def qpos_from_x(self, x: np.ndarray) -> np.ndarray:
         """Configuration vector x (nx,) → MuJoCo qpos (nq,) (other coordinates at qpos0)."""
@@ -348,8 +382,8 @@ class RobotKinematics:
             qpos[h.qpos_adr] = x[self.n_root + h.index]
         if self.floating:
             adr = self.model.jnt_qposadr[self._free_joint]
-            qpos[adr:adr + 3] = x[0:3]
-            qpos[adr + 3:adr + 7] = mat_to_quat(euler_to_mat(x[3:6]))
+            qpos[adr : adr + 3] = x[0:3]
+            qpos[adr + 3 : adr + 7] = mat_to_quat(euler_to_mat(x[3:6]))
         return qpos
 
     def root_pose(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -385,9 +419,27 @@ class RobotKinematics:
 
         m = self.model
         h = hashlib.sha256()
-        for arr in (m.body_parentid, m.body_pos, m.body_quat, m.body_ipos, m.body_mass, m.jnt_type, m.jnt_bodyid,
-                    m.jnt_axis, m.jnt_pos, m.jnt_range, m.jnt_limited, m.qpos0, m.site_bodyid, m.site_pos,
-                    m.geom_bodyid, m.geom_pos, m.geom_quat, m.geom_size, m.geom_type):
+        for arr in (
+            m.body_parentid,
+            m.body_pos,
+            m.body_quat,
+            m.body_ipos,
+            m.body_mass,
+            m.jnt_type,
+            m.jnt_bodyid,
+            m.jnt_axis,
+            m.jnt_pos,
+            m.jnt_range,
+            m.jnt_limited,
+            m.qpos0,
+            m.site_bodyid,
+            m.site_pos,
+            m.geom_bodyid,
+            m.geom_pos,
+            m.geom_quat,
+            m.geom_size,
+            m.geom_type,
+        ):
             h.update(np.ascontiguousarray(arr).tobytes())
         h.update(repr((self.floating, self.joint_names)).encode())
         return h.hexdigest()

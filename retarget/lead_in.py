@@ -121,8 +121,14 @@ class LeadIn:
 
     @classmethod
     def from_dict(cls, d: dict) -> LeadIn:
-        return cls(int(d["frames"]), float(d["fps"]), float(d["ease_s"]), tuple(d.get("steps", ())),
-                   tuple(d.get("lifted", ())), str(d.get("why", "")))
+        return cls(
+            int(d["frames"]),
+            float(d["fps"]),
+            float(d["ease_s"]),
+            tuple(d.get("steps", ())),
+            tuple(d.get("lifted", ())),
+            str(d.get("why", "")),
+        )
 
 
 def _warp(u: np.ndarray, ease: float) -> np.ndarray:
@@ -130,12 +136,12 @@ def _warp(u: np.ndarray, ease: float) -> np.ndarray:
     if ease <= 0:
         return u
     x = np.clip(u / ease, 0.0, 1.0)
-    return np.where(u < ease, ease * (x ** 3 - 0.5 * x ** 4), u - 0.5 * ease)
+    return np.where(u < ease, ease * (x**3 - 0.5 * x**4), u - 0.5 * ease)
 
 
 def _min_jerk(u: np.ndarray) -> np.ndarray:
     u = np.clip(u, 0.0, 1.0)
-    return 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
+    return 10 * u**3 - 15 * u**4 + 6 * u**5
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -177,8 +183,8 @@ def knee_ik(hip: np.ndarray, ankle: np.ndarray, l1: float, l2: float, pole: np.n
     r = float(np.linalg.norm(d))
     axis = d / max(r, 1e-9)
     r = min(max(r, abs(l1 - l2) + 1e-6), l1 + l2 - 1e-9)
-    a = (l1 ** 2 - l2 ** 2 + r ** 2) / (2 * r)  # along the hip-ankle line
-    h = math.sqrt(max(l1 ** 2 - a ** 2, 0.0))
+    a = (l1**2 - l2**2 + r**2) / (2 * r)  # along the hip-ankle line
+    h = math.sqrt(max(l1**2 - a**2, 0.0))
     side = pole - (pole @ axis) * axis
     n = float(np.linalg.norm(side))
     side = side / n if n > 1e-9 else np.cross(axis, [0.0, 1.0, 0.0])
@@ -212,7 +218,7 @@ def standing_pose(first: np.ndarray, ground: np.ndarray, config: LeadInConfig = 
         toe = R @ (dirs[TOE[s]] / np.linalg.norm(dirs[TOE[s]]))
         toe_xy = toe[0:2] / max(np.linalg.norm(toe[0:2]), 1e-9)
         dz = ground[1] - ground[0]
-        horiz = math.sqrt(max(length[TOE[s]] ** 2 - dz ** 2, 0.0))
+        horiz = math.sqrt(max(length[TOE[s]] ** 2 - dz**2, 0.0))
         out[TOE[s]] = ank + np.array([*(horiz * toe_xy), dz])
     return out
 
@@ -254,13 +260,16 @@ def needs_lead_in(motion: Motion, config: LeadInConfig = LeadInConfig()) -> str:
         if c[0, s]:
             moved, turned = _needs_step(stand, p[0], s, cfg)
             if moved > cfg.step_distance or turned > cfg.step_turn:
-                why.append(f"the {side} foot stands {1000 * moved:.0f} mm and {math.degrees(turned):.0f} deg from "
-                           "a standing stance")
+                why.append(
+                    f"the {side} foot stands {1000 * moved:.0f} mm and {math.degrees(turned):.0f} deg from "
+                    "a standing stance"
+                )
     return "; ".join(why)
 
 
-def lead_in(motion: Motion, config: LeadInConfig = LeadInConfig(), contacts=None,
-            force: bool = False) -> tuple[Motion, LeadIn | None]:
+def lead_in(
+    motion: Motion, config: LeadInConfig = LeadInConfig(), contacts=None, force: bool = False
+) -> tuple[Motion, LeadIn | None]:
     """The clip with a lead-in and an eased-in start (see the module docstring), and what was
     added; ``(motion, None)`` when its first frame is a standing double support at rest (unless
     ``force``). ``contacts`` (T, 4) or (T, 2) override the motion's labels; the result carries
@@ -304,8 +313,10 @@ def lead_in(motion: Motion, config: LeadInConfig = LeadInConfig(), contacts=None
 
     # the first frame's knee against the straight-ahead IK knee: blended in during the move, so the
     # knee ends where it is in the first frame without flipping through the leg's axis
-    knee_fix = [first[KNEE[s]] - knee_ik(first[HIP[s]], first[ANKLE[s]], length[KNEE[s]], length[ANKLE[s]], fwd)
-                for s in range(2)]
+    knee_fix = [
+        first[KNEE[s]] - knee_ik(first[HIP[s]], first[ANKLE[s]], length[KNEE[s]], length[ANKLE[s]], fwd)
+        for s in range(2)
+    ]
 
     def emit(pelvis, rel, down, pole_share=0.0):
         f = np.zeros((22, 3))
@@ -350,8 +361,9 @@ def lead_in(motion: Motion, config: LeadInConfig = LeadInConfig(), contacts=None
             emit(over, rel_stand, (s == 1 or i == k, s == 0 or i == k))
         feet[s] = (a1, t1)
         centre = pel.copy()
-        centre[0:2] = 0.5 * (feet[0][0][0:2] + feet[1][0][0:2]) + (stand[PELVIS, 0:2]
-                                                                  - 0.5 * (stand[L_ANKLE, 0:2] + stand[R_ANKLE, 0:2]))
+        centre[0:2] = 0.5 * (feet[0][0][0:2] + feet[1][0][0:2]) + (
+            stand[PELVIS, 0:2] - 0.5 * (stand[L_ANKLE, 0:2] + stand[R_ANKLE, 0:2])
+        )
         k = n(cfg.double_s)
         for i in range(1, k + 1):
             emit(over + (centre - over) * _min_jerk(np.array(i / k)), rel_stand, (True, True))
@@ -395,8 +407,12 @@ def lead_in(motion: Motion, config: LeadInConfig = LeadInConfig(), contacts=None
     near = np.where(a[:, 0, 0] > 0.5, nxt, idx)
     clip_c4 = c4[near]
     lead_c4 = np.repeat(lead_c, 2, axis=1)  # (left, right) -> (l_ankle, l_toe, r_ankle, r_toe)
-    out = Motion(np.concatenate([lead, clip]).astype(motion.positions.dtype, copy=False), fps=fps,
-                 contacts=np.concatenate([lead_c4, clip_c4]), name=motion.name)
+    out = Motion(
+        np.concatenate([lead, clip]).astype(motion.positions.dtype, copy=False),
+        fps=fps,
+        contacts=np.concatenate([lead_c4, clip_c4]),
+        name=motion.name,
+    )
     return out, LeadIn(len(lead), fps, ease, tuple(stepped), tuple(lifted), why)
 
 
@@ -425,13 +441,23 @@ def with_lead_in(traj, lead: LeadIn, contacts4=None):
     if lead.lifted:
         how += f", lifts the {feet(lead.lifted)}"
         how += " with its weight over the other foot" if len(lead.lifted) == 1 else ""
-    head = [Change(round(-t0, 3), 0.0, "lead-in",
-                   f"the clip starts mid-motion ({lead.why}): {t0:.2f} s before it the robot {how} and moves into "
-                   "its first pose, ending at rest"),
-            Change(0.0, round(lead.delay_s, 3), "eased in",
-                   f"the clip's first {lead.delay_s:.2f} s play from rest over {lead.ease_s:.2f} s (speed ramping "
-                   f"from 0 to 1){', the weight shift fading out' if len(lead.lifted) == 1 else ''}; "
-                   f"the rest plays {lead.delay_s:.2f} s later than the clip's own time")]
+    head = [
+        Change(
+            round(-t0, 3),
+            0.0,
+            "lead-in",
+            f"the clip starts mid-motion ({lead.why}): {t0:.2f} s before it the robot {how} and moves into "
+            "its first pose, ending at rest",
+        ),
+        Change(
+            0.0,
+            round(lead.delay_s, 3),
+            "eased in",
+            f"the clip's first {lead.delay_s:.2f} s play from rest over {lead.ease_s:.2f} s (speed ramping "
+            f"from 0 to 1){', the weight shift fading out' if len(lead.lifted) == 1 else ''}; "
+            f"the rest plays {lead.delay_s:.2f} s later than the clip's own time",
+        ),
+    ]
     meta["changes"] = [c.to_dict() for c in head] + sorted(changes, key=lambda c: c["start_s"])
     meta["lead_in"] = lead.to_dict()
     meta["t0_s"] = round(t0, 6)
@@ -439,7 +465,7 @@ def with_lead_in(traj, lead: LeadIn, contacts4=None):
     n = lead.frames
     if meta.get("contacts") is not None:
         planned = np.asarray(meta["contacts"], dtype=bool)
-        steps["robot"], steps["lead_in"] = count_steps(planned[n:]), count_steps(planned[:n + 1])
+        steps["robot"], steps["lead_in"] = count_steps(planned[n:]), count_steps(planned[: n + 1])
     if contacts4 is not None:
         steps["person"] = count_steps(side_contacts(np.asarray(contacts4, dtype=bool))[n:])
     meta["steps"] = steps

@@ -36,9 +36,17 @@ _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
 #: satisfy the constraints). Every other outcome outside _OK (Maximum_Iterations_Exceeded,
 #: Restoration_Failed, ...) fails the window too: as infeasible when the returned point violates
 #: the constraints, as not converged otherwise (both retried by ``auto_retime``).
-_ERRORS = {"Invalid_Option", "Invalid_Problem_Definition", "Error_In_Step_Computation", "Unrecoverable_Exception",
-           "NonIpopt_Exception_Thrown", "Insufficient_Memory", "Internal_Error", "Not_Enough_Degrees_Of_Freedom",
-           "Invalid_Number_Detected"}
+_ERRORS = {
+    "Invalid_Option",
+    "Invalid_Problem_Definition",
+    "Error_In_Step_Computation",
+    "Unrecoverable_Exception",
+    "NonIpopt_Exception_Thrown",
+    "Insufficient_Memory",
+    "Internal_Error",
+    "Not_Enough_Degrees_Of_Freedom",
+    "Invalid_Number_Detected",
+}
 GRAVITY = 9.81  # m/s²
 #: MUMPS working space beyond its estimate (%), IPOPT's ``mumps_mem_percent`` (see _solver)
 MUMPS_MEM_PERCENT = 100
@@ -121,9 +129,19 @@ class _WindowSymbols:
         static = balance and cfg.zmp and cfg.single_support_com
         X = ca.MX.sym("X", rb.nx, W)
         L = ca.MX.sym("L", (16 if static else 8) if balance else 0, W)
-        return cls(X, L, ca.MX.sym("TGT", 3 * rb.n_keypoints, W), ca.MX.sym("FW", 1, W),
-                   ca.MX.sym("XF", rb.nx, cfg.n_fix), ca.MX.sym("WF", 1, 1), ca.MX.sym("REST", 1, 1),
-                   ca.MX.sym("ANC", 8 if feet else 0, 1), feet, balance, static)
+        return cls(
+            X,
+            L,
+            ca.MX.sym("TGT", 3 * rb.n_keypoints, W),
+            ca.MX.sym("FW", 1, W),
+            ca.MX.sym("XF", rb.nx, cfg.n_fix),
+            ca.MX.sym("WF", 1, 1),
+            ca.MX.sym("REST", 1, 1),
+            ca.MX.sym("ANC", 8 if feet else 0, 1),
+            feet,
+            balance,
+            static,
+        )
 
     def decision(self) -> ca.MX:
         return ca.vertcat(ca.vec(self.X), ca.vec(self.L))
@@ -160,7 +178,9 @@ class OfflineRetargeter:
         self._streams: dict[float, StreamingRetargeter] = {}  # warm-start solvers by fps, built once
         self._frame_fn = self._build_frame_function()
         self._com_height = float(robot.evaluate(robot.x_stand[None])["com"][0, 2]) if robot.n_keypoints else 0.0
-        self._height = float(np.ptp(robot.evaluate(robot.x_stand[None])["keypoints"][0][:, 2])) if robot.n_keypoints else 0.0
+        self._height = (
+            float(np.ptp(robot.evaluate(robot.x_stand[None])["keypoints"][0][:, 2])) if robot.n_keypoints else 0.0
+        )
 
     # -- problem construction -----------------------------------------------------
     def _build_frame_function(self) -> ca.Function:
@@ -182,7 +202,9 @@ class OfflineRetargeter:
                 shrunk.append(rb.kin.point(foot.body, centre + a * e1 + b * e2)[0:2])
         shr = ca.horzcat(*shrunk) if shrunk else ca.SX.zeros(2, 0)
         if cfg.collision_model not in ("sole-plane", "distance"):
-            raise RetargetError(f"offline config: collision_model must be 'sole-plane' or 'distance', got {cfg.collision_model!r}")
+            raise RetargetError(
+                f"offline config: collision_model must be 'sole-plane' or 'distance', got {cfg.collision_model!r}"
+            )
         if not cfg.self_collision:
             coll = ca.SX.zeros(0, 1)
         else:
@@ -195,8 +217,13 @@ class OfflineRetargeter:
             m = rb.kin.model
             groups = mass_groups(m)
             self._group_mass = np.array([sum(float(m.body_mass[b]) for b in g) for g in groups])
-            com = ca.horzcat(*[sum((float(m.body_mass[b]) * rb.kin.point(b, m.body_ipos[b]) for b in g), ca.SX.zeros(3, 1))
-                               / max(mg, 1e-12) for g, mg in zip(groups, self._group_mass)])
+            com = ca.horzcat(
+                *[
+                    sum((float(m.body_mass[b]) * rb.kin.point(b, m.body_ipos[b]) for b in g), ca.SX.zeros(3, 1))
+                    / max(mg, 1e-12)
+                    for g, mg in zip(groups, self._group_mass)
+                ]
+            )
         return ca.Function("frame", [x], [rb.keypoints_expr, rb.sole_expr, shr, com, coll])
 
     def _frame_jacobian(self, W: int) -> ca.Function:
@@ -222,8 +249,9 @@ class OfflineRetargeter:
         jac_g, hess = self._chain_rule_derivatives(sym, W, Y, R, g)
         name = f"rtw{W}"
         ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=(), steps=None))}_{int(round(fps * 1000))}"
-        solver, info = compiled_nlpsol(name, nlp, self._ipopt_options(), ckey, enable=cfg.compile, hess_lag=hess,
-                                       jac_g=jac_g)
+        solver, info = compiled_nlpsol(
+            name, nlp, self._ipopt_options(), ckey, enable=cfg.compile, hess_lag=hess, jac_g=jac_g
+        )
         # the problem and its hand-made derivatives, kept for checks against CasADi's own AD
         self._problems[key] = {"nlp": nlp, "R": R_x, "jac_g": jac_g, "hess": hess}
         entry = (solver, layout, P, sym.balance, sym.feet, info)
@@ -241,7 +269,7 @@ class OfflineRetargeter:
         Y = ca.MX.sym("Y", ny, W)
         parts, i0 = [], 0
         for r, c in shapes:  # (r*c, W) rows → (r, c*W), the layout Function.map gives
-            parts.append(ca.reshape(Y[i0:i0 + r * c, :], r, c * W))
+            parts.append(ca.reshape(Y[i0 : i0 + r * c, :], r, c * W))
             i0 += r * c
         return Y, parts
 
@@ -270,14 +298,14 @@ class OfflineRetargeter:
         nx, nr, K = rb.nx, rb.n_root, rb.n_keypoints
         wk = np.sqrt(np.repeat(rb.keypoint_weights, 3))[:, None]
         wp = rb.profile.posture_weight if cfg.posture_weight is None else cfg.posture_weight
-        acc = (X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]) * fps ** 2
-        jerk = (X[:, 3:] - 3 * X[:, 2:-1] + 3 * X[:, 1:-2] - X[:, :-3]) * fps ** 3
+        acc = (X[:, 2:] - 2 * X[:, 1:-1] + X[:, :-2]) * fps**2
+        jerk = (X[:, 3:] - 3 * X[:, 2:-1] + 3 * X[:, 1:-2] - X[:, :-3]) * fps**3
         return ca.vertcat(
             ca.vec((ca.reshape(kp, 3 * K, W) - sym.TGT) * ca.repmat(ca.DM(wk), 1, W) * ca.repmat(sym.FW, 3 * K, 1)),
             np.sqrt(wp) * ca.vec(X[nr:, :] - ca.repmat(ca.DM(rb.x_stand[nr:]), 1, W)),
             np.sqrt(cfg.accel_weight) * ca.vec(acc * ca.repmat(sym.FW[:, 2:], nx, 1)),
             np.sqrt(cfg.jerk_weight) * ca.vec(jerk * ca.repmat(sym.FW[:, 3:], nx, 1)),
-            sym.WF * np.sqrt(cfg.fix_weight) * ca.vec(X[:, :cfg.n_fix] - sym.XF),
+            sym.WF * np.sqrt(cfg.fix_weight) * ca.vec(X[:, : cfg.n_fix] - sym.XF),
         )
 
     def _contact_rows(self, sym: _WindowSymbols, W: int, sole, g: list, layout: dict) -> None:
@@ -288,11 +316,10 @@ class OfflineRetargeter:
         xy = ca.reshape(sole[0:2, :], 16, W)  # per frame: x0 y0 x1 y1 ... of the 8 corners
         slide = []
         for f, foot in enumerate(self.robot.feet):
-            c0, c2 = 8 * f, 8 * f + 4           # rows of corner 0 and corner 2 of this foot
-            d = xy[c2:c2 + 2, :] - xy[c0:c0 + 2, :]
+            c0, c2 = 8 * f, 8 * f + 4  # rows of corner 0 and corner 2 of this foot
+            d = xy[c2 : c2 + 2, :] - xy[c0 : c0 + 2, :]
             diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
-            slide += [xy[c0:c0 + 2, 1:] - xy[c0:c0 + 2, :-1],
-                      (d[0, :-1] * d[1, 1:] - d[1, :-1] * d[0, 1:]) / diag2]
+            slide += [xy[c0 : c0 + 2, 1:] - xy[c0 : c0 + 2, :-1], (d[0, :-1] * d[1, 1:] - d[1, :-1] * d[0, 1:]) / diag2]
         g.append(ca.vec(ca.vertcat(*slide)))
         layout["slide"] = 6 * (W - 1)
         # the feet's placement in the window's first frame (the standing start): corner 0
@@ -300,10 +327,10 @@ class OfflineRetargeter:
         anchor = []
         for f, foot in enumerate(self.robot.feet):
             c0, c2 = 8 * f, 8 * f + 4
-            d = xy[c2:c2 + 2, 0] - xy[c0:c0 + 2, 0]
-            a = sym.ANC[4 * f + 2:4 * f + 4]
+            d = xy[c2 : c2 + 2, 0] - xy[c0 : c0 + 2, 0]
+            a = sym.ANC[4 * f + 2 : 4 * f + 4]
             diag2 = float(np.sum((foot.corners[2] - foot.corners[0]) ** 2))
-            anchor += [xy[c0:c0 + 2, 0] - sym.ANC[4 * f:4 * f + 2], (d[0] * a[1] - d[1] * a[0]) / diag2]
+            anchor += [xy[c0 : c0 + 2, 0] - sym.ANC[4 * f : 4 * f + 2], (d[0] * a[1] - d[1] * a[0]) / diag2]
         g.append(ca.vertcat(*anchor))
         layout["anchor"] = 6
 
@@ -316,13 +343,13 @@ class OfflineRetargeter:
             return ca.reshape(com, 3, W)[0:2, :], None, 1.0
         G = len(self._group_mass)
         cg = ca.reshape(com, 3 * G, W)  # rows 3k..3k+2: segment k's CoM
-        acc = (cg[:, 2:] - 2 * cg[:, 1:-1] + cg[:, :-2]) * fps ** 2
+        acc = (cg[:, 2:] - 2 * cg[:, 1:-1] + cg[:, :-2]) * fps**2
         # frame 0: from rest (c_−1 = c_0) when REST, else one-sided
-        acc0 = sym.REST * (cg[:, 1] - cg[:, 0]) * fps ** 2 + (1 - sym.REST) * acc[:, 0]
+        acc0 = sym.REST * (cg[:, 1] - cg[:, 0]) * fps**2 + (1 - sym.REST) * acc[:, 0]
         acc = ca.horzcat(acc0, acc, acc[:, -1])
         num, den = 0, 0
         for k, mk in enumerate(self._group_mass):
-            c, a = cg[3 * k:3 * k + 3, :], acc[3 * k:3 * k + 3, :]
+            c, a = cg[3 * k : 3 * k + 3, :], acc[3 * k : 3 * k + 3, :]
             lift = mk * (a[2, :] + GRAVITY)
             num = num + ca.repmat(lift, 2, 1) * c[0:2, :] - mk * ca.repmat(c[2, :], 2, 1) * a[0:2, :]
             den = den + lift
@@ -346,11 +373,11 @@ class OfflineRetargeter:
         if sym.static:  # the CoM over the stance foot in single support (bounds switch it on)
             G = len(self._group_mass)
             cg = ca.reshape(com, 3 * G, W)
-            ctot = sum(float(mk) * cg[3 * k:3 * k + 2, :] for k, mk in enumerate(self._group_mass)) / float(
-                np.sum(self._group_mass))
+            ctot = sum(float(mk) * cg[3 * k : 3 * k + 2, :] for k, mk in enumerate(self._group_mass)) / float(
+                np.sum(self._group_mass)
+            )
             L2 = sym.L[8:16, :]
-            g.append(ca.vec(ca.vertcat(ctot[0, :] - ca.sum1(L2 * sx), ctot[1, :] - ca.sum1(L2 * sy),
-                                       ca.sum1(L2) - 1)))
+            g.append(ca.vec(ca.vertcat(ctot[0, :] - ca.sum1(L2 * sx), ctot[1, :] - ca.sum1(L2 * sy), ca.sum1(L2) - 1)))
             layout["static"] = 3 * W
 
     def _chain_rule_derivatives(self, sym: _WindowSymbols, W: int, Y, R, g) -> tuple:
@@ -381,34 +408,47 @@ class OfflineRetargeter:
         lam_g = ca.MX.sym("lam_g", g.shape[0])
         H = ca.triu(2 * lam_f * ca.mtimes(JR.T, JR))
         H_v = ca.Function("h", [Y, JYs, w, par, lam_f], [H])(Yv, JYv, w, par, lam_f)
-        hess = ca.Function(f"rtw{W}_hess", [w, par, lam_f, lam_g], [H_v], ["x", "p", "lam_f", "lam_g"],
-                           ["hess_gamma_x_x"])
+        hess = ca.Function(
+            f"rtw{W}_hess", [w, par, lam_f, lam_g], [H_v], ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"]
+        )
         return jac_g, hess
 
     def _ipopt_options(self) -> dict:
         """IPOPT's options: the tuned defaults (reasons inline, figures in docs/retargeting.md) and
         ``OfflineConfig.ipopt_options`` on top."""
         cfg = self.config
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.max_iter": cfg.max_iter,
-                "ipopt.tol": cfg.tol, "ipopt.constr_viol_tol": 1e-7, "ipopt.acceptable_tol": 1e-3,
-                "ipopt.acceptable_iter": 3, "ipopt.acceptable_constr_viol_tol": 1e-6,
-                "ipopt.mu_strategy": "adaptive", "ipopt.mu_oracle": "quality-function", "ipopt.bound_relax_factor": 1e-10,
-                "ipopt.linear_solver": "mumps",
-                # MUMPS's factorisation (with pivoting) solves the KKT system accurately enough: no
-                # residual check and no iterative-refinement back-solve per step (same iterates on
-                # the CMU pair to 3 digits, ~20 % less time)
-                "ipopt.fast_step_computation": "yes", "ipopt.min_refinement_steps": 0,
-                # MUMPS's working space: its own estimate + 100 % (IPOPT's default, 1000 %, makes it
-                # allocate and touch ~11x the estimate at every factorisation: ~250k page faults
-                # per CMU pair, the kernel's clear_page ~11 % of the time). Same iterates; when the
-                # estimate is short, IPOPT doubles it and refactorises (0 % never recovers)
-                "ipopt.mumps_mem_percent": MUMPS_MEM_PERCENT,
-                # constraint multipliers start at 0: no least-squares estimate, which costs a
-                # factorisation of its own system (with its own MUMPS analysis) per window, ~10 %
-                # of IPOPT's time on the CMU pair, for a start it then threw away (same
-                # iterations and solution to 1e-11 with or without it)
-                "ipopt.constr_mult_init_max": 0.0}
+        opts = {
+            "ipopt.print_level": 0,
+            "print_time": False,
+            "ipopt.sb": "yes",
+            "ipopt.max_iter": cfg.max_iter,
+            "ipopt.tol": cfg.tol,
+            "ipopt.constr_viol_tol": 1e-7,
+            "ipopt.acceptable_tol": 1e-3,
+            "ipopt.acceptable_iter": 3,
+            "ipopt.acceptable_constr_viol_tol": 1e-6,
+            "ipopt.mu_strategy": "adaptive",
+            "ipopt.mu_oracle": "quality-function",
+            "ipopt.bound_relax_factor": 1e-10,
+            "ipopt.linear_solver": "mumps",
+            # MUMPS's factorisation (with pivoting) solves the KKT system accurately enough: no
+            # residual check and no iterative-refinement back-solve per step (same iterates on
+            # the CMU pair to 3 digits, ~20 % less time)
+            "ipopt.fast_step_computation": "yes",
+            "ipopt.min_refinement_steps": 0,
+            # MUMPS's working space: its own estimate + 100 % (IPOPT's default, 1000 %, makes it
+            # allocate and touch ~11x the estimate at every factorisation: ~250k page faults
+            # per CMU pair, the kernel's clear_page ~11 % of the time). Same iterates; when the
+            # estimate is short, IPOPT doubles it and refactorises (0 % never recovers)
+            "ipopt.mumps_mem_percent": MUMPS_MEM_PERCENT,
+            # constraint multipliers start at 0: no least-squares estimate, which costs a
+            # factorisation of its own system (with its own MUMPS analysis) per window, ~10 %
+            # of IPOPT's time on the CMU pair, for a start it then threw away (same
+            # iterations and solution to 1e-11 with or without it)
+            "ipopt.constr_mult_init_max": 0.0,
+        }
         return opts | {f"ipopt.{k}": v for k, v in cfg.ipopt_options}
+
     # -- solving ---------------------------------------------------------------------
     def retarget(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
         """Retarget a clip; raises RetargetError if it is infeasible at its speed (see ``retime``).
@@ -433,13 +473,17 @@ class OfflineRetargeter:
                 last, last_factor = exc, factor
         speed = "its speed" if factors[-1] == 1.0 else f"{factors[-1]:g}x slower"
         if last.feasible:  # constraints hold, IPOPT did not finish
-            msg = (f"{motion.name or 'motion'}: retarget failed (not converged) at {speed}: {last}; give IPOPT more "
-                   f"iterations (OfflineConfig.max_iter, now {cfg.max_iter}), or re-time the clip (retime=1.5 plays it "
-                   "1.5x slower, CLI --retime 1.5; auto_retime=True, CLI --auto-retime)")
+            msg = (
+                f"{motion.name or 'motion'}: retarget failed (not converged) at {speed}: {last}; give IPOPT more "
+                f"iterations (OfflineConfig.max_iter, now {cfg.max_iter}), or re-time the clip (retime=1.5 plays it "
+                "1.5x slower, CLI --retime 1.5; auto_retime=True, CLI --auto-retime)"
+            )
         else:
-            msg = (f"{motion.name or 'motion'}: infeasible at {speed}: "
-                   f"{last}; re-time the clip (retime=1.5 plays it 1.5x slower, CLI --retime 1.5) or let it try "
-                   "(auto_retime=True, CLI --auto-retime)")
+            msg = (
+                f"{motion.name or 'motion'}: infeasible at {speed}: "
+                f"{last}; re-time the clip (retime=1.5 plays it 1.5x slower, CLI --retime 1.5) or let it try "
+                "(auto_retime=True, CLI --auto-retime)"
+            )
         raise RetargetError(msg, time_s=round(last.frame / motion.fps / last_factor, 3))
 
     def _retarget_at(self, motion: Motion, contacts, factor: float, scaler=None) -> RobotTrajectory:
@@ -460,17 +504,29 @@ class OfflineRetargeter:
                 anchor = standing_soles(self.robot, kp)
                 kp, n, moved, turned = standing_start(self.robot, kp, planned)
                 if n and (moved > self.config.steps.step_distance or turned > self.config.steps.step_turn):
-                    changes.insert(0, Change(0.0, round(n / fps, 3), "standing start",
-                                             "the robot starts in its standing stance (it is brought to the first "
-                                             f"frame from standing; the person's feet stood up to {1000 * moved:.0f} mm and "
-                                             f"{math.degrees(turned):.0f} deg away from that) and steps into the person's"))
+                    changes.insert(
+                        0,
+                        Change(
+                            0.0,
+                            round(n / fps, 3),
+                            "standing start",
+                            "the robot starts in its standing stance (it is brought to the first "
+                            f"frame from standing; the person's feet stood up to {1000 * moved:.0f} mm and "
+                            f"{math.degrees(turned):.0f} deg away from that) and steps into the person's",
+                        ),
+                    )
             if self.config.steps.travel_zmp_shift > 0:
                 a_max = GRAVITY * self.config.steps.travel_zmp_shift / max(self._com_height, 1e-3)
                 kp, shift = ease_travel(kp, self.robot.root_keypoint, fps, a_max)
-                changes += _runs_over(np.linalg.norm(shift, axis=1), 0.02, fps, "slower travel",
-                                      f"the person's travel accelerated faster than the robot's feet balance "
-                                      f"({a_max:.1f} m/s²; e.g. walking off from the first frame): the robot followed "
-                                      "more slowly, more than 2 cm behind")
+                changes += _runs_over(
+                    np.linalg.norm(shift, axis=1),
+                    0.02,
+                    fps,
+                    "slower travel",
+                    f"the person's travel accelerated faster than the robot's feet balance "
+                    f"({a_max:.1f} m/s²; e.g. walking off from the first frame): the robot followed "
+                    "more slowly, more than 2 cm behind",
+                )
             tg = Targets(kp, planned, tg.fps)
         stream = self._streams.get(fps)
         if stream is None:
@@ -489,8 +545,13 @@ class OfflineRetargeter:
 
         X0 = np.zeros((motion.n_frames, self.robot.nx))
         swing = None
-        if (self.config.steps is not None and self.config.steps.swing_clearance > 0 and self.config.contacts
-                and self.robot.has_feet and self.robot.floating):
+        if (
+            self.config.steps is not None
+            and self.config.steps.swing_clearance > 0
+            and self.config.contacts
+            and self.robot.has_feet
+            and self.robot.floating
+        ):
             swing = swing_floor(tg.contacts, self.config.steps.swing_clearance * self._height)
         ramp = None
         if self.config.steps is not None and self.config.steps.start_ramp > 0:
@@ -505,8 +566,9 @@ class OfflineRetargeter:
         stats["changes"] = [c.to_dict() for c in changes]
         return trajectory_from_x(self.robot, X, fps, {"mode": "offline", "source": motion.name, **stats})
 
-    def solve(self, tg: Targets, X0: np.ndarray, warm=None, swing=None, anchor=None,
-              ramp=None) -> tuple[np.ndarray, dict]:
+    def solve(
+        self, tg: Targets, X0: np.ndarray, warm=None, swing=None, anchor=None, ramp=None
+    ) -> tuple[np.ndarray, dict]:
         """Solve all windows; X0 (T, nx) is the initial guess. Returns X (T, nx) and solver stats.
 
         ``warm(X, start, stop)``, if given, fills X[start:stop] (in place) with the warm start of
@@ -547,29 +609,52 @@ class OfflineRetargeter:
             statuses.append(status)
             n_real = min(W, T - s)
             keep_from = 0 if wi == 0 else cfg.n_fix
-            X[s + keep_from:s + n_real] = Xw[keep_from:n_real]
+            X[s + keep_from : s + n_real] = Xw[keep_from:n_real]
             done = s + n_real
             iters += it
         X = np.clip(X, rb.x_lower, rb.x_upper)
-        return X, {"windows": len(starts), "window": W, "ipopt_iterations": iters, "ipopt_status": statuses,
-                   "collision_model": cfg.collision_model if cfg.self_collision else "off", "compiled": info}
+        return X, {
+            "windows": len(starts),
+            "window": W,
+            "ipopt_iterations": iters,
+            "ipopt_status": statuses,
+            "collision_model": cfg.collision_model if cfg.self_collision else "off",
+            "compiled": info,
+        }
 
-    def _solve_window(self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool, swing=None, anchor=None,
-                      ramp=None):
+    def _solve_window(
+        self, tg: Targets, X: np.ndarray, s: int, W: int, fixed: bool, swing=None, anchor=None, ramp=None
+    ):
         """Solve frames s … s+W−1 (padded past the clip's end) from X's values there; returns
         (X_w (W, nx), IPOPT iterations, compile info, status). Raises _Infeasible or RetargetError."""
         cfg, rb = self.config, self.robot
         solver, layout, P, balance, feet, info = self._solver(W, tg.fps)
         T = X.shape[0]
         idx = np.minimum(np.arange(s, s + W), T - 1)
-        win = _Window(s, W, T, fixed, idx, tg.contacts[idx], pin=anchor is not None and not fixed and feet,
-                      from_rest=ramp is not None and not fixed)
+        win = _Window(
+            s,
+            W,
+            T,
+            fixed,
+            idx,
+            tg.contacts[idx],
+            pin=anchor is not None and not fixed and feet,
+            from_rest=ramp is not None and not fixed,
+        )
         real = (np.arange(s, s + W) < T).astype(float)
         tgt = tg.keypoints[idx].reshape(W, -1).T  # (3K, W): column t = (k0x k0y k0z k1x …)
-        xf = X[s:s + cfg.n_fix].T if fixed else np.tile(X[s], (cfg.n_fix, 1)).T
+        xf = X[s : s + cfg.n_fix].T if fixed else np.tile(X[s], (cfg.n_fix, 1)).T
         anc = np.asarray(anchor, dtype=np.float64).ravel() if win.pin else np.zeros(8 if feet else 0)
-        p = np.concatenate([tgt.ravel(order="F"), real, xf.ravel(order="F"), [1.0 if fixed else 0.0], anc,
-                            [1.0 if win.from_rest else 0.0]])
+        p = np.concatenate(
+            [
+                tgt.ravel(order="F"),
+                real,
+                xf.ravel(order="F"),
+                [1.0 if fixed else 0.0],
+                anc,
+                [1.0 if win.from_rest else 0.0],
+            ]
+        )
         lbg, ubg = self._velocity_bounds(tg.fps, win, ramp)
         if feet:
             self._contact_bounds(win, swing, lbg, ubg)
@@ -580,16 +665,20 @@ class OfflineRetargeter:
             lbg.append(np.zeros(P * W))
             ubg.append(np.full(P * W, np.inf))
         lbx, ubx = np.tile(rb.x_lower[:, None], (1, W)), np.tile(rb.x_upper[:, None], (1, W))
-        args = dict(x0=np.concatenate([X[idx].T.ravel(order="F"), lam[2].ravel(order="F")]), p=p,
-                    lbx=np.concatenate([lbx.ravel(order="F"), lam[0].ravel(order="F")]),
-                    ubx=np.concatenate([ubx.ravel(order="F"), lam[1].ravel(order="F")]),
-                    lbg=np.concatenate(lbg), ubg=np.concatenate(ubg))
+        args = dict(
+            x0=np.concatenate([X[idx].T.ravel(order="F"), lam[2].ravel(order="F")]),
+            p=p,
+            lbx=np.concatenate([lbx.ravel(order="F"), lam[0].ravel(order="F")]),
+            ubx=np.concatenate([ubx.ravel(order="F"), lam[1].ravel(order="F")]),
+            lbg=np.concatenate(lbg),
+            ubg=np.concatenate(ubg),
+        )
         # a warm start must lie inside the box
         args["x0"] = np.clip(args["x0"], args["lbx"], args["ubx"])
         sol = solver(**args)
         single_threaded_linear_algebra()  # MUMPS's BLAS is loaded by the first solve
         xs, iters, status = self._outcome(solver, sol, args, layout, win)
-        return xs[:rb.nx * W].reshape(W, rb.nx), iters, info, status
+        return xs[: rb.nx * W].reshape(W, rb.nx), iters, info, status
 
     def _velocity_bounds(self, fps: float, win: _Window, ramp) -> tuple[list, list]:
         """Bounds of the velocity rows |x_{t+1} − x_t| ≤ v_max / fps, opening linearly over ``ramp``
@@ -613,7 +702,7 @@ class OfflineRetargeter:
         # a foot in contact in both frames does not slide or turn; with ``swing`` also between
         # a contact frame and the air frame next to it (a vertical lift-off and touch-down)
         both = contact[1:] & contact[:-1] if swing is None else contact[1:] | contact[:-1]  # (W-1, 2)
-        cs = np.repeat(both, 3, axis=1).T        # (6, W-1)
+        cs = np.repeat(both, 3, axis=1).T  # (6, W-1)
         lbg.append(np.where(cs, 0.0, -np.inf).ravel(order="F"))
         ubg.append(np.where(cs, 0.0, np.inf).ravel(order="F"))
         lbg.append(np.zeros(6) if win.pin else np.full(6, -np.inf))
@@ -653,21 +742,30 @@ class OfflineRetargeter:
                 f"offline retarget: IPOPT failed on frames {s}..{min(s + W, T) - 1} with status {status or 'unknown'} "
                 f"(a solver error, not a verdict on the clip); check OfflineConfig.ipopt_options "
                 f"{dict(self.config.ipopt_options) or '(none set)'}, e.g. a linear_solver this IPOPT build lacks "
-                "(mumps is always there)")
+                "(mumps is always there)"
+            )
         viol = float(np.max(np.maximum(args["lbg"] - g, 0) + np.maximum(g - args["ubg"], 0))) if g.size else 0.0
         if status not in _OK and viol > 1e-5:
             worst, frame = self._describe_violation(layout, args["lbg"], args["ubg"], g, W, s, T - 1)
-            raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
-                              f"worst: {worst})", s if frame is None else frame)
+            raise _Infeasible(
+                f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status} (constraint violation {viol:.2g}, "
+                f"worst: {worst})",
+                s if frame is None else frame,
+            )
         if status not in _OK:
             # feasible but unfinished: never a result (the module docstring); the window is the moment
-            raise _Infeasible(f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status or 'unknown status'} after "
-                              f"{int(st.get('iter_count', 0))} iterations (the constraints hold, to {viol:.2g}, but "
-                              "the optimum was not reached)", s, feasible=True)
+            raise _Infeasible(
+                f"frames {s}..{min(s + W, T) - 1}: IPOPT says {status or 'unknown status'} after "
+                f"{int(st.get('iter_count', 0))} iterations (the constraints hold, to {viol:.2g}, but "
+                "the optimum was not reached)",
+                s,
+                feasible=True,
+            )
         return xs, int(st.get("iter_count", 0)), status
 
-    def _describe_violation(self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int,
-                            s: int, last: int) -> tuple[str, int | None]:
+    def _describe_violation(
+        self, layout: dict, lbg: np.ndarray, ubg: np.ndarray, g: np.ndarray, W: int, s: int, last: int
+    ) -> tuple[str, int | None]:
         """Name the most violated constraint: its block (velocity, sole_z, slide, balance, collision
         pair) and the clip frame, e.g. ``collision l_sole_in/r_sole_in at frame 12``; and that frame
         (a window padded past the clip's ``last`` frame repeats it: a padding row names ``last``)."""
@@ -702,7 +800,9 @@ class _Infeasible(Exception):
 
     def __init__(self, message: str, frame: int, feasible: bool = False):
         super().__init__(message)
-        self.frame = frame  #: the clip frame of the worst violation (of the clip as solved, maybe slowed), or the window's first
+        self.frame = (
+            frame  #: the clip frame of the worst violation (of the clip as solved, maybe slowed), or the window's first
+        )
         self.feasible = feasible
 
 
@@ -779,8 +879,9 @@ def _runs_over(value: np.ndarray, level: float, fps: float, what: str, why: str)
     return out
 
 
-def speed_limited(robot, X: np.ndarray, fps: float, safety: float = 1.0, share: float = 0.98,
-                  min_frames: int = 2, gap: int = 2) -> list:
+def speed_limited(
+    robot, X: np.ndarray, fps: float, safety: float = 1.0, share: float = 0.98, min_frames: int = 2, gap: int = 2
+) -> list:
     """Parts where the solution runs at a speed limit: runs of at least ``min_frames`` frames
     (gaps up to ``gap`` frames bridged) in which some joint or root DOF moves at ``share`` of
     its velocity bound or more; there the robot follows the person at reduced amplitude. One
@@ -790,20 +891,28 @@ def speed_limited(robot, X: np.ndarray, fps: float, safety: float = 1.0, share: 
         return []
     hit = np.abs(np.diff(X, axis=0)) >= share * v[None]  # (T-1, nx): frame t → t+1
     any_hit = hit.any(axis=1)
-    names = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")[:robot.n_root] + tuple(robot.joint_names)
+    names = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")[: robot.n_root] + tuple(
+        robot.joint_names
+    )
     out, t, T1 = [], 0, len(any_hit)
     while t < T1:
         if not any_hit[t]:
             t += 1
             continue
         e = t + 1
-        while e < T1 and (any_hit[e] or any_hit[e:e + gap + 1].any()):
+        while e < T1 and (any_hit[e] or any_hit[e : e + gap + 1].any()):
             e += 1
         if e - t >= min_frames:
             joints = [names[j] for j in np.flatnonzero(hit[t:e].any(axis=0))]
-            out.append(Change(round(t / fps, 3), round((e + 1) / fps, 3), "speed-limited",
-                              f"{', '.join(joints[:4])}{' ...' if len(joints) > 4 else ''} at the servo's speed limit: "
-                              "the robot follows the person at reduced amplitude"))
+            out.append(
+                Change(
+                    round(t / fps, 3),
+                    round((e + 1) / fps, 3),
+                    "speed-limited",
+                    f"{', '.join(joints[:4])}{' ...' if len(joints) > 4 else ''} at the servo's speed limit: "
+                    "the robot follows the person at reduced amplitude",
+                )
+            )
         t = e
     return out
 
@@ -854,7 +963,8 @@ def swing_floor(contacts: np.ndarray, clearance: float) -> np.ndarray:
     return clearance * np.clip((dist - 1) / 2, 0.0, 1.0)
 
 
-def retarget_offline(robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None,
-                     scaler=None) -> RobotTrajectory:
+def retarget_offline(
+    robot, motion: Motion, config: OfflineConfig = OfflineConfig(), contacts=None, scaler=None
+) -> RobotTrajectory:
     """One-call convenience: ``OfflineRetargeter(robot, config).retarget(motion)``."""
     return OfflineRetargeter(robot, config).retarget(motion, contacts, scaler)

@@ -80,7 +80,9 @@ class RetargetProfile:
     def load(cls, path) -> RetargetProfile:
         path = Path(path)
         if not path.is_file():
-            raise RetargetError(f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, or run `dualflow-bridge robot init MODEL.xml -o DIR`)")
+            raise RetargetError(
+                f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, or run `dualflow-bridge robot init MODEL.xml -o DIR`)"
+            )
         try:
             data = yaml.safe_load(path.read_bytes().decode("utf-8"))
         except yaml.YAMLError as exc:
@@ -98,15 +100,31 @@ class RetargetProfile:
             raise RetargetError(f"{source}: the profile must be a YAML mapping with keys robot, keypoints, feet, ...")
         # mjcf: the robot folder's model (relative to the profile), read by firmware_cfg.registry;
         # the solver gets its model from the caller and ignores the key
-        known = {"robot", "mjcf", "root", "keypoints", "scale", "joint_limits", "velocity_limits", "capsules",
-                 "collision_pairs", "collision_margin", "feet", "posture_weight", "stand_keyframe", "rigid_offsets"}
+        known = {
+            "robot",
+            "mjcf",
+            "root",
+            "keypoints",
+            "scale",
+            "joint_limits",
+            "velocity_limits",
+            "capsules",
+            "collision_pairs",
+            "collision_margin",
+            "feet",
+            "posture_weight",
+            "stand_keyframe",
+            "rigid_offsets",
+        }
         unknown = sorted(set(data) - known)
         if unknown:
             raise RetargetError(f"{source}: unknown field(s) {unknown}; known fields are {sorted(known)}")
         kps, keypoints = _parse_keypoints(data, source)
         root = data.get("root", "pelvis")
         if root not in kps:
-            raise RetargetError(f"{_where(source, 'root')}: the root human joint {root!r} must also be one of the keypoints")
+            raise RetargetError(
+                f"{_where(source, 'root')}: the root human joint {root!r} must also be one of the keypoints"
+            )
         # checked in this order: the first error a profile has is the one reported
         root_scale, overrides = _parse_scale(data, kps, source)
         joint_limits = _parse_joint_limits(data, source)
@@ -116,12 +134,26 @@ class RetargetProfile:
         feet = _parse_feet(data, source)
         rigid = _parse_rigid_offsets(data, kps, source)
         return cls(
-            robot=str(data.get("robot", "")), rigid_offsets=rigid, keypoints=tuple(keypoints), root_joint=root,
-            scale_overrides=overrides, root_scale=root_scale, joint_limits=joint_limits, velocity_default=vdefault,
-            velocity_limits=vlimits, root_linear=root_linear, root_angular=root_angular, capsules=caps,
-            collision_pairs=pairs, collision_margin=float(data.get("collision_margin", 0.005)), feet=feet,
-            posture_weight=_positive(data.get("posture_weight", 0.02), _where(source, "posture_weight"), allow_zero=True),
-            stand_keyframe=str(data.get("stand_keyframe", "stand")), source=source,
+            robot=str(data.get("robot", "")),
+            rigid_offsets=rigid,
+            keypoints=tuple(keypoints),
+            root_joint=root,
+            scale_overrides=overrides,
+            root_scale=root_scale,
+            joint_limits=joint_limits,
+            velocity_default=vdefault,
+            velocity_limits=vlimits,
+            root_linear=root_linear,
+            root_angular=root_angular,
+            capsules=caps,
+            collision_pairs=pairs,
+            collision_margin=float(data.get("collision_margin", 0.005)),
+            feet=feet,
+            posture_weight=_positive(
+                data.get("posture_weight", 0.02), _where(source, "posture_weight"), allow_zero=True
+            ),
+            stand_keyframe=str(data.get("stand_keyframe", "stand")),
+            source=source,
         )
 
     def fingerprint(self) -> str:
@@ -138,7 +170,9 @@ def _parse_keypoints(data: dict, source: str) -> tuple[dict, list]:
     """(the ``keypoints`` mapping, its KeypointSpecs)."""
     kps = data.get("keypoints")
     if not isinstance(kps, dict) or not kps:
-        raise RetargetError(f"{_where(source, 'keypoints')}: give a mapping human joint -> {{site: ...}} or {{body: ..., offset: [x, y, z]}}")
+        raise RetargetError(
+            f"{_where(source, 'keypoints')}: give a mapping human joint -> {{site: ...}} or {{body: ..., offset: [x, y, z]}}"
+        )
     keypoints = []
     for human, spec in kps.items():
         f = _where(source, f"keypoints.{human}")
@@ -146,10 +180,15 @@ def _parse_keypoints(data: dict, source: str) -> tuple[dict, list]:
             raise RetargetError(f"{f}: {human!r} is not an SMPL-22 joint; use one of {', '.join(JOINT_NAMES)}")
         if not isinstance(spec, dict) or (("site" in spec) == ("body" in spec)):
             raise RetargetError(f"{f}: give exactly one of site: NAME or body: NAME")
-        keypoints.append(KeypointSpec(
-            human=human, site=spec.get("site"), body=spec.get("body"),
-            offset=_vec3(spec.get("offset", (0, 0, 0)), f + ".offset"),
-            weight=_positive(spec.get("weight", 1.0), f + ".weight", allow_zero=True)))
+        keypoints.append(
+            KeypointSpec(
+                human=human,
+                site=spec.get("site"),
+                body=spec.get("body"),
+                offset=_vec3(spec.get("offset", (0, 0, 0)), f + ".offset"),
+                weight=_positive(spec.get("weight", 1.0), f + ".weight", allow_zero=True),
+            )
+        )
     return kps, keypoints
 
 
@@ -157,14 +196,18 @@ def _parse_scale(data: dict, kps: dict, source: str) -> tuple[float | None, dict
     """(root scale or None, per-bone scale overrides keyed by the child keypoint's human joint)."""
     scale = data.get("scale") or {}
     if not isinstance(scale, dict):
-        raise RetargetError(f"{_where(source, 'scale')}: give a mapping human joint -> bone scale (and optionally root: s)")
+        raise RetargetError(
+            f"{_where(source, 'scale')}: give a mapping human joint -> bone scale (and optionally root: s)"
+        )
     root_scale = None
     overrides = {}
     for k, v in scale.items():
         if k == "root":
             root_scale = _positive(v, _where(source, "scale.root"))
         elif k not in kps:
-            raise RetargetError(f"{_where(source, 'scale.' + str(k))}: {k!r} is not one of the keypoints; scales are keyed by the child keypoint's human joint")
+            raise RetargetError(
+                f"{_where(source, 'scale.' + str(k))}: {k!r} is not one of the keypoints; scales are keyed by the child keypoint's human joint"
+            )
         else:
             overrides[k] = _positive(v, _where(source, "scale." + k))
     return root_scale, overrides
@@ -194,10 +237,14 @@ def _parse_velocity_limits(data: dict, source: str) -> tuple:
     if not isinstance(vl, dict):
         raise RetargetError(f"{_where(source, 'velocity_limits')}: give a mapping with default: rad/s and joint: rad/s")
     vdefault = _positive(vl.get("default", 5.0), _where(source, "velocity_limits.default"))
-    vlimits = {str(k): _positive(v, _where(source, f"velocity_limits.{k}")) for k, v in vl.items()
-               if k not in ("default", "root_linear", "root_angular")}
-    root_linear = (_positive(vl["root_linear"], _where(source, "velocity_limits.root_linear"))
-                   if "root_linear" in vl else None)
+    vlimits = {
+        str(k): _positive(v, _where(source, f"velocity_limits.{k}"))
+        for k, v in vl.items()
+        if k not in ("default", "root_linear", "root_angular")
+    }
+    root_linear = (
+        _positive(vl["root_linear"], _where(source, "velocity_limits.root_linear")) if "root_linear" in vl else None
+    )
     root_angular = _positive(vl.get("root_angular", 2 * np.pi), _where(source, "velocity_limits.root_angular"))
     return vdefault, vlimits, root_linear, root_angular
 
@@ -212,8 +259,13 @@ def _parse_capsules(data: dict, source: str) -> dict:
         if "geom" in spec:
             caps[name] = CapsuleSpec(name, geom=str(spec["geom"]))
         elif {"body", "from", "to", "radius"} <= set(spec):
-            caps[name] = CapsuleSpec(name, body=str(spec["body"]), p0=_vec3(spec["from"], f + ".from"),
-                                     p1=_vec3(spec["to"], f + ".to"), radius=_positive(spec["radius"], f + ".radius"))
+            caps[name] = CapsuleSpec(
+                name,
+                body=str(spec["body"]),
+                p0=_vec3(spec["from"], f + ".from"),
+                p1=_vec3(spec["to"], f + ".to"),
+                radius=_positive(spec["radius"], f + ".radius"),
+            )
         else:
             raise RetargetError(f"{f}: give geom: NAME, or all of body, from, to, radius")
     return caps
@@ -228,7 +280,9 @@ def _parse_pairs(data: dict, caps: dict, source: str) -> tuple:
             raise RetargetError(f"{f}: give a pair [capsule_a, capsule_b]")
         for c in pair:
             if c not in caps:
-                raise RetargetError(f"{f}: {c!r} is not a capsule defined under capsules: ({', '.join(caps) or 'none'})")
+                raise RetargetError(
+                    f"{f}: {c!r} is not a capsule defined under capsules: ({', '.join(caps) or 'none'})"
+                )
         pairs.append((str(pair[0]), str(pair[1])))
     return tuple(pairs)
 
@@ -240,7 +294,9 @@ def _parse_feet(data: dict, source: str) -> dict:
     if fdata is None:
         return feet
     if not isinstance(fdata, dict) or set(fdata) != {"left", "right"}:
-        raise RetargetError(f"{_where(source, 'feet')}: give both left: and right: feet (or leave feet out for a robot without legs)")
+        raise RetargetError(
+            f"{_where(source, 'feet')}: give both left: and right: feet (or leave feet out for a robot without legs)"
+        )
     for side, spec in fdata.items():
         f = _where(source, f"feet.{side}")
         if not isinstance(spec, dict) or "body" not in spec or (("geom" in spec) == ("corners" in spec)):

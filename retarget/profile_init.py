@@ -35,6 +35,7 @@ FILL = "# FILL IN"
 
 # ------------------------------------------------------------------------------------- model
 
+
 def robot_model_file(path: str | Path) -> tuple[Path, str | None]:
     """The robot's own MJCF for ``path``: a scene file whose worldbody has no bodies and which
     ``<include>``s one file with a robot in it gives that file. Returns (path, note or None)."""
@@ -70,16 +71,19 @@ def load_model(path: str | Path):
     try:
         return mujoco.MjModel.from_xml_path(str(path))
     except ValueError as exc:
-        raise RetargetError(f"{path}: MuJoCo cannot load this MJCF ({str(exc).splitlines()[0]}); "
-                            "fix the model first (`python -m mujoco.viewer --mjcf FILE` shows the same error)") from None
+        raise RetargetError(
+            f"{path}: MuJoCo cannot load this MJCF ({str(exc).splitlines()[0]}); "
+            "fix the model first (`python -m mujoco.viewer --mjcf FILE` shows the same error)"
+        ) from None
 
 
 # ---------------------------------------------------------------------------- geometry
 
+
 def _fib_dirs(n: int = 48) -> np.ndarray:
     i = np.arange(n) + 0.5
     phi = np.arccos(1 - 2 * i / n)
-    th = np.pi * (1 + 5 ** 0.5) * i
+    th = np.pi * (1 + 5**0.5) * i
     return np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], axis=1)
 
 
@@ -107,7 +111,7 @@ def geom_points_local(m, g: int) -> np.ndarray:
     if t == G.mjGEOM_MESH:
         mid = int(m.geom_dataid[g])
         adr, n = int(m.mesh_vertadr[mid]), int(m.mesh_vertnum[mid])
-        return np.array(m.mesh_vert[adr:adr + n], dtype=float)
+        return np.array(m.mesh_vert[adr : adr + n], dtype=float)
     return np.zeros((0, 3))  # planes, height fields: not part of a robot's body
 
 
@@ -167,6 +171,7 @@ def segment_distance(p0, p1, q0, q1) -> float:
 
 
 # ----------------------------------------------------------------------------- anatomy
+
 
 @dataclass
 class Joint:
@@ -311,7 +316,9 @@ def infer_anatomy(m) -> Anatomy:
     zmin, zmax = float(everything[:, 2].min()), float(everything[:, 2].max())
     fr = _BodyFrame(np.array(rest.d.xpos[root]), fwd, left, max(zmax - zmin, 1e-3), zmin)
     an = Anatomy(root=root, floating=free, height=fr.height, forward=fwd, left=left)
-    ends = [b for b in subtree if b != root and rest.hinges[b] and all(rest.hinges_below(c) == 0 for c in rest.children[b])]
+    ends = [
+        b for b in subtree if b != root and rest.hinges[b] and all(rest.hinges_below(c) == 0 for c in rest.children[b])
+    ]
     info = {e: _end_info(m, rest, e, root) for e in ends}
     legs, in_legs = _find_legs(an, rest, ends, info, fr)
     in_arms = _find_arms(an, rest, ends, info, in_legs, fr)
@@ -323,10 +330,13 @@ def infer_anatomy(m) -> Anatomy:
         _assign_joints(limb)
     _place_points(rest, an, ends, info, in_legs | in_arms)
     # the toes are farther in front of the ankle than the heel is behind it, on a robot facing +x
-    if legs and any(limb.sole["x1"] + limb.sole["x0"] < 2 * float(limb.points_ankle @ fwd) - 1e-3
-                    for limb in an.legs.values()):
-        an.notes.append("the feet point backwards in the root's frame: the retargeter expects the robot to face its "
-                        "root body's +x (MuJoCo's convention); check the keypoints' left/right")
+    if legs and any(
+        limb.sole["x1"] + limb.sole["x0"] < 2 * float(limb.points_ankle @ fwd) - 1e-3 for limb in an.legs.values()
+    ):
+        an.notes.append(
+            "the feet point backwards in the root's frame: the retargeter expects the robot to face its "
+            "root body's +x (MuJoCo's convention); check the keypoints' left/right"
+        )
     return an
 
 
@@ -380,8 +390,13 @@ def _find_legs(an: Anatomy, rest: _Rest, ends: list, info: dict, fr: _BodyFrame)
     H, z_root = fr.height, float(fr.origin[2])
     legs = {}
     for side, sign in (("left", 1), ("right", -1)):
-        cand = [e for e in ends if sign * fr.lateral(info[e]["centre"]) > 0.02 * H
-                and info[e]["low"] < fr.zmin + 0.1 * H and info[e]["low"] < z_root - 0.2 * H]
+        cand = [
+            e
+            for e in ends
+            if sign * fr.lateral(info[e]["centre"]) > 0.02 * H
+            and info[e]["low"] < fr.zmin + 0.1 * H
+            and info[e]["low"] < z_root - 0.2 * H
+        ]
         if cand:
             legs[side] = min(cand, key=lambda e: (info[e]["low"], -info[e]["arc"]))
     if len(legs) == 1:
@@ -431,7 +446,7 @@ def _truncate(rest: _Rest, chain: list) -> list:
     """The chain up to its first body that branches into several jointed children (a hand)."""
     for i, b in enumerate(chain):
         if sum(1 for c in rest.children[b] if rest.hinges_below(c)) >= 2:
-            return chain[:i + 1]
+            return chain[: i + 1]
     return chain
 
 
@@ -439,7 +454,9 @@ def _limb(rest: _Rest, kind: str, side: str, chain: list, end_point) -> Limb:
     joints = []
     for b in chain:
         for j in rest.hinges[b]:
-            joints.append(Joint(j, b, np.array(rest.d.xanchor[j]), np.array(rest.d.xaxis[j]) / np.linalg.norm(rest.d.xaxis[j])))
+            joints.append(
+                Joint(j, b, np.array(rest.d.xanchor[j]), np.array(rest.d.xaxis[j]) / np.linalg.norm(rest.d.xaxis[j]))
+            )
     if not joints:
         raise RetargetError(f"the {side} {kind} has no hinge joints")
     if end_point is None and kind == "arm":
@@ -592,11 +609,16 @@ def _place_points(rest: _Rest, an: Anatomy, ends, info, used: set) -> None:
             pts = pts[pts[:, 2] > sh[2] + 0.03 * an.height] if len(pts) else pts
             if len(pts) >= 4:
                 an.head_body = an.chest_body
-                put("head", an.chest_body, 0.5 * (pts.min(axis=0) + pts.max(axis=0)),
-                    "head: centre of the chest body's geometry above the shoulders (no head joint)")
+                put(
+                    "head",
+                    an.chest_body,
+                    0.5 * (pts.min(axis=0) + pts.max(axis=0)),
+                    "head: centre of the chest body's geometry above the shoulders (no head joint)",
+                )
 
 
 # ------------------------------------------------------------------------------ capsules
+
 
 def _segment_bodies(limb: Limb, first: Joint | None, last: Joint | None) -> list:
     """Bodies of the limb from ``first``'s body up to (not including) ``last``'s body."""
@@ -697,8 +719,12 @@ def clear_rest_collisions(m, caps: dict, pairs: list, poses: list, margin: float
         for a, b in pairs:
             A, B = caps[a], caps[b]
             for rest in rests:
-                d = segment_distance(rest.to_world(A.body, A.p0), rest.to_world(A.body, A.p1),
-                                     rest.to_world(B.body, B.p0), rest.to_world(B.body, B.p1))
+                d = segment_distance(
+                    rest.to_world(A.body, A.p0),
+                    rest.to_world(A.body, A.p1),
+                    rest.to_world(B.body, B.p0),
+                    rest.to_world(B.body, B.p1),
+                )
                 need = A.radius + B.radius + margin + slack - d
                 if need > 1e-6:
                     room_a, room_b = A.radius - A.min_radius, B.radius - B.min_radius
@@ -714,9 +740,15 @@ def clear_rest_collisions(m, caps: dict, pairs: list, poses: list, margin: float
     kept = []
     for a, b in pairs:
         A, B = caps[a], caps[b]
-        worst = min(segment_distance(r.to_world(A.body, A.p0), r.to_world(A.body, A.p1),
-                                     r.to_world(B.body, B.p0), r.to_world(B.body, B.p1)) - A.radius - B.radius - margin
-                    for r in rests)
+        worst = min(
+            segment_distance(
+                r.to_world(A.body, A.p0), r.to_world(A.body, A.p1), r.to_world(B.body, B.p0), r.to_world(B.body, B.p1)
+            )
+            - A.radius
+            - B.radius
+            - margin
+            for r in rests
+        )
         if worst < 0:
             notes.append(f"[{a}, {b}] left out: they touch in the zero/stand pose ({1000 * worst:.0f} mm)")
         else:
@@ -725,6 +757,7 @@ def clear_rest_collisions(m, caps: dict, pairs: list, poses: list, margin: float
 
 
 # ---------------------------------------------------------------------------------- limits
+
 
 def joint_limits(m, an: Anatomy) -> tuple[dict, dict]:
     """Profile limits for unranged hinges: {joint: (lo, hi)} and {joint: why}."""
@@ -768,10 +801,16 @@ def speed_limits(m) -> tuple[float, dict, str]:
 
     nid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_NUMERIC, "servo_no_load_speed")
     if nid < 0:
-        return DEFAULT_SPEED, {}, (f"{FILL[2:]}: rad/s, a servo-class guess; use your actuators' no-load speed "
-                                   "less 10 % (the retargeter never commands faster)")
+        return (
+            DEFAULT_SPEED,
+            {},
+            (
+                f"{FILL[2:]}: rad/s, a servo-class guess; use your actuators' no-load speed "
+                "less 10 % (the retargeter never commands faster)"
+            ),
+        )
     adr, size = int(m.numeric_adr[nid]), int(m.numeric_size[nid])
-    data = np.array(m.numeric_data[adr:adr + size], dtype=float)
+    data = np.array(m.numeric_data[adr : adr + size], dtype=float)
     why = "rad/s: the MJCF's servo_no_load_speed less 10 % for load"
     if size != m.nu or size == 1:
         return round(0.9 * float(data.min()), 3), {}, why
@@ -779,7 +818,9 @@ def speed_limits(m) -> tuple[float, dict, str]:
     per = {}
     for a in range(m.nu):
         if data[a] < top and m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
-            per[mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, int(m.actuator_trnid[a, 0]))] = round(0.9 * float(data[a]), 3)
+            per[mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, int(m.actuator_trnid[a, 0]))] = round(
+                0.9 * float(data[a]), 3
+            )
     return round(0.9 * top, 3), per, why
 
 
@@ -794,11 +835,14 @@ def stand_keyframe(m) -> tuple[str, str]:
     named = [n for n in names if n]
     if len(named) == 1:
         return named[0], f"the model's only keyframe {named[0]!r}"
-    return "stand", ("the model has no stand keyframe: the solvers start from its zero pose (qpos0); "
-                     "add <key name=\"stand\" qpos=...> to the MJCF for a better seed")
+    return "stand", (
+        "the model has no stand keyframe: the solvers start from its zero pose (qpos0); "
+        'add <key name="stand" qpos=...> to the MJCF for a better seed'
+    )
 
 
 # ----------------------------------------------------------------------------- writing
+
 
 @dataclass
 class InitResult:
@@ -822,7 +866,7 @@ def _relative(path: Path, folder: Path) -> str:
 
 def _inward(lo: float, hi: float, digits: int = 6) -> tuple[float, float]:
     """[lo, hi] rounded to ``digits`` decimals towards its inside (never wider than given)."""
-    k = 10.0 ** digits
+    k = 10.0**digits
     return math.ceil(lo * k - 1e-9) / k, math.floor(hi * k + 1e-9) / k
 
 
@@ -842,12 +886,30 @@ def _name(m, obj, i: int) -> str:
 
 
 WEIGHTS = {"pelvis": 2.0, "left_ankle": 2.0, "right_ankle": 2.0, "left_wrist": 1.5, "right_wrist": 1.5, "head": 0.5}
-ORDER = ("pelvis", "spine3", "head", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
-         "left_foot", "right_foot", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist",
-         "right_wrist")
+ORDER = (
+    "pelvis",
+    "spine3",
+    "head",
+    "left_hip",
+    "right_hip",
+    "left_knee",
+    "right_knee",
+    "left_ankle",
+    "right_ankle",
+    "left_foot",
+    "right_foot",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+)
 
 
-def init_robot_folder(mjcf: str | Path, out_dir: str | Path, name: str | None = None, force: bool = False) -> InitResult:
+def init_robot_folder(
+    mjcf: str | Path, out_dir: str | Path, name: str | None = None, force: bool = False
+) -> InitResult:
     """Write ``profile.yaml``, ``hardware.yaml`` and ``README.md`` for the MJCF into ``out_dir``."""
     from firmware_cfg.registry import HARDWARE_FILE, PROFILE_FILE, README_FILE
 
@@ -858,7 +920,9 @@ def init_robot_folder(mjcf: str | Path, out_dir: str | Path, name: str | None = 
     files = [out / PROFILE_FILE, out / HARDWARE_FILE, out / README_FILE]
     existing = [p.name for p in files if p.exists()]
     if existing and not force:
-        raise RetargetError(f"{out}: already holds {', '.join(existing)}; choose another -o folder or pass --force to overwrite")
+        raise RetargetError(
+            f"{out}: already holds {', '.join(existing)}; choose another -o folder or pass --force to overwrite"
+        )
     out.mkdir(parents=True, exist_ok=True)
     draft = _draft_profile(m, model_path, name or out.resolve().name, _relative(model_path, out.resolve()))
     notes = list(draft.an.notes) + ([scene_note] if scene_note else []) + draft.pair_notes
@@ -903,7 +967,7 @@ def _draft_profile(m, model_path: Path, robot: str, rel: str) -> _ProfileDraft:
     """Infer the anatomy, capsules and pairs clear in the rest poses, limits and the stand keyframe."""
     import mujoco
 
-    model_name = (ET.parse(model_path).getroot().get("model") or model_path.stem)
+    model_name = ET.parse(model_path).getroot().get("model") or model_path.stem
     an = infer_anatomy(m)
     rest = _Rest(m)
     stand_name, stand_why = stand_keyframe(m)
@@ -916,8 +980,25 @@ def _draft_profile(m, model_path: Path, robot: str, rel: str) -> _ProfileDraft:
     caps = {k: v for k, v in caps.items() if k in used}
     limits, limit_why = joint_limits(m, an)
     speed, speeds, speed_why = speed_limits(m)
-    draft = _ProfileDraft(m, robot, model_name, model_path, rel, an, rest, limits, limit_why, speed, speeds, speed_why,
-                          caps, pairs, pair_notes, margin, (stand_name, stand_why))
+    draft = _ProfileDraft(
+        m,
+        robot,
+        model_name,
+        model_path,
+        rel,
+        an,
+        rest,
+        limits,
+        limit_why,
+        speed,
+        speeds,
+        speed_why,
+        caps,
+        pairs,
+        pair_notes,
+        margin,
+        (stand_name, stand_why),
+    )
     _require_names(draft)
     return draft
 
@@ -927,27 +1008,44 @@ def _require_names(d: _ProfileDraft) -> None:
     import mujoco
 
     m = d.m
-    nameless = [j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
-                and not _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)]
+    nameless = [
+        j
+        for j in range(m.njnt)
+        if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and not _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
+    ]
     if nameless:
-        raise RetargetError(f"{d.model_path}: hinge joints {nameless} (in file order) have no name; give every joint "
-                            "a name= in the MJCF (trajectories and the hardware config refer to joints by name)")
-    unnamed = [b for b in {p[0] for p in d.an.points.values()} | {c.body for c in d.caps.values()}
-               | {limb.foot_body for limb in d.an.legs.values()} if not d.body_name(b)]
+        raise RetargetError(
+            f"{d.model_path}: hinge joints {nameless} (in file order) have no name; give every joint "
+            "a name= in the MJCF (trajectories and the hardware config refer to joints by name)"
+        )
+    unnamed = [
+        b
+        for b in {p[0] for p in d.an.points.values()}
+        | {c.body for c in d.caps.values()}
+        | {limb.foot_body for limb in d.an.legs.values()}
+        if not d.body_name(b)
+    ]
     if unnamed:
-        raise RetargetError(f"{d.model_path}: bodies {sorted(unnamed)} that the profile needs have no name; "
-                            "give every body a name= in the MJCF")
+        raise RetargetError(
+            f"{d.model_path}: bodies {sorted(unnamed)} that the profile needs have no name; "
+            "give every body a name= in the MJCF"
+        )
 
 
 def _profile_text(d: _ProfileDraft) -> str:
     """The profile.yaml text, with a comment on where each value came from."""
     B, an, rest = d.body_name, d.an, d.rest
-    L = [f"# Retarget profile of {d.model_name} ({d.model_path.name}), written by `dualflow-bridge robot init`",
-         "# from the model alone: keypoints from the kinematic tree and the geometry, capsules fitted to the",
-         "# collision geoms, feet from the lowest contact geoms (docs/retargeting.md says how). Check",
-         "# it, edit freely (schema: retarget/profile.py), then run `dualflow-bridge robot check DIR`.",
-         f"robot: {d.robot}", f"mjcf: {d.rel}", "root: pelvis",
-         "# human joint (SMPL): robot body + point in that body's frame (m), tracking weight", "keypoints:"]
+    L = [
+        f"# Retarget profile of {d.model_name} ({d.model_path.name}), written by `dualflow-bridge robot init`",
+        "# from the model alone: keypoints from the kinematic tree and the geometry, capsules fitted to the",
+        "# collision geoms, feet from the lowest contact geoms (docs/retargeting.md says how). Check",
+        "# it, edit freely (schema: retarget/profile.py), then run `dualflow-bridge robot check DIR`.",
+        f"robot: {d.robot}",
+        f"mjcf: {d.rel}",
+        "root: pelvis",
+        "# human joint (SMPL): robot body + point in that body's frame (m), tracking weight",
+        "keypoints:",
+    ]
     for h in ORDER:
         if h not in an.points:
             continue
@@ -971,7 +1069,9 @@ def _profile_text(d: _ProfileDraft) -> str:
         for side in ("left", "right"):
             limb = an.legs[side]
             corners = [rest.to_local(limb.foot_body, c) for c in limb.sole["corners"]]
-            L.append(f"  {side + ':':7s}{{body: {B(limb.foot_body)}, corners: [{', '.join(_vec(c) for c in corners)}]}}")
+            L.append(
+                f"  {side + ':':7s}{{body: {B(limb.foot_body)}, corners: [{', '.join(_vec(c) for c in corners)}]}}"
+            )
     rigid = [h for h in ("left_hip", "right_hip", "left_shoulder", "right_shoulder") if h in an.points]
     L.append("# Hips and shoulders at the robot's own offsets, turned with the person's pelvis and chest.")
     L.append(f"rigid_offsets: [{', '.join(rigid)}]")
@@ -984,8 +1084,10 @@ def _collision_lines(d: _ProfileDraft) -> list[str]:
     """The capsules, collision_pairs (with notes) and collision_margin lines."""
     L = ["# Self-collision: capsules in a body's frame (m), and the pairs kept apart.", "capsules:"]
     for c in d.caps.values():
-        L.append(f"  {c.name + ':':13s}{{body: {d.body_name(c.body)}, from: {_vec(c.p0)}, to: {_vec(c.p1)}, "
-                 f"radius: {_f(c.radius)}}}")
+        L.append(
+            f"  {c.name + ':':13s}{{body: {d.body_name(c.body)}, from: {_vec(c.p0)}, to: {_vec(c.p1)}, "
+            f"radius: {_f(c.radius)}}}"
+        )
     L.append("collision_pairs:")
     for a, b in d.pairs:
         L.append(f"  - [{a}, {b}]")
@@ -1020,28 +1122,30 @@ def _hardware_text(m, robot: str, model_name: str, rel: str, profile_limits: dic
             j = int(m.actuator_trnid[a, 0])
             if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and j not in [x[0] for x in joints]:
                 joints.append((j, mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)))
-    L = [f"# Hardware config skeleton of {model_name}, written by `dualflow-bridge robot init`.",
-         "# The MJCF cannot say how the robot is wired: every line marked FILL IN is a placeholder to",
-         "# replace with the real robot's value, then delete the marker. Schema and units: firmware_cfg/config.py",
-         "# (angles in rad; servo = direction * joint + zero_offset, from the servo's centre tick).",
-         "# - id, direction, zero_offset: per servo; `dualflow-bridge servo scan` finds the IDs, and",
-         "#   `dualflow-bridge servo calibrate` records zero offsets with the robot held in its zero pose;",
-         "# - limits: the MJCF's range (or the profile's, for unranged joints) clipped to the servo's range;",
-         "#   narrow them to the real robot's safe range (never wider than the MJCF).",
-         "# `dualflow-bridge robot check DIR --hardware` fails while a FILL IN marker is left.",
-         f"robot: {robot}",
-         f"mjcf: {rel}",
-         "stop_policy: hold",
-         "servo_defaults:",
-         f"  model: XM430-W350  {FILL}: your servo model ({', '.join(servo_models.servo_model_names())})",
-         "  direction: 1",
-         "  zero_offset: 0.0",
-         "buses:",
-         "  - name: body",
-         f"    port: /dev/ttyUSB0  {FILL}: the bus's serial device",
-         f"    baud: 2000000  {FILL}: the servos' baud rate",
-         f"    protocol: \"2.0\"  {FILL}: \"1.0\", \"2.0\" (Dynamixel) or serial-link (a microcontroller)",
-         "    servos:"]
+    L = [
+        f"# Hardware config skeleton of {model_name}, written by `dualflow-bridge robot init`.",
+        "# The MJCF cannot say how the robot is wired: every line marked FILL IN is a placeholder to",
+        "# replace with the real robot's value, then delete the marker. Schema and units: firmware_cfg/config.py",
+        "# (angles in rad; servo = direction * joint + zero_offset, from the servo's centre tick).",
+        "# - id, direction, zero_offset: per servo; `dualflow-bridge servo scan` finds the IDs, and",
+        "#   `dualflow-bridge servo calibrate` records zero offsets with the robot held in its zero pose;",
+        "# - limits: the MJCF's range (or the profile's, for unranged joints) clipped to the servo's range;",
+        "#   narrow them to the real robot's safe range (never wider than the MJCF).",
+        "# `dualflow-bridge robot check DIR --hardware` fails while a FILL IN marker is left.",
+        f"robot: {robot}",
+        f"mjcf: {rel}",
+        "stop_policy: hold",
+        "servo_defaults:",
+        f"  model: XM430-W350  {FILL}: your servo model ({', '.join(servo_models.servo_model_names())})",
+        "  direction: 1",
+        "  zero_offset: 0.0",
+        "buses:",
+        "  - name: body",
+        f"    port: /dev/ttyUSB0  {FILL}: the bus's serial device",
+        f"    baud: 2000000  {FILL}: the servos' baud rate",
+        f'    protocol: "2.0"  {FILL}: "1.0", "2.0" (Dynamixel) or serial-link (a microcontroller)',
+        "    servos:",
+    ]
     if not joints:
         L.append(f"      []  {FILL}: the model has no joint actuators; list one servo per driven joint")
     for i, (j, jn) in enumerate(joints):
@@ -1050,25 +1154,37 @@ def _hardware_text(m, robot: str, model_name: str, rel: str, profile_limits: dic
         else:
             lo, hi = profile_limits.get(jn, (-math.pi, math.pi))
         lo, hi = _inward(max(lo, smin), min(hi, smax))
-        L.append(f"      - {{id: {i + 1}, joint: {jn}, direction: 1, zero_offset: 0.0, limits: [{lo:.6f}, {hi:.6f}]}}"
-                 f"  {FILL}: id, direction, zero_offset")
+        L.append(
+            f"      - {{id: {i + 1}, joint: {jn}, direction: 1, zero_offset: 0.0, limits: [{lo:.6f}, {hi:.6f}]}}"
+            f"  {FILL}: id, direction, zero_offset"
+        )
     return "\n".join(L) + "\n"
 
 
 def _readme_text(model_name, model_path, given, an: Anatomy, notes, B) -> str:
-    L = [f"# {model_name} ({model_path.name}): robot folder set up by robot init", "",
-         f"Model: `{model_path}`" + (f" (given as `{given}`)" if Path(given).resolve() != model_path else "") + ".",
-         "", "Inferred by `dualflow-bridge robot init` from the model alone (retarget/profile_init.py):", ""]
+    L = [
+        f"# {model_name} ({model_path.name}): robot folder set up by robot init",
+        "",
+        f"Model: `{model_path}`" + (f" (given as `{given}`)" if Path(given).resolve() != model_path else "") + ".",
+        "",
+        "Inferred by `dualflow-bridge robot init` from the model alone (retarget/profile_init.py):",
+        "",
+    ]
     for h in ORDER:
         if h in an.points:
             b, _, why = an.points[h]
             L.append(f"- `{h}` on body `{B(b)}` ({why})")
     if notes:
         L += ["", "Notes:", ""] + [f"- {n}" for n in notes]
-    L += ["", "Next:", "",
-          "1. Look at the keypoints above; edit `profile.yaml` where a guess is wrong.",
-          "2. Fill in `hardware.yaml` (every `# FILL IN`): servo IDs, directions, zero offsets, port.",
-          "3. `dualflow-bridge robot check DIR` (add `--hardware` before the first power-on).", ""]
+    L += [
+        "",
+        "Next:",
+        "",
+        "1. Look at the keypoints above; edit `profile.yaml` where a guess is wrong.",
+        "2. Fill in `hardware.yaml` (every `# FILL IN`): servo IDs, directions, zero offsets, port.",
+        "3. `dualflow-bridge robot check DIR` (add `--hardware` before the first power-on).",
+        "",
+    ]
     return "\n".join(L)
 
 

@@ -61,8 +61,12 @@ class RetargetReport:
     @property
     def passed(self) -> bool:
         """0 limit and velocity violations, skate in < 2 % of contact frames, penetration ≤ 5 mm."""
-        return (self.limit_violations == 0 and self.velocity_violations == 0 and self.skate_share < SKATE_SHARE
-                and self.penetration_mm <= PENETRATION_MM)
+        return (
+            self.limit_violations == 0
+            and self.velocity_violations == 0
+            and self.skate_share < SKATE_SHARE
+            and self.penetration_mm <= PENETRATION_MM
+        )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -77,34 +81,53 @@ class RetargetReport:
             ("ground penetration", f"{self.penetration_mm:.2f} mm"),
             ("joint-limit violations", str(self.limit_violations)),
             ("velocity-limit violations", str(self.velocity_violations)),
-            ("keypoint jerk robot / source", f"{self.jerk_robot:.2f} / {self.jerk_source:.2f} m/s³ (ratio {_ratio_text(self.jerk_ratio)})"),
+            (
+                "keypoint jerk robot / source",
+                f"{self.jerk_robot:.2f} / {self.jerk_source:.2f} m/s³ (ratio {_ratio_text(self.jerk_ratio)})",
+            ),
             ("mean abs joint jerk", f"{self.joint_jerk_mean:.1f} rad/s³"),
             ("self-collisions", str(self.self_collisions)),
         ]
-        lines = [f"# Retarget report: {self.clip} → {self.robot}", "",
-                 f"{self.frames} frames at {self.fps:g} fps, mode {self.mode}; "
-                 f"{'PASS' if self.passed else 'FAIL'}"
-                 + ("" if self.first_failure_s is None else f", first failure at {self.first_failure_s:g} s"),
-                 "", "| figure | value |", "|---|---|"]
+        lines = [
+            f"# Retarget report: {self.clip} → {self.robot}",
+            "",
+            f"{self.frames} frames at {self.fps:g} fps, mode {self.mode}; "
+            f"{'PASS' if self.passed else 'FAIL'}"
+            + ("" if self.first_failure_s is None else f", first failure at {self.first_failure_s:g} s"),
+            "",
+            "| figure | value |",
+            "|---|---|",
+        ]
         if self.lead_in is not None:
             li = self.lead_in
-            lines += [f"| lead-in before the clip | {li['t0_s']:.2f} s ({li['frames']} frames), eased in over "
-                      f"{li['ease_s']:.2f} s |"]
+            lines += [
+                f"| lead-in before the clip | {li['t0_s']:.2f} s ({li['frames']} frames), eased in over "
+                f"{li['ease_s']:.2f} s |"
+            ]
         if self.steps is not None:
             lines += [f"| steps robot / person | {self.steps.get('robot')} / {self.steps.get('person')} |"]
         lines += [f"| {a} | {b} |" for a, b in rows]
         if self.changes:
-            lines += ["", "## What the robot does differently", "", "| seconds | what | why | keypoint error there |",
-                      "|---|---|---|---|"]
-            lines += [f"| {c['start_s']:.2f}-{c['end_s']:.2f} | {c['what']} | {c['why']} | "
-                      + (f"{c['keypoint_error_mm']:.1f} mm |" if c.get('keypoint_error_mm') is not None else "n/a |")
-                      for c in self.changes]
+            lines += [
+                "",
+                "## What the robot does differently",
+                "",
+                "| seconds | what | why | keypoint error there |",
+                "|---|---|---|---|",
+            ]
+            lines += [
+                f"| {c['start_s']:.2f}-{c['end_s']:.2f} | {c['what']} | {c['why']} | "
+                + (f"{c['keypoint_error_mm']:.1f} mm |" if c.get("keypoint_error_mm") is not None else "n/a |")
+                for c in self.changes
+            ]
         return "\n".join(lines) + "\n"
 
     def changes_text(self) -> str:
         """One line for a table: each change as 'what start-end s (error mm)', or ''."""
-        return "; ".join(f"{c['what']} {c['start_s']:.2f}-{c['end_s']:.2f} s ({c.get('keypoint_error_mm', 0):.0f} mm)"
-                         for c in self.changes)
+        return "; ".join(
+            f"{c['what']} {c['start_s']:.2f}-{c['end_s']:.2f} s ({c.get('keypoint_error_mm', 0):.0f} mm)"
+            for c in self.changes
+        )
 
     def save(self, out_dir, stem: str) -> dict[str, Path]:
         out = Path(out_dir)
@@ -143,7 +166,9 @@ def configurations(robot, traj: RobotTrajectory) -> np.ndarray:
     if list(traj.joint_names) != list(robot.joint_names):
         from retarget.errors import RetargetError
 
-        raise RetargetError(f"trajectory joints {traj.joint_names} do not match robot {robot.name}'s {robot.joint_names}")
+        raise RetargetError(
+            f"trajectory joints {traj.joint_names} do not match robot {robot.name}'s {robot.joint_names}"
+        )
     if not robot.floating:
         return np.array(traj.joint_pos)
     Rs = np.stack([quat_to_mat(q) for q in traj.root_quat])
@@ -165,7 +190,7 @@ def robot_schedule(traj: RobotTrajectory, person: np.ndarray) -> np.ndarray:
 def _jerk(p: np.ndarray, fps: float) -> float:
     if p.shape[0] < 4:
         return 0.0
-    return float(np.mean(np.abs(np.diff(p, n=3, axis=0))) * fps ** 3)
+    return float(np.mean(np.abs(np.diff(p, n=3, axis=0))) * fps**3)
 
 
 def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> RetargetReport:
@@ -185,7 +210,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     on = robot_schedule(traj, person)
     if robot.has_feet and robot.floating:
         for side in range(2):
-            centre = ev["sole"][:, 4 * side:4 * side + 4, 0:2].mean(axis=1)
+            centre = ev["sole"][:, 4 * side : 4 * side + 4, 0:2].mean(axis=1)
             both = on[1:, side] & on[:-1, side]
             step = 1000 * np.linalg.norm(np.diff(centre, axis=0), axis=-1)
             slides.append(step[both])
@@ -197,7 +222,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     sole_z = ev["sole"][..., 2]
     penetration = float(max(0.0, -sole_z.min()) * 1000) if sole_z.size else 0.0
     q = traj.joint_pos
-    lo, hi = robot.x_lower[robot.n_root:], robot.x_upper[robot.n_root:]
+    lo, hi = robot.x_lower[robot.n_root :], robot.x_upper[robot.n_root :]
     beyond = (q < lo - 1e-9) | (q > hi + 1e-9)
     limit_v = int(np.sum(beyond))
     too_fast = np.abs(np.diff(q, axis=0)) * fps > robot.velocity_limits * (1 + 1e-6)
@@ -214,7 +239,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         # overlap without the profile's margin: d² − (r_a + r_b + m)² < (r_a + r_b)² − (r_a + r_b + m)²
         m = robot.profile.collision_margin
         radii = np.array([robot.capsules[a].radius + robot.capsules[b].radius for a, b in robot.collision_pairs])
-        thresh = radii ** 2 - (radii + m) ** 2
+        thresh = radii**2 - (radii + m) ** 2
         coll = int(np.sum(ev["collision"] < thresh[None] - 1e-9))
     jr, js = _jerk(ev["keypoints"][clip], fps), _jerk(targets.keypoints, fps)
     meta = dict(traj.meta)
@@ -225,16 +250,31 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
             there[int(np.argmin(np.abs(clip_t - c["start_s"])))] = True
         changes.append({**c, "keypoint_error_mm": float(err[there].mean())} if there.any() else dict(c))
     return RetargetReport(
-        clip=clip_name or str(meta.get("source", "")), robot=robot.name, mode=str(meta.get("mode", "")), frames=T,
-        fps=fps, keypoint_error_mean_mm=float(err[clip].mean()), keypoint_error_max_mm=float(err[clip].max()),
-        contact_frames=contact_frames, skate_share=skate_share,
-        worst_slide_mm=float(slides.max()) if slides.size else 0.0, penetration_mm=penetration,
-        limit_violations=limit_v, velocity_violations=vel_v, jerk_robot=jr, jerk_source=js,
-        jerk_ratio=jerk_ratio(jr, js), joint_jerk_mean=_jerk(q, fps),
+        clip=clip_name or str(meta.get("source", "")),
+        robot=robot.name,
+        mode=str(meta.get("mode", "")),
+        frames=T,
+        fps=fps,
+        keypoint_error_mean_mm=float(err[clip].mean()),
+        keypoint_error_max_mm=float(err[clip].max()),
+        contact_frames=contact_frames,
+        skate_share=skate_share,
+        worst_slide_mm=float(slides.max()) if slides.size else 0.0,
+        penetration_mm=penetration,
+        limit_violations=limit_v,
+        velocity_violations=vel_v,
+        jerk_robot=jr,
+        jerk_source=js,
+        jerk_ratio=jerk_ratio(jr, js),
+        joint_jerk_mean=_jerk(q, fps),
         self_collisions=coll,
-        solver={k: v for k, v in meta.items()
-                if k not in ("source", "contacts", "changes", "steps", "lead_in", "t0_s")},
-        first_failure_s=first_failure, changes=tuple(changes), steps=meta.get("steps"), lead_in=meta.get("lead_in"),
+        solver={
+            k: v for k, v in meta.items() if k not in ("source", "contacts", "changes", "steps", "lead_in", "t0_s")
+        },
+        first_failure_s=first_failure,
+        changes=tuple(changes),
+        steps=meta.get("steps"),
+        lead_in=meta.get("lead_in"),
     )
 
 
@@ -275,7 +315,7 @@ def plot_joints(robot, traj: RobotTrajectory, path) -> Path:
     rows = int(np.ceil(n / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 1.9 * rows), sharex=True, squeeze=False)
     t = traj.times
-    lo, hi = robot.x_lower[robot.n_root:], robot.x_upper[robot.n_root:]
+    lo, hi = robot.x_lower[robot.n_root :], robot.x_upper[robot.n_root :]
     for j in range(rows * cols):
         ax = axes[j // cols][j % cols]
         if j >= n:

@@ -150,12 +150,17 @@ def build_separation(capsules: dict, pairs, margin: float) -> Separation:
 
     keep = {}
     for (g, va, vb), c in rows.items():
-        implied = any((g, u, vb) in rows and (g, w, vb) in rows for u, w in between(va)) or \
-            any((g, va, u) in rows and (g, va, w) in rows for u, w in between(vb))
+        implied = any((g, u, vb) in rows and (g, w, vb) in rows for u, w in between(va)) or any(
+            (g, va, u) in rows and (g, va, w) in rows for u, w in between(vb)
+        )
         if not implied:
             keep[(g, va, vb)] = c
-    return Separation(tuple(groups), tuple(verts), np.array(list(keep), dtype=int).reshape(-1, 3),
-                      np.array(list(keep.values()), dtype=float))
+    return Separation(
+        tuple(groups),
+        tuple(verts),
+        np.array(list(keep), dtype=int).reshape(-1, 3),
+        np.array(list(keep.values()), dtype=float),
+    )
 
 
 @dataclass(frozen=True)
@@ -221,11 +226,18 @@ class RetargetRobot:
             if jlo < lo[i] - 1e-9 or jhi > hi[i] + 1e-9:
                 raise RetargetError(
                     f"{src}: field joint_limits.{jname}: [{jlo:.4f}, {jhi:.4f}] is wider than the MJCF range "
-                    f"[{lo[i]:.4f}, {hi[i]:.4f}]; profile limits may only narrow the MJCF's")
+                    f"[{lo[i]:.4f}, {hi[i]:.4f}]; profile limits may only narrow the MJCF's"
+                )
             lo[i], hi[i] = jlo, jhi
-        unlimited = [h.name for h in kin.joints if not (np.isfinite(lo[kin.n_root + h.index]) and np.isfinite(hi[kin.n_root + h.index]))]
+        unlimited = [
+            h.name
+            for h in kin.joints
+            if not (np.isfinite(lo[kin.n_root + h.index]) and np.isfinite(hi[kin.n_root + h.index]))
+        ]
         if unlimited:
-            raise RetargetError(f"{kin.source or kin.name}: joints {unlimited} have no range; give them range= in the MJCF or joint_limits in {src}")
+            raise RetargetError(
+                f"{kin.source or kin.name}: joints {unlimited} have no range; give them range= in the MJCF or joint_limits in {src}"
+            )
         return lo, hi
 
     def _velocity_limits(self, src: str) -> np.ndarray:
@@ -236,8 +248,10 @@ class RetargetRobot:
         for jname, v in profile.velocity_limits.items():
             i = kin.joint_index(jname, f"{src}: field velocity_limits.{jname}")
             if v > ceiling[i] + 1e-9:
-                raise RetargetError(f"{src}: field velocity_limits.{jname}: {v} rad/s is above the MJCF's servo no-load "
-                                    f"speed {ceiling[i]} rad/s; profile limits may only narrow the MJCF's")
+                raise RetargetError(
+                    f"{src}: field velocity_limits.{jname}: {v} rad/s is above the MJCF's servo no-load "
+                    f"speed {ceiling[i]} rad/s; profile limits may only narrow the MJCF's"
+                )
             vel[i] = v
         return vel
 
@@ -267,6 +281,7 @@ class RetargetRobot:
                 body = kin.body_id(spec.body, f"{src}: field capsules.{name}.body")
                 caps[name] = Capsule(name, body, np.array(spec.p0), np.array(spec.p1), float(spec.radius))
         return caps
+
     def _mjcf_speed_limits(self) -> np.ndarray:
         """Per-joint speed ceiling (rad/s) from the MJCF's ``<numeric name="servo_no_load_speed">``
         (one value for all joints, or one per actuator in actuator = joint order); +inf if absent."""
@@ -278,7 +293,7 @@ class RetargetRobot:
         if nid < 0:
             return out
         adr, size = int(m.numeric_adr[nid]), int(m.numeric_size[nid])
-        data = np.array(m.numeric_data[adr:adr + size])
+        data = np.array(m.numeric_data[adr : adr + size])
         if size == 1:
             return np.full(kin.n_joints, float(data[0]))
         if size == m.nu == kin.n_joints:
@@ -307,7 +322,9 @@ class RetargetRobot:
         Rg = quat_to_mat(m.geom_quat[gid])
         size = np.array(m.geom_size[gid])
         # the sole is the box face whose outward normal points most downward in the stand pose
-        Rb = np.array(ca.Function("Rb", [self.kin.x_sym], [self.kin.body_frame(int(m.geom_bodyid[gid]))[1]])(self.x_stand))
+        Rb = np.array(
+            ca.Function("Rb", [self.kin.x_sym], [self.kin.body_frame(int(m.geom_bodyid[gid]))[1]])(self.x_stand)
+        )
         best = None
         for axis in range(3):
             for sign in (-1.0, 1.0):
@@ -318,8 +335,10 @@ class RetargetRobot:
         _, axis, sign, n_local = best
         others = [a for a in range(3) if a != axis]
         c = np.array(m.geom_pos[gid]) + sign * size[axis] * Rg[:, axis]
-        corners = [c + s1 * size[others[0]] * Rg[:, others[0]] + s2 * size[others[1]] * Rg[:, others[1]]
-                   for s1, s2 in ((1, 1), (1, -1), (-1, -1), (-1, 1))]
+        corners = [
+            c + s1 * size[others[0]] * Rg[:, others[0]] + s2 * size[others[1]] * Rg[:, others[1]]
+            for s1, s2 in ((1, 1), (1, -1), (-1, -1), (-1, 1))
+        ]
         return np.array(corners), n_local
 
     def _build_functions(self) -> None:
@@ -339,8 +358,13 @@ class RetargetRobot:
         self.collision_expr = ca.vertcat(*coll) if coll else ca.SX.zeros(0, 1)
         self._build_offline_collision()
         self.f_keypoints = ca.Function("keypoints", [x], [kp])
-        self.f_all = ca.Function("robot_points", [x], [kp, self.sole_expr, self.com_expr, self.collision_expr],
-                                 ["x"], ["keypoints", "sole", "com", "collision"])
+        self.f_all = ca.Function(
+            "robot_points",
+            [x],
+            [kp, self.sole_expr, self.com_expr, self.collision_expr],
+            ["x"],
+            ["keypoints", "sole", "com", "collision"],
+        )
 
     def _build_offline_collision(self) -> None:
         """``offline_collision_expr`` (P', 1) and its row labels ``offline_collision_labels``.
@@ -359,13 +383,16 @@ class RetargetRobot:
         kin = self.kin
         pairs = list(self.collision_pairs)
         foot_bodies = {f.body for f in self.feet} if len(self.feet) == 2 else set()
-        is_foot = [len(foot_bodies) == 2 and {self.capsules[a].body, self.capsules[b].body} == foot_bodies
-                   for a, b in pairs]
+        is_foot = [
+            len(foot_bodies) == 2 and {self.capsules[a].body, self.capsules[b].body} == foot_bodies for a, b in pairs
+        ]
         rows = [self.collision_expr[k] for k in range(len(pairs)) if not is_foot[k]]
         labels = [f"{a}/{b}" for k, (a, b) in enumerate(pairs) if not is_foot[k]]
         left = self.feet[0].body if self.feet else -1
         # the left foot's capsules first, so that the normal points from the right foot to the left
-        foot_pairs = [(a, b) if self.capsules[a].body == left else (b, a) for k, (a, b) in enumerate(pairs) if is_foot[k]]
+        foot_pairs = [
+            (a, b) if self.capsules[a].body == left else (b, a) for k, (a, b) in enumerate(pairs) if is_foot[k]
+        ]
         self.separation = build_separation(self.capsules, foot_pairs, self.profile.collision_margin)
         sep = self.separation
         if sep.n_rows:
@@ -410,16 +437,20 @@ class RetargetRobot:
                 parent.append(-1)
                 continue
             if a < 0:
-                raise RetargetError(f"{src}: field root: keypoint {self.keypoint_names[k]!r} is not below the root joint "
-                                    f"{self.profile.root_joint!r} in the SMPL tree; use pelvis as the root")
+                raise RetargetError(
+                    f"{src}: field root: keypoint {self.keypoint_names[k]!r} is not below the root joint "
+                    f"{self.profile.root_joint!r} in the SMPL tree; use pelvis as the root"
+                )
             parent.append(int(np.flatnonzero(self.human_index == a)[0]))
         self.keypoint_parent = np.array(parent)
         #: robot rest length of the bone ending at each keypoint (m; 0 for the root)
-        self.bone_lengths = np.array([np.linalg.norm(rest_kp[:, k] - rest_kp[:, p]) if p >= 0 else 0.0
-                                      for k, p in enumerate(parent)])
+        self.bone_lengths = np.array(
+            [np.linalg.norm(rest_kp[:, k] - rest_kp[:, p]) if p >= 0 else 0.0 for k, p in enumerate(parent)]
+        )
         #: robot rest offset (3,) from the parent keypoint, world = root frame at q = 0 (m)
-        self.rest_offsets = np.array([rest_kp[:, k] - rest_kp[:, p] if p >= 0 else np.zeros(3)
-                                      for k, p in enumerate(parent)])
+        self.rest_offsets = np.array(
+            [rest_kp[:, k] - rest_kp[:, p] if p >= 0 else np.zeros(3) for k, p in enumerate(parent)]
+        )
         ground = rest_sole[2].min() if rest_sole.size else rest_kp[2].min()
         #: height of the root keypoint above the lowest sole point at q = 0 (m)
         self.standing_root_height = float(rest_kp[2, self.root_keypoint] - ground)
@@ -497,7 +528,9 @@ def model_path(robot: str | Path) -> Path:
         raise RetargetError(str(exc)) from None
 
 
-def load_robot(robot: str | Path, profile: str | Path | RetargetProfile | None = None, fixed_base: bool = False) -> RetargetRobot:
+def load_robot(
+    robot: str | Path, profile: str | Path | RetargetProfile | None = None, fixed_base: bool = False
+) -> RetargetRobot:
     """A :class:`RetargetRobot` from a robot reference (a bundled name such as ``"op3"``, a
     robot folder, an MJCF or a hardware config) and its profile (the robot's own by default)."""
     if isinstance(profile, RetargetProfile):

@@ -39,8 +39,11 @@ class CheckResult:
 
 def _marked_lines(path: Path) -> list:
     try:
-        return [i + 1 for i, line in enumerate(path.read_text().splitlines())
-                if MARKER in line and not line.lstrip().startswith("#")]
+        return [
+            i + 1
+            for i, line in enumerate(path.read_text().splitlines())
+            if MARKER in line and not line.lstrip().startswith("#")
+        ]
     except OSError:
         return []
 
@@ -73,23 +76,33 @@ def check_robot_folder(folder: str | Path, hardware: bool = False) -> CheckResul
     try:
         m = mujoco.MjModel.from_xml_path(str(robot.mjcf))
     except ValueError as exc:
-        P(f"{robot.mjcf}: MuJoCo cannot load it ({str(exc).splitlines()[0]}); fix the model "
-          "(`python -m mujoco.viewer --mjcf FILE` shows the same error)")
+        P(
+            f"{robot.mjcf}: MuJoCo cannot load it ({str(exc).splitlines()[0]}); fix the model "
+            "(`python -m mujoco.viewer --mjcf FILE` shows the same error)"
+        )
         return res
     facts = _ModelFacts.of(m)
     profile = _check_profile(robot, folder, facts, res)
     if robot.hardware is None:
-        msg = (f"{folder}: no {HARDWARE_FILE}: simulation only; `{INIT_HINT}` writes a skeleton to fill in "
-               "(servo IDs, directions, offsets, port)")
+        msg = (
+            f"{folder}: no {HARDWARE_FILE}: simulation only; `{INIT_HINT}` writes a skeleton to fill in "
+            "(servo IDs, directions, offsets, port)"
+        )
         (P if hardware else res.notes.append)(msg)
     else:
         _check_hardware(robot, m, facts.hinges, facts.actuated, facts.ctrl, res)
     _check_left_to_fill(robot, folder, hardware, res)
-    res.summary = (f"{robot.name}: model {robot.mjcf.name} ({len(facts.actuated)} actuated joints, "
-                   f"{'free-standing' if facts.floating else 'fixed base'})"
-                   + (f", profile with {len(profile.keypoints)} keypoints, {len(profile.capsules)} capsules, "
-                      f"{len(profile.collision_pairs)} collision pairs{', feet' if profile.feet else ''}" if profile else "")
-                   + (f", hardware config with {robot.hardware.name}" if robot.hardware else ""))
+    res.summary = (
+        f"{robot.name}: model {robot.mjcf.name} ({len(facts.actuated)} actuated joints, "
+        f"{'free-standing' if facts.floating else 'fixed base'})"
+        + (
+            f", profile with {len(profile.keypoints)} keypoints, {len(profile.capsules)} capsules, "
+            f"{len(profile.collision_pairs)} collision pairs{', feet' if profile.feet else ''}"
+            if profile
+            else ""
+        )
+        + (f", hardware config with {robot.hardware.name}" if robot.hardware else "")
+    )
     return res
 
 
@@ -108,11 +121,20 @@ class _ModelFacts:
     def of(cls, m) -> _ModelFacts:
         import mujoco
 
-        names = {kind: {mujoco.mj_id2name(m, obj, i) for i in range(n)} - {None}
-                 for kind, obj, n in (("body", mujoco.mjtObj.mjOBJ_BODY, m.nbody), ("site", mujoco.mjtObj.mjOBJ_SITE, m.nsite),
-                                      ("geom", mujoco.mjtObj.mjOBJ_GEOM, m.ngeom), ("key", mujoco.mjtObj.mjOBJ_KEY, m.nkey))}
-        hinges = {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j): j for j in range(m.njnt)
-                  if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE}
+        names = {
+            kind: {mujoco.mj_id2name(m, obj, i) for i in range(n)} - {None}
+            for kind, obj, n in (
+                ("body", mujoco.mjtObj.mjOBJ_BODY, m.nbody),
+                ("site", mujoco.mjtObj.mjOBJ_SITE, m.nsite),
+                ("geom", mujoco.mjtObj.mjOBJ_GEOM, m.ngeom),
+                ("key", mujoco.mjtObj.mjOBJ_KEY, m.nkey),
+            )
+        }
+        hinges = {
+            mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j): j
+            for j in range(m.njnt)
+            if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
+        }
         floating = any(m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE for j in range(m.njnt))
         actuated = []  # hinge names in actuator order
         ctrl = {}
@@ -147,13 +169,17 @@ def _check_profile(robot, folder: Path, facts: _ModelFacts, res: CheckResult):
     before = len(res.problems)
     _check_names(profile, src, facts, P)
     if facts.floating and not profile.feet:
-        P(f"{src}: field feet: missing, and {robot.mjcf.name} stands free (it has a free joint); give "
-          "feet: {left: {body: ..., corners: [...]}, right: ...} (the soles' corners in the foot bodies' frames), "
-          f"or rerun `{INIT_HINT}`")
+        P(
+            f"{src}: field feet: missing, and {robot.mjcf.name} stands free (it has a free joint); give "
+            "feet: {left: {body: ..., corners: [...]}, right: ...} (the soles' corners in the foot bodies' frames), "
+            f"or rerun `{INIT_HINT}`"
+        )
     if profile.stand_keyframe not in facts.names["key"]:
-        res.notes.append(f"{src}: field stand_keyframe: the model has no keyframe {profile.stand_keyframe!r}; the "
-                         "solvers start from its zero pose (qpos0) instead; add <key name=\"stand\" qpos=...> "
-                         "to the MJCF for a better seed")
+        res.notes.append(
+            f"{src}: field stand_keyframe: the model has no keyframe {profile.stand_keyframe!r}; the "
+            'solvers start from its zero pose (qpos0) instead; add <key name="stand" qpos=...> '
+            "to the MJCF for a better seed"
+        )
     if len(res.problems) == before:
         from retarget.kinematics import RobotKinematics
         from retarget.robot import RetargetRobot
@@ -175,8 +201,10 @@ def _check_names(profile, src: str, facts: _ModelFacts, P) -> None:
         if name not in facts.names[kind]:
             known = sorted(facts.names[kind])
             listed = ", ".join(known[:12]) + (", ..." if len(known) > 12 else "")
-            P(f"{src}: field {f}: the model has no {kind} {name!r}; name one of its {kind}s ({listed or 'none'}), "
-              f"or rerun `{INIT_HINT}`")
+            P(
+                f"{src}: field {f}: the model has no {kind} {name!r}; name one of its {kind}s ({listed or 'none'}), "
+                f"or rerun `{INIT_HINT}`"
+            )
 
     for k in profile.keypoints:
         if k.site is not None:
@@ -196,8 +224,10 @@ def _check_names(profile, src: str, facts: _ModelFacts, P) -> None:
     for group, table in (("joint_limits", profile.joint_limits), ("velocity_limits", profile.velocity_limits)):
         for jn in table:
             if jn not in hinges:
-                P(f"{src}: field {group}.{jn}: the model has no hinge joint {jn!r}; use one of "
-                  f"{', '.join(list(hinges)[:12])}{', ...' if len(hinges) > 12 else ''}")
+                P(
+                    f"{src}: field {group}.{jn}: the model has no hinge joint {jn!r}; use one of "
+                    f"{', '.join(list(hinges)[:12])}{', ...' if len(hinges) > 12 else ''}"
+                )
 
 
 def _check_stand_overlaps(rb, profile, src: str, P) -> None:
@@ -210,8 +240,10 @@ def _check_stand_overlaps(rb, profile, src: str, P) -> None:
         dist = math.sqrt(max(v + (ra + rb_ + profile.collision_margin) ** 2, 0.0))
         gap = dist - ra - rb_
         if gap < 0:
-            P(f"{src}: field collision_pairs: [{a}, {b}] overlap by {-1000 * gap:.1f} mm in the stand pose, so "
-              "no retarget can keep them apart; shrink their radius or remove the pair")
+            P(
+                f"{src}: field collision_pairs: [{a}, {b}] overlap by {-1000 * gap:.1f} mm in the stand pose, so "
+                "no retarget can keep them apart; shrink their radius or remove the pair"
+            )
 
 
 def _check_left_to_fill(robot, folder: Path, hardware: bool, res: CheckResult) -> None:
@@ -223,8 +255,10 @@ def _check_left_to_fill(robot, folder: Path, hardware: bool, res: CheckResult) -
             continue
         marked = _marked_lines(path)
         if marked:
-            msg = (f"{path}: {_lines(marked)} still marked '{MARKER}' (values robot init had to guess); "
-                   "put in the real robot's values and delete the markers")
+            msg = (
+                f"{path}: {_lines(marked)} still marked '{MARKER}' (values robot init had to guess); "
+                "put in the real robot's values and delete the markers"
+            )
             (res.problems.append if hardware else res.todos.append)(msg)
     if not (folder / README_FILE).is_file():
         res.notes.append(f"{folder}: no {README_FILE}; its first heading would describe the robot in `robot list`")
@@ -252,7 +286,9 @@ def _check_hardware(robot, m, hinges: dict, actuated: list, ctrl: dict, res: Che
             except ConfigError:
                 included = set()
             if robot.mjcf.name not in included:
-                P(f"{src}: field mjcf: names {named}, but the folder's model is {robot.mjcf}; point it at the same model")
+                P(
+                    f"{src}: field mjcf: names {named}, but the folder's model is {robot.mjcf}; point it at the same model"
+                )
     mapped = {}
     free = [j for j in actuated if j not in {s.joint for s in cfg.servos}]  # actuated, no servo yet
     for bi, bus in enumerate(cfg.buses):
@@ -260,13 +296,18 @@ def _check_hardware(robot, m, hinges: dict, actuated: list, ctrl: dict, res: Che
             where = f"{src}: buses[{bi}].servos[{si}]"
             mapped[s.joint] = where
             if s.joint not in hinges:
-                which = f"one still without a servo ({', '.join(free)})" if free else \
-                    f"one of its joints ({', '.join(actuated[:12])}{', ...' if len(actuated) > 12 else ''})"
+                which = (
+                    f"one still without a servo ({', '.join(free)})"
+                    if free
+                    else f"one of its joints ({', '.join(actuated[:12])}{', ...' if len(actuated) > 12 else ''})"
+                )
                 P(f"{where}.joint: {s.joint!r} is not a hinge joint of {robot.mjcf.name}; use {which}")
                 continue
             if s.joint not in actuated:
-                P(f"{where}.joint: {s.joint!r} has no actuator in {robot.mjcf.name}, so the simulation cannot drive it; "
-                  "add a <position joint=...> actuator or remove the servo")
+                P(
+                    f"{where}.joint: {s.joint!r} has no actuator in {robot.mjcf.name}, so the simulation cannot drive it; "
+                    "add a <position joint=...> actuator or remove the servo"
+                )
             j = hinges[s.joint]
             if m.jnt_limited[j]:
                 lo, hi, what = float(m.jnt_range[j, 0]), float(m.jnt_range[j, 1]), "the MJCF range"
@@ -275,16 +316,22 @@ def _check_hardware(robot, m, hinges: dict, actuated: list, ctrl: dict, res: Che
             else:
                 continue
             if s.lower < lo - TOLERANCE or s.upper > hi + TOLERANCE:
-                P(f"{where}.limits: [{s.lower:.4f}, {s.upper:.4f}] rad is wider than {what} [{lo:.4f}, {hi:.4f}] "
-                  f"of joint {s.joint!r}; narrow it to fit")
+                P(
+                    f"{where}.limits: [{s.lower:.4f}, {s.upper:.4f}] rad is wider than {what} [{lo:.4f}, {hi:.4f}] "
+                    f"of joint {s.joint!r}; narrow it to fit"
+                )
     missing = [j for j in actuated if j not in mapped]
     if missing:
-        P(f"{src}: buses: no servo drives the actuated joint(s) {', '.join(missing)}; add one entry per joint "
-          "({id: N, joint: NAME, limits: [lo, hi]}), in the MJCF's actuator order")
+        P(
+            f"{src}: buses: no servo drives the actuated joint(s) {', '.join(missing)}; add one entry per joint "
+            "({id: N, joint: NAME, limits: [lo, hi]}), in the MJCF's actuator order"
+        )
     order = [s.joint for s in cfg.servos if s.joint in actuated]
     if not missing and order != [j for j in actuated if j in order]:
-        res.notes.append(f"{src}: the servos are not listed in the MJCF's actuator order; the bridge maps them by "
-                         "joint name, so this only matters for reading the file")
+        res.notes.append(
+            f"{src}: the servos are not listed in the MJCF's actuator order; the bridge maps them by "
+            "joint name, so this only matters for reading the file"
+        )
 
 
 __all__ = ["CheckResult", "check_robot_folder"]

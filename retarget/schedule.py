@@ -92,8 +92,9 @@ def foot_poses(robot, keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray] | 
     return ank, head
 
 
-def robot_contacts(robot, keypoints: np.ndarray, contacts: np.ndarray, fps: float,
-                   config: StepConfig = StepConfig()) -> tuple[np.ndarray, list[Change]]:
+def robot_contacts(
+    robot, keypoints: np.ndarray, contacts: np.ndarray, fps: float, config: StepConfig = StepConfig()
+) -> tuple[np.ndarray, list[Change]]:
     """The robot's contacts (T, 2) bool and the changes made (see the module docstring).
 
     keypoints (T, K, 3) m: the robot-scale targets; contacts (T, 2) bool: the person's."""
@@ -177,8 +178,9 @@ def _restep_pivots(robot, poses: tuple, c: np.ndarray, fps: float, cfg: StepConf
                 _end_pivot(changes, pivot_start, s, t, fps)
                 continue
             o = 1 - s
-            other_ok = (out[t, o] and t >= lifted_until[o] and since[o] >= stance_n
-                        and c[t:min(T, t + swing_n), o].all())
+            other_ok = (
+                out[t, o] and t >= lifted_until[o] and since[o] >= stance_n and c[t : min(T, t + swing_n), o].all()
+            )
             if since[s] >= stance_n and other_ok and t >= start_n:
                 end = min(T, t + swing_n)
                 out[t:end, s] = False
@@ -226,8 +228,15 @@ def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarr
                 e = a
                 while e < T and not c[e, s]:
                     e += 1
-                if (a < T and not c[a, s] and e < T and e - t == n_swing and not lifted[o] and double >= need
-                        and c[t:e, o].all()):
+                if (
+                    a < T
+                    and not c[a, s]
+                    and e < T
+                    and e - t == n_swing
+                    and not lifted[o]
+                    and double >= need
+                    and c[t:e, o].all()
+                ):
                     lifted[s] = early[s] = True
                 continue
             # the person's foot is up and the robot's down: lift now, wait, or skip this swing
@@ -240,17 +249,29 @@ def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarr
             if lifted[o] or double < need:
                 if end - (t + 1) < n_swing:  # waiting one more frame leaves too short a swing
                     skip_until[s] = end
-                    changes.append(Change(round(a / fps, 3), round(end / fps, 3), "step skipped",
-                                          f"the person's {('left', 'right')[s]} foot stepped faster than the robot "
-                                          f"can (it needs {cfg.min_double:g} s on both feet before a step and "
-                                          f"{cfg.robot_swing:g} s in the air); the robot's foot stayed down"))
+                    changes.append(
+                        Change(
+                            round(a / fps, 3),
+                            round(end / fps, 3),
+                            "step skipped",
+                            f"the person's {('left', 'right')[s]} foot stepped faster than the robot "
+                            f"can (it needs {cfg.min_double:g} s on both feet before a step and "
+                            f"{cfg.robot_swing:g} s in the air); the robot's foot stayed down",
+                        )
+                    )
                 continue
             if end - t < n_swing and end < T:
                 skip_until[s] = end
-                changes.append(Change(round(a / fps, 3), round(end / fps, 3), "step skipped",
-                                      f"the person's {('left', 'right')[s]} foot was up {(end - a) / fps:.2f} s, less "
-                                      f"than the robot's shortest swing ({cfg.robot_swing:g} s); the robot's foot "
-                                      "stayed down"))
+                changes.append(
+                    Change(
+                        round(a / fps, 3),
+                        round(end / fps, 3),
+                        "step skipped",
+                        f"the person's {('left', 'right')[s]} foot was up {(end - a) / fps:.2f} s, less "
+                        f"than the robot's shortest swing ({cfg.robot_swing:g} s); the robot's foot "
+                        "stayed down",
+                    )
+                )
                 continue
             lifted[s] = True
         for s in range(2):
@@ -328,9 +349,15 @@ def _end_pivot(changes: list, pivot_start: list, s: int, t: int, fps: float) -> 
         return
     a = pivot_start[s]
     pivot_start[s] = None
-    changes.append(Change(round(a / fps, 3), round(t / fps, 3), "pivot",
-                          f"the person turned on the {('left', 'right')[s]} foot alone (a spin faster than the robot's "
-                          "feet allow); the robot's foot stayed planted and its turn waited for the next step"))
+    changes.append(
+        Change(
+            round(a / fps, 3),
+            round(t / fps, 3),
+            "pivot",
+            f"the person turned on the {('left', 'right')[s]} foot alone (a spin faster than the robot's "
+            "feet allow); the robot's foot stayed planted and its turn waited for the next step",
+        )
+    )
 
 
 def count_steps(contacts: np.ndarray) -> int:

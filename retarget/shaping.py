@@ -23,8 +23,9 @@ import math
 import numpy as np
 
 
-def ease_travel(keypoints: np.ndarray, root: int, fps: float, a_max: float, omega: float = 2 * math.pi
-                ) -> tuple[np.ndarray, np.ndarray]:
+def ease_travel(
+    keypoints: np.ndarray, root: int, fps: float, a_max: float, omega: float = 2 * math.pi
+) -> tuple[np.ndarray, np.ndarray]:
     """keypoints (T, K, 3) m, root: the index of the pelvis keypoint, a_max m/s², omega rad/s →
     (targets (T, K, 3) shifted horizontally, the shift (T, 2) m)."""
     kp = np.asarray(keypoints, dtype=np.float64)
@@ -37,7 +38,7 @@ def ease_travel(keypoints: np.ndarray, root: int, fps: float, a_max: float, omeg
     qd = np.zeros(2)
     dt = 1.0 / fps
     for t in range(T - 1):
-        a = omega ** 2 * (p[t] - q[t]) + 2 * omega * (v[t] - qd)
+        a = omega**2 * (p[t] - q[t]) + 2 * omega * (v[t] - qd)
         n = math.hypot(a[0], a[1])
         if n > a_max:
             a *= a_max / n

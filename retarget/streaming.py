@@ -67,6 +67,7 @@ class StreamingConfig:
     # that many frames): the weight shift before a step starts that much earlier (BalancePlanner.plan)
     preview: int = 0
 
+
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
     """min_d ½ dᵀHd + gᵀd  s.t. lo ≤ d ≤ hi, H positive definite (n ≤ ~50), by a primal active set.
 
@@ -97,8 +98,6 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, m
     return d
 
 
-
-
 @dataclass(frozen=True)
 class _FrameSymbols:
     """The per-frame parameters of the streaming residual: targets (3, K), the two frames
@@ -114,8 +113,14 @@ class _FrameSymbols:
 
     @classmethod
     def make(cls, rb) -> _FrameSymbols:
-        return cls(ca.SX.sym("tgt", 3, rb.n_keypoints), ca.SX.sym("x1", rb.nx), ca.SX.sym("x2", rb.nx),
-                   ca.SX.sym("acc_scale"), ca.SX.sym("contact", 2), ca.SX.sym("anchor", 2, 8))
+        return cls(
+            ca.SX.sym("tgt", 3, rb.n_keypoints),
+            ca.SX.sym("x1", rb.nx),
+            ca.SX.sym("x2", rb.nx),
+            ca.SX.sym("acc_scale"),
+            ca.SX.sym("contact", 2),
+            ca.SX.sym("anchor", 2, 8),
+        )
 
 
 @dataclass(frozen=True)
@@ -132,8 +137,13 @@ class _BalanceSymbols:
 
     @classmethod
     def make(cls) -> _BalanceSymbols:
-        return cls(ca.SX.sym("edges", 3, N_EDGES), ca.SX.sym("points", 3, 3), ca.SX.sym("point_w", 3),
-                   ca.SX.sym("c_pred", 2), ca.SX.sym("zmp_scale"))
+        return cls(
+            ca.SX.sym("edges", 3, N_EDGES),
+            ca.SX.sym("points", 3, 3),
+            ca.SX.sym("point_w", 3),
+            ca.SX.sym("c_pred", 2),
+            ca.SX.sym("zmp_scale"),
+        )
 
 
 class StreamingRetargeter:
@@ -158,14 +168,26 @@ class StreamingRetargeter:
         self.balance = bool(cfg.balance and rb.floating and rb.has_feet)
         sym = _FrameSymbols.make(rb)
         res = self._tracking_rows(sym)
-        p_parts = [ca.reshape(sym.tgt, -1, 1), sym.x1, sym.x2, sym.acc_scale, sym.contact, ca.reshape(sym.anchor, -1, 1)]
+        p_parts = [
+            ca.reshape(sym.tgt, -1, 1),
+            sym.x1,
+            sym.x2,
+            sym.acc_scale,
+            sym.contact,
+            ca.reshape(sym.anchor, -1, 1),
+        ]
         com = ca.SX.zeros(3, 1)
         if self.balance:
             bal = _BalanceSymbols.make()
             com = rb.com_expr
             res += self._balance_rows(bal, com)
-            p_parts += [ca.reshape(bal.edges, -1, 1), ca.reshape(bal.points, -1, 1), bal.point_w, bal.c_pred,
-                        bal.zmp_scale]
+            p_parts += [
+                ca.reshape(bal.edges, -1, 1),
+                ca.reshape(bal.points, -1, 1),
+                bal.point_w,
+                bal.c_pred,
+                bal.zmp_scale,
+            ]
         r = ca.vertcat(*res)
         p = ca.vertcat(*p_parts)
         sole = rb.sole_expr if rb.has_feet else ca.SX.zeros(3, 0)
@@ -174,7 +196,7 @@ class StreamingRetargeter:
         self._has_feet = rb.has_feet
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
-        self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps ** 2
+        self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps**2
         self._anchor = np.zeros((2, 8))
         # the first frame's long solves stop once a step gains < 1e-6 of the cost (with balance:
         # its one-sided rows make the 1e-6 rad step test slow to trigger); else unchanged
@@ -183,8 +205,14 @@ class StreamingRetargeter:
         if self.balance:
             self.planner = BalancePlanner(rb, cfg, self.fps)
             pb = self._pbuf
-            self.planner.bind(self._anchor, pb[self._p_edges], pb[self._p_points], pb[self._p_point_w],
-                              pb[self._p_cpred], pb[self._p_zmp:self._p_zmp + 1])
+            self.planner.bind(
+                self._anchor,
+                pb[self._p_edges],
+                pb[self._p_points],
+                pb[self._p_point_w],
+                pb[self._p_cpred],
+                pb[self._p_zmp : self._p_zmp + 1],
+            )
 
     def _posture_weight(self) -> float:
         return self.robot.profile.posture_weight if self.config.posture_weight is None else self.config.posture_weight
@@ -196,7 +224,7 @@ class StreamingRetargeter:
         wk = np.sqrt(rb.keypoint_weights)
         res = [ca.reshape((rb.keypoints_expr - sym.tgt) @ ca.diag(ca.DM(wk)), -1, 1)]
         res.append(sym.acc_scale * (x - 2 * sym.x1 + sym.x2))
-        res.append(np.sqrt(self._posture_weight()) * (x[rb.n_root:] - ca.DM(rb.x_stand[rb.n_root:])))
+        res.append(np.sqrt(self._posture_weight()) * (x[rb.n_root :] - ca.DM(rb.x_stand[rb.n_root :])))
         if not rb.has_feet:
             return res
         sole = rb.sole_expr
@@ -212,7 +240,7 @@ class StreamingRetargeter:
             res.append(np.sqrt(cfg.upright_weight) * x[4:6])
         if self.balance and cfg.level_weight > 0:  # soles level, in the air too (a foot lands flat)
             for s in range(2):
-                z = sole[2, 4 * s:4 * s + 4]
+                z = sole[2, 4 * s : 4 * s + 4]
                 res.append(np.sqrt(cfg.level_weight) * ca.reshape(z - ca.sum2(z) / 4, -1, 1))
         return res
 
@@ -248,8 +276,13 @@ class StreamingRetargeter:
         # parameters, iteration counts and the step rules do not), so configs share binaries
         shape = (self._posture_weight(), cfg.contact_weight, cfg.ground_weight, self.balance)
         if self.balance:
-            shape += (cfg.balance_contact_weight, cfg.level_weight, cfg.collision_weight, cfg.feet_clearance,
-                      cfg.upright_weight)
+            shape += (
+                cfg.balance_contact_weight,
+                cfg.level_weight,
+                cfg.collision_weight,
+                cfg.feet_clearance,
+                cfg.upright_weight,
+            )
         key = f"{rb.fingerprint()}_{hash_config(shape)}"
         self._fn, self.compile_info = compiled_function(fn, key, enable=cfg.compile)
         nx = rb.nx
@@ -306,8 +339,10 @@ class StreamingRetargeter:
         their velocity bounds and its feet in contact stay where x1 put them. Plain streaming
         only (the balance planner's contact history cannot be rebuilt from two frames)."""
         if self.balance:
-            raise RetargetError("streaming resume: not available with balance (StreamingConfig.balance); "
-                                "reset() and stream from the start instead")
+            raise RetargetError(
+                "streaming resume: not available with balance (StreamingConfig.balance); "
+                "reset() and stream from the start instead"
+            )
         self._x1, self._x2 = np.array(x1, dtype=np.float64), np.array(x2, dtype=np.float64)
         self._residual(self._x1)
         if self._has_feet:
@@ -383,7 +418,9 @@ class StreamingRetargeter:
     def _best_start(self, x_stand: np.ndarray, targets: np.ndarray, contact) -> np.ndarray:
         rb = self.robot
         x_zero = x_stand.copy()
-        x_zero[rb.n_root:] = np.clip([h.qpos0 for h in rb.kin.joints], rb.x_lower[rb.n_root:], rb.x_upper[rb.n_root:])
+        x_zero[rb.n_root :] = np.clip(
+            [h.qpos0 for h in rb.kin.joints], rb.x_lower[rb.n_root :], rb.x_upper[rb.n_root :]
+        )
         best, best_cost = x_stand, np.inf
         # with balance the feet start at the robot's own stance, which the stand pose fits:
         # the zero-pose start (a T-pose, for odd first frames) would only cost time
@@ -405,7 +442,9 @@ class StreamingRetargeter:
         uses them to shift the weight before a step; :meth:`run` passes them)."""
         targets = np.asarray(targets, dtype=np.float64)
         if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
-            raise RetargetError(f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}")
+            raise RetargetError(
+                f"streaming step: targets must be finite with shape ({self.robot.n_keypoints}, 3), got {targets.shape}"
+            )
         cfg = self.config
         first = self._x1 is None
         if self.balance:
@@ -452,28 +491,33 @@ class StreamingRetargeter:
         """One human frame (22, 3) m (SMPL-22, Z up) → configuration x (nx,), via ``self.scaler``."""
         positions = np.asarray(positions, dtype=np.float64)
         if positions.shape != (22, 3) or not np.all(np.isfinite(positions)):
-            raise RetargetError(f"streaming step_human: positions must be finite with shape (22, 3), got {positions.shape}")
+            raise RetargetError(
+                f"streaming step_human: positions must be finite with shape (22, 3), got {positions.shape}"
+            )
         return self.step(self.scaler.targets(positions[None])[0], contact)
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x (nx,) → joint angles (n,) rad in the robot's joint order, root position (3,) m,
         root quaternion (4,) w, x, y, z."""
         pos, quat = self.robot.kin.root_pose(np.asarray(x)[None])
-        return np.array(x[self.robot.n_root:]), pos[0], quat[0]
+        return np.array(x[self.robot.n_root :]), pos[0], quat[0]
 
     def run(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
         """Retarget a whole clip frame by frame (as the live bridge would). ``scaler``: a
         :class:`retarget.targets.KeypointScaler` (default: fitted on this clip)."""
         check_motion(motion, min_frames=2)
         if abs(motion.fps - self.fps) > 1e-9:
-            raise RetargetError(f"{motion.name or 'motion'}: is {motion.fps:g} fps but this retargeter runs at {self.fps:g}; resample the motion")
+            raise RetargetError(
+                f"{motion.name or 'motion'}: is {motion.fps:g} fps but this retargeter runs at {self.fps:g}; resample the motion"
+            )
         tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()
         T, P = motion.n_frames, self.config.preview
         ahead = (lambda t: tg.contacts[min(t + P, T - 1)]) if P > 0 and self.balance else (lambda t: None)
         X = np.stack([self.step(tg.keypoints[t], tg.contacts[t], ahead(t)) for t in range(T)])
-        return trajectory_from_x(self.robot, X, motion.fps, {"mode": "streaming", "source": motion.name,
-                                                                 "compiled": self.compile_info})
+        return trajectory_from_x(
+            self.robot, X, motion.fps, {"mode": "streaming", "source": motion.name, "compiled": self.compile_info}
+        )
 
 
 def hash_config(cfg) -> str:
@@ -485,4 +529,4 @@ def hash_config(cfg) -> str:
 def trajectory_from_x(robot, X: np.ndarray, fps: float, meta: dict) -> RobotTrajectory:
     """Configurations X (T, nx) → RobotTrajectory in the robot's joint order."""
     root_pos, root_quat = robot.kin.root_pose(X)
-    return RobotTrajectory(robot.joint_names, X[:, robot.n_root:], root_pos, root_quat, fps, robot.ref, dict(meta))
+    return RobotTrajectory(robot.joint_names, X[:, robot.n_root :], root_pos, root_quat, fps, robot.ref, dict(meta))

@@ -185,8 +185,9 @@ def support_polygon(footprints: list[np.ndarray]) -> tuple[np.ndarray, np.ndarra
     return hull, A, b
 
 
-def com_margins(com_xy: np.ndarray, soles: np.ndarray, local_corners: list[np.ndarray], on: np.ndarray,
-                shrink: float = 0.0) -> np.ndarray:
+def com_margins(
+    com_xy: np.ndarray, soles: np.ndarray, local_corners: list[np.ndarray], on: np.ndarray, shrink: float = 0.0
+) -> np.ndarray:
     """Per frame, the margin (m) of the CoM over the support polygon of the feet in contact.
 
     com_xy (T, 2); soles (T, 4·F, 3) world sole corners, four per foot in foot order;
@@ -196,7 +197,7 @@ def com_margins(com_xy: np.ndarray, soles: np.ndarray, local_corners: list[np.nd
     T, F = on.shape
     out = np.full(T, np.nan)
     for t in range(T):
-        prints = [level_footprint(soles[t, 4 * f:4 * f + 4], local_corners[f], shrink) for f in range(F) if on[t, f]]
+        prints = [level_footprint(soles[t, 4 * f : 4 * f + 4], local_corners[f], shrink) for f in range(F) if on[t, f]]
         if prints:
             _, A, b = support_polygon(prints)
             out[t] = margin(com_xy[t], A, b)

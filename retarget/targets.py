@@ -38,11 +38,15 @@ def check_motion(motion: Motion, min_frames: int = 2) -> None:
         frame = int(np.argwhere(~np.isfinite(pos))[0][0])
         raise RetargetError(f"{what}: positions contain NaN or inf at frame {frame}; clean or drop those frames")
     if motion.n_frames < min_frames:
-        raise RetargetError(f"{what}: has {motion.n_frames} frame(s); retargeting needs at least {min_frames} "
-                            "(velocity and acceleration need neighbours); give a longer clip")
+        raise RetargetError(
+            f"{what}: has {motion.n_frames} frame(s); retargeting needs at least {min_frames} "
+            "(velocity and acceleration need neighbours); give a longer clip"
+        )
 
 
-def detect_contacts(motion: Motion, height_tol: float = 0.05, speed_tol: float = 0.4, min_frames: int = 3) -> np.ndarray:
+def detect_contacts(
+    motion: Motion, height_tol: float = 0.05, speed_tol: float = 0.4, min_frames: int = 3
+) -> np.ndarray:
     """(T, 4) bool contact of left ankle, left toe, right ankle, right toe (InterGen's order)."""
     pos = motion.positions[:, list(FOOT_JOINTS), :]
     rest_h = REST_POSE[list(FOOT_JOINTS), 2]
@@ -113,7 +117,9 @@ class KeypointScaler:
                 continue
             hl = float(np.median(np.linalg.norm(ref[:, hidx[k]] - ref[:, hidx[p]], axis=-1)))
             if hl < 1e-4:
-                raise RetargetError(f"motion: the human bone {robot.keypoint_names[p]} -> {name} has zero length; check the joint positions")
+                raise RetargetError(
+                    f"motion: the human bone {robot.keypoint_names[p]} -> {name} has zero length; check the joint positions"
+                )
             scales[k] = robot.bone_lengths[k] / hl
         self.bone_scales = scales
         if robot.profile.root_scale is not None:
@@ -187,7 +193,9 @@ def _body_frame(positions: np.ndarray, which: str) -> np.ndarray:
     return np.stack([x, y, z], axis=-1)
 
 
-def make_targets(robot, motion: Motion, contacts: np.ndarray | None = None, scaler: KeypointScaler | None = None) -> Targets:
+def make_targets(
+    robot, motion: Motion, contacts: np.ndarray | None = None, scaler: KeypointScaler | None = None
+) -> Targets:
     """Scaled keypoint targets (T, K, 3) and side contacts (T, 2) for ``robot`` (a RetargetRobot).
 
     The scaler defaults to one fitted on this clip's own bone lengths."""
@@ -256,7 +264,8 @@ def human_from_keypoints(robot, keypoints: np.ndarray, fps: float, name: str = "
             h[:, j] = kp[:, k] / sc.root_scale
         elif robot.keypoint_names[k] in robot.profile.rigid_offsets:
             h[:, j] = h[:, robot.human_index[p]] + (kp[:, k] - kp[:, p]) * (
-                np.linalg.norm(REST_POSE[j] - REST_POSE[robot.human_index[p]]) / max(robot.bone_lengths[k], 1e-9))
+                np.linalg.norm(REST_POSE[j] - REST_POSE[robot.human_index[p]]) / max(robot.bone_lengths[k], 1e-9)
+            )
         else:
             h[:, j] = h[:, robot.human_index[p]] + (kp[:, k] - kp[:, p]) / sc.bone_scales[k]
         done[j] = True

@@ -50,8 +50,7 @@ class RobotTrajectory:
             q = q[:, None] if len(names) == 1 else q
         if q.ndim != 2 or q.shape[1] != len(names):
             raise RetargetError(
-                f"trajectory: joint_pos must have shape (T, {len(names)}) to match joint_names, "
-                f"got {tuple(q.shape)}"
+                f"trajectory: joint_pos must have shape (T, {len(names)}) to match joint_names, got {tuple(q.shape)}"
             )
         t = q.shape[0]
         if t < 1:
@@ -107,11 +106,19 @@ class RobotTrajectory:
         return np.arange(self.n_frames) / self.fps
 
     @classmethod
-    def standing(cls, joint_names, pose, n_frames: int, fps: float, root_pos=(0.0, 0.0, 0.0), robot: str = "") -> RobotTrajectory:
+    def standing(
+        cls, joint_names, pose, n_frames: int, fps: float, root_pos=(0.0, 0.0, 0.0), robot: str = ""
+    ) -> RobotTrajectory:
         """A constant trajectory holding ``pose`` (n,) for ``n_frames`` frames."""
         q = np.tile(np.asarray(pose, dtype=np.float64), (n_frames, 1))
-        return cls(tuple(joint_names), q, np.tile(np.asarray(root_pos, float), (n_frames, 1)),
-                   np.tile([1.0, 0.0, 0.0, 0.0], (n_frames, 1)), fps, robot)
+        return cls(
+            tuple(joint_names),
+            q,
+            np.tile(np.asarray(root_pos, float), (n_frames, 1)),
+            np.tile([1.0, 0.0, 0.0, 0.0], (n_frames, 1)),
+            fps,
+            robot,
+        )
 
     # -- files ------------------------------------------------------------
     def save_npz(self, path) -> Path:
@@ -124,7 +131,9 @@ class RobotTrajectory:
             root_pos=self.root_pos,
             root_quat=self.root_quat,
             fps=np.float64(self.fps),
-            header=np.array(json.dumps({"joint_names": list(self.joint_names), "robot": self.robot, "meta": self.meta})),
+            header=np.array(
+                json.dumps({"joint_names": list(self.joint_names), "robot": self.robot, "meta": self.meta})
+            ),
         )
         tmp.replace(path)
         return path
@@ -160,30 +169,44 @@ class RobotTrajectory:
             for key in ("joint_pos", "root_pos", "root_quat"):
                 arr = data.get(key, fix)
                 if arr.dtype.kind != "f":
-                    raise RetargetError(f"{path}, field {key!r}: expected floating-point numbers, got dtype {arr.dtype}; "
-                                        "re-save the trajectory")
+                    raise RetargetError(
+                        f"{path}, field {key!r}: expected floating-point numbers, got dtype {arr.dtype}; "
+                        "re-save the trajectory"
+                    )
                 arrays[key] = arr
             fps = scalar(data.get("fps", fix), f"{path}, field 'fps'", RetargetError)
         lo, hi = FPS_RANGE
         if not lo <= fps <= hi:
-            raise RetargetError(f"{path}, field 'fps': fps must be > 0, within {lo:g}-{hi:g} frames/s, got {fps!r}; "
-                                "the file is damaged")
+            raise RetargetError(
+                f"{path}, field 'fps': fps must be > 0, within {lo:g}-{hi:g} frames/s, got {fps!r}; the file is damaged"
+            )
         q = arrays["joint_pos"]
         if q.ndim != 2 or q.shape[0] < MIN_FRAMES:
-            raise RetargetError(f"{path}, field 'joint_pos': a trajectory needs at least {MIN_FRAMES} frames as (T, n) "
-                                f"joint angles, got shape {q.shape}")
+            raise RetargetError(
+                f"{path}, field 'joint_pos': a trajectory needs at least {MIN_FRAMES} frames as (T, n) "
+                f"joint angles, got shape {q.shape}"
+            )
         for key, bound, unit in (("joint_pos", MAX_JOINT_RAD, "rad"), ("root_pos", MAX_ROOT_M, "m")):
             arr = arrays[key]
             with np.errstate(invalid="ignore"):
                 big = np.abs(arr) > bound
             if big.any():
                 frame = int(np.argwhere(big)[0][0])
-                raise RetargetError(f"{path}, field {key!r}: {np.nanmax(np.abs(arr)):.3g} {unit} at frame {frame}, beyond "
-                                    f"±{bound:g} {unit}; the file is damaged")
+                raise RetargetError(
+                    f"{path}, field {key!r}: {np.nanmax(np.abs(arr)):.3g} {unit} at frame {frame}, beyond "
+                    f"±{bound:g} {unit}; the file is damaged"
+                )
         robot = header.get("robot", "")
         try:
-            return cls(tuple(names), q, arrays["root_pos"], arrays["root_quat"], fps,
-                       robot if isinstance(robot, str) else "", meta)
+            return cls(
+                tuple(names),
+                q,
+                arrays["root_pos"],
+                arrays["root_quat"],
+                fps,
+                robot if isinstance(robot, str) else "",
+                meta,
+            )
         except RetargetError as exc:
             raise RetargetError(f"{path}: {exc}") from None
 
@@ -193,9 +216,17 @@ class RobotTrajectory:
         tmp = path.with_name(path.name + ".partial")
         with open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["time_s", "root_x", "root_y", "root_z", "root_qw", "root_qx", "root_qy", "root_qz", *self.joint_names])
+            w.writerow(
+                ["time_s", "root_x", "root_y", "root_z", "root_qw", "root_qx", "root_qy", "root_qz", *self.joint_names]
+            )
             for i in range(self.n_frames):
-                w.writerow([f"{i / self.fps:.6f}", *(f"{v:.6f}" for v in self.root_pos[i]),
-                            *(f"{v:.6f}" for v in self.root_quat[i]), *(f"{v:.6f}" for v in self.joint_pos[i])])
+                w.writerow(
+                    [
+                        f"{i / self.fps:.6f}",
+                        *(f"{v:.6f}" for v in self.root_pos[i]),
+                        *(f"{v:.6f}" for v in self.root_quat[i]),
+                        *(f"{v:.6f}" for v in self.joint_pos[i]),
+                    ]
+                )
         tmp.replace(path)
         return path

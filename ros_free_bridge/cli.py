@@ -44,10 +44,12 @@ COMMAND_MODULES: tuple[str, ...] = (
 USER_ERRORS = (DualFlowError, RetargetError, SimError, ConfigError, BridgeError)
 
 #: The exit-code contract, appended to every leaf command's --help.
-EXIT_CODES = ("Exit codes: 0 it ended normally (a run stopped at the motion's end, --max-duration or a stop request; "
-              "a check or verification passed); 1 a fault, e-stop or watchdog stop (bus error, overheat, generator "
-              "failure, no frames, Ctrl-C/SIGTERM while the robot is under control) or a failed check; 2 bad usage or "
-              "bad input (one line naming the file or field and the fix).")
+EXIT_CODES = (
+    "Exit codes: 0 it ended normally (a run stopped at the motion's end, --max-duration or a stop request; "
+    "a check or verification passed); 1 a fault, e-stop or watchdog stop (bus error, overheat, generator "
+    "failure, no frames, Ctrl-C/SIGTERM while the robot is under control) or a failed check; 2 bad usage or "
+    "bad input (one line naming the file or field and the fix)."
+)
 
 
 def _add_exit_codes(parser: argparse.ArgumentParser) -> None:

@@ -40,8 +40,10 @@ class RobotFiles:
 
     def hardware_config(self) -> RobotConfig:
         if self.hardware is None:
-            raise BridgeError(f"robot {self.ref}: no hardware config (hardware.yaml in the robot's folder); "
-                              "`dualflow-bridge robot init MODEL.xml -o DIR` writes a skeleton to fill in")
+            raise BridgeError(
+                f"robot {self.ref}: no hardware config (hardware.yaml in the robot's folder); "
+                "`dualflow-bridge robot init MODEL.xml -o DIR` writes a skeleton to fill in"
+            )
         return load_config(self.hardware, self.mjcf)
 
 
@@ -55,8 +57,9 @@ def resolve_robot(robot: str | Path | Robot) -> RobotFiles:
     return RobotFiles(found.name, found.mjcf, profile, found.hardware, reference(robot), found.fixed_base)
 
 
-def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE,
-                  default_acceleration: float = DEFAULT_MAX_ACCELERATION) -> JointLimits:
+def bridge_limits(
+    config: RobotConfig, velocity_scale: float = VELOCITY_SCALE, default_acceleration: float = DEFAULT_MAX_ACCELERATION
+) -> JointLimits:
     """Position limits from the hardware config (already checked against the MJCF by
     ``load_config``), velocity from each servo model's no-load speed (or the profile
     velocity when set and lower), acceleration from the profile or the default."""
@@ -70,8 +73,10 @@ def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE,
         if s.profile_velocity:
             v = min(v, s.profile_velocity)
         if not np.isfinite(v):
-            raise BridgeError(f"{config.source}: joint {s.joint!r} has neither a servo model nor a profile_velocity; "
-                              "the bridge needs one to limit its speed")
+            raise BridgeError(
+                f"{config.source}: joint {s.joint!r} has neither a servo model nor a profile_velocity; "
+                "the bridge needs one to limit its speed"
+            )
         vmax.append(v)
         amax.append(s.profile_acceleration or default_acceleration)
     return JointLimits(config.joint_names, lower, upper, vmax, amax)
@@ -83,5 +88,10 @@ def model_limits(robot, default_acceleration: float = DEFAULT_MAX_ACCELERATION) 
     profile's velocity limits, never above the MJCF's servo speed), the default acceleration.
     ``robot`` is a :class:`retarget.robot.RetargetRobot`."""
     n = robot.n_root
-    return JointLimits(tuple(robot.joint_names), robot.x_lower[n:], robot.x_upper[n:], robot.velocity_limits,
-                       np.full(len(robot.joint_names), default_acceleration))
+    return JointLimits(
+        tuple(robot.joint_names),
+        robot.x_lower[n:],
+        robot.x_upper[n:],
+        robot.velocity_limits,
+        np.full(len(robot.joint_names), default_acceleration),
+    )

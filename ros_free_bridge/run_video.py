@@ -76,12 +76,20 @@ def render_video(result, path: Path, on_tick=None) -> Path:
 
     if result.robot_motion is None:
         raise BridgeError("--video needs a sim transport (sim or sim+dynamixel): only the virtual robot can be filmed")
-    placement = (None if result.partner is None
-                 else actor_placement_for_robot(result.partner, result.robot_motion, result.actor))
+    placement = (
+        None if result.partner is None else actor_placement_for_robot(result.partner, result.robot_motion, result.actor)
+    )
     config = RenderConfig(playback="kinematic", side_by_side=True)
     if placement is not None and result.actor is not None:
         config = replace(config, camera=side_view(result.robot_motion, result.actor, placement, config.camera))
-    out, _ = render_trajectory(result.robot_motion, path, config,
-                               robot=result.files.ref, actor=result.actor, actor_placement=placement,
-                               reactor=result.partner, on_tick=on_tick)
+    out, _ = render_trajectory(
+        result.robot_motion,
+        path,
+        config,
+        robot=result.files.ref,
+        actor=result.actor,
+        actor_placement=placement,
+        reactor=result.partner,
+        on_tick=on_tick,
+    )
     return out

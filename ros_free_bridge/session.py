@@ -51,7 +51,9 @@ class SessionOptions:
     #: "process": DualFlow + retarget in a child process (default: its Python never competes
     #: with the control loop for the GIL); "thread": in a thread of this process
     generator: str = "process"
-    max_lag: int | None = None  #: frames of generator backlog before dropping to the newest actor frames (None: hop + max_new)
+    max_lag: int | None = (
+        None  #: frames of generator backlog before dropping to the newest actor frames (None: hop + max_new)
+    )
     #: encode the newest actor frame with a predicted next frame (revised when it arrives):
     #: partner frame i waits for actor frame i + L instead of i + L + 1 (partner.reactor.ReactorStage)
     predict_next: bool = True
@@ -136,12 +138,14 @@ def check_udp_actor(spec: str, allow_remote: bool = False) -> tuple[str, int] | 
         return None
     from ros_free_bridge.sources.udp import is_loopback
 
-    host, _, port = spec[len("udp://"):].rpartition(":")
+    host, _, port = spec[len("udp://") :].rpartition(":")
     if not host or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise BridgeError(f"actor {spec!r}: write a UDP source as udp://127.0.0.1:PORT")
     if not allow_remote and not is_loopback(host):
-        raise BridgeError(f"actor {spec!r}: {host} is not a loopback address, and anyone who reaches it could move the "
-                          "robot; use udp://127.0.0.1:PORT, or add --allow-remote-actor to listen there on purpose")
+        raise BridgeError(
+            f"actor {spec!r}: {host} is not a loopback address, and anyone who reaches it could move the "
+            "robot; use udp://127.0.0.1:PORT, or add --allow-remote-actor to listen there on purpose"
+        )
     return host, int(port)
 
 
@@ -154,7 +158,9 @@ def open_actor_source(spec: str, seconds: float, seed: int, on_estop=None, motio
     if spec == "synthetic":
         from dualflow.synthetic import make_leader
 
-        return MotionReplaySource(make_leader(seconds, MOTION_FPS, seed)), f"synthetic leader ({seconds:g} s, seed {seed})"
+        return MotionReplaySource(
+            make_leader(seconds, MOTION_FPS, seed)
+        ), f"synthetic leader ({seconds:g} s, seed {seed})"
     if spec.startswith("udp://"):
         from ros_free_bridge.sources.udp import UdpActorSource
 
@@ -182,8 +188,10 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
 
         t = SimTransport(files.ref, control_hz=opts.rate_hz, clock=opts.sim_clock)
         if tuple(t.joint_names) != tuple(names):
-            raise BridgeError(f"robot {files.name}: the MJCF's joint order {t.joint_names} differs from the hardware "
-                              f"config's {names}; list the servos in the MJCF's actuator order")
+            raise BridgeError(
+                f"robot {files.name}: the MJCF's joint order {t.joint_names} differs from the hardware "
+                f"config's {names}; list the servos in the MJCF's actuator order"
+            )
         return t
 
     def dynamixel():
@@ -201,24 +209,31 @@ def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, res
             from ros_free_bridge.emulators.process import EmulatorProcess
 
             allowed = {s.id: servo_tick_limits(s, load_servo_model(s.model)) for s in bus.servos}
-            emu = EmulatorProcess([(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices],
-                                  bus.baud, int(float(bus.protocol)),
-                                  wire_timing=False, allowed=allowed)
+            emu = EmulatorProcess(
+                [(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices],
+                bus.baud,
+                int(float(bus.protocol)),
+                wire_timing=False,
+                allowed=allowed,
+            )
             stack.callback(emu.stop)
             port = emu.port
             info["emulator"] = emu
         # An emulator is a process on a possibly busy machine, not a servo: allow it 100 ms to
         # answer (a real bus answers within the latency timer, 16 ms at worst). At 50 ms, demos
         # on a machine loaded to 5 and more ended in "no status packet" errors.
-        return DynamixelTransport(bus, port=port, joint_names=names, stop_policy=stop_policy,
-                                  latency_ms=100.0 if opts.emulate else 16.0)
+        return DynamixelTransport(
+            bus, port=port, joint_names=names, stop_policy=stop_policy, latency_ms=100.0 if opts.emulate else 16.0
+        )
 
     def serial():
         from ros_free_bridge.transports.serial_link import SerialLinkTransport
 
         bus = next((b for b in hardware.buses if b.protocol == "serial-link"), None)
         if bus is None:
-            raise BridgeError(f"{files.hardware}: no serial-link bus in the hardware config; add one with protocol: serial-link")
+            raise BridgeError(
+                f"{files.hardware}: no serial-link bus in the hardware config; add one with protocol: serial-link"
+            )
         port = opts.port
         if opts.emulate:
             from ros_free_bridge.emulators.serial_mcu import SerialMcuEmulator
@@ -281,15 +296,27 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
     from ros_free_bridge.partner.core import PartnerCore
     from ros_free_bridge.partner.retarget_stage import RetargetStage
 
-    stand = np.asarray(robot.x_stand)[robot.n_root:]
+    stand = np.asarray(robot.x_stand)[robot.n_root :]
     rest = limits.clip(stand[[robot.joint_names.index(n) for n in names]])
     if opts.partner == "dualflow" and opts.generator == "process":
         from ros_free_bridge.partner.process import GeneratorConfig, GeneratorProcess
 
-        gen = GeneratorProcess(GeneratorConfig(
-            robot=opts.robot, joint_names=list(names), fps=MOTION_FPS, checkpoint=opts.model, window=opts.window,
-            steps=opts.steps, hop=opts.hop, text=opts.text, music=opts.music, max_lag=opts.max_lag,
-            predict_next=opts.predict_next, incremental=opts.incremental))
+        gen = GeneratorProcess(
+            GeneratorConfig(
+                robot=opts.robot,
+                joint_names=list(names),
+                fps=MOTION_FPS,
+                checkpoint=opts.model,
+                window=opts.window,
+                steps=opts.steps,
+                hop=opts.hop,
+                text=opts.text,
+                music=opts.music,
+                max_lag=opts.max_lag,
+                predict_next=opts.predict_next,
+                incremental=opts.incremental,
+            )
+        )
         stack.callback(gen.close)
         return gen.start(), rest
     retarget = RetargetStage(robot, MOTION_FPS, names)
@@ -299,8 +326,9 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
         from ros_free_bridge.partner.reactor import Cues, ReactorStage
 
         stream = StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop, incremental=opts.incremental)
-        reactor = ReactorStage(MOTION_FPS, opts.model, stream, Cues(opts.text, opts.music),
-                               predict_next=opts.predict_next)
+        reactor = ReactorStage(
+            MOTION_FPS, opts.model, stream, Cues(opts.text, opts.music), predict_next=opts.predict_next
+        )
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
 
@@ -321,16 +349,26 @@ class _Robot:
 
 def _loop_config(opts: SessionOptions, rb: _Robot, core) -> LoopConfig:
     hardware = rb.hardware
-    margin = ({} if opts.playback_margin is None and not opts.adaptive_playback else
-              {"playback_margin": ADAPTIVE_MARGIN if opts.playback_margin is None else opts.playback_margin})
-    config = LoopConfig(rate_hz=opts.rate_hz, rest_pose=rb.rest,
-                        stop_policy=opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold"),
-                        adaptive_playback=opts.adaptive_playback,
-                        playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
-                        playback_quantile=opts.playback_quantile, revision_smoothing=opts.revision_smoothing,
-                        **margin, estop_policy=opts.estop_policy, max_duration=opts.max_duration,
-                        handle_signals=opts.handle_signals, realtime_priority=opts.realtime_priority,
-                        stabilizer=opts.stabilizer)
+    margin = (
+        {}
+        if opts.playback_margin is None and not opts.adaptive_playback
+        else {"playback_margin": ADAPTIVE_MARGIN if opts.playback_margin is None else opts.playback_margin}
+    )
+    config = LoopConfig(
+        rate_hz=opts.rate_hz,
+        rest_pose=rb.rest,
+        stop_policy=opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold"),
+        adaptive_playback=opts.adaptive_playback,
+        playback_lead_frames=max(0.0, 1.0 - opts.extrapolate_frames),
+        playback_quantile=opts.playback_quantile,
+        revision_smoothing=opts.revision_smoothing,
+        **margin,
+        estop_policy=opts.estop_policy,
+        max_duration=opts.max_duration,
+        handle_signals=opts.handle_signals,
+        realtime_priority=opts.realtime_priority,
+        stabilizer=opts.stabilizer,
+    )
     if not config.adaptive_playback:  # the adaptive clock follows the measured delay itself
         config.playback_margin = playback_margin(config.playback_margin, core)
     return config
@@ -345,25 +383,51 @@ def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready,
     buffer = TargetBuffer(MOTION_FPS, interpolation="cubic", extrapolate=opts.extrapolate_frames)
     with ExitStack() as stack:
         transport, info = open_transport(opts, rb.files, rb.hardware, rb.names, rb.rest, stack)
-        telemetry = TelemetryWriter(out / "telemetry.dftl", rb.names, opts.rate_hz,
-                                    meta={"robot": rb.files.ref, "actor": opts.actor, "partner": opts.partner,
-                                          "transport": opts.transport, "model": str(opts.model or "bundled")})
-        loop = ControlLoop(transport, rb.limits, buffer, config, telemetry, on_status=on_status,
-                           balance=_balance_model(rb.files, rb.names) if opts.stabilizer else None)
+        telemetry = TelemetryWriter(
+            out / "telemetry.dftl",
+            rb.names,
+            opts.rate_hz,
+            meta={
+                "robot": rb.files.ref,
+                "actor": opts.actor,
+                "partner": opts.partner,
+                "transport": opts.transport,
+                "model": str(opts.model or "bundled"),
+            },
+        )
+        loop = ControlLoop(
+            transport,
+            rb.limits,
+            buffer,
+            config,
+            telemetry,
+            on_status=on_status,
+            balance=_balance_model(rb.files, rb.names) if opts.stabilizer else None,
+        )
         udp = {}
         if opts.actor.startswith("udp://"):
             udp = {"allow_remote": opts.allow_remote_actor, "on_event": telemetry.event}
-        source, described = open_actor_source(opts.actor, opts.seconds, opts.seed, on_estop=loop.estop,
-                                              motion=actor_motion, **udp)
+        source, described = open_actor_source(
+            opts.actor, opts.seconds, opts.seed, on_estop=loop.estop, motion=actor_motion, **udp
+        )
         stack.callback(source.close)
         stats = getattr(source, "stats", None)
         if stats is not None:
             loop.source_stats = stats  # the status line shows its drop counters
-        telemetry.event("session", actor=described, delay_frames=core.delay_frames,
-                        frames_ahead=getattr(core, "frames_ahead", None), generator=_generator_info(opts, core),
-                        playback_margin_s=round(config.playback_margin, 4), playback_quantile=config.playback_quantile,
-                        extrapolate_frames=buffer.extrapolate, revision_smoothing=config.revision_smoothing)
-        pipeline = PartnerPipeline(source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core)
+        telemetry.event(
+            "session",
+            actor=described,
+            delay_frames=core.delay_frames,
+            frames_ahead=getattr(core, "frames_ahead", None),
+            generator=_generator_info(opts, core),
+            playback_margin_s=round(config.playback_margin, 4),
+            playback_quantile=config.playback_quantile,
+            extrapolate_frames=buffer.extrapolate,
+            revision_smoothing=config.revision_smoothing,
+        )
+        pipeline = PartnerPipeline(
+            source, None, None, buffer, loop.ready, record=True, on_event=telemetry.event, core=core
+        )
         pipeline.start()
         stack.callback(pipeline.stop)
         if on_ready is not None:
@@ -377,12 +441,23 @@ def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready,
     result = SessionResult(summary, out, rb.files, transport_info={k: v for k, v in info.items() if k != "emulator"})
     if stats is not None:
         result.source_stats = stats
-        telemetry_events_append(out / "telemetry.dftl", "input", received=stats.received, accepted=stats.accepted,
-                                estops=stats.estops, flooded=stats.flooded, senders=stats.senders, dropped=stats.drops())
-    result.pipeline_info = {**_generator_info(opts, core), "playback_margin_ms": round(1e3 * config.playback_margin, 1),
-                            "frames_dropped": pipeline.frames_dropped,
-                            "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events),
-                            "frames_ahead": getattr(core, "frames_ahead", None)}
+        telemetry_events_append(
+            out / "telemetry.dftl",
+            "input",
+            received=stats.received,
+            accepted=stats.accepted,
+            estops=stats.estops,
+            flooded=stats.flooded,
+            senders=stats.senders,
+            dropped=stats.drops(),
+        )
+    result.pipeline_info = {
+        **_generator_info(opts, core),
+        "playback_margin_ms": round(1e3 * config.playback_margin, 1),
+        "frames_dropped": pipeline.frames_dropped,
+        "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events),
+        "frames_ahead": getattr(core, "frames_ahead", None),
+    }
     cpu = getattr(core, "streaming_cpu_s", float("nan"))
     if np.isfinite(cpu) and len(pipeline.actor_positions):
         # CPU seconds the generator process used per second of actor motion: < 1 fits one core
@@ -460,8 +535,14 @@ def playback_margin(default: float, core) -> float:
 def _generator_info(opts: SessionOptions, core) -> dict:
     if opts.partner != "dualflow":
         return {"generator": "none (imitation)"}
-    info = {"generator": opts.generator, "steps": opts.steps, "hop": opts.hop, "window": opts.window,
-            "incremental": opts.incremental, "predict_next": opts.predict_next}
+    info = {
+        "generator": opts.generator,
+        "steps": opts.steps,
+        "hop": opts.hop,
+        "window": opts.window,
+        "incremental": opts.incremental,
+        "predict_next": opts.predict_next,
+    }
     ready = getattr(core, "ready_info", {})
     if "warmup_window_s" in ready:
         info["warmup_window_ms"] = round(1e3 * ready["warmup_window_s"], 1)

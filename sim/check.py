@@ -31,8 +31,15 @@ from sim.virtual_robot import ImuProbe
 HUMAN_DISTANCE_CAP = 0.1
 
 #: Failure reasons, in the order that breaks ties between failures at the same tick.
-REASONS = ("joint_limit", "speed_limit", "fall", "self_collision", "human_penetration", "torque_saturation",
-           "tracking_error")
+REASONS = (
+    "joint_limit",
+    "speed_limit",
+    "fall",
+    "self_collision",
+    "human_penetration",
+    "torque_saturation",
+    "tracking_error",
+)
 
 #: Warning kinds (measured figures that do not fail a motion).
 WARNINGS = ("foot_slip", "com_outside_support", "zmp_near_edge", "foot_in_floor")
@@ -82,8 +89,10 @@ class CheckConfig:
                 raise SimError(f"check config: {name} must be > 0 Hz, got {v!r}")
         ratio = self.physics_hz / self.control_hz
         if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
-            raise SimError(f"check config: physics_hz ({self.physics_hz:g}) must be a whole multiple of "
-                           f"control_hz ({self.control_hz:g}), e.g. 500 and 100")
+            raise SimError(
+                f"check config: physics_hz ({self.physics_hz:g}) must be a whole multiple of "
+                f"control_hz ({self.control_hz:g}), e.g. 500 and 100"
+            )
         if self.interpolation not in ("linear", "cubic"):
             raise SimError(f"check config: interpolation must be 'linear' or 'cubic', got {self.interpolation!r}")
         if self.mode not in ("free", "fixed"):
@@ -157,13 +166,18 @@ class CheckResult:
     def summary(self) -> dict:
         """JSON-ready dict (no arrays)."""
         return {
-            "robot": self.robot, "mode": self.mode, "passed": self.passed, "reason": self.reason,
+            "robot": self.robot,
+            "mode": self.mode,
+            "passed": self.passed,
+            "reason": self.reason,
             "first_failure_time_s": self.first_failure_time,
             "failures": [asdict(f) for f in self.failures],
             "warnings": [asdict(w) for w in self.warnings],
             "entry_transition_s": self.entry_transition_s,
-            "not_checked": dict(self.not_checked), "notes": list(self.notes),
-            "metrics": self.metrics, "joint_names": list(self.joint_names),
+            "not_checked": dict(self.not_checked),
+            "notes": list(self.notes),
+            "metrics": self.metrics,
+            "joint_names": list(self.joint_names),
             "config": asdict(self.config),
         }
 
@@ -191,12 +205,16 @@ def _as_trajectory(traj) -> RobotTrajectory:
 def _joint_columns(traj: RobotTrajectory, names: tuple[str, ...], robot: str) -> np.ndarray:
     """(T, n) joint angles reordered to the robot's joint order."""
     if traj.n_joints != len(names):
-        raise SimError(f"trajectory: has {traj.n_joints} joints but robot {robot!r} has {len(names)} "
-                       f"({', '.join(names)}); retarget for this robot")
+        raise SimError(
+            f"trajectory: has {traj.n_joints} joints but robot {robot!r} has {len(names)} "
+            f"({', '.join(names)}); retarget for this robot"
+        )
     missing = [j for j in names if j not in traj.joint_names]
     if missing:
-        raise SimError(f"trajectory: joints {missing} of robot {robot!r} are missing (it has "
-                       f"{list(traj.joint_names)}); retarget for this robot")
+        raise SimError(
+            f"trajectory: joints {missing} of robot {robot!r} are missing (it has "
+            f"{list(traj.joint_names)}); retarget for this robot"
+        )
     cols = [traj.joint_names.index(j) for j in names]
     q = traj.joint_pos[:, cols]
     if not np.all(np.isfinite(q)):
@@ -219,9 +237,16 @@ def resample(times: np.ndarray, values: np.ndarray, t_new: np.ndarray, kind: str
 
 
 # -- the check ---------------------------------------------------------------
-def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None = None, actor: Motion | None = None,
-                     actor_placement: Placement | FaceToFace | None = None, on_tick=None,
-                     joint_limits: dict | None = None, no_load_speed=None) -> CheckResult:
+def check_trajectory(
+    traj,
+    config: CheckConfig | None = None,
+    robot: str | None = None,
+    actor: Motion | None = None,
+    actor_placement: Placement | FaceToFace | None = None,
+    on_tick=None,
+    joint_limits: dict | None = None,
+    no_load_speed=None,
+) -> CheckResult:
     """Play ``traj`` (RobotTrajectory or npz path) and judge it. ``robot`` overrides
     ``traj.robot`` (default "op3"); ``actor`` adds the human figure (robot-human
     penetration is then measured), placed by ``actor_placement`` (None: face to face at a
@@ -232,15 +257,23 @@ def check_trajectory(traj, config: CheckConfig | None = None, robot: str | None 
     config = config or CheckConfig()
     config.validate()
     traj = _as_trajectory(traj)
-    scene = scene_for(traj, config, robot, actor, actor_placement, joint_limits=joint_limits,
-                      no_load_speed=no_load_speed)
+    scene = scene_for(
+        traj, config, robot, actor, actor_placement, joint_limits=joint_limits, no_load_speed=no_load_speed
+    )
     return Checker(scene, config).run(traj, on_tick=on_tick)
 
 
-def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = None, actor: Motion | None = None,
-              actor_placement: Placement | FaceToFace | None = None, reactor: Motion | None = None,
-              reactor_placement: Placement | FaceToFace | None = None, joint_limits: dict | None = None,
-              no_load_speed=None) -> Scene:
+def scene_for(
+    traj: RobotTrajectory,
+    config: CheckConfig,
+    robot: str | None = None,
+    actor: Motion | None = None,
+    actor_placement: Placement | FaceToFace | None = None,
+    reactor: Motion | None = None,
+    reactor_placement: Placement | FaceToFace | None = None,
+    joint_limits: dict | None = None,
+    no_load_speed=None,
+) -> Scene:
     """The scene a check of ``traj`` runs in (robot from ``robot``, ``traj.robot`` or op3). The
     actor stands face to face with the robot's first frame unless ``actor_placement`` says
     otherwise; the reactor (the person the robot plays) is drawn where ``reactor_placement`` puts
@@ -249,14 +282,26 @@ def scene_for(traj: RobotTrajectory, config: CheckConfig, robot: str | None = No
     actor_placement = actor_placement or FaceToFace()
     if isinstance(actor_placement, FaceToFace) and actor_placement.path is None and config.mode == "free":
         # keep the partner's distance from the root's planned path, not just its first frame
-        actor_placement = replace(actor_placement, path=tuple(map(tuple, np.round(traj.root_pos[:, :2], 6).tolist())),
-                                  path_fps=float(traj.fps))
-    return Scene(SceneConfig(robot=robot, fixed_base=(config.mode == "fixed"),
-                             base_pos=tuple(traj.root_pos[0]), base_quat=tuple(traj.root_quat[0]),
-                             timestep=1.0 / config.physics_hz, actor=actor,
-                             actor_placement=actor_placement, reactor=reactor,
-                             reactor_placement=reactor_placement or Placement(), joint_limits=joint_limits,
-                             no_load_speed=no_load_speed))
+        actor_placement = replace(
+            actor_placement,
+            path=tuple(map(tuple, np.round(traj.root_pos[:, :2], 6).tolist())),
+            path_fps=float(traj.fps),
+        )
+    return Scene(
+        SceneConfig(
+            robot=robot,
+            fixed_base=(config.mode == "fixed"),
+            base_pos=tuple(traj.root_pos[0]),
+            base_quat=tuple(traj.root_quat[0]),
+            timestep=1.0 / config.physics_hz,
+            actor=actor,
+            actor_placement=actor_placement,
+            reactor=reactor,
+            reactor_placement=reactor_placement or Placement(),
+            joint_limits=joint_limits,
+            no_load_speed=no_load_speed,
+        )
+    )
 
 
 @dataclass
@@ -293,10 +338,21 @@ class _Recording:
     @classmethod
     def empty(cls, t: np.ndarray, q_ref: np.ndarray, model, n_feet: int, k0: int) -> _Recording:
         K, n = q_ref.shape
-        return cls(t, q_ref, q_ref.copy(), np.zeros((K, n)), k0, np.full((K, model.nq), np.nan),
-                   np.full((K, model.nv), np.nan), np.full((K, model.nu), np.nan), np.full((K, 3), np.nan),
-                   np.full((K, n_feet, 3), np.nan), np.full((K, n_feet, 9), np.nan), np.full(K, np.inf),
-                   np.zeros(K, int))
+        return cls(
+            t,
+            q_ref,
+            q_ref.copy(),
+            np.zeros((K, n)),
+            k0,
+            np.full((K, model.nq), np.nan),
+            np.full((K, model.nv), np.nan),
+            np.full((K, model.nu), np.nan),
+            np.full((K, 3), np.nan),
+            np.full((K, n_feet, 3), np.nan),
+            np.full((K, n_feet, 9), np.nan),
+            np.full(K, np.inf),
+            np.zeros(K, int),
+        )
 
     def record_contacts(self, k: int, data) -> None:
         nc = data.ncon
@@ -308,7 +364,7 @@ class _Recording:
             self.con_pos.append(c.pos.copy())
             self.con_efc.append(c.efc_address.copy())
             self.con_dim.append(c.dim.copy())
-            self.efc_force.append(data.efc_force[:data.nefc].copy())
+            self.efc_force.append(data.efc_force[: data.nefc].copy())
 
 
 @dataclass
@@ -345,7 +401,6 @@ class Series:
     has_actor: bool
 
 
-
 class Checker:
     """Runs one trajectory through one scene and collects the measurements."""
 
@@ -379,13 +434,35 @@ class Checker:
         metrics = self._metrics(traj, s)
         first = failures[0] if failures else None
         K = s.k_run
-        series = {"t": s.t[:K], "q": s.q[:K], "q_cmd": s.q_cmd[:K], "torque": s.tau[:K],
-                  "root_height": s.root_h[:K], "tilt_deg": s.tilt[:K], "com_margin": s.margin[:K],
-                  "zmp_margin": s.zmp_margin[:K], "correction": s.correction[:K]}
-        return CheckResult(sc.config.robot, "fixed" if r.fixed_base else "free", first is None,
-                           first.reason if first else "ok", first.time if first else None, failures, metrics,
-                           r.joint_names, r.lower, r.upper, series, cfg, self.not_checked(), self.notes(), warnings,
-                           float(k0 * dt))
+        series = {
+            "t": s.t[:K],
+            "q": s.q[:K],
+            "q_cmd": s.q_cmd[:K],
+            "torque": s.tau[:K],
+            "root_height": s.root_h[:K],
+            "tilt_deg": s.tilt[:K],
+            "com_margin": s.margin[:K],
+            "zmp_margin": s.zmp_margin[:K],
+            "correction": s.correction[:K],
+        }
+        return CheckResult(
+            sc.config.robot,
+            "fixed" if r.fixed_base else "free",
+            first is None,
+            first.reason if first else "ok",
+            first.time if first else None,
+            failures,
+            metrics,
+            r.joint_names,
+            r.lower,
+            r.upper,
+            series,
+            cfg,
+            self.not_checked(),
+            self.notes(),
+            warnings,
+            float(k0 * dt),
+        )
 
     def _play(self, q_ref: np.ndarray, t: np.ndarray, k0: int, on_tick) -> _Recording:
         """Play the commands ``q_ref`` (K, n), through the stabilizer when it is on, and record
@@ -400,7 +477,7 @@ class Checker:
         cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg)) if free else -2.0
         act = r.actuator_ids
         a0 = int(act[0])
-        ctrl = d.ctrl[a0:a0 + len(act)] if np.array_equal(act, np.arange(a0, a0 + len(act))) else None
+        ctrl = d.ctrl[a0 : a0 + len(act)] if np.array_equal(act, np.arange(a0, a0 + len(act))) else None
         root = r.root_body
         root_xpos, root_xmat, root_com = d.xpos[root], d.xmat[root], d.subtree_com[root]
         d_qpos, d_qvel, d_force, d_xpos, d_xmat = d.qpos, d.qvel, d.actuator_force, d.xpos, d.xmat
@@ -461,13 +538,29 @@ class Checker:
         sole = np.array([f.sole_point for f in self.feet]).reshape(-1, 3)
         foot_xy = (rec.foot_x + np.einsum("kfij,fj->kfi", rec.foot_R.reshape(K, -1, 3, 3), sole))[:, :, :2]
         contacts = self.contacts.classify_many(K, rec.con_count, rec.con_geom, rec.con_dist, rec.con_pos)
-        s = Series(t=rec.t, q_cmd=rec.q_cmd, correction=rec.correction, q=rec.qpos[:, r.qpos_adr],
-                   qd=rec.qvel[:, r.dof_adr], tau=r.joint_torques(rec.force), root_h=xpos[:, 2],
-                   tilt=np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0))), contacts=contacts,
-                   self_pairs={tuple(sorted((geom_label(m, a), geom_label(m, b)))) for a, b in contacts.self_pairs},
-                   human_min=rec.human_min, margin=np.full(K, np.nan), zmp_margin=np.full(K, np.nan), stances=[],
-                   k_run=rec.k_run, fall_k=None, k0=rec.k0, stand_h=sc.stand_root_height if free else np.nan,
-                   dt=dt, free=free, has_actor=sc.actor is not None)
+        s = Series(
+            t=rec.t,
+            q_cmd=rec.q_cmd,
+            correction=rec.correction,
+            q=rec.qpos[:, r.qpos_adr],
+            qd=rec.qvel[:, r.dof_adr],
+            tau=r.joint_torques(rec.force),
+            root_h=xpos[:, 2],
+            tilt=np.degrees(np.arccos(np.clip(root_zz, -1.0, 1.0))),
+            contacts=contacts,
+            self_pairs={tuple(sorted((geom_label(m, a), geom_label(m, b)))) for a, b in contacts.self_pairs},
+            human_min=rec.human_min,
+            margin=np.full(K, np.nan),
+            zmp_margin=np.full(K, np.nan),
+            stances=[],
+            k_run=rec.k_run,
+            fall_k=None,
+            k0=rec.k0,
+            stand_h=sc.stand_root_height if free else np.nan,
+            dt=dt,
+            free=free,
+            has_actor=sc.actor is not None,
+        )
         if free:
             fall_h = cfg.fall_height_frac * s.stand_h if cfg.fall_height_frac > 0 else -np.inf
             cos_tilt = math.cos(math.radians(cfg.fall_tilt_deg))
@@ -477,14 +570,16 @@ class Checker:
             if s.fall_k is not None:  # what follows a fall (a touch without tilting on) is not judged
                 s.k_run = min(K_run, s.fall_k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
         if len(self.feet):
-            on = contacts.foot_on_floor([f.bodies for f in self.feet])[:s.k_run]  # (k_run, n_feet)
-            s.stances = [_stance_slides(on[:, i], foot_xy[:s.k_run, i], int(round(cfg.stance_gap_s / dt)))
-                         for i in range(len(self.feet))]
+            on = contacts.foot_on_floor([f.bodies for f in self.feet])[: s.k_run]  # (k_run, n_feet)
+            s.stances = [
+                _stance_slides(on[:, i], foot_xy[: s.k_run, i], int(round(cfg.stance_gap_s / dt)))
+                for i in range(len(self.feet))
+            ]
         if free:  # centre of mass, and the measured ZMP (centre of pressure), to the support polygon (+ inside)
-            s.margin[:s.k_run] = contacts.support_margins(rec.com[:s.k_run, :2])
+            s.margin[: s.k_run] = contacts.support_margins(rec.com[: s.k_run, :2])
             fn = _normal_forces(rec.con_efc, rec.con_dim, rec.efc_force, m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL)
             cop, _ = contacts.centre_of_pressure(fn)
-            s.zmp_margin[:s.k_run] = contacts.support_margins(cop[:s.k_run])
+            s.zmp_margin[: s.k_run] = contacts.support_margins(cop[: s.k_run])
         return s
 
     def _mark_entry(self, s: Series, failures: list, warnings: list) -> None:
@@ -498,8 +593,10 @@ class Checker:
             if onset < s.k0:  # it was already going over when the clip began: the first pose was not reached
                 f = next(f for f in failures if f.reason == "fall")
                 f.phase = "entry"
-                f.detail += (f"; tipping since {s.t[onset]:.2f} s, while entering the clip's first pose from "
-                             "standing (a first pose the robot cannot hold still, e.g. mid-step)")
+                f.detail += (
+                    f"; tipping since {s.t[onset]:.2f} s, while entering the clip's first pose from "
+                    "standing (a first pose the robot cannot hold still, e.g. mid-step)"
+                )
 
     def _metrics(self, traj: RobotTrajectory, s: Series) -> dict:
         cfg, sc, m, r = self.config, self.scene, self.scene.model, self.scene.robot
@@ -514,15 +611,17 @@ class Checker:
             "simulated_s": float(K_run * dt),
             "entry_transition_s": float(s.k0 * dt),
             "entry": dict(self.entry),
-            "control_hz": cfg.control_hz, "physics_hz": cfg.physics_hz,
-            "tracking_rms_rad": _per_joint(names, np.sqrt(np.nanmean(err ** 2, axis=0))),
+            "control_hz": cfg.control_hz,
+            "physics_hz": cfg.physics_hz,
+            "tracking_rms_rad": _per_joint(names, np.sqrt(np.nanmean(err**2, axis=0))),
             "tracking_max_rad": _per_joint(names, np.nanmax(err, axis=0)),
             "torque_saturation_s": _per_joint(names, sat.sum(axis=0) * dt),
             "max_abs_torque_nm": _per_joint(names, np.nanmax(np.abs(s.tau[:K_run]), axis=0)),
             "stall_torque_nm": _per_joint(names, r.stall_torque),
             "no_load_speed_rad_s": _per_joint(names, r.no_load_speed),
-            "speed_limit_hits": {j: int(v) for j, v in
-                                 zip(names, (cmd_speed > cfg.speed_tolerance * r.no_load_speed).sum(axis=0))},
+            "speed_limit_hits": {
+                j: int(v) for j, v in zip(names, (cmd_speed > cfg.speed_tolerance * r.no_load_speed).sum(axis=0))
+            },
             "max_command_speed_rad_s": _per_joint(names, cmd_speed.max(axis=0)),
             "max_measured_speed_rad_s": _per_joint(names, np.nanmax(np.abs(s.qd[:K_run]), axis=0)),
             "self_collision_ticks": int((s.contacts.self_min[:K_run] < -cfg.self_collision_depth).sum()),
@@ -533,9 +632,14 @@ class Checker:
             "min_human_distance_m": _finite(s.human_min[:K_run].min()) if s.has_actor else None,
             "foot_slip_m": [float(max((st[2] for st in fs), default=0.0)) for fs in s.stances],
             "stances": [len(fs) for fs in s.stances],
-            "worst_stance": None if worst is None else {
-                "foot": self.feet[worst[1]].side, "start_s": float(s.t[worst[2][0]]),
-                "end_s": float(s.t[worst[2][1] - 1]), "slide_m": float(worst[0])},
+            "worst_stance": None
+            if worst is None
+            else {
+                "foot": self.feet[worst[1]].side,
+                "start_s": float(s.t[worst[2][0]]),
+                "end_s": float(s.t[worst[2][1] - 1]),
+                "slide_m": float(worst[0]),
+            },
             "min_com_margin_m": _finite(np.nanmin(margin)) if free and np.isfinite(margin).any() else None,
             "min_zmp_margin_m": _finite(np.nanmin(zmp)) if free and np.isfinite(zmp).any() else None,
             "no_support_s": float(np.isnan(margin[:K_run]).sum() * dt) if free else None,
@@ -548,9 +652,15 @@ class Checker:
         metrics["no_load_speed_source"] = {j: (src or None) for j, src in zip(names, r.speed_source)}
         metrics["feet"] = {f.side: [m.body(b).name or f"body {b}" for b in f.bodies] for f in self.feet}
         p = sc.actor_placement
-        metrics["actor_placement"] = None if not s.has_actor else {
-            "scale": float(p.resolve_scale(sc.actor.motion, sc.robot_height)), "offset_m": [float(v) for v in p.offset],
-            "yaw_deg": float(p.yaw_deg)}
+        metrics["actor_placement"] = (
+            None
+            if not s.has_actor
+            else {
+                "scale": float(p.resolve_scale(sc.actor.motion, sc.robot_height)),
+                "offset_m": [float(v) for v in p.offset],
+                "yaw_deg": float(p.yaw_deg),
+            }
+        )
         return metrics
 
     def _start(self, traj: RobotTrajectory, q0: np.ndarray) -> np.ndarray:
@@ -568,22 +678,25 @@ class Checker:
         sc.reset()  # standing pose, humans at their first frame
         if not r.fixed_base:  # at the first frame's place and heading; the stand's height and lean kept
             a = r.free_qpos
-            stand_quat = d.qpos[a + 3:a + 7].copy()
+            stand_quat = d.qpos[a + 3 : a + 7].copy()
             turn = _yaw(traj.root_quat[0]) - _yaw(stand_quat)
             quat = np.zeros(4)
             mujoco.mju_mulQuat(quat, np.array([math.cos(turn / 2), 0.0, 0.0, math.sin(turn / 2)]), stand_quat)
-            d.qpos[a:a + 2] = traj.root_pos[0, :2]
-            d.qpos[a + 3:a + 7] = quat
+            d.qpos[a : a + 2] = traj.root_pos[0, :2]
+            d.qpos[a + 3 : a + 7] = quat
             mujoco.mj_forward(m, d)
         start = sc.stand_ctrl.copy()
         self._settle(start, settle)
         duration = entry_duration(start, q0, r.no_load_speed, cfg.entry_speed_frac, cfg.entry_min_s)
         k0 = int(math.ceil(duration * cfg.control_hz - 1e-9))
         j = int(np.argmax(np.abs(q0 - start)))
-        self.entry = {"duration_s": k0 / cfg.control_hz, "largest_move_rad": float(abs(q0[j] - start[j])),
-                      "largest_move_joint": r.joint_names[j]}
+        self.entry = {
+            "duration_s": k0 / cfg.control_hz,
+            "largest_move_rad": float(abs(q0[j] - start[j])),
+            "largest_move_joint": r.joint_names[j],
+        }
         s = np.arange(k0) / k0  # the tick at t = 0 plays q0 itself (s = 1): it is the clip's first
-        return start + (q0 - start) * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)[:, None]
+        return start + (q0 - start) * (10 * s**3 - 15 * s**4 + 6 * s**5)[:, None]
 
     def _settle(self, q: np.ndarray, steps: int) -> None:
         """Hold goals ``q`` (n,) for ``steps`` physics steps, through the stabilizer (when on) at
@@ -606,53 +719,76 @@ class Checker:
         """Whether the stabilizer was on, why not, and its largest correction."""
         cfg, sc = self.config, self.scene
         if self.stabilizer is None:
-            why = ("turned off (--no-stabilizer)" if not cfg.stabilizer else
-                   "fixed base" if sc.robot.fixed_base or not sc.floating else
-                   "no two legs with ankle joints found from the root to the feet")
+            why = (
+                "turned off (--no-stabilizer)"
+                if not cfg.stabilizer
+                else "fixed base"
+                if sc.robot.fixed_base or not sc.floating
+                else "no two legs with ankle joints found from the root to the feet"
+            )
             return {"on": False, "why_off": why}
         c = np.abs(correction[:k_run]) if k_run else np.zeros((1, sc.robot.n))
         k, j = np.unravel_index(int(np.argmax(c)), c.shape) if c.size else (0, 0)
         g = self.balance.gains
-        return {"on": True, "max_correction_rad": float(c.max()) if c.size else 0.0,
-                "max_correction_joint": sc.robot.joint_names[j], "max_correction_time_s": float(t[k]) if k_run else None,
-                "gains": {k_: float(v) for k_, v in asdict(g).items()}, "notes": list(self.balance.notes)}
+        return {
+            "on": True,
+            "max_correction_rad": float(c.max()) if c.size else 0.0,
+            "max_correction_joint": sc.robot.joint_names[j],
+            "max_correction_time_s": float(t[k]) if k_run else None,
+            "gains": {k_: float(v) for k_, v in asdict(g).items()},
+            "notes": list(self.balance.notes),
+        }
 
     def not_checked(self) -> dict[str, str]:
         """Reason -> why it could not be judged (for all joints or the ones named)."""
         r, sc, out = self.scene.robot, self.scene, {}
         joints = r.unchecked("joint_limit")
         if joints:
-            out["joint_limit"] = (f"limits not checked for joints {', '.join(joints)}: the MJCF gives them no range and "
-                                  "neither the retarget profile (joint_limits), the hardware config (limits), the "
-                                  "actuator (ctrlrange) nor the caller (joint_limits) does")
+            out["joint_limit"] = (
+                f"limits not checked for joints {', '.join(joints)}: the MJCF gives them no range and "
+                "neither the retarget profile (joint_limits), the hardware config (limits), the "
+                "actuator (ctrlrange) nor the caller (joint_limits) does"
+            )
         joints = r.unchecked("speed_limit")
         if joints:
             which = "any joint" if len(joints) == r.n else f"joints {', '.join(joints)}"
-            out["speed_limit"] = (f"servo speed not checked for {which}: no no-load speed is known (give the MJCF a "
-                                  "`<custom><numeric name=\"servo_no_load_speed\" data=\"RAD_S\"/></custom>`, name the "
-                                  "servo model in the robot's hardware.yaml, or pass no_load_speed)")
+            out["speed_limit"] = (
+                f"servo speed not checked for {which}: no no-load speed is known (give the MJCF a "
+                '`<custom><numeric name="servo_no_load_speed" data="RAD_S"/></custom>`, name the '
+                "servo model in the robot's hardware.yaml, or pass no_load_speed)"
+            )
         joints = r.unchecked("torque_saturation")
         if joints:
             which = "any joint" if len(joints) == r.n else f"joints {', '.join(joints)}"
-            out["torque_saturation"] = (f"torque saturation not checked for {which}: no force limit (actuator "
-                                        "forcerange or joint actuatorfrcrange) in the MJCF")
+            out["torque_saturation"] = (
+                f"torque saturation not checked for {which}: no force limit (actuator "
+                "forcerange or joint actuatorfrcrange) in the MJCF"
+            )
         if sc.floating and not r.fixed_base and len(r.feet) < 2:
             found = ", ".join(f.side for f in r.feet) or "none"
-            out["foot_slip"] = (f"feet not found (found: {found}): the robot has no contact geoms on one side of its "
-                                "root's y axis; foot slip is not measured and any floor contact counts as a fall")
+            out["foot_slip"] = (
+                f"feet not found (found: {found}): the robot has no contact geoms on one side of its "
+                "root's y axis; foot slip is not measured and any floor contact counts as a fall"
+            )
         return out
 
     def notes(self) -> list[str]:
         r, sc, out = self.scene.robot, self.scene, []
-        for src, what in (("ctrlrange", "the actuators' ctrlrange"), ("profile", "the retarget profile"),
-                          ("hardware", "the hardware config"), ("given", "the caller")):
+        for src, what in (
+            ("ctrlrange", "the actuators' ctrlrange"),
+            ("profile", "the retarget profile"),
+            ("hardware", "the hardware config"),
+            ("given", "the caller"),
+        ):
             joints = [j for j, s in zip(r.joint_names, r.limit_source) if s == src]
             if joints:
                 out.append(f"joint limits from {what} (no range in the MJCF) for {', '.join(joints)}")
         out += list(sc.facts.notes)
         if sc.stand_source == "derived":
-            out.append("no 'stand' keyframe: standing pose derived (joints at 0 clipped into their limits, lowest "
-                       "contact geom on the floor)")
+            out.append(
+                "no 'stand' keyframe: standing pose derived (joints at 0 clipped into their limits, lowest "
+                "contact geom on the floor)"
+            )
         return out
 
     def _judge(self, s: Series) -> list[Failure]:
@@ -666,15 +802,26 @@ class Checker:
         above = q_cmd > r.upper + 1e-6
         if (below | above).any():
             k, j = np.argwhere(below | above)[0]
-            out.append(Failure("joint_limit", float(t[k]), f"{names[j]} commanded {q_cmd[k, j]:.3f} rad outside "
-                               f"[{r.lower[j]:.3f}, {r.upper[j]:.3f}]"))
+            out.append(
+                Failure(
+                    "joint_limit",
+                    float(t[k]),
+                    f"{names[j]} commanded {q_cmd[k, j]:.3f} rad outside [{r.lower[j]:.3f}, {r.upper[j]:.3f}]",
+                )
+            )
         if len(t) > 1:
             speed = np.abs(np.diff(q_cmd, axis=0)) / dt
             hit = speed > cfg.speed_tolerance * r.no_load_speed
             if hit.any():
                 k, j = np.argwhere(hit)[0]
-                out.append(Failure("speed_limit", float(t[k]), f"{names[j]} commanded at {speed[k, j]:.2f} rad/s, "
-                                   f"above the servo's no-load speed {r.no_load_speed[j]:.2f} rad/s"))
+                out.append(
+                    Failure(
+                        "speed_limit",
+                        float(t[k]),
+                        f"{names[j]} commanded at {speed[k, j]:.2f} rad/s, "
+                        f"above the servo's no-load speed {r.no_load_speed[j]:.2f} rad/s",
+                    )
+                )
         if fall_k is not None:
             if contacts.non_foot[fall_k]:
                 parts = ", ".join(body_label(m, b) for b in contacts.non_foot_bodies(fall_k))
@@ -686,35 +833,65 @@ class Checker:
             out.append(Failure("fall", float(t[fall_k]), why))
         k = _first(self_min[:K_run] < -cfg.self_collision_depth)
         if k is not None:
-            out.append(Failure("self_collision", float(t[k]), f"robot parts collide ({-self_min[k] * 1000:.1f} mm deep) "
-                               f"({', '.join(sorted(' / '.join(p) for p in s.self_pairs)) or 'see report'})"))
+            out.append(
+                Failure(
+                    "self_collision",
+                    float(t[k]),
+                    f"robot parts collide ({-self_min[k] * 1000:.1f} mm deep) "
+                    f"({', '.join(sorted(' / '.join(p) for p in s.self_pairs)) or 'see report'})",
+                )
+            )
         if s.has_actor:
             k = _first(human_min[:K_run] < -cfg.human_penetration_depth)
             if k is not None:
-                out.append(Failure("human_penetration", float(t[k]), f"robot enters the human figure by {-human_min[k] * 1000:.1f} mm"))
+                out.append(
+                    Failure(
+                        "human_penetration",
+                        float(t[k]),
+                        f"robot enters the human figure by {-human_min[k] * 1000:.1f} mm",
+                    )
+                )
         sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
         w = int(round(cfg.saturation_window_s / dt))
         firsts = [(_first_sustained(sat[:, j], w), j) for j in range(r.n)]
         firsts = [(k, j) for k, j in firsts if k is not None]
         if firsts:
             k, j = min(firsts)
-            out.append(Failure("torque_saturation", float(t[k]), f"{names[j]} at its stall torque {r.stall_torque[j]:g} N m "
-                               f"for over {cfg.saturation_window_s:g} s"))
+            out.append(
+                Failure(
+                    "torque_saturation",
+                    float(t[k]),
+                    f"{names[j]} at its stall torque {r.stall_torque[j]:g} N m for over {cfg.saturation_window_s:g} s",
+                )
+            )
         err = np.abs(q[:K_run] - q_cmd[:K_run])
         w = int(round(cfg.tracking_window_s / dt))
         firsts = [(_first_sustained(err[:, j] > cfg.max_tracking_error, w), j) for j in range(r.n)]
         firsts = [(k, j) for k, j in firsts if k is not None]
         if firsts:
             k, j = min(firsts)
-            out.append(Failure("tracking_error", float(t[k]), f"{names[j]} lags its command by over "
-                               f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s"))
+            out.append(
+                Failure(
+                    "tracking_error",
+                    float(t[k]),
+                    f"{names[j]} lags its command by over "
+                    f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s",
+                )
+            )
         return out
 
     def _warn(self, s: Series) -> list[CheckWarning]:
         """The measured figures beyond their warning levels (module docstring)."""
         cfg, sc = self.config, self.scene
-        t, contacts, stances, margin, zmp_margin, K_run, dt = (s.t, s.contacts, s.stances, s.margin, s.zmp_margin,
-                                                               s.k_run, s.dt)
+        t, contacts, stances, margin, zmp_margin, K_run, dt = (
+            s.t,
+            s.contacts,
+            s.stances,
+            s.margin,
+            s.zmp_margin,
+            s.k_run,
+            s.dt,
+        )
         out: list[CheckWarning] = []
         level = cfg.foot_slip_frac * sc.robot_height
         for foot, fs in zip(self.feet, stances):
@@ -723,37 +900,65 @@ class Checker:
                 s0, s1, slide, _, _ = max(over, key=lambda s: s[2])
                 rate = slide / max((s1 - s0) * dt, dt) * 1000
                 first = _first_over(over[0], level)
-                more = (f"; {len(over)} of its {len(fs)} stances slid over that, the first from {t[first]:.2f} s"
-                        if len(over) > 1 else "")
-                out.append(CheckWarning("foot_slip", float(t[first]), f"the {foot.side} foot "
-                                        f"({body_label(sc.model, foot.body)}) slid {slide * 1000:.1f} mm within one "
-                                        f"stance (the stance from {t[s0]:.2f} s to {t[s1 - 1]:.2f} s, {rate:.1f} mm/s "
-                                        f"on average), over the warning level {level * 1000:.1f} mm "
-                                        f"({cfg.foot_slip_frac:g} x robot height){more}"))
+                more = (
+                    f"; {len(over)} of its {len(fs)} stances slid over that, the first from {t[first]:.2f} s"
+                    if len(over) > 1
+                    else ""
+                )
+                out.append(
+                    CheckWarning(
+                        "foot_slip",
+                        float(t[first]),
+                        f"the {foot.side} foot "
+                        f"({body_label(sc.model, foot.body)}) slid {slide * 1000:.1f} mm within one "
+                        f"stance (the stance from {t[s0]:.2f} s to {t[s1 - 1]:.2f} s, {rate:.1f} mm/s "
+                        f"on average), over the warning level {level * 1000:.1f} mm "
+                        f"({cfg.foot_slip_frac:g} x robot height){more}",
+                    )
+                )
         k = _first(contacts.foot_floor_min[:K_run] < -cfg.ground_penetration_depth)
         if k is not None:
             deepest = -contacts.foot_floor_min[:K_run].min()
-            out.append(CheckWarning("foot_in_floor", float(t[k]), f"a foot is {deepest * 1000:.1f} mm into the floor "
-                                    f"(over {cfg.ground_penetration_depth * 1000:g} mm): the soft contact gives under "
-                                    "the load; the sole would press harder on a real floor"))
+            out.append(
+                CheckWarning(
+                    "foot_in_floor",
+                    float(t[k]),
+                    f"a foot is {deepest * 1000:.1f} mm into the floor "
+                    f"(over {cfg.ground_penetration_depth * 1000:g} mm): the soft contact gives under "
+                    "the load; the sole would press harder on a real floor",
+                )
+            )
         if s.free:
             w = int(round(cfg.balance_window_s / dt))
             k = _first_sustained(margin[:K_run] < -cfg.balance_margin, w)
             if k is not None:
-                worst = -np.nanmin(margin[k:k + w + 1])
-                out.append(CheckWarning("com_outside_support", float(t[k]), f"centre of mass up to {worst * 1000:.0f} mm "
-                                        f"outside the support polygon for over {cfg.balance_window_s:g} s (held "
-                                        "still there, the robot would tip)"))
+                worst = -np.nanmin(margin[k : k + w + 1])
+                out.append(
+                    CheckWarning(
+                        "com_outside_support",
+                        float(t[k]),
+                        f"centre of mass up to {worst * 1000:.0f} mm "
+                        f"outside the support polygon for over {cfg.balance_window_s:g} s (held "
+                        "still there, the robot would tip)",
+                    )
+                )
             k = _first_sustained(zmp_margin[:K_run] < cfg.zmp_edge_margin, w)
             if k is not None:
-                out.append(CheckWarning("zmp_near_edge", float(t[k]), f"the measured ZMP (the feet's centre of "
-                                        f"pressure) within {cfg.zmp_edge_margin * 1000:g} mm of the support polygon's "
-                                        f"edge for over {cfg.balance_window_s:g} s: a foot is rolling over an edge"))
+                out.append(
+                    CheckWarning(
+                        "zmp_near_edge",
+                        float(t[k]),
+                        f"the measured ZMP (the feet's centre of "
+                        f"pressure) within {cfg.zmp_edge_margin * 1000:g} mm of the support polygon's "
+                        f"edge for over {cfg.balance_window_s:g} s: a foot is rolling over an edge",
+                    )
+                )
         return out
 
 
-def entry_duration(q_from: np.ndarray, q_to: np.ndarray, no_load_speed: np.ndarray, speed_frac: float = 0.5,
-                   minimum: float = 0.5) -> float:
+def entry_duration(
+    q_from: np.ndarray, q_to: np.ndarray, no_load_speed: np.ndarray, speed_frac: float = 0.5, minimum: float = 0.5
+) -> float:
     """Duration (s) of the minimum-jerk move from ``q_from`` to ``q_to`` (n,) rad whose fastest
     joint peaks at ``speed_frac`` of its servo's no-load speed (n,) rad/s (unknown, +inf or NaN:
     :data:`UNKNOWN_ENTRY_SPEED`): T = max(minimum, max_j 1.875 |dq_j| / (speed_frac v_j)), 1.875
@@ -791,7 +996,7 @@ def _stance_slides(on: np.ndarray, xy: np.ndarray, gap: int) -> list[tuple[int, 
         idx = np.flatnonzero(on)
         step = np.diff(idx)
         for i in np.flatnonzero((step > 1) & (step <= gap)):  # fewer than gap off-ticks between two on-ticks
-            on[idx[i]:idx[i + 1]] = True
+            on[idx[i] : idx[i + 1]] = True
     edges = np.diff(np.concatenate([[0], on.astype(np.int8), [0]]))
     starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     out = []
@@ -830,8 +1035,9 @@ def _normal_forces(adrs: list, dims: list, efcs: list, pyramidal: bool) -> np.nd
     return out
 
 
-def _root_pose_series(qpos: np.ndarray, free_qpos: int, xpos_now: np.ndarray, xmat_now: np.ndarray,
-                        k_run: int) -> tuple[np.ndarray, np.ndarray]:
+def _root_pose_series(
+    qpos: np.ndarray, free_qpos: int, xpos_now: np.ndarray, xmat_now: np.ndarray, k_run: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Root body position (K, 3) and the z-z entry of its rotation matrix (K,) (the
     cosine of the torso tilt) per tick, NaN after ``k_run``.
 
@@ -841,8 +1047,8 @@ def _root_pose_series(qpos: np.ndarray, free_qpos: int, xpos_now: np.ndarray, xm
     ``xpos_now`` (3,) / ``xmat_now`` (9,) holds for every tick."""
     K = len(qpos)
     if free_qpos >= 0:
-        pos = qpos[:, free_qpos:free_qpos + 3].copy()
-        w, x, y, z = qpos[:, free_qpos + 3:free_qpos + 7].T
+        pos = qpos[:, free_qpos : free_qpos + 3].copy()
+        w, x, y, z = qpos[:, free_qpos + 3 : free_qpos + 7].T
         zz = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
     else:
         pos = np.tile(xpos_now, (K, 1))

@@ -59,7 +59,9 @@ class ContactLog:
         self.self_pairs = sorted({tuple(p) for p in np.sort(g[pen], axis=1).tolist()})
         gf = g[floorc]
         self._floor_tick = tick[floorc]
-        self._floor_body = cls.geom_body[np.where(is_floor[floorc, 0], gf[:, 1], gf[:, 0])] if len(gf) else np.zeros(0, int)
+        self._floor_body = (
+            cls.geom_body[np.where(is_floor[floorc, 0], gf[:, 1], gf[:, 0])] if len(gf) else np.zeros(0, int)
+        )
         self._floor_pos = pos[floorc]
         self._floor_mask = floorc
         self._floor_foot = cls.is_foot_body[self._floor_body]
@@ -103,16 +105,17 @@ class ContactLog:
 
     def floor_points(self, k: int) -> np.ndarray:
         """(c, 2) xy of the robot-floor contact points at tick k."""
-        return self._floor_pos[self._starts[k]:self._starts[k + 1]]
+        return self._floor_pos[self._starts[k] : self._starts[k + 1]]
 
     def support_margins(self, com_xy: np.ndarray) -> np.ndarray:
         """(K',) margin (m) of the centre of mass ``com_xy`` (K', 2), K' <= K, to the
         support polygon of each tick's floor contacts; NaN with no floor contact."""
-        return SupportMargin().many_flat(com_xy, self._floor_pos, self._starts[:len(com_xy) + 1])
+        return SupportMargin().many_flat(com_xy, self._floor_pos, self._starts[: len(com_xy) + 1])
 
 
-def min_distance(model: mujoco.MjModel, data: mujoco.MjData, geoms_a: np.ndarray, geoms_b: np.ndarray,
-                 distmax: float = 0.05) -> float:
+def min_distance(
+    model: mujoco.MjModel, data: mujoco.MjData, geoms_a: np.ndarray, geoms_b: np.ndarray, distmax: float = 0.05
+) -> float:
     """Smallest signed distance (m) between two geom sets, capped at ``distmax``.
 
     Pairs whose bounding spheres are farther apart than ``distmax`` are skipped
@@ -143,8 +146,11 @@ class SupportMargin:
         """Margins (K,) of points (K, 2) to the polygons of ``contacts_xy`` (K arrays
         (c_k, 2)); NaN where a tick has no contact."""
         counts = np.array([len(c) for c in contacts_xy], dtype=np.int64)
-        flat = np.concatenate([np.asarray(c, np.float64).reshape(-1, 2) for c in contacts_xy]) if len(contacts_xy) \
+        flat = (
+            np.concatenate([np.asarray(c, np.float64).reshape(-1, 2) for c in contacts_xy])
+            if len(contacts_xy)
             else np.zeros((0, 2))
+        )
         return self.many_flat(points_xy, flat, np.concatenate([[0], np.cumsum(counts)]))
 
     def many_flat(self, points_xy: np.ndarray, contact_xy: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -155,10 +161,10 @@ class SupportMargin:
         out = np.full(K, np.nan)
         if K == 0:
             return out
-        runs = np.flatnonzero(~self._same_as_previous(contact_xy, starts[:K + 1]))
+        runs = np.flatnonzero(~self._same_as_previous(contact_xy, starts[: K + 1]))
         bounds = np.append(runs, K)
         for s, e in zip(bounds[:-1], bounds[1:]):
-            c = contact_xy[starts[s]:starts[s + 1]]
+            c = contact_xy[starts[s] : starts[s + 1]]
             if len(c):
                 out[s:e] = _margins_to(points_xy[s:e], c)
         return out

@@ -144,8 +144,17 @@ class HumanFigure:
     (renderers toggle groups to show or hide a figure).
     """
 
-    def __init__(self, spec: mujoco.MjSpec, prefix: str, motion: Motion, scale: float, placement: Placement,
-                 rgba=(0.85, 0.55, 0.35, 0.8), radius: float = 0.05, group: int = 3):
+    def __init__(
+        self,
+        spec: mujoco.MjSpec,
+        prefix: str,
+        motion: Motion,
+        scale: float,
+        placement: Placement,
+        rgba=(0.85, 0.55, 0.35, 0.8),
+        radius: float = 0.05,
+        group: int = 3,
+    ):
         self.prefix = prefix
         self.motion = motion
         self.positions = place(motion.positions, scale, placement)  # (T, 22, 3)
@@ -155,11 +164,25 @@ class HumanFigure:
         for k, joint in enumerate(range(1, len(PARENTS))):
             body = spec.worldbody.add_body(name=f"{prefix}bone{joint}", mocap=True)
             half = max(self.lengths[k] / 2.0 - r * 0.5, 1e-4)
-            body.add_geom(name=f"{prefix}bone{joint}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[r, half, 0],
-                          rgba=list(rgba), contype=0, conaffinity=0, group=group)
+            body.add_geom(
+                name=f"{prefix}bone{joint}",
+                type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                size=[r, half, 0],
+                rgba=list(rgba),
+                contype=0,
+                conaffinity=0,
+                group=group,
+            )
         head = spec.worldbody.add_body(name=f"{prefix}head", mocap=True)
-        head.add_geom(name=f"{prefix}head", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[1.8 * r, 0, 0],
-                      rgba=list(rgba), contype=0, conaffinity=0, group=group)
+        head.add_geom(
+            name=f"{prefix}head",
+            type=mujoco.mjtGeom.mjGEOM_SPHERE,
+            size=[1.8 * r, 0, 0],
+            rgba=list(rgba),
+            contype=0,
+            conaffinity=0,
+            group=group,
+        )
         self._mocap: np.ndarray | None = None
         self.geom_ids: np.ndarray | None = None
 

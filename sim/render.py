@@ -61,7 +61,9 @@ class RenderConfig:
 
     def validate(self) -> None:
         if not (16 <= int(self.width) <= 1920 and 16 <= int(self.height) <= 1080):
-            raise SimError(f"render: width x height must be within 16..1920 x 16..1080, got {self.width} x {self.height}")
+            raise SimError(
+                f"render: width x height must be within 16..1920 x 16..1080, got {self.width} x {self.height}"
+            )
         if not (np.isfinite(self.fps) and 1 <= self.fps <= 120):
             raise SimError(f"render: fps must be in 1..120, got {self.fps!r}")
         if self.playback not in ("physics", "kinematic"):
@@ -84,8 +86,10 @@ class Filmer:
         try:
             self.renderer = mujoco.Renderer(m, int(config.height), int(config.width))
         except Exception as exc:  # GL context creation fails with several exception types
-            raise SimError(f"render: cannot create an offscreen OpenGL context ({exc}); on a headless machine "
-                           "set MUJOCO_GL=egl (or osmesa) and check that libEGL/libOSMesa is installed") from None
+            raise SimError(
+                f"render: cannot create an offscreen OpenGL context ({exc}); on a headless machine "
+                "set MUJOCO_GL=egl (or osmesa) and check that libEGL/libOSMesa is installed"
+            ) from None
         self.frames: list[np.ndarray] = []
         self._next_t = 0.0
         from sim.scene import ACTOR_GROUP, REACTOR_GROUP, ROBOT_GROUP
@@ -99,8 +103,11 @@ class Filmer:
             return o
 
         if config.side_by_side:
-            self.panels = [(opt([ACTOR_GROUP]), "actor"), (opt([REACTOR_GROUP]), "reactor"),
-                           (opt([ROBOT_GROUP, ACTOR_GROUP]), "robot")]
+            self.panels = [
+                (opt([ACTOR_GROUP]), "actor"),
+                (opt([REACTOR_GROUP]), "reactor"),
+                (opt([ROBOT_GROUP, ACTOR_GROUP]), "robot"),
+            ]
         else:
             self.panels = [(opt([ROBOT_GROUP, ACTOR_GROUP]), "robot")]
 
@@ -113,7 +120,11 @@ class Filmer:
         if cc.lookat is not None and not cc.track:
             cam.lookat[:] = cc.lookat
             return cam
-        if target == "robot" or (target == "actor" and sc.actor is None) or (target == "reactor" and sc.reactor is None):
+        if (
+            target == "robot"
+            or (target == "actor" and sc.actor is None)
+            or (target == "reactor" and sc.reactor is None)
+        ):
             xy = sc.data.xpos[sc.robot.root_body, :2]
         else:
             fig = sc.actor if target == "actor" else sc.reactor
@@ -155,8 +166,9 @@ def write_mp4(frames: list[np.ndarray], path, fps: float) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.stem + ".partial.mp4")
     try:
-        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, pixelformat="yuv420p",
-                                macro_block_size=16) as writer:
+        with imageio.get_writer(
+            tmp, fps=fps, codec="libx264", quality=7, pixelformat="yuv420p", macro_block_size=16
+        ) as writer:
             for f in frames:
                 writer.append_data(f)
         tmp.replace(path)
@@ -166,8 +178,18 @@ def write_mp4(frames: list[np.ndarray], path, fps: float) -> Path:
     return path
 
 
-def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_config=None, robot: str | None = None,
-                      actor=None, actor_placement=None, reactor=None, reactor_placement=None, on_tick=None):
+def render_trajectory(
+    traj,
+    out_path,
+    config: RenderConfig | None = None,
+    check_config=None,
+    robot: str | None = None,
+    actor=None,
+    actor_placement=None,
+    reactor=None,
+    reactor_placement=None,
+    on_tick=None,
+):
     """Film ``traj`` (RobotTrajectory or npz path) to ``out_path`` (.mp4).
 
     Returns (path, CheckResult): the physics check of ``traj`` in the same scene, with the
@@ -192,6 +214,7 @@ def render_trajectory(traj, out_path, config: RenderConfig | None = None, check_
     result = None
     try:
         if config.playback == "physics":
+
             def tick(t: float) -> None:
                 filmer.on_tick(t)
                 if on_tick is not None:

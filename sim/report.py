@@ -65,8 +65,10 @@ def stabilizer_line(result: CheckResult) -> str:
     st = result.metrics.get("stabilizer", {})
     if not st.get("on"):
         return f"stabilizer off ({st.get('why_off', 'not run')})"
-    return (f"stabilizer on, largest correction {st['max_correction_rad']:.3f} rad "
-            f"({st['max_correction_joint']} at {st['max_correction_time_s']:.2f} s)")
+    return (
+        f"stabilizer on, largest correction {st['max_correction_rad']:.3f} rad "
+        f"({st['max_correction_joint']} at {st['max_correction_time_s']:.2f} s)"
+    )
 
 
 def warning_lines(result: CheckResult) -> list[str]:
@@ -94,40 +96,63 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
         lines += [f"| {f.reason} | {f.time:.2f} | {f.phase} | {f.detail} |" for f in result.failures]
         lines.append("")
     entry, how = m.get("entry_transition_s", 0.0), m.get("entry") or {}
-    entered = (f"entered from the standing pose by a {entry:.2f} s minimum-jerk transition (times before 0 s; "
-               f"largest move {how.get('largest_move_joint')} {how.get('largest_move_rad', 0.0):.2f} rad)"
-               if entry else "started in the first frame's pose")
+    entered = (
+        f"entered from the standing pose by a {entry:.2f} s minimum-jerk transition (times before 0 s; "
+        f"largest move {how.get('largest_move_joint')} {how.get('largest_move_rad', 0.0):.2f} rad)"
+        if entry
+        else "started in the first frame's pose"
+    )
     worst = m.get("worst_stance")
     slip = ", ".join(f"{s * 1000:.1f} mm" for s in m["foot_slip_m"]) or "n/a"
     if worst:
-        slip += (f" (worst: the {worst['foot']} foot, stance from {worst['start_s']:.2f} s to {worst['end_s']:.2f} s; "
-                 "stances per foot "
-                 f"{', '.join(str(n) for n in m['stances'])})")
+        slip += (
+            f" (worst: the {worst['foot']} foot, stance from {worst['start_s']:.2f} s to {worst['end_s']:.2f} s; "
+            "stances per foot "
+            f"{', '.join(str(n) for n in m['stances'])})"
+        )
     place = m.get("actor_placement")
-    lines += ["## Summary", "",
-              f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
-              f"physics {m['physics_hz']:g} Hz; {entered}",
-              f"- {stabilizer_line(result)}",
-              f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
-              f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')} (feet: "
-              f"{_fmt(m.get('max_foot_penetration_m'), 1000, 'mm')})",
-              f"- min distance to the human (measured up to 100 mm): {_fmt(m['min_human_distance_m'], 1000, 'mm')}"
-              + ("" if not place else f"; the human scaled {place['scale']:.3f}, moved by "
-                 f"({', '.join(f'{v:.2f}' for v in place['offset_m'])}) m, turned {place['yaw_deg']:.0f} deg"),
-              f"- largest slide of a foot within one stance, per foot: {slip}",
-              f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; min ZMP margin (centre of "
-              f"pressure to the support edge): {_fmt(m.get('min_zmp_margin_m'), 1000, 'mm')}; max tilt "
-              f"{_fmt(m['max_tilt_deg'], 1, 'deg')}", ""]
-    lines += ["## Per joint", "", "| joint | rms err (rad) | max err (rad) | max torque (N m) | stall (N m) | saturated (s) | "
-              "max cmd speed (rad/s) | no-load speed (rad/s) | speed hits |", "|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "## Summary",
+        "",
+        f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
+        f"physics {m['physics_hz']:g} Hz; {entered}",
+        f"- {stabilizer_line(result)}",
+        f"- self-collision ticks: {m['self_collision_ticks']} {m['self_collision_pairs'] or ''}",
+        f"- max ground penetration: {_fmt(m['max_ground_penetration_m'], 1000, 'mm')} (feet: "
+        f"{_fmt(m.get('max_foot_penetration_m'), 1000, 'mm')})",
+        f"- min distance to the human (measured up to 100 mm): {_fmt(m['min_human_distance_m'], 1000, 'mm')}"
+        + (
+            ""
+            if not place
+            else f"; the human scaled {place['scale']:.3f}, moved by "
+            f"({', '.join(f'{v:.2f}' for v in place['offset_m'])}) m, turned {place['yaw_deg']:.0f} deg"
+        ),
+        f"- largest slide of a foot within one stance, per foot: {slip}",
+        f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; min ZMP margin (centre of "
+        f"pressure to the support edge): {_fmt(m.get('min_zmp_margin_m'), 1000, 'mm')}; max tilt "
+        f"{_fmt(m['max_tilt_deg'], 1, 'deg')}",
+        "",
+    ]
+    lines += [
+        "## Per joint",
+        "",
+        "| joint | rms err (rad) | max err (rad) | max torque (N m) | stall (N m) | saturated (s) | "
+        "max cmd speed (rad/s) | no-load speed (rad/s) | speed hits |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for j in result.joint_names:
-        lines.append(f"| {j} | {_num(m['tracking_rms_rad'][j])} | {_num(m['tracking_max_rad'][j])} | "
-                     f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['stall_torque_nm'][j])} | {_num(m['torque_saturation_s'][j])} | "
-                     f"{_num(m['max_command_speed_rad_s'][j])} | {_num(m['no_load_speed_rad_s'][j])} | "
-                     f"{m['speed_limit_hits'][j]} |")
+        lines.append(
+            f"| {j} | {_num(m['tracking_rms_rad'][j])} | {_num(m['tracking_max_rad'][j])} | "
+            f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['stall_torque_nm'][j])} | {_num(m['torque_saturation_s'][j])} | "
+            f"{_num(m['max_command_speed_rad_s'][j])} | {_num(m['no_load_speed_rad_s'][j])} | "
+            f"{m['speed_limit_hits'][j]} |"
+        )
     lines.append("")
-    for key, title in (("joints_png", "Joint angle, command and limits"), ("torque_png", "Servo torque"),
-                       ("balance_png", "Balance")):
+    for key, title in (
+        ("joints_png", "Joint angle, command and limits"),
+        ("torque_png", "Servo torque"),
+        ("balance_png", "Balance"),
+    ):
         if images and key in images:
             lines += [f"## {title}", "", f"![{title}]({images[key]})", ""]
     return "\n".join(lines)

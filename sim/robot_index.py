@@ -138,8 +138,27 @@ class RobotIndex:
                 free_q, free_d = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
         bodies = [b for b in range(model.nbody) if _in_subtree(model, b, root)]
         geoms = np.flatnonzero(np.isin(model.geom_bodyid, bodies))
-        index = cls(tuple(names), np.array(qadr), np.array(dadr), acts_a, lo, hi, stall, speed, root, free_q, free_d,
-                    np.array(bodies), geoms, lsrc, ssrc, gear, tlo, thi, jids_a)
+        index = cls(
+            tuple(names),
+            np.array(qadr),
+            np.array(dadr),
+            acts_a,
+            lo,
+            hi,
+            stall,
+            speed,
+            root,
+            free_q,
+            free_d,
+            np.array(bodies),
+            geoms,
+            lsrc,
+            ssrc,
+            gear,
+            tlo,
+            thi,
+            jids_a,
+        )
         return index
 
     def joint_positions(self, data: mujoco.MjData) -> np.ndarray:
@@ -254,7 +273,7 @@ def geom_z_range(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> tuple[fl
     if t == mujoco.mjtGeom.mjGEOM_MESH and model.geom_dataid[g] >= 0:
         m = int(model.geom_dataid[g])
         adr, nv = int(model.mesh_vertadr[m]), int(model.mesh_vertnum[m])
-        z = model.mesh_vert[adr:adr + nv] @ rz
+        z = model.mesh_vert[adr : adr + nv] @ rz
         return float(c[2] + z.min()), float(c[2] + z.max())
     if t == mujoco.mjtGeom.mjGEOM_BOX:
         h = np.abs(rz) @ size

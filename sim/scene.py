@@ -141,8 +141,9 @@ class Scene:
         if config.reactor is not None:
             self.reactor_placement = p = self._placement(config.reactor_placement, config.reactor, root_pos, root_quat)
             s = p.resolve_scale(config.reactor, self.robot_height)
-            self.reactor = HumanFigure(spec, "reactor_", config.reactor, s, p,
-                                       rgba=(0.2, 0.45, 0.9, 1.0), radius=0.012, group=REACTOR_GROUP)
+            self.reactor = HumanFigure(
+                spec, "reactor_", config.reactor, s, p, rgba=(0.2, 0.45, 0.9, 1.0), radius=0.012, group=REACTOR_GROUP
+            )
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         self.robot = RobotIndex.from_model(self.model, self.root_name, self.facts)
@@ -174,18 +175,34 @@ class Scene:
             own = planes[0]
             if not own.name:
                 if any(g.name == "floor" for g in spec.geoms):
-                    raise SimError(f"robot model {path}: its world plane has no name and another geom is called "
-                                   "'floor'; name the plane")
+                    raise SimError(
+                        f"robot model {path}: its world plane has no name and another geom is called "
+                        "'floor'; name the plane"
+                    )
                 own.name = "floor"
             spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, 1920)
             spec.visual.global_.offheight = max(spec.visual.global_.offheight, 1080)
             return own.name
-        tex = spec.add_texture(name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-                               rgb1=[0.82, 0.84, 0.86], rgb2=[0.72, 0.74, 0.77], width=256, height=256)
+        tex = spec.add_texture(
+            name="grid",
+            type=mujoco.mjtTexture.mjTEXTURE_2D,
+            builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+            rgb1=[0.82, 0.84, 0.86],
+            rgb2=[0.72, 0.74, 0.77],
+            width=256,
+            height=256,
+        )
         mat = spec.add_material(name="grid", texrepeat=[8, 8], reflectance=0.05)
         mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = tex.name
-        spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[10, 10, 0.05], material="grid",
-                                friction=[config.floor_friction, 0.02, 0.001], contype=1, conaffinity=1)
+        spec.worldbody.add_geom(
+            name="floor",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[10, 10, 0.05],
+            material="grid",
+            friction=[config.floor_friction, 0.02, 0.001],
+            contype=1,
+            conaffinity=1,
+        )
         spec.worldbody.add_light(name="key", pos=[1.5, -1.5, 3.0], dir=[-0.45, 0.45, -0.77], diffuse=[0.7, 0.7, 0.7])
         spec.worldbody.add_light(name="fill", pos=[-1.5, 1.0, 2.5], dir=[0.5, -0.3, -0.8], diffuse=[0.35, 0.35, 0.35])
         spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
@@ -200,9 +217,11 @@ class Scene:
         mujoco.mj_kinematics(probe, d)
         normal, height = d.geom_xmat[f].reshape(3, 3)[:, 2], d.geom_xpos[f, 2]
         if normal[2] < 1 - 1e-6 or abs(height) > 1e-6:
-            raise SimError(f"robot model {path}: its floor plane {self.floor_name!r} is not horizontal at z = 0 "
-                           f"(normal {np.round(normal, 3).tolist()}, z {height:.3f} m); the checks measure from a "
-                           "level ground at z = 0: move the plane, or load the robot's own MJCF without it")
+            raise SimError(
+                f"robot model {path}: its floor plane {self.floor_name!r} is not horizontal at z = 0 "
+                f"(normal {np.round(normal, 3).tolist()}, z {height:.3f} m); the checks measure from a "
+                "level ground at z = 0: move the plane, or load the robot's own MJCF without it"
+            )
 
     def _robot_groups(self) -> None:
         """Robot geoms to group 1; a contact-only geom to group 5 (not drawn) when its body
@@ -232,14 +251,22 @@ class Scene:
         m, f = probe, probe.geom(floor).id
         touches_world = {int(s_) & 0xFFFF for s_ in m.exclude_signature if int(s_) >> 16 == 0}
         touches_world |= {int(s_) >> 16 for s_ in m.exclude_signature if int(s_) & 0xFFFF == 0}
-        g = np.flatnonzero((np.arange(m.ngeom) != f) & (m.body_weldid[m.geom_bodyid] != 0)
-                           & ((m.geom_contype & m.geom_conaffinity[f]) | (m.geom_contype[f] & m.geom_conaffinity) != 0)
-                           & ~np.isin(m.geom_bodyid, list(touches_world)))
+        g = np.flatnonzero(
+            (np.arange(m.ngeom) != f)
+            & (m.body_weldid[m.geom_bodyid] != 0)
+            & ((m.geom_contype & m.geom_conaffinity[f]) | (m.geom_contype[f] & m.geom_conaffinity) != 0)
+            & ~np.isin(m.geom_bodyid, list(touches_world))
+        )
         both = np.append(g, f)
         names = [m.geom(int(i)).name for i in g]
-        if (np.any(m.geom_priority[g] != m.geom_priority[f]) or np.any(m.geom_solref[both, 0] <= 0)
-                or np.any(m.geom_adhesion[both]) or np.any(m.geom_surfacevel[both])
-                or np.any(m.geom_plugin[both] != -1) or not all(names)):
+        if (
+            np.any(m.geom_priority[g] != m.geom_priority[f])
+            or np.any(m.geom_solref[both, 0] <= 0)
+            or np.any(m.geom_adhesion[both])
+            or np.any(m.geom_surfacevel[both])
+            or np.any(m.geom_plugin[both] != -1)
+            or not all(names)
+        ):
             return
         s1, s2 = m.geom_solmix[f], m.geom_solmix[g]
         mix = np.where(s1 + s2 < mujoco.mjMINVAL, 0.5, s1 / np.maximum(s1 + s2, mujoco.mjMINVAL))[:, None]
@@ -249,9 +276,16 @@ class Scene:
         condim = np.maximum(m.geom_condim[f], m.geom_condim[g])
         margin, gap = np.maximum(m.geom_margin[f], m.geom_margin[g]), np.maximum(m.geom_gap[f], m.geom_gap[g])
         for i, name in enumerate(names):
-            spec.add_pair(geomname1=floor, geomname2=name, condim=int(condim[i]),
-                          friction=[fr[i, 0], fr[i, 0], fr[i, 1], fr[i, 2], fr[i, 2]], solref=solref[i].tolist(),
-                          solimp=solimp[i].tolist(), margin=float(margin[i]), gap=float(gap[i]))
+            spec.add_pair(
+                geomname1=floor,
+                geomname2=name,
+                condim=int(condim[i]),
+                friction=[fr[i, 0], fr[i, 0], fr[i, 1], fr[i, 2], fr[i, 2]],
+                solref=solref[i].tolist(),
+                solimp=solimp[i].tolist(),
+                margin=float(margin[i]),
+                gap=float(gap[i]),
+            )
         floor_spec = spec.geom(floor)
         floor_spec.contype = floor_spec.conaffinity = 0
 
@@ -313,9 +347,9 @@ class Scene:
         self.data.ctrl[r.actuator_ids] = q
         if not r.fixed_base:
             if root_pos is not None:
-                self.data.qpos[r.free_qpos:r.free_qpos + 3] = root_pos
+                self.data.qpos[r.free_qpos : r.free_qpos + 3] = root_pos
             if root_quat is not None:
-                self.data.qpos[r.free_qpos + 3:r.free_qpos + 7] = root_quat
+                self.data.qpos[r.free_qpos + 3 : r.free_qpos + 7] = root_quat
         mujoco.mj_forward(self.model, self.data)
         if ground and not r.fixed_base and np.isfinite(low := self.lowest_robot_point()):
             self.data.qpos[r.free_qpos + 2] -= low

@@ -36,8 +36,12 @@ class StabilizerGains:
     stance_band: float | None = None
 
     def resolved(self, defaults: StabilizerGains) -> StabilizerGains:
-        return StabilizerGains(**{k: (getattr(self, k) if getattr(self, k) is not None else getattr(defaults, k))
-                                  for k in self.__dataclass_fields__})
+        return StabilizerGains(
+            **{
+                k: (getattr(self, k) if getattr(self, k) is not None else getattr(defaults, k))
+                for k in self.__dataclass_fields__
+            }
+        )
 
     def validate(self) -> None:
         for k in self.__dataclass_fields__:
@@ -126,13 +130,24 @@ def default_gains(mass: float, com_height: float, ankle_stiffness: float, robot_
     g = 9.81
     k2 = 2.0 * max(ankle_stiffness, 1e-6)
     k_net = max(k2 - mass * g * com_height, 0.1 * k2)
-    damping = math.sqrt(k_net * mass * com_height ** 2) / k2  # s; 0.067 s on the op3
-    return StabilizerGains(kp=0.5, ki=0.0, kd=0.75 * damping, kd_hip=0.0, ki_sag=0.0, kp_sag=0.0,
-                           max_correction=0.3, max_rate=3.0, gyro_cutoff_hz=15.0, reference_cutoff_hz=3.0,
-                           stance_band=0.02 * robot_height)
+    damping = math.sqrt(k_net * mass * com_height**2) / k2  # s; 0.067 s on the op3
+    return StabilizerGains(
+        kp=0.5,
+        ki=0.0,
+        kd=0.75 * damping,
+        kd_hip=0.0,
+        ki_sag=0.0,
+        kp_sag=0.0,
+        max_correction=0.3,
+        max_rate=3.0,
+        gyro_cutoff_hz=15.0,
+        reference_cutoff_hz=3.0,
+        stance_band=0.02 * robot_height,
+    )
 
 
 # -- the per-tick stabilizer ---------------------------------------------------------------------
+
 
 class Stabilizer:
     """One robot's balance feedback; call :meth:`reset` when the loop starts, then
@@ -269,7 +284,11 @@ class Stabilizer:
 
 
 def _cross(a, b, scale: float = 1.0):
-    return ((a[1] * b[2] - a[2] * b[1]) * scale, (a[2] * b[0] - a[0] * b[2]) * scale, (a[0] * b[1] - a[1] * b[0]) * scale)
+    return (
+        (a[1] * b[2] - a[2] * b[1]) * scale,
+        (a[2] * b[0] - a[0] * b[2]) * scale,
+        (a[0] * b[1] - a[1] * b[0]) * scale,
+    )
 
 
 def _tilt_only(v, up):
@@ -334,8 +353,12 @@ def _leg_frames(leg: Leg, q):
 
 
 def _mul(aw, ax, ay, az, bw, bx, by, bz):
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
 
 
 def _rotate(w, x, y, z, vx, vy, vz):
@@ -346,8 +369,10 @@ def _rotate(w, x, y, z, vx, vy, vz):
 
 # -- building the model from a robot (MuJoCo, once) ---------------------------------------------
 
-def balance_model(robot=None, scene=None, gains: StabilizerGains | None = None,
-                  joint_names: tuple | None = None) -> BalanceModel | None:
+
+def balance_model(
+    robot=None, scene=None, gains: StabilizerGains | None = None, joint_names: tuple | None = None
+) -> BalanceModel | None:
     """The :class:`BalanceModel` of a robot reference (as the registry resolves it) or of a
     built :class:`sim.scene.Scene`; None where a stabilizer does not apply: a fixed-base robot
     (no freejoint, or bolted down in the scene), or one whose two legs (root -> foot chains
@@ -365,8 +390,9 @@ def balance_model(robot=None, scene=None, gains: StabilizerGains | None = None,
     if joint_names is not None and tuple(joint_names) != tuple(r.joint_names):
         from sim.errors import SimError
 
-        raise SimError(f"stabilizer: joint order {tuple(joint_names)} differs from the robot model's "
-                       f"{tuple(r.joint_names)}")
+        raise SimError(
+            f"stabilizer: joint order {tuple(joint_names)} differs from the robot model's {tuple(r.joint_names)}"
+        )
     d = mujoco.MjData(m)
     d.qpos[:] = scene._stand_qpos if hasattr(scene, "_stand_qpos") else m.qpos0
     mujoco.mj_kinematics(m, d)
@@ -390,8 +416,19 @@ def balance_model(robot=None, scene=None, gains: StabilizerGains | None = None,
     ankle_k = float(np.mean(stiff)) if stiff else 1.0
     imu_to_root, note = _imu_frame(m, d, root)
     defaults = default_gains(mass, com_height, ankle_k, scene.robot_height)
-    model = BalanceModel(str(scene.config.robot), r.n, tuple(legs), imu_to_root, r.lower.copy(), r.upper.copy(),
-                         mass, com_height, ankle_k, defaults, (note,) if note else ())
+    model = BalanceModel(
+        str(scene.config.robot),
+        r.n,
+        tuple(legs),
+        imu_to_root,
+        r.lower.copy(),
+        r.upper.copy(),
+        mass,
+        com_height,
+        ankle_k,
+        defaults,
+        (note,) if note else (),
+    )
     return model.with_gains(gains)
 
 
@@ -414,20 +451,33 @@ def _leg(m, d, root: int, foot, jid_to_index: dict, R_root: np.ndarray) -> Leg |
                 return None  # a slide or ball joint in a leg: not a chain of hinges
             idx = jid_to_index.get(jid, -1)
             fixed = float(d.qpos[m.jnt_qposadr[jid]]) if idx < 0 else 0.0
-            hinges.append((idx, tuple(float(v) for v in m.jnt_axis[jid]), tuple(float(v) for v in m.jnt_pos[jid]), fixed))
+            hinges.append(
+                (idx, tuple(float(v) for v in m.jnt_axis[jid]), tuple(float(v) for v in m.jnt_pos[jid]), fixed)
+            )
             if idx >= 0:
                 axis_root = R_root.T @ d.xaxis[jid]
                 kind = ("yaw", "pitch", "roll")[int(np.argmax(np.abs(axis_root[[2, 1, 0]])))]
                 roles.append((idx, kind, depth))
-        links.append(ChainLink(tuple(float(v) for v in m.body_pos[body]), tuple(float(v) for v in m.body_quat[body]),
-                               tuple(hinges)))
+        links.append(
+            ChainLink(
+                tuple(float(v) for v in m.body_pos[body]), tuple(float(v) for v in m.body_quat[body]), tuple(hinges)
+            )
+        )
     pitch = [i for i, k, _ in roles if k == "pitch"]
     roll = [i for i, k, _ in roles if k == "roll"]
     if len(pitch) < 2 or not roll:
         return None
     sole = tuple(float(v) for v in foot.sole_point)
-    return Leg(foot.side, tuple(links), sole, ankle_pitch=pitch[-1], ankle_roll=roll[-1], hip_pitch=pitch[0],
-               hip_roll=roll[0] if len(roll) > 1 else -1, sag_joints=tuple(pitch + roll))
+    return Leg(
+        foot.side,
+        tuple(links),
+        sole,
+        ankle_pitch=pitch[-1],
+        ankle_roll=roll[-1],
+        hip_pitch=pitch[0],
+        hip_roll=roll[0] if len(roll) > 1 else -1,
+        sag_joints=tuple(pitch + roll),
+    )
 
 
 def imu_site(model, root: int) -> int:
@@ -437,8 +487,10 @@ def imu_site(model, root: int) -> int:
     import mujoco
 
     for s in range(model.nsensor):
-        if model.sensor_type[s] in (mujoco.mjtSensor.mjSENS_GYRO, mujoco.mjtSensor.mjSENS_FRAMEQUAT) \
-                and model.sensor_objtype[s] == mujoco.mjtObj.mjOBJ_SITE:
+        if (
+            model.sensor_type[s] in (mujoco.mjtSensor.mjSENS_GYRO, mujoco.mjtSensor.mjSENS_FRAMEQUAT)
+            and model.sensor_objtype[s] == mujoco.mjtObj.mjOBJ_SITE
+        ):
             site = int(model.sensor_objid[s])
             if model.site_bodyid[site] == root:
                 return site

@@ -20,16 +20,21 @@ def display_available() -> bool:
 
 def require_display() -> None:
     if not display_available():
-        raise SimError("view: no display (DISPLAY and WAYLAND_DISPLAY are unset), so the interactive viewer cannot "
-                       "open; run it on a desktop or over `ssh -X`, or make a video instead with "
-                       "`dualflow-bridge render TRAJ.npz -o out.mp4`")
+        raise SimError(
+            "view: no display (DISPLAY and WAYLAND_DISPLAY are unset), so the interactive viewer cannot "
+            "open; run it on a desktop or over `ssh -X`, or make a video instead with "
+            "`dualflow-bridge render TRAJ.npz -o out.mp4`"
+        )
     if os.environ.get("MUJOCO_GL", "glfw") not in ("glfw", ""):
-        raise SimError(f"view: MUJOCO_GL={os.environ['MUJOCO_GL']} selects a headless backend; unset it "
-                       "(the viewer needs GLFW) and run again")
+        raise SimError(
+            f"view: MUJOCO_GL={os.environ['MUJOCO_GL']} selects a headless backend; unset it "
+            "(the viewer needs GLFW) and run again"
+        )
 
 
-def view(traj=None, robot: str | None = None, check_config=None, actor=None, actor_placement=None,
-         loop: bool = False) -> None:
+def view(
+    traj=None, robot: str | None = None, check_config=None, actor=None, actor_placement=None, loop: bool = False
+) -> None:
     """Open the viewer on ``traj`` (RobotTrajectory or npz path), or on the robot
     standing still in its standing pose when ``traj`` is None."""
     require_display()
@@ -46,14 +51,22 @@ def view(traj=None, robot: str | None = None, check_config=None, actor=None, act
         from sim.scene import SceneConfig
 
         scene = Scene(SceneConfig(robot=robot or "op3"))
-        traj = RobotTrajectory.standing(scene.robot.joint_names, scene.stand_ctrl, 2, 1.0,
-                                        root_pos=scene.data.xpos[scene.robot.root_body], robot=scene.config.robot)
+        traj = RobotTrajectory.standing(
+            scene.robot.joint_names,
+            scene.stand_ctrl,
+            2,
+            1.0,
+            root_pos=scene.data.xpos[scene.robot.root_body],
+            robot=scene.config.robot,
+        )
     traj = _as_trajectory(traj)
     scene = scene_for(traj, check_config, robot, actor, actor_placement)
     try:
         handle = mujoco.viewer.launch_passive(scene.model, scene.data)
     except Exception as exc:  # GLFW raises several types when the display is unusable
-        raise SimError(f"view: cannot open a window on this display ({exc}); make a video with `render` instead") from None
+        raise SimError(
+            f"view: cannot open a window on this display ({exc}); make a video with `render` instead"
+        ) from None
     start = time.monotonic()
 
     def on_tick(t: float) -> None:

@@ -88,8 +88,16 @@ class VirtualRobotConfig:
     def validate(self) -> None:
         if self.clock not in ("realtime", "lockstep"):
             raise SimError(f"virtual robot: clock must be 'realtime' or 'lockstep', got {self.clock!r}")
-        for name in ("physics_hz", "control_hz", "speed", "max_catchup_s", "voltage", "stall_current_a",
-                     "thermal_resistance_k_per_w", "thermal_time_constant_s"):
+        for name in (
+            "physics_hz",
+            "control_hz",
+            "speed",
+            "max_catchup_s",
+            "voltage",
+            "stall_current_a",
+            "thermal_resistance_k_per_w",
+            "thermal_time_constant_s",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise SimError(f"virtual robot: {name} must be > 0, got {v!r}")
@@ -154,10 +162,15 @@ class VirtualRobot:
         n = self._n
         stamp = self._clock()
         return JointState(
-            position=d.qpos[r.qpos_adr].copy(), velocity=d.qvel[r.dof_adr].copy(),
-            effort=d.actuator_force[r.actuator_ids].copy(), temperature=self._temp.copy(),
-            voltage=np.full(n, self.config.voltage), torque_enabled=self._enabled.copy(),
-            stamp=stamp, errors=dict(self._errors), imu=self._imu.read(d, stamp),
+            position=d.qpos[r.qpos_adr].copy(),
+            velocity=d.qvel[r.dof_adr].copy(),
+            effort=d.actuator_force[r.actuator_ids].copy(),
+            temperature=self._temp.copy(),
+            voltage=np.full(n, self.config.voltage),
+            torque_enabled=self._enabled.copy(),
+            stamp=stamp,
+            errors=dict(self._errors),
+            imu=self._imu.read(d, stamp),
         )
 
     def write_goal(self, positions) -> None:
@@ -166,8 +179,10 @@ class VirtualRobot:
         self._require_open()
         q = np.asarray(positions, dtype=np.float64)
         if q.shape != (self._n,):
-            raise SimError(f"virtual robot: write_goal needs {self._n} positions ({', '.join(self.joint_names)}), "
-                           f"got shape {q.shape}")
+            raise SimError(
+                f"virtual robot: write_goal needs {self._n} positions ({', '.join(self.joint_names)}), "
+                f"got shape {q.shape}"
+            )
         if not np.all(np.isfinite(q)):
             raise SimError("virtual robot: write_goal got NaN or inf; send finite angles in radians")
         self._goal = np.clip(q, self._goal_range[:, 0], self._goal_range[:, 1])
@@ -249,8 +264,10 @@ class VirtualRobot:
         cfg = self.config
         current = np.abs(torque) / self._stall * cfg.stall_current_a
         resistance = cfg.voltage / cfg.stall_current_a
-        power = current ** 2 * resistance
-        self._temp += dt / cfg.thermal_time_constant_s * (power * cfg.thermal_resistance_k_per_w - (self._temp - cfg.ambient_c))
+        power = current**2 * resistance
+        self._temp += (
+            dt / cfg.thermal_time_constant_s * (power * cfg.thermal_resistance_k_per_w - (self._temp - cfg.ambient_c))
+        )
         hot = (self._temp > cfg.max_temperature_c) & self._enabled
         for j in np.flatnonzero(hot):
             self._errors[self.joint_names[j]] = "overheating"
@@ -299,7 +316,9 @@ class VirtualRobot:
         try:
             return self.joint_names.index(joint)
         except ValueError:
-            raise SimError(f"virtual robot: unknown joint {joint!r}; joints are {', '.join(self.joint_names)}") from None
+            raise SimError(
+                f"virtual robot: unknown joint {joint!r}; joints are {', '.join(self.joint_names)}"
+            ) from None
 
     def _require_open(self) -> None:
         if not self._opened:

@@ -9,7 +9,9 @@ from pathlib import Path
 import pytest
 
 #: ../shared/data beside the project root (override with DUALFLOW_SHARED_DATA).
-SHARED_DATA = Path(os.environ.get("DUALFLOW_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+SHARED_DATA = Path(
+    os.environ.get("DUALFLOW_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
+)
 CMU_DIR = SHARED_DATA / "mocap" / "cmu"
 MUSIC_DIR = SHARED_DATA / "music"
 

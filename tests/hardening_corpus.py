@@ -191,9 +191,27 @@ def _info(b: Builder, fmt: str, damage: str, path: Path, names=()) -> None:
 
 
 def _run_actor(b: Builder, fmt: str, damage: str, path: Path) -> None:
-    b.add(fmt, damage + " (run --actor)", path,
-          ["run", "--actor", path, "--robot", MODEL_ROBOT, "--partner", "imitate", "--transport", "record",
-           "--max-duration", "0.3", "--quiet", "-o", b.out("run_actor")])
+    b.add(
+        fmt,
+        damage + " (run --actor)",
+        path,
+        [
+            "run",
+            "--actor",
+            path,
+            "--robot",
+            MODEL_ROBOT,
+            "--partner",
+            "imitate",
+            "--transport",
+            "record",
+            "--max-duration",
+            "0.3",
+            "--quiet",
+            "-o",
+            b.out("run_actor"),
+        ],
+    )
 
 
 def _bvh_text(depth: int, frames: int = 2, frame_time: str = "0.0333333") -> str:
@@ -232,7 +250,12 @@ def _motion_cases(b: Builder, good: Path, leader) -> None:
             _run_actor(b, "bvh", "truncated", p)
     _info(b, "bvh", "empty", b.file("bvh", "empty", ".bvh", b""))
     for seed in range(6):
-        _info(b, "bvh", "bit flips", b.file("bvh", f"flips{seed}", ".bvh", flipped_letters(bvh[: len(head)], seed) + bvh[len(head):]))
+        _info(
+            b,
+            "bvh",
+            "bit flips",
+            b.file("bvh", f"flips{seed}", ".bvh", flipped_letters(bvh[: len(head)], seed) + bvh[len(head) :]),
+        )
     _info(b, "bvh", "garbage bytes", b.file("bvh", "garbage", ".bvh", garbage(4000)))
     _info(b, "bvh", "wrong format", b.file("bvh", "npz_inside", ".bvh", (good / "leader.npz").read_bytes()))
     _info(b, "bvh", "NUL bytes", b.file("bvh", "nul", ".bvh", bvh[:200] + b"\0" * 100 + bvh[300:]))
@@ -268,7 +291,14 @@ def _motion_cases(b: Builder, good: Path, leader) -> None:
     wide = ["HIERARCHY", "ROOT r", "{", "OFFSET 0 0 0", "CHANNELS 3 Xposition Yposition Zposition"]
     for k in range(5000):
         wide += [f"JOINT w{k}", "{", "OFFSET 0 0.1 0", "CHANNELS 3 Xrotation Yrotation Zrotation", "}"]
-    wide += ["}", "MOTION", "Frames: 2", "Frame Time: 0.033", " ".join(["0"] * (3 + 3 * 5000)), " ".join(["0"] * (3 + 3 * 5000))]
+    wide += [
+        "}",
+        "MOTION",
+        "Frames: 2",
+        "Frame Time: 0.033",
+        " ".join(["0"] * (3 + 3 * 5000)),
+        " ".join(["0"] * (3 + 3 * 5000)),
+    ]
     _info(b, "bvh", "5000 joints", b.file("bvh", "wide", ".bvh", ("\n".join(wide) + "\n").encode()))
 
     # -- our motion npz --------------------------------------------------------------------
@@ -295,7 +325,13 @@ def _motion_cases(b: Builder, good: Path, leader) -> None:
     _info(b, "motion-npz", "garbage bytes", b.file("motion-npz", "garbage", ".npz", b"PK\x03\x04" + garbage(3000, 1)))
     mnpz("missing positions", drop=("positions",), run=True)
     mnpz("missing fps", drop=("fps",), run=True)
-    for label, fps in (("fps 0", 0.0), ("fps negative", -30.0), ("fps 1e-6", 1e-6), ("fps 1e9", 1e9), ("fps nan", np.nan)):
+    for label, fps in (
+        ("fps 0", 0.0),
+        ("fps negative", -30.0),
+        ("fps 1e-6", 1e-6),
+        ("fps 1e9", 1e9),
+        ("fps nan", np.nan),
+    ):
         mnpz(label, fps=np.array(fps), run=label in ("fps 1e-6", "fps 1e9"))
     mnpz("fps text", fps=np.array("thirty"))
     mnpz("fps vector", fps=np.array([30.0, 30.0]))
@@ -357,8 +393,12 @@ def _motion_cases(b: Builder, good: Path, leader) -> None:
 
     # -- AMASS-style npz -----------------------------------------------------------------------
     joints24 = np.concatenate([leader.positions, leader.positions[:, :2]], axis=1)
-    amass = {"joints": joints24, "mocap_framerate": np.array(30.0), "poses": np.zeros((leader.n_frames, 156)),
-             "trans": leader.positions[:, 0]}
+    amass = {
+        "joints": joints24,
+        "mocap_framerate": np.array(30.0),
+        "poses": np.zeros((leader.n_frames, 156)),
+        "trans": leader.positions[:, 0],
+    }
 
     def anpz(damage, drop=(), **changes):
         m = {k: v for k, v in amass.items() if k not in drop}
@@ -417,8 +457,14 @@ def _motion_cases(b: Builder, good: Path, leader) -> None:
     hnpy("shape 23 joints", npy_bytes(np.concatenate([yup, yup[:, :1]], axis=1)))
     hnpy("shape 4-D", npy_bytes(yup[None]))
     hnpy("shape 0-D", npy_bytes(np.array(1.0)))
-    hnpy("fortran order", forged_npy((60, 22, 3), header="{'descr': '<f8', 'fortran_order': True, 'shape': (60, 22, 3)}",
-                                     payload=yup.tobytes()[:100]))
+    hnpy(
+        "fortran order",
+        forged_npy(
+            (60, 22, 3),
+            header="{'descr': '<f8', 'fortran_order': True, 'shape': (60, 22, 3)}",
+            payload=yup.tobytes()[:100],
+        ),
+    )
 
     # -- InterGen npy ----------------------------------------------------------------------------
     feats = encode_person(leader)
@@ -440,7 +486,9 @@ def _motion_cases(b: Builder, good: Path, leader) -> None:
     inpy("raw truncated", data=truncated(npy_bytes(raw492), 0.3))
     inpy("pair 1 frame", np.stack([feats[:1], feats[:1]], axis=1))
     for seed in range(2):
-        inpy(f"features bit flips {seed}", data=flipped(npy_bytes(feats)[:128], seed + 40, 3, 8) + npy_bytes(feats)[128:])
+        inpy(
+            f"features bit flips {seed}", data=flipped(npy_bytes(feats)[:128], seed + 40, 3, 8) + npy_bytes(feats)[128:]
+        )
 
 
 def _trajectory_cases(b: Builder, good: Path) -> None:
@@ -450,7 +498,7 @@ def _trajectory_cases(b: Builder, good: Path) -> None:
 
     files = resolve_robot(MODEL_ROBOT)
     robot = load_robot(files.mjcf, files.profile)
-    stand = np.asarray(robot.x_stand)[robot.n_root:]
+    stand = np.asarray(robot.x_stand)[robot.n_root :]
     traj = RobotTrajectory.standing(robot.joint_names, stand, 30, 30.0, np.asarray(robot.x_stand)[:3], MODEL_ROBOT)
     src = traj.save_npz(good / "trajectory.npz")
     raw = src.read_bytes()
@@ -458,7 +506,9 @@ def _trajectory_cases(b: Builder, good: Path) -> None:
     header = json.loads(str(members["header"]))
 
     def check(damage, path):
-        b.add("trajectory-npz", damage, path, ["check", path, "--robot", MODEL_ROBOT, "--no-plots", "-o", b.out("check")])
+        b.add(
+            "trajectory-npz", damage, path, ["check", path, "--robot", MODEL_ROBOT, "--no-plots", "-o", b.out("check")]
+        )
 
     def tnpz(damage, drop=(), **changes):
         m = {k: v for k, v in members.items() if k not in drop}
@@ -479,9 +529,18 @@ def _trajectory_cases(b: Builder, good: Path) -> None:
     tnpz("header null", header=np.array("null"))
     tnpz("header an int", header=np.array("7"))
     tnpz("joint_names not a list", header=np.array(json.dumps({**header, "joint_names": 5})))
-    tnpz("joint_names of another robot", header=np.array(json.dumps({**header, "joint_names": [f"j{k}" for k in range(len(robot.joint_names))]})))
+    tnpz(
+        "joint_names of another robot",
+        header=np.array(json.dumps({**header, "joint_names": [f"j{k}" for k in range(len(robot.joint_names))]})),
+    )
     tnpz("joint_names short", header=np.array(json.dumps({**header, "joint_names": header["joint_names"][:-1]})))
-    for label, fps in (("fps 0", 0.0), ("fps negative", -1.0), ("fps 1e-6", 1e-6), ("fps 1e9", 1e9), ("fps nan", np.nan)):
+    for label, fps in (
+        ("fps 0", 0.0),
+        ("fps negative", -1.0),
+        ("fps 1e-6", 1e-6),
+        ("fps 1e9", 1e9),
+        ("fps nan", np.nan),
+    ):
         tnpz(label, fps=np.float64(fps))
     tnpz("fps vector", fps=np.array([30.0, 30.0]))
     tnpz("fps text", fps=np.array("fast"))
@@ -516,7 +575,7 @@ def _telemetry_cases(b: Builder, good: Path) -> None:
     model = load_robot(files.mjcf, files.profile)
     names = list(model.joint_names)
     n = len(names)
-    stand = np.asarray(model.x_stand)[model.n_root:]
+    stand = np.asarray(model.x_stand)[model.n_root :]
     src = good / "telemetry.dftl"
     with TelemetryWriter(src, names, 100.0, meta={"robot": robot}) as w:
         for k in range(40):
@@ -526,12 +585,13 @@ def _telemetry_cases(b: Builder, good: Path) -> None:
     raw = src.read_bytes()
     events = (good / "telemetry.dftl.events.jsonl").read_bytes()
     line, body = raw.split(b"\n", 1)
-    header = json.loads(line[len(MAGIC):])
+    header = json.loads(line[len(MAGIC) :])
 
     def both(damage, path, names_=()):
         b.add("telemetry", damage + " (plot)", path, ["plot", path, "-o", b.out("plot")], names_)
-        b.add("telemetry", damage + " (replay)", path,
-              ["replay", path, "--robot", robot, "--transport", "record"], names_)
+        b.add(
+            "telemetry", damage + " (replay)", path, ["replay", path, "--robot", robot, "--transport", "record"], names_
+        )
 
     def tel(damage, head=None, body_=None, raw_=None):
         if raw_ is None:
@@ -564,7 +624,9 @@ def _telemetry_cases(b: Builder, good: Path) -> None:
     fields = header["fields"]
     tel("object field", head={**header, "fields": [[f[0], "|O" if f[0] == "command" else f[1], f[2]] for f in fields]})
     tel("unknown dtype", head={**header, "fields": [[f[0], "<zz" if f[0] == "t" else f[1], f[2]] for f in fields]})
-    tel("negative shape", head={**header, "fields": [[f[0], f[1], [-3] if f[0] == "command" else f[2]] for f in fields]})
+    tel(
+        "negative shape", head={**header, "fields": [[f[0], f[1], [-3] if f[0] == "command" else f[2]] for f in fields]}
+    )
     tel("huge shape", head={**header, "fields": [[f[0], f[1], [10**9] if f[0] == "command" else f[2]] for f in fields]})
     tel("no command field", head={**header, "fields": [f for f in fields if f[0] != "command"]})
     tel("fields not a list", head={**header, "fields": "t,command"})
@@ -576,12 +638,15 @@ def _telemetry_cases(b: Builder, good: Path) -> None:
     from ros_free_bridge.telemetry.log import tick_dtype
 
     off = tick_dtype(n).fields["command"][1]
-    arr[10 * rec_size + off: 10 * rec_size + off + 4] = np.float32(np.nan).tobytes()
+    arr[10 * rec_size + off : 10 * rec_size + off + 4] = np.float32(np.nan).tobytes()
     tel("NaN command", body_=bytes(arr))
-    tel("huge command", body_=bytes(arr[: 5 * rec_size]) + bytes(arr[5 * rec_size:]).replace(
-        np.float32(stand[0]).tobytes(), np.float32(3e38).tobytes()))
+    tel(
+        "huge command",
+        body_=bytes(arr[: 5 * rec_size])
+        + bytes(arr[5 * rec_size :]).replace(np.float32(stand[0]).tobytes(), np.float32(3e38).tobytes()),
+    )
     for seed in range(2):  # in the header's JSON punctuation (records carry no checksum: a flip there is a value)
-        tel(f"bit flips {seed}", raw_=flipped_letters(line, seed + 60, 2, b'{}[]":,') + raw[len(line):])
+        tel(f"bit flips {seed}", raw_=flipped_letters(line, seed + 60, 2, b'{}[]":,') + raw[len(line) :])
 
     # -- the events file beside a good telemetry file ----------------------------------------
     def ev(damage, data: bytes):
@@ -589,8 +654,13 @@ def _telemetry_cases(b: Builder, good: Path) -> None:
         ep = p.with_name(p.name + ".events.jsonl")
         ep.write_bytes(data)
         b.add("telemetry-events", damage + " (plot)", p, ["plot", p, "-o", b.out("plot")], (ep.name,))
-        b.add("telemetry-events", damage + " (replay)", p,
-              ["replay", p, "--robot", robot, "--transport", "record"], (ep.name,))
+        b.add(
+            "telemetry-events",
+            damage + " (replay)",
+            p,
+            ["replay", p, "--robot", robot, "--transport", "record"],
+            (ep.name,),
+        )
 
     ev("binary", garbage(500, 7))
     ev("not UTF-8", events.replace(b"STOPPED", "STÖPPED".encode("latin1")))
@@ -611,7 +681,9 @@ def _checkpoint_cases(b: Builder, good: Path) -> None:
 
     torch.manual_seed(0)
     feats, _ = encode_pair(make_duet("mirror", 4.0, 30.0, 0))
-    base = save_checkpoint(good / "ckpt", model=DualFlow(DualFlowConfig.preset("tiny")), stats=NormStats.from_features(feats))
+    base = save_checkpoint(
+        good / "ckpt", model=DualFlow(DualFlowConfig.preset("tiny")), stats=NormStats.from_features(feats)
+    )
     config = json.loads((base / "config.json").read_text())
     weights = load_file(str(base / "model.safetensors"))
 
@@ -619,15 +691,37 @@ def _checkpoint_cases(b: Builder, good: Path) -> None:
         d = b.file("checkpoint", damage, "")
         shutil.copytree(base, d)
         edit(d)
-        b.add("checkpoint", damage, d,
-              ["run", "--model", d, "--robot", MODEL_ROBOT, "--generator", "thread", "--transport", "record",
-               "--seconds", "1", "--max-duration", "0.3", "--quiet", "-o", b.out("run_ckpt")], names or (d.name,))
+        b.add(
+            "checkpoint",
+            damage,
+            d,
+            [
+                "run",
+                "--model",
+                d,
+                "--robot",
+                MODEL_ROBOT,
+                "--generator",
+                "thread",
+                "--transport",
+                "record",
+                "--seconds",
+                "1",
+                "--max-duration",
+                "0.3",
+                "--quiet",
+                "-o",
+                b.out("run_ckpt"),
+            ],
+            names or (d.name,),
+        )
 
     def cfg(change):
         def edit(d):
             c = json.loads(json.dumps(config))
             change(c)
             (d / "config.json").write_text(json.dumps(c))
+
         return edit
 
     def wts(change):
@@ -635,11 +729,13 @@ def _checkpoint_cases(b: Builder, good: Path) -> None:
             w = {k: v.clone() for k, v in weights.items()}
             change(w)
             save_file(w, str(d / "model.safetensors"))
+
         return edit
 
     def raw_file(name, transform):
         def edit(d):
             (d / name).write_bytes(transform((d / name).read_bytes()))
+
         return edit
 
     first = next(iter(weights))
@@ -671,7 +767,10 @@ def _checkpoint_cases(b: Builder, good: Path) -> None:
     ck("stats std zero", lambda d: write_npz(d / "norm_stats.npz", {"mean": np.zeros(262), "std": np.zeros(262)}))
     ck("stats shape", lambda d: write_npz(d / "norm_stats.npz", {"mean": np.zeros(5), "std": np.ones(5)}))
     ck("stats truncated", raw_file("norm_stats.npz", lambda s: truncated(s, 0.5)))
-    ck("stats header 10^12", lambda d: write_npz(d / "norm_stats.npz", {"mean": forged_npy((10**12,)), "std": np.ones(262)}))
+    ck(
+        "stats header 10^12",
+        lambda d: write_npz(d / "norm_stats.npz", {"mean": forged_npy((10**12,)), "std": np.ones(262)}),
+    )
 
 
 def _robot_folder_cases(b: Builder, good: Path) -> None:
@@ -686,12 +785,36 @@ def _robot_folder_cases(b: Builder, good: Path) -> None:
         d = b.file(fmt, damage, "")
         shutil.copytree(folder, d)
         (d / name).write_bytes(content)
-        b.add(fmt, damage, d,
-              ["run", "--robot", d, "--partner", "imitate", "--transport", "record", "--seconds", "1",
-               "--max-duration", "0.3", "--quiet", "-o", b.out("run_robot")], (name,))
+        b.add(
+            fmt,
+            damage,
+            d,
+            [
+                "run",
+                "--robot",
+                d,
+                "--partner",
+                "imitate",
+                "--transport",
+                "record",
+                "--seconds",
+                "1",
+                "--max-duration",
+                "0.3",
+                "--quiet",
+                "-o",
+                b.out("run_robot"),
+            ],
+            (name,),
+        )
 
     def hw(damage, content):
-        robot_case("hardware-yaml", damage, Path(found.hardware).name, content if isinstance(content, bytes) else content.encode())
+        robot_case(
+            "hardware-yaml",
+            damage,
+            Path(found.hardware).name,
+            content if isinstance(content, bytes) else content.encode(),
+        )
 
     hw("not YAML", hw_text.replace("buses:", "buses: [\n  {", 1))
     hw("empty", "")
@@ -709,13 +832,21 @@ def _robot_folder_cases(b: Builder, good: Path) -> None:
     hw("alias bomb", _alias_bomb())
 
     def prof(damage, content):
-        robot_case("profile-yaml", damage, Path(found.profile).name, content if isinstance(content, bytes) else content.encode())
+        robot_case(
+            "profile-yaml",
+            damage,
+            Path(found.profile).name,
+            content if isinstance(content, bytes) else content.encode(),
+        )
 
     prof("another robot's profile", profile_text.replace(f"robot: {HARDWARE_ROBOT}", "robot: ub14", 1))
     prof("not YAML", profile_text + "\nkeypoints: [\n")
     prof("empty", "")
     prof("no keypoints", "robot: op3\n")
-    prof("unknown human joint", profile_text.replace("keypoints:\n", "keypoints:\n  tail: {site: head, weight: 1.0}\n", 1))
+    prof(
+        "unknown human joint",
+        profile_text.replace("keypoints:\n", "keypoints:\n  tail: {site: head, weight: 1.0}\n", 1),
+    )
     prof("weight NaN", profile_text.replace("weight: 1.0", "weight: .nan", 1))
     prof("weight negative", profile_text.replace("weight: 1.0", "weight: -1.0", 1))
     prof("binary garbage", garbage(2000, 10))
@@ -748,9 +879,29 @@ def _music_cases(b: Builder, good: Path) -> None:
 
     def mu(damage, data: bytes, ext=".wav"):
         p = b.file("music", damage, ext, data)
-        b.add("music", damage, p,
-              ["run", "--music", p, "--robot", MODEL_ROBOT, "--generator", "thread", "--transport", "record",
-               "--seconds", "1", "--max-duration", "0.3", "--quiet", "-o", b.out("run_music")])
+        b.add(
+            "music",
+            damage,
+            p,
+            [
+                "run",
+                "--music",
+                p,
+                "--robot",
+                MODEL_ROBOT,
+                "--generator",
+                "thread",
+                "--transport",
+                "record",
+                "--seconds",
+                "1",
+                "--max-duration",
+                "0.3",
+                "--quiet",
+                "-o",
+                b.out("run_music"),
+            ],
+        )
 
     mu("empty", b"")
     mu("garbage bytes", garbage(5000, 11))
@@ -813,8 +964,10 @@ def run_case(case: Case, timeout_s: float = 0.0) -> Outcome:
     out, err = io.StringIO(), io.StringIO()
     old = None
     if timeout_s > 0:
+
         def on_alarm(signum, frame):
             raise _Hang()
+
         old = signal.signal(signal.SIGALRM, on_alarm)
         signal.setitimer(signal.ITIMER_REAL, timeout_s)
     t0 = time.monotonic()
@@ -875,8 +1028,13 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--root", help="where to write the corpus (default: a temporary folder)")
     p.add_argument("--case-timeout", type=float, default=120.0, help="seconds before a case counts as a hang")
-    p.add_argument("--limit-memory", type=float, default=0.0, metavar="GIB",
-                   help="cap this process's address space (an absurd allocation then fails instead of swapping)")
+    p.add_argument(
+        "--limit-memory",
+        type=float,
+        default=0.0,
+        metavar="GIB",
+        help="cap this process's address space (an absurd allocation then fails instead of swapping)",
+    )
     p.add_argument("--only", help="run only the formats named (comma-separated)")
     p.add_argument("--json", help="write every case's outcome to this JSON file")
     p.add_argument("-v", "--verbose", action="store_true", help="print each case as it runs")
@@ -897,14 +1055,31 @@ def main(argv=None) -> int:
         o = run_case(c, args.case_timeout)
         outcomes.append(o)
         if args.verbose or o.kind != "ok":
-            print(f"[{k + 1}/{len(cases)}] {c.label}: {o.kind} ({o.seconds:.1f} s) {o.message.strip()[:160]!r}",
-                  file=sys.__stderr__, flush=True)
+            print(
+                f"[{k + 1}/{len(cases)}] {c.label}: {o.kind} ({o.seconds:.1f} s) {o.message.strip()[:160]!r}",
+                file=sys.__stderr__,
+                flush=True,
+            )
     print(table(cases, outcomes))
     if args.json:
-        Path(args.json).write_text(json.dumps(
-            [{"format": c.fmt, "damage": c.damage, "path": str(c.path), "argv": c.argv, "outcome": o.kind,
-              "code": o.code, "message": o.message, "seconds": round(o.seconds, 2)} for c, o in zip(cases, outcomes)],
-            indent=1))
+        Path(args.json).write_text(
+            json.dumps(
+                [
+                    {
+                        "format": c.fmt,
+                        "damage": c.damage,
+                        "path": str(c.path),
+                        "argv": c.argv,
+                        "outcome": o.kind,
+                        "code": o.code,
+                        "message": o.message,
+                        "seconds": round(o.seconds, 2),
+                    }
+                    for c, o in zip(cases, outcomes)
+                ],
+                indent=1,
+            )
+        )
     return 0
 
 

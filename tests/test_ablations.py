@@ -9,8 +9,17 @@ from dualflow import DualFlowError
 from dualflow.evaluation.ablations import ABLATION_SWITCHES, ablation_overrides
 from dualflow.train import Trainer, load_train_config
 
-BASE = ["preset=tiny", "music=beats", "model.music_dim=4", "data.n_clips=4", "data.val_clips=0", "data.frames=12",
-        "threads=1", "progress=false", "steps=1"]
+BASE = [
+    "preset=tiny",
+    "music=beats",
+    "model.music_dim=4",
+    "data.n_clips=4",
+    "data.val_clips=0",
+    "data.frames=12",
+    "threads=1",
+    "progress=false",
+    "steps=1",
+]
 
 CHANGES = {
     "full": {},

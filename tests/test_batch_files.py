@@ -98,10 +98,16 @@ def test_labels_are_found_from_a_relative_motions_processed_folder(tmp_path, mon
 
 
 def test_a_pair_pattern_joins_the_two_files_of_each_capture(tmp_path):
-    for n in ("take1_S1.bvh", "take1_S2.bvh", "take2_S1.bvh", "take2_S2.bvh", "solo.bvh",
-              "take3_S2.bvh",  # its actor is missing
-              "take4_S1.bvh",  # its reactor is missing
-              "take5_S1.npz"):  # another file type: not the pattern's, a clip of its own
+    for n in (
+        "take1_S1.bvh",
+        "take1_S2.bvh",
+        "take2_S1.bvh",
+        "take2_S2.bvh",
+        "solo.bvh",
+        "take3_S2.bvh",  # its actor is missing
+        "take4_S1.bvh",  # its reactor is missing
+        "take5_S1.npz",
+    ):  # another file type: not the pattern's, a clip of its own
         touch(tmp_path / n)
     clips = {c.name: c for c in find_clips(tmp_path, pairs="{name}_S1.bvh,{name}_S2.bvh")}
     assert list(clips) == ["solo.bvh", "take1_S2.bvh", "take2_S2.bvh", "take3_S2.bvh", "take4_S1.bvh", "take5_S1.npz"]
@@ -131,16 +137,19 @@ def test_a_prefix_pattern_pairs_the_cmu_trial_numbers(tmp_path):
     assert (clip.name, clip.actor_name) == ("19_01.bvh", "18_01.bvh")
 
 
-@pytest.mark.parametrize("bad, message", [
-    ("{name}_S1.bvh", "two file-name patterns"),
-    ("{name}_S1.bvh,{name}_S2.bvh,{name}_S3.bvh", "two file-name patterns"),
-    ("S1.bvh,{name}_S2.bvh", "exactly one {name}"),
-    ("{name}_{name}.bvh,{name}_S2.bvh", "exactly one {name}"),
-    ("{take}_S1.bvh,{take}_S2.bvh", "exactly one {name}"),
-    ("a/{name}.bvh,b/{name}.bvh", "not paths"),
-    ("{name}_S1.txt,{name}_S2.txt", "motion file type"),
-    ("{name}.bvh,{name}.bvh", "the same"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ("{name}_S1.bvh", "two file-name patterns"),
+        ("{name}_S1.bvh,{name}_S2.bvh,{name}_S3.bvh", "two file-name patterns"),
+        ("S1.bvh,{name}_S2.bvh", "exactly one {name}"),
+        ("{name}_{name}.bvh,{name}_S2.bvh", "exactly one {name}"),
+        ("{take}_S1.bvh,{take}_S2.bvh", "exactly one {name}"),
+        ("a/{name}.bvh,b/{name}.bvh", "not paths"),
+        ("{name}_S1.txt,{name}_S2.txt", "motion file type"),
+        ("{name}.bvh,{name}.bvh", "the same"),
+    ],
+)
 def test_a_bad_pair_pattern_says_what_to_write(bad, message):
     with pytest.raises(BridgeError, match=re.escape(message)):
         PairPattern.parse(bad)

@@ -141,8 +141,9 @@ def fakes(tmp_path):
 
 
 def test_run_all_turns_crashes_into_rows_and_keeps_going(fakes, capsys):
-    rows = run_all.run_all([("fake_raises", None), ("fake_ok", 9), ("fake_dies", None)], quick=True,
-                           timeout_s=60, pythonpath=[fakes])
+    rows = run_all.run_all(
+        [("fake_raises", None), ("fake_ok", 9), ("fake_dies", None)], quick=True, timeout_s=60, pythonpath=[fakes]
+    )
     assert len(rows) == 3
     crash, ok, died = rows
     assert run_all.is_failure(crash) and crash.verdict == "not met" and crash.bench == "fake_raises"

@@ -56,7 +56,9 @@ def run_on_bus(op3, tmp_path, produce, faults=None, **config):
         loop = ControlLoop(tr, limits, buf, LoopConfig(**cfg), tel)
         threading.Thread(target=produce, args=(buf, loop), daemon=True).start()
         if faults is not None:
-            threading.Thread(target=lambda: (loop.ready.wait(10), time.sleep(0.3), faults(emu, loop)), daemon=True).start()
+            threading.Thread(
+                target=lambda: (loop.ready.wait(10), time.sleep(0.3), faults(emu, loop)), daemon=True
+            ).start()
         error = None
         try:
             summary = loop.run()
@@ -90,8 +92,14 @@ def test_file_replay_drives_the_bus_in_order_and_ends_at_rest(op3, tmp_path):
     bus, limits = op3
     clip = tmp_path / "actor.npz"
     save_motion(make_leader(2.0, 30.0, seed=4), clip)
-    opts = SessionOptions(actor=str(clip), partner="imitate", transport="dynamixel", emulate=True,
-                          out=tmp_path / "run", handle_signals=False)
+    opts = SessionOptions(
+        actor=str(clip),
+        partner="imitate",
+        transport="dynamixel",
+        emulate=True,
+        out=tmp_path / "run",
+        handle_signals=False,
+    )
     result = run_session(opts)
     s = result.summary
     assert s.end_state == "STOPPED" and s.reason == "the motion ended"
@@ -116,8 +124,11 @@ def test_commands_reach_each_servo_in_order_and_final_pose_matches(op3, tmp_path
         # as one contiguous run (the transport adds its own goal = present on open and stop)
         j = limits.names.index(s.joint)
         expected = np.round(XM.rad_to_ticks(s.to_servo(tel.records["command"][:, j].astype(float))))
-        runs = [o for o in range(len(ticks) - len(expected) + 1)
-                if np.max(np.abs(ticks[o:o + len(expected)] - expected)) <= 1]
+        runs = [
+            o
+            for o in range(len(ticks) - len(expected) + 1)
+            if np.max(np.abs(ticks[o : o + len(expected)] - expected)) <= 1
+        ]
         assert runs, f"servo {s.id}: the loop's commands do not appear in order on the bus"
     # the loop's last command is the rest pose (zeros here); the stop policy "hold" then
     # holds where each servo is, which trails that command by at most its following error
@@ -135,7 +146,9 @@ def test_estop_mid_run_leaves_every_servo_limp_and_telemetry_complete(op3, tmp_p
 
 
 def test_generator_nan_and_stall_never_reach_the_bus(op3, tmp_path):
-    summary, emu, tel, _ = run_on_bus(op3, tmp_path, wave(300, nan_at=20, stop_after=40), actor_timeout=0.2, rest_after=0.5)
+    summary, emu, tel, _ = run_on_bus(
+        op3, tmp_path, wave(300, nan_at=20, stop_after=40), actor_timeout=0.2, rest_after=0.5
+    )
     assert summary.end_state == "STOPPED" and "no new frames" in summary.reason
     assert (tel.records["faults"] & Fault.NONFINITE).any() and (tel.records["faults"] & Fault.ACTOR_TIMEOUT).any()
 
@@ -148,7 +161,9 @@ def test_an_overheating_servo_stops_the_run(op3, tmp_path):
 
 
 def test_dropped_status_packets_are_retried_without_stopping(op3, tmp_path):
-    summary, emu, tel, error = run_on_bus(op3, tmp_path, wave(60), faults=lambda emu, loop: emu.drop_replies(5, count=2))
+    summary, emu, tel, error = run_on_bus(
+        op3, tmp_path, wave(60), faults=lambda emu, loop: emu.drop_replies(5, count=2)
+    )
     assert error is None and summary.end_state == "STOPPED" and summary.reason == "the motion ended"
 
 
@@ -167,8 +182,14 @@ def test_garbage_udp_packets_are_dropped_and_the_stream_still_drives_the_bus(op3
     probe = UdpActorSource()
     port = probe.address[1]
     probe.close()
-    opts = SessionOptions(actor=f"udp://127.0.0.1:{port}", partner="imitate", transport="dynamixel", emulate=True,
-                          out=tmp_path / "udp", handle_signals=False)
+    opts = SessionOptions(
+        actor=f"udp://127.0.0.1:{port}",
+        partner="imitate",
+        transport="dynamixel",
+        emulate=True,
+        out=tmp_path / "udp",
+        handle_signals=False,
+    )
 
     def sender(loop, _described):
         def send():

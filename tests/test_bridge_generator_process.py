@@ -43,8 +43,9 @@ def _generator(tiny_checkpoint, limits, **kw):
 
 def _loop(limits, buf, stop_policy="hold"):
     tr = RecordTransport(limits.names, initial=limits.clip(np.zeros(limits.n)))
-    loop = ControlLoop(tr, limits, buf, LoopConfig(handle_signals=False, min_ramp=0.3, rest_after=30.0,
-                                                   stop_policy=stop_policy))
+    loop = ControlLoop(
+        tr, limits, buf, LoopConfig(handle_signals=False, min_ramp=0.3, rest_after=30.0, stop_policy=stop_policy)
+    )
     return tr, loop
 
 
@@ -62,14 +63,16 @@ def test_messages_round_trip_through_a_pipe_in_pieces():
     rx = Channel(r, os.open(os.devnull, os.O_WRONLY))
     pos = np.arange(66, dtype=float).reshape(22, 3) / 7
     target = PartnerTarget(12, np.linspace(-1, 1, 20), pos, 3.25, 23, 0.125, 0.004, True)
-    data = b"".join([
-        _framed(b"A", encode_actor(7, 1.5, pos)),
-        _framed(b"T", encode_target(target)),
-        _framed(b"D", b""),
-    ])
+    data = b"".join(
+        [
+            _framed(b"A", encode_actor(7, 1.5, pos)),
+            _framed(b"T", encode_target(target)),
+            _framed(b"D", b""),
+        ]
+    )
     got = []
     for k in range(0, len(data), 37):  # a reader sees arbitrary pieces of the byte stream
-        os.write(w, data[k:k + 37])
+        os.write(w, data[k : k + 37])
         got += rx.receive(1.0)
     os.close(w)
     assert [k for k, _ in got] == [b"A", b"T", b"D"]
@@ -199,7 +202,9 @@ def test_a_generator_process_that_dies_stops_the_robot_safely(tiny_checkpoint, l
 
 @pytest.mark.slow
 def test_a_bad_checkpoint_fails_before_the_robot_moves(tmp_path, limits):
-    gen = GeneratorProcess(GeneratorConfig(robot="op3", joint_names=list(limits.names), checkpoint=str(tmp_path / "nothing")))
+    gen = GeneratorProcess(
+        GeneratorConfig(robot="op3", joint_names=list(limits.names), checkpoint=str(tmp_path / "nothing"))
+    )
     with pytest.raises(BridgeError, match="nothing"):
         gen.start()
     assert gen.process.poll() is not None  # the child is gone, not left behind

@@ -77,7 +77,6 @@ def test_a_bad_period_is_refused():
         IdleSlots(0.0)
 
 
-
 def test_urgent_catch_up_runs_in_any_gap_other_work_only_where_it_fits(tiny_checkpoint):
     """The generator's scheduler (PartnerCore) on a real incremental stream, every kind of
     piece timed far longer than a frame gap: only the pieces that a frame would otherwise do

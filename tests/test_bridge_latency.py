@@ -41,15 +41,17 @@ def test_the_provisional_row_is_revised_with_the_true_next_frame(tiny_checkpoint
     leader = make_leader(1.0, 30.0, seed=5)
     for k in range(20):
         stage.push(leader.positions[k], float(k), k)
-    exact = stage.stats.normalize(encode_person(Motion(leader.positions[:20], 30.0),
-                                                canonical_frame(Motion(leader.positions[:1], 30.0))))
+    exact = stage.stats.normalize(
+        encode_person(Motion(leader.positions[:20], 30.0), canonical_frame(Motion(leader.positions[:1], 30.0)))
+    )
     rows = stage.streamer._actor.numpy()
     assert rows.shape[0] == 20  # 19 exact rows and the newest frame's provisional one
     np.testing.assert_allclose(rows[:19], exact, atol=1e-5)
     # the provisional row: the newest frame at the velocity of the last step (constant-velocity guess)
     p = leader.positions
-    guess = stage.stats.normalize(encode_person(Motion(np.stack([p[19], 2 * p[19] - p[18]]), 30.0),
-                                                canonical_frame(Motion(p[:1], 30.0))))
+    guess = stage.stats.normalize(
+        encode_person(Motion(np.stack([p[19], 2 * p[19] - p[18]]), 30.0), canonical_frame(Motion(p[:1], 30.0)))
+    )
     np.testing.assert_allclose(rows[19], guess[0], atol=1e-5)
 
 

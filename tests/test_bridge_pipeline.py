@@ -82,12 +82,16 @@ def test_text_and_music_reach_the_generator(tmp_path):
     with torch.no_grad():  # the condition paths start at zero (adaLN-zero); wake them up
         for p in model.parameters():
             p.add_(0.05 * torch.randn_like(p))
-    save_checkpoint(ckpt, model=model, stats=NormStats.from_features(feats),
-                    meta={"text_encoder": "hashed_bag_of_words_v1/dim384/seed0", "music": "edge35"})
+    save_checkpoint(
+        ckpt,
+        model=model,
+        stats=NormStats.from_features(feats),
+        meta={"text_encoder": "hashed_bag_of_words_v1/dim384/seed0", "music": "edge35"},
+    )
     sr = 22050
     clicks = np.zeros(sr * 2, np.float32)
     for b in np.arange(0.25, 2.0, 0.5):  # 120 bpm
-        clicks[int(b * sr):int(b * sr) + 200] = 0.8
+        clicks[int(b * sr) : int(b * sr) + 200] = 0.8
     sf.write(tmp_path / "clicks.wav", clicks, sr)
     leader = make_leader(1.0, 30.0, seed=5)
 

@@ -32,8 +32,10 @@ def test_the_fixed_clock_keeps_where_the_first_frame_put_it():
 def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
     delay = 0.120  # frame k arrives 120 ms after its ideal time k / fps (a steady generator)
     first_late = 0.400  # the first frame was 400 ms late (a slow first window)
+
     def arrival(k):
-        return (k / FPS + delay + (first_late - delay if k == 0 else 0.0))
+        return k / FPS + delay + (first_late - delay if k == 0 else 0.0)
+
     clock = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=1.0, window_s=1.0))
     track = _drive(clock, arrival, 8.0)
     speed = np.diff(track[:, 1]) / np.diff(track[:, 0])
@@ -49,11 +51,14 @@ def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
 
 def test_the_adaptive_clock_slows_down_for_late_frames_and_catches_up_after():
     def arrival(k):
-        return (k / FPS + (0.3 if 60 <= k < 70 else 0.05))  # a stall of 250 ms around 2 s
+        return k / FPS + (0.3 if 60 <= k < 70 else 0.05)  # a stall of 250 ms around 2 s
+
     clock = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0, window_s=1.0))
     track = _drive(clock, arrival, 8.0)
+
     def delay_at(t):
-        return (t - track[np.searchsorted(track[:, 0], t), 1])  # now - motion time
+        return t - track[np.searchsorted(track[:, 0], t), 1]  # now - motion time
+
     assert max(delay_at(t) for t in np.arange(2.3, 3.5, 0.05)) > 0.2  # it waited for the late frames
     assert 0.05 + 0.02 <= delay_at(7.9) <= 0.05 + 0.02 + 0.01  # and came back down (to the tick)
 
@@ -92,12 +97,15 @@ def test_without_extrapolation_the_buffer_holds():
 def test_one_late_frame_does_not_hold_the_clock_back_but_a_late_run_does():
     # frame 60 is 50 ms late (the next one, in order behind it, 17 ms)
     def arrival(k):
-        return (k / FPS + (0.10 if k == 60 else 0.05))
+        return k / FPS + (0.10 if k == 60 else 0.05)
+
     robust = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0))  # q = 0.9
     strict = PlaybackClock(FPS, 0, now=arrival(0), policy=PlaybackPolicy(margin=0.02, lead_frames=0.0, quantile=1.0))
     a, b = _drive(robust, arrival, 2.6), _drive(strict, arrival, 2.6)
+
     def lag(track):
-        return (np.max(track[:, 0] - track[:, 1]))
+        return np.max(track[:, 0] - track[:, 1])
+
     assert lag(a[a[:, 0] > 1.5]) < 0.05 + 0.02 + 0.011
     assert lag(b[b[:, 0] > 1.5]) > 0.1 + 0.02
 
@@ -145,8 +153,9 @@ def test_cubic_interpolation_is_exact_for_constant_acceleration():
     q = np.stack([0.02 * k**2 - 0.1 * k + 0.3, -0.05 * k**2 + 0.4 * k], axis=1)
     buf = _filled(q)
     for pos in np.linspace(2.0, 6.99, 40):
-        np.testing.assert_allclose(buf.sample(pos / FPS).q, [0.02 * pos**2 - 0.1 * pos + 0.3, -0.05 * pos**2 + 0.4 * pos],
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            buf.sample(pos / FPS).q, [0.02 * pos**2 - 0.1 * pos + 0.3, -0.05 * pos**2 + 0.4 * pos], atol=1e-12
+        )
 
 
 def test_cubic_segments_never_change_when_later_frames_arrive_and_join_with_continuous_velocity():
@@ -176,6 +185,7 @@ def test_extrapolation_continues_the_last_segment_along_its_end_tangent():
     left = (buf.sample(3.0 / FPS).q - buf.sample((3.0 - eps) / FPS).q) / eps
     right = (buf.sample((3.0 + eps) / FPS).q - buf.sample(3.0 / FPS).q) / eps
     np.testing.assert_allclose(left, right, atol=1e-4)
+
 
 class _PushDuringSample(TargetBuffer):
     """A buffer whose producer thread pushes ``pending`` frames just after a ``sample`` call
@@ -237,8 +247,10 @@ def test_a_late_frame_joins_the_command_to_the_new_curve_without_a_jump():
     t, smooth = _late_frame_commands(15.0)
     _, raw = _late_frame_commands(0.0)
     _, ideal = _late_frame_commands(0.0, late=False)
+
     def vel(c):
-        return (np.diff(c) / 0.01)
+        return np.diff(c) / 0.01
+
     # without smoothing the late frame's curve replaces the extrapolated one at once: a step in
     # velocity far beyond any in the curve itself; with it the velocity changes no more than the
     # in-time curve's does

@@ -78,8 +78,13 @@ def test_control_loop_runs_with_gc_in_slack_and_restores_the_interpreter(tmp_pat
     buf.close()  # no motion: ramp in, wait, ramp out
     tel = TelemetryWriter(tmp_path / "rt.tel", names, 200.0)
     switch = sys.getswitchinterval()
-    loop = ControlLoop(RecordTransport(names, initial=[0.2, -0.2]), limits, buf,
-                       LoopConfig(rate_hz=200.0, rest_pose=np.zeros(2), min_ramp=0.2, handle_signals=False), tel)
+    loop = ControlLoop(
+        RecordTransport(names, initial=[0.2, -0.2]),
+        limits,
+        buf,
+        LoopConfig(rate_hz=200.0, rest_pose=np.zeros(2), min_ramp=0.2, handle_signals=False),
+        tel,
+    )
     summary = loop.run()
     assert summary.end_state == "STOPPED"
     assert gc.isenabled() and gc.get_freeze_count() == 0 and sys.getswitchinterval() == switch

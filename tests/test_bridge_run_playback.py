@@ -12,8 +12,26 @@ def test_the_playback_settings_reach_the_loop(tmp_path):
     clip = tmp_path / "actor.npz"
     save_motion(make_leader(1.0, 30.0, seed=4), clip)
     out = tmp_path / "run"
-    rc = main(["run", "--actor", str(clip), "--partner", "imitate", "--transport", "record", "--quiet",
-               "--playback-margin", "7", "--playback-quantile", "0.6", "--smoothing", "25", "--out", str(out)])
+    rc = main(
+        [
+            "run",
+            "--actor",
+            str(clip),
+            "--partner",
+            "imitate",
+            "--transport",
+            "record",
+            "--quiet",
+            "--playback-margin",
+            "7",
+            "--playback-quantile",
+            "0.6",
+            "--smoothing",
+            "25",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     (session,) = [e for e in read_telemetry(out / "telemetry.dftl").events if e["kind"] == "session"]
     assert session["playback_margin_s"] == pytest.approx(0.007)
@@ -25,21 +43,49 @@ def test_the_session_defaults_play_by_the_median_arrival_and_smooth_the_revision
     from ros_free_bridge.session import ADAPTIVE_MARGIN, SessionOptions
 
     out = tmp_path / "run"
-    assert main(["run", "--actor", "synthetic", "--seconds", "1", "--partner", "imitate", "--transport", "record",
-                 "--quiet", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "--actor",
+                "synthetic",
+                "--seconds",
+                "1",
+                "--partner",
+                "imitate",
+                "--transport",
+                "record",
+                "--quiet",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     (session,) = [e for e in read_telemetry(out / "telemetry.dftl").events if e["kind"] == "session"]
     d = SessionOptions()
-    assert session["playback_margin_s"] == pytest.approx(ADAPTIVE_MARGIN) and session["playback_quantile"] == d.playback_quantile
-    assert session["extrapolate_frames"] == d.extrapolate_frames and session["revision_smoothing"] == d.revision_smoothing > 0
+    assert (
+        session["playback_margin_s"] == pytest.approx(ADAPTIVE_MARGIN)
+        and session["playback_quantile"] == d.playback_quantile
+    )
+    assert (
+        session["extrapolate_frames"] == d.extrapolate_frames
+        and session["revision_smoothing"] == d.revision_smoothing > 0
+    )
 
 
 @pytest.mark.parametrize("command", ["run", "demo"])
-@pytest.mark.parametrize("flag, value, says", [("--playback-margin", "-5", "milliseconds >= 0"),
-                                               ("--playback-margin", "soon", "milliseconds >= 0"),
-                                               ("--playback-quantile", "0", "(0, 1]"),
-                                               ("--playback-quantile", "1.5", "(0, 1]"),
-                                               ("--smoothing", "-1", "rad/s >= 0"),
-                                               ("--smoothing", "inf", "rad/s >= 0")])
+@pytest.mark.parametrize(
+    "flag, value, says",
+    [
+        ("--playback-margin", "-5", "milliseconds >= 0"),
+        ("--playback-margin", "soon", "milliseconds >= 0"),
+        ("--playback-quantile", "0", "(0, 1]"),
+        ("--playback-quantile", "1.5", "(0, 1]"),
+        ("--smoothing", "-1", "rad/s >= 0"),
+        ("--smoothing", "inf", "rad/s >= 0"),
+    ],
+)
 def test_a_bad_playback_setting_is_one_clear_error(tmp_path, capsys, command, flag, value, says):
     with pytest.raises(SystemExit) as exc:
         main([command, flag, value, "--out", str(tmp_path / "out")])

@@ -14,8 +14,22 @@ def test_run_passes_the_priority_to_the_loop_and_logs_the_outcome(tmp_path):
     clip = tmp_path / "actor.npz"
     save_motion(make_leader(1.0, 30.0, seed=2), clip)
     out = tmp_path / "run"
-    rc = main(["run", "--actor", str(clip), "--partner", "imitate", "--transport", "record", "--quiet",
-               "--realtime-priority", "7", "--out", str(out)])
+    rc = main(
+        [
+            "run",
+            "--actor",
+            str(clip),
+            "--partner",
+            "imitate",
+            "--transport",
+            "record",
+            "--quiet",
+            "--realtime-priority",
+            "7",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     (event,) = [e for e in read_telemetry(out / "telemetry.dftl").events if e["kind"] == "realtime"]
     note = event["scheduling"]
@@ -37,8 +51,22 @@ def _can_fifo() -> bool:
 
 @pytest.mark.parametrize("priority", ["-1", "100"])
 def test_an_impossible_priority_is_one_clear_error(tmp_path, capsys, priority):
-    rc = main(["run", "--partner", "imitate", "--transport", "record", "--quiet", "--seconds", "1",
-               "--realtime-priority", priority, "--out", str(tmp_path / "run")])
+    rc = main(
+        [
+            "run",
+            "--partner",
+            "imitate",
+            "--transport",
+            "record",
+            "--quiet",
+            "--seconds",
+            "1",
+            "--realtime-priority",
+            priority,
+            "--out",
+            str(tmp_path / "run"),
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2
     assert "realtime_priority" in err and "1-99" in err

@@ -22,7 +22,8 @@ def _check_invariants(cmds, limits=LIMITS, dt=DT):
 
 targets = st.lists(
     st.lists(st.one_of(st.floats(-10, 10), st.just(float("nan")), st.just(float("inf"))), min_size=3, max_size=3),
-    min_size=1, max_size=60,
+    min_size=1,
+    max_size=60,
 )
 
 

@@ -25,6 +25,7 @@ def test_loop_moves_the_simulated_robot_and_records_what_it_did():
     # robot keeps standing); ROBOTIS's axes: the right elbow bends in with +, the left with -
     el = [limits.names.index("r_el"), limits.names.index("l_el")]
     goal = np.array([0.8, -0.8])
+
     def produce():
         loop.ready.wait(10)
         base = loop.safety.last_command

@@ -31,4 +31,3 @@ def test_a_clean_run_says_no_faults_and_plain_latency(capsys):
     out = _printed(_result(Fault.NONE, None), capsys)
     assert "end-to-end latency p50 110 ms" in out
     assert "faults: none" in out and "extrapolated" not in out
-

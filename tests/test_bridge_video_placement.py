@@ -23,8 +23,14 @@ def _person(pelvis_xy, yaw):
 
 
 def _robot(n):
-    return RobotTrajectory(joint_names=("j",), joint_pos=np.zeros((n, 1)), root_pos=np.tile([0.0, 0.0, 0.27], (n, 1)),
-                           root_quat=np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), fps=FPS, robot="op3")
+    return RobotTrajectory(
+        joint_names=("j",),
+        joint_pos=np.zeros((n, 1)),
+        root_pos=np.tile([0.0, 0.0, 0.27], (n, 1)),
+        root_quat=np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+        fps=FPS,
+        robot="op3",
+    )
 
 
 def test_the_actor_is_drawn_where_it_stood_relative_to_the_partner():
@@ -48,8 +54,10 @@ def test_an_actor_walking_into_the_robot_is_kept_at_the_minimum_gap():
     robot = _robot(n)
     plain = actor_placement_for_robot(partner, robot)
     kept = actor_placement_for_robot(partner, robot, actor, min_gap=0.35)
+
     def gap(pl):
         return np.linalg.norm(place(actor.positions, pl.scale, pl)[:, 0, :2] - robot.root_pos[:, :2], axis=1)
+
     assert gap(plain).min() < 0.05  # without the actor, the drawn actor ends inside the robot
     assert gap(kept).min() >= 0.35 - 1e-6
     assert gap(kept).min() <= 0.35 + 1e-3  # moved just enough, straight away from the robot

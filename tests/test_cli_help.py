@@ -20,16 +20,24 @@ PARSERS = dict((" ".join(path), p) for path, p in all_parsers(build_parser()))
 
 
 def test_the_nested_commands_are_walked_too():
-    assert {"dualflow-bridge demo", "dualflow-bridge retarget-check", "dualflow-bridge motion convert",
-            "dualflow-bridge servo provision", "dualflow-bridge eval train-evaluator"} <= set(PARSERS)
+    assert {
+        "dualflow-bridge demo",
+        "dualflow-bridge retarget-check",
+        "dualflow-bridge motion convert",
+        "dualflow-bridge servo provision",
+        "dualflow-bridge eval train-evaluator",
+    } <= set(PARSERS)
 
 
 @pytest.mark.parametrize("name", sorted(PARSERS))
 def test_help_is_complete(name):
     parser = PARSERS[name]
     assert parser.description and len(parser.description.split()) >= 5, f"{name}: no description"
-    missing = [a.option_strings[-1] if a.option_strings else a.dest for a in parser._actions
-               if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))
-               and (not a.help or a.help == argparse.SUPPRESS)]
+    missing = [
+        a.option_strings[-1] if a.option_strings else a.dest
+        for a in parser._actions
+        if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))
+        and (not a.help or a.help == argparse.SUPPRESS)
+    ]
     assert not missing, f"{name}: options without help text: {missing}"
     parser.format_help()  # formats (a bad %-placeholder in a help text raises here)

@@ -35,7 +35,15 @@ def setup():
             torch.nn.init.normal_(p, std=0.02)
     builder = ConditionBuilder(cfg, stats, text_encoder=MiniLMEncoder(), music_kind="beats4", fps=FPS)
     music60 = make_duet("mirror", seconds=61 / FPS, fps=FPS, seed=99).meta["beats"][:60]
-    return {"music60": music60, "pairs": pairs, "feats": feats, "stats": stats, "cfg": cfg, "model": model, "builder": builder}
+    return {
+        "music60": music60,
+        "pairs": pairs,
+        "feats": feats,
+        "stats": stats,
+        "cfg": cfg,
+        "model": model,
+        "builder": builder,
+    }
 
 
 SUBSETS = [s for n in range(4) for s in itertools.combinations(("actor", "text", "music"), n)]
@@ -62,8 +70,9 @@ def test_every_subset_builds_and_generates(setup, subset):
         assert inputs.cond.music.shape == (1, expected_t, 4)
         np.testing.assert_array_equal(inputs.cond.music[0].numpy(), setup["music60"][:expected_t])
     if "actor" in subset:
-        np.testing.assert_allclose(inputs.actor[0].numpy(),
-                                   setup["stats"].normalize(setup["feats"][0][:, 0]), atol=1e-5)
+        np.testing.assert_allclose(
+            inputs.actor[0].numpy(), setup["stats"].normalize(setup["feats"][0][:, 0]), atol=1e-5
+        )
 
     duet, _ = DuetGenerator(setup["model"], setup["builder"]).generate(**given, steps=2, seed=1)
     assert duet.n_frames == expected_t + 1
@@ -89,8 +98,11 @@ def test_the_reactor_lands_in_the_actors_world(setup):
     gen = DuetGenerator(setup["model"], setup["builder"])
     a, _ = gen.generate(actor=pair.actor, steps=2, seed=4)
     b, _ = gen.generate(actor=moved, steps=2, seed=4)
-    np.testing.assert_allclose(b.reactor.positions - a.reactor.positions,
-                               np.broadcast_to([3.0, -2.0, 0.0], a.reactor.positions.shape), atol=1e-6)
+    np.testing.assert_allclose(
+        b.reactor.positions - a.reactor.positions,
+        np.broadcast_to([3.0, -2.0, 0.0], a.reactor.positions.shape),
+        atol=1e-6,
+    )
 
 
 @pytest.mark.slow  # librosa's beat tracker compiles (numba) on first use: ~10-20 s per process
@@ -115,8 +127,12 @@ def test_mismatches_fail_clearly(setup):
 
     cfg, stats = setup["cfg"], setup["stats"]
     with pytest.raises(DualFlowError, match="text_dim is 32"):
-        ConditionBuilder(DualFlowConfig.preset("tiny", text_dim=32, music_dim=4), stats,
-                         text_encoder=MiniLMEncoder(), music_kind="beats4")
+        ConditionBuilder(
+            DualFlowConfig.preset("tiny", text_dim=32, music_dim=4),
+            stats,
+            text_encoder=MiniLMEncoder(),
+            music_kind="beats4",
+        )
     with pytest.raises(DualFlowError, match="music_dim is 4"):
         ConditionBuilder(cfg, stats, music_kind="edge35")
     with pytest.raises(DualFlowError, match="leave n_frames out"):
@@ -141,11 +157,13 @@ def test_retrieval_tokens_from_text_and_music(setup):
 
     pairs, feats, cfg = setup["pairs"], setup["feats"], setup["cfg"]
     text_encoder = setup["builder"].text_encoder
-    db = RetrievalDatabase.build(feats, [40] * 3, [p.text for p in pairs], [p.meta["beats"] for p in pairs],
-                                 text_encoder=text_encoder)
+    db = RetrievalDatabase.build(
+        feats, [40] * 3, [p.text for p in pairs], [p.meta["beats"] for p in pairs], text_encoder=text_encoder
+    )
     enc = RetrievalEncoder(cfg.width, n_layers=1, n_heads=2, dropout=0.0).eval()
-    builder = ConditionBuilder(cfg, setup["stats"], text_encoder=text_encoder, music_kind="beats4",
-                               retrieval_db=db, retrieval_encoder=enc)
+    builder = ConditionBuilder(
+        cfg, setup["stats"], text_encoder=text_encoder, music_kind="beats4", retrieval_db=db, retrieval_encoder=enc
+    )
     inter = builder.build(text=pairs[0].text, music=pairs[0].meta["beats"][:40])
     # 4 cues x min(k=5, 3 entries) clips x 2 persons
     assert inter.cond.retrieval.shape == (1, 4 * 3 * 2, cfg.width) and len(inter.retrieved) == 12
@@ -158,9 +176,12 @@ def test_retrieval_tokens_from_text_and_music(setup):
 
 def test_builder_from_a_checkpoint(setup, tmp_path):
     ckpt_mod = pytest.importorskip("dualflow.checkpoint", reason="dualflow.checkpoint not in this tree yet")
-    path = ckpt_mod.save_checkpoint(tmp_path / "ck", model=setup["model"], stats=setup["stats"],
-                                    meta={"text_encoder": "all-MiniLM-L6-v2/meanpool-l2", "music": "beats",
-                                          "data": {"fps": 30.0}})
+    path = ckpt_mod.save_checkpoint(
+        tmp_path / "ck",
+        model=setup["model"],
+        stats=setup["stats"],
+        meta={"text_encoder": "all-MiniLM-L6-v2/meanpool-l2", "music": "beats", "data": {"fps": 30.0}},
+    )
     gen = DuetGenerator.from_checkpoint(path)
     assert gen.builder.music_kind == "beats4" and gen.builder.text_encoder.dim == 384
     duet, inputs = gen.generate(text="they hold hands", n_frames=20, steps=2)

@@ -94,13 +94,16 @@ def test_interhuman_as_swaps_roles_from_labels(tmp_path):
     assert len(test) == 0 and test.skipped == {"1003": "no actor-reactor label"}
 
 
-@pytest.mark.parametrize("breakage, needle", [
-    (lambda r: (r / "motions_processed" / "person2" / "1001.npy").unlink(), "person2/1001.npy"),
-    (lambda r: (r / "annots" / "1000.txt").unlink(), "annots/1000.txt"),
-    (lambda r: (r / "train.txt").unlink(), "train.txt"),
-    (lambda r: (r / "motions_processed" / "person1" / "1000.npy").write_bytes(b"junk"), "person1/1000.npy"),
-    (lambda r: (r / "annots" / "1001.txt").write_text("\n\n"), "annots/1001.txt"),
-])
+@pytest.mark.parametrize(
+    "breakage, needle",
+    [
+        (lambda r: (r / "motions_processed" / "person2" / "1001.npy").unlink(), "person2/1001.npy"),
+        (lambda r: (r / "annots" / "1000.txt").unlink(), "annots/1000.txt"),
+        (lambda r: (r / "train.txt").unlink(), "train.txt"),
+        (lambda r: (r / "motions_processed" / "person1" / "1000.npy").write_bytes(b"junk"), "person1/1000.npy"),
+        (lambda r: (r / "annots" / "1001.txt").write_text("\n\n"), "annots/1001.txt"),
+    ],
+)
 def test_interhuman_errors_name_the_file(tmp_path, breakage, needle):
     make_interhuman(tmp_path)
     breakage(tmp_path)
@@ -130,8 +133,8 @@ def make_dd100(root: Path) -> dict[str, object]:
         for i, take in enumerate(takes):
             d = _duet(10 + i + len(duets))
             duets[take] = d
-            np.save(pos / f"{take}_01.npy", _yup_flat(d.actor.positions))      # leader
-            np.save(pos / f"{take}_00.npy", _yup_flat(d.reactor.positions))    # follower
+            np.save(pos / f"{take}_01.npy", _yup_flat(d.actor.positions))  # leader
+            np.save(pos / f"{take}_00.npy", _yup_flat(d.reactor.positions))  # follower
             music = RNG.normal(size=(d.n_frames + 5, 54)).astype(np.float32)
             music[:, 53] = 0.0
             music[::8, 53] = 1.0
@@ -303,8 +306,8 @@ def test_beat_track_phase_and_windows(tmp_path):
     imp[[4, 14, 24, 34]] = 1
     tr = beat_track(imp)
     assert tr[4, 0] == 1 and tr[4, 3] == 1 and tr[14, 3] == 0
-    np.testing.assert_allclose(tr[9, 1:3], [0.0, -1.0], atol=1e-6)   # half-way between beats: phase 0.5
-    np.testing.assert_allclose(tr[[4, 14, 24], 2], 1.0)             # phase 0 on the beats
+    np.testing.assert_allclose(tr[9, 1:3], [0.0, -1.0], atol=1e-6)  # half-way between beats: phase 0.5
+    np.testing.assert_allclose(tr[[4, 14, 24], 2], 1.0)  # phase 0 on the beats
     make_dd100(tmp_path)
     ws = window_split(load_dataset("dd100", tmp_path, "train"), frames=10, stride=10)
     assert ws.features.shape[1:] == (10, 2, 262) and ws.beats.shape == (len(ws.features), 10, 4)

@@ -27,7 +27,9 @@ def test_keyword_routing_of_clauses():
         "The two dancers hold hands facing each other, the follower spins under his raised arm, "
         "then they step quickly on the beat."
     )
-    assert "hold hands facing each other" in d.spatial and "hand-to-hand" in d.spatial and "facing each other" in d.spatial
+    assert (
+        "hold hands facing each other" in d.spatial and "hand-to-hand" in d.spatial and "facing each other" in d.spatial
+    )
     assert "spins under his raised arm" in d.body and "spin" in d.body and "arm" in d.body
     assert "step quickly on the beat" in d.rhythm and "fast" in d.rhythm and "on the beat" in d.rhythm
     assert "spins" not in d.rhythm and "quickly" not in d.spatial
@@ -108,7 +110,11 @@ def test_llm_request_follows_the_paper_prompt_and_caches(fake_llm, tmp_path, mon
     msgs = req["body"]["messages"]
     assert req["body"]["model"] == "local-model"
     assert msgs[0]["role"] == "system" and "swing" in msgs[0]["content"] and "spatial" in msgs[0]["content"]
-    assert msgs[1]["role"] == "system" and "Reference guidelines" in msgs[1]["content"] and "hand-to-hand" in msgs[1]["content"]
+    assert (
+        msgs[1]["role"] == "system"
+        and "Reference guidelines" in msgs[1]["content"]
+        and "hand-to-hand" in msgs[1]["content"]
+    )
     shots = msgs[2:-1]
     assert [m["role"] for m in shots] == ["user", "assistant"] * 3
     assert shots[0]["content"] == FEW_SHOT["swing"][0][0]

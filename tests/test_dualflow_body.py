@@ -62,7 +62,7 @@ def test_feet_in_contact_stay_put_and_skate_less_than_real_capture():
         runs = np.flatnonzero(np.diff(np.concatenate([[0], locked.astype(int), [0]])))
         for start, stop in zip(runs[::2], runs[1::2]):
             # once landed (the soft landing halves the gap each frame) the ankle stays put
-            seg = out[start + 3:stop, ank, :2]
+            seg = out[start + 3 : stop, ank, :2]
             if len(seg):
                 assert np.abs(seg - seg[-1]).max() < 0.005
 

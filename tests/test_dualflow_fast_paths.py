@@ -55,9 +55,23 @@ def test_weights_of_five_separate_modulations_load_into_the_fused_one():
 
 
 def test_an_old_checkpoint_directory_loads_and_an_old_training_run_says_how_to_go_on(tmp_path):
-    run = train(load_train_config(None, ["preset=tiny", "data.n_clips=8", "data.val_clips=0", "data.frames=16",
-                                         "batch_size=4", "threads=1", "progress=false", "ckpt_every=0", "steps=2",
-                                         f"out_dir={tmp_path / 'run'}"]))
+    run = train(
+        load_train_config(
+            None,
+            [
+                "preset=tiny",
+                "data.n_clips=8",
+                "data.val_clips=0",
+                "data.frames=16",
+                "batch_size=4",
+                "threads=1",
+                "progress=false",
+                "ckpt_every=0",
+                "steps=2",
+                f"out_dir={tmp_path / 'run'}",
+            ],
+        )
+    )
     final = run.final_checkpoint
     model, ckpt = load_model(final)
     assert not ckpt.converted
@@ -90,8 +104,13 @@ def test_triplet_loss_is_the_mean_over_valid_triplets_and_zero_without_any():
     labels = torch.tensor([0, 0, 1, 1, 2, 0])
     flat = torch.nn.functional.normalize(v.reshape(6, -1), dim=-1)
     dist = 1 - flat @ flat.T
-    terms = [torch.relu(dist[i, p] - dist[i, n] + 0.2) for i in range(6) for p in range(6) for n in range(6)
-             if p != i and labels[p] == labels[i] and labels[n] != labels[i]]
+    terms = [
+        torch.relu(dist[i, p] - dist[i, n] + 0.2)
+        for i in range(6)
+        for p in range(6)
+        for n in range(6)
+        if p != i and labels[p] == labels[i] and labels[n] != labels[i]
+    ]
     torch.testing.assert_close(triplet_loss(v, labels=labels), torch.stack(terms).mean())
     none = triplet_loss(v, labels=torch.arange(6))  # no positives
     assert none.item() == 0.0 and none.requires_grad
@@ -114,8 +133,15 @@ def test_ema_update_matches_averaged_model():
 def test_train_step_without_sync_keeps_tensors_and_logs_the_same_numbers(tmp_path):
     from dualflow.train import Trainer
 
-    args = ["preset=tiny", "data.n_clips=8", "data.val_clips=0", "data.frames=16", "batch_size=4", "threads=1",
-            "progress=false"]
+    args = [
+        "preset=tiny",
+        "data.n_clips=8",
+        "data.val_clips=0",
+        "data.frames=16",
+        "batch_size=4",
+        "threads=1",
+        "progress=false",
+    ]
     one = Trainer(load_train_config(None, args + [f"out_dir={tmp_path / 'a'}"]))
     two = Trainer(load_train_config(None, args + [f"out_dir={tmp_path / 'b'}"]))
     for _ in range(3):

@@ -56,8 +56,10 @@ def test_leaders_walk_up_turn_and_hold_a_hand_out():
             assert (p[-1, 0, :2] - p[0, 0, :2]) @ heading > 0.2 or clip.plan.centre(np.array([-1.0]))[0] @ heading < 0
         if slots["arms"] in ("reach_left", "reach_right"):
             wrist = 20 if slots["arms"] == "reach_left" else 21
-            ahead = [(p[t, wrist, :2] - p[t, 0, :2]) @ np.array([np.cos(h), np.sin(h)])
-                     for t, h in enumerate(clip.plan.heading(clip.times))]
+            ahead = [
+                (p[t, wrist, :2] - p[t, 0, :2]) @ np.array([np.cos(h), np.sin(h)])
+                for t, h in enumerate(clip.plan.heading(clip.times))
+            ]
             assert max(ahead) > 0.35  # the hand held out in front, at least at some moment
     assert {"walk_up", "turn_to", "reach_left", "reach_right"} <= seen
 
@@ -101,12 +103,24 @@ def test_widen_stats_changes_only_the_columns_the_old_data_held_still():
 def test_fine_tuning_starts_from_the_checkpoint(tmp_path):
     from dualflow.train import Trainer, load_train_config, train
 
-    fast = ["preset=tiny", "data.n_clips=8", "data.val_clips=0", "data.frames=16", "batch_size=4", "threads=1",
-            "progress=false", "ckpt_every=0", "warmup_steps=1", "ema_decay=0.9", "steps=2"]
+    fast = [
+        "preset=tiny",
+        "data.n_clips=8",
+        "data.val_clips=0",
+        "data.frames=16",
+        "batch_size=4",
+        "threads=1",
+        "progress=false",
+        "ckpt_every=0",
+        "warmup_steps=1",
+        "ema_decay=0.9",
+        "steps=2",
+    ]
     base = train(load_train_config(None, fast + [f"out_dir={tmp_path / 'base'}"]))
     base_ck = base.final_checkpoint
-    tuned = Trainer(load_train_config(None, fast + [f"out_dir={tmp_path / 'tuned'}", "data.varied=0.5",
-                                                    f"init_from={base_ck}"]))
+    tuned = Trainer(
+        load_train_config(None, fast + [f"out_dir={tmp_path / 'tuned'}", "data.varied=0.5", f"init_from={base_ck}"])
+    )
     from dualflow.checkpoint import load_checkpoint
 
     ck = load_checkpoint(base_ck)
@@ -115,5 +129,6 @@ def test_fine_tuning_starts_from_the_checkpoint(tmp_path):
     kept = np.asarray(tuned.stats.std) == np.asarray(ck.stats.std)
     assert kept.mean() > 0.9  # the checkpoint's scale, but for columns the new clips spread much wider
     with pytest.raises(DualFlowError, match="init_from"):
-        Trainer(load_train_config(None, fast + [f"out_dir={tmp_path / 'other'}", "model.width=48",
-                                                f"init_from={base_ck}"]))
+        Trainer(
+            load_train_config(None, fast + [f"out_dir={tmp_path / 'other'}", "model.width=48", f"init_from={base_ck}"])
+        )

@@ -26,10 +26,24 @@ IDS = list(range(1, 21))
 
 
 def bus_config(n=6):
-    servos = [{"id": i + 1, "joint": f"j{i + 1}", "model": "XM430-W350", "limits": [-2.5, 2.5],
-               "direction": -1 if i % 2 else 1, "zero_offset": 0.03 * i, "return_delay_us": 0} for i in range(n)]
-    return parse_config({"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 2000000,
-                                                  "protocol": "2.0", "servos": servos}]}).buses[0]
+    servos = [
+        {
+            "id": i + 1,
+            "joint": f"j{i + 1}",
+            "model": "XM430-W350",
+            "limits": [-2.5, 2.5],
+            "direction": -1 if i % 2 else 1,
+            "zero_offset": 0.03 * i,
+            "return_delay_us": 0,
+        }
+        for i in range(n)
+    ]
+    return parse_config(
+        {
+            "robot": "t",
+            "buses": [{"name": "b", "port": "/dev/null", "baud": 2000000, "protocol": "2.0", "servos": servos}],
+        }
+    ).buses[0]
 
 
 class CapturePort(PortHandler):
@@ -92,8 +106,9 @@ def test_sync_write_with_a_header_pattern_in_the_data_is_stuffed_as_the_protocol
     # -131073 is FF FF FD FF little-endian: FF FF FD in a packet body must be followed by FD.
     values = np.array([-131073, 5, -1])
     ours = SyncWriteEncoder(116, 4, [1, 2, 3]).encode(values)
-    params = bytes((116, 0, 4, 0)) + b"".join(bytes((i,)) + int(v).to_bytes(4, "little", signed=True)
-                                             for i, v in zip((1, 2, 3), values))
+    params = bytes((116, 0, 4, 0)) + b"".join(
+        bytes((i,)) + int(v).to_bytes(4, "little", signed=True) for i, v in zip((1, 2, 3), values)
+    )
     assert ours == encode_instruction(0xFE, dp.SYNC_WRITE, params)
     assert b"\xff\xff\xfd\xfd" in ours
     # the SDK computes the same stuffed packet (addStuffing's result), though its txPacket
@@ -116,18 +131,19 @@ def test_fast_sync_read_request_equals_the_sdk_packet():
 
 def test_fast_sync_read_reply_parsed_in_one_pass():
     rng = np.random.default_rng(3)
-    values = rng.integers(-(2 ** 31), 2 ** 31, len(IDS))
+    values = rng.integers(-(2**31), 2**31, len(IDS))
     errors = np.zeros(len(IDS), np.uint8)
     errors[[4, 17]] = [0x80, 0x07]
-    raw = dp.encode_fast_status([(int(e), sid, int(v).to_bytes(4, "little", signed=True))
-                                 for e, sid, v in zip(errors, IDS, values)])
+    raw = dp.encode_fast_status(
+        [(int(e), sid, int(v).to_bytes(4, "little", signed=True)) for e, sid, v in zip(errors, IDS, values)]
+    )
     dec = FastSyncReadDecoder(132, 4, IDS)
     assert len(raw) == dec.reply_length == 8 + 20 * 8
     got, err = dec.decode(raw)
     np.testing.assert_array_equal(got, values)
     np.testing.assert_array_equal(err, errors)
     unsigned, _ = FastSyncReadDecoder(132, 4, IDS, signed=False).decode(raw)
-    np.testing.assert_array_equal(unsigned, values % 2 ** 32)
+    np.testing.assert_array_equal(unsigned, values % 2**32)
 
 
 def test_fast_sync_read_reply_errors_are_named():
@@ -178,8 +194,9 @@ def test_transport_packets_equal_the_sdk_packets_on_the_wire():
             # and the positions parsed from the fast reply are the servos' own
             st = t.read_state()
             present = np.array([emu.read_register(sid, "present_position") for sid in ids])
-            expect = np.array([s.direction * ((p - 2048) * 2 * np.pi / 4096 - s.zero_offset)
-                               for s, p in zip(bus.servos, present)])
+            expect = np.array(
+                [s.direction * ((p - 2048) * 2 * np.pi / 4096 - s.zero_offset) for s, p in zip(bus.servos, present)]
+            )
             np.testing.assert_allclose(st.position, expect, atol=1e-12)
             assert t.stats.fast_sync_read
     finally:

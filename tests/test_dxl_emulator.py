@@ -64,11 +64,15 @@ def to_u32(value: int) -> list[int]:
 
 # ---------------------------------------------------------------- basics
 
+
 def test_ping_reports_each_models_number_and_absent_ids_time_out():
     servos = [(1, "XM430-W350"), (2, "XL430-W250"), (3, "XL330-M288")]
     with bus(servos) as (emu, port, ph):
-        assert [ph.ping(port, i) for i in (1, 2, 3)] == [(1020, sdk.COMM_SUCCESS, 0), (1060, sdk.COMM_SUCCESS, 0),
-                                                        (1200, sdk.COMM_SUCCESS, 0)]
+        assert [ph.ping(port, i) for i in (1, 2, 3)] == [
+            (1020, sdk.COMM_SUCCESS, 0),
+            (1060, sdk.COMM_SUCCESS, 0),
+            (1200, sdk.COMM_SUCCESS, 0),
+        ]
         assert ph.ping(port, 9)[1] == sdk.COMM_RX_TIMEOUT
         assert emu.instruction_counts["PING"] == 4
 
@@ -102,11 +106,11 @@ def test_eeprom_is_locked_while_torque_is_on():
 
 def test_write_errors_name_what_is_wrong_and_change_nothing():
     with bus([1]) as (emu, port, ph):
-        assert ph.write4ByteTxRx(port, 1, PRESENT_POS, 5)[1] == 7          # read-only: access error
-        assert ph.write2ByteTxRx(port, 1, GOAL, 100)[1] == 5               # half a register: length error
-        assert ph.write1ByteTxRx(port, 1, SRL, 3)[1] == 4                  # outside 0..2: range error
+        assert ph.write4ByteTxRx(port, 1, PRESENT_POS, 5)[1] == 7  # read-only: access error
+        assert ph.write2ByteTxRx(port, 1, GOAL, 100)[1] == 5  # half a register: length error
+        assert ph.write1ByteTxRx(port, 1, SRL, 3)[1] == 4  # outside 0..2: range error
         ph.write4ByteTxRx(port, 1, MAX_POS, 3000)
-        assert ph.write4ByteTxRx(port, 1, GOAL, 3500)[1] == 6              # beyond Max Position Limit
+        assert ph.write4ByteTxRx(port, 1, GOAL, 3500)[1] == 6  # beyond Max Position Limit
         assert ph.read4ByteTxRx(port, 1, GOAL)[0] == 2048
         assert [(r.ticks, r.accepted) for r in emu.goal_history[1]] == [((2048 & ~0xFFFF) | 100, False), (3500, False)]
         assert ph.getRxPacketError(6) == "[RxPacketError] The data value exceeds the limit value!"
@@ -117,13 +121,14 @@ def test_status_return_level_controls_which_instructions_are_answered():
         assert ph.write1ByteTxRx(port, 1, SRL, 1)[0] == sdk.COMM_RX_TIMEOUT  # the new level applies at once
         assert ph.read1ByteTxRx(port, 1, SRL) == (1, sdk.COMM_SUCCESS, 0)
         assert ph.write1ByteTxRx(port, 1, LED, 1)[0] == sdk.COMM_RX_TIMEOUT  # writes go unanswered...
-        assert ph.read1ByteTxRx(port, 1, LED) == (1, sdk.COMM_SUCCESS, 0)    # ...but were applied
+        assert ph.read1ByteTxRx(port, 1, LED) == (1, sdk.COMM_SUCCESS, 0)  # ...but were applied
         emu.write_register(1, "status_return_level", 0)
         assert ph.read1ByteTxRx(port, 1, LED)[1] == sdk.COMM_RX_TIMEOUT
-        assert ph.ping(port, 1) == (1020, sdk.COMM_SUCCESS, 0)               # ping always answers
+        assert ph.ping(port, 1) == (1020, sdk.COMM_SUCCESS, 0)  # ping always answers
 
 
 # ---------------------------------------------------------------- group instructions
+
 
 def test_sync_write_and_fast_sync_read_of_twenty_servos():
     ids = list(range(1, 21))
@@ -141,7 +146,9 @@ def test_sync_write_and_fast_sync_read_of_twenty_servos():
             fast.addParam(i)
 
         def settled():
-            return fast.fastSyncRead() == sdk.COMM_SUCCESS and all(fast.getData(i, PRESENT_POS, 4) == goals[i] for i in ids)
+            return fast.fastSyncRead() == sdk.COMM_SUCCESS and all(
+                fast.getData(i, PRESENT_POS, 4) == goals[i] for i in ids
+            )
 
         wait_until(settled)
         slow = sdk.GroupSyncRead(port, ph, PRESENT_POS, 4)
@@ -169,7 +176,11 @@ def test_bulk_write_and_fast_bulk_read_mix_addresses():
         read.addParam(2, PROFILE_VEL, 4)
         read.addParam(3, RETURN_DELAY, 1)
         assert read.fastBulkRead() == sdk.COMM_SUCCESS
-        assert (read.getData(1, LED, 1), read.getData(2, PROFILE_VEL, 4), read.getData(3, RETURN_DELAY, 1)) == (1, 77, 20)
+        assert (read.getData(1, LED, 1), read.getData(2, PROFILE_VEL, 4), read.getData(3, RETURN_DELAY, 1)) == (
+            1,
+            77,
+            20,
+        )
 
 
 def test_reg_write_waits_for_action():
@@ -190,6 +201,7 @@ def test_broadcast_write_reaches_every_servo_without_replies():
 
 
 # ---------------------------------------------------------------- reboot, reset, errors
+
 
 def test_hardware_alert_blocks_torque_until_reboot():
     with bus([1], reboot_time_s=0.5) as (emu, port, ph):
@@ -249,6 +261,7 @@ def test_corrupt_instruction_and_unknown_instruction_get_error_replies():
 
 # ---------------------------------------------------------------- fault injection
 
+
 def test_dropped_and_corrupted_replies_are_what_the_sdk_reports():
     with bus([1, 2]) as (emu, port, ph):
         emu.drop_replies(1, 1)
@@ -271,9 +284,9 @@ def test_fast_sync_read_chain_breaks_at_a_silent_servo():
         for i in ids:
             group.addParam(i)
         assert group.fastSyncRead() == sdk.COMM_SUCCESS
-        emu.drop_replies(3, 1)   # the reply stops where servo 3's part should start
+        emu.drop_replies(3, 1)  # the reply stops where servo 3's part should start
         assert group.fastSyncRead() == sdk.COMM_RX_CORRUPT
-        emu.drop_replies(1, 1)   # the first servo sends the header: nothing at all arrives
+        emu.drop_replies(1, 1)  # the first servo sends the header: nothing at all arrives
         assert group.fastSyncRead() == sdk.COMM_RX_TIMEOUT
         emu.corrupt_replies(2, 1)
         assert group.fastSyncRead() == sdk.COMM_RX_CORRUPT
@@ -337,6 +350,7 @@ def test_wire_timing_delays_replies_by_their_bytes_and_the_return_delay():
 
 # ---------------------------------------------------------------- protocol 1.0
 
+
 def test_protocol1_ax12a_and_mx28():
     with bus([(1, "AX-12A"), (2, "MX-28")], protocol=1) as (emu, port, ph):
         assert ph.ping(port, 1) == (12, sdk.COMM_SUCCESS, 0)
@@ -381,7 +395,7 @@ def test_protocol1_servo_at_57600_answers_a_host_within_uart_tolerance():
 
 def test_bus_watchdog_trips_when_the_host_goes_quiet():
     with bus([1, 2]) as (emu, port, ph):
-        assert ph.write1ByteTxRx(port, 1, 98, 2) == (sdk.COMM_SUCCESS, 0)   # 40 ms
+        assert ph.write1ByteTxRx(port, 1, 98, 2) == (sdk.COMM_SUCCESS, 0)  # 40 ms
         ph.write4ByteTxRx(port, 1, GOAL, 3000)
         ph.write1ByteTxRx(port, 1, TORQUE, 1)
         time.sleep(0.15)
@@ -397,8 +411,12 @@ def test_standalone_emulator_process_serves_another_process(tmp_path):
     import sys
 
     link = tmp_path / "ttyDXL"
-    proc = subprocess.Popen([sys.executable, "-m", "ros_free_bridge.emulators", "--ids", "1-3,7", "--baud", "2000000",
-                             "--link", str(link)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ros_free_bridge.emulators", "--ids", "1-3,7", "--baud", "2000000", "--link", str(link)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         path = proc.stdout.readline().strip()
         assert path.startswith("/dev/") and os.path.realpath(link) == path
@@ -412,7 +430,9 @@ def test_standalone_emulator_process_serves_another_process(tmp_path):
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
     assert not link.exists()
-    bad = subprocess.run([sys.executable, "-m", "ros_free_bridge.emulators", "--ids", "1-x"], capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "ros_free_bridge.emulators", "--ids", "1-x"], capture_output=True, text=True
+    )
     assert bad.returncode == 2 and "--ids: cannot read '1-x'" in bad.stderr
 
 
@@ -425,8 +445,8 @@ def test_stuck_servo_reports_stall_current_and_does_not_move():
         wait_until(lambda: ph.read4ByteTxRx(port, 2, PRESENT_POS)[0] == 2400)
         assert ph.read4ByteTxRx(port, 1, PRESENT_POS)[0] == 2048
         current = ph.read2ByteTxRx(port, 1, 126)[0]
-        assert current == round(2.3 / 2.69e-3)                # stall current, 2.69 mA units
-        assert ph.read2ByteTxRx(port, 2, 126)[0] == 0          # the free one holds at no load
+        assert current == round(2.3 / 2.69e-3)  # stall current, 2.69 mA units
+        assert ph.read2ByteTxRx(port, 2, 126)[0] == 0  # the free one holds at no load
 
 
 @pytest.mark.parametrize("baud", [57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000])
@@ -443,7 +463,7 @@ def test_unthreaded_emulator_answers_only_when_pumped():
         assert port.openPort()
         ph = sdk.PacketHandler(2.0)
         assert ph.write1ByteTxOnly(port, dp.BROADCAST_ID, LED, 1) == sdk.COMM_SUCCESS
-        assert emu.read_register(1, "led") == 0      # nothing handled yet
+        assert emu.read_register(1, "led") == 0  # nothing handled yet
         assert emu.pump() == 1
         assert emu.read_register(1, "led") == emu.read_register(2, "led") == 1
         ph.readTx(port, 2, LED, 1)
@@ -459,20 +479,20 @@ def test_unthreaded_emulator_answers_only_when_pumped():
 
 def test_changing_an_id_is_answered_from_the_old_id():
     with bus([1, 2]) as (emu, port, ph):
-        assert ph.write1ByteTxRx(port, 1, 7, 9) == (sdk.COMM_SUCCESS, 0)   # ID(7) := 9
+        assert ph.write1ByteTxRx(port, 1, 7, 9) == (sdk.COMM_SUCCESS, 0)  # ID(7) := 9
         assert ph.ping(port, 1)[1] == sdk.COMM_RX_TIMEOUT
         assert ph.ping(port, 9) == (1020, sdk.COMM_SUCCESS, 0)
-        assert ph.write1ByteTxRx(port, 9, 7, 2)[1] == 0                      # a clash is accepted...
+        assert ph.write1ByteTxRx(port, 9, 7, 2)[1] == 0  # a clash is accepted...
         assert sorted(s.servo_id for s in emu.servos) == [2, 2]
-        assert ph.ping(port, 2)[1] == sdk.COMM_RX_CORRUPT                    # ...both answer at once
+        assert ph.ping(port, 2)[1] == sdk.COMM_RX_CORRUPT  # ...both answer at once
         ph.write1ByteTxRx(port, 2, LED, 1)
-        assert [s.get("led") for s in emu.servos] == [1, 1]                  # and both obey
+        assert [s.get("led") for s in emu.servos] == [1, 1]  # and both obey
         assert emu.instruction_counts["PING"] == 3
 
 
 def test_broadcast_ping_and_clear():
     with bus([1, 5, (9, "XL330-M288")]) as (emu, port, ph):
-        found, result = ph.broadcastPing(port)   # the SDK listens for its full window (~0.8 s)
+        found, result = ph.broadcastPing(port)  # the SDK listens for its full window (~0.8 s)
         assert result == sdk.COMM_SUCCESS
         assert {i: model for i, (model, _fw) in found.items()} == {1: 1020, 5: 1020, 9: 1200}
         assert ph.clearMultiTurn(port, 1) == (sdk.COMM_SUCCESS, 0)
@@ -480,14 +500,14 @@ def test_broadcast_ping_and_clear():
 
 def test_protocol1_reg_write_action_and_status_return_level():
     with bus([(1, "AX-12A"), (2, "AX-12A")], protocol=1) as (emu, port, ph):
-        assert ph.regWriteTxRx(port, 1, 25, 1, [1]) == (sdk.COMM_SUCCESS, 0)   # LED, registered
-        assert ph.read1ByteTxRx(port, 1, 44)[0] == 1                           # Registered
+        assert ph.regWriteTxRx(port, 1, 25, 1, [1]) == (sdk.COMM_SUCCESS, 0)  # LED, registered
+        assert ph.read1ByteTxRx(port, 1, 44)[0] == 1  # Registered
         assert ph.read1ByteTxRx(port, 1, 25)[0] == 0
         assert ph.action(port, dp.BROADCAST_ID) == sdk.COMM_SUCCESS
         wait_until(lambda: ph.read1ByteTxRx(port, 1, 25)[0] == 1)
-        assert ph.write1ByteTxRx(port, 2, 16, 1)[0] == sdk.COMM_RX_TIMEOUT      # level 1: writes unanswered
+        assert ph.write1ByteTxRx(port, 2, 16, 1)[0] == sdk.COMM_RX_TIMEOUT  # level 1: writes unanswered
         assert ph.read1ByteTxRx(port, 2, 16) == (1, sdk.COMM_SUCCESS, 0)
-        port.writePort(dp.encode_instruction1(1, 0x77))                          # unknown instruction
+        port.writePort(dp.encode_instruction1(1, 0x77))  # unknown instruction
         port.setPacketTimeout(6)
         rx, result = ph.rxPacket(port)
         assert result == sdk.COMM_SUCCESS and rx[4] == sdk.ERRBIT_INSTRUCTION

@@ -44,7 +44,8 @@ def test_sync_write_refuses_values_that_do_not_fit_and_wrong_counts():
         raw = enc.encode(v)
         assert crc16(raw[:-2]) == raw[-2] | (raw[-1] << 8)
         assert dp.decode_packet(raw).params[4:] == b"".join(
-            bytes((i,)) + x.to_bytes(2, "little", signed=True) for i, x in zip([1, 2, 3], v))
+            bytes((i,)) + x.to_bytes(2, "little", signed=True) for i, x in zip([1, 2, 3], v)
+        )
     with pytest.raises(PacketError, match="does not fit"):
         enc.encode([0, 40000, 0])
     with pytest.raises(PacketError, match="expects 3 values"):
@@ -81,8 +82,12 @@ def test_fast_bulk_read_fields_equal_the_sdk_parse():
     items[5] = (7, 98, 49)
     data = [bytes(rng.integers(0, 256, size, dtype=np.uint8)) for _, _, size in items]
     reply = dp.encode_fast_status([(0x80 if sid == 9 else 0, sid, d) for (sid, _, _), d in zip(items, data)])
-    fields = [[(0, 4, True)] if size == 4 else [(0, 1, True), (28, 2, True), (30, 4, True), (34, 4, True),
-                                                (46, 2, False), (48, 1, False)] for _, _, size in items]
+    fields = [
+        [(0, 4, True)]
+        if size == 4
+        else [(0, 1, True), (28, 2, True), (30, 4, True), (34, 4, True), (46, 2, False), (48, 1, False)]
+        for _, _, size in items
+    ]
     dec = FastBulkReadDecoder(items, fields)
     errors, values = dec.decode_fields(reply)
     assert errors == tuple(0x80 if sid == 9 else 0 for sid in ids)
@@ -94,7 +99,7 @@ def test_fast_bulk_read_fields_equal_the_sdk_parse():
     assert group.fastBulkReadRxPacket() == 0
     expect = []
     for sid, addr, _size in items:
-        for off, fsize, signed in (fields[5] if sid == 7 else [(0, 4, True)]):
+        for off, fsize, signed in fields[5] if sid == 7 else [(0, 4, True)]:
             raw = group.getData(sid, addr + off, fsize)
             expect.append(raw - (1 << 8 * fsize) if signed and raw >= 1 << (8 * fsize - 1) else raw)
     assert list(values) == expect
@@ -110,7 +115,7 @@ def test_fast_bulk_read_fields_equal_the_sdk_parse():
 
 def test_fast_sync_read_fields_equal_the_array_decode():
     rng = np.random.default_rng(5)
-    values = rng.integers(-(2 ** 31), 2 ** 31, 20)
+    values = rng.integers(-(2**31), 2**31, 20)
     raw = dp.encode_fast_status([(0, sid, int(v).to_bytes(4, "little", signed=True)) for sid, v in zip(IDS, values)])
     dec = FastSyncReadDecoder(132, 4, IDS)
     errors, got = dec.decode_fields(raw)

@@ -22,15 +22,26 @@ from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 from ros_free_bridge.errors import BridgeError
 
 LAT = 30.0
-GYRO_LSB = 2000.0 / 32800.0 * math.pi / 180.0   # rad/s per count
-ACC_LSB = 2.0 / 32768.0 * STANDARD_GRAVITY       # m/s^2 per count
-RPY_LSB = 0.1 * math.pi / 180.0                  # rad per count
+GYRO_LSB = 2000.0 / 32800.0 * math.pi / 180.0  # rad/s per count
+ACC_LSB = 2.0 / 32768.0 * STANDARD_GRAVITY  # m/s^2 per count
+RPY_LSB = 0.1 * math.pi / 180.0  # rad per count
 
 
 def imu_bus(n=3, devices=({"id": 200, "model": "OpenCR", "role": "imu"},), protocol="2.0", model="XM430-W350"):
     servos = [{"id": i + 1, "joint": f"j{i + 1}", "model": model, "limits": [-1.0, 1.0]} for i in range(n)]
-    raw = {"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": protocol,
-                                    "servos": servos, "devices": [dict(d) for d in devices]}]}
+    raw = {
+        "robot": "t",
+        "buses": [
+            {
+                "name": "b",
+                "port": "/dev/null",
+                "baud": 1000000,
+                "protocol": protocol,
+                "servos": servos,
+                "devices": [dict(d) for d in devices],
+            }
+        ],
+    }
     return raw
 
 
@@ -45,6 +56,7 @@ def same_rotation(q, p, tol):
 
 # ----------------------------------------------------------------------------- table and config
 
+
 def test_opencr_table_is_the_op3_firmware_layout():
     assert OPENCR.model_number == 0x7400 == 29696
     regs = {n: (r.address, r.size, r.signed) for n, r in OPENCR.registers.items()}
@@ -54,10 +66,16 @@ def test_opencr_table_is_the_op3_firmware_layout():
     assert find_device_model("open-cr") is OPENCR and find_device_model(29696) is OPENCR
 
 
-@pytest.mark.parametrize("change, pattern", [
-    (lambda d: d.update(model="MPU6050"), r"devices\[0\]\.model: 'MPU6050' is not a known device model; use one of \['OpenCR'\]"),
-    (lambda d: d.update(model=""), r"devices\[0\]\.model: required"),
-])
+@pytest.mark.parametrize(
+    "change, pattern",
+    [
+        (
+            lambda d: d.update(model="MPU6050"),
+            r"devices\[0\]\.model: 'MPU6050' is not a known device model; use one of \['OpenCR'\]",
+        ),
+        (lambda d: d.update(model=""), r"devices\[0\]\.model: required"),
+    ],
+)
 def test_unknown_device_model_is_a_config_error_naming_the_field(change, pattern):
     raw = imu_bus()
     change(raw["buses"][0]["devices"][0])
@@ -78,6 +96,7 @@ def test_alias_is_stored_under_the_canonical_name():
 
 # ----------------------------------------------------------------------------- emulator
 
+
 def test_emulated_opencr_answers_like_its_firmware():
     with DynamixelBusEmulator([1, 2, (200, "OpenCR")], baud=1_000_000) as emu:
         port = sdk.PortHandler(emu.port_path)
@@ -88,12 +107,25 @@ def test_emulated_opencr_answers_like_its_firmware():
         # still upright by default: gyro 0, +1 g on z (16384 counts), level
         data, result, _ = ph.readTxRx(port, 200, 32, 18)
         assert result == sdk.COMM_SUCCESS
-        assert np.frombuffer(bytes(data), "<i2").tolist() == [0, 0, 0, 0, 0, 16384, 0, 0, 1800]  # yaw: board turned 180°
+        assert np.frombuffer(bytes(data), "<i2").tolist() == [
+            0,
+            0,
+            0,
+            0,
+            0,
+            16384,
+            0,
+            0,
+            1800,
+        ]  # yaw: board turned 180°
         # the board is mounted turned 180° about z: robot +x rate is a negative board x count
         emu.set_imu(200, gyro=[0.5, 0.25, -1.0])
         data, _, _ = ph.readTxRx(port, 200, 32, 6)
-        assert np.frombuffer(bytes(data), "<i2").tolist() == [round(-0.5 / GYRO_LSB), round(-0.25 / GYRO_LSB),
-                                                               round(-1.0 / GYRO_LSB)]
+        assert np.frombuffer(bytes(data), "<i2").tolist() == [
+            round(-0.5 / GYRO_LSB),
+            round(-0.25 / GYRO_LSB),
+            round(-1.0 / GYRO_LSB),
+        ]
         # it has no REBOOT and no fast group reads: an instruction error, and a fast chain cut at it
         assert ph.reboot(port, 200) == (sdk.COMM_SUCCESS, 2)
         bulk = sdk.GroupBulkRead(port, ph)
@@ -108,8 +140,10 @@ def test_emulated_opencr_answers_like_its_firmware():
 def test_emulator_reports_a_physics_source_when_given_one():
     with DynamixelBusEmulator([1, (200, "OpenCR")], baud=1_000_000) as emu:
         calls = []
-        emu.set_imu_source(200, lambda: (calls.append(1), (np.array([0, 0, 2.0]), np.array([1.0, 0, 9.0]),
-                                                           np.array([1.0, 0, 0, 0])))[1])
+        emu.set_imu_source(
+            200,
+            lambda: (calls.append(1), (np.array([0, 0, 2.0]), np.array([1.0, 0, 9.0]), np.array([1.0, 0, 0, 0])))[1],
+        )
         port = sdk.PortHandler(emu.port_path)
         port.openPort()
         port.setBaudRate(1_000_000)
@@ -120,6 +154,7 @@ def test_emulator_reports_a_physics_source_when_given_one():
 
 
 # ----------------------------------------------------------------------------- transport
+
 
 @pytest.fixture
 def bus_with_imu():
@@ -182,7 +217,11 @@ def test_missing_imu_is_a_note_and_none_not_a_crash(bus_with_imu):
     emu.disconnect(200)
     try:
         with DynamixelTransport(bus_with_imu, port=emu.port_path, latency_ms=LAT, retries=0) as tr:
-            assert tr.imu.fault is not None and "OpenCR (ID 200, IMU)" in tr.imu.fault and "no answer to PING" in tr.imu.fault
+            assert (
+                tr.imu.fault is not None
+                and "OpenCR (ID 200, IMU)" in tr.imu.fault
+                and "no answer to PING" in tr.imu.fault
+            )
             assert any("JointState.imu is None" in n for n in tr.stats.notes)
             st = tr.read_state()
             assert st.imu is None and np.all(np.isfinite(st.position)) and st.errors == {}
@@ -215,7 +254,9 @@ def test_another_model_at_the_imu_id_is_refused(bus_with_imu):
     raw = imu_bus()
     with DynamixelBusEmulator([ServoSpec(1), ServoSpec(2), ServoSpec(3), ServoSpec(200)], baud=1_000_000) as emu:
         tr = DynamixelTransport(parse_config(raw).buses[0], port=emu.port_path, latency_ms=LAT)
-        with pytest.raises(BridgeError, match=r"OpenCR \(ID 200, IMU\).*model number 1020 but the config says OpenCR \(29696\)"):
+        with pytest.raises(
+            BridgeError, match=r"OpenCR \(ID 200, IMU\).*model number 1020 but the config says OpenCR \(29696\)"
+        ):
             tr.open()
         assert tr.bus.port is None  # the port is released
 

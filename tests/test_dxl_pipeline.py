@@ -68,7 +68,7 @@ def test_codec_fast_bulk_read_request_equals_the_sdk_packet(bus_and_emu):
         # the emulator's reply parses; a flipped data byte is a CRC error naming its servo
         reply = dp.encode_fast_status([(0, sid, bytes(range(size))) for sid, _, size in items])
         a, errors = dec.decode(reply)
-        assert a[dec.data_starts[1]:dec.data_starts[1] + 49].tobytes() == bytes(range(49)) and not errors.any()
+        assert a[dec.data_starts[1] : dec.data_starts[1] + 49].tobytes() == bytes(range(49)) and not errors.any()
         bad = bytearray(reply)
         bad[dec.data_starts[2]] ^= 0xFF
         with pytest.raises(PacketError, match="servo ID 3"):
@@ -93,8 +93,12 @@ def test_write_sends_the_read_request_and_the_next_read_takes_its_reply(bus_and_
         assert [inst for inst, _ in sent] == [dp.SYNC_WRITE, dp.FAST_SYNC_READ] * 40
         assert not any(pending for _, pending in sent)
         # the servos got there, and the split-phase reading says so (one tick old at most)
-        assert wait_for(lambda: all(abs(emu.read_register(i + 1, "present_position") - g) <= 2 for i, g in
-                                    enumerate(np.rint(t.servos.to_ticks(goal)))))
+        assert wait_for(
+            lambda: all(
+                abs(emu.read_register(i + 1, "present_position") - g) <= 2
+                for i, g in enumerate(np.rint(t.servos.to_ticks(goal)))
+            )
+        )
         t.write_goal(goal)
         np.testing.assert_allclose(t.read_state().position, goal, atol=2.5 / XM.ticks_per_rad)
         # the blocking path reads the same pose
@@ -232,8 +236,20 @@ def test_the_port_vanishing_with_a_reply_pending_is_a_bridge_error(bus_and_emu):
 def test_protocol_1_and_sync_read_buses_stay_blocking():
     from test_dxl_transport import LAT, DynamixelBusEmulator, DynamixelTransport, ServoSpec, parse_config
 
-    cfg = parse_config({"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "1.0",
-                                                 "servos": [{"id": 1, "joint": "a", "model": "AX-12A", "limits": [-1, 1]}]}]})
+    cfg = parse_config(
+        {
+            "robot": "t",
+            "buses": [
+                {
+                    "name": "b",
+                    "port": "/dev/null",
+                    "baud": 1000000,
+                    "protocol": "1.0",
+                    "servos": [{"id": 1, "joint": "a", "model": "AX-12A", "limits": [-1, 1]}],
+                }
+            ],
+        }
+    )
     with DynamixelBusEmulator([ServoSpec(1, "AX-12A")], baud=1_000_000, protocol=1) as emu:
         with DynamixelTransport(cfg.buses[0], port=emu.port_path, latency_ms=LAT) as t:
             assert t.pipeline(True) is False and not t.pipelined

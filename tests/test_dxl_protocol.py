@@ -28,20 +28,46 @@ INSTRUCTION_EXAMPLES = [
     ("broadcast ping", 0xFE, dp.PING, "", "FF FF FD 00 FE 03 00 01 31 42"),
     ("read present position", 0x01, dp.READ, "84 00 04 00", "FF FF FD 00 01 07 00 02 84 00 04 00 1D 15"),
     ("write goal 512", 0x01, dp.WRITE, "74 00 00 02 00 00", "FF FF FD 00 01 09 00 03 74 00 00 02 00 00 CA 89"),
-    ("reg write goal velocity", 0x01, dp.REG_WRITE, "68 00 C8 00 00 00", "FF FF FD 00 01 09 00 04 68 00 C8 00 00 00 AE 8E"),
+    (
+        "reg write goal velocity",
+        0x01,
+        dp.REG_WRITE,
+        "68 00 C8 00 00 00",
+        "FF FF FD 00 01 09 00 04 68 00 C8 00 00 00 AE 8E",
+    ),
     ("action", 0x01, dp.ACTION, "", "FF FF FD 00 01 03 00 05 02 CE"),
     ("factory reset except ID", 0x01, dp.FACTORY_RESET, "01", "FF FF FD 00 01 04 00 06 01 A1 E6"),
     ("reboot", 0x01, dp.REBOOT, "", "FF FF FD 00 01 03 00 08 2F 4E"),
     ("clear multi-turn", 0x01, dp.CLEAR, "01 44 58 4C 22", "FF FF FD 00 01 08 00 10 01 44 58 4C 22 B1 DC"),
     ("sync read", 0xFE, dp.SYNC_READ, "84 00 04 00 01 02", "FF FF FD 00 FE 09 00 82 84 00 04 00 01 02 CE FA"),
-    ("sync write", 0xFE, dp.SYNC_WRITE, "74 00 04 00 01 96 00 00 00 02 AA 00 00 00",
-     "FF FF FD 00 FE 11 00 83 74 00 04 00 01 96 00 00 00 02 AA 00 00 00 82 87"),
-    ("bulk read", 0xFE, dp.BULK_READ, "01 90 00 02 00 02 92 00 01 00",
-     "FF FF FD 00 FE 0D 00 92 01 90 00 02 00 02 92 00 01 00 1A 05"),
-    ("bulk write", 0xFE, dp.BULK_WRITE, "01 20 00 02 00 A0 00 02 1F 00 01 00 50",
-     "FF FF FD 00 FE 10 00 93 01 20 00 02 00 A0 00 02 1F 00 01 00 50 B7 68"),
-    ("fast sync read", 0xFE, dp.FAST_SYNC_READ, "84 00 04 00 03 07 04",
-     "FF FF FD 00 FE 0A 00 8A 84 00 04 00 03 07 04 20 F2"),
+    (
+        "sync write",
+        0xFE,
+        dp.SYNC_WRITE,
+        "74 00 04 00 01 96 00 00 00 02 AA 00 00 00",
+        "FF FF FD 00 FE 11 00 83 74 00 04 00 01 96 00 00 00 02 AA 00 00 00 82 87",
+    ),
+    (
+        "bulk read",
+        0xFE,
+        dp.BULK_READ,
+        "01 90 00 02 00 02 92 00 01 00",
+        "FF FF FD 00 FE 0D 00 92 01 90 00 02 00 02 92 00 01 00 1A 05",
+    ),
+    (
+        "bulk write",
+        0xFE,
+        dp.BULK_WRITE,
+        "01 20 00 02 00 A0 00 02 1F 00 01 00 50",
+        "FF FF FD 00 FE 10 00 93 01 20 00 02 00 A0 00 02 1F 00 01 00 50 B7 68",
+    ),
+    (
+        "fast sync read",
+        0xFE,
+        dp.FAST_SYNC_READ,
+        "84 00 04 00 03 07 04",
+        "FF FF FD 00 FE 0A 00 8A 84 00 04 00 03 07 04 20 F2",
+    ),
 ]
 
 # (id, error, params, expected packet) -- status packets from the e-Manual.
@@ -56,13 +82,14 @@ STATUS_EXAMPLES = [
 ]
 
 #: Fast Sync Read reply for ID3 = 166, ID7 = 2079, ID4 = 1023 (one packet, per-part CRCs).
-FAST_SYNC_REPLY = ("FF FF FD 00 FE 19 00 55 00 03 A6 00 00 00 84 08 00 07 1F 08 00 00 16 CA "
-                   "00 04 FF 03 00 00 D1 9E")
+FAST_SYNC_REPLY = "FF FF FD 00 FE 19 00 55 00 03 A6 00 00 00 84 08 00 07 1F 08 00 00 16 CA 00 04 FF 03 00 00 D1 9E"
 #: Fast Bulk Read reply for ID3 position 166 (4 B), ID7 PWM 421 (2 B), ID4 temperature 31 (1 B).
 FAST_BULK_REPLY = "FF FF FD 00 FE 14 00 55 00 03 A6 00 00 00 67 A4 00 07 A5 01 24 74 00 04 1F D9 C1"
 
 
-@pytest.mark.parametrize("name,pid,inst,params,expected", INSTRUCTION_EXAMPLES, ids=[e[0] for e in INSTRUCTION_EXAMPLES])
+@pytest.mark.parametrize(
+    "name,pid,inst,params,expected", INSTRUCTION_EXAMPLES, ids=[e[0] for e in INSTRUCTION_EXAMPLES]
+)
 def test_instruction_packets_match_emanual(name, pid, inst, params, expected):
     raw = dp.encode_instruction(pid, inst, h(params))
     assert raw == h(expected)
@@ -78,7 +105,11 @@ def test_status_packets_match_emanual(name, pid, err, params, expected):
 
 
 def test_fast_sync_read_reply_matches_emanual_with_cumulative_crcs():
-    parts = [(0, 3, (166).to_bytes(4, "little")), (0, 7, (2079).to_bytes(4, "little")), (0, 4, (1023).to_bytes(4, "little"))]
+    parts = [
+        (0, 3, (166).to_bytes(4, "little")),
+        (0, 7, (2079).to_bytes(4, "little")),
+        (0, 4, (1023).to_bytes(4, "little")),
+    ]
     assert dp.encode_fast_status(parts) == h(FAST_SYNC_REPLY)
     assert dp.decode_fast_status(h(FAST_SYNC_REPLY), [4, 4, 4]) == parts
 
@@ -155,8 +186,13 @@ P1_EXAMPLES = [
     ("reg write goal 500", 0x01, dp.REG_WRITE, "1E F4 01", "FF FF 01 05 04 1E F4 01 E2"),
     ("broadcast action", 0xFE, dp.ACTION, "", "FF FF FE 02 05 FA"),
     ("factory reset", 0x00, dp.FACTORY_RESET, "", "FF FF 00 02 06 F7"),
-    ("sync write", 0xFE, dp.SYNC_WRITE, "1E 04 00 10 00 50 01 01 20 02 60 03",
-     "FF FF FE 0E 83 1E 04 00 10 00 50 01 01 20 02 60 03 67"),
+    (
+        "sync write",
+        0xFE,
+        dp.SYNC_WRITE,
+        "1E 04 00 10 00 50 01 01 20 02 60 03",
+        "FF FF FE 0E 83 1E 04 00 10 00 50 01 01 20 02 60 03 67",
+    ),
     ("bulk read", 0xFE, dp.BULK_READ, "00 02 01 1E 02 02 24", "FF FF FE 09 92 00 02 01 1E 02 02 24 1D"),
     ("read temperature", 0x01, dp.READ, "2B 01", "FF FF 01 04 02 2B 01 CC"),
 ]
@@ -169,13 +205,16 @@ def test_protocol1_instruction_packets_match_emanual(name, pid, inst, params, ex
     assert (pkt.id, pkt.instruction, pkt.params) == (pid, inst, h(params))
 
 
-@pytest.mark.parametrize("pid,err,params,expected", [
-    (0x01, 0x00, "", "FF FF 01 02 00 FC"),
-    (0x00, 0x00, "", "FF FF 00 02 00 FD"),
-    (0x01, 0x00, "00 80", "FF FF 01 04 00 00 80 7A"),
-    (0x02, 0x00, "00 80", "FF FF 02 04 00 00 80 79"),
-    (0x01, 0x00, "20", "FF FF 01 03 00 20 DB"),
-])
+@pytest.mark.parametrize(
+    "pid,err,params,expected",
+    [
+        (0x01, 0x00, "", "FF FF 01 02 00 FC"),
+        (0x00, 0x00, "", "FF FF 00 02 00 FD"),
+        (0x01, 0x00, "00 80", "FF FF 01 04 00 00 80 7A"),
+        (0x02, 0x00, "00 80", "FF FF 02 04 00 00 80 79"),
+        (0x01, 0x00, "20", "FF FF 01 03 00 20 DB"),
+    ],
+)
 def test_protocol1_status_packets_match_emanual(pid, err, params, expected):
     assert dp.encode_status1(pid, err, h(params)) == h(expected)
     pkt = dp.decode_packet1(h(expected), status=True)
@@ -185,6 +224,7 @@ def test_protocol1_status_packets_match_emanual(pid, err, params, expected):
 
 
 # ---------------------------------------------------------------- against dynamixel-sdk
+
 
 class CapturePort:
     """The minimal port interface the SDK's packet functions use: records writes and
@@ -216,7 +256,9 @@ class CapturePort:
         return True
 
 
-params_st = st.binary(min_size=0, max_size=40) | st.lists(st.sampled_from([0xFF, 0xFD, 0x00, 0x01]), max_size=40).map(bytes)
+params_st = st.binary(min_size=0, max_size=40) | st.lists(st.sampled_from([0xFF, 0xFD, 0x00, 0x01]), max_size=40).map(
+    bytes
+)
 
 
 def _needs_stuffing(body: bytes) -> bool:
@@ -247,8 +289,12 @@ def test_write_instruction_bytes_equal_the_sdks(servo_id, address, data):
 
 
 @settings(max_examples=60, deadline=None)
-@given(ids=st.lists(st.integers(0, 252), min_size=1, max_size=20, unique=True), address=st.integers(0, 200),
-       length=st.integers(1, 8), fast=st.booleans())
+@given(
+    ids=st.lists(st.integers(0, 252), min_size=1, max_size=20, unique=True),
+    address=st.integers(0, 200),
+    length=st.integers(1, 8),
+    fast=st.booleans(),
+)
 def test_sync_read_instruction_bytes_equal_the_sdks(ids, address, length, fast):
     port = CapturePort()
     Protocol2PacketHandler().syncReadTx(port, address, length, ids, len(ids), fast)
@@ -268,7 +314,7 @@ def test_sdk_decodes_our_status_packets(servo_id, error, data):
     length = rx[5] | (rx[6] << 8)
     body = dp.stuff(bytes([dp.STATUS, error]) + data)
     if body.count(b"\xff\xfd\xfd") == body.count(b"\xff\xff\xfd\xfd"):
-        assert bytes(rx[9:7 + length - 2]) == data  # the SDK removed our stuffing
+        assert bytes(rx[9 : 7 + length - 2]) == data  # the SDK removed our stuffing
     # else: dynamixel-sdk 4.1.0 unstuffs in place and, after one removal, can mistake a
     # later FF FD FD for a stuffed marker; our own decoder reads the packet right:
     assert dp.decode_packet(raw).params == data
@@ -313,16 +359,20 @@ def test_sdk_protocol1_decodes_our_status_packets(servo_id, error, data):
 
 # ---------------------------------------------------------------- stream framing
 
+
 @settings(max_examples=60, deadline=None)
-@given(payloads=st.lists(params_st, min_size=1, max_size=5), cuts=st.lists(st.integers(1, 50), max_size=20),
-       garbage=st.binary(max_size=8).filter(lambda g: b"\xff" not in g))
+@given(
+    payloads=st.lists(params_st, min_size=1, max_size=5),
+    cuts=st.lists(st.integers(1, 50), max_size=20),
+    garbage=st.binary(max_size=8).filter(lambda g: b"\xff" not in g),
+)
 def test_stream_parser_reassembles_packets_across_arbitrary_reads(payloads, cuts, garbage):
     packets = [dp.encode_instruction(i + 1, dp.WRITE, b"\x74\x00" + p) for i, p in enumerate(payloads)]
     stream = garbage + b"".join(packets)
     parser = dp.StreamParser(protocol=2)
     frames, pos = [], 0
     for n in cuts + [len(stream)]:
-        frames += parser.feed(stream[pos:pos + n])
+        frames += parser.feed(stream[pos : pos + n])
         pos += n
     assert [f.raw for f in frames] == packets
     assert all(f.valid and f.protocol == 2 for f in frames)

@@ -18,8 +18,13 @@ from firmware_cfg.servo_models import (
 
 def test_bundled_models_and_lookups():
     by_name = {m.name: (m.model_number, m.protocol) for m in all_servo_models()}
-    assert by_name == {"XM430-W350": (1020, 2), "XL430-W250": (1060, 2), "XL330-M288": (1200, 2),
-                       "MX-28": (29, 1), "AX-12A": (12, 1)}
+    assert by_name == {
+        "XM430-W350": (1020, 2),
+        "XL430-W250": (1060, 2),
+        "XL330-M288": (1200, 2),
+        "MX-28": (29, 1),
+        "AX-12A": (12, 1),
+    }
     assert load_servo_model("xm430-w350") is load_servo_model(1020) is load_servo_model("1020")
     with pytest.raises(ConfigError, match="unknown servo model 'XM999'.*XM430-W350"):
         load_servo_model("XM999")
@@ -53,8 +58,16 @@ def test_register_addresses_match_the_emanual(model, name, address, size, access
 
 def test_initial_values_and_ranges_differ_per_model():
     xm, xl, x3 = (load_servo_model(n) for n in ("XM430-W350", "XL430-W250", "XL330-M288"))
-    assert (xm.register("velocity_limit").initial, xl.register("velocity_limit").initial, x3.register("velocity_limit").initial) == (350, 265, 445)
-    assert (xm.register("temperature_limit").initial, xl.register("temperature_limit").initial, x3.register("temperature_limit").initial) == (80, 72, 70)
+    assert (
+        xm.register("velocity_limit").initial,
+        xl.register("velocity_limit").initial,
+        x3.register("velocity_limit").initial,
+    ) == (350, 265, 445)
+    assert (
+        xm.register("temperature_limit").initial,
+        xl.register("temperature_limit").initial,
+        x3.register("temperature_limit").initial,
+    ) == (80, 72, 70)
     assert x3.register("current_limit").range == (0, 1750)
     assert not xl.has("current_limit") and not xl.has("goal_current")
     with pytest.raises(ConfigError, match="XL430-W250: no register named 'present_current'"):
@@ -82,7 +95,7 @@ def test_radians_to_ticks_with_direction_and_offset():
     assert xm.rad_to_ticks(0.0) == 2048
     assert xm.rad_to_ticks(math.pi / 2) == 2048 + 1024
     assert xm.rad_to_ticks(math.pi / 2, direction=-1, offset_ticks=10) == 2048 - 1024 + 10
-    assert ax.rad_to_ticks(math.radians(150)) - 512 == 512        # 1024 ticks over 300 deg
+    assert ax.rad_to_ticks(math.radians(150)) - 512 == 512  # 1024 ticks over 300 deg
     rad = np.linspace(-2.0, 2.0, 9)
     ticks = xm.rad_to_ticks(rad, direction=-1, offset_ticks=-37)
     assert ticks.dtype == np.int64
@@ -93,7 +106,7 @@ def test_register_encoding():
     xm, ax = load_servo_model("XM430-W350"), load_servo_model("AX-12A")
     vel = xm.register("present_velocity")
     assert vel.encode(-1) == b"\xff\xff\xff\xff" and vel.decode(b"\xfe\xff\xff\xff") == -2
-    speed = ax.register("present_speed")       # sign-magnitude, bit 10 = CW
+    speed = ax.register("present_speed")  # sign-magnitude, bit 10 = CW
     assert speed.encode(-300) == (1024 + 300).to_bytes(2, "little") and speed.decode(speed.encode(-300)) == -300
     assert xm.register("goal_position").in_range(4095) and not xm.register("status_return_level").in_range(3)
 
@@ -104,8 +117,8 @@ def test_baud_tables():
     with pytest.raises(ConfigError, match="does not support 4500000 bps"):
         x3.baud_to_register(4_500_000)
     assert ax.baud_to_register(1_000_000) == 1 and ax.register_to_baud(34) == 57142
-    assert ax.register_to_baud(2) == 666667                      # 2 Mbps / (value + 1)
-    assert ax.baud_to_register(57600) == 34                       # within the 3 % a UART tolerates
+    assert ax.register_to_baud(2) == 666667  # 2 Mbps / (value + 1)
+    assert ax.baud_to_register(57600) == 34  # within the 3 % a UART tolerates
     assert mx.register_to_baud(250) == 2_250_000
     with pytest.raises(ConfigError, match="Baud Rate value 9"):
         xm.register_to_baud(9)
@@ -141,15 +154,24 @@ registers:
 """
 
 
-@pytest.mark.parametrize("edit,message", [
-    (("registers:", "regs:"), "missing field 'registers'"),
-    (("{address: 9, size: 1", "{address: 6, size: 4"), "overlap"),
-    (("access: R, area: RAM, initial: 0}", "access: X, area: RAM, initial: 0}"), "registers.present_position: access must be"),
-    (("protocol: 2", "protocol: 3"), "protocol must be 1 or 2"),
-    (("size: 4, access: RW, area: RAM, initial: 0}", "size: 3, access: RW, area: RAM, initial: 0}"), "size 1, 2 or 4"),
-    (("initial: 5}", "initial: 6}"), "model_number.initial"),
-    (("name: TEST-1", "name: [1]"), "field 'name' must be a str"),
-])
+@pytest.mark.parametrize(
+    "edit,message",
+    [
+        (("registers:", "regs:"), "missing field 'registers'"),
+        (("{address: 9, size: 1", "{address: 6, size: 4"), "overlap"),
+        (
+            ("access: R, area: RAM, initial: 0}", "access: X, area: RAM, initial: 0}"),
+            "registers.present_position: access must be",
+        ),
+        (("protocol: 2", "protocol: 3"), "protocol must be 1 or 2"),
+        (
+            ("size: 4, access: RW, area: RAM, initial: 0}", "size: 3, access: RW, area: RAM, initial: 0}"),
+            "size 1, 2 or 4",
+        ),
+        (("initial: 5}", "initial: 6}"), "model_number.initial"),
+        (("name: TEST-1", "name: [1]"), "field 'name' must be a str"),
+    ],
+)
 def test_bad_model_files_name_the_file_and_field(tmp_path, edit, message):
     path = tmp_path / "bad.yaml"
     path.write_text(BASE.replace(*edit, 1))

@@ -28,13 +28,25 @@ LAT = 30.0  # ms of reply-timeout latency: generous, the emulator shares this pr
 def small_bus(n=4, **servo_overrides):
     servos = []
     for i in range(n):
-        s = {"id": i + 1, "joint": f"j{i + 1}", "model": "XM430-W350", "limits": [-1.0, 1.0],
-             "direction": -1 if i % 2 else 1, "zero_offset": 0.05 * i, "pid": {"p": 900, "i": 10, "d": 5},
-             "profile_velocity": 3.0, "return_delay_us": 0}
+        s = {
+            "id": i + 1,
+            "joint": f"j{i + 1}",
+            "model": "XM430-W350",
+            "limits": [-1.0, 1.0],
+            "direction": -1 if i % 2 else 1,
+            "zero_offset": 0.05 * i,
+            "pid": {"p": 900, "i": 10, "d": 5},
+            "profile_velocity": 3.0,
+            "return_delay_us": 0,
+        }
         s.update(servo_overrides)
         servos.append(s)
-    return parse_config({"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000,
-                                                  "protocol": "2.0", "servos": servos}]}).buses[0]
+    return parse_config(
+        {
+            "robot": "t",
+            "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "2.0", "servos": servos}],
+        }
+    ).buses[0]
 
 
 def guarded_emulator(bus, **kw):
@@ -82,7 +94,10 @@ def test_units_direction_offset_and_settings():
             t.write_goal(goal)
             for i, sv in enumerate(bus.servos):  # SYNC_WRITE has no reply: wait for the emulator to take it
                 want = round(2048 + (sv.direction * goal[i] + sv.zero_offset) * 4096 / (2 * math.pi))
-                assert wait_for(lambda sv=sv, want=want: emu.read_register(sv.id, "goal_position") == want), (sv.id, want)
+                assert wait_for(lambda sv=sv, want=want: emu.read_register(sv.id, "goal_position") == want), (
+                    sv.id,
+                    want,
+                )
             assert wait_for(lambda: np.allclose(t.read_state().position, goal, atol=2e-3))
             # every slow field gets refreshed within n cycles
             for _ in range(len(bus.servos)):
@@ -190,7 +205,9 @@ def test_model_mismatch_and_missing_servo_are_named():
     bus = small_bus(3)
     emu = DynamixelBusEmulator([ServoSpec(1), ServoSpec(2, "XL430-W250"), ServoSpec(3)], baud=1_000_000).start()
     try:
-        with pytest.raises(BridgeError, match=r"servo ID 2 \(j2\): model number 1060 \(XL430-W250\) but the config says XM430-W350"):
+        with pytest.raises(
+            BridgeError, match=r"servo ID 2 \(j2\): model number 1060 \(XL430-W250\) but the config says XM430-W350"
+        ):
             make(bus, emu).open()
     finally:
         emu.stop()
@@ -317,7 +334,9 @@ def test_communication_error_with_limp_policy_switches_every_servo_off():
         with pytest.raises(BridgeError, match=r"servo ID 2 \(j2\)"):
             t.read_state()
         # the broadcast torque-off reached the servos that still listen
-        assert wait_for(lambda: emu.read_register(1, "torque_enable") == 0 and emu.read_register(3, "torque_enable") == 0)
+        assert wait_for(
+            lambda: emu.read_register(1, "torque_enable") == 0 and emu.read_register(3, "torque_enable") == 0
+        )
         t.close()
     finally:
         emu.stop()
@@ -340,14 +359,27 @@ def test_interpreter_exit_applies_the_stop_policy():
     import subprocess
     import sys
 
-    config = {"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "2.0",
-                                       "servos": [{"id": i, "joint": f"j{i}", "model": "XM430-W350", "limits": [-1, 1]}
-                                                  for i in (1, 2)]}]}
+    config = {
+        "robot": "t",
+        "buses": [
+            {
+                "name": "b",
+                "port": "/dev/null",
+                "baud": 1000000,
+                "protocol": "2.0",
+                "servos": [{"id": i, "joint": f"j{i}", "model": "XM430-W350", "limits": [-1, 1]} for i in (1, 2)],
+            }
+        ],
+    }
     bus = parse_config(config).buses[0]
     emu = guarded_emulator(bus)
     try:
-        proc = subprocess.run([sys.executable, "-c", EXIT_SCRIPT.format(config=config), emu.port_path],
-                              capture_output=True, text=True, timeout=60)
+        proc = subprocess.run(
+            [sys.executable, "-c", EXIT_SCRIPT.format(config=config), emu.port_path],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert proc.returncode == 0, proc.stderr
         assert any(r.accepted for r in emu.goal_history[1])  # it did run with torque on
         assert emu.read_register(1, "torque_enable") == 0 and emu.read_register(2, "torque_enable") == 0
@@ -356,10 +388,23 @@ def test_interpreter_exit_applies_the_stop_policy():
 
 
 def test_protocol_1_bus_ax12():
-    cfg = parse_config({"robot": "t", "buses": [{"name": "b", "port": "/dev/null", "baud": 1000000, "protocol": "1.0",
-                                                 "servos": [{"id": 1, "joint": "a", "model": "AX-12A", "limits": [-1.5, 1.5]},
-                                                            {"id": 2, "joint": "b", "model": "AX-12A", "limits": [-1.0, 1.0],
-                                                             "direction": -1}]}]})
+    cfg = parse_config(
+        {
+            "robot": "t",
+            "buses": [
+                {
+                    "name": "b",
+                    "port": "/dev/null",
+                    "baud": 1000000,
+                    "protocol": "1.0",
+                    "servos": [
+                        {"id": 1, "joint": "a", "model": "AX-12A", "limits": [-1.5, 1.5]},
+                        {"id": 2, "joint": "b", "model": "AX-12A", "limits": [-1.0, 1.0], "direction": -1},
+                    ],
+                }
+            ],
+        }
+    )
     bus = cfg.buses[0]
     ax = load_servo_model("AX-12A")
     emu = DynamixelBusEmulator([ServoSpec(1, "AX-12A"), ServoSpec(2, "AX-12A")], baud=1_000_000, protocol=1).start()

@@ -39,8 +39,9 @@ def synthetic_sets():
 def evaluator(synthetic_sets):
     torch.set_num_threads(1)  # the test machine is shared; one thread is the fastest there
     train, _ = synthetic_sets
-    return train_evaluator(train.features, train.texts, config=TINY_EVAL,
-                           training=EvaluatorTraining(steps=150, batch_size=32, lr=1e-3))
+    return train_evaluator(
+        train.features, train.texts, config=TINY_EVAL, training=EvaluatorTraining(steps=150, batch_size=32, lr=1e-3)
+    )
 
 
 def test_word_ids_are_stable_and_padded():
@@ -57,13 +58,14 @@ def test_trained_evaluator_r_precision_above_chance(synthetic_sets, evaluator):
     gt = evaluate(None, test, evaluator, cfg)
     chance = np.array([1, 2, 3]) / 32
     r = np.array([gt["r1"].mean, gt["r2"].mean, gt["r3"].mean])
-    assert np.all(r > 3 * chance), r           # matched pairs are found well above chance
-    assert abs(gt["fid"].mean) < 1e-6           # ground truth vs itself
+    assert np.all(r > 3 * chance), r  # matched pairs are found well above chance
+    assert abs(gt["fid"].mean) < 1e-6  # ground truth vs itself
     assert gt["diversity"].mean > 0.1 and gt["multimodality"].n == 0
     assert 0.0 <= gt["bas"].mean <= 1.0 and 0.0 <= gt["bed"].mean <= 1.0
     # shuffled texts: R-precision falls to about chance, MM distance grows
-    shuffled = EvalSet(test.features, list(np.random.default_rng(0).permutation(test.texts)), test.beat_frames,
-                       test.beats, test.fps)
+    shuffled = EvalSet(
+        test.features, list(np.random.default_rng(0).permutation(test.texts)), test.beat_frames, test.beats, test.fps
+    )
     bad = evaluate(None, shuffled, evaluator, cfg)
     assert bad["r3"].mean < r[2] and bad["mm_dist"].mean > gt["mm_dist"].mean
 
@@ -73,8 +75,12 @@ def test_whole_evaluation_with_a_tiny_checkpoint(tmp_path, synthetic_sets, evalu
     train, test = synthetic_sets
     torch.manual_seed(0)
     model = DualFlow(DualFlowConfig.preset("tiny", music_dim=4, text_dim=384))
-    ckpt = save_checkpoint(tmp_path / "ckpt", model=model, stats=NormStats.from_features(train.features),
-                           meta={"text_encoder": TEXT_ENCODER_ID, "music": "beats"})
+    ckpt = save_checkpoint(
+        tmp_path / "ckpt",
+        model=model,
+        stats=NormStats.from_features(train.features),
+        meta={"text_encoder": TEXT_ENCODER_ID, "music": "beats"},
+    )
     small = EvalSet(test.features[:12], test.texts[:12], test.beat_frames[:12], test.beats[:12], test.fps)
     cfg = ProtocolConfig(batch_size=12, diversity_times=12, mm_samples=3, mm_repeats=3, mm_times=2, replications=1)
     for mode in ("interactive", "reactive"):
@@ -84,14 +90,15 @@ def test_whole_evaluation_with_a_tiny_checkpoint(tmp_path, synthetic_sets, evalu
         if mode == "reactive":
             np.testing.assert_allclose(out[:, :, 0], small.features[:3, :, 0], atol=1e-3)  # the actor is kept
         res = evaluate(gen, small, evaluator, ProtocolConfig(**{**cfg.__dict__, "mode": mode}))
-        assert res["fid"].mean > 1.0        # an untrained model is far from the data
+        assert res["fid"].mean > 1.0  # an untrained model is far from the data
         assert res["multimodality"].n == 1 and res["multimodality"].mean > 0
 
 
 def test_evaluator_save_load_roundtrip(tmp_path):
     train = EvalSet.from_duet_set(load_dataset("synthetic", split="val", n_clips=8, frames=20), 20)
-    ev = train_evaluator(train.features[:8], train.texts[:8], config=TINY_EVAL,
-                         training=EvaluatorTraining(steps=2, batch_size=4))
+    ev = train_evaluator(
+        train.features[:8], train.texts[:8], config=TINY_EVAL, training=EvaluatorTraining(steps=2, batch_size=4)
+    )
     ev.save(tmp_path / "ev")
     back = MotionTextEvaluator.load(tmp_path / "ev")
     m1, t1 = ev.embed(train.features[:4], train.texts[:4])

@@ -25,34 +25,96 @@ def tiny_ckpt(tmp_path_factory):
     feats = np.stack([s.features() for s in load_dataset("synthetic", split="train", n_clips=8, frames=20)])
     torch.manual_seed(0)
     model = DualFlow(DualFlowConfig.preset("tiny", music_dim=4, text_dim=384))
-    return save_checkpoint(root / "final", model=model, stats=NormStats.from_features(feats),
-                           meta={"text_encoder": TEXT_ENCODER_ID, "music": "beats"})
+    return save_checkpoint(
+        root / "final",
+        model=model,
+        stats=NormStats.from_features(feats),
+        meta={"text_encoder": TEXT_ENCODER_ID, "music": "beats"},
+    )
 
 
 @pytest.mark.slow
 def test_train_evaluator_then_eval_prints_table(tmp_path, tiny_ckpt, capsys):
     torch.set_num_threads(1)
     ev = tmp_path / "ev"
-    assert main(["eval", "train-evaluator", *DATA, "--out", str(ev), "--steps", "3", "--width", "32",
-                 "--layers", "1", "--batch-size", "8"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "train-evaluator",
+                *DATA,
+                "--out",
+                str(ev),
+                "--steps",
+                "3",
+                "--width",
+                "32",
+                "--layers",
+                "1",
+                "--batch-size",
+                "8",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "evaluator written to" in out and (ev / "evaluator.safetensors").is_file()
     js = tmp_path / "res.json"
-    assert main(["eval", *DATA, "--evaluator", str(ev), "--full", str(tiny_ckpt), "--no-sync", str(tiny_ckpt),
-                 "--look-ahead", f"0={tiny_ckpt}", "--steps", "1", "--quick", "--replications", "1",
-                 "--mm-repeats", "2", "--mm-samples", "2", "--json", str(js)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                *DATA,
+                "--evaluator",
+                str(ev),
+                "--full",
+                str(tiny_ckpt),
+                "--no-sync",
+                str(tiny_ckpt),
+                "--look-ahead",
+                f"0={tiny_ckpt}",
+                "--steps",
+                "1",
+                "--quick",
+                "--replications",
+                "1",
+                "--mm-repeats",
+                "2",
+                "--mm-samples",
+                "2",
+                "--json",
+                str(js),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     lines = out.splitlines()
     head = next(i for i, ln in enumerate(lines) if ln.startswith("Method"))
     assert "R@1" in lines[head] and "BAS" in lines[head]
-    labels = [ln.split("  ")[0] for ln in lines[head + 2:]]
-    assert labels == ["Ground Truth", "[Interactive Task]", "DualFlow", "DualFlow (w/o L_sync)", "DualFlow (L=0)",
-                      "[Reactive Task]", "DualFlow", "DualFlow (w/o L_sync)", "DualFlow (L=0)"]
+    labels = [ln.split("  ")[0] for ln in lines[head + 2 :]]
+    assert labels == [
+        "Ground Truth",
+        "[Interactive Task]",
+        "DualFlow",
+        "DualFlow (w/o L_sync)",
+        "DualFlow (L=0)",
+        "[Reactive Task]",
+        "DualFlow",
+        "DualFlow (w/o L_sync)",
+        "DualFlow (L=0)",
+    ]
     res = json.loads(js.read_text())
     assert abs(res["rows"]["Ground Truth"]["fid"]["mean"]) < 1e-6
-    assert set(res["rows"]) == {"Ground Truth", "interactive/DualFlow", "interactive/DualFlow (w/o L_sync)",
-                                "interactive/DualFlow (L=0)", "reactive/DualFlow", "reactive/DualFlow (w/o L_sync)",
-                                "reactive/DualFlow (L=0)"}
+    assert set(res["rows"]) == {
+        "Ground Truth",
+        "interactive/DualFlow",
+        "interactive/DualFlow (w/o L_sync)",
+        "interactive/DualFlow (L=0)",
+        "reactive/DualFlow",
+        "reactive/DualFlow (w/o L_sync)",
+        "reactive/DualFlow (L=0)",
+    }
 
 
 def test_eval_user_errors(tmp_path, capsys):

@@ -30,8 +30,9 @@ from dualflow.motion.rotations import axis_angle_matrix, matrix_to_6d, rotvec_to
 MULTI_CHILD_BONES = [1, 2, 3, 12, 13, 14]  # children of pelvis and spine3
 
 
-def make_motion(seed: int, T: int = 30, yaw: float = 0.0, start=(0.0, 0.0), shape_noise: float = 0.0,
-                fps: float = 30.0) -> Motion:
+def make_motion(
+    seed: int, T: int = 30, yaw: float = 0.0, start=(0.0, 0.0), shape_noise: float = 0.0, fps: float = 30.0
+) -> Motion:
     """A smooth FK-generated motion: swaying joints, a walking root, turning by ``yaw``.
 
     shape_noise (m) perturbs the pelvis and chest bones so the skeleton's shape
@@ -138,7 +139,9 @@ def test_rest_pose_rotations_are_identity_and_leaves_always_identity():
     np.testing.assert_allclose(rot6, np.broadcast_to(matrix_to_6d(np.eye(3)), (2, 21, 6)), atol=1e-6)
     moving = encode_person(make_motion(5))[:, FEATURE_SLICES["rotations"]].reshape(-1, 21, 6)
     leaves = [j - 1 for j in LEAF_JOINTS]
-    np.testing.assert_allclose(moving[:, leaves], np.broadcast_to(matrix_to_6d(np.eye(3)), moving[:, leaves].shape), atol=1e-6)
+    np.testing.assert_allclose(
+        moving[:, leaves], np.broadcast_to(matrix_to_6d(np.eye(3)), moving[:, leaves].shape), atol=1e-6
+    )
     assert np.abs(moving - matrix_to_6d(np.eye(3))).max() > 0.1  # non-leaf joints do rotate
 
 

@@ -26,7 +26,7 @@ def _reference_ik(positions: np.ndarray, rest: np.ndarray) -> np.ndarray:
         parent_G = G[:, PARENTS[j]] if j else np.broadcast_to(np.eye(3), (T, 3, 3))
         kids = list(CHILDREN[j])
         if kids:
-            posed = np.einsum("tba,tkb->tka", parent_G, positions[:, kids] - positions[:, j:j + 1])
+            posed = np.einsum("tba,tkb->tka", parent_G, positions[:, kids] - positions[:, j : j + 1])
             rest_dirs = off[kids] / np.linalg.norm(off[kids], axis=-1, keepdims=True)
             if len(kids) == 1:
                 local[:, j] = swing_rotation(rest_dirs[0], posed[:, 0])
@@ -55,7 +55,7 @@ def _frame_by_frame(positions: np.ndarray, fps: float) -> np.ndarray:
     """What ReactorStage does: each row encoded from a two-frame window [t, t+1] in the
     canonical frame of the first frame."""
     frame = canonical_frame(Motion(positions[:1], fps))
-    return np.concatenate([encode_person(Motion(positions[t:t + 2], fps), frame) for t in range(len(positions) - 1)])
+    return np.concatenate([encode_person(Motion(positions[t : t + 2], fps), frame) for t in range(len(positions) - 1)])
 
 
 def test_frame_by_frame_encoding_equals_whole_clip_synthetic():

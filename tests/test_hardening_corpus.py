@@ -26,15 +26,43 @@ def test_the_corpus_is_large_and_covers_every_format(corpus):
     _, cases = corpus
     formats = Counter(c.fmt for c in cases)
     assert len(cases) >= 200
-    assert set(formats) >= {"bvh", "motion-npz", "duet-npz", "amass-npz", "humanml3d-npy", "intergen-npy",
-                            "trajectory-npz", "telemetry", "telemetry-events", "checkpoint", "hardware-yaml",
-                            "profile-yaml", "music", "joint-map", "train-config"}
+    assert set(formats) >= {
+        "bvh",
+        "motion-npz",
+        "duet-npz",
+        "amass-npz",
+        "humanml3d-npy",
+        "intergen-npy",
+        "trajectory-npz",
+        "telemetry",
+        "telemetry-events",
+        "checkpoint",
+        "hardware-yaml",
+        "profile-yaml",
+        "music",
+        "joint-map",
+        "train-config",
+    }
     assert sum(c.argv[0] == "run" for c in cases) >= 20  # the run command reads actors, checkpoints, robots, music
 
 
-FORMATS = ["bvh", "motion-npz", "duet-npz", "amass-npz", "humanml3d-npy", "intergen-npy", "trajectory-npz",
-           "telemetry", "telemetry-events", "checkpoint", "hardware-yaml", "profile-yaml", "music", "joint-map",
-           "train-config"]
+FORMATS = [
+    "bvh",
+    "motion-npz",
+    "duet-npz",
+    "amass-npz",
+    "humanml3d-npy",
+    "intergen-npy",
+    "trajectory-npz",
+    "telemetry",
+    "telemetry-events",
+    "checkpoint",
+    "hardware-yaml",
+    "profile-yaml",
+    "music",
+    "joint-map",
+    "train-config",
+]
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
@@ -53,12 +81,44 @@ def test_the_good_files_the_corpus_is_made_from_pass(corpus, capsys):
     good = root / "good"
     for name in ("leader.npz", "leader.bvh", "duet.npz", "amass.npz"):
         assert main(["motion", "info", str(good / name)]) == 0, capsys.readouterr().err
-    assert main(["check", str(good / "trajectory.npz"), "--robot", hc.MODEL_ROBOT, "--no-plots",
-                 "-o", str(root / "out" / "good_check")]) == 0, capsys.readouterr().err
+    assert (
+        main(
+            [
+                "check",
+                str(good / "trajectory.npz"),
+                "--robot",
+                hc.MODEL_ROBOT,
+                "--no-plots",
+                "-o",
+                str(root / "out" / "good_check"),
+            ]
+        )
+        == 0
+    ), capsys.readouterr().err
     tel = str(good / "telemetry.dftl")
     assert main(["plot", tel, "-o", str(root / "out" / "good_plot")]) == 0, capsys.readouterr().err
     assert main(["replay", tel, "--robot", hc.MODEL_ROBOT, "--transport", "record"]) == 0, capsys.readouterr().err
     assert "replayed 40 of 40 commands" in capsys.readouterr().err
-    assert main(["run", "--model", str(good / "ckpt"), "--robot", hc.MODEL_ROBOT, "--generator", "thread",
-                 "--transport", "record", "--seconds", "1", "--max-duration", "0.3", "--quiet",
-                 "-o", str(root / "out" / "good_run")]) == 0, capsys.readouterr().err
+    assert (
+        main(
+            [
+                "run",
+                "--model",
+                str(good / "ckpt"),
+                "--robot",
+                hc.MODEL_ROBOT,
+                "--generator",
+                "thread",
+                "--transport",
+                "record",
+                "--seconds",
+                "1",
+                "--max-duration",
+                "0.3",
+                "--quiet",
+                "-o",
+                str(root / "out" / "good_run"),
+            ]
+        )
+        == 0
+    ), capsys.readouterr().err

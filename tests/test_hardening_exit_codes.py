@@ -50,8 +50,25 @@ def _end(out: Path) -> dict:
 
 def test_a_normal_end_exits_0_and_a_vanished_bus_exits_1(tmp_path, capsys):
     out = tmp_path / "normal"
-    assert main(["run", "--partner", "imitate", "--transport", "record", "--robot", "ub14", "--seconds", "1",
-                 "--quiet", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "--partner",
+                "imitate",
+                "--transport",
+                "record",
+                "--robot",
+                "ub14",
+                "--seconds",
+                "1",
+                "--quiet",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert _end(out)["reason"] == "the motion ended"
 
     out = tmp_path / "vanish"
@@ -61,8 +78,21 @@ def test_a_normal_end_exits_0_and_a_vanished_bus_exits_1(tmp_path, capsys):
             os.kill(child.pid, signal.SIGKILL)
 
     _when_streaming(out, kill_the_bus)
-    code = main(["run", "--partner", "imitate", "--transport", "dynamixel", "--emulate", "--seconds", "20",
-                 "--quiet", "-o", str(out)])
+    code = main(
+        [
+            "run",
+            "--partner",
+            "imitate",
+            "--transport",
+            "dynamixel",
+            "--emulate",
+            "--seconds",
+            "20",
+            "--quiet",
+            "-o",
+            str(out),
+        ]
+    )
     assert code == 1, capsys.readouterr().err[-2000:]
     end = _end(out)
     assert end["state"] == "ESTOP" and end["reason"].startswith("bus error")
@@ -82,8 +112,24 @@ def test_a_crashed_generator_exits_1(tmp_path, tiny_checkpoint, capsys):
                 pass
 
     _when_streaming(out, kill_the_generator)
-    code = main(["run", "--generator", "process", "--model", str(tiny_checkpoint), "--transport", "record",
-                 "--robot", "ub14", "--seconds", "30", "--quiet", "-o", str(out)])
+    code = main(
+        [
+            "run",
+            "--generator",
+            "process",
+            "--model",
+            str(tiny_checkpoint),
+            "--transport",
+            "record",
+            "--robot",
+            "ub14",
+            "--seconds",
+            "30",
+            "--quiet",
+            "-o",
+            str(out),
+        ]
+    )
     assert code == 1, capsys.readouterr().err[-2000:]
     end = _end(out)
     assert "generator" in end["reason"] and end["summary"]["fault_stop"]
@@ -95,8 +141,12 @@ def test_a_watchdog_stop_is_not_a_normal_end(tmp_path):
     buf = TargetBuffer(30.0)
     for k in range(10):  # then the generator goes quiet, the stream still open
         buf.push(TargetFrame(k, np.zeros(2), time.monotonic()))
-    loop = ControlLoop(RecordTransport(names), limits, buf,
-                       LoopConfig(rate_hz=100.0, min_ramp=0.1, rest_after=0.3, handle_signals=False))
+    loop = ControlLoop(
+        RecordTransport(names),
+        limits,
+        buf,
+        LoopConfig(rate_hz=100.0, min_ramp=0.1, rest_after=0.3, handle_signals=False),
+    )
     s = loop.run()
     assert s.end_state == "STOPPED" and "no new frames" in s.reason and s.fault_stop and not s.ok
 
@@ -108,7 +158,7 @@ def test_a_failed_physics_check_exits_1_and_bad_input_exits_2(tmp_path, capsys):
 
     files = resolve_robot("ub14")
     robot = load_robot(files.mjcf, files.profile)
-    pose = np.asarray(robot.x_stand)[robot.n_root:].copy()
+    pose = np.asarray(robot.x_stand)[robot.n_root :].copy()
     traj = RobotTrajectory.standing(robot.joint_names, pose, 30, 30.0, np.asarray(robot.x_stand)[:3], "ub14")
     q = np.array(traj.joint_pos)
     q[10:, 0] = robot.x_upper[robot.n_root] + 1.0  # beyond its joint limit: a verdict, not bad input
@@ -117,8 +167,23 @@ def test_a_failed_physics_check_exits_1_and_bad_input_exits_2(tmp_path, capsys):
     assert main(["check", str(path), "--robot", "ub14", "--no-plots", "-o", str(tmp_path / "c")]) == 1
     assert "FAIL" in capsys.readouterr().out
 
-    assert main(["run", "--transport", "dynamixel", "--port", str(tmp_path / "no-such-port"), "--partner",
-                 "imitate", "--quiet", "-o", str(tmp_path / "r")]) == 2
+    assert (
+        main(
+            [
+                "run",
+                "--transport",
+                "dynamixel",
+                "--port",
+                str(tmp_path / "no-such-port"),
+                "--partner",
+                "imitate",
+                "--quiet",
+                "-o",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 2
+    )
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and "no-such-port" in err[0]
     with pytest.raises(SystemExit) as exc:

@@ -30,8 +30,13 @@ from ros_free_bridge.errors import BridgeError
 from ros_free_bridge.sources import udp_packet as pk
 from ros_free_bridge.telemetry.log import MAGIC, TelemetryWriter, read_events, read_telemetry
 
-FUZZ = settings(max_examples=60, deadline=None, derandomize=True, database=None,
-                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+FUZZ = settings(
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 
 LEADER = make_leader(1.0, 30.0, 0)
 
@@ -68,8 +73,9 @@ def _mutate(data: bytes, edits) -> bytes:
     return bytes(b)
 
 
-EDITS = st.lists(st.tuples(st.floats(0, 1), st.sampled_from(["set", "cut", "insert"]), st.integers(0, 255)),
-                 min_size=1, max_size=6)
+EDITS = st.lists(
+    st.tuples(st.floats(0, 1), st.sampled_from(["set", "cut", "insert"]), st.integers(0, 255)), min_size=1, max_size=6
+)
 
 
 def _check_motion(m) -> None:
@@ -92,9 +98,33 @@ def test_bvh_mutations_read_or_raise_the_package_error(tmp_path, good_bvh, edits
         pass
 
 
-BVH_WORDS = st.sampled_from(["HIERARCHY", "ROOT", "JOINT", "End", "Site", "{", "}", "OFFSET", "CHANNELS", "3", "6",
-                             "Xposition", "Zrotation", "0", "1e308", "-1", "nan", "MOTION", "Frames:", "Frame Time:",
-                             "0.0333", "1000000000", "\n"])
+BVH_WORDS = st.sampled_from(
+    [
+        "HIERARCHY",
+        "ROOT",
+        "JOINT",
+        "End",
+        "Site",
+        "{",
+        "}",
+        "OFFSET",
+        "CHANNELS",
+        "3",
+        "6",
+        "Xposition",
+        "Zrotation",
+        "0",
+        "1e308",
+        "-1",
+        "nan",
+        "MOTION",
+        "Frames:",
+        "Frame Time:",
+        "0.0333",
+        "1000000000",
+        "\n",
+    ]
+)
 
 
 @FUZZ
@@ -115,8 +145,11 @@ DESCR = st.sampled_from(["<f8", "<f4", "|O", "<i4", "|b1", "<c16", "<U5", "<zz",
 
 
 def _npy(shape, descr, payload: bytes, fortran=False) -> bytes:
-    header = "{'descr': " + (descr if descr.startswith("[") else repr(descr)) + \
-             f", 'fortran_order': {fortran}, 'shape': {tuple(shape)!r}, }}"
+    header = (
+        "{'descr': "
+        + (descr if descr.startswith("[") else repr(descr))
+        + f", 'fortran_order': {fortran}, 'shape': {tuple(shape)!r}, }}"
+    )
     text = header.encode("latin1")
     text += b" " * (64 - (10 + len(text) + 1) % 64) + b"\n"
     return b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text + payload
@@ -150,18 +183,39 @@ def test_npz_mutations_read_or_raise_the_package_error(tmp_path, good_npz, edits
 
 
 ARRAYS = st.one_of(
-    st.builds(lambda n, j, v: np.full((n, j, 3), v), st.integers(0, 5), st.sampled_from([21, 22, 24]),
-              st.floats(allow_nan=True, allow_infinity=True)),
+    st.builds(
+        lambda n, j, v: np.full((n, j, 3), v),
+        st.integers(0, 5),
+        st.sampled_from([21, 22, 24]),
+        st.floats(allow_nan=True, allow_infinity=True),
+    ),
     st.builds(np.array, st.one_of(st.floats(), st.text(max_size=5), st.lists(st.floats(), max_size=3))),
     st.builds(lambda s: _npy(s, "<f8", b"\0" * 64), st.lists(DIMS, min_size=1, max_size=3)),
 )
 
 
 @FUZZ
-@given(members=st.dictionaries(st.sampled_from(["format", "positions", "fps", "joints", "mocap_framerate", "contacts",
-                                                "name", "actor_positions", "reactor_positions", "meta"]),
-                               ARRAYS, max_size=6),
-       fmt=st.sampled_from([None, "dualflow-motion-1", "dualflow-duet-1"]))
+@given(
+    members=st.dictionaries(
+        st.sampled_from(
+            [
+                "format",
+                "positions",
+                "fps",
+                "joints",
+                "mocap_framerate",
+                "contacts",
+                "name",
+                "actor_positions",
+                "reactor_positions",
+                "meta",
+            ]
+        ),
+        ARRAYS,
+        max_size=6,
+    ),
+    fmt=st.sampled_from([None, "dualflow-motion-1", "dualflow-duet-1"]),
+)
 def test_npz_fields_of_any_shape_dtype_and_value_read_or_raise(tmp_path, members, fmt):
     path = tmp_path / "m.npz"
     with zipfile.ZipFile(path, "w") as z:
@@ -183,20 +237,35 @@ def test_npz_fields_of_any_shape_dtype_and_value_read_or_raise(tmp_path, members
 
 # -- robot trajectories --------------------------------------------------------------------------
 @FUZZ
-@given(n=st.integers(0, 6), joints=st.integers(0, 4), fps=st.floats(allow_nan=True, allow_infinity=True),
-       value=st.floats(allow_nan=True, allow_infinity=True),
-       dtype=st.sampled_from(["f8", "f4", "i4", "b1", "U3"]),
-       header=st.one_of(st.just(None), st.recursive(st.none() | st.integers() | st.text(max_size=4),
-                                                    lambda c: st.lists(c, max_size=3) | st.dictionaries(
-                                                        st.sampled_from(["joint_names", "robot", "meta"]), c,
-                                                        max_size=3), max_leaves=8)))
+@given(
+    n=st.integers(0, 6),
+    joints=st.integers(0, 4),
+    fps=st.floats(allow_nan=True, allow_infinity=True),
+    value=st.floats(allow_nan=True, allow_infinity=True),
+    dtype=st.sampled_from(["f8", "f4", "i4", "b1", "U3"]),
+    header=st.one_of(
+        st.just(None),
+        st.recursive(
+            st.none() | st.integers() | st.text(max_size=4),
+            lambda c: (
+                st.lists(c, max_size=3)
+                | st.dictionaries(st.sampled_from(["joint_names", "robot", "meta"]), c, max_size=3)
+            ),
+            max_leaves=8,
+        ),
+    ),
+)
 def test_trajectory_files_load_or_raise_the_package_error(tmp_path, n, joints, fps, value, dtype, header):
     names = [f"j{k}" for k in range(joints)]
     with np.errstate(all="ignore"):
         q = np.full((n, joints), value).astype(dtype)
-    arrays = {"joint_pos": q, "root_pos": np.zeros((n, 3)),
-              "root_quat": np.tile([1.0, 0, 0, 0], (n, 1)), "fps": np.array(fps),
-              "header": np.array(json.dumps({"joint_names": names} if header is None else header))}
+    arrays = {
+        "joint_pos": q,
+        "root_pos": np.zeros((n, 3)),
+        "root_quat": np.tile([1.0, 0, 0, 0], (n, 1)),
+        "fps": np.array(fps),
+        "header": np.array(json.dumps({"joint_names": names} if header is None else header)),
+    }
     path = tmp_path / "t.npz"
     np.savez(path, **arrays)
     try:
@@ -207,9 +276,11 @@ def test_trajectory_files_load_or_raise_the_package_error(tmp_path, n, joints, f
 
 
 # -- telemetry and events ----------------------------------------------------------------------
-JSON = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
-                    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
-                    max_leaves=12)
+JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+    lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=5), c, max_size=4),
+    max_leaves=12,
+)
 
 
 @pytest.fixture(scope="module")
@@ -220,12 +291,14 @@ def good_telemetry(tmp_path_factory):
             w.record(t=k / 100, tick=k, command=np.full(3, 0.1 * k))
     raw = path.read_bytes()
     line, body = raw.split(b"\n", 1)
-    return json.loads(line[len(MAGIC):]), body
+    return json.loads(line[len(MAGIC) :]), body
 
 
 @FUZZ
-@given(changes=st.dictionaries(st.sampled_from(["joint_names", "rate_hz", "fields", "meta"]), JSON, max_size=3),
-       body=st.one_of(st.none(), st.binary(max_size=600)))
+@given(
+    changes=st.dictionaries(st.sampled_from(["joint_names", "rate_hz", "fields", "meta"]), JSON, max_size=3),
+    body=st.one_of(st.none(), st.binary(max_size=600)),
+)
 def test_telemetry_headers_and_records_read_or_raise_the_package_error(tmp_path, good_telemetry, changes, body):
     header, good_body = good_telemetry
     path = tmp_path / "t.dftl"
@@ -240,7 +313,11 @@ def test_telemetry_headers_and_records_read_or_raise_the_package_error(tmp_path,
 
 
 @FUZZ
-@given(data=st.one_of(st.binary(max_size=400), st.lists(JSON.map(json.dumps), max_size=5).map(lambda lines: "\n".join(lines).encode())))
+@given(
+    data=st.one_of(
+        st.binary(max_size=400), st.lists(JSON.map(json.dumps), max_size=5).map(lambda lines: "\n".join(lines).encode())
+    )
+)
 def test_events_files_read_or_raise_the_package_error(tmp_path, data):
     path = tmp_path / "t.dftl.events.jsonl"
     path.write_bytes(data)
@@ -253,10 +330,17 @@ def test_events_files_read_or_raise_the_package_error(tmp_path, data):
 
 # -- checkpoints ---------------------------------------------------------------------------------
 @FUZZ
-@given(model=st.one_of(JSON, st.dictionaries(st.sampled_from(["width", "n_heads", "n_blocks", "dropout",
-                                                              "conv_kernels", "prediction", "look_ahead"]),
-                                             JSON, max_size=3)),
-       version=JSON)
+@given(
+    model=st.one_of(
+        JSON,
+        st.dictionaries(
+            st.sampled_from(["width", "n_heads", "n_blocks", "dropout", "conv_kernels", "prediction", "look_ahead"]),
+            JSON,
+            max_size=3,
+        ),
+    ),
+    version=JSON,
+)
 def test_checkpoint_configs_load_or_raise_the_package_error(tmp_path_factory, tiny_checkpoint, model, version):
     import shutil
 
@@ -276,8 +360,11 @@ def test_checkpoint_configs_load_or_raise_the_package_error(tmp_path_factory, ti
 
 
 # -- YAML: hardware configs, profiles, joint maps ----------------------------------------------
-YAMLISH = st.one_of(st.binary(max_size=300), st.text(alphabet="[]{}:-,&*!|>'\" \nabc01.#", max_size=300).map(str.encode),
-                    st.sampled_from([3, 60, 1500]).map(lambda n: ("a: " + "[" * n + "]" * n).encode()))
+YAMLISH = st.one_of(
+    st.binary(max_size=300),
+    st.text(alphabet="[]{}:-,&*!|>'\" \nabc01.#", max_size=300).map(str.encode),
+    st.sampled_from([3, 60, 1500]).map(lambda n: ("a: " + "[" * n + "]" * n).encode()),
+)
 
 
 @FUZZ
@@ -317,10 +404,17 @@ def test_joint_maps_load_or_raise_the_package_error(tmp_path, data):
 
 # -- UDP packets -------------------------------------------------------------------------------
 @settings(max_examples=300, deadline=None, derandomize=True, database=None)
-@given(data=st.one_of(st.binary(max_size=400),
-                      st.builds(lambda seq, v, stream: pk.encode_frame(seq, 0.0, np.full((22, 3), v, np.float32),
-                                                                       stream),
-                                st.integers(0, 2**32 - 1), st.floats(width=32), st.integers(0, 2**32 - 1))))
+@given(
+    data=st.one_of(
+        st.binary(max_size=400),
+        st.builds(
+            lambda seq, v, stream: pk.encode_frame(seq, 0.0, np.full((22, 3), v, np.float32), stream),
+            st.integers(0, 2**32 - 1),
+            st.floats(width=32),
+            st.integers(0, 2**32 - 1),
+        ),
+    )
+)
 def test_udp_packets_decode_to_a_bounded_frame_or_raise_packet_error(data):
     try:
         packet = pk.decode(data)

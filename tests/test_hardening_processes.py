@@ -85,26 +85,49 @@ def _wait(predicate, timeout: float) -> bool:
 
 def _start_run(out: Path, *extra: str) -> subprocess.Popen:
     env = dict(os.environ, MUJOCO_GL="egl", PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.Popen([sys.executable, "-m", "ros_free_bridge", "run", "--actor", "synthetic", "--seconds", "60",
-                             "--quiet", "-o", str(out), *extra], cwd=ROOT, env=env, start_new_session=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ros_free_bridge",
+            "run",
+            "--actor",
+            "synthetic",
+            "--seconds",
+            "60",
+            "--quiet",
+            "-o",
+            str(out),
+            *extra,
+        ],
+        cwd=ROOT,
+        env=env,
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _wait_streaming(proc: subprocess.Popen, out: Path) -> None:
     events = out / "telemetry.dftl.events.jsonl"
-    ok = _wait(lambda: proc.poll() is not None or (events.exists() and '"kind": "streaming"' in events.read_text()), 120)
+    ok = _wait(
+        lambda: proc.poll() is not None or (events.exists() and '"kind": "streaming"' in events.read_text()), 120
+    )
     if proc.poll() is not None or not ok:
         proc.kill()
         pytest.fail("the run did not start streaming: " + proc.communicate()[1][-2000:])
 
 
 @pytest.mark.parametrize("sig, group", [(signal.SIGTERM, False), (signal.SIGINT, True)])
-def test_sigterm_and_a_ctrl_c_to_the_group_end_in_the_safe_state_with_the_signal_as_reason(tmp_path, tiny_checkpoint,
-                                                                                           sig, group):
+def test_sigterm_and_a_ctrl_c_to_the_group_end_in_the_safe_state_with_the_signal_as_reason(
+    tmp_path, tiny_checkpoint, sig, group
+):
     out = tmp_path / "run"
     # the generator in its process and the bus emulator in its own: a Ctrl-C reaches all three
-    proc = _start_run(out, "--transport", "dynamixel", "--emulate", "--generator", "process",
-                      "--model", str(tiny_checkpoint))
+    proc = _start_run(
+        out, "--transport", "dynamixel", "--emulate", "--generator", "process", "--model", str(tiny_checkpoint)
+    )
     _wait_streaming(proc, out)
     children = _children(proc.pid)
     assert len(children) >= 2  # generator and emulator
@@ -122,12 +145,14 @@ def test_sigterm_and_a_ctrl_c_to_the_group_end_in_the_safe_state_with_the_signal
 
 def test_the_children_die_with_a_killed_parent(tmp_path, tiny_checkpoint):
     out = tmp_path / "run"
-    proc = _start_run(out, "--transport", "dynamixel", "--emulate", "--generator", "process",
-                      "--model", str(tiny_checkpoint))
+    proc = _start_run(
+        out, "--transport", "dynamixel", "--emulate", "--generator", "process", "--model", str(tiny_checkpoint)
+    )
     _wait_streaming(proc, out)
     children = _children(proc.pid)
     assert len(children) >= 2
     os.kill(proc.pid, signal.SIGKILL)  # runs no code of ours: no finally, no atexit
     proc.communicate(timeout=60)
-    assert _wait(lambda: not any(_alive(c) for c in children), 30), \
-        [Path(f"/proc/{c}/cmdline").read_bytes()[:120] for c in children if _alive(c)]
+    assert _wait(lambda: not any(_alive(c) for c in children), 30), [
+        Path(f"/proc/{c}/cmdline").read_bytes()[:120] for c in children if _alive(c)
+    ]

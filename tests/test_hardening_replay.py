@@ -57,8 +57,9 @@ def test_every_command_is_played_in_order_under_load():
         buf.push(TargetFrame(k, row, now))
     buf.close()
     tr = RecordTransport(names)
-    loop = ControlLoop(tr, limits, buf, LoopConfig(rate_hz=200.0, rest_pose=q[0], pace="ticks", min_ramp=0.2,
-                                                   handle_signals=False))
+    loop = ControlLoop(
+        tr, limits, buf, LoopConfig(rate_hz=200.0, rest_pose=q[0], pace="ticks", min_ramp=0.2, handle_signals=False)
+    )
     with Load():
         summary = loop.run()
     assert summary.ok and summary.reason == "the motion ended"
@@ -66,7 +67,7 @@ def test_every_command_is_played_in_order_under_load():
     sent = np.asarray(tr.commands)
     # the streamed part of what was sent is the recording itself, command for command
     start = int(np.argmin(np.abs(sent - q[1]).max(axis=1)))
-    np.testing.assert_allclose(sent[start - 1:start - 1 + len(q)], q, atol=1e-6)
+    np.testing.assert_allclose(sent[start - 1 : start - 1 + len(q)], q, atol=1e-6)
 
 
 def test_replay_plays_a_long_recording_through_the_cli_under_load(tmp_path, capsys):
@@ -76,7 +77,7 @@ def test_replay_plays_a_long_recording_through_the_cli_under_load(tmp_path, caps
     files = resolve_robot("ub14")
     robot = load_robot(files.mjcf, files.profile)
     names = list(robot.joint_names)
-    stand = np.asarray(robot.x_stand)[robot.n_root:]
+    stand = np.asarray(robot.x_stand)[robot.n_root :]
     q = stand + 0.1 * _commands(1034, len(names))
     path = tmp_path / "telemetry.dftl"
     with TelemetryWriter(path, names, 250.0, meta={"robot": "ub14"}) as w:

@@ -126,8 +126,22 @@ def test_listening_beyond_loopback_needs_an_explicit_option_and_warns(capsys, tm
     assert is_loopback("127.0.0.1") and is_loopback("localhost") and not is_loopback("0.0.0.0")
     with pytest.raises(BridgeError, match="--allow-remote-actor"):
         UdpActorSource("0.0.0.0", 0)  # refused before binding
-    code = main(["run", "--actor", "udp://0.0.0.0:9870", "--partner", "imitate", "--transport", "record",
-                 "--robot", "ub14", "--quiet", "-o", str(tmp_path / "out")])
+    code = main(
+        [
+            "run",
+            "--actor",
+            "udp://0.0.0.0:9870",
+            "--partner",
+            "imitate",
+            "--transport",
+            "record",
+            "--robot",
+            "ub14",
+            "--quiet",
+            "-o",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "0.0.0.0" in err[0] and "--allow-remote-actor" in err[0]
     assert "any host" in remote_actor_warning("udp://0.0.0.0:9870", True)
@@ -196,8 +210,11 @@ def test_attacks_from_another_local_sender_do_not_stop_the_genuine_stream(tmp_pa
             time.sleep(0.02)
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         root = str(Path(__file__).resolve().parents[1])
-        attacker.append(subprocess.Popen([sys.executable, "-c", ATTACKER.format(root=root), str(port)],
-                                         stdout=subprocess.PIPE, text=True))
+        attacker.append(
+            subprocess.Popen(
+                [sys.executable, "-c", ATTACKER.format(root=root), str(port)], stdout=subprocess.PIPE, text=True
+            )
+        )
         t0 = time.monotonic()
         for k in range(leader.n_frames):
             s.sendto(pk.encode_frame(k + 1, time.time(), leader.positions[k], stream=12345), (LOOPBACK, port))
@@ -206,8 +223,24 @@ def test_attacks_from_another_local_sender_do_not_stop_the_genuine_stream(tmp_pa
         done.set()
 
     threading.Thread(target=genuine, daemon=True).start()
-    code = main(["run", "--actor", f"udp://{LOOPBACK}:{port}", "--partner", "imitate", "--transport", "record",
-                 "--robot", "ub14", "--max-duration", "3", "--quiet", "-o", str(out)])
+    code = main(
+        [
+            "run",
+            "--actor",
+            f"udp://{LOOPBACK}:{port}",
+            "--partner",
+            "imitate",
+            "--transport",
+            "record",
+            "--robot",
+            "ub14",
+            "--max-duration",
+            "3",
+            "--quiet",
+            "-o",
+            str(out),
+        ]
+    )
     printed = capsys.readouterr().out
     assert attacker and "attacker done" in attacker[0].communicate(timeout=60)[0]
     assert code == 0, printed  # ended by --max-duration, not by a watchdog

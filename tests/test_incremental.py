@@ -43,8 +43,9 @@ def test_rows_fed_in_chunks_equal_the_full_window_forward(model, which):
     x = torch.randn(1, window, 262, generator=torch.Generator().manual_seed(2))
     out = torch.cat([cache.reactor_rows(1, x[:, lo:hi]) for lo, hi in ((0, 4), (4, 5), (5, 9), (9, 13))], 1)
     with torch.no_grad():
-        _, full = model(actor[None, start:start + window], x, 0.5, cond.slice_frames(start, start + window),
-                        mode="reactive")
+        _, full = model(
+            actor[None, start : start + window], x, 0.5, cond.slice_frames(start, start + window), mode="reactive"
+        )
     torch.testing.assert_close(out, full[:, :13], atol=1e-5, rtol=1e-5)
 
 
@@ -65,10 +66,13 @@ def test_revised_actor_rows_are_recomputed(model):
 
 
 def _stream(model, actor, prepare=False, **cfg):
-    s = ReactiveStreamer(model, StreamConfig(**{"window": 16, "steps": 3, "seed": 5, "hop": 1, **cfg}),
-                         Conditions(text=torch.ones(1, 384)))
+    s = ReactiveStreamer(
+        model,
+        StreamConfig(**{"window": 16, "steps": 3, "seed": 5, "hop": 1, **cfg}),
+        Conditions(text=torch.ones(1, 384)),
+    )
     for k in range(actor.shape[0]):
-        s.push(actor[k:k + 1])
+        s.push(actor[k : k + 1])
         while prepare and s.prepare(1):
             pass
     s.flush()
@@ -98,10 +102,10 @@ def test_incremental_stream_is_causal_across_window_starts(model):
     base = _stream(model, actor, incremental=True).emitted
     i = 25  # generated long after the first window start was given up
     changed = actor.clone()
-    changed[i + L + 1:] = torch.randn(40 - i - L - 1, 262)
+    changed[i + L + 1 :] = torch.randn(40 - i - L - 1, 262)
     other = _stream(model, changed, incremental=True).emitted
     torch.testing.assert_close(other[: i + 1], base[: i + 1])
-    assert not torch.allclose(other[i + 1:], base[i + 1:])
+    assert not torch.allclose(other[i + 1 :], base[i + 1 :])
 
 
 def test_incremental_keeps_context_across_window_starts(model):
@@ -132,7 +136,9 @@ def _record_passes(monkeypatch):
     def rows(self, x_a, reactor, need_output):
         s = state["streamer"]
         takeover = not s._bases[0].can_generate(s.emitted.shape[0] + s.TAKEOVER_FRAMES - 1)
-        calls.extend((state["in_prepare"], need_output, step, x.shape[1], takeover, len(reactor)) for step, x in reactor)
+        calls.extend(
+            (state["in_prepare"], need_output, step, x.shape[1], takeover, len(reactor)) for step, x in reactor
+        )
         return orig_rows(self, x_a, reactor, need_output)
 
     def prepare(self, max_passes=1, kinds=None):
@@ -151,7 +157,7 @@ def _stream_with_prepare(model, actor, cfg, state, passes_per_frame):
     s = ReactiveStreamer(model, StreamConfig(seed=5, hop=1, steps=3, **cfg), Conditions(text=torch.ones(1, 384)))
     state["streamer"] = s
     for k in range(actor.shape[0]):
-        s.push(actor[k:k + 1])
+        s.push(actor[k : k + 1])
         if passes_per_frame:
             s.prepare(passes_per_frame)
         else:  # idle time: everything due
@@ -261,8 +267,11 @@ def test_a_music_track_shorter_than_the_stream_is_one_clear_error(model, increme
     streamer's error (incremental windows used to run on with truncated music, then fail
     deep inside attention)."""
     music = torch.randn(1, 20, model.config.music_dim, generator=torch.Generator().manual_seed(2))
-    s = ReactiveStreamer(model, StreamConfig(window=16, hop=1, steps=2, incremental=incremental),
-                         Conditions(text=torch.ones(1, 384), music=music))
+    s = ReactiveStreamer(
+        model,
+        StreamConfig(window=16, hop=1, steps=2, incremental=incremental),
+        Conditions(text=torch.ones(1, 384), music=music),
+    )
     with pytest.raises(DualFlowError, match="music track has 20 frames"):
         for row in _actor(40):
             s.push(row)
@@ -285,8 +294,11 @@ def _count_prefetched_passes(monkeypatch) -> list[int]:
 def _revising_stream(model, actor, prefetch: bool) -> ReactiveStreamer:
     """The live generator's pattern: each push revises the previous (provisional) actor row
     and adds a provisional one, with idle time (``prepare``) between pushes."""
-    s = ReactiveStreamer(model, StreamConfig(window=24, steps=2, seed=5, hop=1, incremental=True, bases=2,
-                                             prefetch=prefetch), Conditions(text=torch.ones(1, 384)))
+    s = ReactiveStreamer(
+        model,
+        StreamConfig(window=24, steps=2, seed=5, hop=1, incremental=True, bases=2, prefetch=prefetch),
+        Conditions(text=torch.ones(1, 384)),
+    )
     s.push(actor[0:1] * 0.5)
     for k in range(1, actor.shape[0]):
         s.push(torch.stack([actor[k - 1], actor[k] * 0.5]), revise=1)  # row k - 1 final, row k provisional

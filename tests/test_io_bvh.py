@@ -172,8 +172,14 @@ def _without(text, line_no):
     [
         (lambda: "\n".join(_lines()[:12]) + "\n", r"bad\.bvh, line 12: file ends inside the HIERARCHY.*truncated"),
         (lambda: "\n".join(_lines()[:28]) + "\n", r"bad\.bvh, line 28: 'Frames: 2' but only 1 motion lines.*truncated"),
-        (lambda: SMALL[: SMALL.rindex("90")] , r"bad\.bvh, line 29: expected 12 values .* found 11 \(truncated file\?\)"),
-        (lambda: SMALL.replace("1 90 2 0 0 0 90 0 0 0 0 0", "1 90 2 0 0 0 90 0 0 0 0"), r"bad\.bvh, line 28: expected 12 values.*found 11"),
+        (
+            lambda: SMALL[: SMALL.rindex("90")],
+            r"bad\.bvh, line 29: expected 12 values .* found 11 \(truncated file\?\)",
+        ),
+        (
+            lambda: SMALL.replace("1 90 2 0 0 0 90 0 0 0 0 0", "1 90 2 0 0 0 90 0 0 0 0"),
+            r"bad\.bvh, line 28: expected 12 values.*found 11",
+        ),
         (lambda: SMALL.replace("1 90 2 90 0 0", "1 90 2 nan 0 0"), r"bad\.bvh, line 29: channel 4 is nan"),
         (lambda: SMALL.replace("1 90 2 90 0 0", "1 90 2 9O 0 0"), r"bad\.bvh, line 29: '9O' is not a number"),
         (lambda: SMALL.replace("Frames: 2", "Frames: 0").split("1 90 2 0 0")[0], r"line 26: .*zero frames"),
@@ -181,9 +187,15 @@ def _without(text, line_no):
         (lambda: SMALL.replace("Frames: 2", "Frames: 1"), r"line 29: 'Frames: 1' but 2 motion lines"),
         (lambda: SMALL.replace("Frame Time: 0.04", "Frame Time: 0"), r"line 27: 'Frame Time:' must be > 0"),
         (lambda: _without(SMALL, 27), r"line 27: expected 'Frames: N' and 'Frame Time: dt' after MOTION"),
-        (lambda: SMALL.replace("Yrotation Xrotation Zrotation", "Yrotation Xrotation Wrotation"), r"line 18: unknown channel 'Wrotation' for joint 'Leg'"),
+        (
+            lambda: SMALL.replace("Yrotation Xrotation Zrotation", "Yrotation Xrotation Wrotation"),
+            r"line 18: unknown channel 'Wrotation' for joint 'Leg'",
+        ),
         (lambda: SMALL.replace("JOINT Leg", "JOINT Chest"), r"line 15: joint name 'Chest' is used twice"),
-        (lambda: SMALL.replace("OFFSET 0 10 0", "OFFSET 0 ten 0"), r"line 8: expected a number for the OFFSET of 'Chest'"),
+        (
+            lambda: SMALL.replace("OFFSET 0 10 0", "OFFSET 0 ten 0"),
+            r"line 8: expected a number for the OFFSET of 'Chest'",
+        ),
         (lambda: SMALL.replace("OFFSET 0 10 0", "OFFSET 0 nan 0"), r"line 8: the OFFSET of 'Chest' is 'nan'"),
         (lambda: SMALL.split("MOTION")[0], r"no MOTION section"),
         (lambda: SMALL.split("Frame Time")[0], r"line 26: the MOTION section has no 'Frame Time:' line"),

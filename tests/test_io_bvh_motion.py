@@ -29,11 +29,24 @@ NO_DROP = BvhImportOptions(drop_first=False)
 
 #: SMPL-22 -> Mixamo names (what the mixamo map expects, one to one).
 MIXAMO_NAMES = {
-    "pelvis": "Hips", "spine1": "Spine", "spine2": "Spine1", "spine3": "Spine2", "neck": "Neck", "head": "Head",
-    "left_hip": "LeftUpLeg", "left_knee": "LeftLeg", "left_ankle": "LeftFoot", "left_foot": "LeftToeBase",
-    "left_collar": "LeftShoulder", "left_shoulder": "LeftArm", "left_elbow": "LeftForeArm", "left_wrist": "LeftHand",
+    "pelvis": "Hips",
+    "spine1": "Spine",
+    "spine2": "Spine1",
+    "spine3": "Spine2",
+    "neck": "Neck",
+    "head": "Head",
+    "left_hip": "LeftUpLeg",
+    "left_knee": "LeftLeg",
+    "left_ankle": "LeftFoot",
+    "left_foot": "LeftToeBase",
+    "left_collar": "LeftShoulder",
+    "left_shoulder": "LeftArm",
+    "left_elbow": "LeftForeArm",
+    "left_wrist": "LeftHand",
 }
-MIXAMO_NAMES.update({k.replace("left_", "right_"): v.replace("Left", "Right") for k, v in MIXAMO_NAMES.items() if k.startswith("left_")})
+MIXAMO_NAMES.update(
+    {k.replace("left_", "right_"): v.replace("Left", "Right") for k, v in MIXAMO_NAMES.items() if k.startswith("left_")}
+)
 
 
 def dance(T=40, fps=30.0, seed=0, walk=0.8) -> Motion:
@@ -59,7 +72,11 @@ def renamed(clip: BvhClip, names: dict, prefix: str = "", unit: float = 1.0) -> 
     for joint, start in zip(clip.joints, clip.channel_offsets()):
         base = joint.name[:-4] if joint.is_end_site else joint.name
         new = names.get(base, base) + ("_end" if joint.is_end_site else "")
-        joints.append(BvhJoint(prefix + new, joint.parent, tuple(np.asarray(joint.offset) / unit), joint.channels, joint.is_end_site))
+        joints.append(
+            BvhJoint(
+                prefix + new, joint.parent, tuple(np.asarray(joint.offset) / unit), joint.channels, joint.is_end_site
+            )
+        )
         pos_cols += [start + k for k, c in enumerate(joint.channels) if c.endswith("position")]
     motion = clip.motion.copy()
     motion[:, pos_cols] /= unit
@@ -72,7 +89,9 @@ def reframed(clip: BvhClip, A: np.ndarray) -> BvhClip:
     trans, rots = clip.local_transforms()
     joints, motion = [], np.empty_like(clip.motion)
     for j, (joint, start) in enumerate(zip(clip.joints, clip.channel_offsets())):
-        joints.append(BvhJoint(joint.name, joint.parent, tuple(A @ np.asarray(joint.offset)), joint.channels, joint.is_end_site))
+        joints.append(
+            BvhJoint(joint.name, joint.parent, tuple(A @ np.asarray(joint.offset)), joint.channels, joint.is_end_site)
+        )
         axes = joint.rotation_axes
         if axes:
             R = A @ rots[:, j] @ A.T
@@ -165,8 +184,12 @@ def test_map_naming_missing_joints_and_unknown_skeleton(mixamo_file, tmp_path):
     with pytest.raises(DualFlowError, match=r"needs joints the file lacks: .*Neck1.*--joint-map"):
         read_bvh_motion(path, BvhImportOptions(joint_map="cmu"))
     clip = renamed(read_bvh(path), {}, prefix="")
-    odd = BvhClip(tuple(BvhJoint(f"bone{i}", j.parent, j.offset, j.channels, j.is_end_site) for i, j in enumerate(clip.joints)),
-                  clip.frame_time, clip.motion, "odd.bvh")
+    odd = BvhClip(
+        tuple(BvhJoint(f"bone{i}", j.parent, j.offset, j.channels, j.is_end_site) for i, j in enumerate(clip.joints)),
+        clip.frame_time,
+        clip.motion,
+        "odd.bvh",
+    )
     write_bvh(odd, tmp_path / "odd.bvh")
     with pytest.raises(DualFlowError, match=r"odd\.bvh: unknown skeleton.*--joint-map"):
         read_bvh_motion(tmp_path / "odd.bvh")
@@ -186,7 +209,9 @@ def test_length_unit_is_detected_from_height(tmp_path, unit):
 def test_wrong_or_undetectable_scale_says_how_to_fix(tmp_path):
     m = dance()
     write_bvh(renamed(motion_to_bvh(m), {}, unit=0.01), tmp_path / "cm.bvh")
-    with pytest.raises(DualFlowError, match=r"cm\.bvh: with m the person is 1\d\d\.\d\d m tall.*use --scale 0.01 \(cm\)"):
+    with pytest.raises(
+        DualFlowError, match=r"cm\.bvh: with m the person is 1\d\d\.\d\d m tall.*use --scale 0.01 \(cm\)"
+    ):
         read_bvh_motion(tmp_path / "cm.bvh", BvhImportOptions(scale=1.0))
     # a 0.5 m figure fits no unit
     tiny = Motion(m.positions * 0.3, fps=m.fps)
@@ -240,7 +265,13 @@ def test_written_skeleton_is_smpl22_y_up_in_metres():
     assert rest[head, 1] - rest[pelvis, 1] > 0.5  # Y is up
     lhip, rhip = clip.names.index("left_hip"), clip.names.index("right_hip")
     assert rest[lhip, 0] > rest[rhip, 0]  # left towards +X, so it faces +Z
-    assert {j.name for j in clip.joints if j.is_end_site} == {"head_end", "left_wrist_end", "right_wrist_end", "left_foot_end", "right_foot_end"}
+    assert {j.name for j in clip.joints if j.is_end_site} == {
+        "head_end",
+        "left_wrist_end",
+        "right_wrist_end",
+        "left_foot_end",
+        "right_foot_end",
+    }
 
 
 def _dfs_order():
@@ -269,9 +300,13 @@ def test_write_read_reproduces_rigid_skeleton_motion(seed, lengths, tmp_path_fac
     local = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(T, 22, 3, 3)
     # root: any heading, tilted by less than 0.6 rad
     tilt = rv[:, 0] * [0.6, 0.6, 0.0]
-    local[:, 0] = (Rotation.from_rotvec(tilt) * Rotation.from_euler("z", rng.uniform(-np.pi, np.pi, (T, 1)))).as_matrix()
+    local[:, 0] = (
+        Rotation.from_rotvec(tilt) * Rotation.from_euler("z", rng.uniform(-np.pi, np.pi, (T, 1)))
+    ).as_matrix()
     root = rng.normal(0, 2, (T, 3))
-    offsets = (REST_POSE - REST_POSE[[0, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19]]) * lengths
+    offsets = (
+        REST_POSE - REST_POSE[[0, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19]]
+    ) * lengths
     m = Motion(forward_kinematics(root, local, offsets), fps=float(rng.choice([20, 30, 60])))
     path = tmp_path_factory.mktemp("rt") / "m.bvh"
     write_bvh(motion_to_bvh(m), path, precision=8)

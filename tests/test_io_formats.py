@@ -27,8 +27,12 @@ def walker(T=30, fps=30.0, start=(0.0, 0.0), heading=0.0, name="walker") -> Moti
 
 
 def duet() -> TwoPersonMotion:
-    return TwoPersonMotion(walker(start=(-1, 0)), walker(start=(1, 0.2), heading=np.pi, name="partner"),
-                           text="two people walk past", meta={"rule": "test", "beats": np.array([0, 15])})
+    return TwoPersonMotion(
+        walker(start=(-1, 0)),
+        walker(start=(1, 0.2), heading=np.pi, name="partner"),
+        text="two people walk past",
+        meta={"rule": "test", "beats": np.array([0, 15])},
+    )
 
 
 # -- our npz ------------------------------------------------------------------------
@@ -133,7 +137,9 @@ def test_intergen_262_features_single_and_pair(tmp_path):
     pair = load_any(tmp_path / "pair.npy")
     assert isinstance(pair, TwoPersonMotion)
     gap = np.linalg.norm(pair.actor.positions[:, 0] - pair.reactor.positions[:, 0], axis=-1)
-    np.testing.assert_allclose(gap, np.linalg.norm(d.actor.positions[:-1, 0] - d.reactor.positions[:-1, 0], axis=-1), atol=1e-4)
+    np.testing.assert_allclose(
+        gap, np.linalg.norm(d.actor.positions[:-1, 0] - d.reactor.positions[:-1, 0], axis=-1), atol=1e-4
+    )
 
 
 def test_load_pair_pairs_files_in_one_frame(tmp_path):
@@ -176,34 +182,85 @@ def _npy(tmp_path, arr, name="bad.npy"):
     "make, match",
     [
         # our npz
-        (lambda d: _npz(d, format=np.array(MOTION_FORMAT), positions=np.zeros((4, 21, 3)), fps=30, joint_names=np.array(["x"])),
-         r"bad\.npz, field 'positions': expected joint positions \(T, J >= 22, 3\)"),
-        (lambda d: _npz(d, format=np.array(MOTION_FORMAT), positions=np.zeros((0, 22, 3)), fps=30, joint_names=np.array(["x"])),
-         r"bad\.npz: the file has zero frames"),
-        (lambda d: _npz(d, format=np.array(MOTION_FORMAT), positions=np.full((4, 22, 3), np.nan), fps=30, joint_names=np.array(["x"])),
-         r"bad\.npz: positions contain NaN"),
-        (lambda d: _npz(d, format=np.array(MOTION_FORMAT), positions=np.repeat(REST_POSE[None], 4, 0), fps=-1, joint_names=np.array(["x"])),
-         r"bad\.npz, field 'fps': fps must be > 0"),
-        (lambda d: _npz(d, format=np.array(MOTION_FORMAT), positions=np.repeat(REST_POSE[None], 4, 0), fps=30, contacts=np.zeros((3, 4)), joint_names=np.array(["x"])),
-         r"bad\.npz, field 'contacts': expected shape \(4, 4\)"),
-        (lambda d: _npz(d, format=np.array(MOTION_FORMAT), positions=np.repeat(REST_POSE[None], 4, 0) * 100, fps=30, joint_names=np.array(["x"])),
-         r"bad\.npz: with m the person is 172\.00 m tall.*--scale 0\.01 \(cm\)"),
-        (lambda d: _npz(d, format=np.array(DUET_FORMAT), actor_positions=np.repeat(REST_POSE[None], 4, 0), fps=30),
-         r"bad\.npz: duet file has no field 'reactor_positions'"),
+        (
+            lambda d: _npz(
+                d, format=np.array(MOTION_FORMAT), positions=np.zeros((4, 21, 3)), fps=30, joint_names=np.array(["x"])
+            ),
+            r"bad\.npz, field 'positions': expected joint positions \(T, J >= 22, 3\)",
+        ),
+        (
+            lambda d: _npz(
+                d, format=np.array(MOTION_FORMAT), positions=np.zeros((0, 22, 3)), fps=30, joint_names=np.array(["x"])
+            ),
+            r"bad\.npz: the file has zero frames",
+        ),
+        (
+            lambda d: _npz(
+                d,
+                format=np.array(MOTION_FORMAT),
+                positions=np.full((4, 22, 3), np.nan),
+                fps=30,
+                joint_names=np.array(["x"]),
+            ),
+            r"bad\.npz: positions contain NaN",
+        ),
+        (
+            lambda d: _npz(
+                d,
+                format=np.array(MOTION_FORMAT),
+                positions=np.repeat(REST_POSE[None], 4, 0),
+                fps=-1,
+                joint_names=np.array(["x"]),
+            ),
+            r"bad\.npz, field 'fps': fps must be > 0",
+        ),
+        (
+            lambda d: _npz(
+                d,
+                format=np.array(MOTION_FORMAT),
+                positions=np.repeat(REST_POSE[None], 4, 0),
+                fps=30,
+                contacts=np.zeros((3, 4)),
+                joint_names=np.array(["x"]),
+            ),
+            r"bad\.npz, field 'contacts': expected shape \(4, 4\)",
+        ),
+        (
+            lambda d: _npz(
+                d,
+                format=np.array(MOTION_FORMAT),
+                positions=np.repeat(REST_POSE[None], 4, 0) * 100,
+                fps=30,
+                joint_names=np.array(["x"]),
+            ),
+            r"bad\.npz: with m the person is 172\.00 m tall.*--scale 0\.01 \(cm\)",
+        ),
+        (
+            lambda d: _npz(d, format=np.array(DUET_FORMAT), actor_positions=np.repeat(REST_POSE[None], 4, 0), fps=30),
+            r"bad\.npz: duet file has no field 'reactor_positions'",
+        ),
         (lambda d: _npz(d, format=np.array("something-else")), r"field 'format': unknown format 'something-else'"),
         (lambda d: _npz(d, positions=np.array([{"a": 1}], dtype=object)), r"field 'positions': holds Python objects"),
-        (lambda d: _npz(d, poses=np.zeros((4, 156)), trans=np.zeros((4, 3)), betas=np.zeros(16)),
-         r"AMASS/SMPL parameter file.*SMPL body model"),
+        (
+            lambda d: _npz(d, poses=np.zeros((4, 156)), trans=np.zeros((4, 3)), betas=np.zeros(16)),
+            r"AMASS/SMPL parameter file.*SMPL body model",
+        ),
         (lambda d: _npz(d, something=np.zeros(3)), r"no joint positions found; expected one of the fields joints"),
         (lambda d: _npz(d, joints=np.repeat(REST_POSE[None], 4, 0)), r"no frame rate field.*--source-fps"),
-        (lambda d: _npz(d, joints=np.repeat(REST_POSE[None], 4, 0), mocap_framerate=np.array([30.0, 60.0])), r"field 'mocap_framerate': fps must be one number"),
+        (
+            lambda d: _npz(d, joints=np.repeat(REST_POSE[None], 4, 0), mocap_framerate=np.array([30.0, 60.0])),
+            r"field 'mocap_framerate': fps must be one number",
+        ),
         # npy
         (lambda d: _npy(d, np.zeros((5, 17, 3))), r"bad\.npy: unrecognised array shape \(5, 17, 3\)"),
         (lambda d: _npy(d, np.zeros((0, 22, 3))), r"bad\.npy: the file has zero frames"),
         (lambda d: _npy(d, np.full((3, 492), np.inf)), r"bad\.npy: contains NaN or inf \(first at frame 0\)"),
         (lambda d: _npy(d, np.array(["a", "b"])), r"bad\.npy: expected a numeric array"),
         (lambda d: _npy(d, np.array([None, 1], dtype=object)), r"bad\.npy: holds Python objects"),
-        (lambda d: _npy(d, np.repeat(REST_POSE[None], 4, 0)[..., [1, 2, 0]] * 1000), r"bad\.npy: with m the person is 1720\.00 m tall.*--scale 0\.001 \(mm\)"),
+        (
+            lambda d: _npy(d, np.repeat(REST_POSE[None], 4, 0)[..., [1, 2, 0]] * 1000),
+            r"bad\.npy: with m the person is 1720\.00 m tall.*--scale 0\.001 \(mm\)",
+        ),
     ],
 )
 def test_bad_array_files(tmp_path, make, match):

@@ -75,7 +75,9 @@ def test_foot_contact_loss_known_slide():
     pos = still(REST_YUP)
     contacts = torch.ones(2, T, 4, dtype=torch.float64)
     assert foot_contact_loss(pos, contacts).item() == 0.0
-    slide = pos + torch.arange(T, dtype=torch.float64)[None, :, None, None] * torch.tensor([0.01, 0.0, 0.02], dtype=torch.float64)
+    slide = pos + torch.arange(T, dtype=torch.float64)[None, :, None, None] * torch.tensor(
+        [0.01, 0.0, 0.02], dtype=torch.float64
+    )
     assert foot_contact_loss(slide, contacts).item() == pytest.approx(0.01**2 + 0.02**2)
     # Feet in the air may move freely.
     assert foot_contact_loss(slide, torch.zeros_like(contacts)).item() == 0.0
@@ -89,7 +91,9 @@ def test_joint_velocity_loss_known_drift_and_offset_invariance():
     gt = still(REST_YUP)
     assert joint_velocity_loss(gt, gt).item() == 0.0
     assert joint_velocity_loss(gt + 0.3, gt).item() == pytest.approx(0.0, abs=1e-24)  # constant offset
-    drift = gt + torch.arange(T, dtype=torch.float64)[None, :, None, None] * torch.tensor([0.0, 0.03, 0.04], dtype=torch.float64)
+    drift = gt + torch.arange(T, dtype=torch.float64)[None, :, None, None] * torch.tensor(
+        [0.0, 0.03, 0.04], dtype=torch.float64
+    )
     assert joint_velocity_loss(drift, gt).item() == pytest.approx(0.05**2)
 
 
@@ -178,8 +182,17 @@ def test_dualflow_losses_are_zero_for_a_perfect_prediction_and_weighted():
     fa, fb = _pair_batch()
     mean, std = torch.zeros(262, dtype=torch.float64), torch.ones(262, dtype=torch.float64)
     zero_v = torch.zeros_like(fa)
-    terms = dualflow_losses(flow=torch.tensor(0.5, dtype=torch.float64), v_a=zero_v, v_b=zero_v,
-                            x0_hat_a=fa, x0_hat_b=fb, x0_a=fa, x0_b=fb, mean=mean, std=std)
+    terms = dualflow_losses(
+        flow=torch.tensor(0.5, dtype=torch.float64),
+        v_a=zero_v,
+        v_b=zero_v,
+        x0_hat_a=fa,
+        x0_hat_b=fb,
+        x0_a=fa,
+        x0_b=fb,
+        mean=mean,
+        std=std,
+    )
     assert set(terms) == {"flow", "triplet", "foot", "vel", "bone", "dm", "ro", "sync", "total"}
     assert terms["total"].item() == pytest.approx(0.5)
     for name in ("triplet", "foot", "vel", "bone", "dm", "ro", "sync"):
@@ -188,15 +201,33 @@ def test_dualflow_losses_are_zero_for_a_perfect_prediction_and_weighted():
     # vel = 30 * |u|^2 / 2, and the distance-based terms become non-zero.
     u = torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)
     pos_b = joint_positions(fb) + torch.arange(T, dtype=torch.float64)[None, :, None, None] * u
-    terms = dualflow_losses(flow=torch.tensor(0.0), v_a=zero_v, v_b=zero_v, x0_hat_a=fa,
-                            x0_hat_b=features(pos_b), x0_a=fa, x0_b=fb, mean=mean, std=std)
+    terms = dualflow_losses(
+        flow=torch.tensor(0.0),
+        v_a=zero_v,
+        v_b=zero_v,
+        x0_hat_a=fa,
+        x0_hat_b=features(pos_b),
+        x0_a=fa,
+        x0_b=fb,
+        mean=mean,
+        std=std,
+    )
     assert terms["foot"].item() == pytest.approx(30 * 1e-4 / 2)
     assert terms["vel"].item() == pytest.approx(30 * 1e-4 / 2)
     assert terms["bone"].item() == pytest.approx(0.0, abs=1e-12)
     assert terms["sync"].item() > 0 and terms["dm"].item() > 0
-    custom = dualflow_losses(flow=torch.tensor(0.0), v_a=zero_v, v_b=zero_v, x0_hat_a=fa,
-                             x0_hat_b=features(pos_b), x0_a=fa, x0_b=fb, mean=mean, std=std,
-                             weights=LossWeights(geo=2.0))
+    custom = dualflow_losses(
+        flow=torch.tensor(0.0),
+        v_a=zero_v,
+        v_b=zero_v,
+        x0_hat_a=fa,
+        x0_hat_b=features(pos_b),
+        x0_a=fa,
+        x0_b=fb,
+        mean=mean,
+        std=std,
+        weights=LossWeights(geo=2.0),
+    )
     assert custom["foot"].item() == pytest.approx(2 * terms["foot"].item())
 
 
@@ -206,8 +237,17 @@ def test_reactive_losses_use_the_ground_truth_actor():
     zero_v = torch.zeros_like(fa)
     wrong_actor = fa.clone()
     wrong_actor[..., FEATURE_SLICES["positions"]] += 0.3
-    kw = dict(flow=torch.tensor(0.0), v_a=zero_v, v_b=zero_v, x0_hat_a=wrong_actor, x0_hat_b=fb,
-              x0_a=fa, x0_b=fb, mean=mean, std=std)
+    kw = dict(
+        flow=torch.tensor(0.0),
+        v_a=zero_v,
+        v_b=zero_v,
+        x0_hat_a=wrong_actor,
+        x0_hat_b=fb,
+        x0_a=fa,
+        x0_b=fb,
+        mean=mean,
+        std=std,
+    )
     reactive = dualflow_losses(mode="reactive", **kw)
     interactive = dualflow_losses(mode="interactive", **kw)
     assert reactive["total"].item() == pytest.approx(0.0, abs=1e-12)
@@ -243,8 +283,9 @@ def test_step_losses_backpropagate_through_a_model_step():
     x0_a, x0_b = fa.float() / 0.5, fb.float() / 0.5
     text = torch.randn(2, 384)
     for mode in ("interactive", "reactive"):
-        out = flow_training_step(model, x0_a, x0_b, Conditions(text=text), mode=mode,
-                                 generator=torch.Generator().manual_seed(0))
+        out = flow_training_step(
+            model, x0_a, x0_b, Conditions(text=text), mode=mode, generator=torch.Generator().manual_seed(0)
+        )
         terms = step_losses(out, x0_a, x0_b, mean, std, mode=mode, labels=torch.tensor([0, 1]))
         assert all(torch.isfinite(v) for v in terms.values())
         assert terms["total"].item() > terms["flow"].item()  # x0_hat of an untrained model is off

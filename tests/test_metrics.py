@@ -76,7 +76,7 @@ def test_bas_is_one_on_the_beats_and_low_off_them():
     assert set(beats).issubset(set(found.tolist()))
     assert beat_alignment_score(pos, beats) == pytest.approx(1.0)
     off = beats + period // 2
-    assert beat_alignment_score(pos, off) < 0.05   # exp(-64/18) ≈ 0.03
+    assert beat_alignment_score(pos, off) < 0.05  # exp(-64/18) ≈ 0.03
     assert alignment_score([10], [13]) == pytest.approx(np.exp(-9 / 18))  # σ² = 9 frames²
     assert alignment_score([10], []) == 0.0 and np.isnan(alignment_score([], [1]))
 

@@ -43,8 +43,11 @@ def _x(seed=0):
 
 def _cond(seed=0, **kw):
     g = torch.Generator().manual_seed(seed)
-    base = dict(text=torch.randn(B, 384, generator=g), music=torch.randn(B, T, 35, generator=g),
-                retrieval=torch.randn(B, 5, 32, generator=g))
+    base = dict(
+        text=torch.randn(B, 384, generator=g),
+        music=torch.randn(B, T, 35, generator=g),
+        retrieval=torch.randn(B, 5, 32, generator=g),
+    )
     base.update(kw)
     return Conditions(**base)
 

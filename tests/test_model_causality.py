@@ -47,10 +47,10 @@ def test_reactor_gradient_reaches_only_actor_frames_up_to_i_plus_L(look_ahead):
         v_b[:, i].sum().backward()
         ga = xa.grad.abs().sum(dim=(0, 2))
         gb = xb.grad.abs().sum(dim=(0, 2))
-        assert torch.all(ga[i + look_ahead + 1:] == 0), f"frame {i} sees actor frames beyond i+L"
+        assert torch.all(ga[i + look_ahead + 1 :] == 0), f"frame {i} sees actor frames beyond i+L"
         assert ga[min(i + look_ahead, T - 1)] > 0, "the look-ahead frame i+L must be used"
         assert ga[: i + 1].sum() > 0
-        assert torch.all(gb[i + 1:] == 0), f"frame {i} sees the reactor's own future (noise)"
+        assert torch.all(gb[i + 1 :] == 0), f"frame {i} sees the reactor's own future (noise)"
         assert gb[i] > 0
 
 
@@ -75,7 +75,7 @@ def test_perturbing_late_actor_frames_leaves_earlier_reactor_velocities_identica
         _, v_new = model(x_pert, x_b, t, cond, mode="reactive")
         last_safe = cut - 3 - 1  # frames i with i + L < cut
         assert torch.equal(v_new[:, : last_safe + 1], v_ref[:, : last_safe + 1])
-        assert not torch.allclose(v_new[:, last_safe + 1:], v_ref[:, last_safe + 1:])
+        assert not torch.allclose(v_new[:, last_safe + 1 :], v_ref[:, last_safe + 1 :])
 
 
 def test_reactor_future_noise_does_not_change_its_past():

@@ -62,7 +62,10 @@ def test_info_prints_frames_fps_duration_height_and_extents(duet_file, capsys):
     assert code == 0
     assert "frames    30" in out and "fps       30" in out and "duration  0.967 s" in out
     assert out.count("height (standing estimate)  1.72 m") == 2
-    assert "extents  x -1.02 .. -0.12   y -0.69 .. +0.69   z +0.02 .. +1.58 m" in out and "text      meet in the middle" in out
+    assert (
+        "extents  x -1.02 .. -0.12   y -0.69 .. +0.69   z +0.02 .. +1.58 m" in out
+        and "text      meet in the middle" in out
+    )
     assert "pelvis distance  0.45 .. 2.00 m" in out
 
 
@@ -81,8 +84,17 @@ def test_convert_between_formats_and_resample(duet_file, tmp_path, capsys):
     actor = load_motion(tmp_path / "out_actor.bvh", drop_first=False)
     assert actor.fps == pytest.approx(15.0) and actor.n_frames == 15
     np.testing.assert_allclose(actor.positions, walker(x0=-1.0).resample(15).positions, atol=1e-5)
-    code, _, _ = run(["motion", "convert", str(tmp_path / "out_actor.bvh"), str(tmp_path / "out_reactor.bvh"),
-                      str(tmp_path / "again.npz"), "--keep-first-frame"], capsys)
+    code, _, _ = run(
+        [
+            "motion",
+            "convert",
+            str(tmp_path / "out_actor.bvh"),
+            str(tmp_path / "out_reactor.bvh"),
+            str(tmp_path / "again.npz"),
+            "--keep-first-frame",
+        ],
+        capsys,
+    )
     assert code == 0
     again = load_any(tmp_path / "again.npz")
     assert isinstance(again, TwoPersonMotion) and again.n_frames == 15
@@ -91,7 +103,9 @@ def test_convert_between_formats_and_resample(duet_file, tmp_path, capsys):
 
 def test_convert_cmu_pair_to_npz(cmu_pair_paths, tmp_path, capsys):
     a, b = map(str, cmu_pair_paths)
-    code, out, _ = run(["motion", "convert", "--actor", a, "--reactor", b, str(tmp_path / "cmu.npz"), "--fps", "30"], capsys)
+    code, out, _ = run(
+        ["motion", "convert", "--actor", a, "--reactor", b, str(tmp_path / "cmu.npz"), "--fps", "30"], capsys
+    )
     assert code == 0 and "76 frames at 30 fps" in out
     pair = load_any(tmp_path / "cmu.npz")
     assert pair.meta["joint_map"] == ["cmu", "cmu"] and pair.actor.name == "18_01.bvh"
@@ -117,7 +131,9 @@ def test_user_errors_are_one_line_exit_2(argv, match, capsys, tmp_path, monkeypa
 
 
 def test_module_entry_point_and_help():
-    out = subprocess.run([sys.executable, "-m", "ros_free_bridge", "motion", "--help"], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "ros_free_bridge", "motion", "--help"], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0
     for action in ("info", "convert", "preview"):
         assert action in out.stdout
@@ -139,7 +155,9 @@ def test_preview_two_people_mp4(duet_file, tmp_path, capsys):
 
 def test_preview_sample_gif(tmp_path, capsys):
     out_path = tmp_path / "sample.gif"
-    code, _, _ = run(["motion", "preview", "--sample", "mirror", "--seconds", "1", "--size", "160x120", "-o", str(out_path)], capsys)
+    code, _, _ = run(
+        ["motion", "preview", "--sample", "mirror", "--seconds", "1", "--size", "160x120", "-o", str(out_path)], capsys
+    )
     assert code == 0
     with Image.open(out_path) as gif:
         assert gif.size == (160, 120)

@@ -20,12 +20,32 @@ OP3_XML = ROOT / "firmware_cfg" / "robots" / "op3" / "op3.xml"
 REFERENCE_XML = Path(__file__).resolve().parents[2] / "shared" / "robots" / "robotis_op3" / "op3.xml"
 needs_reference = pytest.mark.skipif(
     not REFERENCE_XML.is_file(),
-    reason=f"reference model not found at {REFERENCE_XML} (../shared/robots is absent on this machine)")
+    reason=f"reference model not found at {REFERENCE_XML} (../shared/robots is absent on this machine)",
+)
 
 #: ROBOTIS's servo IDs 1..20, in order.
-ROBOTIS_ID_ORDER = ("r_sho_pitch", "l_sho_pitch", "r_sho_roll", "l_sho_roll", "r_el", "l_el", "r_hip_yaw",
-                    "l_hip_yaw", "r_hip_roll", "l_hip_roll", "r_hip_pitch", "l_hip_pitch", "r_knee", "l_knee",
-                    "r_ank_pitch", "l_ank_pitch", "r_ank_roll", "l_ank_roll", "head_pan", "head_tilt")
+ROBOTIS_ID_ORDER = (
+    "r_sho_pitch",
+    "l_sho_pitch",
+    "r_sho_roll",
+    "l_sho_roll",
+    "r_el",
+    "l_el",
+    "r_hip_yaw",
+    "l_hip_yaw",
+    "r_hip_roll",
+    "l_hip_roll",
+    "r_hip_pitch",
+    "l_hip_pitch",
+    "r_knee",
+    "l_knee",
+    "r_ank_pitch",
+    "l_ank_pitch",
+    "r_ank_roll",
+    "l_ank_roll",
+    "head_pan",
+    "head_tilt",
+)
 
 
 @pytest.fixture(scope="module")
@@ -133,13 +153,34 @@ def test_servo_id_order_imu_and_keypoint_sites(ours):
     assert tuple(ours.actuator(a).name for a in range(ours.nu)) == ROBOTIS_ID_ORDER
     imu = ours.site("imu")
     assert ours.body(imu.bodyid[0]).name == "body_link"
-    for sensor, kind in (("imu_gyro", mujoco.mjtSensor.mjSENS_GYRO),
-                         ("imu_accel", mujoco.mjtSensor.mjSENS_ACCELEROMETER),
-                         ("imu_quat", mujoco.mjtSensor.mjSENS_FRAMEQUAT)):
+    for sensor, kind in (
+        ("imu_gyro", mujoco.mjtSensor.mjSENS_GYRO),
+        ("imu_accel", mujoco.mjtSensor.mjSENS_ACCELEROMETER),
+        ("imu_quat", mujoco.mjtSensor.mjSENS_FRAMEQUAT),
+    ):
         s = ours.sensor(sensor)
         assert s.type[0] == kind and s.objid[0] == imu.id, sensor
-    for site in ("pelvis", "torso", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand",
-                 "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle", "l_foot", "r_foot", "l_toe", "r_toe"):
+    for site in (
+        "pelvis",
+        "torso",
+        "head",
+        "l_shoulder",
+        "r_shoulder",
+        "l_elbow",
+        "r_elbow",
+        "l_hand",
+        "r_hand",
+        "l_hip",
+        "r_hip",
+        "l_knee",
+        "r_knee",
+        "l_ankle",
+        "r_ankle",
+        "l_foot",
+        "r_foot",
+        "l_toe",
+        "r_toe",
+    ):
         ours.site(site)
     for foot in ("l_foot", "r_foot"):
         g = ours.geom(foot)
@@ -163,8 +204,9 @@ def test_knee_signs_are_robotis(ours):
 
 def _scene_with_floor() -> tuple[mujoco.MjModel, mujoco.MjData]:
     spec = mujoco.MjSpec.from_file(str(OP3_XML))
-    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[2.0, 2.0, 0.1],
-                            friction=[1.0, 0.02, 0.001])
+    spec.worldbody.add_geom(
+        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[2.0, 2.0, 0.1], friction=[1.0, 0.02, 0.001]
+    )
     m = spec.compile()
     d = mujoco.MjData(m)
     mujoco.mj_resetDataKeyframe(m, d, m.key("stand").id)

@@ -29,9 +29,27 @@ from retarget.support import (
 
 FPS = 30.0
 J = {n: i for i, n in enumerate(JOINT_NAMES)}
-UPPER = [J[n] for n in ("pelvis", "left_hip", "right_hip", "spine1", "spine2", "spine3", "neck", "left_collar",
-                        "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-                        "left_wrist", "right_wrist")]
+UPPER = [
+    J[n]
+    for n in (
+        "pelvis",
+        "left_hip",
+        "right_hip",
+        "spine1",
+        "spine2",
+        "spine3",
+        "neck",
+        "left_collar",
+        "right_collar",
+        "head",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+        "left_wrist",
+        "right_wrist",
+    )
+]
 
 
 def _rot_x(a):
@@ -102,8 +120,9 @@ def test_hull_and_halfplanes_match_scipy():
         hull = convex_hull(pts)
         ref = ConvexHull(pts)
         assert len(hull) == len(ref.vertices)
-        assert np.isclose(abs(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])) / 2,
-                          ref.volume)
+        assert np.isclose(
+            abs(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1) - np.roll(hull[:, 0], -1) * hull[:, 1])) / 2, ref.volume
+        )
         A, b = halfplanes(hull)
         for q in rng.normal(size=(30, 2)) * 1.5:
             inside = np.all(ref.equations[:, :2] @ q + ref.equations[:, 2] <= 0)
@@ -145,7 +164,7 @@ def test_a_sole_narrower_than_twice_the_margin_keeps_an_area():
 
 def test_double_support_region_lies_between_the_feet(op3):
     sole = op3.evaluate(op3.x_stand[None])["sole"][0]
-    prints = [level_footprint(sole[4 * f:4 * f + 4], op3.feet[f].corners) for f in range(2)]
+    prints = [level_footprint(sole[4 * f : 4 * f + 4], op3.feet[f].corners) for f in range(2)]
     pts = double_support_points(prints, 0.02, 0.01)
     centres = [p.mean(axis=0) for p in prints]
     # laterally inside the feet's centres by the inset; lengthwise inside toe and heel by the margin

@@ -51,7 +51,9 @@ def test_a_folder_gives_one_row_per_clip_and_a_failure_never_stops_the_batch(tmp
     changed = fast["changed"]
     assert "speed-limited:" in changed, changed
     part = next(c for c in changed.split("; ") if c.startswith("speed-limited:"))
-    n, total, start, worst = re.match(r"speed-limited: (\d+)x ([\d.]+) s from ([\d.]+) s \(up to (\d+) mm\)", part).groups()
+    n, total, start, worst = re.match(
+        r"speed-limited: (\d+)x ([\d.]+) s from ([\d.]+) s \(up to (\d+) mm\)", part
+    ).groups()
     assert int(n) >= 1 and 0 < float(total) <= 3.0 and 0 <= float(start) < 3.0 and int(worst) > 0
     assert rows["standing.npz"]["changed"] == "", "a person standing still is played as is"
     if fast["status"] == "fail":

@@ -28,9 +28,13 @@ from dualflow.synthetic import make_duet, make_leader
 from ros_free_bridge.batch.results import TIMING_COLUMNS
 from ros_free_bridge.cli import main
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(importlib.util.find_spec("ray") is None,
-                                 reason="Ray is not installed: pip install -e \".[cluster]\" (CI installs it)")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        importlib.util.find_spec("ray") is None,
+        reason='Ray is not installed: pip install -e ".[cluster]" (CI installs it)',
+    ),
+]
 
 FAST = ["--robot", "ub14", "--no-compile", "--no-video"]
 ENV = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
@@ -44,8 +48,11 @@ def table(out: Path) -> list[dict]:
 def outputs(out: Path) -> dict[str, list[str]]:
     """Each clip's output files (the page and marker aside), by clip."""
     clips = out / "clips"
-    return {d.relative_to(clips).as_posix(): sorted(f.name for f in d.iterdir() if f.is_file())
-            for d in sorted(clips.rglob("*")) if (d / "result.json").is_file()}
+    return {
+        d.relative_to(clips).as_posix(): sorted(f.name for f in d.iterdir() if f.is_file())
+        for d in sorted(clips.rglob("*"))
+        if (d / "result.json").is_file()
+    }
 
 
 def standing(path: Path, frames: int = 20) -> Path:
@@ -64,8 +71,23 @@ def test_ray_gives_the_local_engines_rows_and_files(tmp_path):
     save_motion(duet.reactor, clips / "mirror_S2.npz")
     common = [str(clips), "--jobs", "2", "--pairs", "{name}_S1.npz,{name}_S2.npz", *FAST]
     assert main(["retarget-check", *common, "-o", str(tmp_path / "local")]) == 1
-    done = subprocess.run([sys.executable, "-m", "ros_free_bridge.cli", "retarget-check", *common, "-o",
-                           str(tmp_path / "ray"), "--engine", "ray"], env=ENV, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ros_free_bridge.cli",
+            "retarget-check",
+            *common,
+            "-o",
+            str(tmp_path / "ray"),
+            "--engine",
+            "ray",
+        ],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 1, done.stderr[-3000:]
     local, remote = table(tmp_path / "local"), table(tmp_path / "ray")
     assert [r["clip"] for r in remote] == ["broken.bvh", "dance.npz", "mirror_S2.npz", "stand.npz"]
@@ -111,8 +133,13 @@ def test_a_dead_worker_gets_one_retry_then_an_error_row(tmp_path):
         standing(folder / f"{n}.npz")
     script = tmp_path / "driver.py"
     script.write_text(DYING_WORKERS)
-    done = subprocess.run([sys.executable, str(script), str(folder), str(tmp_path / "out")], env=ENV,
-                          capture_output=True, text=True, timeout=600)
+    done = subprocess.run(
+        [sys.executable, str(script), str(folder), str(tmp_path / "out")],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
     by = {r["clip"]: r for r in report["rows"]}
@@ -142,9 +169,27 @@ def test_ctrl_c_cancels_the_tasks_stops_ray_and_resume_completes(tmp_path):
     for k in range(8):
         standing(clips / f"s{k}.npz", 20 + k)
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "ros_free_bridge.cli", "retarget-check", str(clips), "-o", str(out),
-                             "--engine", "ray", "--jobs", "2", *FAST], env=ENV, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ros_free_bridge.cli",
+            "retarget-check",
+            str(clips),
+            "-o",
+            str(out),
+            "--engine",
+            "ray",
+            "--jobs",
+            "2",
+            *FAST,
+        ],
+        env=ENV,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     t0 = time.monotonic()
     while not ((out / "results.jsonl").is_file() and (out / "results.jsonl").read_text().count("\n") >= 1):
         if proc.poll() is not None or time.monotonic() - t0 > 180:

@@ -30,8 +30,12 @@ def dump_dom(page: Path, fragment: str = "") -> str:
     if CHROMIUM is None:
         pytest.skip("headless Chromium is not installed (Debian: apt-get install chromium; .ci/run installs it)")
     url = page.resolve().as_uri() + (f"#{fragment}" if fragment else "")
-    done = subprocess.run([CHROMIUM, "--headless", "--disable-gpu", "--no-sandbox", "--virtual-time-budget=3000",
-                           "--dump-dom", url], capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [CHROMIUM, "--headless", "--disable-gpu", "--no-sandbox", "--virtual-time-budget=3000", "--dump-dom", url],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     return done.stdout
 
@@ -61,8 +65,21 @@ def report(tmp_path_factory):
     save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), folder / "standing.npz")
     (folder / "broken.bvh").write_text("HIERARCHY\n")
     out = folder.parent / "out"
-    code = main(["retarget-check", str(folder), "--robot", "op3", "--pairs", "18_{name}.bvh,19_{name}.bvh",
-                 "-o", str(out), "--jobs", "2", "--no-compile"])
+    code = main(
+        [
+            "retarget-check",
+            str(folder),
+            "--robot",
+            "op3",
+            "--pairs",
+            "18_{name}.bvh,19_{name}.bvh",
+            "-o",
+            str(out),
+            "--jobs",
+            "2",
+            "--no-compile",
+        ]
+    )
     assert code == 1  # the unreadable file at least
     return out
 

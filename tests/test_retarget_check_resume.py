@@ -49,9 +49,26 @@ def jsonl_rows(out: Path) -> list[dict]:
 
 def start(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    return subprocess.Popen([sys.executable, "-m", "ros_free_bridge.cli", "retarget-check", str(folder), "-o", str(out),
-                             "--jobs", "2", *FAST, *extra], env=env, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ros_free_bridge.cli",
+            "retarget-check",
+            str(folder),
+            "-o",
+            str(out),
+            "--jobs",
+            "2",
+            *FAST,
+            *extra,
+        ],
+        env=env,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def kill_after_rows(proc: subprocess.Popen, out: Path, rows: int, timeout_s: float = 120.0) -> int:
@@ -61,7 +78,9 @@ def kill_after_rows(proc: subprocess.Popen, out: Path, rows: int, timeout_s: flo
     path = out / "results.jsonl"
     while time.monotonic() - t0 < timeout_s:
         if proc.poll() is not None:
-            pytest.fail(f"the batch ended before it could be killed (exit {proc.returncode}): {proc.stderr.read()[-2000:]}")
+            pytest.fail(
+                f"the batch ended before it could be killed (exit {proc.returncode}): {proc.stderr.read()[-2000:]}"
+            )
         n = path.read_bytes().count(b"\n") if path.is_file() else 0
         if n >= rows:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -129,8 +148,9 @@ def test_resume_keeps_complete_clips_and_drops_what_a_kill_left_half_written(tmp
     # c: killed after its marker, before its line; d: a torn line (killed inside the write);
     # e: a line whose marker is gone (its folder was being rewritten by a later run of the clip)
     (out / "clips" / "c.npz").mkdir(parents=True)
-    (out / "clips" / "c.npz" / MARKER).write_text(json.dumps({"row": ClipResult("c.npz", status="pass").row(),
-                                                              "inputs": []}))
+    (out / "clips" / "c.npz" / MARKER).write_text(
+        json.dumps({"row": ClipResult("c.npz", status="pass").row(), "inputs": []})
+    )
     _record(log, clips["e.npz"])
     (out / "clips" / "e.npz" / MARKER).unlink()
     with open(out / "results.jsonl", "ab") as fh:
@@ -196,9 +216,11 @@ def test_the_local_engine_never_imports_ray(tmp_path):
     """Ray is an optional extra: a whole local batch (discovery, pool, log, report) runs without it."""
     (tmp_path / "clips").mkdir()
     (tmp_path / "clips" / "broken.bvh").write_text("HIERARCHY\n")
-    script = ("import sys; from ros_free_bridge.cli import main; "
-              f"code = main(['retarget-check', {str(tmp_path / 'clips')!r}, '-o', {str(tmp_path / 'out')!r}, '--no-video']); "
-              "assert code == 1, code; assert 'ray' not in sys.modules, 'ray was imported'")
+    script = (
+        "import sys; from ros_free_bridge.cli import main; "
+        f"code = main(['retarget-check', {str(tmp_path / 'clips')!r}, '-o', {str(tmp_path / 'out')!r}, '--no-video']); "
+        "assert code == 1, code; assert 'ray' not in sys.modules, 'ray was imported'"
+    )
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert (tmp_path / "out" / "index.html").is_file()

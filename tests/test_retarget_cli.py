@@ -39,7 +39,6 @@ def test_retarget_a_duet_file_writes_trajectory_report_and_figure(tmp_path, caps
     assert "PASS" in capsys.readouterr().out
 
 
-
 def test_foot_collision_model_is_chosen_on_the_command_line(tmp_path, capsys):
     from dualflow.motion.io import save_motion
 
@@ -47,10 +46,25 @@ def test_foot_collision_model_is_chosen_on_the_command_line(tmp_path, capsys):
     save_motion(Motion(_clip(), 30.0, name="one"), src)
     for model in ("distance", "sole-plane"):
         out = tmp_path / model
-        rc = main(["retarget", str(src), "--robot", "op3", "--no-compile", "--window", "0", "--foot-collision", model,
-                   "--out", str(out), "--strict"])
+        rc = main(
+            [
+                "retarget",
+                str(src),
+                "--robot",
+                "op3",
+                "--no-compile",
+                "--window",
+                "0",
+                "--foot-collision",
+                model,
+                "--out",
+                str(out),
+                "--strict",
+            ]
+        )
         assert rc == 0, capsys.readouterr()
         assert RobotTrajectory.load_npz(out / "one.npz").meta["collision_model"] == model
+
 
 def test_user_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     from dualflow.motion.io import save_motion

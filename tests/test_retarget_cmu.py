@@ -39,6 +39,6 @@ def test_cmu_clips_retarget_within_limits_with_feet_on_the_ground(robot, cmu_peo
             sole = rb.evaluate(configurations(rb, traj))["sole"]
             assert sole[..., 2].min() > -1e-4  # no foot below the ground
             for side in range(2):
-                z = sole[tg.contacts[:, side], 4 * side:4 * side + 4, 2]
+                z = sole[tg.contacts[:, side], 4 * side : 4 * side + 4, 2]
                 assert np.abs(z).max() < 1e-4  # feet in contact are on it
             assert rep.skate_share < 0.02

@@ -50,7 +50,9 @@ def test_nlpsol_fallback_still_solves(cache, monkeypatch):
     x = ca.MX.sym("x", 2)
     nlp = {"x": x, "f": ca.sumsqr(x - ca.DM([1.0, 2.0])), "g": x[0] + x[1]}
     with pytest.warns(RuntimeWarning):
-        solver, info = codegen.compiled_nlpsol("tiny", nlp, {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}, "k3")
+        solver, info = codegen.compiled_nlpsol(
+            "tiny", nlp, {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"}, "k3"
+        )
     sol = solver(x0=[0, 0], lbg=-np.inf, ubg=2.0)
     assert np.allclose(np.array(sol["x"]).ravel(), [0.5, 1.5], atol=1e-6)
 
@@ -62,8 +64,12 @@ def test_ipopt_linear_algebra_runs_on_one_thread():
     import os
 
     x = ca.MX.sym("x", 2)
-    solver = ca.nlpsol("one_thread", "ipopt", {"x": x, "f": ca.sumsqr(x - 1), "g": x[0] - x[1]},
-                       {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"})
+    solver = ca.nlpsol(
+        "one_thread",
+        "ipopt",
+        {"x": x, "f": ca.sumsqr(x - 1), "g": x[0] - x[1]},
+        {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes"},
+    )
     solver(x0=[0, 0], lbg=0, ubg=0)
     folder = os.path.realpath(os.path.dirname(ca.__file__))
     with open("/proc/self/maps") as fh:

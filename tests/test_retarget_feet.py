@@ -125,7 +125,9 @@ def test_sole_plane_rows_keep_pointing_apart_when_the_feet_cross(op3):
     way), while every plane row keeps falling and its gradient keeps pointing back apart."""
     names = list(op3.joint_names)
     li, ri = op3.n_root + names.index("l_hip_roll"), op3.n_root + names.index("r_hip_roll")
-    f = ca.Function("J", [op3.kin.x_sym], [op3.offline_collision_expr, ca.jacobian(op3.offline_collision_expr, op3.kin.x_sym)])
+    f = ca.Function(
+        "J", [op3.kin.x_sym], [op3.offline_collision_expr, ca.jacobian(op3.offline_collision_expr, op3.kin.x_sym)]
+    )
     foot = [i for i, lab in enumerate(op3.offline_collision_labels) if lab.startswith("sole plane")]
     edge = [i for i, (a, b) in enumerate(op3.collision_pairs) if a.endswith(("heel_in", "toe_in"))]
     apart = np.zeros(op3.nx)

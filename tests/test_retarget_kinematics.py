@@ -1,6 +1,5 @@
 """Symbolic CasADi kinematics against MuJoCo's own forward kinematics, and the geometry helpers."""
 
-
 import casadi as ca
 import mujoco
 import numpy as np
@@ -20,9 +19,9 @@ def _random_qpos(m, rng):
     for j in range(m.njnt):
         adr = m.jnt_qposadr[j]
         if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
-            qpos[adr:adr + 3] = rng.normal(size=3)
+            qpos[adr : adr + 3] = rng.normal(size=3)
             q = rng.normal(size=4)
-            qpos[adr + 3:adr + 7] = q / np.linalg.norm(q)
+            qpos[adr + 3 : adr + 7] = q / np.linalg.norm(q)
         else:
             qpos[adr] = rng.uniform(-3.0, 3.0)  # beyond the ranges on purpose: FK must hold anywhere
     return qpos
@@ -31,9 +30,15 @@ def _random_qpos(m, rng):
 def _check_against_mujoco(model, n=40, seed=0):
     kin = RobotKinematics(model, "m")
     frames = [kin.body_frame(b) for b in range(1, model.nbody)]
-    f = kin.function("fk", [ca.vertcat(*[p for p, _ in frames]), ca.vertcat(*[ca.reshape(R.T, 9, 1) for _, R in frames]),
-                            ca.vertcat(*[kin.site_point(s) for s in range(model.nsite)]) if model.nsite else ca.SX.zeros(0, 1),
-                            kin.com()])
+    f = kin.function(
+        "fk",
+        [
+            ca.vertcat(*[p for p, _ in frames]),
+            ca.vertcat(*[ca.reshape(R.T, 9, 1) for _, R in frames]),
+            ca.vertcat(*[kin.site_point(s) for s in range(model.nsite)]) if model.nsite else ca.SX.zeros(0, 1),
+            kin.com(),
+        ],
+    )
     data = mujoco.MjData(model)
     rng = np.random.default_rng(seed)
     worst = 0.0
@@ -43,9 +48,12 @@ def _check_against_mujoco(model, n=40, seed=0):
         mujoco.mj_kinematics(model, data)
         mujoco.mj_comPos(model, data)
         P, R, S, C = (np.array(v) for v in f(kin.x_from_qpos(qpos)))
-        worst = max(worst, np.abs(P.reshape(-1, 3) - data.xpos[1:]).max(),
-                    np.abs(R.reshape(-1, 3, 3) - data.xmat[1:].reshape(-1, 3, 3)).max(),
-                    np.abs(S.reshape(-1, 3) - data.site_xpos).max() if model.nsite else 0.0)
+        worst = max(
+            worst,
+            np.abs(P.reshape(-1, 3) - data.xpos[1:]).max(),
+            np.abs(R.reshape(-1, 3, 3) - data.xmat[1:].reshape(-1, 3, 3)).max(),
+            np.abs(S.reshape(-1, 3) - data.site_xpos).max() if model.nsite else 0.0,
+        )
         assert np.allclose(C.ravel(), data.subtree_com[0], atol=1e-9)
     return worst, kin
 
@@ -110,6 +118,8 @@ def test_segment_distance_matches_brute_force():
 def test_missing_mjcf_and_ball_joints_are_user_errors(tmp_path):
     with pytest.raises(RetargetError, match="not found"):
         RobotKinematics.from_xml(tmp_path / "nope.xml")
-    ball = TOY_XML.replace('<joint name="head_pan" axis="0 0 1" range="-1.5 1.5"/>', '<joint name="head_pan" type="ball"/>')
+    ball = TOY_XML.replace(
+        '<joint name="head_pan" axis="0 0 1" range="-1.5 1.5"/>', '<joint name="head_pan" type="ball"/>'
+    )
     with pytest.raises(RetargetError, match="ball joint"):
         RobotKinematics(mujoco.MjModel.from_xml_string(ball), "toy")

@@ -106,8 +106,8 @@ def test_a_mid_step_clip_starts_standing_at_rest_and_joins_the_clip_smoothly():
     assert (ext.contacts[n] == m.contacts[0]).all()
     # velocities are continuous at the clip's start: ~0 on both sides, and the lead-in never jumps
     v = np.linalg.norm(np.diff(p, axis=0), axis=-1).max(axis=1) * FPS  # (T'-1,) fastest joint, m/s
-    assert v[n - 1:n + 1].max() < 0.05, v[n - 3:n + 3]  # the steps into and out of the first frame
-    assert v[:n + 1].max() < 1.5
+    assert v[n - 1 : n + 1].max() < 0.05, v[n - 3 : n + 3]  # the steps into and out of the first frame
+    assert v[: n + 1].max() < 1.5
     clip_v = np.linalg.norm(np.diff(m.positions, axis=0), axis=-1).max(axis=1) * FPS
     assert clip_v[0] > 0.2  # ... where the clip itself starts at full speed
     # after the ease-in the clip plays as is, delay_s later
@@ -124,7 +124,7 @@ def test_a_foot_down_elsewhere_steps_there():
     m2 = Motion(p, fps=FPS, contacts=m.contacts, name="staggered")
     ext, info = lead_in(m2)
     assert info.steps == ("left",)
-    left = ext.contacts[:info.frames, 0]
+    left = ext.contacts[: info.frames, 0]
     assert left[0] and not left.all() and left[-1]  # down, a swing, down again
     assert abs(ext.positions[info.frames - 1, L_ANK, 0] - p[0, L_ANK, 0]) < 1e-6
 
@@ -157,8 +157,8 @@ def test_offline_starts_a_mid_step_clip_from_the_standing_stance_and_reports_it(
     np.testing.assert_allclose(now[:2], want[:2], atol=0.005)  # m
     assert abs(now[2] - want[2]) < 0.05  # rad (the sim check's entry moves the joints with both feet down)
     # joint velocities continuous at the clip's start: small on both sides of it
-    v = np.abs(np.diff(X[:, op3.n_root:], axis=0)).max(axis=1) * FPS
-    assert v[n - 2:n + 2].max() < 0.5, v[n - 3:n + 3]
+    v = np.abs(np.diff(X[:, op3.n_root :], axis=0)).max(axis=1) * FPS
+    assert v[n - 2 : n + 2].max() < 0.5, v[n - 3 : n + 3]
     # reported: the lead-in before the clip, the ease-in at its start, clip times
     whats = [c["what"] for c in traj.meta["changes"]]
     assert whats[:2] == ["lead-in", "eased in"]

@@ -25,13 +25,21 @@ def test_round_trip_recovers_joint_angles_across_windows():
     rb = op3_for_round_trip()
     X = robot_clip(rb, T=45, seed=5)
     motion = human_from_keypoints(rb, rb.evaluate(X)["keypoints"], fps=30.0)
-    cfg = OfflineConfig(window=24, overlap=8, accel_weight=0.0, jerk_weight=0.0, contacts=False, tol=1e-9,
-                        ipopt_options=(("acceptable_tol", 1e-9),), **FAST)
+    cfg = OfflineConfig(
+        window=24,
+        overlap=8,
+        accel_weight=0.0,
+        jerk_weight=0.0,
+        contacts=False,
+        tol=1e-9,
+        ipopt_options=(("acceptable_tol", 1e-9),),
+        **FAST,
+    )
     traj = OfflineRetargeter(rb, cfg).retarget(motion, contacts=np.zeros((45, 2), bool), scaler=KeypointScaler(rb))
     assert traj.meta["windows"] >= 2
     assert len(traj.meta["ipopt_status"]) == traj.meta["windows"]
     assert set(traj.meta["ipopt_status"]) <= {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
-    assert np.abs(traj.joint_pos - X[:, rb.n_root:]).max() < 2e-3
+    assert np.abs(traj.joint_pos - X[:, rb.n_root :]).max() < 2e-3
 
 
 def _noisy_walk(T=70, seed=0):
@@ -62,7 +70,7 @@ def test_windows_blend_without_a_velocity_jump_at_the_seams():
     seams = [s + 3 - 1 for s in range(hop, len(q_w) - 1, hop)]  # first frame solved by the next window
     interior = np.median(acc)
     for s in seams:
-        assert acc[s - 1:s + 2].max() < 4 * interior + 1e-3, (s, acc[s - 1:s + 2], interior)
+        assert acc[s - 1 : s + 2].max() < 4 * interior + 1e-3, (s, acc[s - 1 : s + 2], interior)
     vel_jump = np.abs(np.diff(q_w - q_a, axis=0)).max()
     assert vel_jump < 0.01
 
@@ -83,10 +91,10 @@ def test_feet_in_contact_stay_put_on_the_ground(toy_with_contacts):
     sole = rb.evaluate(configurations(rb, traj))["sole"]
     for side in range(2):
         c = tg.contacts[:, side]
-        z = sole[c, 4 * side:4 * side + 4, 2]
+        z = sole[c, 4 * side : 4 * side + 4, 2]
         assert np.abs(z).max() < 1e-4  # flat on the ground
         both = c[1:] & c[:-1]
-        slide = np.linalg.norm(np.diff(sole[:, 4 * side:4 * side + 4, :2], axis=0), axis=-1).max(axis=1)
+        slide = np.linalg.norm(np.diff(sole[:, 4 * side : 4 * side + 4, :2], axis=0), axis=-1).max(axis=1)
         assert slide[both].max() < 5e-4  # no sliding (a window seam is held by a stiff penalty: ~0.1 mm)
     assert sole[..., 2].min() > -1e-5  # nothing below the ground
     rep = evaluate(rb, traj, tg)
@@ -107,7 +115,7 @@ def _shrunk_soles(ev, contacts, t, margin):
     pts = []
     for side in range(2):
         if contacts[t, side]:
-            c = ev["sole"][t, 4 * side:4 * side + 4, :2]
+            c = ev["sole"][t, 4 * side : 4 * side + 4, :2]
             centre = c.mean(axis=0)
             pts.append(centre + (c - centre) * (1 - 2 * margin / np.ptp(c, axis=0).max()))
     return np.concatenate(pts)
@@ -129,12 +137,13 @@ def test_zmp_balance_keeps_the_zmp_over_the_shrunk_support_polygon():
     rb = toy_robot()
     motion = _noisy_walk(T=30, seed=2)
     margin = 0.005
-    traj = OfflineRetargeter(rb, OfflineConfig(window=0, balance=True, balance_margin=margin, zmp=True,
-                                              zmp_model="cart-table", **FAST)).retarget(motion)
+    traj = OfflineRetargeter(
+        rb, OfflineConfig(window=0, balance=True, balance_margin=margin, zmp=True, zmp_model="cart-table", **FAST)
+    ).retarget(motion)
     tg = make_targets(rb, motion)
     ev = rb.evaluate(configurations(rb, traj))
     com = ev["com"]
-    acc = np.diff(com[:, :2], n=2, axis=0) * 30.0 ** 2
+    acc = np.diff(com[:, :2], n=2, axis=0) * 30.0**2
     zmp = com[1:-1, :2] - com[1:-1, 2:3] / 9.81 * acc
     assert np.abs(zmp - com[1:-1, :2]).max() > 1e-3  # the acceleration term matters on this clip
     for t in range(1, len(com) - 1):
@@ -159,7 +168,9 @@ def test_an_unsolved_window_is_a_clear_error_offering_retiming():
     rb = toy_robot()
     motion = _noisy_walk(T=20, seed=3).replace(name="stomp")
     r = OfflineRetargeter(rb, OfflineConfig(window=0, max_iter=1, **FAST))
-    with pytest.raises(RetargetError, match=r"stomp: infeasible at its speed: frames 0\.\.19: IPOPT says .*retime=1\.5") as err:
+    with pytest.raises(
+        RetargetError, match=r"stomp: infeasible at its speed: frames 0\.\.19: IPOPT says .*retime=1\.5"
+    ) as err:
         r.retarget(motion)
     # the moment of the worst violation, named in the message, in seconds into the clip
     frame = int(re.search(r"at frame (\d+)", str(err.value)).group(1))
@@ -173,8 +184,12 @@ def test_a_solver_error_is_never_taken_for_a_solution():
     trajectory, and the next solve in the same process works."""
     rb = toy_robot()
     motion = _noisy_walk(T=20, seed=3)
-    bad = OfflineRetargeter(rb, OfflineConfig(window=0, contacts=False, ipopt_options=(("linear_solver", "custom"),), **FAST))
-    with pytest.raises(RetargetError, match=r"IPOPT failed on frames 0\.\.19 with status Invalid_Option.*'linear_solver': 'custom'"):
+    bad = OfflineRetargeter(
+        rb, OfflineConfig(window=0, contacts=False, ipopt_options=(("linear_solver", "custom"),), **FAST)
+    )
+    with pytest.raises(
+        RetargetError, match=r"IPOPT failed on frames 0\.\.19 with status Invalid_Option.*'linear_solver': 'custom'"
+    ):
         bad.retarget(motion)
     traj = OfflineRetargeter(rb, OfflineConfig(window=0, contacts=False, **FAST)).retarget(motion)
     assert traj.meta["ipopt_status"][0] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -188,9 +203,11 @@ def test_an_unfinished_window_is_a_failed_retarget_even_when_feasible():
     rb = toy_robot()
     motion = _noisy_walk(T=20, seed=3).replace(name="sway")
     r = OfflineRetargeter(rb, OfflineConfig(window=0, contacts=False, max_iter=2, **FAST))
-    with pytest.raises(RetargetError, match=r"sway: retarget failed \(not converged\) at its speed: frames 0\.\.19: "
-                                            r"IPOPT says Maximum_Iterations_Exceeded after 2 iterations.*max_iter, now 2"
-                       ) as err:
+    with pytest.raises(
+        RetargetError,
+        match=r"sway: retarget failed \(not converged\) at its speed: frames 0\.\.19: "
+        r"IPOPT says Maximum_Iterations_Exceeded after 2 iterations.*max_iter, now 2",
+    ) as err:
         r.retarget(motion)
     assert err.value.time_s == 0.0
     # with a budget that is enough, the same problem is solved and kept

@@ -32,8 +32,9 @@ def test_chain_rule_derivatives_equal_casadis_ad(robot, zmp):
         x = np.concatenate([rng.uniform(np.maximum(lo, -1.0), np.minimum(hi, 1.0)), rng.uniform(0, 1, n_l)])
         par = rng.normal(size=p.shape[0])
         g_ours, jac_ours = prob["jac_g"](x, par)
-        np.testing.assert_allclose(np.array(g_ours).ravel(), np.array(ca.Function("g", [w, p], [nlp["g"]])(x, par)).ravel(),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            np.array(g_ours).ravel(), np.array(ca.Function("g", [w, p], [nlp["g"]])(x, par)).ravel(), atol=1e-12
+        )
         np.testing.assert_allclose(jac_ours.full(), ad_jac(x, par).full(), atol=1e-10, rtol=1e-10)
         h_ours = prob["hess"](x, par, 1.0, np.zeros(nlp["g"].shape[0]))
         h_ad = ad_hess(x, par)

@@ -91,7 +91,9 @@ def test_scales_follow_rest_bone_lengths_and_the_clips_own_person():
     assert rest.bone_scales[k] == pytest.approx(rb.bone_lengths[k] / human_thigh)
     # a 10 % taller person gets 10 % smaller scales everywhere
     tall = KeypointScaler(rb, (REST_POSE * 1.1)[None])
-    assert np.allclose(np.delete(tall.bone_scales, rb.root_keypoint) * 1.1, np.delete(rest.bone_scales, rb.root_keypoint))
+    assert np.allclose(
+        np.delete(tall.bone_scales, rb.root_keypoint) * 1.1, np.delete(rest.bone_scales, rb.root_keypoint)
+    )
     assert tall.root_scale * 1.1 == pytest.approx(rest.root_scale)
     # overrides win
     over = toy_robot(scale={"left_knee": 0.5, "root": 0.3})

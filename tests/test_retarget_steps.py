@@ -46,7 +46,9 @@ def test_flight_keeps_the_feet_down_and_is_reported(op3):
     planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS)
     assert planned.all(axis=1).all(), "the robot must not leave the ground"
     assert [c.what for c in changes] == ["flight"]
-    assert changes[0].start_s == pytest.approx(20 / FPS, abs=1e-3) and changes[0].end_s == pytest.approx(26 / FPS, abs=1e-3)
+    assert changes[0].start_s == pytest.approx(20 / FPS, abs=1e-3) and changes[0].end_s == pytest.approx(
+        26 / FPS, abs=1e-3
+    )
 
 
 def test_a_real_step_is_kept_and_flicker_is_filled(op3):
@@ -80,10 +82,10 @@ def test_the_robot_keeps_its_own_pace(op3):
     cfg = StepConfig(min_double=0.2, robot_swing=0.2, start_double=0.4)
     T = 120
     person = np.ones((T, 2), dtype=bool)
-    person[20:30, 0] = False   # a normal step
-    person[32:42, 1] = False   # lifts 2 frames after the left lands: waits until frame 36
-    person[60:64, 0] = False   # a 4-frame swing after a long double support: starts 2 frames early
-    person[66:69, 1] = False   # a 3-frame swing 2 frames later: no time, skipped
+    person[20:30, 0] = False  # a normal step
+    person[32:42, 1] = False  # lifts 2 frames after the left lands: waits until frame 36
+    person[60:64, 0] = False  # a 4-frame swing after a long double support: starts 2 frames early
+    person[66:69, 1] = False  # a 3-frame swing 2 frames later: no time, skipped
     planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS, cfg)
     assert planned[32:36, 1].all() and not planned[36:42, 1].any() and planned[42:, 1].all()
     assert planned[:58, 0].sum() == 58 - 10 and not planned[58:64, 0].any()
@@ -103,7 +105,9 @@ def test_the_robot_starts_in_its_standing_footprint(op3):
     planned = np.ones((T, 2), dtype=bool)
     planned[20:, 1] = False
     out, n, moved, turned = standing_start(op3, kp, planned)
-    assert n == T and moved == pytest.approx(0.04, abs=1e-6)  # n: the left foot never lifts and turned == pytest.approx(0.0, abs=1e-9)
+    assert n == T and moved == pytest.approx(
+        0.04, abs=1e-6
+    )  # n: the left foot never lifts and turned == pytest.approx(0.0, abs=1e-9)
     stand = foot_poses(op3, still_targets(op3, 1))[0][0]
     ank = foot_poses(op3, out)[0]
     rel = lambda a: a[1] - a[0]  # noqa: E731
@@ -155,7 +159,9 @@ def test_a_slow_pivot_turn_is_feasible_offline_and_turned_by_steps(op3):
     vmax = op3.root_velocity_limits[3] / FPS
     assert np.max(np.abs(np.diff(yaw))) <= vmax * (1 + 1e-6)
     person_yaw = 0.8 * (m.n_frames / FPS - 1.0)  # the turn done by the end (lead-in 0.5 s, 0.5 s still)
-    assert abs((yaw[-1] - yaw[0]) - 2.5 * 2 * np.pi) < 0.6, f"robot turned {yaw[-1] - yaw[0]:.2f} rad of {person_yaw:.2f}"
+    assert abs((yaw[-1] - yaw[0]) - 2.5 * 2 * np.pi) < 0.6, (
+        f"robot turned {yaw[-1] - yaw[0]:.2f} rad of {person_yaw:.2f}"
+    )
     assert traj.meta["steps"]["person"] == 0 and traj.meta["steps"]["robot"] >= 20
     rep = evaluate(op3, traj, make_targets(op3, m))
     assert rep.passed, rep.to_markdown()
@@ -179,8 +185,9 @@ def test_the_person_holding_the_contacts_as_given_cannot_turn(op3):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("make", [lambda: turning_leader(1.0, 0.6), lambda: walking_leader(6.0, 0.3)],
-                         ids=["turning", "walking"])
+@pytest.mark.parametrize(
+    "make", [lambda: turning_leader(1.0, 0.6), lambda: walking_leader(6.0, 0.3)], ids=["turning", "walking"]
+)
 def test_offline_steps_when_the_person_steps(op3, make):
     m = make()
     traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)

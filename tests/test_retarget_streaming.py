@@ -75,7 +75,7 @@ def test_round_trip_recovers_joint_angles():
     # the REST_POSE scaler inverts human_from_keypoints exactly (robot "bones" that span
     # joints change length with the pose, so refitting on the clip would not)
     traj = s.run(motion, contacts=np.zeros((len(X), 2), bool), scaler=KeypointScaler(rb))
-    err = np.abs(traj.joint_pos - X[:, rb.n_root:])
+    err = np.abs(traj.joint_pos - X[:, rb.n_root :])
     assert err.max() < 1e-3, err.max(axis=0)
     assert np.abs(traj.root_pos - X[:, :3]).max() < 1e-4
 
@@ -105,8 +105,8 @@ def test_limits_hold_on_every_frame_even_for_wild_targets():
         tgt = base + rng.normal(scale=0.15, size=base.shape) + (0.5 if t % 10 == 0 else 0.0)
         X.append(s.step(tgt, (t % 7 < 3, t % 5 < 2)))
     X = np.array(X)
-    q = X[:, rb.n_root:]
-    lo, hi = rb.x_lower[rb.n_root:], rb.x_upper[rb.n_root:]
+    q = X[:, rb.n_root :]
+    lo, hi = rb.x_lower[rb.n_root :], rb.x_upper[rb.n_root :]
     assert np.all(q >= lo) and np.all(q <= hi)
     assert np.all(np.abs(np.diff(q, axis=0)) * fps <= rb.velocity_limits * (1 + 1e-12))
 
@@ -120,7 +120,7 @@ def test_acceleration_penalty_smooths_noisy_input():
     for w in (0.0, 2e-7):
         s = StreamingRetargeter(rb, 30.0, StreamingConfig(accel_weight=w, compile=False))
         Q = np.array([s.step(noisy[t], (False, False)) for t in range(len(X))])
-        jerk[w] = np.abs(np.diff(Q[:, rb.n_root:], n=3, axis=0)).mean()
+        jerk[w] = np.abs(np.diff(Q[:, rb.n_root :], n=3, axis=0)).mean()
     assert jerk[2e-7] < 0.7 * jerk[0.0]
 
 

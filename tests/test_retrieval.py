@@ -30,16 +30,19 @@ def _direct_score(f_i, l_i, f_p, l_p, lam):
 def _random_db(n=50, d=16, t=12, seed=0, cues=("spatial", "music")):
     rng = np.random.default_rng(seed)
     emb = {c: rng.standard_normal((n, d)).astype(np.float32) for c in cues}
-    return RetrievalDatabase(rng.standard_normal((n, t, 2, 262)).astype(np.float32),
-                             rng.integers(3, t + 1, n), emb, [f"c{i}" for i in range(n)])
+    return RetrievalDatabase(
+        rng.standard_normal((n, t, 2, 262)).astype(np.float32),
+        rng.integers(3, t + 1, n),
+        emb,
+        [f"c{i}" for i in range(n)],
+    )
 
 
 def test_scores_match_equation_1_entry_by_entry():
     rng = np.random.default_rng(1)
     emb = rng.standard_normal((30, 8)).astype(np.float32)
     lens = rng.integers(10, 300, 30)
-    db = RetrievalDatabase(np.zeros((30, 300, 2, 262), np.float32),
-                           lens, {"body": emb}, [str(i) for i in range(30)])
+    db = RetrievalDatabase(np.zeros((30, 300, 2, 262), np.float32), lens, {"body": emb}, [str(i) for i in range(30)])
     q = rng.standard_normal((3, 8)).astype(np.float32)
     ql = np.array([50, 120, 299])
     for lam in (0.0, 0.1, 2.0):

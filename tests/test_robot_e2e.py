@@ -58,8 +58,22 @@ def test_published_robot_through_every_command(robot_folder, cmu, tmp_path, caps
 
     # retarget the CMU pair (the robot takes the reactor's part), with the profile as written
     rt = tmp_path / "retarget"
-    assert main(["retarget", str(actor), str(reactor), "--robot", str(robot_folder), "--ground", "--balance",
-                 "--out", str(rt)]) == 0
+    assert (
+        main(
+            [
+                "retarget",
+                str(actor),
+                str(reactor),
+                "--robot",
+                str(robot_folder),
+                "--ground",
+                "--balance",
+                "--out",
+                str(rt),
+            ]
+        )
+        == 0
+    )
     traj = RobotTrajectory.load_npz(rt / "19_01.npz")
     assert traj.joint_names == names and traj.n_frames >= 70 and np.all(np.isfinite(traj.joint_pos))
     report = json.loads((rt / "19_01.report.json").read_text())
@@ -72,14 +86,44 @@ def test_published_robot_through_every_command(robot_folder, cmu, tmp_path, caps
     verdict = json.loads((tmp_path / "check" / "19_01.json").read_text())
     assert verdict["joint_names"] == list(names) and verdict["passed"] == (code == 0)
     video = tmp_path / "clip.mp4"
-    code = main(["render", str(rt / "19_01.npz"), "--robot", str(robot_folder), "-o", str(video),
-                 "--width", "160", "--height", "120", "--fps", "10"])
+    code = main(
+        [
+            "render",
+            str(rt / "19_01.npz"),
+            "--robot",
+            str(robot_folder),
+            "-o",
+            str(video),
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--fps",
+            "10",
+        ]
+    )
     assert code in (0, 1) and video.stat().st_size > 1000
 
     # the live bridge on the simulated robot (no hardware config needed), the recorded actor
     run_out = tmp_path / "run"
-    code = main(["run", "--robot", str(robot_folder), "--actor", str(actor), "--partner", "imitate",
-                 "--transport", "sim", "--sim-clock", "lockstep", "--quiet", "-o", str(run_out)])
+    code = main(
+        [
+            "run",
+            "--robot",
+            str(robot_folder),
+            "--actor",
+            str(actor),
+            "--partner",
+            "imitate",
+            "--transport",
+            "sim",
+            "--sim-clock",
+            "lockstep",
+            "--quiet",
+            "-o",
+            str(run_out),
+        ]
+    )
     assert code in (0, 1), capsys.readouterr().err
     assert (run_out / "telemetry.dftl").stat().st_size > 0
 
@@ -93,8 +137,7 @@ def test_published_robot_through_every_command(robot_folder, cmu, tmp_path, caps
     clips = tmp_path / "clips"
     clips.mkdir()
     (clips / "19_01.bvh").write_bytes(reactor.read_bytes())
-    code = main(["retarget-check", str(clips), "--robot", str(robot_folder), "-o", str(tmp_path / "rc"),
-                 "--jobs", "1"])
+    code = main(["retarget-check", str(clips), "--robot", str(robot_folder), "-o", str(tmp_path / "rc"), "--jobs", "1"])
     assert code in (0, 1), capsys.readouterr().err
     import csv
 

@@ -182,13 +182,28 @@ def toy_folder(toy, tmp_path) -> Path:
 # -- the reference models -------------------------------------------------------------------
 
 EXPECTED = {  # what a person reading the model would pick (the inference never reads these names)
-    "robotis_op3": {"left_knee": "l_knee_link", "right_knee": "r_knee_link", "left_ankle": "l_ank_pitch_link",
-                    "left_foot": "l_ank_roll_link", "left_hip": "l_hip_pitch_link", "left_elbow": "l_el_link",
-                    "right_shoulder": "r_sho_roll_link", "head": "head_tilt_link", "pelvis": "body_link"},
-    "unitree_g1": {"left_knee": "left_knee_link", "right_knee": "right_knee_link",
-                   "left_ankle": "left_ankle_pitch_link", "right_foot": "right_ankle_roll_link",
-                   "left_elbow": "left_elbow_link", "right_wrist": "right_wrist_pitch_link",
-                   "spine3": "torso_link", "head": "torso_link", "pelvis": "pelvis"},
+    "robotis_op3": {
+        "left_knee": "l_knee_link",
+        "right_knee": "r_knee_link",
+        "left_ankle": "l_ank_pitch_link",
+        "left_foot": "l_ank_roll_link",
+        "left_hip": "l_hip_pitch_link",
+        "left_elbow": "l_el_link",
+        "right_shoulder": "r_sho_roll_link",
+        "head": "head_tilt_link",
+        "pelvis": "body_link",
+    },
+    "unitree_g1": {
+        "left_knee": "left_knee_link",
+        "right_knee": "right_knee_link",
+        "left_ankle": "left_ankle_pitch_link",
+        "right_foot": "right_ankle_roll_link",
+        "left_elbow": "left_elbow_link",
+        "right_wrist": "right_wrist_pitch_link",
+        "spine3": "torso_link",
+        "head": "torso_link",
+        "pelvis": "pelvis",
+    },
 }
 
 
@@ -242,21 +257,37 @@ def test_the_written_profile_retargets_the_cmu_pair_as_written(name, tmp_path):
 
 # -- a humanoid with meaningless names ----------------------------------------------------------
 
+
 def test_the_anatomy_comes_from_the_tree_and_geometry_not_the_names(toy_folder, capsys):
     kp = keypoint_bodies(toy_folder)
-    assert kp == {"pelvis": "q0", "spine3": "q7", "head": "q13",
-                  "left_hip": "q1", "right_hip": "q4", "left_knee": "q2", "right_knee": "q5",
-                  "left_ankle": "q3", "right_ankle": "q6", "left_foot": "q3", "right_foot": "q6",
-                  "left_shoulder": "q11", "right_shoulder": "q9", "left_elbow": "q12", "right_elbow": "q10",
-                  "left_wrist": "q12", "right_wrist": "q10"}
+    assert kp == {
+        "pelvis": "q0",
+        "spine3": "q7",
+        "head": "q13",
+        "left_hip": "q1",
+        "right_hip": "q4",
+        "left_knee": "q2",
+        "right_knee": "q5",
+        "left_ankle": "q3",
+        "right_ankle": "q6",
+        "left_foot": "q3",
+        "right_foot": "q6",
+        "left_shoulder": "q11",
+        "right_shoulder": "q9",
+        "left_elbow": "q12",
+        "right_elbow": "q10",
+        "left_wrist": "q12",
+        "right_wrist": "q10",
+    }
     prof = yaml.safe_load((toy_folder / "profile.yaml").read_text())
     # the hip is the pitch hinge (the last of three at one point), the wrist the end of the forearm capsule
     assert "joint m3" in (toy_folder / "profile.yaml").read_text()
     assert prof["keypoints"]["left_wrist"]["offset"] == pytest.approx([0, 0, -0.152], abs=1e-3)
     # the sole: the box's bottom face, in the foot's frame, counter-clockwise from above
     corners = np.array(prof["feet"]["left"]["corners"])
-    assert corners == pytest.approx(np.array([[0.11, -0.04, -0.035], [0.11, 0.04, -0.035],
-                                              [-0.05, 0.04, -0.035], [-0.05, -0.04, -0.035]]), abs=1e-4)
+    assert corners == pytest.approx(
+        np.array([[0.11, -0.04, -0.035], [0.11, 0.04, -0.035], [-0.05, 0.04, -0.035], [-0.05, -0.04, -0.035]]), abs=1e-4
+    )
     assert prof["keypoints"]["left_foot"]["offset"] == pytest.approx([0.11, 0.0, -0.035], abs=1e-4)
     # unranged knees take the actuator's ctrlrange, cut to the side that sends the foot back
     # (the right knee's axis is flipped, so it bends the other way)
@@ -278,16 +309,21 @@ def test_the_toy_profile_retargets_a_synthetic_duet(toy_folder):
 
     rb = load(toy_folder)
     motion = make_duet("mirror", 2.0, 30.0, 0).reactor
-    rep = evaluate(rb, OfflineRetargeter(rb, OfflineConfig(window=40, overlap=10, compile=False)).retarget(motion),
-                   make_targets(rb, motion))
+    rep = evaluate(
+        rb,
+        OfflineRetargeter(rb, OfflineConfig(window=40, overlap=10, compile=False)).retarget(motion),
+        make_targets(rb, motion),
+    )
     assert rep.limit_violations == 0 and rep.velocity_violations == 0 and rep.self_collisions == 0
     assert rep.keypoint_error_mean_mm < 0.08 * 1000 * float(rb.standing_heights.max())
 
 
 def test_a_scene_that_includes_the_robot_points_the_folder_at_the_robot(toy, tmp_path, capsys):
     scene = toy.parent / "scene.xml"
-    scene.write_text('<mujoco model="s"><include file="zeta.xml"/><worldbody>'
-                     '<geom name="floor" type="plane" size="0 0 0.05"/></worldbody></mujoco>')
+    scene.write_text(
+        '<mujoco model="s"><include file="zeta.xml"/><worldbody>'
+        '<geom name="floor" type="plane" size="0 0 0.05"/></worldbody></mujoco>'
+    )
     out = tmp_path / "from_scene"
     assert init(scene, out) == 0
     assert "scene around zeta.xml" in capsys.readouterr().out
@@ -313,6 +349,7 @@ def test_robot_list_names_the_bundled_robots(capsys):
 
 
 # -- check: every problem named, with its fix --------------------------------------------------
+
 
 def edit(path: Path, old: str, new: str, count: int = 1) -> None:
     text = path.read_text()
@@ -355,8 +392,11 @@ def test_check_reports_hardware_config_problems_with_their_fixes(toy_folder, cap
     m12 = next(i for i, line in enumerate(lines) if "joint: m12," in line)
     del lines[m12]  # a joint left without a servo
     hw.write_text("\n".join(lines) + "\n")
-    edit(hw, "joint: m1, direction: 1, zero_offset: 0.0, limits: [-0.785398, 0.785398]",
-         "joint: m1, direction: 1, zero_offset: 0.0, limits: [-1.2, 0.785398]")  # wider than the MJCF range
+    edit(
+        hw,
+        "joint: m1, direction: 1, zero_offset: 0.0, limits: [-0.785398, 0.785398]",
+        "joint: m1, direction: 1, zero_offset: 0.0, limits: [-1.2, 0.785398]",
+    )  # wider than the MJCF range
     edit(hw, "joint: k8,", "joint: neck,")  # not a joint of the model
     rc, problems, _ = check(toy_folder, capsys)
     assert rc == 2 and len(problems) == 3, problems
@@ -366,10 +406,16 @@ def test_check_reports_hardware_config_problems_with_their_fixes(toy_folder, cap
 
 
 def test_check_reports_an_unranged_joint_beyond_its_actuator_ctrlrange(toy_folder, capsys):
-    edit(toy_folder / "hardware.yaml", "joint: m4, direction: 1, zero_offset: 0.0, limits: [0.000000, 2.440000]",
-         "joint: m4, direction: 1, zero_offset: 0.0, limits: [-0.5, 2.44]")  # within the profile's knee cut, not the ctrlrange: fine
-    edit(toy_folder / "hardware.yaml", "joint: m10, direction: 1, zero_offset: 0.0, limits: [-2.440000, 0.000000]",
-         "joint: m10, direction: 1, zero_offset: 0.0, limits: [-2.44, 3.0]")
+    edit(
+        toy_folder / "hardware.yaml",
+        "joint: m4, direction: 1, zero_offset: 0.0, limits: [0.000000, 2.440000]",
+        "joint: m4, direction: 1, zero_offset: 0.0, limits: [-0.5, 2.44]",
+    )  # within the profile's knee cut, not the ctrlrange: fine
+    edit(
+        toy_folder / "hardware.yaml",
+        "joint: m10, direction: 1, zero_offset: 0.0, limits: [-2.440000, 0.000000]",
+        "joint: m10, direction: 1, zero_offset: 0.0, limits: [-2.44, 3.0]",
+    )
     rc, problems, _ = check(toy_folder, capsys)
     assert rc == 2 and len(problems) == 1 and "ctrlrange" in problems[0] and "'m10'" in problems[0], problems
 

@@ -46,7 +46,7 @@ def spec_vectors() -> dict[str, bytes]:
 
 def test_crc_check_value_matches_spec_and_bitwise_reference():
     assert sl.crc16(b"123456789") == 0x29B1 == crc_bitwise(b"123456789")
-    assert "crc16(\"123456789\") = 29B1" in SPEC.read_text()
+    assert 'crc16("123456789") = 29B1' in SPEC.read_text()
 
 
 def test_codec_reproduces_every_spec_vector():
@@ -60,7 +60,9 @@ def test_codec_reproduces_every_spec_vector():
         "HEARTBEAT": sl.Frame(3, sl.MsgType.HEARTBEAT, b""),
         "HEARTBEAT_ACK": sl.Frame(3, sl.MsgType.HEARTBEAT_ACK, sl.HeartbeatAck(123456).pack()),
         "TELEMETRY_REQ": sl.Frame(4, sl.MsgType.TELEMETRY_REQ, b""),
-        "TELEMETRY": sl.Frame(4, sl.MsgType.TELEMETRY, sl.Telemetry(1000, 11100, 3, 0, (1500, -32768), (35, -128)).pack()),
+        "TELEMETRY": sl.Frame(
+            4, sl.MsgType.TELEMETRY, sl.Telemetry(1000, 11100, 3, 0, (1500, -32768), (35, -128)).pack()
+        ),
         "SET_LIMITS": sl.Frame(5, sl.MsgType.SET_LIMITS, sl.SetLimits(0, ((-9000, 9000), (-2700, 4500))).pack()),
         "ERROR": sl.Frame(6, sl.MsgType.ERROR, sl.Error(sl.ErrorCode.TARGET_OUT_OF_LIMITS, 1).pack()),
     }
@@ -86,7 +88,7 @@ def test_decoder_resyncs_through_noise_and_chunking(seq, mtype, payload, noise, 
     dec = sl.FrameDecoder()
     got = []
     for i in range(0, len(stream), chunk):
-        got += dec.feed(stream[i:i + chunk])
+        got += dec.feed(stream[i : i + chunk])
     assert got == [frame, frame]
     assert dec.pending == 0
 
@@ -112,11 +114,26 @@ def test_angle_conversion_and_range():
 
 # ----------------------------------------------------------------------------- transport
 
+
 def make_bus(n=4, lower=-1.0, upper=1.0, first=0):
-    servos = [{"id": first + i, "joint": f"j{i}", "limits": [lower, upper], "direction": -1 if i % 2 else 1,
-               "zero_offset": 0.1 * i} for i in range(n)]
-    cfg = parse_config({"robot": "t", "buses": [{"name": "link", "port": "/dev/null", "baud": 1000000,
-                                                  "protocol": "serial-link", "servos": servos}]})
+    servos = [
+        {
+            "id": first + i,
+            "joint": f"j{i}",
+            "limits": [lower, upper],
+            "direction": -1 if i % 2 else 1,
+            "zero_offset": 0.1 * i,
+        }
+        for i in range(n)
+    ]
+    cfg = parse_config(
+        {
+            "robot": "t",
+            "buses": [
+                {"name": "link", "port": "/dev/null", "baud": 1000000, "protocol": "serial-link", "servos": servos}
+            ],
+        }
+    )
     return cfg.buses[0]
 
 

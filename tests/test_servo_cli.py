@@ -129,10 +129,12 @@ def test_faulted_session_never_sends_a_goal_outside_the_limits(capsys, op3_bus, 
 
 
 def test_calibrate_records_zero_offsets(capsys, tmp_path, factory_emu):
-    factory_emu.push(3, 2048 + 100)   # r_sho_roll held 100 ticks off centre in the zero pose
+    factory_emu.push(3, 2048 + 100)  # r_sho_roll held 100 ticks off centre in the zero pose
     factory_emu.push(20, 2048 - 40)
     out_path = tmp_path / "op3_cal.yaml"
-    code, out, _ = run(capsys, "calibrate", OP3, "--port", factory_emu.port_path, "--out", str(out_path), "--samples", "2")
+    code, out, _ = run(
+        capsys, "calibrate", OP3, "--port", factory_emu.port_path, "--out", str(out_path), "--samples", "2"
+    )
     assert code == 0 and out_path.exists()
     cal = load_config(out_path)
     assert cal.servo("r_sho_roll").zero_offset == pytest.approx(100 * 2 * np.pi / 4096, abs=1e-6)
@@ -151,14 +153,18 @@ def test_scan_finds_models_and_firmware(capsys, factory_emu):
     assert code == 0
     lines = [line.split() for line in out.splitlines()[1:]]
     assert [int(line[2]) for line in lines] == list(range(1, 21)) + [200]  # the servos, then the OpenCR (IMU)
-    assert {tuple(line[i] for i in (0, 1, 3, 4, 5)) for line in lines[:-1]} == {("2.0", "2000000", "1020", "XM430-W350", "45")}
+    assert {tuple(line[i] for i in (0, 1, 3, 4, 5)) for line in lines[:-1]} == {
+        ("2.0", "2000000", "1020", "XM430-W350", "45")
+    }
     assert lines[-1][3:] == ["29696", "OpenCR", "2"]
 
 
 def test_scan_protocol_1_bus(capsys):
     emu = DynamixelBusEmulator([ServoSpec(3, "AX-12A"), ServoSpec(7, "MX-28")], baud=1_000_000, protocol=1).start()
     try:
-        code, out, _ = run(capsys, "scan", "--port", emu.port_path, "--bauds", "1000000", "--protocols", "1", "--ids", "0-10")
+        code, out, _ = run(
+            capsys, "scan", "--port", emu.port_path, "--bauds", "1000000", "--protocols", "1", "--ids", "0-10"
+        )
         assert code == 0
         rows = {int(r.split()[2]): r.split()[4] for r in out.splitlines()[1:]}
         assert rows == {3: "AX-12A", 7: "MX-28"}
@@ -176,8 +182,12 @@ def test_monitor_once_and_errors(capsys, factory_emu):
 
 
 def test_emulate_command_prints_a_port_that_works(capsys):
-    proc = subprocess.Popen([sys.executable, "-m", "ros_free_bridge", "servo", "emulate", "op3", "--provisioned",
-                             "--duration", "30"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ros_free_bridge", "servo", "emulate", "op3", "--provisioned", "--duration", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     try:
         port = proc.stdout.readline().strip()
         assert port.startswith("/dev/")
@@ -202,11 +212,42 @@ def test_emulate_serial_link_board(tmp_path):
     from ros_free_bridge.transports.serial_link import SerialLinkTransport
 
     cfg_path = tmp_path / "arm.yaml"
-    cfg_path.write_text(yaml.safe_dump({"robot": "arm", "buses": [
-        {"name": "board", "port": "/dev/ttyACM0", "baud": 1000000, "protocol": "serial-link",
-         "servos": [{"id": 0, "joint": "a", "limits": [-1, 1]}, {"id": 3, "joint": "b", "limits": [-1, 1]}]}]}))
-    proc = subprocess.Popen([sys.executable, "-m", "ros_free_bridge", "servo", "emulate", str(cfg_path), "--bus", "board",
-                             "--duration", "30"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    cfg_path.write_text(
+        yaml.safe_dump(
+            {
+                "robot": "arm",
+                "buses": [
+                    {
+                        "name": "board",
+                        "port": "/dev/ttyACM0",
+                        "baud": 1000000,
+                        "protocol": "serial-link",
+                        "servos": [
+                            {"id": 0, "joint": "a", "limits": [-1, 1]},
+                            {"id": 3, "joint": "b", "limits": [-1, 1]},
+                        ],
+                    }
+                ],
+            }
+        )
+    )
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "ros_free_bridge",
+            "servo",
+            "emulate",
+            str(cfg_path),
+            "--bus",
+            "board",
+            "--duration",
+            "30",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     try:
         port = proc.stdout.readline().strip()
         with SerialLinkTransport(load(cfg_path).buses[0], port=port) as t:

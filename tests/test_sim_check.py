@@ -140,11 +140,14 @@ def test_robot_entering_the_human_fails(stand):
     pos = np.tile(REST_POSE, (61, 1, 1))
     actor = Motion(pos, 30.0, name="overlapping person")
     # a person scaled to the robot's size standing where the robot stands
-    result = check_trajectory(make(lambda tt: stand, 2.0), actor=actor, actor_placement=Placement("robot", (0.02, 0, 0)))
+    result = check_trajectory(
+        make(lambda tt: stand, 2.0), actor=actor, actor_placement=Placement("robot", (0.02, 0, 0))
+    )
     assert result.reason == "human_penetration"
     assert result.metrics["min_human_distance_m"] < -0.005
-    far = check_trajectory(make(lambda tt: stand, 1.0), actor=Motion(pos[:31], 30.0),
-                           actor_placement=Placement("robot", (0.6, 0, 0)))
+    far = check_trajectory(
+        make(lambda tt: stand, 1.0), actor=Motion(pos[:31], 30.0), actor_placement=Placement("robot", (0.6, 0, 0))
+    )
     assert far.passed and far.metrics["min_human_distance_m"] == pytest.approx(HUMAN_DISTANCE_CAP)
 
 
@@ -177,7 +180,9 @@ def test_fixed_base_upper_body_robot_checks():
 
 def test_wrong_joint_count_is_a_sim_error(stand):
     names = joint_names("op3")[:19]
-    traj = RobotTrajectory(names, np.tile(stand[:19], (10, 1)), np.zeros((10, 3)), np.tile([1.0, 0, 0, 0], (10, 1)), 30.0, "op3")
+    traj = RobotTrajectory(
+        names, np.tile(stand[:19], (10, 1)), np.zeros((10, 3)), np.tile([1.0, 0, 0, 0], (10, 1)), 30.0, "op3"
+    )
     with pytest.raises(SimError, match="has 19 joints but robot 'op3' has 20"):
         check_trajectory(traj)
 
@@ -185,8 +190,14 @@ def test_wrong_joint_count_is_a_sim_error(stand):
 def _write_npz(path, joint_pos, fps):
     header = json.dumps({"joint_names": list(joint_names("op3")), "robot": "op3", "meta": {}})
     n = len(joint_pos)
-    np.savez(path, joint_pos=joint_pos, root_pos=np.zeros((n, 3)), root_quat=np.tile([1.0, 0, 0, 0], (n, 1)),
-             fps=np.float64(fps), header=np.array(header))
+    np.savez(
+        path,
+        joint_pos=joint_pos,
+        root_pos=np.zeros((n, 3)),
+        root_quat=np.tile([1.0, 0, 0, 0], (n, 1)),
+        fps=np.float64(fps),
+        header=np.array(header),
+    )
     return path
 
 
@@ -201,12 +212,15 @@ def test_nan_and_zero_fps_files_are_sim_errors(stand, tmp_path):
         check_trajectory(tmp_path / "missing.npz")
 
 
-@pytest.mark.parametrize("config, match", [
-    (CheckConfig(control_hz=0), "control_hz must be > 0"),
-    (CheckConfig(physics_hz=450), "whole multiple"),
-    (CheckConfig(interpolation="spline"), "interpolation"),
-    (CheckConfig(mode="floating"), "mode"),
-])
+@pytest.mark.parametrize(
+    "config, match",
+    [
+        (CheckConfig(control_hz=0), "control_hz must be > 0"),
+        (CheckConfig(physics_hz=450), "whole multiple"),
+        (CheckConfig(interpolation="spline"), "interpolation"),
+        (CheckConfig(mode="floating"), "mode"),
+    ],
+)
 def test_bad_config_is_a_sim_error(stand, config, match):
     with pytest.raises(SimError, match=match):
         check_trajectory(make(lambda tt: stand, 0.5), config)
@@ -214,7 +228,7 @@ def test_bad_config_is_a_sim_error(stand, config, match):
 
 def test_resample_linear_and_cubic_hit_the_samples():
     times = np.arange(5) / 10.0
-    values = np.stack([np.sin(times), times ** 2], axis=1)
+    values = np.stack([np.sin(times), times**2], axis=1)
     for kind in ("linear", "cubic"):
         out = resample(times, values, times, kind)
         assert np.allclose(out, values)

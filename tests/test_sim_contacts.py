@@ -16,12 +16,15 @@ from sim.scene import Scene
 SQUARE = np.array([[-0.05, -0.03], [0.05, -0.03], [0.05, 0.03], [-0.05, 0.03]])  # 100 x 60 mm
 
 
-@pytest.mark.parametrize("point, expected", [
-    ((0.0, 0.0), 0.03),  # centre: nearest edges are the long ones, 30 mm away
-    ((0.04, 0.0), 0.01),  # 10 mm from the front edge
-    ((0.08, 0.0), -0.03),  # 30 mm in front of the front edge
-    ((0.08, 0.07), -0.05),  # beyond a corner: 30 mm by 40 mm -> 50 mm
-])
+@pytest.mark.parametrize(
+    "point, expected",
+    [
+        ((0.0, 0.0), 0.03),  # centre: nearest edges are the long ones, 30 mm away
+        ((0.04, 0.0), 0.01),  # 10 mm from the front edge
+        ((0.08, 0.0), -0.03),  # 30 mm in front of the front edge
+        ((0.08, 0.07), -0.05),  # beyond a corner: 30 mm by 40 mm -> 50 mm
+    ],
+)
 def test_margin_to_a_rectangle(point, expected):
     assert support_margin(np.array(point), SQUARE) == pytest.approx(expected, abs=1e-12)
 
@@ -51,7 +54,9 @@ def test_many_equals_one_tick_at_a_time():
     got = SupportMargin().many(points, polys)
     run_first = []  # the polygon a run is evaluated with: its first tick's points
     for k, p in enumerate(polys):
-        same = k > 0 and len(p) == len(polys[k - 1]) and np.array_equal(np.round(p / 1e-3), np.round(polys[k - 1] / 1e-3))
+        same = (
+            k > 0 and len(p) == len(polys[k - 1]) and np.array_equal(np.round(p / 1e-3), np.round(polys[k - 1] / 1e-3))
+        )
         run_first.append(run_first[-1] if same else p)
     want = np.array([support_margin(x, p) for x, p in zip(points, run_first)])
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -71,7 +76,9 @@ def test_root_pose_from_qpos_matches_mujoco_frames():
         qpos.append(d.qpos.copy())
         pos.append(d.xpos[r.root_body].copy())
         zz.append(d.xmat[r.root_body, 8])
-    got_pos, got_zz = _root_pose_series(np.array(qpos + [qpos[0]]), r.free_qpos, d.xpos[r.root_body], d.xmat[r.root_body], 5)
+    got_pos, got_zz = _root_pose_series(
+        np.array(qpos + [qpos[0]]), r.free_qpos, d.xpos[r.root_body], d.xmat[r.root_body], 5
+    )
     np.testing.assert_allclose(got_pos[:5], pos, atol=1e-12)
     np.testing.assert_allclose(got_zz[:5], zz, atol=1e-12)
     assert np.isnan(got_pos[5]).all() and np.isnan(got_zz[5])  # after the run: not simulated
@@ -84,9 +91,20 @@ def _contacts(scene: Scene) -> list[tuple]:
     rows = []
     for i in range(scene.data.ncon):
         g = tuple(sorted(int(x) for x in c.geom[i]))
-        rows.append((g, round(float(c.dist[i]), 12), tuple(np.round(c.pos[i], 12)), tuple(np.round(np.abs(c.frame[i, :3]), 12)),
-                     int(c.dim[i]), tuple(np.round(c.friction[i], 12)), tuple(c.solref[i]), tuple(c.solimp[i]),
-                     float(c.includemargin[i]), float(c.adhesion[i])))
+        rows.append(
+            (
+                g,
+                round(float(c.dist[i]), 12),
+                tuple(np.round(c.pos[i], 12)),
+                tuple(np.round(np.abs(c.frame[i, :3]), 12)),
+                int(c.dim[i]),
+                tuple(np.round(c.friction[i], 12)),
+                tuple(c.solref[i]),
+                tuple(c.solimp[i]),
+                float(c.includemargin[i]),
+                float(c.adhesion[i]),
+            )
+        )
     return sorted(rows)
 
 

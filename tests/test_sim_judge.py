@@ -102,6 +102,7 @@ def test_self_collision_fails_from_2_mm_deep(stand):
             out[ix("l_hip_roll")] = amount * ramp(tt - 0.2, seconds)
             out[ix("r_hip_roll")] = -amount * ramp(tt - 0.2, seconds)
             return out
+
         return q
 
     # torso bolted in the air: the legs close until the feet touch
@@ -122,6 +123,7 @@ def test_joint_limit(stand, scene):
             out = stand.copy()
             out[ix("head_pan")] = to * ramp(tt, 1.0)
             return out
+
         return q
 
     assert check_trajectory(make(pan(upper - 0.02), 1.5)).passed
@@ -139,6 +141,7 @@ def test_speed_limit(stand, scene):
             out = stand.copy()
             out[ix("r_sho_pitch")] = -0.4 * np.sin(w * tt)
             return out
+
         return q
 
     ok = check_trajectory(make(swing(0.8 * v), 2.0), CheckConfig(interpolation="cubic"))
@@ -178,7 +181,9 @@ def test_partner_placed_by_default_stands_face_to_face(scene):
     left = placed[1] - placed[2]
     facing = np.array([left[1], -left[0]])  # the hips' left vector turned by -90 deg
     assert facing @ np.array([0.0, -1.0]) == pytest.approx(np.linalg.norm(facing))  # looking back at the robot
-    assert placed[[10, 11], 2].min() == pytest.approx(REST_POSE[[10, 11], 2].min() * p.resolve_scale(person, scene.robot_height))
+    assert placed[[10, 11], 2].min() == pytest.approx(
+        REST_POSE[[10, 11], 2].min() * p.resolve_scale(person, scene.robot_height)
+    )
     # a person walking 1 m towards the robot starts farther away, so that the partner's distance holds
     hips = REST_POSE[1] - REST_POSE[2]
     ahead = np.array([hips[1], -hips[0], 0.0]) / np.linalg.norm(hips[:2])  # where the rest pose faces
@@ -216,11 +221,18 @@ def test_cmu_actor_by_default_keeps_a_partner_distance(cmu_pair_paths, stand):
     scale = 0.5 / 1.6
     path = (reactor.positions[:, 0, :2] - reactor.positions[0, 0, :2]) * scale  # the robot walks the reactor's path
     n = reactor.n_frames
-    traj = RobotTrajectory(NAMES, np.tile(stand, (n, 1)), np.column_stack([path, np.full(n, 0.27)]),
-                           np.tile([1.0, 0, 0, 0], (n, 1)), 30.0, "op3")
+    traj = RobotTrajectory(
+        NAMES,
+        np.tile(stand, (n, 1)),
+        np.column_stack([path, np.full(n, 0.27)]),
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        30.0,
+        "op3",
+    )
     sc = Scene(SceneConfig(robot="op3"))
-    placement = FaceToFace(path=tuple(map(tuple, path)), path_fps=30.0).resolve(actor, sc.robot_height,
-                                                                                 traj.root_pos[0], traj.root_quat[0])
+    placement = FaceToFace(path=tuple(map(tuple, path)), path_fps=30.0).resolve(
+        actor, sc.robot_height, traj.root_pos[0], traj.root_quat[0]
+    )
     pelvis = place(actor.positions, placement.resolve_scale(actor, sc.robot_height), placement)[:, 0, :2]
     gaps = np.linalg.norm(pelvis - path, axis=1)
     partner = 0.6 * sc.robot_height
@@ -234,6 +246,7 @@ def test_long_standing_clip_with_slow_creep_does_not_fail_on_slip(stand, scene):
     """50 s of side-to-side sway: the feet creep a little per second on MuJoCo's soft contacts.
     Summed over the clip that used to fail as 'foot slip'; per stance it is a measured figure
     and a warning."""
+
     def sway(tt):
         a = 0.08 * np.sin(2 * np.pi * 0.5 * tt)
         q = stand.copy()
@@ -335,8 +348,9 @@ def test_render_verdict_is_the_checks(stand, tmp_path):
     traj = make(wave, 1.0)
     check = check_trajectory(traj, actor=actor)
     for playback in ("physics", "kinematic"):
-        _, filmed = render_trajectory(traj, tmp_path / f"{playback}.mp4",
-                                      RenderConfig(width=64, height=48, fps=5, playback=playback), actor=actor)
+        _, filmed = render_trajectory(
+            traj, tmp_path / f"{playback}.mp4", RenderConfig(width=64, height=48, fps=5, playback=playback), actor=actor
+        )
         assert filmed.summary()["passed"] == check.passed and filmed.reason == check.reason
         assert filmed.metrics["min_human_distance_m"] == pytest.approx(check.metrics["min_human_distance_m"])
         assert [w.kind for w in filmed.warnings] == [w.kind for w in check.warnings]
@@ -352,9 +366,43 @@ def test_cli_check_places_the_actor_as_a_partner(stand, tmp_path, capsys):
     summary = json.loads((tmp_path / "stand.json").read_text())
     assert summary["warnings"] == [] and summary["entry_transition_s"] == pytest.approx(0.5)
     assert summary["metrics"]["actor_placement"]["offset_m"][0] > 0.2  # in front of the robot
-    assert main(["check", str(traj), "--actor", str(person), "--actor-offset", "0", "0", "0", "-o", str(tmp_path),
-                 "--no-plots"]) == 1
+    assert (
+        main(
+            [
+                "check",
+                str(traj),
+                "--actor",
+                str(person),
+                "--actor-offset",
+                "0",
+                "0",
+                "0",
+                "-o",
+                str(tmp_path),
+                "--no-plots",
+            ]
+        )
+        == 1
+    )
     assert "human_penetration" in capsys.readouterr().out
-    assert main(["check", str(traj), "--actor", str(person), "--actor-offset", "0", "0", "0", "--actor-distance", "0.4",
-                 "-o", str(tmp_path), "--no-plots"]) == 2
+    assert (
+        main(
+            [
+                "check",
+                str(traj),
+                "--actor",
+                str(person),
+                "--actor-offset",
+                "0",
+                "0",
+                "0",
+                "--actor-distance",
+                "0.4",
+                "-o",
+                str(tmp_path),
+                "--no-plots",
+            ]
+        )
+        == 2
+    )
     assert "--actor-distance" in capsys.readouterr().err

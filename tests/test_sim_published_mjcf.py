@@ -45,13 +45,20 @@ def _need(path: Path) -> Path:
 
 def _standing(scene: Scene, seconds: float = 2.0, robot: str = "") -> RobotTrajectory:
     """The scene's standing pose held for ``seconds`` at 30 fps."""
-    return RobotTrajectory.standing(scene.robot.joint_names, scene.stand_ctrl, int(round(seconds * 30)) + 1, 30.0,
-                                    root_pos=scene.data.xpos[scene.robot.root_body].copy(),
-                                    robot=robot or scene.config.robot)
+    return RobotTrajectory.standing(
+        scene.robot.joint_names,
+        scene.stand_ctrl,
+        int(round(seconds * 30)) + 1,
+        30.0,
+        root_pos=scene.data.xpos[scene.robot.root_body].copy(),
+        robot=robot or scene.config.robot,
+    )
 
 
 def _world_planes(model: mujoco.MjModel) -> list[int]:
-    return [g for g in range(model.ngeom) if model.geom_bodyid[g] == 0 and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
+    return [
+        g for g in range(model.ngeom) if model.geom_bodyid[g] == 0 and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE
+    ]
 
 
 # -- the reference models, unmodified ------------------------------------------------------
@@ -97,7 +104,9 @@ def test_g1_force_limits_come_from_its_joints():
     scene = Scene(SceneConfig(robot=str(_need(G1_DIR / "g1.xml"))))
     r = scene.robot
     stall = dict(zip(r.joint_names, r.stall_torque))
-    assert stall["left_hip_pitch_joint"] == 88 and stall["left_knee_joint"] == 139 and stall["left_wrist_yaw_joint"] == 5
+    assert (
+        stall["left_hip_pitch_joint"] == 88 and stall["left_knee_joint"] == 139 and stall["left_wrist_yaw_joint"] == 5
+    )
     assert r.unchecked("torque_saturation") == ()
     assert scene.stand_source == "keyframe" and 1.25 < scene.robot_height < 1.4
     # the joint clamps what the position servo (kp 500) asks for: torque as the joint gets it
@@ -111,13 +120,16 @@ def test_limits_for_unranged_joints_come_from_the_robot_folder(tmp_path):
     config): the profile's joint_limits, then the hardware config's servo limits, fill the
     unranged joints; the hardware config's servo model gives those servos' speed."""
     model = _need(OP3_DIR / "op3.xml")
-    (tmp_path / "profile.yaml").write_text(textwrap.dedent(f"""\
+    (tmp_path / "profile.yaml").write_text(
+        textwrap.dedent(f"""\
         mjcf: {model}
         joint_limits:
           l_knee: [-2.2, 0.0]
           r_knee: [0.0, 2.2]
-        """))
-    (tmp_path / "hardware.yaml").write_text(textwrap.dedent("""\
+        """)
+    )
+    (tmp_path / "hardware.yaml").write_text(
+        textwrap.dedent("""\
         robot: my_op3
         servo_defaults: {model: XM430-W350}
         buses:
@@ -129,7 +141,8 @@ def test_limits_for_unranged_joints_come_from_the_robot_folder(tmp_path):
               - {id: 19, joint: head_pan, limits: [-1.5, 1.5]}
               - {id: 20, joint: head_tilt, limits: [-0.5, 1.0]}
               - {id: 14, joint: l_knee, limits: [-2.0, 0.0]}
-        """))
+        """)
+    )
     scene = Scene(SceneConfig(robot=str(tmp_path)))
     r = scene.robot
     src = dict(zip(r.joint_names, r.limit_source))
@@ -143,8 +156,14 @@ def test_limits_for_unranged_joints_come_from_the_robot_folder(tmp_path):
     # given limits come first; a command past them fails on joint_limit, naming the joint
     q = np.zeros((31, r.n))
     q[:, r.joint_names.index("head_pan")] = np.linspace(0.0, 0.6, 31)
-    traj = RobotTrajectory(r.joint_names, q, np.tile(scene.data.xpos[r.root_body], (31, 1)),
-                           np.tile([1.0, 0, 0, 0], (31, 1)), 30.0, str(tmp_path))
+    traj = RobotTrajectory(
+        r.joint_names,
+        q,
+        np.tile(scene.data.xpos[r.root_body], (31, 1)),
+        np.tile([1.0, 0, 0, 0], (31, 1)),
+        30.0,
+        str(tmp_path),
+    )
     result = check_trajectory(traj, CheckConfig(), joint_limits={"head_pan": (-0.4, 0.4)})
     assert result.reason == "joint_limit" and "head_pan" in result.failures[0].detail
     assert "[-0.400, 0.400]" in result.failures[0].detail
@@ -178,7 +197,8 @@ def _twin_arms(tmp_path: Path, ctrlrange: bool = False, forcerange: bool = False
     force = ' forcerange="-2 2"' if forcerange else ""
     custom = '<custom><numeric name="servo_no_load_speed" data="6"/></custom>' if speed else ""
     path = tmp_path / "twin_arms.xml"
-    path.write_text(textwrap.dedent(f"""\
+    path.write_text(
+        textwrap.dedent(f"""\
         <mujoco model="twin arms">
           {custom}
           <worldbody>
@@ -201,7 +221,8 @@ def _twin_arms(tmp_path: Path, ctrlrange: bool = False, forcerange: bool = False
             <position joint="right_swing" kp="20"{ctrl}{force}/>
           </actuator>
         </mujoco>
-        """))
+        """)
+    )
     return path
 
 
@@ -210,8 +231,14 @@ def _swing(path: Path, angle: float, seconds: float = 1.5) -> RobotTrajectory:
     a = angle * np.clip(t / (seconds * 0.6), 0.0, 1.0)
     q = np.stack([-a, a], axis=1)  # left arm swings towards -y, right towards +y
     n = len(t)
-    return RobotTrajectory(("left_swing", "right_swing"), q, np.tile([0.0, 0.0, 0.5], (n, 1)),
-                           np.tile([1.0, 0, 0, 0], (n, 1)), 30.0, str(path))
+    return RobotTrajectory(
+        ("left_swing", "right_swing"),
+        q,
+        np.tile([0.0, 0.0, 0.5], (n, 1)),
+        np.tile([1.0, 0, 0, 0], (n, 1)),
+        30.0,
+        str(path),
+    )
 
 
 def test_unnamed_geoms_are_named_by_their_body_in_a_self_collision(tmp_path):
@@ -243,15 +270,21 @@ def test_a_check_without_data_says_what_it_did_not_check(tmp_path):
     md = markdown(result)
     assert "**PASS**" in md and "- joint_limit: limits not checked for joints left_swing, right_swing" in md
     # the same model with limits given: judged against them
-    limited = check_trajectory(_swing(path, 0.2), CheckConfig(mode="fixed"),
-                               joint_limits={"left_swing": (-0.1, 0.1), "right_swing": (-0.1, 0.1)})
+    limited = check_trajectory(
+        _swing(path, 0.2),
+        CheckConfig(mode="fixed"),
+        joint_limits={"left_swing": (-0.1, 0.1), "right_swing": (-0.1, 0.1)},
+    )
     assert limited.reason == "joint_limit" and "joint_limit" not in limited.not_checked
 
 
 def test_a_floor_that_is_not_level_at_zero_is_refused(tmp_path):
     path = _twin_arms(tmp_path)
-    path.write_text(path.read_text().replace('<geom type="plane" size="2 2 0.1"/>',
-                                             '<geom name="ground" type="plane" size="2 2 0.1" pos="0 0 -0.3"/>'))
+    path.write_text(
+        path.read_text().replace(
+            '<geom type="plane" size="2 2 0.1"/>', '<geom name="ground" type="plane" size="2 2 0.1" pos="0 0 -0.3"/>'
+        )
+    )
     with pytest.raises(SimError, match=r"floor plane 'ground' is not horizontal at z = 0"):
         Scene(SceneConfig(robot=str(path)))
 

@@ -29,7 +29,9 @@ def wave_npz(tmp_path_factory) -> Path:
     q = np.tile(stand, (len(t), 1))
     q[:, 0] = -0.5 * np.sin(2.0 * t) ** 2
     n = len(t)
-    traj = RobotTrajectory(joint_names("op3"), q, np.tile([0, 0, 0.27], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), 30.0, "op3")
+    traj = RobotTrajectory(
+        joint_names("op3"), q, np.tile([0, 0, 0.27], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), 30.0, "op3"
+    )
     return traj.save_npz(tmp_path_factory.mktemp("traj") / "wave.npz")
 
 
@@ -40,7 +42,9 @@ def too_fast_npz(tmp_path_factory) -> Path:
     q = np.tile(stand, (len(t), 1))
     q[:, 0] = -1.2 * np.sin(6.0 * t) ** 2
     n = len(t)
-    traj = RobotTrajectory(joint_names("op3"), q, np.tile([0, 0, 0.27], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), 30.0, "op3")
+    traj = RobotTrajectory(
+        joint_names("op3"), q, np.tile([0, 0, 0.27], (n, 1)), np.tile([1.0, 0, 0, 0], (n, 1)), 30.0, "op3"
+    )
     return traj.save_npz(tmp_path_factory.mktemp("traj") / "too_fast.npz")
 
 
@@ -54,23 +58,29 @@ def test_render_side_by_side_mp4(wave_npz, tmp_path):
     actor = Motion(np.tile(REST_POSE, (31, 1, 1)) + (1.5, 0, 0), 30.0)
     reactor = Motion(np.tile(REST_POSE, (31, 1, 1)), 30.0)
     out = tmp_path / "duet.mp4"
-    path, result = _render(wave_npz, out, RenderConfig(width=160, height=128, fps=10, side_by_side=True),
-                           actor=actor, reactor=reactor)
+    path, result = _render(
+        wave_npz, out, RenderConfig(width=160, height=128, fps=10, side_by_side=True), actor=actor, reactor=reactor
+    )
     assert path == out and result.passed
     frames = [f for f in imageio.get_reader(out)]
     assert len(frames) == 11  # 1 s at 10 fps, both ends
     assert frames[0].shape == (128, 3 * 160, 3)
     # each panel shows something besides the floor and sky: the figures are drawn
     for panel in range(3):
-        img = frames[5][:, panel * 160:(panel + 1) * 160].astype(float)
+        img = frames[5][:, panel * 160 : (panel + 1) * 160].astype(float)
         assert img.std() > 10
     assert not list(tmp_path.glob("*partial*"))
 
 
 def test_render_kinematic_camera_moves_the_view(wave_npz, tmp_path):
     a, _ = _render(wave_npz, tmp_path / "a.mp4", RenderConfig(width=128, height=96, fps=5, playback="kinematic"))
-    b, _ = _render(wave_npz, tmp_path / "b.mp4", RenderConfig(width=128, height=96, fps=5, playback="kinematic",
-                                                              camera=CameraConfig(azimuth=90.0, elevation=-40.0)))
+    b, _ = _render(
+        wave_npz,
+        tmp_path / "b.mp4",
+        RenderConfig(
+            width=128, height=96, fps=5, playback="kinematic", camera=CameraConfig(azimuth=90.0, elevation=-40.0)
+        ),
+    )
     fa, fb = imageio.get_reader(a).get_data(0), imageio.get_reader(b).get_data(0)
     assert fa.shape == (96, 128, 3)
     assert np.abs(fa.astype(float) - fb.astype(float)).mean() > 5
@@ -97,8 +107,14 @@ def test_cli_check_pass_and_fail(wave_npz, too_fast_npz, tmp_path, capsys):
 
 def test_cli_view_without_display_says_so(wave_npz):
     env = {k: v for k, v in __import__("os").environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    out = subprocess.run([sys.executable, "-m", "ros_free_bridge", "view", str(wave_npz)], capture_output=True,
-                         text=True, cwd=ROOT, env=env, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "ros_free_bridge", "view", str(wave_npz)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env=env,
+        timeout=120,
+    )
     assert out.returncode == 2
     assert "no display" in out.stderr and "render" in out.stderr
     assert "Traceback" not in out.stderr

@@ -18,21 +18,66 @@ from firmware_cfg.registry import bundled_names, joint_limits, joint_names, reso
 from sim.scene import Scene, SceneConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-OP3_IDS = ("r_sho_pitch", "l_sho_pitch", "r_sho_roll", "l_sho_roll", "r_el", "l_el", "r_hip_yaw", "l_hip_yaw",
-           "r_hip_roll", "l_hip_roll", "r_hip_pitch", "l_hip_pitch", "r_knee", "l_knee", "r_ank_pitch",
-           "l_ank_pitch", "r_ank_roll", "l_ank_roll", "head_pan", "head_tilt")
+OP3_IDS = (
+    "r_sho_pitch",
+    "l_sho_pitch",
+    "r_sho_roll",
+    "l_sho_roll",
+    "r_el",
+    "l_el",
+    "r_hip_yaw",
+    "l_hip_yaw",
+    "r_hip_roll",
+    "l_hip_roll",
+    "r_hip_pitch",
+    "l_hip_pitch",
+    "r_knee",
+    "l_knee",
+    "r_ank_pitch",
+    "l_ank_pitch",
+    "r_ank_roll",
+    "l_ank_roll",
+    "head_pan",
+    "head_tilt",
+)
 #: Retarget keypoint sites every bundled humanoid with legs has (its profile names them).
-KEYPOINT_SITES = ("pelvis", "torso", "head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_hand", "r_hand",
-                  "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle", "l_foot", "r_foot", "l_toe", "r_toe")
+KEYPOINT_SITES = (
+    "pelvis",
+    "torso",
+    "head",
+    "l_shoulder",
+    "r_shoulder",
+    "l_elbow",
+    "r_elbow",
+    "l_hand",
+    "r_hand",
+    "l_hip",
+    "r_hip",
+    "l_knee",
+    "r_knee",
+    "l_ankle",
+    "r_ankle",
+    "l_foot",
+    "r_foot",
+    "l_toe",
+    "r_toe",
+)
 PI = math.pi
 #: ROBOTIS's software limits (op3_kinematics_dynamics) for the head and the LEFT side, in
 #: ROBOTIS's axes; the knee widened to 0.8 pi for ROBOTIS's sitting pose (op3.xml header).
 #: A right joint's range is the left one mirrored: (-upper, -lower).
 ROBOTIS_LIMITS = {
-    "head_pan": (-0.5 * PI, 0.5 * PI), "head_tilt": (-0.5 * PI, 0.5 * PI),
-    "sho_pitch": (-0.5 * PI, 0.5 * PI), "sho_roll": (-0.3 * PI, 0.5 * PI), "el": (-0.5 * PI, 0.5 * PI),
-    "hip_yaw": (-0.45 * PI, 0.45 * PI), "hip_roll": (-0.3 * PI, 0.3 * PI), "hip_pitch": (-0.4 * PI, 0.4 * PI),
-    "knee": (-0.1 * PI, 0.8 * PI), "ank_pitch": (-0.45 * PI, 0.45 * PI), "ank_roll": (-0.45 * PI, 0.45 * PI),
+    "head_pan": (-0.5 * PI, 0.5 * PI),
+    "head_tilt": (-0.5 * PI, 0.5 * PI),
+    "sho_pitch": (-0.5 * PI, 0.5 * PI),
+    "sho_roll": (-0.3 * PI, 0.5 * PI),
+    "el": (-0.5 * PI, 0.5 * PI),
+    "hip_yaw": (-0.45 * PI, 0.45 * PI),
+    "hip_roll": (-0.3 * PI, 0.3 * PI),
+    "hip_pitch": (-0.4 * PI, 0.4 * PI),
+    "knee": (-0.1 * PI, 0.8 * PI),
+    "ank_pitch": (-0.45 * PI, 0.45 * PI),
+    "ank_roll": (-0.45 * PI, 0.45 * PI),
 }
 
 
@@ -87,7 +132,9 @@ def test_op3_limits_are_robotis_limits_mirrored_on_the_right():
     limits = joint_limits("op3")
     for joint, (lo, hi) in limits.items():
         key = joint if joint.startswith("head") else joint[2:]
-        expect = ROBOTIS_LIMITS[key] if not joint.startswith("r_") else (-ROBOTIS_LIMITS[key][1], -ROBOTIS_LIMITS[key][0])
+        expect = (
+            ROBOTIS_LIMITS[key] if not joint.startswith("r_") else (-ROBOTIS_LIMITS[key][1], -ROBOTIS_LIMITS[key][0])
+        )
         assert (lo, hi) == pytest.approx(expect, abs=1e-6), joint
 
 
@@ -133,8 +180,17 @@ def test_op3_axis_conventions(op3):
     assert _site_in_body_frame(op3, "l_foot", "body_link", {"l_hip_roll": -0.3})[1] > 0.1
     assert _site_in_body_frame(op3, "r_foot", "body_link", {"r_hip_roll": 0.3})[1] < -0.1
     # mirror symmetry: opposite values on the two sides give mirror-image sites
-    pose = {"sho_pitch": 0.3, "sho_roll": 0.7, "el": 0.4, "hip_yaw": 0.2, "hip_roll": 0.15, "hip_pitch": -0.4,
-            "knee": 0.8, "ank_pitch": -0.3, "ank_roll": 0.1}
+    pose = {
+        "sho_pitch": 0.3,
+        "sho_roll": 0.7,
+        "el": 0.4,
+        "hip_yaw": 0.2,
+        "hip_roll": 0.15,
+        "hip_pitch": -0.4,
+        "knee": 0.8,
+        "ank_pitch": -0.3,
+        "ank_roll": 0.1,
+    }
     both = {**{f"l_{k}": v for k, v in pose.items()}, **{f"r_{k}": -v for k, v in pose.items()}}
     for site in ("hand", "elbow", "knee", "ankle", "foot", "toe"):
         left = _site_in_body_frame(op3, f"l_{site}", "body_link", both)
@@ -186,8 +242,10 @@ def test_unknown_robot_is_a_clear_error():
 
 
 def test_importing_sim_does_not_import_mujoco_or_torch():
-    code = ("import sys, sim, firmware_cfg.registry as r; r.joint_limits('op3'); "
-            "print('mujoco' in sys.modules, 'torch' in sys.modules)")
+    code = (
+        "import sys, sim, firmware_cfg.registry as r; r.joint_limits('op3'); "
+        "print('mujoco' in sys.modules, 'torch' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.split() == ["False", "False"]
 

@@ -37,10 +37,16 @@ def op3():
 def test_the_op3s_legs_are_found_with_their_ankle_and_hip_joints(op3):
     scene, model = op3
     names = scene.robot.joint_names
-    roles = {leg.side: {k: names[getattr(leg, k)] for k in ("ankle_pitch", "ankle_roll", "hip_pitch", "hip_roll")}
-             for leg in model.legs}
-    assert roles["right"] == {"ankle_pitch": "r_ank_pitch", "ankle_roll": "r_ank_roll", "hip_pitch": "r_hip_pitch",
-                              "hip_roll": "r_hip_roll"}
+    roles = {
+        leg.side: {k: names[getattr(leg, k)] for k in ("ankle_pitch", "ankle_roll", "hip_pitch", "hip_roll")}
+        for leg in model.legs
+    }
+    assert roles["right"] == {
+        "ankle_pitch": "r_ank_pitch",
+        "ankle_roll": "r_ank_roll",
+        "hip_pitch": "r_hip_pitch",
+        "hip_roll": "r_hip_roll",
+    }
     assert roles["left"]["ankle_pitch"] == "l_ank_pitch" and roles["left"]["hip_roll"] == "l_hip_roll"
     assert 3.0 < model.mass < 3.3 and 0.15 < model.com_height < 0.35
 
@@ -116,8 +122,9 @@ def test_the_check_runs_the_stabilizer_by_default_and_not_with_it_off():
     scene = Scene()
     n = scene.robot.n
     q = np.tile(scene.stand_ctrl, (150, 1))
-    traj = RobotTrajectory(scene.robot.joint_names, q, np.zeros((150, 3)), np.tile([1.0, 0, 0, 0], (150, 1)), 50.0,
-                           "op3")
+    traj = RobotTrajectory(
+        scene.robot.joint_names, q, np.zeros((150, 3)), np.tile([1.0, 0, 0, 0], (150, 1)), 50.0, "op3"
+    )
     on = check_trajectory(traj, CheckConfig(), robot="op3")
     off = check_trajectory(traj, CheckConfig(stabilizer=False), robot="op3")
     assert on.passed and off.passed
@@ -141,8 +148,14 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     tr = SimTransport("op3", clock="lockstep")
     buf = TargetBuffer(30.0)
     tel = TelemetryWriter(tmp_path / "t.dftl", limits.names, 100.0)
-    loop = ControlLoop(tr, limits, buf, LoopConfig(handle_signals=False, min_ramp=0.3), tel,
-                       balance=balance_model("op3", joint_names=tuple(limits.names)))
+    loop = ControlLoop(
+        tr,
+        limits,
+        buf,
+        LoopConfig(handle_signals=False, min_ramp=0.3),
+        tel,
+        balance=balance_model("op3", joint_names=tuple(limits.names)),
+    )
     assert loop.stabilizer is not None
 
     def produce():

@@ -33,7 +33,7 @@ def _run(model, actor, chunks=1, **cfg):
     config = StreamConfig(**{"window": 16, "steps": 3, "seed": 5, **cfg})
     s = ReactiveStreamer(model, config, Conditions(text=torch.ones(1, 384)))
     for k in range(0, actor.shape[0], chunks):
-        s.push(actor[k:k + chunks])
+        s.push(actor[k : k + chunks])
     s.flush()
     return s
 
@@ -102,7 +102,7 @@ def test_stream_equals_single_pass_generation_while_it_fits_in_one_window(model,
     actor = _actor()
     s = ReactiveStreamer(model, StreamConfig(window=N + 4, steps=3, seed=4, hop=hop))
     for k in range(0, N, chunks):
-        s.push(actor[k:k + chunks])
+        s.push(actor[k : k + chunks])
     s.flush()
     assert len(s.timing.windows) > 2  # several windows, each with its own context
     _, offline = generate(model, N, mode="reactive", x_actor=actor[None], steps=3, noise=stream_noise(4, N)[None])
@@ -110,7 +110,7 @@ def test_stream_equals_single_pass_generation_while_it_fits_in_one_window(model,
     # Straight-path re-noising of the context (classic inpainting) is only approximately so.
     p = ReactiveStreamer(model, StreamConfig(window=N + 4, steps=3, seed=4, hop=hop, context="path"))
     for k in range(0, N, chunks):
-        p.push(actor[k:k + chunks])
+        p.push(actor[k : k + chunks])
     p.flush()
     assert not torch.allclose(p.emitted, offline[0], atol=1e-3)
 
@@ -219,8 +219,10 @@ def test_window_frame_maps_a_turned_displaced_person_to_the_origin_facing_plus_z
 def test_streaming_with_window_frames_is_equivariant_to_moving_the_whole_scene(model):
     """Turning and shifting the actor's whole stream turns and shifts the reactor the same way."""
     g = torch.Generator().manual_seed(3)
-    stats = NormStats(mean=0.1 * torch.randn(262, generator=g).double().numpy(),
-                      std=(0.5 + torch.rand(262, generator=g)).double().numpy())
+    stats = NormStats(
+        mean=0.1 * torch.randn(262, generator=g).double().numpy(),
+        std=(0.5 + torch.rand(262, generator=g)).double().numpy(),
+    )
     raw = _raw_actor()
     moved = _yaw_shift(raw, 2.0, [1.5, 0.0, -0.7])
 
@@ -236,8 +238,11 @@ def test_streaming_with_window_frames_is_equivariant_to_moving_the_whole_scene(m
     plain = ReactiveStreamer(model, StreamConfig(window=16, steps=3, hop=4))
     plain.push(torch.from_numpy(stats.normalize(moved.numpy())).float())
     plain.flush()
-    assert not torch.allclose(torch.from_numpy(stats.denormalize(plain.emitted.double().numpy())),
-                              _yaw_shift(out, 2.0, [1.5, 0.0, -0.7]), atol=1e-2)
+    assert not torch.allclose(
+        torch.from_numpy(stats.denormalize(plain.emitted.double().numpy())),
+        _yaw_shift(out, 2.0, [1.5, 0.0, -0.7]),
+        atol=1e-2,
+    )
 
 
 def test_causality_holds_with_window_frames(model):
@@ -256,4 +261,4 @@ def test_causality_holds_with_window_frames(model):
     changed[14:] = _raw_actor(N - 14, seed=4).float()
     out = run(changed)
     assert torch.equal(out[: 14 - L], ref[: 14 - L])
-    assert not torch.allclose(out[14 - L:], ref[14 - L:])
+    assert not torch.allclose(out[14 - L :], ref[14 - L :])

@@ -66,11 +66,13 @@ def test_minilm_embeddings_are_unit_384d_and_batch_independent(minilm):
 
 
 def test_minilm_is_semantic(minilm):
-    a, b, c = minilm.encode([
-        "The two dancers hold hands and turn together.",
-        "Holding hands, the partners spin as a pair.",
-        "The stock market fell sharply on Tuesday.",
-    ])
+    a, b, c = minilm.encode(
+        [
+            "The two dancers hold hands and turn together.",
+            "Holding hands, the partners spin as a pair.",
+            "The stock market fell sharply on Tuesday.",
+        ]
+    )
     assert a @ b > a @ c + 0.3
 
 
@@ -118,8 +120,12 @@ def test_cache_rejects_a_corrupt_or_foreign_file(tmp_path, minilm):
     cached.path.write_bytes(b"not an npz")
     with pytest.raises(DualFlowError, match="delete"):
         CachedTextEncoder(_Counting(), tmp_path)
-    np.savez(cached.path, keys=np.array(["x" * 64]), embeddings=np.zeros((1, 8), np.float32),
-             encoder_id=np.array("some-other-encoder"))
+    np.savez(
+        cached.path,
+        keys=np.array(["x" * 64]),
+        embeddings=np.zeros((1, 8), np.float32),
+        encoder_id=np.array("some-other-encoder"),
+    )
     with pytest.raises(DualFlowError, match="belongs"):
         CachedTextEncoder(_Counting(), tmp_path)
 

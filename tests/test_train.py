@@ -50,7 +50,9 @@ def state_of(model: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 def test_config_file_and_overrides(tmp_path):
     path = tmp_path / "c.yaml"
-    path.write_text("preset: tiny\nlr: 3e-4\nsteps: 7\nmodel: {width: 48}\ndata: {n_clips: 5, rules: [mirror, orbit]}\n")
+    path.write_text(
+        "preset: tiny\nlr: 3e-4\nsteps: 7\nmodel: {width: 48}\ndata: {n_clips: 5, rules: [mirror, orbit]}\n"
+    )
     cfg = load_train_config(path, ["steps=9", "data.frames=20", "model.n_heads=4"])
     assert cfg.lr == pytest.approx(3e-4) and isinstance(cfg.lr, float)  # YAML reads 3e-4 as a string
     assert cfg.steps == 9 and cfg.model == {"width": 48, "n_heads": 4}
@@ -97,7 +99,12 @@ def test_warmup_is_linear_then_constant():
 
 
 def test_text_embedding_is_deterministic_and_reflects_words():
-    texts = ["the partner mirrors the leader", "the partner mirrors the leader", "the partner circles around the leader", ""]
+    texts = [
+        "the partner mirrors the leader",
+        "the partner mirrors the leader",
+        "the partner circles around the leader",
+        "",
+    ]
     e = template_text_embedding(texts, 64)
     assert e.shape == (4, 64) and e.dtype == np.float32
     np.testing.assert_array_equal(e[0], e[1])
@@ -117,7 +124,7 @@ def test_dataset_is_normalised_with_training_stats():
     assert train_ds.actor.shape == (8, 16, 262) and train_ds.text.shape == (8, 32)
     np.testing.assert_allclose(stats.denormalize(train_ds.reactor.numpy()), raw[:, :, 1], atol=1e-4)
     pooled = np.concatenate([train_ds.actor.numpy(), train_ds.reactor.numpy()]).reshape(-1, 262)
-    assert np.abs(pooled.mean(axis=0)).max() < 1e-3          # training stats centre the training set
+    assert np.abs(pooled.mean(axis=0)).max() < 1e-3  # training stats centre the training set
     assert val_ds is not None and len(val_ds) == 4
     assert not np.array_equal(val_ds.actor.numpy()[0], train_ds.actor.numpy()[0])  # disjoint seeds
     assert [int(r) for r in train_ds.rule] == [0, 1, 2, 3, 0, 1, 2, 3]
@@ -155,10 +162,22 @@ def test_checkpoint_round_trip_without_pickle(tmp_path):
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
     model(torch.randn(1, 8, 262), torch.randn(1, 8, 262), 0.5)[1].sum().backward()
     opt.step()
-    path = save_checkpoint(tmp_path / "ck", model=model, stats=stats, meta={"text_encoder": TEXT_ENCODER_ID},
-                           optimizer=opt, trainer_state={"step": 3})
+    path = save_checkpoint(
+        tmp_path / "ck",
+        model=model,
+        stats=stats,
+        meta={"text_encoder": TEXT_ENCODER_ID},
+        optimizer=opt,
+        trainer_state={"step": 3},
+    )
     names = sorted(p.name for p in path.iterdir())
-    assert names == ["config.json", "model.safetensors", "norm_stats.npz", "optimizer.safetensors", "trainer_state.json"]
+    assert names == [
+        "config.json",
+        "model.safetensors",
+        "norm_stats.npz",
+        "optimizer.safetensors",
+        "trainer_state.json",
+    ]
     # no pickle anywhere: npz members are plain .npy arrays that load with allow_pickle=False
     with zipfile.ZipFile(path / "norm_stats.npz") as z:
         assert sorted(z.namelist()) == ["mean.npy", "std.npy"]
@@ -234,7 +253,7 @@ def test_training_writes_log_checkpoints_and_ema_export(tmp_path):
     assert final.meta["weights"] == "ema" and final.meta["synthetic"] is True and final.meta["step"] == 6
     # the export holds the EMA weights, which differ from the raw weights of the last step
     last = load_checkpoint(tmp_path / "checkpoints" / "step_0000006")
-    ema = {k[len("module."):]: v for k, v in last.ema_state.items() if k.startswith("module.")}
+    ema = {k[len("module.") :]: v for k, v in last.ema_state.items() if k.startswith("module.")}
     for k, v in final.state_dict.items():
         torch.testing.assert_close(v, ema[k], rtol=0, atol=0)
     assert any(not torch.equal(v, last.state_dict[k]) for k, v in final.state_dict.items())
@@ -294,8 +313,23 @@ def test_cli_trains(tmp_path, capsys):
 
     cfg = tmp_path / "c.yaml"
     cfg.write_text("\n".join(s.replace("=", ": ", 1) for s in FAST if "." not in s.split("=")[0]) + "\n")
-    rc = main(["train", "--config", str(cfg), "--set", "data.n_clips=4", "--set", "data.frames=12",
-               "--set", "data.val_clips=0", "--steps", "2", "--out-dir", str(tmp_path / "out")])
+    rc = main(
+        [
+            "train",
+            "--config",
+            str(cfg),
+            "--set",
+            "data.n_clips=4",
+            "--set",
+            "data.frames=12",
+            "--set",
+            "data.val_clips=0",
+            "--steps",
+            "2",
+            "--out-dir",
+            str(tmp_path / "out"),
+        ]
+    )
     assert rc == 0
     assert "trained to step 2" in capsys.readouterr().out
     model, ck = load_model(tmp_path / "out" / "final")
@@ -341,4 +375,6 @@ def test_the_text_encoder_is_recorded_and_rebuilt_from_the_checkpoint(tmp_path, 
     encoder = ck.make_text_encoder()
     assert encoder.encoder_id == ck.text_encoder
     # the training data was embedded by exactly this encoder
-    np.testing.assert_allclose(encoder.encode(trainer.train_set.texts[:3]), trainer.train_set.text[:3].numpy(), atol=1e-5)
+    np.testing.assert_allclose(
+        encoder.encode(trainer.train_set.texts[:3]), trainer.train_set.text[:3].numpy(), atol=1e-5
+    )

@@ -22,8 +22,19 @@ from dualflow.synthetic import make_duet
 from dualflow.train import Trainer, load_train_config
 
 FRAMES = 12
-FAST = ["preset=tiny", f"data.frames={FRAMES}", "batch_size=2", "threads=1", "progress=false", "log_every=1",
-        "ckpt_every=0", "lr=1e-3", "warmup_steps=1", "ema_decay=0.9", "steps=2"]
+FAST = [
+    "preset=tiny",
+    f"data.frames={FRAMES}",
+    "batch_size=2",
+    "threads=1",
+    "progress=false",
+    "log_every=1",
+    "ckpt_every=0",
+    "lr=1e-3",
+    "warmup_steps=1",
+    "ema_decay=0.9",
+    "steps=2",
+]
 
 
 def make_bvh_pairs(root: Path) -> None:
@@ -50,8 +61,9 @@ def test_trainer_trains_on_each_real_layout(tmp_path, name):
     root = tmp_path / "data"
     root.mkdir()
     make(root)
-    cfg = load_train_config(None, FAST + [f"data.dataset={name}", f"data.root={root}", f"out_dir={tmp_path / 'run'}"]
-                            + extra)
+    cfg = load_train_config(
+        None, FAST + [f"data.dataset={name}", f"data.root={root}", f"out_dir={tmp_path / 'run'}"] + extra
+    )
     trainer = Trainer(cfg)
     # the windows it trains on are the loader's clips cut into FRAMES-row windows
     options = {"music": "jukebox"} if name == "mdd" else {}
@@ -73,13 +85,16 @@ def test_trainer_trains_on_each_real_layout(tmp_path, name):
     assert meta["data"]["dataset"] == name and meta["data"]["root"] == str(root) and meta["synthetic"] is False
 
 
-@pytest.mark.parametrize("overrides,match", [
-    (["data.dataset=interhumann", "data.root=ROOT"], r"data\.dataset: unknown dataset 'interhumann'"),
-    (["data.dataset=dd100"], r"data\.root: dataset 'dd100' needs its folder"),
-    (["data.dataset=dd100", "data.root=ROOT/nowhere"], r"data\.root: .*nowhere is not a folder"),
-    (["data.root=ROOT"], r"data\.dataset 'synthetic' is generated"),
-    (["data.dataset=dd100", "data.root=ROOT", "data.splits=[a, b, c]"], r"data\.splits must be"),
-])
+@pytest.mark.parametrize(
+    "overrides,match",
+    [
+        (["data.dataset=interhumann", "data.root=ROOT"], r"data\.dataset: unknown dataset 'interhumann'"),
+        (["data.dataset=dd100"], r"data\.root: dataset 'dd100' needs its folder"),
+        (["data.dataset=dd100", "data.root=ROOT/nowhere"], r"data\.root: .*nowhere is not a folder"),
+        (["data.root=ROOT"], r"data\.dataset 'synthetic' is generated"),
+        (["data.dataset=dd100", "data.root=ROOT", "data.splits=[a, b, c]"], r"data\.splits must be"),
+    ],
+)
 def test_wrong_dataset_or_root_names_the_field(tmp_path, overrides, match):
     overrides = [o.replace("ROOT", str(tmp_path)) for o in overrides]
     with pytest.raises(DualFlowError, match=match):
@@ -94,8 +109,17 @@ def test_a_root_in_the_wrong_layout_names_the_missing_folder(tmp_path):
 
 def test_music_the_data_lacks_is_a_clear_error(tmp_path):
     make_interhuman(tmp_path)
-    cfg = load_train_config(None, FAST + ["data.dataset=interhuman", f"data.root={tmp_path}", "music=edge35",
-                                          "model.music_dim=35", f"out_dir={tmp_path / 'r'}"])
+    cfg = load_train_config(
+        None,
+        FAST
+        + [
+            "data.dataset=interhuman",
+            f"data.root={tmp_path}",
+            "music=edge35",
+            "model.music_dim=35",
+            f"out_dir={tmp_path / 'r'}",
+        ],
+    )
     with pytest.raises(DualFlowError, match="music 'edge35': this training data has only the beat track"):
         Trainer(cfg)
     with pytest.raises(DualFlowError, match=r"music 'duolando54' gives 54-d features; set model.music_dim: 54"):
@@ -108,8 +132,9 @@ def test_music_the_data_lacks_is_a_clear_error(tmp_path):
 @pytest.mark.slow
 def test_spectral_music_on_synthetic_duets_is_a_click_track(tmp_path):
     """music: edge35 on the synthetic duets: the EDGE features of a click track at the clip's beats."""
-    cfg = load_train_config(None, FAST + ["data.n_clips=3", "data.val_clips=0", "music=edge35", "model.music_dim=35",
-                                          f"out_dir={tmp_path}"])
+    cfg = load_train_config(
+        None, FAST + ["data.n_clips=3", "data.val_clips=0", "music=edge35", "model.music_dim=35", f"out_dir={tmp_path}"]
+    )
     trainer = Trainer(cfg)
     music = trainer.train_set.music.numpy()
     assert music.shape == (3, FRAMES, 35) and trainer.train_set.music_kind == "edge35"
@@ -117,7 +142,7 @@ def test_spectral_music_on_synthetic_duets_is_a_click_track(tmp_path):
     for m, beats in zip(music, trainer.train_set.beats.numpy()):
         for b in np.flatnonzero(beats[:, 0] > 0.5):
             if 1 <= b < FRAMES - 2:
-                assert m[b:b + 3, 0].max() > 2 * np.median(m[:, 0]) + 1e-6
+                assert m[b : b + 3, 0].max() > 2 * np.median(m[:, 0]) + 1e-6
     assert np.isfinite(trainer.run().loss)
     # the evaluation feeds such a checkpoint the same click-track features of the test windows
     data = EvalSet.from_duet_set(load_dataset("synthetic", None, "test", n_clips=2, frames=FRAMES), FRAMES)

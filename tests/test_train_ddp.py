@@ -13,17 +13,37 @@ from safetensors.torch import load_file
 from dualflow.train import Trainer, load_train_config
 
 ARGS = [
-    "preset=tiny", "data.n_clips=8", "data.val_clips=0", "data.frames=16", "batch_size=3", "steps=4",
-    "threads=1", "progress=false", "log_every=1", "ckpt_every=0", "lr=1e-3", "warmup_steps=2",
-    "ema_decay=0", "reactive_prob=0.5", "save_replicas=true",
+    "preset=tiny",
+    "data.n_clips=8",
+    "data.val_clips=0",
+    "data.frames=16",
+    "batch_size=3",
+    "steps=4",
+    "threads=1",
+    "progress=false",
+    "log_every=1",
+    "ckpt_every=0",
+    "lr=1e-3",
+    "warmup_steps=2",
+    "ema_decay=0",
+    "reactive_prob=0.5",
+    "save_replicas=true",
 ]
 
 
 @pytest.mark.slow
 def test_two_gloo_processes_keep_identical_replicas(tmp_path):
     out = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "dualflow.train"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        "-m",
+        "dualflow.train",
+    ]
     for a in ARGS + [f"out_dir={out}"]:
         cmd += ["--set", a]
     env = dict(os.environ, OMP_NUM_THREADS="1")

@@ -20,11 +20,29 @@ from dualflow.evaluation import reactor_errors
 from dualflow.train import Trainer, load_train_config
 
 LEARNING_RUN = [
-    "preset=tiny", "model.width=64", "model.ff_dim=128", "model.n_heads=4", "model.prediction=x0",
-    "data.n_clips=256", "data.val_clips=32", "data.frames=30",
-    "steps=400", "batch_size=16", "lr=1e-3", "warmup_steps=20", "ema_decay=0", "reactive_prob=1.0",
-    "losses=flow", "time_sampler=logit_normal", "time_mean=-0.8", "time_std=0.8",
-    "threads=1", "progress=false", "ckpt_every=0", "log_every=50", "seed=0",
+    "preset=tiny",
+    "model.width=64",
+    "model.ff_dim=128",
+    "model.n_heads=4",
+    "model.prediction=x0",
+    "data.n_clips=256",
+    "data.val_clips=32",
+    "data.frames=30",
+    "steps=400",
+    "batch_size=16",
+    "lr=1e-3",
+    "warmup_steps=20",
+    "ema_decay=0",
+    "reactive_prob=1.0",
+    "losses=flow",
+    "time_sampler=logit_normal",
+    "time_mean=-0.8",
+    "time_std=0.8",
+    "threads=1",
+    "progress=false",
+    "ckpt_every=0",
+    "log_every=50",
+    "seed=0",
 ]
 
 

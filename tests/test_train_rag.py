@@ -28,9 +28,23 @@ from dualflow.retrieval import (
 )
 from dualflow.train import Trainer, load_train_config
 
-FAST = ["preset=tiny", "data.n_clips=12", "data.val_clips=2", "data.frames=12", "batch_size=4", "threads=1",
-        "progress=false", "log_every=1", "ckpt_every=2", "lr=1e-3", "warmup_steps=1", "ema_decay=0.9",
-        "music=beats", "model.music_dim=4", "retrieval.enabled=true"]
+FAST = [
+    "preset=tiny",
+    "data.n_clips=12",
+    "data.val_clips=2",
+    "data.frames=12",
+    "batch_size=4",
+    "threads=1",
+    "progress=false",
+    "log_every=1",
+    "ckpt_every=2",
+    "lr=1e-3",
+    "warmup_steps=1",
+    "ema_decay=0.9",
+    "music=beats",
+    "model.music_dim=4",
+    "retrieval.enabled=true",
+]
 
 
 def rag_config(tmp_path, *extra: str):
@@ -69,9 +83,20 @@ def test_training_neighbours_never_include_the_query_window(tmp_path):
 def test_windows_of_the_query_clip_are_all_excluded(tmp_path):
     """A windowed dataset: several windows per clip share its text, and none of them is retrieved."""
     make_interhuman(tmp_path / "ih", n=4)
-    trainer = Trainer(load_train_config(None, FAST[:-4] + [
-        "data.dataset=interhuman", f"data.root={tmp_path / 'ih'}", "data.frames=8", "data.stride=4",
-        "retrieval.enabled=true", f"out_dir={tmp_path / 'r'}"]))
+    trainer = Trainer(
+        load_train_config(
+            None,
+            FAST[:-4]
+            + [
+                "data.dataset=interhuman",
+                f"data.root={tmp_path / 'ih'}",
+                "data.frames=8",
+                "data.stride=4",
+                "retrieval.enabled=true",
+                f"out_dir={tmp_path / 'r'}",
+            ],
+        )
+    )
     groups = trainer.train_set.groups
     assert len(groups) > len(set(groups.tolist())) >= 2  # several windows per clip
     for cue, idx in trainer.retriever.table.indices.items():
@@ -85,14 +110,18 @@ def test_neighbour_table_scores_by_eq1_and_excludes_groups():
     emb = rng.normal(size=(6, 8)).astype(np.float32)
     emb[1] = emb[0]  # entry 1 duplicates entry 0 (same clip) ...
     emb[2] = emb[0] + 0.01  # ... entry 2 is a near copy from another clip
-    db = RetrievalDatabase(np.zeros((6, 4, 2, 262), np.float32), np.full(6, 4), {"body": emb},
-                           [f"c{i}" for i in range(6)])
+    db = RetrievalDatabase(
+        np.zeros((6, 4, 2, 262), np.float32), np.full(6, 4), {"body": emb}, [f"c{i}" for i in range(6)]
+    )
     groups = np.array([0, 0, 1, 2, 3, 4])
-    t = NeighbourTable.compute(db, {"body": db.embeddings["body"]}, db.lengths, 3, query_groups=groups, db_groups=groups)
+    t = NeighbourTable.compute(
+        db, {"body": db.embeddings["body"]}, db.lengths, 3, query_groups=groups, db_groups=groups
+    )
     assert t.indices["body"][0, 0] == 2 and 1 not in t.indices["body"][0]
     with pytest.raises(DualFlowError, match="one clip"):
-        NeighbourTable.compute(db, {"body": db.embeddings["body"][:1]}, 4, 2, query_groups=np.zeros(1, int),
-                               db_groups=np.zeros(6, int))
+        NeighbourTable.compute(
+            db, {"body": db.embeddings["body"][:1]}, 4, 2, query_groups=np.zeros(1, int), db_groups=np.zeros(6, int)
+        )
 
 
 def test_gradients_reach_the_retrieval_encoder(tmp_path):

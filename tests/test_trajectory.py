@@ -12,8 +12,15 @@ def _traj(n=10):
     rng = np.random.default_rng(0)
     quat = rng.normal(size=(n, 4))
     quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    return RobotTrajectory(("a", "b", "c"), rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), quat, 30.0, robot="toy",
-                           meta={"source": "unit test"})
+    return RobotTrajectory(
+        ("a", "b", "c"),
+        rng.normal(size=(n, 3)),
+        rng.normal(size=(n, 3)),
+        quat,
+        30.0,
+        robot="toy",
+        meta={"source": "unit test"},
+    )
 
 
 def test_npz_round_trip_is_exact(tmp_path):
@@ -45,7 +52,9 @@ def test_csv_has_a_header_and_one_row_per_frame(tmp_path):
 )
 def test_bad_trajectories_are_rejected(kwargs, match):
     t = _traj()
-    fields = dict(joint_names=t.joint_names, joint_pos=t.joint_pos, root_pos=t.root_pos, root_quat=t.root_quat, fps=t.fps)
+    fields = dict(
+        joint_names=t.joint_names, joint_pos=t.joint_pos, root_pos=t.root_pos, root_quat=t.root_quat, fps=t.fps
+    )
     fields.update(kwargs)
     with pytest.raises(RetargetError, match=match):
         RobotTrajectory(**fields)

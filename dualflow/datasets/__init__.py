@@ -73,5 +73,14 @@ def load_dataset(name: str, root: str | Path | None = None, split: str | None = 
         raise
 
 
-__all__ = ["DuetSample", "DuetSet", "LOADERS", "load_dataset", "load_bvh_pairs", "load_dd100",
-           "load_interhuman", "load_mdd", "load_synthetic"]
+__all__ = [
+    "DuetSample",
+    "DuetSet",
+    "LOADERS",
+    "load_dataset",
+    "load_bvh_pairs",
+    "load_dd100",
+    "load_interhuman",
+    "load_mdd",
+    "load_synthetic",
+]

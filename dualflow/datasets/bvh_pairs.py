@@ -51,8 +51,9 @@ def _pairs(root: Path) -> list[tuple[str, Path, Path]]:
     return out
 
 
-def load_bvh_pairs(root: str | Path, split: str = "all", *, fps: float = 30.0, limit: int | None = None,
-                   **bvh_options) -> DuetSet:
+def load_bvh_pairs(
+    root: str | Path, split: str = "all", *, fps: float = 30.0, limit: int | None = None, **bvh_options
+) -> DuetSet:
     """Load the BVH pairs of ``root`` (module docstring); ``bvh_options`` go to ``load_pair``
     (``joint_map``, ``scale``, ``up``, ``drop_first``, ...)."""
     root = require_dir(Path(root), "BVH pairs", "pass the folder that holds pairs.txt and the .bvh files")
@@ -61,8 +62,15 @@ def load_bvh_pairs(root: str | Path, split: str = "all", *, fps: float = 30.0, l
         raise DualFlowError(f"{root}: no pairs.txt and no <take>_actor.bvh / <take>_reactor.bvh files")
     keep = None
     if split != "all":
-        keep = set(read_name_list(require_file(root / f"{split}.txt", f"split file for {split!r}",
-                                               "list the actor stems of the split, one per line, or use split='all'")))
+        keep = set(
+            read_name_list(
+                require_file(
+                    root / f"{split}.txt",
+                    f"split file for {split!r}",
+                    "list the actor stems of the split, one per line, or use split='all'",
+                )
+            )
+        )
     samples = []
     for name, a, b in pairs:
         if keep is not None and name not in keep:
@@ -72,6 +80,14 @@ def load_bvh_pairs(root: str | Path, split: str = "all", *, fps: float = 30.0, l
         text_path = root / f"{name}.txt"
         texts = tuple(read_lines(text_path)) if text_path.is_file() else ()
         pair = load_pair(a, b, texts[0] if texts else "", fps=float(fps), **bvh_options)
-        samples.append(DuetSample(source="bvh_pairs", name=name, motion=pair, texts=texts,
-                                  roles=(a.stem, b.stem), meta={"actor_file": str(a), "reactor_file": str(b)}))
+        samples.append(
+            DuetSample(
+                source="bvh_pairs",
+                name=name,
+                motion=pair,
+                texts=texts,
+                roles=(a.stem, b.stem),
+                meta={"actor_file": str(a), "reactor_file": str(b)},
+            )
+        )
     return DuetSet("bvh_pairs", split, root, samples, {})

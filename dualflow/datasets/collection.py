@@ -48,5 +48,7 @@ class DuetSet:
         if any(s.focused is not None for s in self.samples):
             extras.append("focused texts")
         more = f" ({'; '.join(extras)})" if extras else ""
-        return (f"{self.name}/{self.split}: {len(self.samples)} clips, {frames / fps / 60:.1f} min at {fps:g} fps"
-                f"{more}; {len(self.skipped)} skipped")
+        return (
+            f"{self.name}/{self.split}: {len(self.samples)} clips, {frames / fps / 60:.1f} min at {fps:g} fps"
+            f"{more}; {len(self.skipped)} skipped"
+        )

@@ -77,20 +77,28 @@ class TrainingDataConfig:
         if self.splits is not None:
             splits = (self.splits,) if isinstance(self.splits, str) else tuple(self.splits)
             if not 1 <= len(splits) <= 2 or not all(isinstance(x, str) and x for x in splits):
-                raise DualFlowError(f"data.splits must be [train] or [train, validation] split names, got {self.splits!r}")
+                raise DualFlowError(
+                    f"data.splits must be [train] or [train, validation] split names, got {self.splits!r}"
+                )
             object.__setattr__(self, "splits", splits)
         if self.stride is not None and int(self.stride) < 1:
             raise DualFlowError(f"data.stride must be >= 1 frames (or null = data.frames), got {self.stride!r}")
         if self.dataset == SYNTHETIC:
             if self.root is not None or self.splits is not None or self.options:
-                raise DualFlowError("data.dataset 'synthetic' is generated (n_clips, val_clips, rules, seed); "
-                                    "data.root, data.splits and data.options are for a real dataset")
+                raise DualFlowError(
+                    "data.dataset 'synthetic' is generated (n_clips, val_clips, rules, seed); "
+                    "data.root, data.splits and data.options are for a real dataset"
+                )
             return
         if self.root is None or not str(self.root).strip():
-            raise DualFlowError(f"data.root: dataset {self.dataset!r} needs its folder; set data.root: /path/to/{self.dataset}")
+            raise DualFlowError(
+                f"data.root: dataset {self.dataset!r} needs its folder; set data.root: /path/to/{self.dataset}"
+            )
         if not Path(self.root).expanduser().is_dir():
-            raise DualFlowError(f"data.root: {self.root} is not a folder (dataset {self.dataset!r}); "
-                                "point data.root at the dataset's top folder")
+            raise DualFlowError(
+                f"data.root: {self.root} is not a folder (dataset {self.dataset!r}); "
+                "point data.root at the dataset's top folder"
+            )
 
     @property
     def is_synthetic(self) -> bool:

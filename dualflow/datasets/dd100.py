@@ -38,22 +38,31 @@ def check_up_axis(positions_yup: np.ndarray, where: str) -> None:
     pos = np.asarray(positions_yup)
     pos = pos.reshape(len(pos), -1, 3)
     if np.mean(pos[:, 15, 1] - pos[:, 0, 1]) <= 0.1:
-        raise DualFlowError(f"{where}: the head is not above the pelvis along Y; this loader expects Y-up SMPL-X "
-                            "positions (Duolando's pos3d) — convert the file or pass up='z'")
+        raise DualFlowError(
+            f"{where}: the head is not above the pelvis along Y; this loader expects Y-up SMPL-X "
+            "positions (Duolando's pos3d) — convert the file or pass up='z'"
+        )
 
 
-def load_dd100(root: str | Path, split: str = "train", *, music: bool = True, up: str = "y",
-               limit: int | None = None) -> DuetSet:
+def load_dd100(
+    root: str | Path, split: str = "train", *, music: bool = True, up: str = "y", limit: int | None = None
+) -> DuetSet:
     """Load one split ("train" | "test") of DD100 (module docstring). up: 'y' (Duolando) or 'z'."""
     if up not in ("y", "z"):
         raise DualFlowError(f"dd100: up must be 'y' or 'z', got {up!r}")
     root = Path(root)
-    pos_dir = require_dir(root / "motion" / "pos3d" / split, f"DD100 motion/pos3d/{split}",
-                          "run Duolando's _train_test_split.py and _prepare_motion_data.py, or pass the dataset root")
+    pos_dir = require_dir(
+        root / "motion" / "pos3d" / split,
+        f"DD100 motion/pos3d/{split}",
+        "run Duolando's _train_test_split.py and _prepare_motion_data.py, or pass the dataset root",
+    )
     music_dir = root / "music" / "feature" / split
     if music:
-        require_dir(music_dir, f"DD100 music/feature/{split}",
-                    "run Duolando's _prepare_music_data.py, or load motion only with music=False")
+        require_dir(
+            music_dir,
+            f"DD100 music/feature/{split}",
+            "run Duolando's _prepare_music_data.py, or load motion only with music=False",
+        )
     takes = sorted(p.name[: -len(FOLLOWER_SUFFIX)] for p in pos_dir.glob(f"*{FOLLOWER_SUFFIX}"))
     leaders = {p.name[: -len(LEADER_SUFFIX)] for p in pos_dir.glob(f"*{LEADER_SUFFIX}")}
     if not takes and not leaders:
@@ -91,8 +100,17 @@ def load_dd100(root: str | Path, split: str = "train", *, music: bool = True, up
             continue
         pair = TwoPersonMotion(people[0].slice(0, n), people[1].slice(0, n))
         mp3 = root / "music" / "mp3" / split / f"{take}.mp3"
-        samples.append(DuetSample(source="dd100", name=take, motion=pair, music=feats,
-                                  music_kind="duolando54" if feats is not None else None,
-                                  music_path=mp3 if mp3.is_file() else None, genre=take.split("_")[0],
-                                  roles=("leader", "follower"), meta={"pos3d": str(pos_dir)}))
+        samples.append(
+            DuetSample(
+                source="dd100",
+                name=take,
+                motion=pair,
+                music=feats,
+                music_kind="duolando54" if feats is not None else None,
+                music_path=mp3 if mp3.is_file() else None,
+                genre=take.split("_")[0],
+                roles=("leader", "follower"),
+                meta={"pos3d": str(pos_dir)},
+            )
+        )
     return DuetSet("dd100", split, root, samples, skipped)

@@ -64,7 +64,11 @@ def load_array(path: Path, *, ndim: tuple[int, ...] = (2,), min_rows: int = 1) -
     except FileNotFoundError:
         raise DualFlowError(f"{path}: file not found") from None
     except ValueError as exc:
-        why = "holds Python objects (pickle), which are never loaded" if "pickle" in str(exc).lower() else f"is damaged ({exc})"
+        why = (
+            "holds Python objects (pickle), which are never loaded"
+            if "pickle" in str(exc).lower()
+            else f"is damaged ({exc})"
+        )
         raise DualFlowError(f"{path}: {why}; re-export it as a plain numeric .npy") from None
     except (OSError, EOFError) as exc:
         raise DualFlowError(f"{path}: not a readable .npy file ({exc})") from None

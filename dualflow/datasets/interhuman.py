@@ -35,8 +35,11 @@ MIN_FRAMES = 15
 
 def read_actor_labels(path: Path) -> dict[str, str]:
     """Clip name -> "person1" | "person2" (the actor) from an InterHuman-AS label file."""
-    require_file(path, "InterHuman-AS actor-reactor label file",
-                 f"put the JSON mapping clip name -> actor ('person1' or 'person2') at {path}")
+    require_file(
+        path,
+        "InterHuman-AS actor-reactor label file",
+        f"put the JSON mapping clip name -> actor ('person1' or 'person2') at {path}",
+    )
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -52,7 +55,9 @@ def read_actor_labels(path: Path) -> dict[str, str]:
         elif value in (2, "2", "person2", "p2"):
             labels[str(name)] = "person2"
         else:
-            raise DualFlowError(f"{path}, clip {name!r}: actor must be 'person1' or 'person2' (or 1 / 2), got {value!r}")
+            raise DualFlowError(
+                f"{path}, clip {name!r}: actor must be 'person1' or 'person2' (or 1 / 2), got {value!r}"
+            )
     return labels
 
 
@@ -69,12 +74,20 @@ def load_interhuman(
     actor_labels: None/False = InterHuman (person1 acts); True = ``ROOT/actor_reactor.json``;
     a path = that label file. limit: keep the first ``limit`` clips of the split file.
     """
-    root = require_dir(Path(root), "InterHuman dataset", "pass the folder that holds train.txt, motions_processed/ and annots/")
-    split_file = require_file(root / f"{split}.txt", f"split file for {split!r}",
-                              "InterGen's layout has train.txt, val.txt and test.txt in the dataset root")
+    root = require_dir(
+        Path(root), "InterHuman dataset", "pass the folder that holds train.txt, motions_processed/ and annots/"
+    )
+    split_file = require_file(
+        root / f"{split}.txt",
+        f"split file for {split!r}",
+        "InterGen's layout has train.txt, val.txt and test.txt in the dataset root",
+    )
     for person in PEOPLE:
-        require_dir(root / "motions_processed" / person, f"motions_processed/{person}",
-                    "InterGen's layout keeps each person's .npy files under motions_processed/person1|person2")
+        require_dir(
+            root / "motions_processed" / person,
+            f"motions_processed/{person}",
+            "InterGen's layout keeps each person's .npy files under motions_processed/person1|person2",
+        )
     require_dir(root / "annots", "annots", "InterGen's layout keeps one <name>.txt per clip under annots/")
     ignore = set()
     if (root / "ignore_list.txt").is_file():
@@ -99,13 +112,20 @@ def load_interhuman(
             continue
         paths = [root / "motions_processed" / p / f"{name}.npy" for p in PEOPLE]
         for p in paths:
-            require_file(p, "motion file", f"clip {name!r} is listed in {split_file.name}; restore the file or remove the line")
-        text_path = require_file(root / "annots" / f"{name}.txt", "annotation file",
-                                 f"clip {name!r} needs its descriptions in annots/{name}.txt")
+            require_file(
+                p, "motion file", f"clip {name!r} is listed in {split_file.name}; restore the file or remove the line"
+            )
+        text_path = require_file(
+            root / "annots" / f"{name}.txt",
+            "annotation file",
+            f"clip {name!r} needs its descriptions in annots/{name}.txt",
+        )
         people = [load_motion(p, source_fps=30.0) for p in paths]
         if people[0].n_frames != people[1].n_frames:
-            raise DualFlowError(f"{paths[1]}: {people[1].n_frames} frames, but {paths[0].name} of person1 has "
-                                f"{people[0].n_frames}; both people of a clip must have the same length")
+            raise DualFlowError(
+                f"{paths[1]}: {people[1].n_frames} frames, but {paths[0].name} of person1 has "
+                f"{people[0].n_frames}; both people of a clip must have the same length"
+            )
         if people[0].n_frames < int(min_frames):
             skipped[name] = f"shorter than {min_frames} frames"
             continue
@@ -113,9 +133,19 @@ def load_interhuman(
         if not texts:
             raise DualFlowError(f"{text_path}: empty annotation file; write at least one description")
         actor_i = 0 if labels is None or labels[name] == "person1" else 1
-        pair = TwoPersonMotion(people[actor_i].replace(name=f"{name}_{PEOPLE[actor_i]}"),
-                               people[1 - actor_i].replace(name=f"{name}_{PEOPLE[1 - actor_i]}"), texts[0])
-        samples.append(DuetSample(source=source, name=name, motion=pair, texts=tuple(texts),
-                                  roles=(PEOPLE[actor_i], PEOPLE[1 - actor_i]),
-                                  meta={"files": [str(p) for p in paths], "annots": str(text_path)}))
+        pair = TwoPersonMotion(
+            people[actor_i].replace(name=f"{name}_{PEOPLE[actor_i]}"),
+            people[1 - actor_i].replace(name=f"{name}_{PEOPLE[1 - actor_i]}"),
+            texts[0],
+        )
+        samples.append(
+            DuetSample(
+                source=source,
+                name=name,
+                motion=pair,
+                texts=tuple(texts),
+                roles=(PEOPLE[actor_i], PEOPLE[1 - actor_i]),
+                meta={"files": [str(p) for p in paths], "annots": str(text_path)},
+            )
+        )
     return DuetSet(source, split, root, samples, skipped)

@@ -33,8 +33,15 @@ MUSIC_FOLDERS = {"feature": ("feature", "duolando54", 54), "jukebox": ("Juke_fea
 FOCUSED_FOLDERS = ("spatial", "body_move", "rhythm")
 
 
-def load_mdd(root: str | Path, split: str = "train", *, music: str | None = "feature", fps: float = 30.0,
-             source_fps: float = SOURCE_FPS, limit: int | None = None) -> DuetSet:
+def load_mdd(
+    root: str | Path,
+    split: str = "train",
+    *,
+    music: str | None = "feature",
+    fps: float = 30.0,
+    source_fps: float = SOURCE_FPS,
+    limit: int | None = None,
+) -> DuetSet:
     """Load one split of MDD (module docstring). music: "feature" (54-d) | "jukebox" (4800-d) | None."""
     if music is not None and music not in MUSIC_FOLDERS:
         raise DualFlowError(f"mdd: music must be one of {sorted(MUSIC_FOLDERS)} or None, got {music!r}")
@@ -43,15 +50,24 @@ def load_mdd(root: str | Path, split: str = "train", *, music: str | None = "fea
         raise DualFlowError(f"mdd: fps {fps:g} must divide the capture rate {source_fps:g} (e.g. 30, 60, 120)")
     skip = int(round(skip))
     root = Path(root)
-    pos_dir = require_dir(root / "motion" / "pos3d" / split, f"MDD motion/pos3d/{split}",
-                          "pass the folder that holds motion/, music/ and text/")
-    text_dir = require_dir(root / "text" / "processed" / split, f"MDD text/processed/{split}",
-                           "MDD's descriptions live in text/processed/<split>/<genre>/<take>.txt")
+    pos_dir = require_dir(
+        root / "motion" / "pos3d" / split,
+        f"MDD motion/pos3d/{split}",
+        "pass the folder that holds motion/, music/ and text/",
+    )
+    text_dir = require_dir(
+        root / "text" / "processed" / split,
+        f"MDD text/processed/{split}",
+        "MDD's descriptions live in text/processed/<split>/<genre>/<take>.txt",
+    )
     music_dir = None
     if music is not None:
         folder, kind, width = MUSIC_FOLDERS[music]
-        music_dir = require_dir(root / "music" / folder / split, f"MDD music/{folder}/{split}",
-                                "add the music features or load without music (music=None)")
+        music_dir = require_dir(
+            root / "music" / folder / split,
+            f"MDD music/{folder}/{split}",
+            "add the music features or load without music (music=None)",
+        )
     leads = sorted(pos_dir.glob("*/*_Lead.npy"))
     if not leads:
         raise DualFlowError(f"{pos_dir}: no <genre>/<take>_Lead.npy files; this is not MDD's pos3d folder")
@@ -97,12 +113,21 @@ def load_mdd(root: str | Path, split: str = "train", *, music: str | None = "fea
             raise DualFlowError(f"{text_path}: empty description file; write at least one description")
         focused = _focused(root, split, genre, take)
         wav = root / "music" / "WAV" / "all" / genre / f"{take}.wav"
-        samples.append(DuetSample(
-            source="mdd", name=key, motion=TwoPersonMotion(people[0].slice(0, n), people[1].slice(0, n), texts[0]),
-            texts=tuple(texts), focused=focused, music=feats,
-            music_kind=MUSIC_FOLDERS[music][1] if feats is not None else None,
-            music_path=wav if wav.is_file() else None, genre=genre, roles=("leader", "follower"),
-            meta={"lead": str(lead_path), "follow": str(follow_path), "text": str(text_path)}))
+        samples.append(
+            DuetSample(
+                source="mdd",
+                name=key,
+                motion=TwoPersonMotion(people[0].slice(0, n), people[1].slice(0, n), texts[0]),
+                texts=tuple(texts),
+                focused=focused,
+                music=feats,
+                music_kind=MUSIC_FOLDERS[music][1] if feats is not None else None,
+                music_path=wav if wav.is_file() else None,
+                genre=genre,
+                roles=("leader", "follower"),
+                meta={"lead": str(lead_path), "follow": str(follow_path), "text": str(text_path)},
+            )
+        )
     return DuetSet("mdd", split, root, samples, skipped)
 
 
@@ -113,8 +138,10 @@ def _focused(root: Path, split: str, genre: str, take: str) -> FocusedDescriptio
         return None
     if not all(present):
         missing = paths[present.index(False)]
-        raise DualFlowError(f"{missing}: missing, but the other focused descriptions of {genre}/{take} exist; "
-                            "MDD ships spatial, body_move and rhythm together")
+        raise DualFlowError(
+            f"{missing}: missing, but the other focused descriptions of {genre}/{take} exist; "
+            "MDD ships spatial, body_move and rhythm together"
+        )
     lines = []
     for p in paths:
         got = read_lines(p)

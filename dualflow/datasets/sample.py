@@ -56,7 +56,9 @@ class DuetSample:
             kind = self.music_kind or "other"
             want = MUSIC_KIND_DIMS.get(kind, "unknown")
             if want == "unknown":
-                raise DualFlowError(f"{self.source}/{self.name}: unknown music_kind {kind!r}; use one of {sorted(MUSIC_KIND_DIMS)}")
+                raise DualFlowError(
+                    f"{self.source}/{self.name}: unknown music_kind {kind!r}; use one of {sorted(MUSIC_KIND_DIMS)}"
+                )
             if want is not None and music.shape[1] != want:
                 raise DualFlowError(
                     f"{self.source}/{self.name}: {kind} music features must have {want} columns, got {music.shape[1]}"
@@ -101,11 +103,17 @@ class DuetSample:
             raise DualFlowError(
                 f"{self.source}/{self.name}: window [{start}, {start + length}) is outside the clip's {self.n_frames} frames"
             )
-        music = None if self.music is None else self.music[start:start + length]
+        music = None if self.music is None else self.music[start : start + length]
         if music is not None and len(music) == 0:
             music = None
-        return replace(self, name=f"{self.name}@{start}", motion=self.motion.slice(start, start + length),
-                       music=music, music_kind=self.music_kind if music is not None else None, _features=None)
+        return replace(
+            self,
+            name=f"{self.name}@{start}",
+            motion=self.motion.slice(start, start + length),
+            music=music,
+            music_kind=self.music_kind if music is not None else None,
+            _features=None,
+        )
 
 
 def positions_motion(positions_yup: np.ndarray, fps: float, name: str, where: str) -> Motion:

@@ -87,14 +87,21 @@ def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path) -> Sy
     out = build_split(config, split)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
-    np.savez(tmp, features=out.features, texts=np.array(out.texts, dtype=np.str_), beats=out.beats,
-             rules=out.rules, seeds=out.seeds)
+    np.savez(
+        tmp,
+        features=out.features,
+        texts=np.array(out.texts, dtype=np.str_),
+        beats=out.beats,
+        rules=out.rules,
+        seeds=out.seeds,
+    )
     os.replace(tmp, path)
     return out
 
 
-def build_split(config: TrainingDataConfig, split: str = "train",
-                cache_dir: str | os.PathLike | None = None) -> SyntheticSplit:
+def build_split(
+    config: TrainingDataConfig, split: str = "train", cache_dir: str | os.PathLike | None = None
+) -> SyntheticSplit:
     """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core).
 
     Features come from :func:`dualflow.motion.features.encode_pair` (actor's canonical Y-up
@@ -115,11 +122,18 @@ def build_split(config: TrainingDataConfig, split: str = "train",
     for i in range(n):
         rule_index = i % len(config.rules)
         seed = clip_seed(config, split, i)
-        pair = make_duet(config.rules[rule_index], seconds=seconds, fps=float(config.fps), seed=seed,
-                         varied=is_varied_clip(config, i))
+        pair = make_duet(
+            config.rules[rule_index],
+            seconds=seconds,
+            fps=float(config.fps),
+            seed=seed,
+            varied=is_varied_clip(config, i),
+        )
         f, _ = encode_pair(pair)
         if f.shape[0] != frames:
-            raise DualFlowError(f"synthetic clip {i}: expected {frames} feature rows, got {f.shape[0]} (fps/frames mismatch)")
+            raise DualFlowError(
+                f"synthetic clip {i}: expected {frames} feature rows, got {f.shape[0]} (fps/frames mismatch)"
+            )
         feats[i] = f
         beats[i] = pair.meta["beats"][:frames]
         texts.append(pair.text)
@@ -163,8 +177,17 @@ def with_click_music(split: SyntheticSplit, kind: str, fps: float) -> SyntheticS
     return SyntheticSplit(split.features, split.texts, split.beats, split.rules, split.seeds, music, kind)
 
 
-def load_synthetic(root=None, split: str = "train", *, n_clips: int = 64, frames: int = 60, fps: float = 30.0,
-                   rules: tuple[str, ...] = RULES, seed: int = 0, limit: int | None = None) -> DuetSet:
+def load_synthetic(
+    root=None,
+    split: str = "train",
+    *,
+    n_clips: int = 64,
+    frames: int = 60,
+    fps: float = 30.0,
+    rules: tuple[str, ...] = RULES,
+    seed: int = 0,
+    limit: int | None = None,
+) -> DuetSet:
     """``n_clips`` synthetic duets of ``frames + 1`` motion frames (``frames`` feature rows)."""
     if root is not None:
         raise DualFlowError("synthetic dataset: it is generated, not read; pass no root folder")
@@ -182,9 +205,22 @@ def load_synthetic(root=None, split: str = "train", *, n_clips: int = 64, frames
         rule = rules[i % len(rules)]
         seed_i = int(seed) * 1_000_000 + SPLIT_OFFSETS[split] + i
         pair = make_duet(rule, seconds=(int(frames) + 1) / float(fps), fps=float(fps), seed=seed_i)
-        samples.append(DuetSample(source="synthetic", name=f"{split}_{i:05d}", motion=pair, texts=(pair.text,),
-                                  music=pair.meta["beats"], music_kind="beats4", style=rule,
-                                  roles=("leader", "follower"),
-                                  meta={"rule": RULES.index(rule), "seed": seed_i, "bpm": pair.meta["bpm"],
-                                        "beat_frames": pair.meta["beat_frames"]}))
+        samples.append(
+            DuetSample(
+                source="synthetic",
+                name=f"{split}_{i:05d}",
+                motion=pair,
+                texts=(pair.text,),
+                music=pair.meta["beats"],
+                music_kind="beats4",
+                style=rule,
+                roles=("leader", "follower"),
+                meta={
+                    "rule": RULES.index(rule),
+                    "seed": seed_i,
+                    "bpm": pair.meta["bpm"],
+                    "beat_frames": pair.meta["beat_frames"],
+                },
+            )
+        )
     return DuetSet("synthetic", split, None, samples, {})

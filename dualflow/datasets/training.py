@@ -62,10 +62,13 @@ class DuetDataset(torch.utils.data.Dataset):
         sources = getattr(split, "sources", None)
         self.sources = list(sources) if sources is not None else [f"clip{i:06d}" for i in range(len(self.texts))]
         groups = getattr(split, "groups", None)
-        self.groups = (np.arange(len(self.texts), dtype=np.int64) if groups is None
-                       else np.asarray(groups, dtype=np.int64))
+        self.groups = (
+            np.arange(len(self.texts), dtype=np.int64) if groups is None else np.asarray(groups, dtype=np.int64)
+        )
         if self.text.shape != (len(self.texts), int(text_dim)):
-            raise DualFlowError(f"text embedder returned {tuple(self.text.shape)}, expected ({len(self.texts)}, {text_dim})")
+            raise DualFlowError(
+                f"text embedder returned {tuple(self.text.shape)}, expected ({len(self.texts)}, {text_dim})"
+            )
 
     def __len__(self) -> int:
         return int(self.actor.shape[0])
@@ -75,16 +78,27 @@ class DuetDataset(torch.utils.data.Dataset):
         return int(self.actor.shape[1])
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        out = {"actor": self.actor[i], "reactor": self.reactor[i], "text": self.text[i],
-               "beats": self.beats[i], "rule": self.rule[i]}
+        out = {
+            "actor": self.actor[i],
+            "reactor": self.reactor[i],
+            "text": self.text[i],
+            "beats": self.beats[i],
+            "rule": self.rule[i],
+        }
         if self.music is not None:
             out["music"] = self.music[i]
         return out
 
     def batch(self, indices: torch.Tensor) -> dict[str, torch.Tensor]:
         """Stacked samples for a (B,) index tensor (no DataLoader overhead); "index" is ``indices``."""
-        out = {"actor": self.actor[indices], "reactor": self.reactor[indices], "text": self.text[indices],
-               "beats": self.beats[indices], "rule": self.rule[indices], "index": indices}
+        out = {
+            "actor": self.actor[indices],
+            "reactor": self.reactor[indices],
+            "text": self.text[indices],
+            "beats": self.beats[indices],
+            "rule": self.rule[indices],
+            "index": indices,
+        }
         if self.music is not None:
             out["music"] = self.music[indices]
         if getattr(self, "_pin", False):  # a gathered batch is pageable again: pin it for a non-blocking copy
@@ -109,8 +123,10 @@ class DuetDataset(torch.utils.data.Dataset):
             return self.beats
         if self.music is None or self.music_kind != kind:
             have = self.music_kind or "only the beat track"
-            raise DualFlowError(f"music {kind!r}: this training data has {have}; set music to what the data has "
-                                "(beats, or the dataset's own feature kind)")
+            raise DualFlowError(
+                f"music {kind!r}: this training data has {have}; set music to what the data has "
+                "(beats, or the dataset's own feature kind)"
+            )
         return self.music
 
 
@@ -133,10 +149,12 @@ def make_datasets(
     if not config.is_synthetic:
         return make_training_sets(config, text_dim, text_embedder)
     if music_kind == "jukebox":
-        raise DualFlowError("music 'jukebox': Jukebox features are precomputed 4800-d .npy files from the audio; "
-                            "the synthetic duets have no audio to run Jukebox on (only beat times). Use a dataset "
-                            "that ships them (e.g. data.dataset: mdd with data.options: {music: jukebox}) or, here, "
-                            "music: beats / edge35 / duolando54")
+        raise DualFlowError(
+            "music 'jukebox': Jukebox features are precomputed 4800-d .npy files from the audio; "
+            "the synthetic duets have no audio to run Jukebox on (only beat times). Use a dataset "
+            "that ships them (e.g. data.dataset: mdd with data.options: {music: jukebox}) or, here, "
+            "music: beats / edge35 / duolando54"
+        )
 
     def split_of(name: str) -> SyntheticSplit:
         out = build_split(config, name, cache_dir)
@@ -152,8 +170,11 @@ def make_datasets(
     return train_ds, val_ds, stats
 
 
-def make_training_sets(config: TrainingDataConfig, text_dim: int, text_embedder: TextEmbedder | None = None,
-                       ) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
+def make_training_sets(
+    config: TrainingDataConfig,
+    text_dim: int,
+    text_embedder: TextEmbedder | None = None,
+) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
     """(train, val or None, NormStats) from the dataset ``config.dataset`` read from ``config.root``:
     its train and validation splits (``config.split_names()``) cut into windows of ``config.frames``
     rows every ``config.stride`` frames (:func:`dualflow.datasets.windows.window_split`).
@@ -165,9 +186,11 @@ def make_training_sets(config: TrainingDataConfig, text_dim: int, text_embedder:
     train_split, val_split = config.split_names()
     train_set = load_dataset(name, root, train_split, **config.options)
     if len(train_set) == 0:
-        raise DualFlowError(f"dataset {name!r} at {root}: split {train_split!r} has no usable clips "
-                            f"({len(train_set.skipped)} skipped, e.g. {dict(list(train_set.skipped.items())[:2])}); "
-                            "check data.root and data.splits")
+        raise DualFlowError(
+            f"dataset {name!r} at {root}: split {train_split!r} has no usable clips "
+            f"({len(train_set.skipped)} skipped, e.g. {dict(list(train_set.skipped.items())[:2])}); "
+            "check data.root and data.splits"
+        )
     train = window_split(train_set, frames, config.stride)
     stats = NormStats.from_features(train.features)
     train_ds = DuetDataset(train, stats, text_dim, embed)

@@ -79,7 +79,9 @@ def _sample_beats(sample, n: int) -> np.ndarray:
     return beat_track(rows[:, col])
 
 
-def window_split(dset: DuetSet, frames: int, stride: int | None = None, labels: tuple[str, ...] | None = None) -> WindowSplit:
+def window_split(
+    dset: DuetSet, frames: int, stride: int | None = None, labels: tuple[str, ...] | None = None
+) -> WindowSplit:
     """Cut ``dset`` into windows of ``frames`` feature rows (module docstring)."""
     frames = int(frames)
     stride = int(stride or frames)
@@ -98,17 +100,26 @@ def window_split(dset: DuetSet, frames: int, stride: int | None = None, labels: 
             w = sample.window(start, frames + 1)
             feats.append(w.features())
             texts.append(w.text)
-            beats.append(_sample_beats(sample, sample.n_frames)[start:start + frames])
+            beats.append(_sample_beats(sample, sample.n_frames)[start : start + frames])
             if rows is not None:
-                music.append(rows[start:start + frames])
+                music.append(rows[start : start + frames])
             label = sample.style or sample.genre
             rules.append(labels.index(label) if label in labels else 0)
             sources.append(w.name)
             groups.append(clip)
     if not feats:
-        raise DualFlowError(f"{dset.name}/{dset.split}: no clip has the {frames + 1} frames a window needs; "
-                            "lower data.frames")
-    return WindowSplit(np.stack(feats).astype(np.float32), texts, np.stack(beats).astype(np.float32),
-                       np.asarray(rules, dtype=np.int64), np.arange(len(feats), dtype=np.int64), sources, labels,
-                       np.stack(music).astype(np.float32) if music else None, music_kind if music else None,
-                       np.asarray(groups, dtype=np.int64))
+        raise DualFlowError(
+            f"{dset.name}/{dset.split}: no clip has the {frames + 1} frames a window needs; lower data.frames"
+        )
+    return WindowSplit(
+        np.stack(feats).astype(np.float32),
+        texts,
+        np.stack(beats).astype(np.float32),
+        np.asarray(rules, dtype=np.int64),
+        np.arange(len(feats), dtype=np.int64),
+        sources,
+        labels,
+        np.stack(music).astype(np.float32) if music else None,
+        music_kind if music else None,
+        np.asarray(groups, dtype=np.int64),
+    )

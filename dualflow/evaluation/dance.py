@@ -47,16 +47,44 @@ def kinetic_feature(positions, fps: float = 30.0, up: int = 2) -> np.ndarray:
 
 
 #: SMPL joint indices used by the geometric relations
-_J = {"pelvis": 0, "l_hip": 1, "r_hip": 2, "l_knee": 4, "r_knee": 5, "l_ankle": 7, "r_ankle": 8, "spine3": 9,
-      "neck": 12, "head": 15, "l_shoulder": 16, "r_shoulder": 17, "l_elbow": 18, "r_elbow": 19,
-      "l_wrist": 20, "r_wrist": 21}
+_J = {
+    "pelvis": 0,
+    "l_hip": 1,
+    "r_hip": 2,
+    "l_knee": 4,
+    "r_knee": 5,
+    "l_ankle": 7,
+    "r_ankle": 8,
+    "spine3": 9,
+    "neck": 12,
+    "head": 15,
+    "l_shoulder": 16,
+    "r_shoulder": 17,
+    "l_elbow": 18,
+    "r_elbow": 19,
+    "l_wrist": 20,
+    "r_wrist": 21,
+}
 
 #: Names of the relations of :func:`geometric_feature`, in output order ({s} = l, r).
 GEOMETRIC_FEATURES: tuple[str, ...] = tuple(
-    f"{s}_{name}" for s in ("l", "r") for name in (
-        "wrist_in_front", "wrist_behind", "wrist_above_neck", "wrist_below_pelvis", "wrist_out_sideways",
-        "elbow_bent", "arm_stretched", "knee_bent", "foot_raised", "foot_in_front", "foot_out_sideways",
-        "wrist_fast", "ankle_fast")
+    f"{s}_{name}"
+    for s in ("l", "r")
+    for name in (
+        "wrist_in_front",
+        "wrist_behind",
+        "wrist_above_neck",
+        "wrist_below_pelvis",
+        "wrist_out_sideways",
+        "elbow_bent",
+        "arm_stretched",
+        "knee_bent",
+        "foot_raised",
+        "foot_in_front",
+        "foot_out_sideways",
+        "wrist_fast",
+        "ankle_fast",
+    )
 ) + ("hands_together", "hands_apart", "feet_apart", "head_forward", "pelvis_fast", "turning")
 
 
@@ -170,6 +198,11 @@ def dd100_metrics(gen_pairs, gt_pairs, fps: float = 30.0) -> dict[str, float]:
     gt_g = np.stack([geometric_feature(f, fps) for _, f in gt_pairs])
     gen_g = np.stack([geometric_feature(f, fps) for _, f in gen_pairs])
     gt_g, gen_g = _standardise(gt_g, gen_g, GEOMETRIC_STD_FLOOR)
-    return {"fid_k": fid(gen_k, gt_k), "div_k": mean_pairwise_distance(gen_k),
-            "fid_g": fid(gen_g, gt_g), "div_g": mean_pairwise_distance(gen_g),
-            "fid_cd": fid(gen_cd, gt_cd), "div_cd": mean_pairwise_distance(gen_cd)}
+    return {
+        "fid_k": fid(gen_k, gt_k),
+        "div_k": mean_pairwise_distance(gen_k),
+        "fid_g": fid(gen_g, gt_g),
+        "div_g": mean_pairwise_distance(gen_g),
+        "fid_cd": fid(gen_cd, gt_cd),
+        "div_cd": mean_pairwise_distance(gen_cd),
+    }

@@ -65,8 +65,10 @@ def word_ids(texts: Sequence[str], vocab: int, max_words: int) -> tuple[torch.Te
     rows = []
     for text in texts:
         words = _WORD.findall(str(text).lower())[:max_words]
-        rows.append([1 + int.from_bytes(hashlib.blake2b(w.encode(), digest_size=8).digest(), "little") % vocab
-                     for w in words] or [0])
+        rows.append(
+            [1 + int.from_bytes(hashlib.blake2b(w.encode(), digest_size=8).digest(), "little") % vocab for w in words]
+            or [0]
+        )
     length = max(len(r) for r in rows)
     ids = torch.zeros((len(rows), length), dtype=torch.long)
     for i, r in enumerate(rows):
@@ -88,8 +90,9 @@ class _Encoder(nn.Module):
 
     def __init__(self, cfg: EvaluatorConfig):
         super().__init__()
-        layer = nn.TransformerEncoderLayer(cfg.width, cfg.heads, cfg.ff_dim, cfg.dropout, activation="gelu",
-                                           batch_first=True, norm_first=True)
+        layer = nn.TransformerEncoderLayer(
+            cfg.width, cfg.heads, cfg.ff_dim, cfg.dropout, activation="gelu", batch_first=True, norm_first=True
+        )
         self.query = nn.Parameter(torch.zeros(1, 1, cfg.width))
         self.body = nn.TransformerEncoder(layer, cfg.layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(cfg.width)
@@ -134,8 +137,11 @@ class MotionTextEvaluator(nn.Module):
             raise DualFlowError(f"evaluator: clips of {x.shape[1]} frames exceed max_frames {self.config.max_frames}")
         x = ((x - self.mean) / self.std).flatten(2)
         t = torch.arange(x.shape[1], device=self.device)
-        valid = torch.ones(x.shape[:2], dtype=torch.bool, device=self.device) if lengths is None else \
-            t[None, :] < torch.as_tensor(lengths, device=self.device)[:, None]
+        valid = (
+            torch.ones(x.shape[:2], dtype=torch.bool, device=self.device)
+            if lengths is None
+            else t[None, :] < torch.as_tensor(lengths, device=self.device)[:, None]
+        )
         return self._scaled(self.motion(self.motion_in(x), valid))
 
     def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
@@ -148,7 +154,7 @@ class MotionTextEvaluator(nn.Module):
     def clip_loss(self, motion_emb: torch.Tensor, text_emb: torch.Tensor) -> torch.Tensor:
         """½ [CE(s² U_m U_tᵀ, I) + CE(s² U_t U_mᵀ, I)] (module docstring)."""
         um, ut = F.normalize(motion_emb, dim=-1), F.normalize(text_emb, dim=-1)
-        logits = self.latent_scale ** 2 * um @ ut.T
+        logits = self.latent_scale**2 * um @ ut.T
         target = torch.arange(len(um), device=um.device)
         return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
 
@@ -158,12 +164,18 @@ class MotionTextEvaluator(nn.Module):
         was = self.training
         self.eval()
         try:
-            m = [self.encode_motion(torch.as_tensor(features[i:i + batch_size])).cpu().numpy()
-                 for i in range(0, len(features), batch_size)]
+            m = [
+                self.encode_motion(torch.as_tensor(features[i : i + batch_size])).cpu().numpy()
+                for i in range(0, len(features), batch_size)
+            ]
             t = None
             if texts is not None:
-                t = np.concatenate([self.encode_text(list(texts[i:i + batch_size])).cpu().numpy()
-                                    for i in range(0, len(texts), batch_size)])
+                t = np.concatenate(
+                    [
+                        self.encode_text(list(texts[i : i + batch_size])).cpu().numpy()
+                        for i in range(0, len(texts), batch_size)
+                    ]
+                )
         finally:
             self.train(was)
         return np.concatenate(m), t
@@ -176,8 +188,9 @@ class MotionTextEvaluator(nn.Module):
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
         save_file({k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}, str(tmp / WEIGHTS_FILE))
-        (tmp / CONFIG_FILE).write_text(json.dumps({"format": FORMAT, "config": asdict(self.config),
-                                                   "summary": summary or {}}, indent=2))
+        (tmp / CONFIG_FILE).write_text(
+            json.dumps({"format": FORMAT, "config": asdict(self.config), "summary": summary or {}}, indent=2)
+        )
         self.stats.save(tmp / STATS_FILE)
         from dualflow.checkpoint import replace_directory
 
@@ -189,8 +202,10 @@ class MotionTextEvaluator(nn.Module):
         path = Path(path)
         for name in (WEIGHTS_FILE, CONFIG_FILE, STATS_FILE):
             if not (path / name).is_file():
-                raise DualFlowError(f"{path / name}: missing; train an evaluator with `dualflow-bridge eval "
-                                    "train-evaluator --dataset NAME --out DIR`")
+                raise DualFlowError(
+                    f"{path / name}: missing; train an evaluator with `dualflow-bridge eval "
+                    "train-evaluator --dataset NAME --out DIR`"
+                )
         try:
             meta = json.loads((path / CONFIG_FILE).read_text())
         except json.JSONDecodeError as exc:
@@ -214,9 +229,16 @@ class EvaluatorTraining:
     seed: int = 0
 
 
-def train_evaluator(features: np.ndarray, texts: Sequence[str], *, config: EvaluatorConfig = EvaluatorConfig(),
-                    training: EvaluatorTraining = EvaluatorTraining(), stats: NormStats | None = None,
-                    device: str = "cpu", log=None) -> MotionTextEvaluator:
+def train_evaluator(
+    features: np.ndarray,
+    texts: Sequence[str],
+    *,
+    config: EvaluatorConfig = EvaluatorConfig(),
+    training: EvaluatorTraining = EvaluatorTraining(),
+    stats: NormStats | None = None,
+    device: str = "cpu",
+    log=None,
+) -> MotionTextEvaluator:
     """Train on (N, T, 2, 262) raw features and their N texts; returns the model in eval mode.
 
     Batches draw ``batch_size`` distinct clips; pairs with identical text in one batch are
@@ -226,7 +248,9 @@ def train_evaluator(features: np.ndarray, texts: Sequence[str], *, config: Evalu
     if features.ndim != 4 or features.shape[2:] != (2, FEATURE_DIM):
         raise DualFlowError(f"train_evaluator: features must be (N, T, 2, {FEATURE_DIM}), got {features.shape}")
     if len(texts) != len(features) or len(features) < 2:
-        raise DualFlowError(f"train_evaluator: need >= 2 clips with one text each, got {len(features)} clips, {len(texts)} texts")
+        raise DualFlowError(
+            f"train_evaluator: need >= 2 clips with one text each, got {len(features)} clips, {len(texts)} texts"
+        )
     torch.manual_seed(training.seed)
     stats = stats or NormStats.from_features(features)
     model = MotionTextEvaluator(config, stats).to(device)
@@ -238,8 +262,9 @@ def train_evaluator(features: np.ndarray, texts: Sequence[str], *, config: Evalu
     model.train()
     for step in range(training.steps):
         idx = rng.choice(len(features), b, replace=False)
-        loss = model.clip_loss(model.encode_motion(torch.from_numpy(features[idx])),
-                               model.encode_text([texts[i] for i in idx]))
+        loss = model.clip_loss(
+            model.encode_motion(torch.from_numpy(features[idx])), model.encode_text([texts[i] for i in idx])
+        )
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -247,6 +272,11 @@ def train_evaluator(features: np.ndarray, texts: Sequence[str], *, config: Evalu
         loss_value = float(loss.detach())
         if log is not None and (step % 50 == 0 or step == training.steps - 1):
             log(step, loss_value)
-    model.summary = {"steps": training.steps, "final_loss": loss_value, "clips": len(features),
-                     "frames": int(features.shape[1]), "seconds": round(time.perf_counter() - t0, 2)}
+    model.summary = {
+        "steps": training.steps,
+        "final_loss": loss_value,
+        "clips": len(features),
+        "frames": int(features.shape[1]),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
     return model.eval()

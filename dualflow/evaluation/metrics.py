@@ -66,8 +66,9 @@ def euclidean_distance_matrix(a, b) -> np.ndarray:
     return np.sqrt(np.maximum(sq, 0.0))
 
 
-def r_precision(text_emb, motion_emb, top_k: int = 3, batch_size: int = R_PRECISION_BATCH,
-                rng: np.random.Generator | None = None) -> tuple[np.ndarray, float]:
+def r_precision(
+    text_emb, motion_emb, top_k: int = 3, batch_size: int = R_PRECISION_BATCH, rng: np.random.Generator | None = None
+) -> tuple[np.ndarray, float]:
     """(R-precision top-1..top_k (top_k,), MM distance) over batches of matched pairs.
 
     Pairs are shuffled by ``rng`` (unshuffled when None) and cut into batches of
@@ -84,7 +85,7 @@ def r_precision(text_emb, motion_emb, top_k: int = 3, batch_size: int = R_PRECIS
     hits = np.zeros(top_k)
     mm_sum, count = 0.0, 0
     for start in range(0, n - size + 1, size):
-        idx = order[start:start + size]
+        idx = order[start : start + size]
         d = euclidean_distance_matrix(t[idx], m[idx])
         mm_sum += float(np.trace(d))
         rank = (d < np.diag(d)[:, None]).sum(axis=1)  # motions strictly nearer than the match

@@ -87,13 +87,19 @@ def diversity(samples: list[np.ndarray]) -> float:
     return float(np.mean([mpjpe(samples[i], samples[j]) for i, j in pairs])) if pairs else 0.0
 
 
-def plausibility(partner: np.ndarray, actor: np.ndarray, reference: np.ndarray | None = None,
-                 fps: float = 30.0) -> dict:
+def plausibility(
+    partner: np.ndarray, actor: np.ndarray, reference: np.ndarray | None = None, fps: float = 30.0
+) -> dict:
     """All the figures above for one partner clip (reference: the real partner, for MPJPE)."""
     d = distance(partner, actor)
-    out = {"skate": skate(partner, fps), "jerk": jerk(partner, fps), "bone_cv": bone_cv(partner),
-           "facing_deg": facing_error(partner, actor), "dist_mean": float(d.mean()),
-           "dist_in_range": float(((d >= 0.5) & (d <= 1.5)).mean())}
+    out = {
+        "skate": skate(partner, fps),
+        "jerk": jerk(partner, fps),
+        "bone_cv": bone_cv(partner),
+        "facing_deg": facing_error(partner, actor),
+        "dist_mean": float(d.mean()),
+        "dist_in_range": float(((d >= 0.5) & (d <= 1.5)).mean()),
+    }
     if reference is not None:
         out["mpjpe_real"] = mpjpe(partner, reference)
     return out

@@ -50,8 +50,9 @@ class EvalSet:
         ws = window_split(dset, frames, stride)
         beat_frames = [np.flatnonzero(b[:, 0] > 0.5) for b in ws.beats]
         fps = dset[0].fps if len(dset) else 30.0
-        return EvalSet(ws.features, list(ws.texts), beat_frames, ws.beats, fps, list(ws.sources),
-                       ws.music, ws.music_kind)
+        return EvalSet(
+            ws.features, list(ws.texts), beat_frames, ws.beats, fps, list(ws.sources), ws.music, ws.music_kind
+        )
 
     def music_for(self, kind: str) -> np.ndarray:
         """(N, T, D) music condition of ``kind`` for every window: the beat track ("beats4"), the
@@ -68,8 +69,10 @@ class EvalSet:
             self.music = np.stack([click_track_music(b, kind, self.fps) for b in self.beats]).astype(np.float32)
             self.music_kind = kind
             return self.music
-        raise DualFlowError(f"the checkpoint was trained with {kind!r} music but this evaluation data has "
-                            f"{self.music_kind or 'only a beat track'}; evaluate on data that has it")
+        raise DualFlowError(
+            f"the checkpoint was trained with {kind!r} music but this evaluation data has "
+            f"{self.music_kind or 'only a beat track'}; evaluate on data that has it"
+        )
 
 
 @dataclass(frozen=True)
@@ -110,8 +113,13 @@ def rhythm_scores(features: np.ndarray, beat_frames: Sequence[np.ndarray], mode:
     return clean(bas), clean(bed)
 
 
-def evaluate(generator: Generator | None, data: EvalSet, evaluator, config: ProtocolConfig = ProtocolConfig(),
-             gen_batch: int = 64) -> dict[str, M.Estimate]:
+def evaluate(
+    generator: Generator | None,
+    data: EvalSet,
+    evaluator,
+    config: ProtocolConfig = ProtocolConfig(),
+    gen_batch: int = 64,
+) -> dict[str, M.Estimate]:
     """Score ``generator`` (None = the ground truth) on ``data`` (module docstring)."""
     n = len(data)
     if n < 2:
@@ -122,7 +130,7 @@ def evaluate(generator: Generator | None, data: EvalSet, evaluator, config: Prot
     def run(indices: np.ndarray, seed: int) -> np.ndarray:
         if generator is None:
             return data.features[indices]
-        parts = [generator(indices[i:i + gen_batch], seed * 100_003 + i) for i in range(0, len(indices), gen_batch)]
+        parts = [generator(indices[i : i + gen_batch], seed * 100_003 + i) for i in range(0, len(indices), gen_batch)]
         return np.concatenate(parts).astype(np.float32)
 
     values: dict[str, list[float]] = {k: [] for k in METRIC_KEYS}
@@ -138,7 +146,9 @@ def evaluate(generator: Generator | None, data: EvalSet, evaluator, config: Prot
         values["diversity"].append(M.diversity(motion_emb, config.diversity_times, rng))
         if generator is not None and config.mm_repeats >= 2 and config.mm_samples >= 1:
             chosen = rng.choice(n, min(config.mm_samples, n), replace=False)
-            reps = [evaluator.embed(run(chosen, 1_000 + rep * config.mm_repeats + j))[0] for j in range(config.mm_repeats)]
+            reps = [
+                evaluator.embed(run(chosen, 1_000 + rep * config.mm_repeats + j))[0] for j in range(config.mm_repeats)
+            ]
             values["multimodality"].append(M.multimodality(np.stack(reps, axis=1), config.mm_times, rng))
         bas, bed = rhythm_scores(gen, data.beat_frames, config.mode)
         values["bas"].append(bas)
@@ -153,8 +163,17 @@ class CheckpointGenerator:
     (None: the model's default L). Text is embedded with the checkpoint's text encoder id.
     """
 
-    def __init__(self, checkpoint, data: EvalSet, *, mode: str = "interactive", steps: int = 20,
-                 cfg_scale: float = 1.0, look_ahead: int | None = None, device: str = "cpu"):
+    def __init__(
+        self,
+        checkpoint,
+        data: EvalSet,
+        *,
+        mode: str = "interactive",
+        steps: int = 20,
+        cfg_scale: float = 1.0,
+        look_ahead: int | None = None,
+        device: str = "cpu",
+    ):
         import torch
 
         from dualflow.checkpoint import load_checkpoint
@@ -183,8 +202,9 @@ class CheckpointGenerator:
 
             encoder = text_encoder_for(self.ckpt.text_encoder, self.ckpt.config.text_dim)
             queries = cue_queries(rag.db, data.texts, music, encoder)
-            table = NeighbourTable.compute(rag.db, queries, data.features.shape[1], rag.config.max_depth,
-                                           rag.config.lam)
+            table = NeighbourTable.compute(
+                rag.db, queries, data.features.shape[1], rag.config.max_depth, rag.config.lam
+            )
             self.retriever = RetrievalConditioner(rag.db, table, rag.config)
             self.retrieval_encoder = rag.encoder
 
@@ -199,15 +219,34 @@ class CheckpointGenerator:
             retrieval = None
             if self.retriever is not None:
                 retrieval = self.retriever.tokens(self.retrieval_encoder, np.asarray(indices), self.mode, self.device)
-            cond = Conditions(text=self.text[idx].to(self.device),
-                              music=None if self.music is None else self.music[idx].to(self.device),
-                              retrieval=retrieval)
+            cond = Conditions(
+                text=self.text[idx].to(self.device),
+                music=None if self.music is None else self.music[idx].to(self.device),
+                retrieval=retrieval,
+            )
             if self.mode == "reactive":
-                xa, xb = generate(self.model, t, cond, mode="reactive", x_actor=self.actor[idx], steps=self.steps,
-                                  cfg_scale=self.cfg_scale, look_ahead=self.look_ahead, seed=seed)
+                xa, xb = generate(
+                    self.model,
+                    t,
+                    cond,
+                    mode="reactive",
+                    x_actor=self.actor[idx],
+                    steps=self.steps,
+                    cfg_scale=self.cfg_scale,
+                    look_ahead=self.look_ahead,
+                    seed=seed,
+                )
             else:
-                xa, xb = generate(self.model, t, cond, mode="interactive", batch=len(idx), steps=self.steps,
-                                  cfg_scale=self.cfg_scale, seed=seed)
+                xa, xb = generate(
+                    self.model,
+                    t,
+                    cond,
+                    mode="interactive",
+                    batch=len(idx),
+                    steps=self.steps,
+                    cfg_scale=self.cfg_scale,
+                    seed=seed,
+                )
         x = torch.stack([xa, xb], dim=2).float().cpu().numpy()
         return self.stats.denormalize(x.astype(np.float64)).astype(np.float32)
 
@@ -225,5 +264,7 @@ def text_embedding(encoder_id: str, texts: Sequence[str], dim: int) -> np.ndarra
         if emb.shape[1] != dim:
             raise DualFlowError(f"checkpoint text_dim {dim} does not match the MiniLM encoder's {emb.shape[1]}")
         return emb
-    raise DualFlowError(f"checkpoint text encoder {encoder_id!r} is not known to the evaluation; "
-                        f"expected {TEXT_ENCODER_ID!r} or a MiniLM encoder")
+    raise DualFlowError(
+        f"checkpoint text encoder {encoder_id!r} is not known to the evaluation; "
+        f"expected {TEXT_ENCODER_ID!r} or a MiniLM encoder"
+    )

@@ -39,9 +39,11 @@ class ReactorErrors:
     steps: int
 
     def summary(self) -> str:
-        return (f"reactor MPJPE over {self.n_clips} clips, {self.steps} Euler steps: "
-                f"model {self.model:.3f} m | same model, actor masked {self.actor_masked:.3f} m | "
-                f"static mean pose {self.static_pose:.3f} m")
+        return (
+            f"reactor MPJPE over {self.n_clips} clips, {self.steps} Euler steps: "
+            f"model {self.model:.3f} m | same model, actor masked {self.actor_masked:.3f} m | "
+            f"static mean pose {self.static_pose:.3f} m"
+        )
 
 
 @torch.no_grad()
@@ -87,7 +89,7 @@ def reactor_errors(
     train_set supplies the static mean reactor pose.
     """
     stats = dataset.stats
-    truth = positions_from_normalized(dataset.reactor, stats)          # (N, T, 22, 3)
+    truth = positions_from_normalized(dataset.reactor, stats)  # (N, T, 22, 3)
     mean_pose = positions_from_normalized(train_set.reactor, stats).mean(axis=(0, 1))
     errors = {}
     for masked in (False, True):

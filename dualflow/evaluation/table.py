@@ -15,8 +15,17 @@ from collections.abc import Sequence
 from dualflow.evaluation.metrics import Estimate
 from dualflow.evaluation.protocol import METRIC_KEYS
 
-HEADERS = {"r1": "R@1 ↑", "r2": "R@2 ↑", "r3": "R@3 ↑", "fid": "FID ↓", "mm_dist": "MMDist ↓",
-           "diversity": "Diversity →", "multimodality": "MModality ↑", "bed": "BED ↑", "bas": "BAS ↑"}
+HEADERS = {
+    "r1": "R@1 ↑",
+    "r2": "R@2 ↑",
+    "r3": "R@3 ↑",
+    "fid": "FID ↓",
+    "mm_dist": "MMDist ↓",
+    "diversity": "Diversity →",
+    "multimodality": "MModality ↑",
+    "bed": "BED ↑",
+    "bas": "BAS ↑",
+}
 
 
 def cell(est: Estimate | None, digits: int = 3) -> str:
@@ -29,8 +38,10 @@ def cell(est: Estimate | None, digits: int = 3) -> str:
 
 def format_table(rows: Sequence[tuple[str, dict[str, Estimate] | None]], title: str = "", digits: int = 3) -> str:
     """Plain-text table: one line per (label, metrics) row; metrics None = a section heading."""
-    body = [[label] + ([cell(m.get(k), digits) for k in METRIC_KEYS] if m is not None else [""] * len(METRIC_KEYS))
-            for label, m in rows]
+    body = [
+        [label] + ([cell(m.get(k), digits) for k in METRIC_KEYS] if m is not None else [""] * len(METRIC_KEYS))
+        for label, m in rows
+    ]
     head = ["Method"] + [HEADERS[k] for k in METRIC_KEYS]
     widths = [max(len(r[i]) for r in body + [head]) for i in range(len(head))]
 

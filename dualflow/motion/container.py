@@ -21,17 +21,14 @@ DEFAULT_FPS = 30.0
 def _check_positions(positions: np.ndarray, what: str) -> np.ndarray:
     arr = np.asarray(positions, dtype=np.float64)
     if arr.ndim != 3 or arr.shape[1:] != (N_JOINTS, 3):
-        raise DualFlowError(
-            f"{what}: positions must have shape (T, {N_JOINTS}, 3), got {tuple(arr.shape)}"
-        )
+        raise DualFlowError(f"{what}: positions must have shape (T, {N_JOINTS}, 3), got {tuple(arr.shape)}")
     if arr.shape[0] < 1:
         raise DualFlowError(f"{what}: motion has zero frames; give at least one frame")
     bad = ~np.isfinite(arr)
     if bad.any():
         frame, joint, _ = np.argwhere(bad)[0]
         raise DualFlowError(
-            f"{what}: positions contain NaN or inf (first at frame {frame}, joint {joint}); "
-            "clean or drop those frames"
+            f"{what}: positions contain NaN or inf (first at frame {frame}, joint {joint}); clean or drop those frames"
         )
     return arr
 
@@ -170,7 +167,9 @@ class TwoPersonMotion:
         return TwoPersonMotion(self.actor.resample(fps), self.reactor.resample(fps), self.text, dict(self.meta))
 
     def slice(self, start: int, stop: int | None = None) -> TwoPersonMotion:
-        return TwoPersonMotion(self.actor.slice(start, stop), self.reactor.slice(start, stop), self.text, dict(self.meta))
+        return TwoPersonMotion(
+            self.actor.slice(start, stop), self.reactor.slice(start, stop), self.text, dict(self.meta)
+        )
 
     @classmethod
     def from_pair(cls, actor: Motion, reactor: Motion, text: str = "") -> TwoPersonMotion:

@@ -110,9 +110,7 @@ class CanonicalFrame:
     @classmethod
     def from_dict(cls, data: dict) -> CanonicalFrame:
         if not isinstance(data, dict) or "yaw" not in data or "origin" not in data:
-            raise DualFlowError(
-                f"canonical frame: expected a mapping with keys 'yaw' and 'origin', got {data!r}"
-            )
+            raise DualFlowError(f"canonical frame: expected a mapping with keys 'yaw' and 'origin', got {data!r}")
         return cls(yaw=data["yaw"], origin=data["origin"])
 
 

@@ -63,10 +63,16 @@ def _levels() -> tuple[_Level, ...]:
     for d in range(max(depth) + 1):
         joints = [j for j in range(N_JOINTS) if depth[j] == d]
         single = [j for j in joints if len(CHILDREN[j]) == 1]
-        out.append(_Level(
-            joints=np.array(joints), parents=_PARENTS[joints], multi=tuple(j for j in joints if len(CHILDREN[j]) > 1),
-            single=np.array(single, dtype=int), single_parents=_PARENTS[single].astype(int),
-            single_kids=np.array([CHILDREN[j][0] for j in single], dtype=int)))
+        out.append(
+            _Level(
+                joints=np.array(joints),
+                parents=_PARENTS[joints],
+                multi=tuple(j for j in joints if len(CHILDREN[j]) > 1),
+                single=np.array(single, dtype=int),
+                single_parents=_PARENTS[single].astype(int),
+                single_kids=np.array([CHILDREN[j][0] for j in single], dtype=int),
+            )
+        )
     return tuple(out)
 
 
@@ -191,9 +197,7 @@ def forward_kinematics(root_pos, local_rot, offsets=None) -> np.ndarray:
         )
     off = rest_offsets() if offsets is None else np.asarray(offsets, dtype=np.float64)
     if off.shape not in ((N_JOINTS, 3), (T, N_JOINTS, 3)):
-        raise DualFlowError(
-            f"offsets: expected shape ({N_JOINTS}, 3) or ({T}, {N_JOINTS}, 3), got {tuple(off.shape)}"
-        )
+        raise DualFlowError(f"offsets: expected shape ({N_JOINTS}, 3) or ({T}, {N_JOINTS}, 3), got {tuple(off.shape)}")
     off = np.broadcast_to(off, (T, N_JOINTS, 3))
     G = global_rotations(local_rot)
     pos = np.empty((T, N_JOINTS, 3))
@@ -284,5 +288,6 @@ def root_orientation(positions, rest=REST_POSE) -> np.ndarray:
     """
     positions = _check_positions(positions)
     T = positions.shape[0]
-    return _joint_rotation(positions, 0, np.broadcast_to(np.eye(3), (T, 3, 3)),
-                           _rest_directions(_check_rest(rest).tobytes()).multi[0])
+    return _joint_rotation(
+        positions, 0, np.broadcast_to(np.eye(3), (T, 3, 3)), _rest_directions(_check_rest(rest).tobytes()).multi[0]
+    )

@@ -34,7 +34,9 @@ def _vector(x, what: str) -> np.ndarray:
         raise DualFlowError(f"normalization stats: {what} must have shape ({FEATURE_DIM},), got {tuple(arr.shape)}")
     if not np.isfinite(arr).all():
         col = int(np.argwhere(~np.isfinite(arr))[0][0])
-        raise DualFlowError(f"normalization stats: {what} contains NaN or inf (first at column {col}); recompute the stats")
+        raise DualFlowError(
+            f"normalization stats: {what} contains NaN or inf (first at column {col}); recompute the stats"
+        )
     return arr
 
 
@@ -103,8 +105,9 @@ class NormStats:
         with open_npz(path) as data:  # headers checked before allocating, no pickle
             missing = [k for k in ("mean", "std") if k not in data]
             if missing:
-                raise DualFlowError(f"{path}: normalization stats file lacks {', '.join(missing)}; "
-                                    "write it with NormStats.save")
+                raise DualFlowError(
+                    f"{path}: normalization stats file lacks {', '.join(missing)}; write it with NormStats.save"
+                )
             mean, std = data["mean"], data["std"]
         for what, arr in (("mean", mean), ("std", std)):
             if arr.dtype.kind != "f":

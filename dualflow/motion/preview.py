@@ -125,7 +125,9 @@ class FrameRenderer:
         ax.add_collection(LineCollection(grid, colors="#c8c8c8", linewidths=0.8, zorder=0))
         # fit the view to the grid and every projected joint, keeping aspect
         margin = 0.4
-        floor = np.array([[x, y, 0.0] for x in (lo[0] - margin, hi[0] + margin) for y in (lo[1] - margin, hi[1] + margin)])
+        floor = np.array(
+            [[x, y, 0.0] for x in (lo[0] - margin, hi[0] + margin) for y in (lo[1] - margin, hi[1] + margin)]
+        )
         pts = np.concatenate([self.camera.project(floor), self.camera.project(allpos)])
         (u0, v0), (u1, v1) = pts.min(axis=0), pts.max(axis=0)
         aspect = config.width / config.height
@@ -148,7 +150,9 @@ class FrameRenderer:
             ax.add_collection(lc)
             self.bones.append(lc)
             self.heads.append(head)
-        self.clock = ax.text(0.98, 0.03, "", transform=ax.transAxes, ha="right", fontsize=9, color="#333333", animated=True)
+        self.clock = ax.text(
+            0.98, 0.03, "", transform=ax.transAxes, ha="right", fontsize=9, color="#333333", animated=True
+        )
         self.canvas.draw()
         self.background = self.canvas.copy_from_bbox(self.fig.bbox)
         self._child = np.arange(1, len(PARENTS))
@@ -205,9 +209,15 @@ def render_preview(motion, out_path, config: PreviewConfig = PreviewConfig()) ->
             import imageio_ffmpeg
 
             writer = imageio_ffmpeg.write_frames(
-                str(tmp), (config.width, config.height), fps=fps, codec="libx264",
-                pix_fmt_in="rgba", pix_fmt_out="yuv420p", macro_block_size=2,
-                output_params=["-f", "mp4", "-preset", "veryfast"], ffmpeg_log_level="error",
+                str(tmp),
+                (config.width, config.height),
+                fps=fps,
+                codec="libx264",
+                pix_fmt_in="rgba",
+                pix_fmt_out="yuv420p",
+                macro_block_size=2,
+                output_params=["-f", "mp4", "-preset", "veryfast"],
+                ffmpeg_log_level="error",
             )
             writer.send(None)
             for i in range(n):
@@ -223,8 +233,15 @@ def render_preview(motion, out_path, config: PreviewConfig = PreviewConfig()) ->
                 if palette is None:
                     palette = img.quantize(colors=64, method=Image.Quantize.MEDIANCUT)
                 frames.append(img.quantize(palette=palette, dither=Image.Dither.NONE))
-            frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:],
-                           duration=int(round(1000.0 / fps)), loop=0, optimize=False)
+            frames[0].save(
+                tmp,
+                format="GIF",
+                save_all=True,
+                append_images=frames[1:],
+                duration=int(round(1000.0 / fps)),
+                loop=0,
+                optimize=False,
+            )
         os.replace(tmp, out)
     finally:
         if tmp.exists():

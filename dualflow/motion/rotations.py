@@ -22,7 +22,7 @@ _I3.flags.writeable = False
 
 def _as_array(x, last: tuple[int, ...], what: str) -> np.ndarray:
     arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim < len(last) or arr.shape[arr.ndim - len(last):] != last:
+    if arr.ndim < len(last) or arr.shape[arr.ndim - len(last) :] != last:
         shape = ", ".join(["..."] + [str(n) for n in last])
         raise DualFlowError(f"{what}: expected shape ({shape}), got {tuple(arr.shape)}")
     return arr
@@ -31,7 +31,7 @@ def _as_array(x, last: tuple[int, ...], what: str) -> np.ndarray:
 def _scipy(fn, arr: np.ndarray, n_tail: int) -> np.ndarray:
     """Apply a scipy Rotation conversion to an array with leading batch dims."""
     batch = arr.shape[: arr.ndim - n_tail]
-    flat = arr.reshape((-1,) + arr.shape[arr.ndim - n_tail:])
+    flat = arr.reshape((-1,) + arr.shape[arr.ndim - n_tail :])
     out = fn(flat)
     return out.reshape(batch + out.shape[1:])
 
@@ -163,7 +163,7 @@ def swing_between_units(ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
     ab = ua[..., :, None] * ub[..., None, :]
     ba = np.swapaxes(ab, -1, -2)
     near = (c + 1.0) < 1e-3
-    quad = (c[..., None, None] * (ab + ba) - ua[..., :, None] * ua[..., None, :] - ub[..., :, None] * ub[..., None, :])
+    quad = c[..., None, None] * (ab + ba) - ua[..., :, None] * ua[..., None, :] - ub[..., :, None] * ub[..., None, :]
     R = _I3 + ba - ab + quad / np.where(near, 1.0, 1.0 + c)[..., None, None]
     if near.any():
         ua, ub = np.broadcast_arrays(ua, ub)

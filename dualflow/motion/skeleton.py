@@ -51,7 +51,14 @@ KINEMATIC_CHAINS: tuple[tuple[int, ...], ...] = (
 
 #: (left, right) joint index pairs.
 LEFT_RIGHT_PAIRS: tuple[tuple[int, int], ...] = (
-    (1, 2), (4, 5), (7, 8), (10, 11), (13, 14), (16, 17), (18, 19), (20, 21),
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (10, 11),
+    (13, 14),
+    (16, 17),
+    (18, 19),
+    (20, 21),
 )
 
 
@@ -81,27 +88,27 @@ FACE_JOINTS: tuple[int, int, int, int] = (2, 1, 17, 16)
 #: (thigh 0.39 m, shin 0.40 m, upper arm 0.26 m, forearm 0.25 m).
 REST_POSE: np.ndarray = np.array(
     [
-        [0.000, 0.000, 0.950],   # pelvis
-        [0.000, 0.090, 0.870],   # left_hip
+        [0.000, 0.000, 0.950],  # pelvis
+        [0.000, 0.090, 0.870],  # left_hip
         [0.000, -0.090, 0.870],  # right_hip
         [-0.005, 0.000, 1.060],  # spine1
-        [0.000, 0.100, 0.480],   # left_knee
+        [0.000, 0.100, 0.480],  # left_knee
         [0.000, -0.100, 0.480],  # right_knee
         [-0.005, 0.000, 1.190],  # spine2
         [-0.020, 0.100, 0.080],  # left_ankle
-        [-0.020, -0.100, 0.080], # right_ankle
-        [0.000, 0.000, 1.250],   # spine3
-        [0.110, 0.110, 0.020],   # left_foot
+        [-0.020, -0.100, 0.080],  # right_ankle
+        [0.000, 0.000, 1.250],  # spine3
+        [0.110, 0.110, 0.020],  # left_foot
         [0.110, -0.110, 0.020],  # right_foot
-        [0.000, 0.000, 1.470],   # neck
-        [0.000, 0.080, 1.380],   # left_collar
+        [0.000, 0.000, 1.470],  # neck
+        [0.000, 0.080, 1.380],  # left_collar
         [0.000, -0.080, 1.380],  # right_collar
-        [0.030, 0.000, 1.580],   # head
-        [0.000, 0.180, 1.400],   # left_shoulder
+        [0.030, 0.000, 1.580],  # head
+        [0.000, 0.180, 1.400],  # left_shoulder
         [0.000, -0.180, 1.400],  # right_shoulder
-        [0.000, 0.440, 1.400],   # left_elbow
+        [0.000, 0.440, 1.400],  # left_elbow
         [0.000, -0.440, 1.400],  # right_elbow
-        [0.000, 0.690, 1.400],   # left_wrist
+        [0.000, 0.690, 1.400],  # left_wrist
         [0.000, -0.690, 1.400],  # right_wrist
     ],
     dtype=np.float64,
@@ -124,6 +131,4 @@ def joint_index(name: str) -> int:
     try:
         return JOINT_NAMES.index(name)
     except ValueError:
-        raise DualFlowError(
-            f"unknown SMPL joint name {name!r}; expected one of: {', '.join(JOINT_NAMES)}"
-        ) from None
+        raise DualFlowError(f"unknown SMPL joint name {name!r}; expected one of: {', '.join(JOINT_NAMES)}") from None

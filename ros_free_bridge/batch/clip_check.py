@@ -46,8 +46,9 @@ def _robot(cfg: BatchConfig):
         if cfg.retargeter == "streaming":
             retarget = StreamingRetargeter(robot, cfg.fps, StreamingConfig(compile=cfg.compile, balance=balance)).run
         else:
-            retarget = OfflineRetargeter(robot, OfflineConfig(balance=balance, zmp=True, auto_retime=cfg.auto_retime,
-                                                              compile=cfg.compile)).retarget
+            retarget = OfflineRetargeter(
+                robot, OfflineConfig(balance=balance, zmp=True, auto_retime=cfg.auto_retime, compile=cfg.compile)
+            ).retarget
         _ROBOT[key] = (robot, retarget, fixed)
     return _ROBOT[key]
 
@@ -142,9 +143,11 @@ def _retarget_report(robot, traj, motion, res: ClipResult, out: Path):
     res.files.update(trajectory="trajectory.npz", retarget_report="retarget.report.md")
     if not report.passed:
         res.status, res.stage, res.first_failure_s = "fail", "retarget", _clip_time(report.first_failure_s, res)
-        res.reason = (f"retarget report: {report.limit_violations} limit / {report.velocity_violations} velocity "
-                      f"violations, skate {100 * report.skate_share:.1f}% of contact frames, "
-                      f"penetration {report.penetration_mm:.1f} mm")
+        res.reason = (
+            f"retarget report: {report.limit_violations} limit / {report.velocity_violations} velocity "
+            f"violations, skate {100 * report.skate_share:.1f}% of contact frames, "
+            f"penetration {report.penetration_mm:.1f} mm"
+        )
     return src
 
 
@@ -167,8 +170,10 @@ def _scene_placement(robot, traj, reactor, fixed: bool):
     r = robot.root_keypoint
     if robot.floating and not fixed:
         scaler = KeypointScaler(robot, reactor.positions)
-        lift = (make_targets(robot, reactor, scaler=scaler).keypoints[0, r, 2]
-                - scaler.targets(reactor.positions[:1])[0, r, 2])
+        lift = (
+            make_targets(robot, reactor, scaler=scaler).keypoints[0, r, 2]
+            - scaler.targets(reactor.positions[:1])[0, r, 2]
+        )
         return Placement(scale=float(scaler.root_scale), offset=(0.0, 0.0, float(lift)), yaw_deg=0.0)
     stand = robot.evaluate(robot.x_stand[None])["keypoints"][0]  # (K, 3) m, the robot standing
     top = robot.keypoint_names.index("head") if "head" in robot.keypoint_names else int(stand[:, 2].argmax())
@@ -180,8 +185,11 @@ def _scene_placement(robot, traj, reactor, fixed: bool):
     yaw = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)) - math.atan2(-left[0], left[1])
     c, s_ = math.cos(yaw), math.sin(yaw)
     px, py = scale * (c * p0[0, 0] - s_ * p0[0, 1]), scale * (s_ * p0[0, 0] + c * p0[0, 1])
-    return Placement(scale=scale, offset=(float(stand[r, 0]) - px, float(stand[r, 1]) - py, -scale * floor),
-                     yaw_deg=math.degrees(yaw))
+    return Placement(
+        scale=scale,
+        offset=(float(stand[r, 0]) - px, float(stand[r, 1]) - py, -scale * floor),
+        yaw_deg=math.degrees(yaw),
+    )
 
 
 def _physics_check(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
@@ -189,8 +197,13 @@ def _physics_check(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) 
     from sim.check import CheckConfig, check_trajectory
     from sim.report import write_report
 
-    check = check_trajectory(scene.traj, CheckConfig(mode="fixed" if scene.fixed else "free"), robot=cfg.robot,
-                             actor=scene.partner, actor_placement=scene.placement)
+    check = check_trajectory(
+        scene.traj,
+        CheckConfig(mode="fixed" if scene.fixed else "free"),
+        robot=cfg.robot,
+        actor=scene.partner,
+        actor_placement=scene.placement,
+    )
     write_report(check, out, "check")
     res.files["check_report"] = "check.md"
     res.check_reason = "" if check.passed else check.reason
@@ -222,25 +235,42 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     on_robot = placement or _scene_placement(robot, traj, src, fixed)  # the robot's person drawn on the robot
     try:
         if partner is not None:
-            render_trajectory(traj, out / VIDEO, RenderConfig(width=w, height=h, fps=cfg.video_fps, side_by_side=True),
-                              check_cfg, robot=cfg.robot, actor=partner, actor_placement=placement,
-                              reactor=src, reactor_placement=on_robot)
+            render_trajectory(
+                traj,
+                out / VIDEO,
+                RenderConfig(width=w, height=h, fps=cfg.video_fps, side_by_side=True),
+                check_cfg,
+                robot=cfg.robot,
+                actor=partner,
+                actor_placement=placement,
+                reactor=src,
+                reactor_placement=on_robot,
+            )
         else:
             # the person one robot height to the robot's left (as the robot faces at the first frame)
             qw, qx, qy, qz = (float(v) for v in traj.root_quat[0])
             yaw = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
             step = float(robot.evaluate(robot.x_stand[None])["keypoints"][0][:, 2].max())
             x, y, z = on_robot.offset
-            beside = Placement(on_robot.scale, (x - step * math.sin(yaw), y + step * math.cos(yaw), z),
-                               on_robot.yaw_deg)
-            render_trajectory(traj, out / VIDEO, RenderConfig(width=2 * w, height=h, fps=cfg.video_fps), check_cfg,
-                              robot=cfg.robot, actor=src, actor_placement=beside)
+            beside = Placement(
+                on_robot.scale, (x - step * math.sin(yaw), y + step * math.cos(yaw), z), on_robot.yaw_deg
+            )
+            render_trajectory(
+                traj,
+                out / VIDEO,
+                RenderConfig(width=2 * w, height=h, fps=cfg.video_fps),
+                check_cfg,
+                robot=cfg.robot,
+                actor=src,
+                actor_placement=beside,
+            )
         res.files["video"] = VIDEO
     except SimError as exc:  # e.g. no OpenGL context on this machine
         (out / "video_error.txt").write_text(f"no video: {exc}\n")
     except Exception as exc:  # noqa: BLE001 - the video is an extra: a bug in making it must not change the verdict
-        (out / "video_error.txt").write_text(f"no video: unexpected {type(exc).__name__}: {exc}\n\n"
-                                             f"{traceback.format_exc()}")
+        (out / "video_error.txt").write_text(
+            f"no video: unexpected {type(exc).__name__}: {exc}\n\n{traceback.format_exc()}"
+        )
 
 
 def _clip_time(t: float | None, res: ClipResult) -> float | None:

@@ -45,14 +45,17 @@ class PairPattern:
             raise BridgeError(f"--pairs {text!r}: {fix}")
         for p in parts:
             if p.count("{name}") != 1 or re.search(r"\{(?!name\})", p):
-                raise BridgeError(f"--pairs {text!r}: each pattern needs exactly one {{name}} and no other braces; "
-                                  f"{fix}")
+                raise BridgeError(
+                    f"--pairs {text!r}: each pattern needs exactly one {{name}} and no other braces; {fix}"
+                )
             if "/" in p or "\\" in p:
-                raise BridgeError(f"--pairs {text!r}: patterns are file names, not paths (both files lie in one "
-                                  f"folder); {fix}")
+                raise BridgeError(
+                    f"--pairs {text!r}: patterns are file names, not paths (both files lie in one folder); {fix}"
+                )
             if Path(p.replace("{name}", "x")).suffix.lower() not in MOTION_SUFFIXES:
-                raise BridgeError(f"--pairs {text!r}: {p!r} must end in a motion file type "
-                                  f"({', '.join(MOTION_SUFFIXES)})")
+                raise BridgeError(
+                    f"--pairs {text!r}: {p!r} must end in a motion file type ({', '.join(MOTION_SUFFIXES)})"
+                )
         if parts[0] == parts[1]:
             raise BridgeError(f"--pairs {text!r}: the actor's and the reactor's patterns are the same; {fix}")
         return cls(*parts)
@@ -79,9 +82,13 @@ def find_motion_files(folder, recursive: bool = False, exclude=None) -> list[Pat
 
         raise BridgeError(f"{folder}: not a folder; give a folder of motion files (BVH, npz, npy)")
     skip = Path(exclude).resolve() if exclude is not None else None
-    candidates = [p for p in (folder.rglob("*") if recursive else folder.iterdir())
-                  if p.is_file() and p.suffix.lower() in MOTION_SUFFIXES
-                  and not (skip is not None and p.resolve().is_relative_to(skip))]
+    candidates = [
+        p
+        for p in (folder.rglob("*") if recursive else folder.iterdir())
+        if p.is_file()
+        and p.suffix.lower() in MOTION_SUFFIXES
+        and not (skip is not None and p.resolve().is_relative_to(skip))
+    ]
     # InterGen's layout: FOLDER/ or FOLDER/motions_processed/ (with --recursive: any folder) holding
     # person1/ and person2/; their files are listed as pairs, by the reactor's file
     bases = {folder, folder / "motions_processed"}
@@ -119,12 +126,24 @@ def find_clips(folder, recursive: bool = False, exclude=None, pairs: PairPattern
         name = clip_name(f, folder)
         if as_reactor is not None:
             missing = pattern.actor.replace("{name}", as_reactor)
-            clips.append(Clip(name, f, problem=f"pair {pattern}: {name} has no actor file {missing} beside it; "
-                                                f"add it, or move {f.name} out of the folder"))
+            clips.append(
+                Clip(
+                    name,
+                    f,
+                    problem=f"pair {pattern}: {name} has no actor file {missing} beside it; "
+                    f"add it, or move {f.name} out of the folder",
+                )
+            )
         elif as_actor is not None:
             missing = pattern.reactor.replace("{name}", as_actor)
-            clips.append(Clip(name, f, problem=f"pair {pattern}: {name} is an actor's file without its reactor "
-                                                f"{missing} beside it; add it, or move {f.name} out of the folder"))
+            clips.append(
+                Clip(
+                    name,
+                    f,
+                    problem=f"pair {pattern}: {name} is an actor's file without its reactor "
+                    f"{missing} beside it; add it, or move {f.name} out of the folder",
+                )
+            )
         else:
             clips.append(Clip(name, f))
     return sorted(clips, key=lambda c: c.name)
@@ -135,9 +154,10 @@ def _intergen_reactors(base: Path) -> list[Path]:
     that person's file); InterHuman-AS's actor_reactor.json in the dataset root says who acts."""
     from dualflow.datasets.interhuman import LABEL_FILE, PEOPLE, read_actor_labels
 
-    files = {person: {f.name: f for f in (base / person).iterdir()
-                      if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES}
-             for person in PEOPLE}
+    files = {
+        person: {f.name: f for f in (base / person).iterdir() if f.is_file() and f.suffix.lower() in MOTION_SUFFIXES}
+        for person in PEOPLE
+    }
     root = base.resolve()
     root = root.parent if root.name == "motions_processed" else root
     labels = read_actor_labels(root / LABEL_FILE) if (root / LABEL_FILE).is_file() else {}

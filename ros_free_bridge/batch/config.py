@@ -30,9 +30,15 @@ class BatchConfig:
     def settings(self) -> dict:
         """What decides a clip's row (the robot by the content of its files): a batch resumes
         only with the same settings."""
-        return {"robot": str(self.robot), "robot_files": robot_fingerprint(self.robot), "fps": self.fps,
-                "balance": self.balance, "auto_retime": self.auto_retime, "fixed_base": self.fixed_base,
-                "retargeter": self.retargeter}
+        return {
+            "robot": str(self.robot),
+            "robot_files": robot_fingerprint(self.robot),
+            "fps": self.fps,
+            "balance": self.balance,
+            "auto_retime": self.auto_retime,
+            "fixed_base": self.fixed_base,
+            "retargeter": self.retargeter,
+        }
 
 
 def robot_fingerprint(robot) -> str:

@@ -28,12 +28,14 @@ def run_local(clips: list[Clip], cfg: BatchConfig, jobs: int | None, done) -> No
         # the clips a dead worker took down: those that were in flight (the first submitted:
         # jobs, plus the one the pool had queued) run one per process, to find each one that
         # kills its process; the rest run again in a pool
-        suspects, pending = lost[:jobs + 1], lost[jobs + 1:]
+        suspects, pending = lost[: jobs + 1], lost[jobs + 1 :]
         for i in suspects:
             if _pool_pass([i], clips, cfg, 1, done):
-                reason = ("the worker process died while checking this clip (a crash in a native library, or out "
-                          f"of memory); retarget it alone with `dualflow-bridge retarget {clips[i].path}` to see "
-                          "the crash")
+                reason = (
+                    "the worker process died while checking this clip (a crash in a native library, or out "
+                    f"of memory); retarget it alone with `dualflow-bridge retarget {clips[i].path}` to see "
+                    "the crash"
+                )
                 done(clips[i], ClipResult(clips[i].name, status="error", reason=reason))
 
 
@@ -46,8 +48,10 @@ def _pool_pass(indices, clips: list[Clip], cfg: BatchConfig, jobs: int, done) ->
     lost = []
     with ProcessPoolExecutor(jobs, mp_context=_pool_context(cfg)) as pool:
         try:
-            futures = {pool.submit(clip_check.check_clip, clips[i].path, cfg, clips[i].name, actor=clips[i].actor): i
-                       for i in indices}
+            futures = {
+                pool.submit(clip_check.check_clip, clips[i].path, cfg, clips[i].name, actor=clips[i].actor): i
+                for i in indices
+            }
             for fut in as_completed(futures):
                 i = futures[fut]
                 try:

@@ -36,13 +36,18 @@ def start(jobs: int | None = None, address: str | None = None) -> bool:
     if ray.is_initialized():
         return False
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    common = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
-                  runtime_env={"env_vars": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}})
+    common = dict(
+        include_dashboard=False,
+        log_to_driver=False,
+        logging_level=logging.WARNING,
+        runtime_env={"env_vars": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}},
+    )
     if address:
         ray.init(address=address, **common)
     else:
-        ray.init(address="local", num_cpus=jobs or usable_cores(), object_store_memory=LOCAL_OBJECT_STORE_BYTES,
-                 **common)
+        ray.init(
+            address="local", num_cpus=jobs or usable_cores(), object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common
+        )
     return True
 
 
@@ -68,8 +73,9 @@ def _run_clip(work, clip: Clip, cfg: BatchConfig, inputs: dict[str, bytes]):
         res = work(local(clip.path, "reactor"), cfg, clip.name, actor=local(clip.actor, "actor"), workdir=workdir)
         files = {}
         if workdir.is_dir():
-            files = {p.relative_to(workdir).as_posix(): p.read_bytes()
-                     for p in sorted(workdir.rglob("*")) if p.is_file()}
+            files = {
+                p.relative_to(workdir).as_posix(): p.read_bytes() for p in sorted(workdir.rglob("*")) if p.is_file()
+            }
         return res, files
 
 
@@ -86,14 +92,18 @@ def _save_outputs(cfg: BatchConfig, name: str, files: dict[str, bytes]) -> None:
 def _died(clip: Clip, exc: Exception) -> ClipResult:
     kind = type(exc).__name__
     first = (str(exc).strip().splitlines() or [""])[0][:200]
-    return ClipResult(clip.name, status="error",
-                      reason=f"the Ray worker died while checking this clip, also when retried ({kind}: {first}); "
-                             f"retarget it alone with `dualflow-bridge retarget {clip.path}` to see the crash "
-                             "(the workers' logs are in the Ray session folder, /tmp/ray/session_latest/logs)")
+    return ClipResult(
+        clip.name,
+        status="error",
+        reason=f"the Ray worker died while checking this clip, also when retried ({kind}: {first}); "
+        f"retarget it alone with `dualflow-bridge retarget {clip.path}` to see the crash "
+        "(the workers' logs are in the Ray session folder, /tmp/ray/session_latest/logs)",
+    )
 
 
-def run_ray(clips: list[Clip], cfg: BatchConfig, done, jobs: int | None = None, address: str | None = None,
-            work=None) -> None:
+def run_ray(
+    clips: list[Clip], cfg: BatchConfig, done, jobs: int | None = None, address: str | None = None, work=None
+) -> None:
     """Run ``clips`` as Ray tasks, calling ``done(clip, result)`` in the driver as each ends (after
     its outputs are written under ``OUT``). ``work``: the per-clip function (default
     :func:`ros_free_bridge.batch.clip_check.check_clip`), sent to the workers with the task."""
@@ -118,8 +128,12 @@ def run_ray(clips: list[Clip], cfg: BatchConfig, done, jobs: int | None = None, 
                     try:
                         res, files = ray.get(ref)
                     except ray.exceptions.RayTaskError as exc:  # the per-clip function raised (it should not)
-                        res, files = ClipResult(clip.name, status="error",
-                                                reason=f"unexpected {type(exc.cause).__name__}: {exc.cause}"), {}
+                        res, files = (
+                            ClipResult(
+                                clip.name, status="error", reason=f"unexpected {type(exc.cause).__name__}: {exc.cause}"
+                            ),
+                            {},
+                        )
                     except ray.exceptions.RayError as exc:  # the worker (or its node) died twice
                         res, files = _died(clip, exc), {}
                     _save_outputs(cfg, clip.name, files)

@@ -18,12 +18,20 @@ from ros_free_bridge.batch.results import SETTINGS, ClipResult, atomic_write
 
 #: (row key, column head, kind) of the index table; kind "num" sorts numerically.
 INDEX_COLUMNS = (
-    ("clip", "clip", "text"), ("status", "verdict", "text"), ("stage", "stage", "text"),
-    ("reason", "reason", "text"), ("first_failure_s", "fails at (s)", "num"), ("frames", "frames", "num"),
-    ("duration_s", "length (s)", "num"), ("retime", "retime", "num"),
-    ("keypoint_error_mm", "kp error (mm)", "num"), ("skate_share", "foot skate", "num"),
-    ("jerk_ratio", "jerk ratio", "num"), ("limit_violations", "limit hits", "num"),
-    ("check_reason", "physics check", "text"), ("changed", "changed from the person", "text"),
+    ("clip", "clip", "text"),
+    ("status", "verdict", "text"),
+    ("stage", "stage", "text"),
+    ("reason", "reason", "text"),
+    ("first_failure_s", "fails at (s)", "num"),
+    ("frames", "frames", "num"),
+    ("duration_s", "length (s)", "num"),
+    ("retime", "retime", "num"),
+    ("keypoint_error_mm", "kp error (mm)", "num"),
+    ("skate_share", "foot skate", "num"),
+    ("jerk_ratio", "jerk ratio", "num"),
+    ("limit_violations", "limit hits", "num"),
+    ("check_reason", "physics check", "text"),
+    ("changed", "changed from the person", "text"),
     ("seconds", "took (s)", "num"),
 )
 #: What the column heads mean (their tooltips).
@@ -166,11 +174,16 @@ def index_page(rows, settings: dict, total: int | None = None) -> str:
     n = len(rows)
     counts = {s: sum(r.status == s for r in rows) for s in ("pass", "fail", "error")}
     title = f"Retarget-and-check: {counts['pass']} of {n} clips pass"
-    note = "" if total is None or total == n else \
-        f' <span class="muted">({n} of {total} clips done: the batch was interrupted; --resume continues it)</span>'
+    note = (
+        ""
+        if total is None or total == n
+        else f' <span class="muted">({n} of {total} clips done: the batch was interrupted; --resume continues it)</span>'
+    )
     what = ", ".join(f"{k} {_e(settings[k])}" for k in ("robot", "retargeter") if settings.get(k) is not None)
-    heads = "".join(f'<th data-key="{key}" data-kind="{kind}" title="{_e(HINTS.get(key, ""))}">{_e(label)}</th>'
-                    for key, label, kind in INDEX_COLUMNS)
+    heads = "".join(
+        f'<th data-key="{key}" data-kind="{kind}" title="{_e(HINTS.get(key, ""))}">{_e(label)}</th>'
+        for key, label, kind in INDEX_COLUMNS
+    )
     body = []
     for r in rows:
         d = r.row()
@@ -195,7 +208,7 @@ def index_page(rows, settings: dict, total: int | None = None) -> str:
 <style>{STYLE}</style></head>
 <body>
 <h1>{_e(title)}</h1>
-<p>{counts['pass']} pass, {counts['fail']} fail, {counts['error']} error{('; ' + what) if what else ''}.{note}
+<p>{counts["pass"]} pass, {counts["fail"]} fail, {counts["error"]} error{("; " + what) if what else ""}.{note}
 Click a column head to sort, a clip to see its video, plots and reports.
 Tables: <a href="results.csv">results.csv</a>, <a href="results.md">results.md</a>.</p>
 <div class="bar"><label>verdict <select id="filter-status"><option value="">all ({n})</option>{options}</select></label>
@@ -213,30 +226,43 @@ Tables: <a href="results.csv">results.csv</a>, <a href="results.md">results.md</
 def clip_page(r, folder: Path, settings: dict) -> str:
     depth = len(Path("clips", r.clip).parts)
     up = "../" * depth
-    figures = [("verdict", r.status.upper()), ("stage", r.stage or "-"), ("reason", r.reason or "-"),
-               ("first failure (s into the file)", _cell(r.first_failure_s) or "-"),
-               ("frames / duration (s)", f"{r.frames} / {_cell(r.duration_s)}"), ("retime", _cell(r.retime)),
-               ("keypoint error mean (mm)", _cell(r.keypoint_error_mm) or "-"),
-               ("foot skate (share of contact frames)", _cell(r.skate_share) or "-"),
-               ("jerk ratio (robot / source)", _cell(r.jerk_ratio) or "-"),
-               ("limit + velocity violations", _cell(r.limit_violations) or "-"),
-               ("physics check", r.check_reason or ("pass" if r.status == "pass" else "-")),
-               ("changed from the person (s into the file)", getattr(r, "changed", "") or "-"),
-               ("compute (s)", _cell(r.seconds))]
+    figures = [
+        ("verdict", r.status.upper()),
+        ("stage", r.stage or "-"),
+        ("reason", r.reason or "-"),
+        ("first failure (s into the file)", _cell(r.first_failure_s) or "-"),
+        ("frames / duration (s)", f"{r.frames} / {_cell(r.duration_s)}"),
+        ("retime", _cell(r.retime)),
+        ("keypoint error mean (mm)", _cell(r.keypoint_error_mm) or "-"),
+        ("foot skate (share of contact frames)", _cell(r.skate_share) or "-"),
+        ("jerk ratio (robot / source)", _cell(r.jerk_ratio) or "-"),
+        ("limit + velocity violations", _cell(r.limit_violations) or "-"),
+        ("physics check", r.check_reason or ("pass" if r.status == "pass" else "-")),
+        ("changed from the person (s into the file)", getattr(r, "changed", "") or "-"),
+        ("compute (s)", _cell(r.seconds)),
+    ]
     if r.actor:
         figures.insert(0, ("actor (the robot plays the other person)", r.actor))
     facts = "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in figures)
     parts = []
     video = folder / "video.mp4"
     if video.is_file():
-        what = ("the actor | the person the robot plays | the robot with the actor" if r.actor
-                else "the person (beside) and the robot, as the simulated servos played it")
-        parts.append(f'<h2>Video</h2><p class="muted">{_e(what)}</p>'
-                     f'<video src="video.mp4" controls loop muted playsinline preload="metadata"></video>')
+        what = (
+            "the actor | the person the robot plays | the robot with the actor"
+            if r.actor
+            else "the person (beside) and the robot, as the simulated servos played it"
+        )
+        parts.append(
+            f'<h2>Video</h2><p class="muted">{_e(what)}</p>'
+            f'<video src="video.mp4" controls loop muted playsinline preload="metadata"></video>'
+        )
     elif (folder / "video_error.txt").is_file():
         parts.append(f'<h2>Video</h2><p class="muted">{_e((folder / "video_error.txt").read_text().strip())}</p>')
-    files = [f'<a href="{quote(n)}">{_e(n)}</a>' for n in ("trajectory.npz", "check.json", "retarget.report.json",
-                                                            "traceback.txt") if (folder / n).is_file()]
+    files = [
+        f'<a href="{quote(n)}">{_e(n)}</a>'
+        for n in ("trajectory.npz", "check.json", "retarget.report.json", "traceback.txt")
+        if (folder / n).is_file()
+    ]
     if files:
         parts.append(f"<p>Files: {', '.join(files)}</p>")
     sections = []
@@ -253,8 +279,8 @@ def clip_page(r, folder: Path, settings: dict) -> str:
 <p><a href="{up}index.html">&larr; all clips</a></p>
 <h1>{_e(r.clip)}{robot} <span class="verdict {_e(r.status)}">{_e(r.status.upper())}</span></h1>
 <table class="facts">{facts}</table>
-{''.join(parts)}
-<div class="cols">{''.join(sections)}</div>
+{"".join(parts)}
+<div class="cols">{"".join(sections)}</div>
 <script>{CLIP_SCRIPT}</script>
 </body></html>
 """
@@ -297,9 +323,13 @@ def markdown_to_html(md: str, shift: int = 0) -> str:
                 block.append([c.strip() for c in lines[i].strip().strip("|").split("|")])
                 i += 1
             head, rows = block[0], [b for b in block[1:] if not all(re.fullmatch(r":?-{3,}:?", c) for c in b)]
-            out.append("<table><thead><tr>" + "".join(f"<th>{_inline(c)}</th>" for c in head) + "</tr></thead><tbody>"
-                       + "".join("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows)
-                       + "</tbody></table>")
+            out.append(
+                "<table><thead><tr>"
+                + "".join(f"<th>{_inline(c)}</th>" for c in head)
+                + "</tr></thead><tbody>"
+                + "".join("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows)
+                + "</tbody></table>"
+            )
             continue
         if re.match(r"^\s*[-*]\s+", line):
             items = []
@@ -309,8 +339,12 @@ def markdown_to_html(md: str, shift: int = 0) -> str:
             out.append("<ul>" + "".join(f"<li>{_inline(t)}</li>" for t in items) + "</ul>")
             continue
         para = []
-        while i < len(lines) and lines[i].strip() and not re.match(r"^(#{1,6}\s|\||\s*[-*]\s)", lines[i]) \
-                and not _IMAGE.match(lines[i].strip()):
+        while (
+            i < len(lines)
+            and lines[i].strip()
+            and not re.match(r"^(#{1,6}\s|\||\s*[-*]\s)", lines[i])
+            and not _IMAGE.match(lines[i].strip())
+        ):
             para.append(lines[i].strip())
             i += 1
         out.append(f"<p>{_inline(' '.join(para))}</p>")

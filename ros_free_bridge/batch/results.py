@@ -16,8 +16,24 @@ from pathlib import Path
 from ros_free_bridge.batch.clips import Clip
 from ros_free_bridge.batch.config import BatchConfig, clip_dir
 
-COLUMNS = ("clip", "actor", "status", "stage", "reason", "first_failure_s", "frames", "duration_s", "retime",
-           "keypoint_error_mm", "skate_share", "jerk_ratio", "limit_violations", "check_reason", "changed", "seconds")
+COLUMNS = (
+    "clip",
+    "actor",
+    "status",
+    "stage",
+    "reason",
+    "first_failure_s",
+    "frames",
+    "duration_s",
+    "retime",
+    "keypoint_error_mm",
+    "skate_share",
+    "jerk_ratio",
+    "limit_violations",
+    "check_reason",
+    "changed",
+    "seconds",
+)
 #: Columns that depend on the machine and its load, not on the clip (left out when two tables are compared).
 TIMING_COLUMNS = ("seconds",)
 #: The marker a clip's output folder gets last: its row, once every other output is written.
@@ -152,9 +168,11 @@ class ResultLog:
                 before = None
             if before != settings:
                 diff = sorted(k for k in settings if not isinstance(before, dict) or before.get(k) != settings[k])
-                raise BridgeError(f"--resume: {self.out} was made with other settings ({', '.join(diff) or SETTINGS}: "
-                                  f"{SETTINGS} there says {before!r}); resume with the same options and robot files, "
-                                  "or write to another -o folder (or drop --resume to start afresh)")
+                raise BridgeError(
+                    f"--resume: {self.out} was made with other settings ({', '.join(diff) or SETTINGS}: "
+                    f"{SETTINGS} there says {before!r}); resume with the same options and robot files, "
+                    "or write to another -o folder (or drop --resume to start afresh)"
+                )
             self.rows = self._complete_rows(clips)
         atomic_write(saved, json.dumps(settings, indent=1) + "\n")
         rows = list(self.rows.values())
@@ -226,14 +244,27 @@ def write_results(results: list[ClipResult], out: Path) -> dict[str, Path]:
 
 def markdown_table(results: list[ClipResult]) -> str:
     n_pass = sum(r.status == "pass" for r in results)
-    lines = [f"# Retarget-and-check: {n_pass} of {len(results)} clips pass", "",
-             "| clip | status | stage | first failure (s) | frames | retime | kp err (mm) | skate | jerk ratio "
-             "| reason | changed from the person |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Retarget-and-check: {n_pass} of {len(results)} clips pass",
+        "",
+        "| clip | status | stage | first failure (s) | frames | retime | kp err (mm) | skate | jerk ratio "
+        "| reason | changed from the person |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in results:
-        cells = [r.clip, r.status.upper(), r.stage or "-", _fmt(r.first_failure_s), str(r.frames), _fmt(r.retime),
-                 _fmt(r.keypoint_error_mm), _fmt(r.skate_share), _fmt(r.jerk_ratio),
-                 (r.reason or "-").replace("|", "/"), (r.changed or "-").replace("|", "/")]
+        cells = [
+            r.clip,
+            r.status.upper(),
+            r.stage or "-",
+            _fmt(r.first_failure_s),
+            str(r.frames),
+            _fmt(r.retime),
+            _fmt(r.keypoint_error_mm),
+            _fmt(r.skate_share),
+            _fmt(r.jerk_ratio),
+            (r.reason or "-").replace("|", "/"),
+            (r.changed or "-").replace("|", "/"),
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -15,8 +15,16 @@ from ros_free_bridge.batch.report_html import write_html_report
 from ros_free_bridge.batch.results import ClipResult, ResultLog, write_results
 
 
-def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool = True, folder=None,
-              engine: str = "local", address: str | None = None, resume: bool = False) -> list[ClipResult]:
+def run_batch(
+    files,
+    cfg: BatchConfig,
+    jobs: int | None = None,
+    progress: bool = True,
+    folder=None,
+    engine: str = "local",
+    address: str | None = None,
+    resume: bool = False,
+) -> list[ClipResult]:
     """Check every clip; rows in clip order. Each row is written to disk as its clip ends
     (:class:`ResultLog`); at the end (or on Ctrl-C) the tables and the HTML report are written.
 
@@ -35,16 +43,19 @@ def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool =
     clips = as_clips(files, folder)
     names = [c.name for c in clips]
     if len(set(names)) != len(names):
-        raise BridgeError(f"two clips share a name ({sorted(n for n in names if names.count(n) > 1)[0]}); "
-                          "give files from one folder")
+        raise BridgeError(
+            f"two clips share a name ({sorted(n for n in names if names.count(n) > 1)[0]}); give files from one folder"
+        )
     for n in names:
         clip_dir(cfg, n)  # each name stays inside OUT/clips (raises otherwise)
     if engine == "ray":
         try:
             from ros_free_bridge.batch.ray_engine import run_ray
         except ImportError as exc:
-            raise BridgeError(f"--engine ray needs Ray ({exc}); install it with `pip install -e \".[cluster]\"` "
-                              "(or `pip install 'ray>=2.40,<3'`), or use the local engine") from None
+            raise BridgeError(
+                f'--engine ray needs Ray ({exc}); install it with `pip install -e ".[cluster]"` '
+                "(or `pip install 'ray>=2.40,<3'`), or use the local engine"
+            ) from None
     log = ResultLog(cfg, clips, resume=resume)
     wanted = set(names)
     results: dict[str, ClipResult] = {n: r for n, r in log.complete().items() if n in wanted}
@@ -53,6 +64,7 @@ def run_batch(files, cfg: BatchConfig, jobs: int | None = None, progress: bool =
         print(f"resuming: {len(results)} of {len(clips)} clips already complete in {cfg.out}")
     try:
         with tqdm(total=len(todo), desc="retarget-check", unit="clip", disable=not progress) as bar:
+
             def done(clip: Clip, res: ClipResult) -> None:
                 res.actor = clip.actor_name
                 log.add(clip, res)

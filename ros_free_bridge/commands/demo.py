@@ -34,11 +34,19 @@ import numpy as np
 def register(sub) -> None:
     from ros_free_bridge.commands.run import add_generator_options, add_stabilizer_option
 
-    p = sub.add_parser("demo", help="the main job: a dancing leader, a generated robot partner, video and reports",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robot", default="op3", metavar="NAME|DIR",
-                   help="the robot partner: a bundled name (op3, ub14) or a robot folder (see `robot init`); a robot "
-                        "without hardware.yaml runs without the emulated bus (default op3)")
+    p = sub.add_parser(
+        "demo",
+        help="the main job: a dancing leader, a generated robot partner, video and reports",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--robot",
+        default="op3",
+        metavar="NAME|DIR",
+        help="the robot partner: a bundled name (op3, ub14) or a robot folder (see `robot init`); a robot "
+        "without hardware.yaml runs without the emulated bus (default op3)",
+    )
     p.add_argument("--actor", default="synthetic", help="a motion file for the leader (default: the synthetic leader)")
     p.add_argument("--music", help="an audio file, wav/ogg/mp3 (default: a click track on the leader's beats)")
     p.add_argument("--text", help="a text cue for the partner (default: none)")
@@ -62,7 +70,7 @@ def click_track(beat_times: np.ndarray, seconds: float, path: Path, sr: int = 22
     for k, b in enumerate(beat_times):
         i = int(b * sr)
         if 0 <= i < len(audio) - len(t):
-            audio[i:i + len(t)] += (0.9 if k % 4 == 0 else 0.5) * click
+            audio[i : i + len(t)] += (0.9 if k % 4 == 0 else 0.5) * click
     sf.write(path, audio, sr)
     return path
 
@@ -79,8 +87,10 @@ def demo(args) -> int:
 
     files = resolve_robot(args.robot)
     if files.hardware is None and not args.no_bus:
-        print(f"note: robot {files.ref} has no hardware.yaml; driving the virtual robot without the emulated bus",
-              file=sys.stderr)
+        print(
+            f"note: robot {files.ref} has no hardware.yaml; driving the virtual robot without the emulated bus",
+            file=sys.stderr,
+        )
         args.no_bus = True
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -97,11 +107,24 @@ def demo(args) -> int:
             music = str(click_track(beats[0], beats[1], out / "music.wav"))
             print(f"music: a click track {beats[2]} ({out / 'music.wav'})", file=sys.stderr)
 
-    print(f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
-          f"{'' if args.no_bus else ' + emulated Dynamixel bus'}", file=sys.stderr)
-    opts = SessionOptions(robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, **generator_options(args),
-                          transport="sim" if args.no_bus else "sim+dynamixel", emulate=not args.no_bus, out=out,
-                          text=args.text, music=music, stabilizer=not args.no_stabilizer)
+    print(
+        f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
+        f"{'' if args.no_bus else ' + emulated Dynamixel bus'}",
+        file=sys.stderr,
+    )
+    opts = SessionOptions(
+        robot=args.robot,
+        actor=args.actor,
+        seconds=args.seconds,
+        seed=args.seed,
+        **generator_options(args),
+        transport="sim" if args.no_bus else "sim+dynamixel",
+        emulate=not args.no_bus,
+        out=out,
+        text=args.text,
+        music=music,
+        stabilizer=not args.no_stabilizer,
+    )
     result = run_session(opts, on_status=StatusLine())
     sys.stderr.write("\n")
 
@@ -110,8 +133,12 @@ def demo(args) -> int:
     # its own simulated robot (off with --no-stabilizer, as in the run)
     commands = tel.commands_trajectory(result.files.ref, without_correction=True)
     with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
-        check = check_trajectory(commands, CheckConfig(control_hz=tel.rate_hz, stabilizer=not args.no_stabilizer),
-                                 robot=result.files.ref, on_tick=tick)
+        check = check_trajectory(
+            commands,
+            CheckConfig(control_hz=tel.rate_hz, stabilizer=not args.no_stabilizer),
+            robot=result.files.ref,
+            on_tick=tick,
+        )
     reports = write_report(check, out, "check")
 
     video = None
@@ -120,16 +147,17 @@ def demo(args) -> int:
             video = render_video(result, out / "demo.mp4", on_tick=tick)
 
     print_summary(result)
-    print(f"physics check: {'PASS' if check.passed else 'FAIL'}"
-          + ("" if check.passed else f" ({check.reason}, first at {check.first_failure_time} s)")
-          + f"; {stabilizer_line(check)}")
+    print(
+        f"physics check: {'PASS' if check.passed else 'FAIL'}"
+        + ("" if check.passed else f" ({check.reason}, first at {check.first_failure_time} s)")
+        + f"; {stabilizer_line(check)}"
+    )
     for name, path in reports.items():
         print(f"{name}: {path}")
     if video is not None:
         print(f"video: {video}")
     print(f"done in {time.monotonic() - t_start:.0f} s")
-    ok = (result.summary.ok and result.transport_info.get("bus_violations", 0) == 0
-          and check.passed)
+    ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed
     return 0 if ok else 1
 
 
@@ -151,7 +179,11 @@ def leader_beats(actor: str, seconds: float, seed: int):
     motion = motion.actor if isinstance(motion, TwoPersonMotion) else motion
     if motion.n_frames < 3:
         return None  # too short to have beats; the session says what is wrong with it
-    return motion_beats(motion.positions) / motion.fps, motion.duration, "on the actor's motion beats (its speed minima)"
+    return (
+        motion_beats(motion.positions) / motion.fps,
+        motion.duration,
+        "on the actor's motion beats (its speed minima)",
+    )
 
 
 @contextmanager
@@ -162,6 +194,11 @@ def motion_progress(title: str, total_s: float):
 
     total = round(float(total_s), 2)
     print(title, file=sys.stderr)
-    with tqdm(total=total, unit="s", leave=False, file=sys.stderr,
-              bar_format="  {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of motion [{elapsed}<{remaining}]") as bar:
+    with tqdm(
+        total=total,
+        unit="s",
+        leave=False,
+        file=sys.stderr,
+        bar_format="  {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of motion [{elapsed}<{remaining}]",
+    ) as bar:
         yield lambda t: bar.update(min(float(t), total) - bar.n)

@@ -26,22 +26,29 @@ QUICK = {"replications": 2, "batch_size": 32, "diversity_times": 100, "mm_sample
 
 
 def _dataset_args(p: argparse.ArgumentParser, split: str) -> None:
-    p.add_argument("--dataset", default="synthetic",
-                   help="interhuman | interhuman_as | dd100 | mdd | bvh_pairs | synthetic (default synthetic)")
+    p.add_argument(
+        "--dataset",
+        default="synthetic",
+        help="interhuman | interhuman_as | dd100 | mdd | bvh_pairs | synthetic (default synthetic)",
+    )
     p.add_argument("--root", default=None, help="dataset folder (not for synthetic)")
     p.add_argument("--split", default=split, help=f"split to use (default {split})")
     p.add_argument("--frames", type=int, default=60, help="feature rows per window (default 60 = 2 s at 30 fps)")
     p.add_argument("--stride", type=int, default=None, help="window stride in frames (default: --frames)")
     p.add_argument("--limit", type=int, default=None, help="use at most this many clips")
-    p.add_argument("--clips", type=int, default=None, help="synthetic only: number of clips (default 64 / 256 for training)")
+    p.add_argument(
+        "--clips", type=int, default=None, help="synthetic only: number of clips (default 64 / 256 for training)"
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "eval", help="evaluate checkpoints (FID, R-precision, MMDist, diversity, MModality, BED, BAS)",
+        "eval",
+        help="evaluate checkpoints (FID, R-precision, MMDist, diversity, MModality, BED, BAS)",
         description="Score DualFlow checkpoints against a dataset's ground truth with a trained motion-text "
-                    "evaluator and print a table shaped like the paper's Table 1.")
+        "evaluator and print a table shaped like the paper's Table 1.",
+    )
     _dataset_args(parser, "test")
     parser.add_argument("--evaluator", default=None, help="evaluator folder from `eval train-evaluator`")
     parser.add_argument("--checkpoint", action="append", default=[], metavar="[LABEL=]PATH", help="a row (repeatable)")
@@ -52,33 +59,65 @@ def register(subparsers) -> None:
     parser.add_argument("--spectral", metavar="PATH", help="ablation: spectral music features")
     parser.add_argument("--jukebox", metavar="PATH", help="ablation: Jukebox music features")
     parser.add_argument("--look-ahead", action="append", default=[], metavar="L=PATH", help="ablation: look-ahead L")
-    parser.add_argument("--retrieval-k", action="append", default=[], metavar="K=PATH", help="ablation: retrieval depth k")
-    parser.add_argument("--mode", choices=("interactive", "reactive", "both"), default="both",
-                        help="interactive: both people generated from text/music; reactive: the reactor generated "
-                             "from the ground-truth actor; both: two row groups, as in the paper (default both)")
+    parser.add_argument(
+        "--retrieval-k", action="append", default=[], metavar="K=PATH", help="ablation: retrieval depth k"
+    )
+    parser.add_argument(
+        "--mode",
+        choices=("interactive", "reactive", "both"),
+        default="both",
+        help="interactive: both people generated from text/music; reactive: the reactor generated "
+        "from the ground-truth actor; both: two row groups, as in the paper (default both)",
+    )
     parser.add_argument("--steps", type=int, default=20, help="Euler steps per sample (paper: 20)")
-    parser.add_argument("--cfg-scale", type=float, default=1.0,
-                        help="classifier-free guidance scale of the conditions (1 = no guidance; default 1)")
-    parser.add_argument("--replications", type=int, default=20,
-                        help="repeats of the whole protocol with different seeds; figures are mean ± 1.96 σ/√n (default 20)")
+    parser.add_argument(
+        "--cfg-scale",
+        type=float,
+        default=1.0,
+        help="classifier-free guidance scale of the conditions (1 = no guidance; default 1)",
+    )
+    parser.add_argument(
+        "--replications",
+        type=int,
+        default=20,
+        help="repeats of the whole protocol with different seeds; figures are mean ± 1.96 σ/√n (default 20)",
+    )
     parser.add_argument("--batch-size", type=int, default=96, help="R-precision batch (InterGen: 96)")
-    parser.add_argument("--diversity-times", type=int, default=300,
-                        help="pairs of generated samples whose embedding distance makes the diversity (default 300)")
-    parser.add_argument("--mm-samples", type=int, default=100,
-                        help="multimodality: conditions sampled from the test set (default 100)")
-    parser.add_argument("--mm-repeats", type=int, default=30,
-                        help="multimodality: generations per condition (default 30)")
-    parser.add_argument("--mm-times", type=int, default=10,
-                        help="multimodality: pairs of those generations compared per condition (default 10)")
-    parser.add_argument("--quick", action="store_true", help="smaller protocol: " + ", ".join(f"{k}={v}" for k, v in QUICK.items()))
+    parser.add_argument(
+        "--diversity-times",
+        type=int,
+        default=300,
+        help="pairs of generated samples whose embedding distance makes the diversity (default 300)",
+    )
+    parser.add_argument(
+        "--mm-samples", type=int, default=100, help="multimodality: conditions sampled from the test set (default 100)"
+    )
+    parser.add_argument(
+        "--mm-repeats", type=int, default=30, help="multimodality: generations per condition (default 30)"
+    )
+    parser.add_argument(
+        "--mm-times",
+        type=int,
+        default=10,
+        help="multimodality: pairs of those generations compared per condition (default 10)",
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="smaller protocol: " + ", ".join(f"{k}={v}" for k, v in QUICK.items())
+    )
     parser.add_argument("--no-ground-truth", action="store_true", help="leave out the ground-truth row")
     parser.add_argument("--json", default=None, help="also write the results to this JSON file")
-    parser.add_argument("--print-ablation-recipes", action="store_true",
-                        help="print the training overrides of every ablation switch and exit")
+    parser.add_argument(
+        "--print-ablation-recipes",
+        action="store_true",
+        help="print the training overrides of every ablation switch and exit",
+    )
     parser.set_defaults(func=run_eval)
     sub = parser.add_subparsers(dest="eval_action", metavar="ACTION")
-    tr = sub.add_parser("train-evaluator", help="train the contrastive motion-text evaluator",
-                        description="Train the InterCLIP-style motion-text evaluator on a dataset split.")
+    tr = sub.add_parser(
+        "train-evaluator",
+        help="train the contrastive motion-text evaluator",
+        description="Train the InterCLIP-style motion-text evaluator on a dataset split.",
+    )
     _dataset_args(tr, "train")
     tr.add_argument("--out", required=True, help="output folder for the evaluator")
     tr.add_argument("--steps", type=int, default=400, help="training steps (default 400)")
@@ -116,10 +155,14 @@ def run_train_evaluator(args: argparse.Namespace) -> int:
     data = _load(args, args.split)
     torch.manual_seed(args.seed)
     cfg = EvaluatorConfig(width=args.width, layers=args.layers, ff_dim=2 * args.width, dim=args.width)
-    model = train_evaluator(data.features, data.texts, config=cfg, device=args.device,
-                            training=EvaluatorTraining(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
-                                                       seed=args.seed),
-                            log=lambda step, loss: print(f"step {step:5d}  contrastive loss {loss:.4f}"))
+    model = train_evaluator(
+        data.features,
+        data.texts,
+        config=cfg,
+        device=args.device,
+        training=EvaluatorTraining(steps=args.steps, batch_size=args.batch_size, lr=args.lr, seed=args.seed),
+        log=lambda step, loss: print(f"step {step:5d}  contrastive loss {loss:.4f}"),
+    )
     model.summary.update(dataset=args.dataset, split=args.split, root=str(args.root) if args.root else None)
     out = model.save(args.out, model.summary)
     print(f"evaluator written to {out} ({len(data)} windows, final loss {model.summary['final_loss']:.4f})")
@@ -159,8 +202,10 @@ def print_recipes() -> None:
         flag = "--" + key.replace("_", "-") + (" N=PATH" if "{v}" in label else " PATH")
         recipe = " ".join(f"--set {s.format(v='N')}" for s in sets)
         print(f"  {flag:24s} row {label.format(v='N')!r:28s} {recipe}")
-    print("Jukebox features (4800-d) are precomputed .npy files (e.g. MDD's, with --set data.options.music=jukebox);"
-          " the synthetic duets have no audio to compute them from.")
+    print(
+        "Jukebox features (4800-d) are precomputed .npy files (e.g. MDD's, with --set data.options.music=jukebox);"
+        " the synthetic duets have no audio to compute them from."
+    )
 
 
 def run_eval(args: argparse.Namespace) -> int:
@@ -173,7 +218,9 @@ def run_eval(args: argparse.Namespace) -> int:
         raise DualFlowError("eval: --evaluator DIR is required (train one with `dualflow-bridge eval train-evaluator`)")
     rows = _rows(args)
     if not rows and args.no_ground_truth:
-        raise DualFlowError("eval: nothing to evaluate; give --checkpoint / ablation switches or keep the ground-truth row")
+        raise DualFlowError(
+            "eval: nothing to evaluate; give --checkpoint / ablation switches or keep the ground-truth row"
+        )
     import torch
 
     from dualflow.evaluation.evaluator import MotionTextEvaluator
@@ -184,8 +231,14 @@ def run_eval(args: argparse.Namespace) -> int:
         torch.set_num_threads(int(os.environ["DUALFLOW_EVAL_THREADS"]))
     evaluator = MotionTextEvaluator.load(args.evaluator, args.device)
     data = _load(args)
-    proto = dict(replications=args.replications, batch_size=args.batch_size, diversity_times=args.diversity_times,
-                 mm_samples=args.mm_samples, mm_repeats=args.mm_repeats, mm_times=args.mm_times)
+    proto = dict(
+        replications=args.replications,
+        batch_size=args.batch_size,
+        diversity_times=args.diversity_times,
+        mm_samples=args.mm_samples,
+        mm_repeats=args.mm_repeats,
+        mm_times=args.mm_times,
+    )
     if args.quick:
         proto.update(QUICK)
     modes = ["interactive", "reactive"] if args.mode == "both" else [args.mode]
@@ -198,17 +251,23 @@ def run_eval(args: argparse.Namespace) -> int:
         if rows:
             table.append((f"{mode.capitalize()} Task", None))
         for label, path in rows:
-            gen = CheckpointGenerator(path, data, mode=mode, steps=args.steps, cfg_scale=args.cfg_scale,
-                                      device=args.device)
+            gen = CheckpointGenerator(
+                path, data, mode=mode, steps=args.steps, cfg_scale=args.cfg_scale, device=args.device
+            )
             res = evaluate(gen, data, evaluator, ProtocolConfig(**proto, mode=mode))
             table.append((label, res))
             results[f"{mode}/{label}"] = res
-    title = (f"{args.dataset}/{args.split}: {len(data)} windows of {args.frames} frames; "
-             f"{proto['replications']} replication(s); {args.steps} steps")
+    title = (
+        f"{args.dataset}/{args.split}: {len(data)} windows of {args.frames} frames; "
+        f"{proto['replications']} replication(s); {args.steps} steps"
+    )
     print(format_table(table, title))
     if args.json:
-        payload = {"title": title, "protocol": proto,
-                   "rows": {k: {m: {"mean": e.mean, "ci": e.ci, "n": e.n} for m, e in v.items()} for k, v in results.items()}}
+        payload = {
+            "title": title,
+            "protocol": proto,
+            "rows": {k: {m: {"mean": e.mean, "ci": e.ci, "n": e.n} for m, e in v.items()} for k, v in results.items()},
+        }
         tmp = Path(args.json).with_name(Path(args.json).name + ".partial")
         tmp.write_text(json.dumps(payload, indent=2, allow_nan=True))
         os.replace(tmp, args.json)

@@ -22,20 +22,44 @@ def _add_load_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fps", type=float, help="resample to this frame rate")
     g.add_argument("--source-fps", type=float, help="the file's frame rate where the file does not store it")
     g.add_argument("--scale", type=float, help="metres per file unit (default: detected from the person's height)")
-    g.add_argument("--up", choices=("auto", "y", "z"), help="up axis of the file (default: auto for BVH, the format's own otherwise)")
-    g.add_argument("--joint-map", metavar="NAME|FILE", help="BVH joint map: cmu, mixamo, mixamo_spine3, smpl, or a .yaml/.json file")
+    g.add_argument(
+        "--up",
+        choices=("auto", "y", "z"),
+        help="up axis of the file (default: auto for BVH, the format's own otherwise)",
+    )
+    g.add_argument(
+        "--joint-map",
+        metavar="NAME|FILE",
+        help="BVH joint map: cmu, mixamo, mixamo_spine3, smpl, or a .yaml/.json file",
+    )
     first = g.add_mutually_exclusive_group()
-    first.add_argument("--keep-first-frame", dest="drop_first", action="store_const", const=False, default="auto",
-                       help="BVH: keep frame 0 even if it looks like a reference pose")
-    first.add_argument("--drop-first-frame", dest="drop_first", action="store_const", const=True,
-                       help="BVH: always drop frame 0 (a T-pose / reference pose)")
+    first.add_argument(
+        "--keep-first-frame",
+        dest="drop_first",
+        action="store_const",
+        const=False,
+        default="auto",
+        help="BVH: keep frame 0 even if it looks like a reference pose",
+    )
+    first.add_argument(
+        "--drop-first-frame",
+        dest="drop_first",
+        action="store_const",
+        const=True,
+        help="BVH: always drop frame 0 (a T-pose / reference pose)",
+    )
     g.add_argument("--no-height-check", action="store_true", help="accept people outside 1.4-2.1 m tall")
     g.add_argument("--ground", action="store_true", help="shift vertically so the lowest foot joint is at z = 0")
 
 
 def _options(args) -> dict:
-    opts = {"fps": args.fps, "source_fps": args.source_fps, "scale": args.scale, "joint_map": args.joint_map,
-            "drop_first": args.drop_first}
+    opts = {
+        "fps": args.fps,
+        "source_fps": args.source_fps,
+        "scale": args.scale,
+        "joint_map": args.joint_map,
+        "drop_first": args.drop_first,
+    }
     if args.up and args.up != "auto":
         opts["up"] = args.up
     if args.no_height_check:
@@ -75,7 +99,11 @@ def describe(motion) -> str:
     from dualflow.motion import FOOT_JOINTS, TwoPersonMotion
     from dualflow.motion.io.units import estimate_height
 
-    people = [("actor", motion.actor), ("reactor", motion.reactor)] if isinstance(motion, TwoPersonMotion) else [("person", motion)]
+    people = (
+        [("actor", motion.actor), ("reactor", motion.reactor)]
+        if isinstance(motion, TwoPersonMotion)
+        else [("person", motion)]
+    )
     first = people[0][1]
     lines = [f"frames    {first.n_frames}", f"fps       {first.fps:g}", f"duration  {first.duration:.3f} s"]
     if isinstance(motion, TwoPersonMotion) and motion.text:
@@ -87,7 +115,9 @@ def describe(motion) -> str:
         lines.append(f"  height (standing estimate)  {estimate_height(pos):.2f} m")
         lines.append(f"  pelvis height               {pos[:, 0, 2].min():.2f} .. {pos[:, 0, 2].max():.2f} m")
         lines.append(f"  lowest foot joint           {pos[:, list(FOOT_JOINTS), 2].min():+.3f} m")
-        lines.append(f"  extents  x {lo[0]:+.2f} .. {hi[0]:+.2f}   y {lo[1]:+.2f} .. {hi[1]:+.2f}   z {lo[2]:+.2f} .. {hi[2]:+.2f} m")
+        lines.append(
+            f"  extents  x {lo[0]:+.2f} .. {hi[0]:+.2f}   y {lo[1]:+.2f} .. {hi[1]:+.2f}   z {lo[2]:+.2f} .. {hi[2]:+.2f} m"
+        )
         path = np.linalg.norm(np.diff(pos[:, 0, :2], axis=0), axis=-1).sum()
         lines.append(f"  pelvis ground path          {path:.2f} m")
     if isinstance(motion, TwoPersonMotion):
@@ -184,43 +214,62 @@ def _preview(args) -> int:
 
 
 def register(subparsers) -> None:
-    motion = subparsers.add_parser("motion", help="inspect, convert and preview human motion files",
-                                   description=__doc__.split("\n\n")[0])
+    motion = subparsers.add_parser(
+        "motion", help="inspect, convert and preview human motion files", description=__doc__.split("\n\n")[0]
+    )
     sub = motion.add_subparsers(dest="motion_command", metavar="ACTION", required=True)
 
-    info = sub.add_parser("info", help="frames, fps, duration, height and extents of a motion file",
-                          description="Read a motion file (or a pair) and print what the bridge sees: frames, "
-                                      "frame rate, duration, each person's height, pelvis height, lowest foot, extents and "
-                                      "path, the distance between two people, and for BVH the joint map and "
-                                      "length unit it detected. Use it to check a file before retargeting it.",
-                          formatter_class=argparse.RawDescriptionHelpFormatter)
+    info = sub.add_parser(
+        "info",
+        help="frames, fps, duration, height and extents of a motion file",
+        description="Read a motion file (or a pair) and print what the bridge sees: frames, "
+        "frame rate, duration, each person's height, pelvis height, lowest foot, extents and "
+        "path, the distance between two people, and for BVH the joint map and "
+        "length unit it detected. Use it to check a file before retargeting it.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     info.add_argument("files", nargs="*", metavar="FILE", help="motion file, and optionally the partner's (FILE2)")
     _add_load_options(info)
     info.set_defaults(func=_info)
 
-    conv = sub.add_parser("convert", help="convert between BVH / npz / npy motion files (writes .npz or .bvh)",
-                          description="Convert a motion file (BVH, npz, AMASS npz, HumanML3D / InterGen npy) to our "
-                                      ".npz or to BVH, with the reading options below (unit, up axis, joint map, "
-                                      "resampling).\n\n"
-                                      "  motion convert IN OUT                        one person\n"
-                                      "  motion convert IN IN2 OUT                    two people, one world frame\n"
-                                      "  motion convert --actor A --reactor B OUT     the same\n\n"
-                                      "A pair becomes a duet .npz, or two BVH files OUT_actor.bvh and OUT_reactor.bvh.",
-                          formatter_class=argparse.RawDescriptionHelpFormatter)
+    conv = sub.add_parser(
+        "convert",
+        help="convert between BVH / npz / npy motion files (writes .npz or .bvh)",
+        description="Convert a motion file (BVH, npz, AMASS npz, HumanML3D / InterGen npy) to our "
+        ".npz or to BVH, with the reading options below (unit, up axis, joint map, "
+        "resampling).\n\n"
+        "  motion convert IN OUT                        one person\n"
+        "  motion convert IN IN2 OUT                    two people, one world frame\n"
+        "  motion convert --actor A --reactor B OUT     the same\n\n"
+        "A pair becomes a duet .npz, or two BVH files OUT_actor.bvh and OUT_reactor.bvh.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     conv.add_argument("paths", nargs="+", metavar="PATH", help="input file(s) then the output (.npz or .bvh)")
-    conv.add_argument("--bvh-translations", choices=("root", "all"), default="root",
-                      help="BVH output: position channels on the root only (usual) or on every joint (exact)")
+    conv.add_argument(
+        "--bvh-translations",
+        choices=("root", "all"),
+        default="root",
+        help="BVH output: position channels on the root only (usual) or on every joint (exact)",
+    )
     _add_load_options(conv)
     conv.set_defaults(func=_convert)
 
-    prev = sub.add_parser("preview", help="draw stick figures of one or two people to .mp4 or .gif",
-                          description="Draw one or two people as stick figures, in 3-D with the ground, to an "
-                                      ".mp4 or .gif: a quick look at a file (or at the bundled synthetic duet, "
-                                      "--sample) without MuJoCo.")
+    prev = sub.add_parser(
+        "preview",
+        help="draw stick figures of one or two people to .mp4 or .gif",
+        description="Draw one or two people as stick figures, in 3-D with the ground, to an "
+        ".mp4 or .gif: a quick look at a file (or at the bundled synthetic duet, "
+        "--sample) without MuJoCo.",
+    )
     prev.add_argument("files", nargs="*", metavar="FILE", help="motion file, and optionally the partner's (FILE2)")
     prev.add_argument("-o", "--output", required=True, help="output video, .mp4 or .gif")
-    prev.add_argument("--sample", nargs="?", const=DEFAULT_SAMPLE_RULE, metavar="RULE",
-                      help=f"preview the bundled synthetic duet (rule: mirror, follow, hand_hold, orbit; default {DEFAULT_SAMPLE_RULE})")
+    prev.add_argument(
+        "--sample",
+        nargs="?",
+        const=DEFAULT_SAMPLE_RULE,
+        metavar="RULE",
+        help=f"preview the bundled synthetic duet (rule: mirror, follow, hand_hold, orbit; default {DEFAULT_SAMPLE_RULE})",
+    )
     prev.add_argument("--seconds", type=float, default=8.0, help="length of the --sample clip (s)")
     prev.add_argument("--seed", type=int, default=0, help="seed of the --sample clip")
     prev.add_argument("--size", type=_size, default=(640, 480), help="video size WxH in pixels (even numbers)")

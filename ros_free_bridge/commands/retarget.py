@@ -18,37 +18,72 @@ from pathlib import Path
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("retarget", help="retarget human motion to a robot (CasADi/IPOPT), with a report",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("files", nargs="*", metavar="FILE", help="motion file, or two files (actor, reactor) in one world frame")
+    p = subparsers.add_parser(
+        "retarget",
+        help="retarget human motion to a robot (CasADi/IPOPT), with a report",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "files", nargs="*", metavar="FILE", help="motion file, or two files (actor, reactor) in one world frame"
+    )
     p.add_argument("--actor", metavar="FILE", help="actor file (with --reactor)")
     p.add_argument("--reactor", metavar="FILE", help="reactor file: the person whose motion the robot takes")
-    p.add_argument("--person", choices=("reactor", "actor"), default="reactor", help="which person of a pair to retarget")
-    p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF with --profile (default op3)")
+    p.add_argument(
+        "--person", choices=("reactor", "actor"), default="reactor", help="which person of a pair to retarget"
+    )
+    p.add_argument(
+        "--robot",
+        default="op3",
+        metavar="NAME|DIR",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF with --profile (default op3)",
+    )
     p.add_argument("--profile", metavar="YAML", help="retarget profile (default: the robot folder's profile.yaml)")
-    p.add_argument("--mode", choices=("offline", "streaming"), default="offline",
-                   help="offline: the whole clip in overlapping windows (contacts, balance, smoothness as hard "
-                        "constraints); streaming: frame by frame as the live bridge does it (default offline)")
+    p.add_argument(
+        "--mode",
+        choices=("offline", "streaming"),
+        default="offline",
+        help="offline: the whole clip in overlapping windows (contacts, balance, smoothness as hard "
+        "constraints); streaming: frame by frame as the live bridge does it (default offline)",
+    )
     p.add_argument("--fps", type=float, default=30.0, help="resample the motion to this rate first (default 30)")
     p.add_argument("--ground", action="store_true", help="shift the motion so its lowest foot joint is at z = 0")
-    p.add_argument("--window", type=int, default=None,
-                   help="offline window length in frames (0 = whole clip; default: retarget.offline.OfflineConfig's, 80)")
+    p.add_argument(
+        "--window",
+        type=int,
+        default=None,
+        help="offline window length in frames (0 = whole clip; default: retarget.offline.OfflineConfig's, 80)",
+    )
     p.add_argument("--overlap", type=int, default=None, help="frames shared by consecutive windows (default 10)")
-    p.add_argument("--balance", action="store_true", help="keep the CoM over the support polygon while feet touch (streaming: "
-                   "feet planted, CoM, capture point and ZMP over them; retarget.streaming)")
-    p.add_argument("--zmp", action="store_true", help="offline --balance: keep the ZMP (CoM minus (z/g) times its "
-                   "acceleration) over the support polygon instead of the static CoM; what a dynamic clip needs to pass `check`")
+    p.add_argument(
+        "--balance",
+        action="store_true",
+        help="keep the CoM over the support polygon while feet touch (streaming: "
+        "feet planted, CoM, capture point and ZMP over them; retarget.streaming)",
+    )
+    p.add_argument(
+        "--zmp",
+        action="store_true",
+        help="offline --balance: keep the ZMP (CoM minus (z/g) times its "
+        "acceleration) over the support polygon instead of the static CoM; what a dynamic clip needs to pass `check`",
+    )
     p.add_argument("--balance-margin", type=float, default=0.01, help="support polygon shrink (m, default 0.01)")
     p.add_argument("--no-contacts", action="store_true", help="do not hold feet in contact on the ground")
     p.add_argument("--no-collision", action="store_true", help="do not keep the profile's capsule pairs apart")
-    p.add_argument("--foot-collision", choices=("sole-plane", "distance"), default="sole-plane",
-                   help="offline: keep the feet apart by a smooth separating plane along their lateral axis (default; "
-                        "about half the solver iterations, but feet cannot cross sideways) or by capsule distances "
-                        "(slower; lets a foot pass in front of the other)")
+    p.add_argument(
+        "--foot-collision",
+        choices=("sole-plane", "distance"),
+        default="sole-plane",
+        help="offline: keep the feet apart by a smooth separating plane along their lateral axis (default; "
+        "about half the solver iterations, but feet cannot cross sideways) or by capsule distances "
+        "(slower; lets a foot pass in front of the other)",
+    )
     p.add_argument("--fixed-base", action="store_true", help="bolt the robot's root in place (upper-body partner)")
     p.add_argument("--retime", type=float, default=1.0, help="play the clip this many times slower (e.g. 1.5)")
     p.add_argument("--auto-retime", action="store_true", help="if infeasible, try 1.25x, 1.5x, 2x slower")
-    p.add_argument("--no-compile", action="store_true", help="skip C code generation (slower; for machines without a compiler)")
+    p.add_argument(
+        "--no-compile", action="store_true", help="skip C code generation (slower; for machines without a compiler)"
+    )
     p.add_argument("--out", default="out/retarget", help="output folder (default out/retarget)")
     p.add_argument("--name", help="output file stem (default: the input's stem)")
     p.add_argument("--strict", action="store_true", help="exit 1 when the report fails its checks")
@@ -102,13 +137,22 @@ def _retarget(args, robot, motion):
     from retarget.streaming import StreamingConfig, StreamingRetargeter
 
     if args.mode == "streaming":
-        return StreamingRetargeter(robot, motion.fps, StreamingConfig(compile=not args.no_compile,
-                                                                      balance=args.balance)).run(motion)
+        return StreamingRetargeter(
+            robot, motion.fps, StreamingConfig(compile=not args.no_compile, balance=args.balance)
+        ).run(motion)
     sizes = {k: v for k, v in (("window", args.window), ("overlap", args.overlap)) if v is not None}
-    cfg = OfflineConfig(**sizes, balance=args.balance, zmp=args.zmp,
-                        balance_margin=args.balance_margin, contacts=not args.no_contacts,
-                        self_collision=not args.no_collision, collision_model=args.foot_collision, retime=args.retime,
-                        auto_retime=args.auto_retime, compile=not args.no_compile)
+    cfg = OfflineConfig(
+        **sizes,
+        balance=args.balance,
+        zmp=args.zmp,
+        balance_margin=args.balance_margin,
+        contacts=not args.no_contacts,
+        self_collision=not args.no_collision,
+        collision_model=args.foot_collision,
+        retime=args.retime,
+        auto_retime=args.auto_retime,
+        compile=not args.no_compile,
+    )
     return OfflineRetargeter(robot, cfg).retarget(motion)
 
 
@@ -133,4 +177,6 @@ def _report(args, robot, motion, stem, traj) -> int:
 def _slowed(motion, factor: float):
     from dualflow.motion import Motion
 
-    return Motion(motion.positions, fps=motion.fps / factor, contacts=motion.contacts, name=motion.name).resample(motion.fps)
+    return Motion(motion.positions, fps=motion.fps / factor, contacts=motion.contacts, name=motion.name).resample(
+        motion.fps
+    )

@@ -38,35 +38,69 @@ from pathlib import Path
 
 
 def register(sub) -> None:
-    p = sub.add_parser("retarget-check", help="retarget and physics-check every motion file in a folder",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "retarget-check",
+        help="retarget and physics-check every motion file in a folder",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("folder", help="folder of motion files (BVH, npz, InterGen/HumanML3D npy); pairs use the reactor")
-    p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14) or a robot folder (see `robot init`) (default op3)")
+    p.add_argument(
+        "--robot",
+        default="op3",
+        metavar="NAME|DIR",
+        help="the robot: a bundled name (op3, ub14) or a robot folder (see `robot init`) (default op3)",
+    )
     p.add_argument("-o", "--out", default="out/retarget_check", help="output folder (default out/retarget_check)")
     p.add_argument("--jobs", type=int, help="worker processes (default: every core this process may use)")
-    p.add_argument("--recursive", action="store_true", help="take motion files from FOLDER's subfolders too "
-                   "(OUT is left out when it lies inside FOLDER)")
+    p.add_argument(
+        "--recursive",
+        action="store_true",
+        help="take motion files from FOLDER's subfolders too (OUT is left out when it lies inside FOLDER)",
+    )
     p.add_argument("--no-balance", action="store_true", help="retarget without the centre-of-mass constraint")
-    p.add_argument("--auto-retime", action="store_true", help="slow infeasible clips down (1.25x, 1.5x, 2x) instead of failing")
-    p.add_argument("--retargeter", choices=("offline", "streaming"), default="offline",
-                   help="offline: the whole clip in windows with IPOPT (default); streaming: frame by frame as the "
-                        "live bridge does it, keeping the feet planted and the CoM over them: it keeps some "
-                        "single-support captures standing that offline does not, at the cost of tracking (the CMU "
-                        "pair: both pass, with about 110 mm keypoint error against about 14 mm offline)")
+    p.add_argument(
+        "--auto-retime", action="store_true", help="slow infeasible clips down (1.25x, 1.5x, 2x) instead of failing"
+    )
+    p.add_argument(
+        "--retargeter",
+        choices=("offline", "streaming"),
+        default="offline",
+        help="offline: the whole clip in windows with IPOPT (default); streaming: frame by frame as the "
+        "live bridge does it, keeping the feet planted and the CoM over them: it keeps some "
+        "single-support captures standing that offline does not, at the cost of tracking (the CMU "
+        "pair: both pass, with about 110 mm keypoint error against about 14 mm offline)",
+    )
     p.add_argument("--no-compile", action="store_true", help="skip C code generation (for machines without a compiler)")
-    p.add_argument("--pairs", metavar="PATTERN",
-                   help="join the two files of one capture into one two-person clip: two file-name patterns with "
-                        "{name}, actor first, e.g. '{name}_S1.bvh,{name}_S2.bvh'; the robot takes the second file's "
-                        "part and the first person stands beside it in the shared world frame")
-    p.add_argument("--no-video", action="store_true", help="skip each clip's video (person and robot side by side); "
-                   "faster")
-    p.add_argument("--resume", action="store_true", help="keep the clips a previous run in OUT completed with the same "
-                   "options and robot files, and check only the rest")
-    p.add_argument("--engine", choices=("local", "ray"), default="local",
-                   help="local: worker processes on this machine (default); ray: one Ray task per clip, on the "
-                        "cluster at --address or a local Ray instance (needs `pip install -e \".[cluster]\"`)")
-    p.add_argument("--address", metavar="ADDR", help="--engine ray: the Ray cluster to use ('auto', 'HOST:6379', "
-                   "'ray://HOST:10001'; default: start a local Ray instance with --jobs CPUs)")
+    p.add_argument(
+        "--pairs",
+        metavar="PATTERN",
+        help="join the two files of one capture into one two-person clip: two file-name patterns with "
+        "{name}, actor first, e.g. '{name}_S1.bvh,{name}_S2.bvh'; the robot takes the second file's "
+        "part and the first person stands beside it in the shared world frame",
+    )
+    p.add_argument(
+        "--no-video", action="store_true", help="skip each clip's video (person and robot side by side); faster"
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the clips a previous run in OUT completed with the same "
+        "options and robot files, and check only the rest",
+    )
+    p.add_argument(
+        "--engine",
+        choices=("local", "ray"),
+        default="local",
+        help="local: worker processes on this machine (default); ray: one Ray task per clip, on the "
+        'cluster at --address or a local Ray instance (needs `pip install -e ".[cluster]"`)',
+    )
+    p.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="--engine ray: the Ray cluster to use ('auto', 'HOST:6379', "
+        "'ray://HOST:10001'; default: start a local Ray instance with --jobs CPUs)",
+    )
     p.set_defaults(func=run)
 
 
@@ -86,13 +120,22 @@ def run(args) -> int:
     if not clips:
         where = "this folder or its subfolders" if args.recursive else "this folder (--recursive looks in subfolders)"
         raise BridgeError(f"{args.folder}: no motion files (.bvh, .npz, .npy) in {where}")
-    cfg = BatchConfig(robot=args.robot, out=Path(args.out), balance=not args.no_balance, auto_retime=args.auto_retime,
-                      compile=not args.no_compile, retargeter=args.retargeter, video=not args.no_video)
+    cfg = BatchConfig(
+        robot=args.robot,
+        out=Path(args.out),
+        balance=not args.no_balance,
+        auto_retime=args.auto_retime,
+        compile=not args.no_compile,
+        retargeter=args.retargeter,
+        video=not args.no_video,
+    )
     try:
         results = run_batch(clips, cfg, args.jobs, engine=args.engine, address=args.address, resume=args.resume)
     except KeyboardInterrupt:
-        print(f"interrupted: the finished clips are in {cfg.out}; add --resume to the same command to check the rest",
-              file=sys.stderr)
+        print(
+            f"interrupted: the finished clips are in {cfg.out}; add --resume to the same command to check the rest",
+            file=sys.stderr,
+        )
         raise
     print(markdown_table(results))
     print(f"wrote {cfg.out / 'results.csv'}, {cfg.out / 'results.md'} and {cfg.out / 'index.html'}")

@@ -23,32 +23,50 @@ import sys
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("robot", help="make (init), validate (check) and list robot folders",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "robot",
+        help="make (init), validate (check) and list robot folders",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = p.add_subparsers(dest="robot_command", metavar="ACTION")
 
-    q = sub.add_parser("init", help="write a robot folder (profile, hardware skeleton, README) for an MJCF",
-                       description="Write a robot folder for an MJCF humanoid from the model alone: profile.yaml "
-                                   "(retargets as written), hardware.yaml (a skeleton; unknowns marked FILL IN) and "
-                                   "README.md. The MJCF is referenced, not copied.")
+    q = sub.add_parser(
+        "init",
+        help="write a robot folder (profile, hardware skeleton, README) for an MJCF",
+        description="Write a robot folder for an MJCF humanoid from the model alone: profile.yaml "
+        "(retargets as written), hardware.yaml (a skeleton; unknowns marked FILL IN) and "
+        "README.md. The MJCF is referenced, not copied.",
+    )
     q.add_argument("mjcf", help="the robot's MJCF (.xml); a scene file that <include>s the robot works too")
     q.add_argument("-o", "--out", required=True, help="the robot folder to write (created if missing)")
     q.add_argument("--name", help="the robot's name in the profile and hardware config (default: the folder's name)")
-    q.add_argument("--force", action="store_true", help="overwrite profile.yaml, hardware.yaml and README.md if present")
+    q.add_argument(
+        "--force", action="store_true", help="overwrite profile.yaml, hardware.yaml and README.md if present"
+    )
     q.set_defaults(func=run_init)
 
-    c = sub.add_parser("check", help="validate a robot folder; one line per problem with its fix",
-                       description="Validate a robot folder: the model loads in MuJoCo, the profile names only what "
-                                   "the model has, feet for a free-standing robot, the hardware config parses and maps "
-                                   "every actuated joint within the MJCF's limits. Exit 0 when fine, 2 when not.")
+    c = sub.add_parser(
+        "check",
+        help="validate a robot folder; one line per problem with its fix",
+        description="Validate a robot folder: the model loads in MuJoCo, the profile names only what "
+        "the model has, feet for a free-standing robot, the hardware config parses and maps "
+        "every actuated joint within the MJCF's limits. Exit 0 when fine, 2 when not.",
+    )
     c.add_argument("folder", help="the robot folder (as written by `robot init`, or a bundled robot's name)")
-    c.add_argument("--hardware", action="store_true",
-                   help="also require a hardware config with no FILL IN marker left (before the first power-on)")
+    c.add_argument(
+        "--hardware",
+        action="store_true",
+        help="also require a hardware config with no FILL IN marker left (before the first power-on)",
+    )
     c.set_defaults(func=run_check)
 
-    ls = sub.add_parser("list", help="the bundled robots and their descriptions",
-                        description="List the bundled robots (firmware_cfg/robots/<name>/) with their one-line "
-                                    "descriptions; any other robot folder works wherever --robot is taken.")
+    ls = sub.add_parser(
+        "list",
+        help="the bundled robots and their descriptions",
+        description="List the bundled robots (firmware_cfg/robots/<name>/) with their one-line "
+        "descriptions; any other robot folder works wherever --robot is taken.",
+    )
     ls.set_defaults(func=run_list)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 

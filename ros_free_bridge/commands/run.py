@@ -42,9 +42,12 @@ from ros_free_bridge.session import ADAPTIVE_MARGIN, MOTION_FPS, PARTNERS, TRANS
 
 
 def add_stabilizer_option(p) -> None:
-    p.add_argument("--no-stabilizer", action="store_true",
-                   help="no balance stabilizer in the loop (on by default for a free-standing robot whose transport "
-                        "reads an IMU: IMU and joint readings -> bounded corrections on the legs' joints)")
+    p.add_argument(
+        "--no-stabilizer",
+        action="store_true",
+        help="no balance stabilizer in the loop (on by default for a free-standing robot whose transport "
+        "reads an IMU: IMU and joint readings -> bounded corrections on the legs' joints)",
+    )
 
 
 def add_generator_options(p) -> None:
@@ -52,23 +55,50 @@ def add_generator_options(p) -> None:
     d = SessionOptions()
     p.add_argument("--model", help="DualFlow checkpoint directory (default: the bundled one)")
     p.add_argument("--steps", type=int, default=d.steps, help=f"ODE steps per generated window (default {d.steps})")
-    p.add_argument("--hop", type=int, default=d.hop,
-                   help=f"generate the partner every HOP frames (default {d.hop}; 1 = lowest delay, most compute)")
-    p.add_argument("--window", type=int, default=d.window,
-                   help=f"frames per generation window (default {d.window}, the training clip length)")
-    p.add_argument("--generator", choices=("process", "thread"), default=d.generator,
-                   help="run DualFlow + retargeting in a child process (default) or in a thread of this one")
-    p.add_argument("--playback-margin", type=_margin_ms, default=None, metavar="MS",
-                   help=f"reserve between a partner frame's arrival and its playback, on top of the frames' measured "
-                        f"delays (default {ADAPTIVE_MARGIN * 1e3:g} ms). More: the loop extrapolates less often and "
-                        f"follows the generated motion more closely, at a higher latency (README: real time and latency)")
-    p.add_argument("--playback-quantile", type=_quantile, default=d.playback_quantile, metavar="Q",
-                   help=f"share of recent partner frames that must be in by their playback time (default "
-                        f"{d.playback_quantile}); lower: lower latency, more extrapolation")
-    p.add_argument("--smoothing", type=_omega, default=d.revision_smoothing, metavar="RAD_S",
-                   help=f"how fast the commands join the partner's curve when a late frame changes it (rad/s, default "
-                        f"{d.revision_smoothing:g}: within about {4 / d.revision_smoothing * 1e3:.0f} ms); higher: closer "
-                        f"to the curve, rougher; 0: no smoothing")
+    p.add_argument(
+        "--hop",
+        type=int,
+        default=d.hop,
+        help=f"generate the partner every HOP frames (default {d.hop}; 1 = lowest delay, most compute)",
+    )
+    p.add_argument(
+        "--window",
+        type=int,
+        default=d.window,
+        help=f"frames per generation window (default {d.window}, the training clip length)",
+    )
+    p.add_argument(
+        "--generator",
+        choices=("process", "thread"),
+        default=d.generator,
+        help="run DualFlow + retargeting in a child process (default) or in a thread of this one",
+    )
+    p.add_argument(
+        "--playback-margin",
+        type=_margin_ms,
+        default=None,
+        metavar="MS",
+        help=f"reserve between a partner frame's arrival and its playback, on top of the frames' measured "
+        f"delays (default {ADAPTIVE_MARGIN * 1e3:g} ms). More: the loop extrapolates less often and "
+        f"follows the generated motion more closely, at a higher latency (README: real time and latency)",
+    )
+    p.add_argument(
+        "--playback-quantile",
+        type=_quantile,
+        default=d.playback_quantile,
+        metavar="Q",
+        help=f"share of recent partner frames that must be in by their playback time (default "
+        f"{d.playback_quantile}); lower: lower latency, more extrapolation",
+    )
+    p.add_argument(
+        "--smoothing",
+        type=_omega,
+        default=d.revision_smoothing,
+        metavar="RAD_S",
+        help=f"how fast the commands join the partner's curve when a late frame changes it (rad/s, default "
+        f"{d.revision_smoothing:g}: within about {4 / d.revision_smoothing * 1e3:.0f} ms); higher: closer "
+        f"to the curve, rougher; 0: no smoothing",
+    )
 
 
 def _number(text: str, ok, expected: str) -> float:
@@ -100,40 +130,81 @@ def _quantile(text: str) -> float:
 
 def generator_options(args) -> dict:
     """The SessionOptions fields set by :func:`add_generator_options`."""
-    return dict(model=args.model, steps=args.steps, hop=args.hop, window=args.window, generator=args.generator,
-                playback_margin=args.playback_margin, playback_quantile=args.playback_quantile,
-                revision_smoothing=args.smoothing)
+    return dict(
+        model=args.model,
+        steps=args.steps,
+        hop=args.hop,
+        window=args.window,
+        generator=args.generator,
+        playback_margin=args.playback_margin,
+        playback_quantile=args.playback_quantile,
+        revision_smoothing=args.smoothing,
+    )
 
 
 def register(sub) -> None:
-    p = sub.add_parser("run", help="stream a robot partner from a live or recorded actor",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--robot", default="op3", metavar="NAME|DIR", help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`) or its hardware.yaml; sim and record need no hardware config (default: op3)")
-    p.add_argument("--actor", default="synthetic",
-                   help="motion file (BVH, npz, InterGen npy), udp://127.0.0.1:PORT (live), or 'synthetic' (default)")
-    p.add_argument("--allow-remote-actor", action="store_true",
-                   help="let a udp:// actor listen on a non-loopback address (e.g. udp://0.0.0.0:9870); anyone who "
-                        "reaches the port can then move the robot: trusted networks only")
+    p = sub.add_parser(
+        "run",
+        help="stream a robot partner from a live or recorded actor",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--robot",
+        default="op3",
+        metavar="NAME|DIR",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`) or its hardware.yaml; sim and record need no hardware config (default: op3)",
+    )
+    p.add_argument(
+        "--actor",
+        default="synthetic",
+        help="motion file (BVH, npz, InterGen npy), udp://127.0.0.1:PORT (live), or 'synthetic' (default)",
+    )
+    p.add_argument(
+        "--allow-remote-actor",
+        action="store_true",
+        help="let a udp:// actor listen on a non-loopback address (e.g. udp://0.0.0.0:9870); anyone who "
+        "reaches the port can then move the robot: trusted networks only",
+    )
     p.add_argument("--seconds", type=float, default=10.0, help="length of the synthetic actor (default 10 s)")
     p.add_argument("--seed", type=int, default=0, help="synthetic actor seed (default 0)")
-    p.add_argument("--partner", choices=PARTNERS, default="dualflow",
-                   help="dualflow: generate the partner (default); imitate: the robot copies the actor")
+    p.add_argument(
+        "--partner",
+        choices=PARTNERS,
+        default="dualflow",
+        help="dualflow: generate the partner (default); imitate: the robot copies the actor",
+    )
     add_generator_options(p)
     p.add_argument("--text", help="a text cue for the generated partner, e.g. 'the partner mirrors the leader'")
     p.add_argument("--music", help="an audio file (wav/ogg/mp3) aligned with the actor's clock (loops if shorter)")
     p.add_argument("--transport", choices=TRANSPORTS, default="sim", help="where commands go (default: sim)")
     p.add_argument("--port", help="serial port, overriding the hardware config's (e.g. /dev/ttyUSB0)")
-    p.add_argument("--emulate", action="store_true", help="dynamixel/serial: use the byte-level bus emulator, no hardware")
+    p.add_argument(
+        "--emulate", action="store_true", help="dynamixel/serial: use the byte-level bus emulator, no hardware"
+    )
     p.add_argument("--rate", type=float, default=100.0, help="control rate in Hz (default 100)")
-    p.add_argument("--realtime-priority", type=int, default=0, metavar="N",
-                   help="run the control loop at SCHED_FIFO priority N (1-99; needs root, CAP_SYS_NICE or an rtprio "
-                        "limit; refused: normal scheduling, said in the telemetry's 'realtime' event). Default 0: normal")
+    p.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=0,
+        metavar="N",
+        help="run the control loop at SCHED_FIFO priority N (1-99; needs root, CAP_SYS_NICE or an rtprio "
+        "limit; refused: normal scheduling, said in the telemetry's 'realtime' event). Default 0: normal",
+    )
     p.add_argument("--max-duration", type=float, help="stop after this many seconds of streaming")
     add_stabilizer_option(p)
-    p.add_argument("--stop-policy", choices=("hold", "limp"), help="after the stop ramp (default: the hardware config's)")
-    p.add_argument("--estop-policy", choices=("hold", "limp"), default="limp", help="on e-stop and errors (default: limp)")
-    p.add_argument("--sim-clock", choices=("realtime", "lockstep"), default="realtime",
-                   help="sim transports: physics paced by the wall clock (default) or one control period per command")
+    p.add_argument(
+        "--stop-policy", choices=("hold", "limp"), help="after the stop ramp (default: the hardware config's)"
+    )
+    p.add_argument(
+        "--estop-policy", choices=("hold", "limp"), default="limp", help="on e-stop and errors (default: limp)"
+    )
+    p.add_argument(
+        "--sim-clock",
+        choices=("realtime", "lockstep"),
+        default="realtime",
+        help="sim transports: physics paced by the wall clock (default) or one control period per command",
+    )
     p.add_argument("-o", "--out", default="runs/latest", help="output folder (telemetry, motions; default runs/latest)")
     p.add_argument("--video", help="sim transports: render the run to this .mp4 afterwards")
     p.add_argument("--quiet", action="store_true", help="no live status line")
@@ -214,8 +285,11 @@ def print_summary(result, stream=None) -> None:
     ahead = g.get("frames_ahead")
     # the loop measures from the arrival of the newest actor frame a partner frame needs; for the
     # generated partner that is actor frame i + L, so the look-ahead itself comes on top
-    what = (f"latency beyond the {ahead}-frame look-ahead ({ahead / MOTION_FPS * 1e3:.0f} ms more from actor frame i)"
-            if ahead else "end-to-end latency")
+    what = (
+        f"latency beyond the {ahead}-frame look-ahead ({ahead / MOTION_FPS * 1e3:.0f} ms more from actor frame i)"
+        if ahead
+        else "end-to-end latency"
+    )
     flags = Fault(s.faults)
     lines = [
         f"robot {result.files.name}: {s.end_state} ({s.reason})",
@@ -229,13 +303,17 @@ def print_summary(result, stream=None) -> None:
         warm = f"; a full window took {g['warmup_window_ms']:.0f} ms at start" if "warmup_window_ms" in g else ""
         cpu = f"; it used {g['generator_cpu_per_s']:.2f} CPU s per s of motion" if "generator_cpu_per_s" in g else ""
         cpu += f"; playback margin {g['playback_margin_ms']:.0f} ms" if "playback_margin_ms" in g else ""
-        lines.append(f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}{cpu}), "
-                     f"partner frames dropped to keep up: {g['frames_dropped']} in {g['catch_ups']} catch-ups")
+        lines.append(
+            f"generator: {g['generator']} ({g['steps']} steps, hop {g['hop']}, window {g['window']}{warm}{cpu}), "
+            f"partner frames dropped to keep up: {g['frames_dropped']} in {g['catch_ups']} catch-ups"
+        )
     stats = getattr(result, "source_stats", None)
     if stats is not None:
-        lines.append(f"udp input: {stats.received} packets, {stats.accepted} frames accepted, {stats.describe()}"
-                     + (f", {stats.estops} e-stop packets" if stats.estops else "")
-                     + (f", {stats.flooded} polls flooded" if stats.flooded else ""))
+        lines.append(
+            f"udp input: {stats.received} packets, {stats.accepted} frames accepted, {stats.describe()}"
+            + (f", {stats.estops} e-stop packets" if stats.estops else "")
+            + (f", {stats.flooded} polls flooded" if stats.flooded else "")
+        )
     for k, v in result.transport_info.items():
         lines.append(f"{k}: {v}")
     lines.append(f"outputs in {result.out}")
@@ -250,19 +328,36 @@ def remote_actor_warning(actor: str, allow_remote: bool) -> str | None:
     where = check_udp_actor(actor, allow_remote)
     if where is None or is_loopback(where[0]):
         return None
-    return (f"warning: the UDP actor listens on {where[0]}:{where[1]}, not on loopback: any host that reaches this "
-            "port can move the robot (--allow-remote-actor)")
+    return (
+        f"warning: the UDP actor listens on {where[0]}:{where[1]}, not on loopback: any host that reaches this "
+        "port can move the robot (--allow-remote-actor)"
+    )
 
 
 def run(args) -> int:
     from ros_free_bridge.session import run_session
 
     opts = SessionOptions(
-        robot=args.robot, actor=args.actor, seconds=args.seconds, seed=args.seed, partner=args.partner,
-        **generator_options(args), transport=args.transport, port=args.port, emulate=args.emulate,
-        rate_hz=args.rate, realtime_priority=args.realtime_priority, out=Path(args.out), stop_policy=args.stop_policy, estop_policy=args.estop_policy,
-        max_duration=args.max_duration, sim_clock=args.sim_clock, text=args.text, music=args.music,
-        allow_remote_actor=args.allow_remote_actor, stabilizer=not args.no_stabilizer,
+        robot=args.robot,
+        actor=args.actor,
+        seconds=args.seconds,
+        seed=args.seed,
+        partner=args.partner,
+        **generator_options(args),
+        transport=args.transport,
+        port=args.port,
+        emulate=args.emulate,
+        rate_hz=args.rate,
+        realtime_priority=args.realtime_priority,
+        out=Path(args.out),
+        stop_policy=args.stop_policy,
+        estop_policy=args.estop_policy,
+        max_duration=args.max_duration,
+        sim_clock=args.sim_clock,
+        text=args.text,
+        music=args.music,
+        allow_remote_actor=args.allow_remote_actor,
+        stabilizer=not args.no_stabilizer,
     )
     warning = remote_actor_warning(args.actor, args.allow_remote_actor)
     if warning:

@@ -47,8 +47,12 @@ SCAN_BAUDS = (57600, 115200, 1000000, 2000000, 3000000, 4000000, 9600, 500000)
 
 def register(subparsers) -> None:
     """Add ``servo`` and its actions to the command line's ``subparsers``."""
-    p = subparsers.add_parser("servo", help="scan, provision, verify, calibrate and monitor Dynamixel servos",
-                              description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "servo",
+        help="scan, provision, verify, calibrate and monitor Dynamixel servos",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = p.add_subparsers(dest="servo_command", metavar="ACTION")
     for add in (_add_scan, _add_provision, _add_verify, _add_calibrate, _add_monitor, _add_emulate):
         add(sub)
@@ -67,52 +71,74 @@ def _add_bus_options(q) -> None:
 
 
 def _add_scan(sub) -> None:
-    s = sub.add_parser("scan", help="find servos: ping IDs across baud rates and protocols",
-                       description="Ping every ID at each baud rate and protocol (2.0 by broadcast ping, 1.0 one ID "
-                                   "at a time) and print each servo found: ID, model, firmware, baud, protocol. "
-                                   "Reads only; use it first on a new bus, or when a servo does not answer.")
-    add_robot_arguments(s, "with --emulate: the robot whose servos to emulate (a bundled name, a robot folder or its "
-                           "hardware.yaml)")
+    s = sub.add_parser(
+        "scan",
+        help="find servos: ping IDs across baud rates and protocols",
+        description="Ping every ID at each baud rate and protocol (2.0 by broadcast ping, 1.0 one ID "
+        "at a time) and print each servo found: ID, model, firmware, baud, protocol. "
+        "Reads only; use it first on a new bus, or when a servo does not answer.",
+    )
+    add_robot_arguments(
+        s, "with --emulate: the robot whose servos to emulate (a bundled name, a robot folder or its hardware.yaml)"
+    )
     s.add_argument("--port", help="serial device (e.g. /dev/ttyUSB0)")
     s.add_argument("--bus", help="bus name in the config")
     s.add_argument("--emulate", action="store_true", help="scan an emulated bus started from CONFIG")
-    s.add_argument("--bauds", default=",".join(str(b) for b in SCAN_BAUDS),
-                   help=f"comma-separated baud rates to try, in order (default {','.join(str(b) for b in SCAN_BAUDS)})")
+    s.add_argument(
+        "--bauds",
+        default=",".join(str(b) for b in SCAN_BAUDS),
+        help=f"comma-separated baud rates to try, in order (default {','.join(str(b) for b in SCAN_BAUDS)})",
+    )
     s.add_argument("--protocols", default="2,1", help="protocols to try: 2,1 (default), 2 or 1")
-    s.add_argument("--ids", default="0-252", help="ID range for protocol 1.0 unicast pings, e.g. 0-30 (2.0 uses broadcast ping)")
-    s.add_argument("--latency-ms", type=float, default=4.0,
-                   help="reply latency allowed per ping, ms (default 4; the timeout adds the bytes' time and 3 ms)")
+    s.add_argument(
+        "--ids", default="0-252", help="ID range for protocol 1.0 unicast pings, e.g. 0-30 (2.0 uses broadcast ping)"
+    )
+    s.add_argument(
+        "--latency-ms",
+        type=float,
+        default=4.0,
+        help="reply latency allowed per ping, ms (default 4; the timeout adds the bytes' time and 3 ms)",
+    )
     s.set_defaults(func=run_scan)
 
 
 def _add_provision(sub) -> None:
-    s = sub.add_parser("provision", help="write EEPROM/RAM settings from CONFIG (torque off), read back, show the diff",
-                       description="Make each servo on the bus match CONFIG: switch torque off, write the EEPROM "
-                                   "settings (return delay, temperature and voltage limits, position limits from the joint limits) "
-                                   "and RAM settings (status return level, PID gains, profiles, bus watchdog), "
-                                   "read everything back and print what changed. Writes nothing when a servo's "
-                                   "model differs from the config. Run once per new servo, with the robot "
-                                   "supported (torque goes off).")
+    s = sub.add_parser(
+        "provision",
+        help="write EEPROM/RAM settings from CONFIG (torque off), read back, show the diff",
+        description="Make each servo on the bus match CONFIG: switch torque off, write the EEPROM "
+        "settings (return delay, temperature and voltage limits, position limits from the joint limits) "
+        "and RAM settings (status return level, PID gains, profiles, bus watchdog), "
+        "read everything back and print what changed. Writes nothing when a servo's "
+        "model differs from the config. Run once per new servo, with the robot "
+        "supported (torque goes off).",
+    )
     _add_bus_options(s)
     s.add_argument("--dry-run", action="store_true", help="show the diff only; write nothing")
     s.set_defaults(func=run_provision)
 
 
 def _add_verify(sub) -> None:
-    s = sub.add_parser("verify", help="check models and settings against CONFIG (exit 1 on a mismatch)",
-                       description="Read each servo's model and EEPROM settings and compare them with CONFIG, "
-                                   "and its hardware error flags. Reads only. Exit code 0 when everything matches "
-                                   "and no flag is set, 1 otherwise (a settings mismatch: run `servo provision`).")
+    s = sub.add_parser(
+        "verify",
+        help="check models and settings against CONFIG (exit 1 on a mismatch)",
+        description="Read each servo's model and EEPROM settings and compare them with CONFIG, "
+        "and its hardware error flags. Reads only. Exit code 0 when everything matches "
+        "and no flag is set, 1 otherwise (a settings mismatch: run `servo provision`).",
+    )
     _add_bus_options(s)
     s.set_defaults(func=run_verify)
 
 
 def _add_calibrate(sub) -> None:
-    s = sub.add_parser("calibrate", help="record zero offsets with the robot held in its zero pose",
-                       description="With the robot held in its zero pose (the MJCF's zero: every joint at 0 rad), "
-                                   "read each servo's position several times and write a copy of CONFIG with "
-                                   "those zero offsets to --out. Torque is switched off first (unless "
-                                   "--keep-torque), so support the robot.")
+    s = sub.add_parser(
+        "calibrate",
+        help="record zero offsets with the robot held in its zero pose",
+        description="With the robot held in its zero pose (the MJCF's zero: every joint at 0 rad), "
+        "read each servo's position several times and write a copy of CONFIG with "
+        "those zero offsets to --out. Torque is switched off first (unless "
+        "--keep-torque), so support the robot.",
+    )
     _add_bus_options(s)
     s.add_argument("--out", required=True, help="where to write the calibrated config (YAML)")
     s.add_argument("--samples", type=int, default=10, help="readings averaged per servo (default 10)")
@@ -122,10 +148,13 @@ def _add_calibrate(sub) -> None:
 
 
 def _add_monitor(sub) -> None:
-    s = sub.add_parser("monitor", help="live table of positions, temperatures, voltages and errors",
-                       description="A live table, one row per servo: position, velocity, current, temperature, "
-                                   "input voltage and hardware error flags, refreshed --rate times a second. "
-                                   "Reads only; torque is left as it is.")
+    s = sub.add_parser(
+        "monitor",
+        help="live table of positions, temperatures, voltages and errors",
+        description="A live table, one row per servo: position, velocity, current, temperature, "
+        "input voltage and hardware error flags, refreshed --rate times a second. "
+        "Reads only; torque is left as it is.",
+    )
     _add_bus_options(s)
     s.add_argument("--rate", type=float, default=5.0, help="table refreshes per second (default 5)")
     s.add_argument("--duration", type=float, help="stop after this many seconds (default: until Ctrl-C)")
@@ -134,12 +163,15 @@ def _add_monitor(sub) -> None:
 
 
 def _add_emulate(sub) -> None:
-    s = sub.add_parser("emulate", help="start an emulated bus from CONFIG on a pty and print its port",
-                       description="Start a byte-level emulation of CONFIG's bus on a pseudo-terminal (its "
-                                   "servos in the bus's protocol, with their registers and a motor model; a "
-                                   "serial-link bus gets an emulated DFSL board) and print its device path; point --port "
-                                   "of the other servo actions, or `run --transport dynamixel`, at it to try them "
-                                   "without hardware.")
+    s = sub.add_parser(
+        "emulate",
+        help="start an emulated bus from CONFIG on a pty and print its port",
+        description="Start a byte-level emulation of CONFIG's bus on a pseudo-terminal (its "
+        "servos in the bus's protocol, with their registers and a motor model; a "
+        "serial-link bus gets an emulated DFSL board) and print its device path; point --port "
+        "of the other servo actions, or `run --transport dynamixel`, at it to try them "
+        "without hardware.",
+    )
     add_robot_arguments(s)
     s.add_argument("--bus", help="bus name in the config (a serial-link bus starts an emulated DFSL board)")
     s.add_argument("--provisioned", action="store_true", help="servos start with the config's settings (verify passes)")
@@ -150,9 +182,11 @@ def _add_emulate(sub) -> None:
 
 def _with_robot(func, required: bool):
     """Let each action read ``args.config`` whichever way the robot was given."""
+
     def run(args):
         args.config = robot_argument(args, required=required)
         return func(args)
+
     return run
 
 
@@ -172,8 +206,10 @@ def robot_argument(args, required: bool = True) -> str | None:
     if getattr(args, "robot_option", None) and getattr(args, "config", None) and args.robot_option != args.config:
         raise BridgeError(f"give the robot once: positional {args.config!r} and --robot {args.robot_option!r} differ")
     if ref is None and required:
-        raise BridgeError("servo: which robot? give a bundled name (op3), a robot folder or a hardware config, "
-                          "positionally or with --robot")
+        raise BridgeError(
+            "servo: which robot? give a bundled name (op3), a robot folder or a hardware config, "
+            "positionally or with --robot"
+        )
     return ref
 
 
@@ -191,8 +227,10 @@ def dynamixel_bus_of(cfg, name: str | None):
     else:
         dxl = [b for b in cfg.buses if b.protocol in ("1.0", "2.0")]
         if len(dxl) != 1:
-            raise ConfigError(f"{cfg.source}: {len(dxl)} Dynamixel buses; choose one with --bus "
-                              f"({', '.join(b.name for b in dxl) or 'none'})")
+            raise ConfigError(
+                f"{cfg.source}: {len(dxl)} Dynamixel buses; choose one with --bus "
+                f"({', '.join(b.name for b in dxl) or 'none'})"
+            )
         bus = dxl[0]
     if bus.protocol == "serial-link":
         raise BridgeError(f"bus {bus.name!r} is a serial link; the servo commands work on Dynamixel buses")
@@ -208,8 +246,9 @@ def start_emulator(bus, *, provisioned: bool = False, wire_timing: bool = False)
     from ros_free_bridge.emulators import DynamixelBusEmulator, ServoSpec
 
     specs = [ServoSpec(s.id, s.model) for s in bus.servos] + [ServoSpec(d.id, d.model) for d in bus.devices]
-    emu = DynamixelBusEmulator(servos=specs, baud=bus.baud, protocol=int(float(bus.protocol)),
-                               wire_timing=wire_timing, return_delay_us=None).start()
+    emu = DynamixelBusEmulator(
+        servos=specs, baud=bus.baud, protocol=int(float(bus.protocol)), wire_timing=wire_timing, return_delay_us=None
+    ).start()
     if provisioned:
         for s in bus.servos:
             for name, value in servo_register_settings(s, load_servo_model(s.model)).items():
@@ -225,8 +264,9 @@ def open_bus(args, bus):
     emu = start_emulator(bus) if getattr(args, "emulate", False) else None
     try:
         port = emu.port_path if emu is not None else (args.port or bus.port)
-        dxl = DynamixelBus(port, bus.baud, bus.protocol_version, retries=args.retries,
-                           names={s.id: s.joint for s in bus.servos})
+        dxl = DynamixelBus(
+            port, bus.baud, bus.protocol_version, retries=args.retries, names={s.id: s.joint for s in bus.servos}
+        )
         with dxl:
             yield dxl, emu
     finally:
@@ -251,12 +291,16 @@ def check_models(dxl, bus) -> list[tuple[object, object, int]]:
                 other = load_servo_model(number, protocol=model.protocol).name
             except ConfigError:
                 other = "not in the model table"
-            problems.append(f"{dxl.label(s.id)}: model number {number} ({other}), config says {model.name} ({model.model_number})")
+            problems.append(
+                f"{dxl.label(s.id)}: model number {number} ({other}), config says {model.name} ({model.model_number})"
+            )
             continue
         fw = dxl.read(s.id, model.register("firmware_version"))[0] if model.has("firmware_version") else -1
         found.append((s, model, fw))
     if problems:
-        raise BridgeError("refusing: " + "; ".join(problems) + ". Fix the wiring or the config (scan shows what is on the bus)")
+        raise BridgeError(
+            "refusing: " + "; ".join(problems) + ". Fix the wiring or the config (scan shows what is on the bus)"
+        )
     return found
 
 
@@ -282,6 +326,7 @@ def print_table(rows: list[list[str]], header: list[str], out=None) -> None:
 
 # ----------------------------------------------------------------------------- scan
 
+
 def _parse_ids(text: str) -> list[int]:
     ids: list[int] = []
     for part in text.split(","):
@@ -304,7 +349,9 @@ def run_scan(args) -> int:
         bauds = [int(b) for b in args.bauds.split(",") if b.strip()]
         protocols = [int(p) for p in args.protocols.split(",") if p.strip()]
     except ValueError:
-        raise BridgeError("--bauds and --protocols take comma-separated integers, e.g. --bauds 57600,1000000 --protocols 2,1") from None
+        raise BridgeError(
+            "--bauds and --protocols take comma-separated integers, e.g. --bauds 57600,1000000 --protocols 2,1"
+        ) from None
     if not set(protocols) <= {1, 2}:
         raise BridgeError(f"--protocols {args.protocols!r}: use 2, 1 or 2,1")
     ids = _parse_ids(args.ids)
@@ -348,8 +395,16 @@ def run_scan(args) -> int:
                                 fw = dxl.read(sid, m.register("firmware_version"))[0]
                             except BridgeError:
                                 fw = None
-                        rows.append([f"{protocol}.0", str(baud), str(sid), str(number), m.name if m else "unknown",
-                                     "?" if fw is None else str(fw)])
+                        rows.append(
+                            [
+                                f"{protocol}.0",
+                                str(baud),
+                                str(sid),
+                                str(number),
+                                m.name if m else "unknown",
+                                "?" if fw is None else str(fw),
+                            ]
+                        )
     finally:
         if emu is not None:
             emu.stop()
@@ -361,6 +416,7 @@ def run_scan(args) -> int:
 
 
 # ----------------------------------------------------------------------------- provision / verify
+
 
 def run_provision(args) -> int:
     cfg = load_robot_config(args.config)
@@ -391,16 +447,22 @@ def run_provision(args) -> int:
             _, after = read_settings(dxl, s, model)
             bad = {k: (after[k], v) for k, v in wanted.items() if after[k] != v}
             if bad:
-                raise BridgeError(f"{dxl.label(s.id)}: read-back differs after writing: "
-                                  + ", ".join(f"{k} = {a} (wanted {w})" for k, (a, w) in bad.items()))
+                raise BridgeError(
+                    f"{dxl.label(s.id)}: read-back differs after writing: "
+                    + ", ".join(f"{k} = {a} (wanted {w})" for k, (a, w) in bad.items())
+                )
             changes += len(diff)
         if rows:
             print_table(rows, ["id", "joint", "register", "was", "now" if not args.dry_run else "wanted"])
         verb = "would change" if args.dry_run else "changed"
-        print(f"{verb} {sum(1 for _ in rows)} register(s) on {len(servos)} servo(s); "
-              f"{'read back and verified' if not args.dry_run else 'nothing written (--dry-run)'}")
+        print(
+            f"{verb} {sum(1 for _ in rows)} register(s) on {len(servos)} servo(s); "
+            f"{'read back and verified' if not args.dry_run else 'nothing written (--dry-run)'}"
+        )
         if not args.dry_run:
-            print("note: RAM settings (gains, profiles, watchdog) are lost at power-off; the bridge re-applies them at start")
+            print(
+                "note: RAM settings (gains, profiles, watchdog) are lost at power-off; the bridge re-applies them at start"
+            )
     return 0
 
 
@@ -416,6 +478,7 @@ def run_verify(args) -> int:
             hw = ""
             if model.has("hardware_error_status"):
                 from ros_free_bridge.dynamixel.protocol import decode_hardware_error
+
                 bits = dxl.read(s.id, model.register("hardware_error_status"))[0]
                 hw = ", ".join(decode_hardware_error(bits))
             bad += bool(diff) or bool(hw)
@@ -429,6 +492,7 @@ def run_verify(args) -> int:
 
 
 # ----------------------------------------------------------------------------- calibrate
+
 
 def run_calibrate(args) -> int:
     import dataclasses
@@ -462,24 +526,34 @@ def run_calibrate(args) -> int:
     new_buses = []
     for b in cfg.buses:
         if b is bus:
-            b = dataclasses.replace(b, servos=tuple(dataclasses.replace(s, zero_offset=round(offsets[s.joint], 6))
-                                                    if s.joint in offsets else s for s in b.servos))
+            b = dataclasses.replace(
+                b,
+                servos=tuple(
+                    dataclasses.replace(s, zero_offset=round(offsets[s.joint], 6)) if s.joint in offsets else s
+                    for s in b.servos
+                ),
+            )
         new_buses.append(b)
     new_cfg = RobotConfig(cfg.robot, tuple(new_buses), cfg.stop_policy, str(args.out), cfg.mjcf)
     # validate the result like any config (limits must still fit the servo's range)
     from firmware_cfg.config import config_to_dict, parse_config
+
     parse_config(config_to_dict(new_cfg), source=str(args.out), check_mjcf=False)
     if new_cfg.mjcf is not None and Path(new_cfg.mjcf).exists():
         check_against_mjcf(new_cfg, new_cfg.mjcf)
     save_config(new_cfg, args.out)
-    rows = [[s.joint, str(s.id), f"{offsets[s.joint]:+.4f}", f"{math.degrees(offsets[s.joint]):+.2f}"]
-            for s in bus.servos if s.joint in offsets]
+    rows = [
+        [s.joint, str(s.id), f"{offsets[s.joint]:+.4f}", f"{math.degrees(offsets[s.joint]):+.2f}"]
+        for s in bus.servos
+        if s.joint in offsets
+    ]
     print_table(rows, ["joint", "id", "zero_offset rad", "deg"])
     print(f"wrote {args.out}")
     return 0
 
 
 # ----------------------------------------------------------------------------- monitor
+
 
 def monitor_rows(dxl, bus) -> list[list[str]]:
     from firmware_cfg.servo_models import load_servo_model
@@ -506,13 +580,19 @@ def monitor_rows(dxl, bus) -> list[list[str]]:
         except BridgeError as exc:
             rows.append([str(s.id), s.joint] + ["-"] * 6 + [str(exc).split(": ", 1)[-1][:60]])
             continue
-        rows.append([
-            str(s.id), s.joint, f"{math.degrees(pos):+8.2f}",
-            "-" if vel is None else f"{s.direction * float(m.velocity_to_rad_s(vel)):+6.2f}",
-            "-" if cur is None or m.current_ma is None else f"{float(m.current_to_amps(cur)):+5.2f}",
-            "-" if temp is None else f"{temp:3d}", "-" if volt is None else f"{float(m.voltage_to_volts(volt)):4.1f}",
-            "on" if torque else "off", ", ".join(decode_hardware_error(hw)) if hw else "-",
-        ])
+        rows.append(
+            [
+                str(s.id),
+                s.joint,
+                f"{math.degrees(pos):+8.2f}",
+                "-" if vel is None else f"{s.direction * float(m.velocity_to_rad_s(vel)):+6.2f}",
+                "-" if cur is None or m.current_ma is None else f"{float(m.current_to_amps(cur)):+5.2f}",
+                "-" if temp is None else f"{temp:3d}",
+                "-" if volt is None else f"{float(m.voltage_to_volts(volt)):4.1f}",
+                "on" if torque else "off",
+                ", ".join(decode_hardware_error(hw)) if hw else "-",
+            ]
+        )
     return rows
 
 
@@ -535,6 +615,7 @@ def run_monitor(args) -> int:
 
 
 # ----------------------------------------------------------------------------- emulate
+
 
 def run_emulate(args) -> int:
     cfg = load_robot_config(args.config)

@@ -121,10 +121,14 @@ class LoopConfig:
         if not 0 < self.playback_quantile <= 1:
             raise BridgeError(f"loop config: playback_quantile must be in (0, 1], got {self.playback_quantile}")
         if not 0 <= self.revision_smoothing < float("inf"):
-            raise BridgeError(f"loop config: revision_smoothing must be >= 0 rad/s (0: off), got {self.revision_smoothing}")
+            raise BridgeError(
+                f"loop config: revision_smoothing must be >= 0 rad/s (0: off), got {self.revision_smoothing}"
+            )
         if not 0 <= self.realtime_priority <= 99:
-            raise BridgeError(f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
-                              f"priority 1-99, got {self.realtime_priority} (CLI: --realtime-priority)")
+            raise BridgeError(
+                f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
+                f"priority 1-99, got {self.realtime_priority} (CLI: --realtime-priority)"
+            )
 
 
 @dataclass
@@ -203,8 +207,16 @@ class _Stream:
 class ControlLoop:
     """Drive ``transport`` from ``targets`` at ``config.rate_hz`` within ``limits``."""
 
-    def __init__(self, transport, limits: JointLimits, targets: TargetBuffer, config: LoopConfig,
-                 telemetry: TelemetryWriter | None = None, on_status=None, balance=None):
+    def __init__(
+        self,
+        transport,
+        limits: JointLimits,
+        targets: TargetBuffer,
+        config: LoopConfig,
+        telemetry: TelemetryWriter | None = None,
+        on_status=None,
+        balance=None,
+    ):
         """``balance``: the robot's :class:`sim.stabilizer.BalanceModel` (None: no stabilizer,
         e.g. a fixed-base robot); the stabilizer runs when ``config.stabilizer`` is on and the
         transport's readings carry an IMU sample."""
@@ -295,15 +307,22 @@ class ControlLoop:
                 if self.gc is not None:
                     self._event("gc", **self.gc.stats.__dict__)
                 if self.telemetry is not None:
-                    self.telemetry.event("end", state=self.state.name, reason=self.summary.reason,
-                                         summary={k: v for k, v in self.summary.__dict__.items() if k != "e2e_latency"})
+                    self.telemetry.event(
+                        "end",
+                        state=self.state.name,
+                        reason=self.summary.reason,
+                        summary={k: v for k, v in self.summary.__dict__.items() if k != "e2e_latency"},
+                    )
                     self.telemetry.close()
         return self.summary
 
     def _main(self) -> None:
         start = self._start_up()
-        ramp = list(min_jerk(start, self._rest, min_jerk_duration(start, self._rest, self.limits, self.config.min_ramp),
-                             self.dt))
+        ramp = list(
+            min_jerk(
+                start, self._rest, min_jerk_duration(start, self._rest, self.limits, self.config.min_ramp), self.dt
+            )
+        )
         stream = _Stream(RevisionSmoother(self.targets, self.config.revision_smoothing))
         while True:
             tick = self._clock.wait()
@@ -352,26 +371,41 @@ class ControlLoop:
         if not np.all(np.isfinite(present)):
             raise BridgeError(f"start: could not read every joint's present position ({present}); check the bus")
         if not self.limits.contains(present, tol=0.05):
-            bad = [n for n, q, lo, hi in zip(self.limits.names, present, self.limits.lower, self.limits.upper)
-                   if not lo - 0.05 <= q <= hi + 0.05]
+            bad = [
+                n
+                for n, q, lo, hi in zip(self.limits.names, present, self.limits.lower, self.limits.upper)
+                if not lo - 0.05 <= q <= hi + 0.05
+            ]
             self._event("start_outside_limits", joints=bad)
         start = self.safety.reset(present)
         self.transport.write_goal(start)  # goal = present before torque on: no jump
         self.transport.set_torque(True)
         self._event("torque_on")
         if cfg.split_phase_bus and self.transport.pipeline(True):
-            self._event("split_phase_bus", measured="the reply to the previous tick's read request",
-                        stamp="JointState.stamp = when that request left")
+            self._event(
+                "split_phase_bus",
+                measured="the reply to the previous tick's read request",
+                stamp="JointState.stamp = when that request left",
+            )
         self._rest = start if cfg.rest_pose is None else self.limits.clip(cfg.rest_pose)
         self._reference = start  # the last target before the stabilizer (what a hold keeps)
         if self.stabilizer is not None:
             self.stabilizer.reset()
         imu = self._last_state.imu if self._last_state is not None else None
         on = self.stabilizer is not None and imu is not None
-        self._event("stabilizer", on=on,
-                    why=("on" if on else "turned off (--no-stabilizer)" if not cfg.stabilizer else
-                         "no balance model (fixed base, or legs not found)" if self.stabilizer is None else
-                         "the transport reads no IMU"))
+        self._event(
+            "stabilizer",
+            on=on,
+            why=(
+                "on"
+                if on
+                else "turned off (--no-stabilizer)"
+                if not cfg.stabilizer
+                else "no balance model (fixed base, or legs not found)"
+                if self.stabilizer is None
+                else "the transport reads no IMU"
+            ),
+        )
         self._enter_realtime()
         self._clock = FixedRateClock(cfg.rate_hz)
         self._clock.start()
@@ -390,15 +424,21 @@ class ControlLoop:
             if cfg.pace == "ticks":
                 stream.playback = TickPlayback(self.targets.fps, first.index, self.dt)
             else:
-                policy = PlaybackPolicy(cfg.playback_margin, cfg.playback_lead_frames, quantile=cfg.playback_quantile,
-                                        fixed=not cfg.adaptive_playback)
+                policy = PlaybackPolicy(
+                    cfg.playback_margin,
+                    cfg.playback_lead_frames,
+                    quantile=cfg.playback_quantile,
+                    fixed=not cfg.adaptive_playback,
+                )
                 stream.playback = PlaybackClock(self.targets.fps, first.index, now, policy)
             stream.start = stream.last_new = now
             self.state = State.RUNNING
             self._event("streaming", first_frame=first.index)
         elif self.targets.closed or now - stream.wait_since > cfg.start_timeout:
-            self._begin_stop("no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"),
-                             fault=True)
+            self._begin_stop(
+                "no target frames arrived" + ("" if self.targets.closed else f" within {cfg.start_timeout:g} s"),
+                fault=True,
+            )
         return Fault.NONE
 
     def _stream_target(self, stream: _Stream, now: float, held: np.ndarray):
@@ -426,8 +466,9 @@ class ControlLoop:
             # quiet; it plays to its end (sample.finished)
             stream.last_frame_index, stream.last_new = (newest.index if newest is not None else -1), now
         quiet = now - stream.last_new
-        faults = (Fault.STARVED if sample.starved else Fault.NONE) | (Fault.EXTRAPOLATED if sample.extrapolated
-                                                                      else Fault.NONE)
+        faults = (Fault.STARVED if sample.starved else Fault.NONE) | (
+            Fault.EXTRAPOLATED if sample.extrapolated else Fault.NONE
+        )
         if quiet > cfg.rest_after:
             self._begin_stop(f"no new frames for {quiet:.1f} s", fault=True)
             return held, None, faults | Fault.ACTOR_TIMEOUT
@@ -450,8 +491,11 @@ class ControlLoop:
             # from the last reference when stabilizing (the command holds a correction the
             # stabilizer keeps adding): no jump by the correction at the ramp's start
             cur = self._reference if self._stabilizing else self.safety.last_command
-            self._ramp_out = list(min_jerk(cur, self._rest, min_jerk_duration(cur, self._rest, self.limits,
-                                                                              self.config.min_ramp), self.dt))
+            self._ramp_out = list(
+                min_jerk(
+                    cur, self._rest, min_jerk_duration(cur, self._rest, self.limits, self.config.min_ramp), self.dt
+                )
+            )
             self._settle_ticks = 0
         if self._ramp_out:
             return self._ramp_out.pop(0)
@@ -493,12 +537,21 @@ class ControlLoop:
         self.summary.ticks += 1
         if self.telemetry is not None:
             self.telemetry.record(
-                t=tick.woke - self._t_start, tick=tick.index, lateness=tick.lateness, compute=compute,
-                target=target, command=command, correction=0.0 if correction is None else correction,
-                measured=state.position, intervention=flags, state=int(self.state), faults=int(faults),
+                t=tick.woke - self._t_start,
+                tick=tick.index,
+                lateness=tick.lateness,
+                compute=compute,
+                target=target,
+                command=command,
+                correction=0.0 if correction is None else correction,
+                measured=state.position,
+                intervention=flags,
+                state=int(self.state),
+                faults=int(faults),
                 actor_frame=-1 if used is None else used.actor_frame,
                 generator_latency=np.nan if used is None else used.generator_latency,
-                retarget_latency=np.nan if used is None else used.retarget_latency, end_to_end=e2e,
+                retarget_latency=np.nan if used is None else used.retarget_latency,
+                end_to_end=e2e,
             )
         if self.on_status is not None:
             self.on_status(self, tick, faults)
@@ -561,19 +614,29 @@ class ControlLoop:
         if np.any(temps >= cfg.temperature_stop):
             j = self.limits.names[int(np.nanargmax(temps))]
             faults |= Fault.OVERHEAT
-            self._begin_stop(f"{j} at {np.nanmax(temps):.0f} °C (stop threshold {cfg.temperature_stop:g} °C)", fault=True)
+            self._begin_stop(
+                f"{j} at {np.nanmax(temps):.0f} °C (stop threshold {cfg.temperature_stop:g} °C)", fault=True
+            )
         elif np.any(temps >= cfg.temperature_warn) and not self._degraded:
             j = self.limits.names[int(np.nanargmax(temps))]
             self._degraded = True
-            slow = JointLimits(self.limits.names, self.limits.lower, self.limits.upper,
-                               self.limits.max_velocity * cfg.degrade_factor, self.limits.max_acceleration)
+            slow = JointLimits(
+                self.limits.names,
+                self.limits.lower,
+                self.limits.upper,
+                self.limits.max_velocity * cfg.degrade_factor,
+                self.limits.max_acceleration,
+            )
             self.safety.limits = slow
             self._event("degraded", joint=j, temperature=float(np.nanmax(temps)), factor=cfg.degrade_factor)
         finite_v = volts[np.isfinite(volts)]
         if finite_v.size and (finite_v.min() < cfg.voltage_min or finite_v.max() > cfg.voltage_max):
             faults |= Fault.VOLTAGE
-            self._begin_stop(f"supply voltage {finite_v.min():.1f}-{finite_v.max():.1f} V outside "
-                             f"{cfg.voltage_min:g}-{cfg.voltage_max:g} V", fault=True)
+            self._begin_stop(
+                f"supply voltage {finite_v.min():.1f}-{finite_v.max():.1f} V outside "
+                f"{cfg.voltage_min:g}-{cfg.voltage_max:g} V",
+                fault=True,
+            )
         return faults
 
     def _emergency(self, reason: str) -> None:

@@ -32,8 +32,9 @@ class LoopGc:
     ``min_slack_s`` are left, or unconditionally past ``hard_limit``; a full pass (of what
     was allocated since the freeze) every ``full_every_s`` seconds, in slack only."""
 
-    def __init__(self, threshold: int = 700, hard_limit: int = 50_000, min_slack_s: float = 0.001,
-                 full_every_s: float = 10.0) -> None:
+    def __init__(
+        self, threshold: int = 700, hard_limit: int = 50_000, min_slack_s: float = 0.001, full_every_s: float = 10.0
+    ) -> None:
         self.threshold = threshold
         self.hard_limit = hard_limit
         self.min_slack_s = min_slack_s
@@ -106,8 +107,10 @@ def realtime_priority(priority: int | None):
         old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
     except (OSError, ValueError) as exc:
-        yield (f"SCHED_FIFO priority {priority} not granted ({getattr(exc, 'strerror', None) or exc}); "
-               "normal scheduling. Fix: run with CAP_SYS_NICE or set an rtprio limit in /etc/security/limits.conf")
+        yield (
+            f"SCHED_FIFO priority {priority} not granted ({getattr(exc, 'strerror', None) or exc}); "
+            "normal scheduling. Fix: run with CAP_SYS_NICE or set an rtprio limit in /etc/security/limits.conf"
+        )
         return
     try:
         yield f"SCHED_FIFO priority {priority}"

@@ -61,7 +61,9 @@ class JointLimits:
         bad = np.flatnonzero(self.lower >= self.upper)
         if bad.size:
             j = self.names[bad[0]]
-            raise BridgeError(f"joint limits: joint {j!r} has lower {self.lower[bad[0]]:.4f} >= upper {self.upper[bad[0]]:.4f}")
+            raise BridgeError(
+                f"joint limits: joint {j!r} has lower {self.lower[bad[0]]:.4f} >= upper {self.upper[bad[0]]:.4f}"
+            )
         for field in ("max_velocity", "max_acceleration"):
             arr = getattr(self, field)
             if np.any(arr <= 0):
@@ -186,8 +188,10 @@ class SafetyFilter:
         return np.sign(self._v) * np.maximum(np.abs(self._v) - a_step, 0.0)
 
 
-_NONFINITE, _ACCEL, _VEL, _POS = (np.uint8(f) for f in (Intervention.NONFINITE, Intervention.ACCELERATION,
-                                                         Intervention.VELOCITY, Intervention.POSITION))
+_NONFINITE, _ACCEL, _VEL, _POS = (
+    np.uint8(f)
+    for f in (Intervention.NONFINITE, Intervention.ACCELERATION, Intervention.VELOCITY, Intervention.POSITION)
+)
 
 
 def min_jerk(q0: np.ndarray, q1: np.ndarray, duration: float, dt: float) -> np.ndarray:

@@ -23,8 +23,16 @@ class DynamixelBus:
 
     ``names``: servo ID → a label for messages (the joint name)."""
 
-    def __init__(self, port: str, baud: int, protocol: float = 2.0, *, retries: int = 2,
-                 latency_ms: float = 16.0, names: dict[int, str] | None = None) -> None:
+    def __init__(
+        self,
+        port: str,
+        baud: int,
+        protocol: float = 2.0,
+        *,
+        retries: int = 2,
+        latency_ms: float = 16.0,
+        names: dict[int, str] | None = None,
+    ) -> None:
         self.port_name = port
         self.baud = baud
         self.protocol = float(protocol)
@@ -57,9 +65,11 @@ class DynamixelBus:
             except Exception:
                 pass
             text = str(exc)
-            hint = ("another program holds the port; close it (e.g. a second bridge, Dynamixel Wizard)"
-                    if "lock" in text.lower() or "busy" in text.lower() or "resource temporarily" in text.lower()
-                    else "check the cable and the port name (ls /dev/ttyUSB* /dev/ttyACM*)")
+            hint = (
+                "another program holds the port; close it (e.g. a second bridge, Dynamixel Wizard)"
+                if "lock" in text.lower() or "busy" in text.lower() or "resource temporarily" in text.lower()
+                else "check the cable and the port name (ls /dev/ttyUSB* /dev/ttyACM*)"
+            )
             raise BridgeError(f"Dynamixel bus {self.port_name}: cannot open ({text}); {hint}") from None
         self.port = port
 
@@ -103,11 +113,15 @@ class DynamixelBus:
         except (IndexError, KeyError) as exc:
             if malformed is not None:
                 return malformed
-            raise BridgeError(f"Dynamixel bus {self.port_name}: malformed reply during {getattr(fn, '__name__', 'a call')} "
-                              f"({type(exc).__name__}: {exc}); check for noise or a wrong baud rate") from None
+            raise BridgeError(
+                f"Dynamixel bus {self.port_name}: malformed reply during {getattr(fn, '__name__', 'a call')} "
+                f"({type(exc).__name__}: {exc}); check for noise or a wrong baud rate"
+            ) from None
         except Exception as exc:  # serial.SerialException, OSError, TypeError from a dead fd
-            raise BridgeError(f"Dynamixel bus {self.port_name}: port failed during {getattr(fn, '__name__', 'a call')} "
-                              f"({type(exc).__name__}: {exc}); the adapter was unplugged or lost power") from None
+            raise BridgeError(
+                f"Dynamixel bus {self.port_name}: port failed during {getattr(fn, '__name__', 'a call')} "
+                f"({type(exc).__name__}: {exc}); the adapter was unplugged or lost power"
+            ) from None
         finally:
             if self.port is not None:
                 self.port.is_using = False
@@ -128,9 +142,11 @@ class DynamixelBus:
             if result == sdk.COMM_SUCCESS:
                 return model
             last = result
-        raise BridgeError(f"{self.label(sid)} on {self.port_name}: no answer to PING after "
-                          f"{(self.retries if retries is None else retries) + 1} tries ({self.comm_text(last)}); "
-                          f"check its power, ID and baud {self.baud}")
+        raise BridgeError(
+            f"{self.label(sid)} on {self.port_name}: no answer to PING after "
+            f"{(self.retries if retries is None else retries) + 1} tries ({self.comm_text(last)}); "
+            f"check its power, ID and baud {self.baud}"
+        )
 
     def read_raw(self, sid: int, address: int, length: int, what: str = "") -> tuple[bytes, int]:
         """Bytes [address, address+length) of ``sid`` and the status error byte."""
@@ -142,8 +158,10 @@ class DynamixelBus:
                     raise BridgeError(f"{self.label(sid)}: READ {what or address} refused: {self.error_text(error)}")
                 return bytes(data), error
             last = result
-        raise BridgeError(f"{self.label(sid)} on {self.port_name}: READ {what or f'address {address}'} failed after "
-                          f"{self.retries + 1} tries ({self.comm_text(last)})")
+        raise BridgeError(
+            f"{self.label(sid)} on {self.port_name}: READ {what or f'address {address}'} failed after "
+            f"{self.retries + 1} tries ({self.comm_text(last)})"
+        )
 
     def read(self, sid: int, reg: Register) -> tuple[int, int]:
         """(value, status error byte) of one register."""
@@ -161,11 +179,15 @@ class DynamixelBus:
                 refused = (error & 0x7F) if self.protocol == 2.0 else (error & ~P1_HARDWARE_MASK & 0x7F)
                 if refused:
                     hint = " (EEPROM is locked while torque is on; switch torque off first)" if reg.eeprom else ""
-                    raise BridgeError(f"{self.label(sid)}: WRITE {reg.name}={value} refused: {self.error_text(error)}{hint}")
+                    raise BridgeError(
+                        f"{self.label(sid)}: WRITE {reg.name}={value} refused: {self.error_text(error)}{hint}"
+                    )
                 return error
             last = result
-        raise BridgeError(f"{self.label(sid)} on {self.port_name}: WRITE {reg.name}={value} failed after "
-                          f"{self.retries + 1} tries ({self.comm_text(last)})")
+        raise BridgeError(
+            f"{self.label(sid)} on {self.port_name}: WRITE {reg.name}={value} failed after "
+            f"{self.retries + 1} tries ({self.comm_text(last)})"
+        )
 
     def reboot(self, sid: int) -> None:
         if self.protocol != 2.0:
@@ -185,4 +207,6 @@ class DynamixelBus:
             group.addParam(sid, list(reg.encode(v)))
         result = self.call(lambda port: group.txPacket())
         if result != sdk.COMM_SUCCESS:
-            raise BridgeError(f"Dynamixel bus {self.port_name}: SYNC_WRITE {reg.name} failed ({self.comm_text(result)})")
+            raise BridgeError(
+                f"Dynamixel bus {self.port_name}: SYNC_WRITE {reg.name} failed ({self.comm_text(result)})"
+            )

@@ -45,8 +45,12 @@ def status_registers(sv: Servo) -> dict[str, Register]:
     voltage, temperature, and the bus watchdog when it is armed)."""
     m = sv.model
     regs = {}
-    for key, names in (("current", ("present_current", "present_load")), ("velocity", ("present_velocity", "present_speed")),
-                       ("voltage", ("present_input_voltage", "present_voltage")), ("temperature", ("present_temperature",))):
+    for key, names in (
+        ("current", ("present_current", "present_load")),
+        ("velocity", ("present_velocity", "present_speed")),
+        ("voltage", ("present_input_voltage", "present_voltage")),
+        ("temperature", ("present_temperature",)),
+    ):
         for name in names:
             if m.has(name):
                 regs[key] = m.register(name)
@@ -144,11 +148,18 @@ class BusCycle:
         b0, b1 = min(start, pres.address), max(start + length, pres.end)  # j's span holds its position too
         # j's fields, by offset in its span: its status registers and its position; a
         # sign-magnitude register is read unsigned and decoded by its Register
-        span = sorted([(r.address - b0, r.size, r.signed and r.sign_bit is None, key) for key, r in regs.items()]
-                      + [(pres.address - b0, pres.size, pres.signed, "position")])
+        span = sorted(
+            [(r.address - b0, r.size, r.signed and r.sign_bit is None, key) for key, r in regs.items()]
+            + [(pres.address - b0, pres.size, pres.signed, "position")]
+        )
         fields = [[(0, pres.size, pres.signed)] if k != j else [f[:3] for f in span] for k in range(len(servos))]
-        dec = FastBulkReadDecoder([(sv.cfg.id, b0, b1 - b0) if k == j else (sv.cfg.id, pres.address, pres.size)
-                                   for k, sv in enumerate(servos)], fields)
+        dec = FastBulkReadDecoder(
+            [
+                (sv.cfg.id, b0, b1 - b0) if k == j else (sv.cfg.id, pres.address, pres.size)
+                for k, sv in enumerate(servos)
+            ],
+            fields,
+        )
         keys = [f[3] for f in span]
         at_j = j + keys.index("position")  # where j's position lands among the decoded values
         pos = [k if k < j else at_j if k == j else k + len(span) - 1 for k in range(len(servos))]
@@ -274,11 +285,15 @@ class BusCycle:
             try:
                 self.bus.ping(sid, retries=0)
             except BridgeError:
-                raise BridgeError(f"{self.bus.label(sid)}: no status packet for {what} after "
-                                  f"{self.bus.retries + 1} tries; check its cable and power") from None
-        raise BridgeError(f"Dynamixel bus {self.bus.port_name}: group read of {what} failed after "
-                          f"{self.bus.retries + 1} tries ({self.bus.comm_text(result)}), though every servo answers PING; "
-                          "check for noise or a wrong baud rate")
+                raise BridgeError(
+                    f"{self.bus.label(sid)}: no status packet for {what} after "
+                    f"{self.bus.retries + 1} tries; check its cable and power"
+                ) from None
+        raise BridgeError(
+            f"Dynamixel bus {self.bus.port_name}: group read of {what} failed after "
+            f"{self.bus.retries + 1} tries ({self.bus.comm_text(result)}), though every servo answers PING; "
+            "check for noise or a wrong baud rate"
+        )
 
     def slow_block(self, i: int) -> tuple[dict[str, Register], int, int]:
         """(registers by field, start address, length) of servo ``i``'s status block."""
@@ -297,7 +312,7 @@ class BusCycle:
     def decode_slow(self, i: int, data: bytes) -> dict[str, int]:
         """Servo ``i``'s status block bytes → raw values by field."""
         regs, start, _ = self.slow_block(i)
-        return {k: r.decode(data[r.address - start:r.end - start]) for k, r in regs.items()}
+        return {k: r.decode(data[r.address - start : r.end - start]) for k, r in regs.items()}
 
     # ------------------------------------------------------------------ writes and split phase
     def send_goals(self, ticks) -> None:
@@ -308,7 +323,9 @@ class BusCycle:
             return
         result = self.bus.call(tx_op, self.writer.encode(ticks))
         if result != sdk.COMM_SUCCESS:
-            raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus.comm_text(result)})")
+            raise BridgeError(
+                f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position failed ({self.bus.comm_text(result)})"
+            )
 
     def send_cycle(self, ticks) -> None:
         """Split phase: the SYNC_WRITE of ``ticks`` and, right behind it in the same write,
@@ -339,8 +356,10 @@ class BusCycle:
 
         result = self.bus.call(op)
         if result != sdk.COMM_SUCCESS:
-            raise BridgeError(f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position + read request failed "
-                              f"({self.bus.comm_text(result)})")
+            raise BridgeError(
+                f"Dynamixel bus {self.bus.port_name}: SYNC_WRITE goal position + read request failed "
+                f"({self.bus.comm_text(result)})"
+            )
         self.fast_sent = time.monotonic()
         self._leave_pending(pending)
 
@@ -392,8 +411,9 @@ class BusCycle:
             self.fast_ready = (result, self.fast_sent)
         else:
             _, _, length = self.slow_block(i)
-            data, result, error = self.bus.call(self.bus.ph.readRx, self.servos.ids[i], length,
-                                                malformed=([], sdk.COMM_RX_CORRUPT, 0))
+            data, result, error = self.bus.call(
+                self.bus.ph.readRx, self.servos.ids[i], length, malformed=([], sdk.COMM_RX_CORRUPT, 0)
+            )
             self.slow_ready = (i, data, result, error)
         if result != sdk.COMM_SUCCESS:
             self.stats.read_retries += 1  # counted here: a newer request may supersede it before it is used
@@ -433,5 +453,7 @@ def status_values(status: tuple, values: tuple) -> dict[str, int]:
     """Servo j's status registers by field from a decoded FAST_BULK_READ reply ((field,
     index in ``values``, Register) per register); a sign-magnitude register was read
     unsigned and is decoded here."""
-    return {key: values[at] if reg.sign_bit is None else reg.decode(values[at].to_bytes(reg.size, "little"))
-            for key, at, reg in status}
+    return {
+        key: values[at] if reg.sign_bit is None else reg.decode(values[at].to_bytes(reg.size, "little"))
+        for key, at, reg in status
+    }

@@ -56,8 +56,9 @@ class SyncWriteEncoder:
         n = len(ids)
         self.address, self.size, self.ids, self.signed = address, size, tuple(ids), signed
         length = 1 + 4 + n * (1 + size) + 2
-        self._head = HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, SYNC_WRITE,
-                                      address & 0xFF, address >> 8, size & 0xFF, size >> 8))
+        self._head = HEADER2 + bytes(
+            (BROADCAST_ID, length & 0xFF, length >> 8, SYNC_WRITE, address & 0xFF, address >> 8, size & 0xFF, size >> 8)
+        )
         self._pack = struct.Struct("<" + ("B" + INT_FORMAT[size, signed]) * n).pack
         self._args = [x for i in ids for x in (i, 0)]  # ID, value, ID, value, ...; values set per call
         self.n = n
@@ -76,8 +77,9 @@ class SyncWriteEncoder:
         try:
             body = self._head + self._pack(*args)
         except struct.error as exc:
-            raise PacketError(f"SYNC_WRITE value does not fit {self.size} {'signed' if self.signed else 'unsigned'} "
-                              f"bytes: {exc}") from None
+            raise PacketError(
+                f"SYNC_WRITE value does not fit {self.size} {'signed' if self.signed else 'unsigned'} bytes: {exc}"
+            ) from None
         if body.find(b"\xff\xff\xfd", 7) >= 0:
             return encode_instruction(BROADCAST_ID, SYNC_WRITE, body[8:])
         crc = crc16(body)
@@ -108,8 +110,8 @@ class FastSyncReadDecoder:
         n = len(ids)
         self.ids, self.size, self.n = tuple(ids), size, n
         self.request = encode_instruction(
-            BROADCAST_ID, FAST_SYNC_READ,
-            bytes((address & 0xFF, address >> 8, size & 0xFF, size >> 8)) + bytes(ids))
+            BROADCAST_ID, FAST_SYNC_READ, bytes((address & 0xFF, address >> 8, size & 0xFF, size >> 8)) + bytes(ids)
+        )
         self.reply_length = 8 + n * (size + 4)
         length = self.reply_length - 7
         self.head = HEADER2 + bytes((BROADCAST_ID, length & 0xFF, length >> 8, STATUS))
@@ -122,8 +124,10 @@ class FastSyncReadDecoder:
         """One reply → (status error bytes, values), tuples of n ints in ``ids`` order. A
         wrong header, length, ID order or CRC is a :class:`PacketError` naming it."""
         if len(raw) != self.reply_length:
-            raise PacketError(f"fast-sync-read reply is {len(raw)} bytes, expected {self.reply_length} "
-                              f"for {self.n} servos of {self.size} bytes")
+            raise PacketError(
+                f"fast-sync-read reply is {len(raw)} bytes, expected {self.reply_length} "
+                f"for {self.n} servos of {self.size} bytes"
+            )
         if not raw.startswith(self.head):
             raise PacketError(f"fast-sync-read reply header {raw[:8].hex(' ')} is not {self.head.hex(' ')}")
         if crc16(memoryview(raw)[:-2]) != raw[-2] | (raw[-1] << 8):
@@ -209,8 +213,10 @@ class FastBulkReadDecoder:
             pos = 0
             for offset, fsize, signed in sorted(item_fields):
                 if offset < pos or offset + fsize > size:
-                    raise PacketError(f"FAST_BULK_READ fields of servo ID {sid}: ({offset}, {fsize}) overlaps "
-                                      f"another or leaves its {size} data bytes")
+                    raise PacketError(
+                        f"FAST_BULK_READ fields of servo ID {sid}: ({offset}, {fsize}) overlaps "
+                        f"another or leaves its {size} data bytes"
+                    )
                 if offset > pos:
                     fmt.append(f"{offset - pos}x")
                 fmt.append(INT_FORMAT.get((fsize, bool(signed)), f"{fsize}s"))
@@ -219,8 +225,10 @@ class FastBulkReadDecoder:
                 pos = offset + fsize
             fmt.append(f"{size - pos + 2}x")  # the rest of the data and the part's CRC
         unpack = struct.Struct("".join(fmt)).unpack
-        take = [operator.itemgetter(*idx) if len(idx) > 1 else (lambda t, i=idx[0]: (t[i],))
-                for idx in (err_at, id_at, field_at)]
+        take = [
+            operator.itemgetter(*idx) if len(idx) > 1 else (lambda t, i=idx[0]: (t[i],))
+            for idx in (err_at, id_at, field_at)
+        ]
         self._unpack = (unpack, *take)
 
     def decode_fields(self, raw: bytes) -> tuple[tuple[int, ...], tuple]:
@@ -230,7 +238,9 @@ class FastBulkReadDecoder:
         if self._unpack is None:
             raise PacketError("FastBulkReadDecoder.decode_fields needs the decoder built with fields=")
         if len(raw) != self.reply_length:
-            raise PacketError(f"fast-bulk-read reply is {len(raw)} bytes, expected {self.reply_length} for {self.n} servos")
+            raise PacketError(
+                f"fast-bulk-read reply is {len(raw)} bytes, expected {self.reply_length} for {self.n} servos"
+            )
         if not raw.startswith(self.head):
             raise PacketError(f"fast-bulk-read reply header {raw[:8].hex(' ')} is not {self.head.hex(' ')}")
         if crc16(memoryview(raw)[:-2]) != raw[-2] | (raw[-1] << 8):
@@ -247,14 +257,24 @@ class FastBulkReadDecoder:
         """One reply → (its bytes as a (reply_length,) uint8 array, status error bytes (n,)
         in ``items`` order). A wrong length, header, CRC or ID is a :class:`PacketError`."""
         if len(raw) != self.reply_length:
-            raise PacketError(f"fast-bulk-read reply is {len(raw)} bytes, expected {self.reply_length} for {self.n} servos")
+            raise PacketError(
+                f"fast-bulk-read reply is {len(raw)} bytes, expected {self.reply_length} for {self.n} servos"
+            )
         if raw[:8] != self.head:
             raise PacketError(f"fast-bulk-read reply header {raw[:8].hex(' ')} is not {self.head.hex(' ')}")
         a = np.frombuffer(raw, dtype=np.uint8)
         if crc16(memoryview(raw)[:-2]) != raw[-2] | (raw[-1] << 8):
-            bad = next((self.ids[k] for k, end in enumerate(self._part_ends)
-                        if crc16(raw[:end]) != raw[end] | (raw[end + 1] << 8)), None)
-            raise PacketError("fast-bulk-read CRC mismatch" + ("" if bad is None else f" in the part for servo ID {bad}"))
+            bad = next(
+                (
+                    self.ids[k]
+                    for k, end in enumerate(self._part_ends)
+                    if crc16(raw[:end]) != raw[end] | (raw[end + 1] << 8)
+                ),
+                None,
+            )
+            raise PacketError(
+                "fast-bulk-read CRC mismatch" + ("" if bad is None else f" in the part for servo ID {bad}")
+            )
         got = a[self._id_index]
         if not np.array_equal(got, self._id_bytes):
             k = int(np.flatnonzero(got != self._id_bytes)[0])

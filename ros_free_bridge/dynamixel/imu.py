@@ -27,8 +27,14 @@ def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product a ⊗ b of two wxyz quaternions."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def quat_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -36,8 +42,14 @@ def quat_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
     cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
     cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
 
 
 def rpy_from_quat(q: np.ndarray) -> np.ndarray:
@@ -52,9 +64,13 @@ def rpy_from_quat(q: np.ndarray) -> np.ndarray:
 def rotate_into(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """R(q)^T v: a world vector ``v`` (3,) expressed in the frame whose orientation is ``q``."""
     w, x, y, z = q / np.linalg.norm(q)
-    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    r = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     return r.T @ np.asarray(v, float)
 
 
@@ -89,7 +105,9 @@ class ImuBlock:
             r = model.register(name)
             if r.address > pos:
                 fmt.append(f"{r.address - pos}x")
-            fmt.append({(2, True): "h", (2, False): "H", (1, True): "b", (1, False): "B", (4, True): "i"}[r.size, r.signed])
+            fmt.append(
+                {(2, True): "h", (2, False): "H", (1, True): "b", (1, False): "B", (4, True): "i"}[r.size, r.signed]
+            )
             pos = r.end
         self._unpack = struct.Struct("".join(fmt)).unpack
         m = np.asarray(lay.mount, float)
@@ -99,7 +117,7 @@ class ImuBlock:
 
     def decode(self, data: bytes, stamp: float) -> ImuReading:
         """``length`` bytes read from ``start`` -> the reading, stamped ``stamp``."""
-        raw = self._unpack(bytes(data[:self.length]))
+        raw = self._unpack(bytes(data[: self.length]))
         ga = np.asarray(raw[:6], float) * self._scale
         roll, pitch, yaw = (v * self._rpy_rad for v in raw[6:9])
         quat = quat_mul(quat_from_rpy(roll, pitch, yaw), self._q_mount)
@@ -116,9 +134,11 @@ def imu_raw_values(model: DeviceModel, gyro, accel, quat) -> dict[str, int]:
     q = np.asarray(quat, float)
     board_rpy = rpy_from_quat(quat_mul(q / np.linalg.norm(q), mount_quat(lay.mount)))  # q_mount⁻¹ = ±q_mount
     out = {}
-    for names, values, unit in ((lay.gyro, mount * np.asarray(gyro, float), lay.gyro_rad_s),
-                                (lay.accel, mount * np.asarray(accel, float), lay.accel_m_s2),
-                                (lay.rpy, board_rpy, lay.rpy_rad)):
+    for names, values, unit in (
+        (lay.gyro, mount * np.asarray(gyro, float), lay.gyro_rad_s),
+        (lay.accel, mount * np.asarray(accel, float), lay.accel_m_s2),
+        (lay.rpy, board_rpy, lay.rpy_rad),
+    ):
         for name, v in zip(names, values):
             out[name] = int(np.clip(round(float(v) / unit), *_INT16))
     return out
@@ -167,8 +187,10 @@ class ImuDevice:
             self._lost(f"no answer to PING ({exc})")
             return
         if number != self.model.model_number:
-            raise BridgeError(f"{self.label} on {self.bus.port_name}: model number {number} but the config says "
-                              f"{self.model.name} ({self.model.model_number}); fix the config's devices or the wiring")
+            raise BridgeError(
+                f"{self.label} on {self.bus.port_name}: model number {number} but the config says "
+                f"{self.model.name} ({self.model.model_number}); fix the config's devices or the wiring"
+            )
         self.read()
 
     def due(self) -> bool:
@@ -178,8 +200,9 @@ class ImuDevice:
     def read(self) -> None:
         """One blocking READ of the IMU block (no retries: a missed sample is skipped)."""
         stamp = time.monotonic()
-        data, result, error = self.bus.call(self.bus.ph.readTxRx, self.id, self.block.start, self.block.length,
-                                            malformed=([], sdk.COMM_RX_CORRUPT, 0))
+        data, result, error = self.bus.call(
+            self.bus.ph.readTxRx, self.id, self.block.start, self.block.length, malformed=([], sdk.COMM_RX_CORRUPT, 0)
+        )
         self._apply(data, result, error, stamp)
 
     def send(self) -> bool:
@@ -198,8 +221,9 @@ class ImuDevice:
 
     def collect(self) -> None:
         """Split phase: read the reply of :meth:`send` (waiting at most its timeout)."""
-        data, result, error = self.bus.call(self.bus.ph.readRx, self.id, self.block.length,
-                                            malformed=([], sdk.COMM_RX_CORRUPT, 0))
+        data, result, error = self.bus.call(
+            self.bus.ph.readRx, self.id, self.block.length, malformed=([], sdk.COMM_RX_CORRUPT, 0)
+        )
         self._ready = (data, result, error, self._sent)
 
     def take(self) -> None:
@@ -223,16 +247,21 @@ class ImuDevice:
         self.reading = None
         self.misses += 1
         self._in_row += 1
-        why = (f"READ refused ({self.bus.error_text(error)})" if result == sdk.COMM_SUCCESS and error & 0x7F
-               else self.bus.comm_text(result))
+        why = (
+            f"READ refused ({self.bus.error_text(error)})"
+            if result == sdk.COMM_SUCCESS and error & 0x7F
+            else self.bus.comm_text(result)
+        )
         if self.fault is not None:
             self._retry_at = time.monotonic() + self.retry_s
         elif self._in_row >= IMU_MISS_LIMIT:
             self._lost(f"{self._in_row} reads in a row failed ({why})")
 
     def _lost(self, why: str) -> None:
-        self.fault = (f"{self.label} on {self.bus.port_name}: {why}; JointState.imu is None until it answers "
-                      f"(tried again every {self.retry_s:g} s); check its cable, power and ID")
+        self.fault = (
+            f"{self.label} on {self.bus.port_name}: {why}; JointState.imu is None until it answers "
+            f"(tried again every {self.retry_s:g} s); check its cable, power and ID"
+        )
         self.notes.append(self.fault)
         self.reading = None
         self._retry_at = time.monotonic() + self.retry_s

@@ -39,8 +39,10 @@ def set_latency_timer(port_name: str, ms: int = 1) -> tuple[int | None, str]:
         path.write_text(str(ms))
         return ms, f"{path}: latency timer {current} → {ms} ms"
     except OSError as exc:
-        return current, (f"{path}: latency timer stays {current} ms ({exc.strerror}); each reply may wait up to "
-                         f"{current} ms. Fix: a udev rule setting ATTR{{latency_timer}}=\"1\", or run once as root")
+        return current, (
+            f"{path}: latency timer stays {current} ms ({exc.strerror}); each reply may wait up to "
+            f'{current} ms. Fix: a udev rule setting ATTR{{latency_timer}}="1", or run once as root'
+        )
 
 
 class ExclusivePortHandler(sdk.PortHandler):
@@ -62,8 +64,9 @@ class ExclusivePortHandler(sdk.PortHandler):
 
         if self.is_open:
             self.closePort()
-        self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS,
-                                 timeout=0, exclusive=True)
+        self.ser = serial.Serial(
+            port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS, timeout=0, exclusive=True
+        )
         try:
             fcntl.ioctl(self.ser.fileno(), termios.TIOCEXCL)
         except OSError:
@@ -148,6 +151,5 @@ class ExclusivePortHandler(sdk.PortHandler):
         except BlockingIOError:
             data = b""
         if not data:
-            raise OSError(f"{self.port_name}: the device reports readiness to read but returns no data "
-                          "(disconnected?)")
+            raise OSError(f"{self.port_name}: the device reports readiness to read but returns no data (disconnected?)")
         return data

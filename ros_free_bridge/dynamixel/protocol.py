@@ -84,10 +84,21 @@ BULK_READ = 0x92
 BULK_WRITE = 0x93
 
 INSTRUCTION_NAMES = {
-    PING: "PING", READ: "READ", WRITE: "WRITE", REG_WRITE: "REG_WRITE", ACTION: "ACTION",
-    FACTORY_RESET: "FACTORY_RESET", REBOOT: "REBOOT", CLEAR: "CLEAR", SYNC_READ: "SYNC_READ",
-    SYNC_WRITE: "SYNC_WRITE", FAST_SYNC_READ: "FAST_SYNC_READ", BULK_READ: "BULK_READ",
-    BULK_WRITE: "BULK_WRITE", FAST_BULK_READ: "FAST_BULK_READ", STATUS: "STATUS",
+    PING: "PING",
+    READ: "READ",
+    WRITE: "WRITE",
+    REG_WRITE: "REG_WRITE",
+    ACTION: "ACTION",
+    FACTORY_RESET: "FACTORY_RESET",
+    REBOOT: "REBOOT",
+    CLEAR: "CLEAR",
+    SYNC_READ: "SYNC_READ",
+    SYNC_WRITE: "SYNC_WRITE",
+    FAST_SYNC_READ: "FAST_SYNC_READ",
+    BULK_READ: "BULK_READ",
+    BULK_WRITE: "BULK_WRITE",
+    FAST_BULK_READ: "FAST_BULK_READ",
+    STATUS: "STATUS",
 }
 
 # Protocol 2.0 status error numbers (bits 0-6 of ERR); bit 7 is the hardware alert.
@@ -119,8 +130,15 @@ HW_ERROR_BITS = {
     0x20: "overload",
 }
 #: Protocol 1.0 status error byte bits → names.
-P1_ERROR_BITS = {0x01: "input voltage", 0x02: "angle limit", 0x04: "overheating", 0x08: "range",
-                 0x10: "checksum", 0x20: "overload", 0x40: "instruction"}
+P1_ERROR_BITS = {
+    0x01: "input voltage",
+    0x02: "angle limit",
+    0x04: "overheating",
+    0x08: "range",
+    0x10: "checksum",
+    0x20: "overload",
+    0x40: "instruction",
+}
 P1_HARDWARE_MASK = 0x01 | 0x04 | 0x20
 
 
@@ -154,7 +172,7 @@ def encode_fast_status(parts: list[tuple[int, int, bytes]], length: int | None =
     crc = crc16(out)
     for error, servo_id, data in parts:
         piece = bytes((error & 0xFF, servo_id & 0xFF)) + bytes(data)
-        crc = crc16(piece, crc)                  # running CRC of the packet so far
+        crc = crc16(piece, crc)  # running CRC of the packet so far
         out += piece + bytes((crc & 0xFF, crc >> 8))
         crc = crc16(out[-2:], crc)
     return bytes(out)
@@ -184,7 +202,9 @@ def decode_packet(raw: bytes) -> Packet:
     """Decode one complete protocol 2.0 packet (instruction or status), checking its CRC."""
     raw = bytes(raw)
     if len(raw) < 10 or raw[:4] != HEADER2:
-        raise PacketError(f"not a protocol 2.0 packet: {raw[:8].hex(' ')}... (needs header FF FF FD 00 and >= 10 bytes)")
+        raise PacketError(
+            f"not a protocol 2.0 packet: {raw[:8].hex(' ')}... (needs header FF FF FD 00 and >= 10 bytes)"
+        )
     length = raw[5] | (raw[6] << 8)
     if len(raw) != 7 + length:
         raise PacketError(f"packet length field says {length} bytes after it but {len(raw) - 7} follow")
@@ -211,19 +231,22 @@ def decode_fast_status(raw: bytes, data_lengths: list[int]) -> list[tuple[int, i
         raise PacketError("not a fast-read status packet (needs FF FF FD 00 FE .. .. 55)")
     length = raw[5] | (raw[6] << 8)
     if len(raw) != 7 + length or length != 1 + sum(4 + n for n in data_lengths):
-        raise PacketError(f"fast-read length {length} does not match {len(data_lengths)} servos of {data_lengths} bytes")
+        raise PacketError(
+            f"fast-read length {length} does not match {len(data_lengths)} servos of {data_lengths} bytes"
+        )
     parts, pos = [], 8
     for n in data_lengths:
         end = pos + 2 + n
         crc = raw[end] | (raw[end + 1] << 8)
         if crc16(raw[:end]) != crc:
             raise PacketError(f"fast-read CRC mismatch in the part for servo ID {raw[pos + 1]}")
-        parts.append((raw[pos], raw[pos + 1], raw[pos + 2:end]))
+        parts.append((raw[pos], raw[pos + 1], raw[pos + 2 : end]))
         pos = end + 2
     return parts
 
 
 # ----------------------------------------------------------------------------- protocol 1.0
+
 
 def checksum1(body: bytes) -> int:
     """Protocol 1.0 checksum over ID..last parameter: ~sum & 0xFF."""
@@ -259,6 +282,7 @@ def decode_packet1(raw: bytes, *, status: bool) -> Packet:
 
 
 # ----------------------------------------------------------------------------- stream framing
+
 
 @dataclass(frozen=True)
 class Frame:

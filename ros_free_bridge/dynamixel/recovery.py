@@ -94,8 +94,11 @@ class Recovery:
             except BridgeError as exc:
                 self.servos.state.errors[joint] = f"{text}; recovery failed: {exc}"
             return
-        reason = ("policy does not reboot on this" if set(names) - pol.reboot_on or not pol.reboot
-                  else f"already rebooted {sv.reboots} times")
+        reason = (
+            "policy does not reboot on this"
+            if set(names) - pol.reboot_on or not pol.reboot
+            else f"already rebooted {sv.reboots} times"
+        )
         self.servos.state.errors[joint] = f"{text} (servo ID {sv.cfg.id}; torque {'on' if torque else 'off'}; {reason})"
 
     def recover(self, joint: str) -> str:
@@ -115,8 +118,10 @@ class Recovery:
             left = self.bus.read(sid, sv.model.register("hardware_error_status"))[0]
             if left:
                 self.servos.torque_on[i] = False
-                raise BridgeError(f"{self.bus.label(sid)}: hardware error persists after REBOOT: "
-                                  f"{', '.join(decode_hardware_error(left))}; torque stays off, inspect the servo")
+                raise BridgeError(
+                    f"{self.bus.label(sid)}: hardware error persists after REBOOT: "
+                    f"{', '.join(decode_hardware_error(left))}; torque stays off, inspect the servo"
+                )
         self.servos.torque_on[i] = False  # a reboot switches torque off
         self.apply_ram_settings(sv)
         value, _ = self.bus.read(sid, sv.present)
@@ -124,8 +129,10 @@ class Recovery:
         if was_on:
             self.bus.write(sid, sv.torque, 1)
             self.servos.torque_on[i] = True
-        done = f"rebooted after {', '.join(decode_hardware_error(bits)) or 'alert'}; settings re-applied, goal = present" + \
-               (", torque on" if was_on else "")
+        done = (
+            f"rebooted after {', '.join(decode_hardware_error(bits)) or 'alert'}; settings re-applied, goal = present"
+            + (", torque on" if was_on else "")
+        )
         self.servos.state.errors.pop(joint, None)
         return done
 
@@ -140,8 +147,10 @@ class Recovery:
                 return
             except BridgeError:
                 if time.monotonic() > deadline:
-                    raise BridgeError(f"{self.bus.label(sid)}: did not come back within "
-                                      f"{self.policy.reboot_wait_s:.1f} s of REBOOT; power-cycle it") from None
+                    raise BridgeError(
+                        f"{self.bus.label(sid)}: did not come back within "
+                        f"{self.policy.reboot_wait_s:.1f} s of REBOOT; power-cycle it"
+                    ) from None
                 time.sleep(0.01)
 
     def apply_ram_settings(self, sv: Servo) -> None:
@@ -170,8 +179,10 @@ class Recovery:
             self.bus.write(sv.cfg.id, sv.goal, int(np.clip(ticks, *servo_tick_limits(sv.cfg, sv.model))))
             self.bus.write(sv.cfg.id, reg, period)
             self.stats.watchdog_trips += 1
-            self.stats.notes.append(f"{self.bus.label(sv.cfg.id)}: bus watchdog had expired (host silent > "
-                                    f"{period * 20} ms); cleared, goal = present")
+            self.stats.notes.append(
+                f"{self.bus.label(sv.cfg.id)}: bus watchdog had expired (host silent > "
+                f"{period * 20} ms); cleared, goal = present"
+            )
 
     def broadcast_torque_off(self) -> None:
         """One SYNC_WRITE Torque Enable = 0 to every servo (no reply needed): the cheapest

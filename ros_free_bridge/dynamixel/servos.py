@@ -37,7 +37,10 @@ def servo_register_settings(servo: ServoConfig, model: ServoModel) -> dict[str, 
         if value is not None and model.has(name):
             out[name] = int(value)
 
-    put("return_delay_time", None if servo.return_delay_us is None else round(servo.return_delay_us / model.return_delay_us))
+    put(
+        "return_delay_time",
+        None if servo.return_delay_us is None else round(servo.return_delay_us / model.return_delay_us),
+    )
     put("temperature_limit", servo.temperature_limit_c)
     if servo.voltage_limits_v is not None:
         put("min_voltage_limit", math.ceil(servo.voltage_limits_v[0] / model.voltage_v - 1e-9))
@@ -79,8 +82,10 @@ def servo_tick_limits(servo: ServoConfig, model: ServoModel) -> tuple[int, int]:
     """The joint limits in the servo's ticks, rounded inwards (never wider than the config)."""
     lo, hi = servo.servo_limits()
     c, k = model.position.center_tick, model.ticks_per_rad
-    return (max(model.position.min_tick, math.ceil(c + lo * k - 1e-6)),
-            min(model.position.max_tick, math.floor(c + hi * k + 1e-6)))
+    return (
+        max(model.position.min_tick, math.ceil(c + lo * k - 1e-6)),
+        min(model.position.max_tick, math.floor(c + hi * k + 1e-6)),
+    )
 
 
 @dataclass
@@ -113,14 +118,28 @@ class ServoSet:
         for j in names:
             s = by_joint[j]
             m = load_servo_model(s.model)
-            self.servos.append(Servo(s, m, m.register("goal_position"), m.register("present_position"),
-                                     m.register("torque_enable"), servo_register_settings(s, m)))
+            self.servos.append(
+                Servo(
+                    s,
+                    m,
+                    m.register("goal_position"),
+                    m.register("present_position"),
+                    m.register("torque_enable"),
+                    servo_register_settings(s, m),
+                )
+            )
         first = self.servos[0]
         for sv in self.servos[1:]:
-            if (sv.goal.address, sv.goal.size, sv.present.address, sv.present.size) != \
-               (first.goal.address, first.goal.size, first.present.address, first.present.size):
-                raise BridgeError(f"Dynamixel bus {bus.name!r}: {sv.model.name} and {first.model.name} place Goal/Present "
-                                  "Position at different addresses; put them on separate buses")
+            if (sv.goal.address, sv.goal.size, sv.present.address, sv.present.size) != (
+                first.goal.address,
+                first.goal.size,
+                first.present.address,
+                first.present.size,
+            ):
+                raise BridgeError(
+                    f"Dynamixel bus {bus.name!r}: {sv.model.name} and {first.model.name} place Goal/Present "
+                    "Position at different addresses; put them on separate buses"
+                )
         n = len(self.servos)
         self.ids = [s.cfg.id for s in self.servos]
         self.lower = np.array([s.cfg.lower for s in self.servos], float)
@@ -135,7 +154,7 @@ class ServoSet:
         # position, velocity, effort, temperature, voltage: one block, so a reading copies it once
         self.block = np.full((5, n), np.nan)
         self.state = JointState(*self.block, np.zeros(n, bool), 0.0)
-        self.torque_on = np.zeros(n, bool)   # last known state on the servo
+        self.torque_on = np.zeros(n, bool)  # last known state on the servo
         self.torque_cmd = np.zeros(n, bool)  # what the host asked for
         self._goal_cache: tuple | None = None
         self._joint_rows = tuple(zip(self.center.tolist(), self.tpr.tolist(), self.off.tolist(), self.dir.tolist()))
@@ -167,10 +186,20 @@ class ServoSet:
         """Per servo, the floats and ints :meth:`goal_ticks` needs, made from the limits in
         force (:meth:`narrow`, the only place that changes them, drops the cache)."""
         if self._goal_cache is None:
-            self._goal_cache = tuple(zip((self.lower - self.half_tick).tolist(), (self.upper + self.half_tick).tolist(),
-                                         self.lower.tolist(), self.upper.tolist(), self.center.tolist(),
-                                         self.dir.tolist(), self.off.tolist(), self.tpr.tolist(),
-                                         [int(v) for v in self.tick_lo], [int(v) for v in self.tick_hi]))
+            self._goal_cache = tuple(
+                zip(
+                    (self.lower - self.half_tick).tolist(),
+                    (self.upper + self.half_tick).tolist(),
+                    self.lower.tolist(),
+                    self.upper.tolist(),
+                    self.center.tolist(),
+                    self.dir.tolist(),
+                    self.off.tolist(),
+                    self.tpr.tolist(),
+                    [int(v) for v in self.tick_lo],
+                    [int(v) for v in self.tick_hi],
+                )
+            )
         return self._goal_cache
 
     def goal_ticks(self, q: list[float]) -> list[int]:
@@ -185,8 +214,10 @@ class ServoSet:
         put = out.append
         for x, (lo_ok, hi_ok, lo, hi, center, d, off, tpr, t_lo, t_hi) in zip(q, self._goal_cache or self._goal_rows()):
             if not lo_ok <= x <= hi_ok:  # NaN fails both comparisons
-                raise BridgeError(f"{self.label(len(out))}: goal {x:.4f} rad is outside the joint limits "
-                                  f"[{lo:.4f}, {hi:.4f}]; refusing to send")
+                raise BridgeError(
+                    f"{self.label(len(out))}: goal {x:.4f} rad is outside the joint limits "
+                    f"[{lo:.4f}, {hi:.4f}]; refusing to send"
+                )
             x = lo if x < lo else hi if x > hi else x
             tick = round(center + (d * x + off) * tpr)
             put(t_lo if tick < t_lo else t_hi if tick > t_hi else tick)
@@ -207,9 +238,11 @@ class ServoSet:
         a, b = (sv.cfg.to_joint(sv.model.ticks_to_rad(t)) for t in (lo_t, hi_t))
         lo, hi = max(self.lower[i], min(a, b)), min(self.upper[i], max(a, b))
         if lo >= hi:
-            raise BridgeError(f"{self.label(i)}: EEPROM position limits [{lo_t}, {hi_t}] ticks do not overlap "
-                              f"the config limits [{sv.cfg.lower:.3f}, {sv.cfg.upper:.3f}] rad; "
-                              "run `dualflow-bridge servo provision`")
+            raise BridgeError(
+                f"{self.label(i)}: EEPROM position limits [{lo_t}, {hi_t}] ticks do not overlap "
+                f"the config limits [{sv.cfg.lower:.3f}, {sv.cfg.upper:.3f}] rad; "
+                "run `dualflow-bridge servo provision`"
+            )
         note = None
         if (lo, hi) != (self.lower[i], self.upper[i]):
             note = f"{self.label(i)}: limits narrowed to the EEPROM's [{lo:.4f}, {hi:.4f}] rad"
@@ -256,6 +289,13 @@ def _status_scales(sv: Servo) -> tuple:
     where the model lacks the quantity): (direction, velocity rpm per unit, current mA per
     unit, torque constant N·m/A, load % per unit, stall torque N·m, V per unit, °C per unit)."""
     m = sv.model
-    return (float(sv.cfg.direction), m.velocity_rpm, m.current_ma,
-            m.torque_constant_nm_per_a if m.current_ma is not None else None,
-            m.load_percent, m.ratings.stall_torque_nm, m.voltage_v, m.temperature_c)
+    return (
+        float(sv.cfg.direction),
+        m.velocity_rpm,
+        m.current_ma,
+        m.torque_constant_nm_per_a if m.current_ma is not None else None,
+        m.load_percent,
+        m.ratings.stall_torque_nm,
+        m.voltage_v,
+        m.temperature_c,
+    )

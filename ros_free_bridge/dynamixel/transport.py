@@ -47,7 +47,7 @@ class DynamixelStats:
     watchdog_trips: int = 0
     fast_sync_read: bool = True
     notes: list[str] = field(default_factory=list)
-    imu_reads: int = 0   #: IMU samples read (0 on a bus without an IMU device)
+    imu_reads: int = 0  #: IMU samples read (0 on a bus without an IMU device)
     imu_misses: int = 0  #: IMU reads that got no valid reply
 
 
@@ -62,11 +62,22 @@ class DynamixelTransport:
     cannot be read. ``apply_settings`` (attribute, default True): write the config's RAM
     settings at open."""
 
-    def __init__(self, bus: BusConfig, *, port: str | None = None, joint_names: tuple[str, ...] | None = None,
-                 stop_policy: str = "hold", recovery: RecoveryPolicy | None = None, retries: int = 2,
-                 slow_per_cycle: int = 1, latency_ms: float = 16.0) -> None:
+    def __init__(
+        self,
+        bus: BusConfig,
+        *,
+        port: str | None = None,
+        joint_names: tuple[str, ...] | None = None,
+        stop_policy: str = "hold",
+        recovery: RecoveryPolicy | None = None,
+        retries: int = 2,
+        slow_per_cycle: int = 1,
+        latency_ms: float = 16.0,
+    ) -> None:
         if bus.protocol not in ("1.0", "2.0"):
-            raise BridgeError(f"bus {bus.name!r} uses {bus.protocol}; the Dynamixel transport needs protocol 1.0 or 2.0")
+            raise BridgeError(
+                f"bus {bus.name!r} uses {bus.protocol}; the Dynamixel transport needs protocol 1.0 or 2.0"
+            )
         if stop_policy not in STOP_POLICIES:
             raise BridgeError(f"stop_policy {stop_policy!r} is not one of {STOP_POLICIES}")
         self.servos = ServoSet(bus, joint_names)
@@ -80,11 +91,15 @@ class DynamixelTransport:
         labels = {s.cfg.id: s.cfg.joint for s in self.servos.servos}
         if imu_cfg is not None:
             labels[imu_cfg.id] = f"{imu_cfg.model} IMU"
-        self.bus = DynamixelBus(port or bus.port, bus.baud, bus.protocol_version, retries=retries,
-                                latency_ms=latency_ms, names=labels)
+        self.bus = DynamixelBus(
+            port or bus.port, bus.baud, bus.protocol_version, retries=retries, latency_ms=latency_ms, names=labels
+        )
         #: the bus's IMU device (the OP3's OpenCR), read once per cycle; None without one
-        self.imu = None if imu_cfg is None else ImuDevice(self.bus, imu_cfg.id, load_device_model(imu_cfg.model),
-                                                          self.stats.notes)
+        self.imu = (
+            None
+            if imu_cfg is None
+            else ImuDevice(self.bus, imu_cfg.id, load_device_model(imu_cfg.model), self.stats.notes)
+        )
         self.recovery = Recovery(self.bus, self.servos, recovery or RecoveryPolicy(), self.stats)
         self.cycle = BusCycle(self.bus, self.servos, self.stats, self.imu)
         self._atexit = None
@@ -117,7 +132,7 @@ class DynamixelTransport:
             self.bus.close()
             raise
         ref = weakref.ref(self)
-        self._atexit = lambda: (ref() is not None and ref().close())
+        self._atexit = lambda: ref() is not None and ref().close()
         atexit.register(self._atexit)
 
     def _check_model(self, sv) -> None:
@@ -127,8 +142,10 @@ class DynamixelTransport:
                 found = load_servo_model(number, protocol=sv.model.protocol).name
             except Exception:
                 found = "unknown model"
-            raise BridgeError(f"{self.bus.label(sv.cfg.id)}: model number {number} ({found}) but the config "
-                              f"says {sv.model.name} ({sv.model.model_number}); fix the config or the wiring")
+            raise BridgeError(
+                f"{self.bus.label(sv.cfg.id)}: model number {number} ({found}) but the config "
+                f"says {sv.model.name} ({sv.model.model_number}); fix the config or the wiring"
+            )
 
     def close(self) -> None:
         """Apply the stop policy and release the port (safe to call twice)."""
@@ -164,8 +181,9 @@ class DynamixelTransport:
         if imu is not None:
             imu.take()  # a split-phase IMU reply collected before the last goal write
         pending = cyc.pending
-        if pending is not None and (pending[0] == "bulk" and self.slow_per_cycle == 1
-                                    or pending[0] == "fast" and self.slow_per_cycle == 0):
+        if pending is not None and (
+            pending[0] == "bulk" and self.slow_per_cycle == 1 or pending[0] == "fast" and self.slow_per_cycle == 0
+        ):
             state = self._read_arrived()
             if state is not None:
                 return state
@@ -327,8 +345,13 @@ class DynamixelTransport:
     # ------------------------------------------------------------------ internals
     def _narrow_to_eeprom(self, i: int) -> None:
         sv = self.servos.servos[i]
-        names = (("min_position_limit", "max_position_limit") if sv.model.has("min_position_limit")
-                 else ("cw_angle_limit", "ccw_angle_limit") if sv.model.has("cw_angle_limit") else None)
+        names = (
+            ("min_position_limit", "max_position_limit")
+            if sv.model.has("min_position_limit")
+            else ("cw_angle_limit", "ccw_angle_limit")
+            if sv.model.has("cw_angle_limit")
+            else None
+        )
         if names is None:
             return
         lo_t = self.bus.read(sv.cfg.id, sv.model.register(names[0]))[0]

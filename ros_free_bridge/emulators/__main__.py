@@ -55,8 +55,9 @@ def parse_device(text: str) -> tuple[int, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m ros_free_bridge.emulators",
-                                     description="Emulated Dynamixel servo bus on a pseudo-terminal.")
+    parser = argparse.ArgumentParser(
+        prog="python -m ros_free_bridge.emulators", description="Emulated Dynamixel servo bus on a pseudo-terminal."
+    )
     parser.add_argument("--ids", default="1-20", help="servo IDs, e.g. 1-20 or 1,2,5 (default 1-20)")
     parser.add_argument("--model", default=None, help="servo model (default XM430-W350; AX-12A for --protocol 1)")
     parser.add_argument("--protocol", type=int, choices=(1, 2), default=2)
@@ -64,8 +65,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wire-timing", action="store_true", help="delay replies by their time on the wire")
     parser.add_argument("--return-delay-us", type=float, default=0.0)
     parser.add_argument("--link", default=None, help="also make this symlink to the pty")
-    parser.add_argument("--device", action="append", default=[], metavar="ID:MODEL",
-                        help="a non-servo device on the bus, e.g. 200:OpenCR (the OP3's IMU); repeatable")
+    parser.add_argument(
+        "--device",
+        action="append",
+        default=[],
+        metavar="ID:MODEL",
+        help="a non-servo device on the bus, e.g. 200:OpenCR (the OP3's IMU); repeatable",
+    )
     args = parser.parse_args(argv)
 
     from ros_free_bridge.emulators.dynamixel_bus import DEFAULT_MODELS, DynamixelBusEmulator
@@ -73,8 +79,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         model = args.model or DEFAULT_MODELS[args.protocol]
         servos = [(i, model) for i in parse_ids(args.ids)] + [parse_device(d) for d in args.device]
-        emu = DynamixelBusEmulator(servos, baud=args.baud, protocol=args.protocol, wire_timing=args.wire_timing,
-                                   return_delay_us=args.return_delay_us)
+        emu = DynamixelBusEmulator(
+            servos,
+            baud=args.baud,
+            protocol=args.protocol,
+            wire_timing=args.wire_timing,
+            return_delay_us=args.return_delay_us,
+        )
     except Exception as exc:  # ConfigError / BridgeError: one line, exit 2
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -88,8 +99,11 @@ def main(argv: list[str] | None = None) -> int:
             os.symlink(emu.port_path, tmp)
             os.replace(tmp, args.link)
         print(emu.port_path, flush=True)
-        print(f"{len(servos) - len(args.device)} x {model} (+ {len(args.device)} device(s)) at {args.baud} bps, protocol {args.protocol}; Ctrl-C to stop",
-              file=sys.stderr, flush=True)
+        print(
+            f"{len(servos) - len(args.device)} x {model} (+ {len(args.device)} device(s)) at {args.baud} bps, protocol {args.protocol}; Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
         try:
             while not stop.wait(0.5):
                 pass

@@ -35,18 +35,22 @@ from ros_free_bridge.errors import BridgeError
 #: Default model per protocol for servos given by ID only.
 DEFAULT_MODELS = {2: "XM430-W350", 1: "AX-12A"}
 
-_P2_WRITE_ERRORS = {"access": dp.ERR_ACCESS, "length": dp.ERR_DATA_LENGTH, "range": dp.ERR_DATA_RANGE,
-                    "limit": dp.ERR_DATA_LIMIT}
-_P1_WRITE_ERRORS = {"access": dp.ERR1_RANGE, "length": dp.ERR1_RANGE, "range": dp.ERR1_RANGE,
-                    "limit": dp.ERR1_ANGLE}
+_P2_WRITE_ERRORS = {
+    "access": dp.ERR_ACCESS,
+    "length": dp.ERR_DATA_LENGTH,
+    "range": dp.ERR_DATA_RANGE,
+    "limit": dp.ERR_DATA_LIMIT,
+}
+_P1_WRITE_ERRORS = {"access": dp.ERR1_RANGE, "length": dp.ERR1_RANGE, "range": dp.ERR1_RANGE, "limit": dp.ERR1_ANGLE}
 
 #: CLEAR's parameters for the multi-turn count: option 1, then the fixed key "DXL\"".
 _CLEAR_MULTI_TURN = bytes((0x01, 0x44, 0x58, 0x4C, 0x22))
 
 _TCGETS2 = 0x802C542A
 _BOTHER = 0o010000
-_BAUD_CONSTANTS = {getattr(termios, name): int(name[1:]) for name in dir(termios)
-                   if name.startswith("B") and name[1:].isdigit()}
+_BAUD_CONSTANTS = {
+    getattr(termios, name): int(name[1:]) for name in dir(termios) if name.startswith("B") and name[1:].isdigit()
+}
 
 
 @dataclass(frozen=True)
@@ -137,7 +141,8 @@ class DynamixelBusEmulator:
         self._unsupported: frozenset[str] = frozenset()
         self.lock = threading.RLock()
         self._servos: list[EmulatedServo | EmulatedDevice] = [
-            self._unit(self._spec(item), return_delay_us) for item in servos]
+            self._unit(self._spec(item), return_delay_us) for item in servos
+        ]
         ids = [s.servo_id for s in self._servos]
         if len(set(ids)) != len(ids):
             raise BridgeError(f"emulated bus has duplicate servo IDs: {sorted(ids)}")
@@ -168,8 +173,10 @@ class DynamixelBusEmulator:
         names = frozenset(names)
         unknown = names - set(dp.INSTRUCTION_NAMES.values())
         if unknown:
-            raise BridgeError(f"emulator unsupported={sorted(unknown)}: not instruction names; "
-                              f"use names from {sorted(dp.INSTRUCTION_NAMES.values())}")
+            raise BridgeError(
+                f"emulator unsupported={sorted(unknown)}: not instruction names; "
+                f"use names from {sorted(dp.INSTRUCTION_NAMES.values())}"
+            )
         self._unsupported = names
 
     def _unit(self, spec: ServoSpec, return_delay_us: float | None) -> EmulatedServo | EmulatedDevice:
@@ -475,8 +482,9 @@ class DynamixelBusEmulator:
                 return None
         return None
 
-    def _listeners(self, protocol: int, now: float,
-                   host_baud: int | None) -> tuple[dict[int, EmulatedServo], list[EmulatedServo]]:
+    def _listeners(
+        self, protocol: int, now: float, host_baud: int | None
+    ) -> tuple[dict[int, EmulatedServo], list[EmulatedServo]]:
         """Servos that hear this packet (right protocol, connected, not booting, and at
         ``host_baud`` unless it is None), by ID; plus the servos whose ID another listener
         already has (an ID clash)."""
@@ -541,8 +549,9 @@ class DynamixelBusEmulator:
         self.instruction_counts[name] = self.instruction_counts.get(name, 0) + 1
 
     # ------------------------------------------------------------------ protocol 2.0
-    def _status2(self, servo: EmulatedServo, error: int = 0, params: bytes = b"",
-                 reply_id: int | None = None) -> tuple[EmulatedServo, bytes] | None:
+    def _status2(
+        self, servo: EmulatedServo, error: int = 0, params: bytes = b"", reply_id: int | None = None
+    ) -> tuple[EmulatedServo, bytes] | None:
         """A status packet from ``servo`` unless a fault swallows it. ``reply_id``: the ID
         the instruction addressed (a write that changes the ID is answered from the old one)."""
         if servo.faults.take("drop_replies"):
@@ -553,8 +562,9 @@ class DynamixelBusEmulator:
             raw = raw[:-2] + bytes((raw[-2] ^ 0xFF, raw[-1] ^ 0xFF))
         return servo, raw
 
-    def _dispatch2(self, frame: dp.Frame, servos: dict[int, EmulatedServo],
-                   count: bool = True) -> list[tuple[EmulatedServo, bytes]]:
+    def _dispatch2(
+        self, frame: dp.Frame, servos: dict[int, EmulatedServo], count: bool = True
+    ) -> list[tuple[EmulatedServo, bytes]]:
         """The replies a protocol 2.0 packet draws from ``servos`` (the listeners, by ID), in
         the order they go out. ``count``: add the packet to the statistics (False when an ID
         clash makes a second servo execute it)."""
@@ -593,8 +603,11 @@ class DynamixelBusEmulator:
         """Model number (2 bytes) and firmware version; a broadcast PING is answered by all."""
         group = sorted(req.servos.values(), key=lambda s: s.servo_id) if req.broadcast else req.group()
         for s in group:
-            req.replies.append(self._status2(s, 0, s.model.model_number.to_bytes(2, "little")
-                                             + bytes((s.get("firmware_version") & 0xFF,))))
+            req.replies.append(
+                self._status2(
+                    s, 0, s.model.model_number.to_bytes(2, "little") + bytes((s.get("firmware_version") & 0xFF,))
+                )
+            )
 
     def _read2(self, req: _Instruction) -> None:
         s = req.unicast
@@ -678,7 +691,7 @@ class DynamixelBusEmulator:
         for k in range(0, len(body) - length, length + 1):
             s = req.servos.get(body[k])
             if s is not None:
-                s.write(addr, body[k + 1:k + 1 + length], "SYNC_WRITE")
+                s.write(addr, body[k + 1 : k + 1 + length], "SYNC_WRITE")
 
     def _bulk_write2(self, req: _Instruction) -> None:
         """(ID, address, length, data) per servo; never answered."""
@@ -690,18 +703,30 @@ class DynamixelBusEmulator:
             i, addr, length = p[k], _u16(p, k + 1), _u16(p, k + 3)
             s = req.servos.get(i)
             if s is not None:
-                s.write(addr, p[k + 5:k + 5 + length], "BULK_WRITE")
+                s.write(addr, p[k + 5 : k + 5 + length], "BULK_WRITE")
             k += 5 + length
 
     #: The handler of each protocol 2.0 instruction; any other gets an instruction error.
     _HANDLERS2: dict[int, Callable[[DynamixelBusEmulator, _Instruction], None]] = {
-        dp.PING: _ping2, dp.READ: _read2, dp.WRITE: _write2, dp.REG_WRITE: _write2, dp.ACTION: _action2,
-        dp.REBOOT: _reboot2, dp.FACTORY_RESET: _factory_reset2, dp.CLEAR: _clear2,
-        dp.SYNC_READ: _sync_read2, dp.FAST_SYNC_READ: _sync_read2, dp.SYNC_WRITE: _sync_write2,
-        dp.BULK_READ: _bulk_read2, dp.FAST_BULK_READ: _bulk_read2, dp.BULK_WRITE: _bulk_write2,
+        dp.PING: _ping2,
+        dp.READ: _read2,
+        dp.WRITE: _write2,
+        dp.REG_WRITE: _write2,
+        dp.ACTION: _action2,
+        dp.REBOOT: _reboot2,
+        dp.FACTORY_RESET: _factory_reset2,
+        dp.CLEAR: _clear2,
+        dp.SYNC_READ: _sync_read2,
+        dp.FAST_SYNC_READ: _sync_read2,
+        dp.SYNC_WRITE: _sync_write2,
+        dp.BULK_READ: _bulk_read2,
+        dp.FAST_BULK_READ: _bulk_read2,
+        dp.BULK_WRITE: _bulk_write2,
     }
 
-    def _fast_read(self, items: list[tuple[int, int, int]], servos: dict[int, EmulatedServo]) -> list[tuple[EmulatedServo, bytes]]:
+    def _fast_read(
+        self, items: list[tuple[int, int, int]], servos: dict[int, EmulatedServo]
+    ) -> list[tuple[EmulatedServo, bytes]]:
         """FAST_SYNC_READ / FAST_BULK_READ: one packet built servo by servo. A silent
         servo breaks the chain: the reply is cut where its part should begin."""
         parts, owners = [], []
@@ -725,8 +750,9 @@ class DynamixelBusEmulator:
         return [(owners[-1], bytes(raw))]
 
     # ------------------------------------------------------------------ protocol 1.0
-    def _status1(self, servo: EmulatedServo, error: int = 0, params: bytes = b"",
-                 reply_id: int | None = None) -> tuple[EmulatedServo, bytes] | None:
+    def _status1(
+        self, servo: EmulatedServo, error: int = 0, params: bytes = b"", reply_id: int | None = None
+    ) -> tuple[EmulatedServo, bytes] | None:
         if servo.faults.take("drop_replies"):
             return None
         sid = servo.servo_id if reply_id is None else reply_id
@@ -735,7 +761,9 @@ class DynamixelBusEmulator:
             raw = raw[:-1] + bytes((raw[-1] ^ 0xFF,))
         return servo, raw
 
-    def _dispatch1(self, frame: dp.Frame, servos: dict[int, EmulatedServo], count: bool = True) -> list[tuple[EmulatedServo, bytes]]:
+    def _dispatch1(
+        self, frame: dp.Frame, servos: dict[int, EmulatedServo], count: bool = True
+    ) -> list[tuple[EmulatedServo, bytes]]:
         raw = frame.raw
         target = raw[2]
         broadcast = target == dp.BROADCAST_ID
@@ -783,7 +811,7 @@ class DynamixelBusEmulator:
             for k in range(0, len(body) - length, length + 1):
                 s = servos.get(body[k])
                 if s is not None:
-                    s.write(addr, body[k + 1:k + 1 + length], "SYNC_WRITE")
+                    s.write(addr, body[k + 1 : k + 1 + length], "SYNC_WRITE")
         elif inst == dp.BULK_READ and broadcast and params:
             body = params[1:]
             for k in range(0, len(body) - 2, 3):

@@ -28,8 +28,14 @@ ImuSource = Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
 class EmulatedDevice:
     """A device's state. ``servo_id`` is read from its ID register (it can be rewritten)."""
 
-    def __init__(self, model: DeviceModel, device_id: int, *, clock: Callable[[], float] = time.monotonic,
-                 imu_source: ImuSource | None = None) -> None:
+    def __init__(
+        self,
+        model: DeviceModel,
+        device_id: int,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        imu_source: ImuSource | None = None,
+    ) -> None:
         self.model = model
         self.clock = clock
         self.faults = Faults()
@@ -66,11 +72,11 @@ class EmulatedDevice:
 
     def get(self, name: str) -> int:
         r = self.model.register(name)
-        return r.decode(self._mem[r.address:r.end])
+        return r.decode(self._mem[r.address : r.end])
 
     def set(self, name: str, value: int) -> None:
         r = self.model.register(name)
-        self._mem[r.address:r.end] = r.encode(value)
+        self._mem[r.address : r.end] = r.encode(value)
 
     def advance(self, now: float | None = None) -> None:
         """Nothing moves on its own (kept for the bus's register back door)."""
@@ -83,8 +89,9 @@ class EmulatedDevice:
 
     def baud(self) -> int | None:
         """The OpenCR's Baud register counts like the X series' (4: 2 Mbit/s, 3: 1 Mbit/s, 1: 57600)."""
-        return {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
-                6: 4_000_000}.get(self.get("baud_rate"))
+        return {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000, 6: 4_000_000}.get(
+            self.get("baud_rate")
+        )
 
     def return_delay_s(self) -> float:
         return self.get("return_delay_time") * 2e-6
@@ -103,7 +110,7 @@ class EmulatedDevice:
         start, n = self._imu_span
         if n and address < start + n and address + length > start:
             self._refresh_imu()
-        return bytes(self._mem[address:address + length])
+        return bytes(self._mem[address : address + length])
 
     def write(self, address: int, data: bytes, instruction: str = "WRITE") -> WriteResult:
         """Writes to read-only bytes are ignored (as the firmware does); a span past the
@@ -124,7 +131,11 @@ class EmulatedDevice:
         q = q0 if quat is None else np.asarray(quat, float) / np.linalg.norm(quat)
         if accel is None and quat is not None:
             accel = rotate_into(q, np.array([0.0, 0.0, STANDARD_GRAVITY]))
-        self._imu = (g0 if gyro is None else np.asarray(gyro, float), a0 if accel is None else np.asarray(accel, float), q)
+        self._imu = (
+            g0 if gyro is None else np.asarray(gyro, float),
+            a0 if accel is None else np.asarray(accel, float),
+            q,
+        )
 
     def _refresh_imu(self) -> None:
         gyro, accel, quat = self.imu_source() if self.imu_source is not None else self._imu

@@ -75,11 +75,11 @@ _WRITE_LIMIT = WriteResult("limit")
 class Faults:
     """Injected faults of one servo (see the bus emulator's fault API)."""
 
-    drop_replies: int = 0          # replies to swallow; -1 = all until cleared
-    corrupt_replies: int = 0       # replies to send with a broken CRC; -1 = all
-    disconnected: bool = False     # neither hears nor answers
-    stuck: bool = False            # motor cannot move
-    injected_hw_error: int = 0     # Hardware Error Status bits forced on
+    drop_replies: int = 0  # replies to swallow; -1 = all until cleared
+    corrupt_replies: int = 0  # replies to send with a broken CRC; -1 = all
+    disconnected: bool = False  # neither hears nor answers
+    stuck: bool = False  # motor cannot move
+    injected_hw_error: int = 0  # Hardware Error Status bits forced on
     hw_error_survives_reboot: bool = False
     held_temperature_c: float | None = None
     supply_v: float | None = None  # None: the model's rated voltage
@@ -180,7 +180,7 @@ class EmulatedServo:
         if value is None:
             offset, packer, reg = self._acc[name]
             if packer is None:
-                value = reg.decode(self._mem[offset:reg.end])
+                value = reg.decode(self._mem[offset : reg.end])
             else:
                 value = packer.unpack_from(self._mem, offset)[0]
             self._cache[name] = value
@@ -191,12 +191,12 @@ class EmulatedServo:
         offset, packer, reg = self._acc[name]
         self._cache.pop(name, None)
         if packer is None or not reg.signed and value < 0:
-            self._mem[offset:reg.end] = reg.encode(value)
+            self._mem[offset : reg.end] = reg.encode(value)
         else:
             try:
                 packer.pack_into(self._mem, offset, value)
             except struct.error:  # out of the register's width: wrap like the encoder does
-                self._mem[offset:reg.end] = reg.encode(value)
+                self._mem[offset : reg.end] = reg.encode(value)
 
     @property
     def servo_id(self) -> int:
@@ -242,7 +242,7 @@ class EmulatedServo:
         self._cache.clear()
         for r in self._regs.values():
             if r.initial is not None:
-                self._mem[r.address:r.end] = r.encode(r.initial)
+                self._mem[r.address : r.end] = r.encode(r.initial)
         for name, value in kept.items():
             self.set(name, value)
 
@@ -280,8 +280,8 @@ class EmulatedServo:
         deadline = self._watchdog_deadline()
         if deadline is not None and deadline <= now:
             if deadline > self._last:
-                self._step(deadline)       # move until the watchdog fires...
-            self._trip_watchdog()          # ...then stop
+                self._step(deadline)  # move until the watchdog fires...
+            self._trip_watchdog()  # ...then stop
         self._step(now)
 
     def _step(self, now: float) -> None:
@@ -297,9 +297,13 @@ class EmulatedServo:
             mode = self._g("operating_mode") if self._has_mode else 3
             v_cap = self._max_speed_ticks_s()
             if mode == 1 and self.has("goal_velocity"):
-                target_v = max(-v_cap, min(v_cap, self._g("goal_velocity") * m.velocity_rpm * m.position.ticks_per_turn / 60.0))
+                target_v = max(
+                    -v_cap, min(v_cap, self._g("goal_velocity") * m.velocity_rpm * m.position.ticks_per_turn / 60.0)
+                )
                 step = 0.0 if self.faults.stuck else target_v * dt
-                current_a = m.ratings.stall_current_a * (1.0 if self.faults.stuck and target_v else abs(target_v) / max(v_cap, 1e-9) * 0.2)
+                current_a = m.ratings.stall_current_a * (
+                    1.0 if self.faults.stuck and target_v else abs(target_v) / max(v_cap, 1e-9) * 0.2
+                )
             else:
                 goal = self._g("goal_position")
                 err = goal - self._pos
@@ -437,7 +441,7 @@ class EmulatedServo:
                 self._sync_outputs(self._vel, self._cur, self._last)
         if address < 0 or length < 0 or address + length > len(self._mem):
             return None
-        return bytes(self._mem[address:address + length])
+        return bytes(self._mem[address : address + length])
 
     def _registers_in(self, start: int, end: int) -> tuple:
         span = self._spans.get((start, end))
@@ -465,7 +469,7 @@ class EmulatedServo:
             if self.has("lock") and self._g("lock") == 1:
                 return WriteResult("access")
         for r in regs:
-            value = r.decode(data[r.address - address:r.end - address])
+            value = r.decode(data[r.address - address : r.end - address])
             if r.name == "goal_position":
                 if self.model.protocol == 1 and not r.in_range(value):
                     return WriteResult("range")
@@ -503,7 +507,7 @@ class EmulatedServo:
             # record any write touching Goal Position; a partial one as the bytes it
             # would have left in the register (it is refused with a length error)
             if address <= g0 and g1 <= address + len(data):
-                ticks = goal_reg.decode(data[g0 - address:g1 - address])
+                ticks = goal_reg.decode(data[g0 - address : g1 - address])
             else:
                 merged = bytearray(self._mem[g0:g1])
                 for k in range(max(address, g0), min(address + len(data), g1)):
@@ -519,7 +523,7 @@ class EmulatedServo:
         was_on = self.torque_enabled if torque else True
         old_offset = self._g("homing_offset") if homing else 0
         for r in regs:
-            self._mem[r.address:r.end] = data[r.address - address:r.end - address]
+            self._mem[r.address : r.end] = data[r.address - address : r.end - address]
         self._cache.clear()
         if homing:
             self._pos += self._g("homing_offset") - old_offset

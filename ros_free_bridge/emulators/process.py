@@ -43,8 +43,9 @@ def _child(bus: _BusPlan, settings: _ProcessSettings, conn) -> None:
     _settle_child(settings)
     from ros_free_bridge.emulators import DynamixelBusEmulator
 
-    emu = DynamixelBusEmulator(servos=bus.servos, baud=bus.baud, protocol=bus.protocol, wire_timing=bus.wire_timing,
-                               return_delay_us=0.0).start()
+    emu = DynamixelBusEmulator(
+        servos=bus.servos, baud=bus.baud, protocol=bus.protocol, wire_timing=bus.wire_timing, return_delay_us=0.0
+    ).start()
     for servo_id, (lo, hi) in (bus.allowed or {}).items():
         emu.allowed_range(servo_id, lo, hi)
     conn.send(emu.port_path)
@@ -86,8 +87,16 @@ class EmulatorProcess:
 
     Use: ``with EmulatorProcess(baud=2_000_000) as emu: DynamixelTransport(bus, port=emu.port)``."""
 
-    def __init__(self, servos=range(1, 21), baud: int = 2_000_000, protocol: int = 2, wire_timing: bool = True,
-                 nice: int = 0, allowed: dict | None = None, realtime: int = 0):
+    def __init__(
+        self,
+        servos=range(1, 21),
+        baud: int = 2_000_000,
+        protocol: int = 2,
+        wire_timing: bool = True,
+        nice: int = 0,
+        allowed: dict | None = None,
+        realtime: int = 0,
+    ):
         from ros_free_bridge.lifeline import parent_thread_lives_on
 
         bus = _BusPlan(list(servos), baud, protocol, wire_timing, allowed)

@@ -55,9 +55,18 @@ class SerialMcuEmulator:
     """A DFSL board on a pty. ``port`` is the path a client opens; start with ``with`` or
     :meth:`start`, stop with :meth:`stop` (idempotent)."""
 
-    def __init__(self, n_channels: int = 20, *, name: str = "dfsl-emu", max_speed: float = 6.0,
-                 supply_mv: int = 11100, ambient_c: float = 30.0, baud: int | None = None,
-                 initial_positions: list[float] | None = None, version: int = sl.PROTOCOL_VERSION) -> None:
+    def __init__(
+        self,
+        n_channels: int = 20,
+        *,
+        name: str = "dfsl-emu",
+        max_speed: float = 6.0,
+        supply_mv: int = 11100,
+        ambient_c: float = 30.0,
+        baud: int | None = None,
+        initial_positions: list[float] | None = None,
+        version: int = sl.PROTOCOL_VERSION,
+    ) -> None:
         if not 1 <= n_channels <= sl.MAX_CHANNELS:
             raise ValueError(f"n_channels must be 1..{sl.MAX_CHANNELS}")
         self.n_channels = n_channels

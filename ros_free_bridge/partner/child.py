@@ -33,8 +33,14 @@ def build_core(cfg: GeneratorConfig):
     torch.set_num_threads(max(1, int(cfg.threads)))
     stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed, incremental=cfg.incremental)
     # the model first: a bad checkpoint or condition fails before the slower retargeter build
-    reactor = ReactorStage(cfg.fps, cfg.checkpoint, stream, Cues(cfg.text, cfg.music, cfg.music_frames),
-                           threads=cfg.threads, predict_next=cfg.predict_next)
+    reactor = ReactorStage(
+        cfg.fps,
+        cfg.checkpoint,
+        stream,
+        Cues(cfg.text, cfg.music, cfg.music_frames),
+        threads=cfg.threads,
+        predict_next=cfg.predict_next,
+    )
     files = resolve_robot(cfg.robot)
     retarget = RetargetStage(load_robot(files.mjcf, files.profile), cfg.fps, cfg.joint_names)
     return PartnerCore(reactor, retarget, cfg.max_lag)
@@ -76,10 +82,16 @@ def _ready(chan: Channel) -> tuple[object, dict] | None:
     # Frozen, the collector scans only what is allocated while streaming.
     gc.collect()
     gc.freeze()
-    return core, {"delay_frames": core.delay_frames, "look_ahead": core.reactor.look_ahead,
-                  "gc_frozen_objects": gc.get_freeze_count(), "frames_ahead": core.reactor.frames_ahead,
-                  "max_lag": core.max_lag, "warmup_first_window_s": first_s, "warmup_window_s": window_s,
-                  "pid": os.getpid()}
+    return core, {
+        "delay_frames": core.delay_frames,
+        "look_ahead": core.reactor.look_ahead,
+        "gc_frozen_objects": gc.get_freeze_count(),
+        "frames_ahead": core.reactor.frames_ahead,
+        "max_lag": core.max_lag,
+        "warmup_first_window_s": first_s,
+        "warmup_window_s": window_s,
+        "pid": os.getpid(),
+    }
 
 
 def _send(chan: Channel, targets, events) -> None:

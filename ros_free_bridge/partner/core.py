@@ -113,17 +113,28 @@ class PartnerCore:
         arrival, newest = self._last
         overdue = newest - r.frames_ahead + 1 - r.next_index
         restart_at = newest - r.frames_ahead + 1 - r.streamer.config.hop
-        if not (overdue > self.max_lag and restart_at > r.next_index and self._recent
-                and restart_at >= self._recent[0].index):
+        if not (
+            overdue > self.max_lag
+            and restart_at > r.next_index
+            and self._recent
+            and restart_at >= self._recent[0].index
+        ):
             return [], []
         skipped = restart_at - r.next_index
         held = []
         if self._last_q is not None:
-            held = [PartnerTarget(k, self._last_q, self._last_pos, arrival, newest, float("nan"), 0.0, True)
-                    for k in range(r.next_index, restart_at)]
+            held = [
+                PartnerTarget(k, self._last_q, self._last_pos, arrival, newest, float("nan"), 0.0, True)
+                for k in range(r.next_index, restart_at)
+            ]
         self.frames_dropped += skipped
-        event = {"kind": "generator_behind", "overdue_frames": int(overdue), "dropped_frames": int(skipped),
-                 "restart_frame": int(restart_at), "max_lag": self.max_lag}
+        event = {
+            "kind": "generator_behind",
+            "overdue_frames": int(overdue),
+            "dropped_frames": int(skipped),
+            "restart_frame": int(restart_at),
+            "max_lag": self.max_lag,
+        }
         r.restart(restart_at)
         return held, [event]
 

@@ -19,8 +19,7 @@ class IdleSlots:
     how long past its due time the next frame may be before the source counts as paused
     (None: half a period); ``history``: how many recent pieces of a kind its estimate uses."""
 
-    def __init__(self, period: float, guard: float = 0.002, late: float | None = None, history: int = 16,
-                 urgent=()):
+    def __init__(self, period: float, guard: float = 0.002, late: float | None = None, history: int = 16, urgent=()):
         if not period > 0:
             raise ValueError(f"period must be > 0 s, got {period!r}")
         self.period = float(period)

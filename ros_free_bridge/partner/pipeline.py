@@ -32,8 +32,17 @@ class PartnerPipeline:
     ``on_event(kind, **info)``: the core's events (e.g. ``generator_behind``), for telemetry.
     """
 
-    def __init__(self, source, reactor, retarget, buffer: TargetBuffer,
-                 start_event: threading.Event | None = None, record: bool = False, on_event=None, core=None):
+    def __init__(
+        self,
+        source,
+        reactor,
+        retarget,
+        buffer: TargetBuffer,
+        start_event: threading.Event | None = None,
+        record: bool = False,
+        on_event=None,
+        core=None,
+    ):
         self.source = source
         self.core = core if core is not None else PartnerCore(reactor, retarget)
         self.buffer = buffer

@@ -80,15 +80,22 @@ class GeneratorProcess:
     # -- life cycle ------------------------------------------------------------------------
     def start(self) -> GeneratorProcess:
         self._spawn()
-        self._chan.send_json(b"C", {k: (str(v) if k in ("checkpoint", "music") and v is not None else v)
-                                    for k, v in self.config.__dict__.items()})
+        self._chan.send_json(
+            b"C",
+            {
+                k: (str(v) if k in ("checkpoint", "music") and v is not None else v)
+                for k, v in self.config.__dict__.items()
+            },
+        )
         deadline = time.monotonic() + self.start_timeout
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
                 self.close()
-                raise BridgeError(f"generator process: not ready within {self.start_timeout:g} s (loading the model); "
-                                  "check the machine's load or the checkpoint")
+                raise BridgeError(
+                    f"generator process: not ready within {self.start_timeout:g} s (loading the model); "
+                    "check the machine's load or the checkpoint"
+                )
             for kind, payload in self._chan.receive(min(left, 0.5)):
                 if kind == b"R":
                     self.ready_info = json.loads(payload)
@@ -99,8 +106,10 @@ class GeneratorProcess:
                     raise BridgeError(json.loads(payload)["message"])
             if self._chan.eof:
                 self.close()
-                raise WorkerDied(f"generator process exited while starting (exit code {self.process.wait()}); "
-                                 "see its error output above")
+                raise WorkerDied(
+                    f"generator process exited while starting (exit code {self.process.wait()}); "
+                    "see its error output above"
+                )
 
     def _spawn(self) -> None:
         """Start the child with one pipe each way (its ends passed as inherited descriptors)."""
@@ -112,11 +121,15 @@ class GeneratorProcess:
         for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
             env[var] = str(max(1, int(self.config.threads)))
         try:
-            argv = [sys.executable, "-m", CHILD_MODULE, "--fds", f"{p2c_r},{c2p_w}",
-                    "--parent", str(os.getpid())] + (["--pdeathsig"] if parent_thread_lives_on() else [])
+            argv = [sys.executable, "-m", CHILD_MODULE, "--fds", f"{p2c_r},{c2p_w}", "--parent", str(os.getpid())] + (
+                ["--pdeathsig"] if parent_thread_lives_on() else []
+            )
             self.process = subprocess.Popen(
                 argv,
-                pass_fds=(p2c_r, c2p_w), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, env=env,
+                pass_fds=(p2c_r, c2p_w),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                env=env,
             )
         finally:
             os.close(p2c_r)

@@ -60,8 +60,16 @@ class ReactorStage:
     per-operation overhead in the one-row passes); its tensors are only read outside it.
     """
 
-    def __init__(self, fps: float = 30.0, checkpoint=None, stream_config=None, cues: Cues | None = None,
-                 threads: int = 1, predict_next: bool = True, clean: bool = True):
+    def __init__(
+        self,
+        fps: float = 30.0,
+        checkpoint=None,
+        stream_config=None,
+        cues: Cues | None = None,
+        threads: int = 1,
+        predict_next: bool = True,
+        clean: bool = True,
+    ):
         import torch
 
         from dualflow.body import BodyCleaner
@@ -110,11 +118,12 @@ class ReactorStage:
             cond.text = builder.text_condition(cues.text)
         if cues.music is not None:
             if builder.music_kind is None:
-                raise BridgeError(f"{ckpt.path}: this model was trained without music; "
-                                  "drop --music or use another model")
+                raise BridgeError(
+                    f"{ckpt.path}: this model was trained without music; drop --music or use another model"
+                )
             track = builder.music_array(cues.music, None)
             reps = int(np.ceil(cues.music_frames / len(track)))
-            cond.music = torch.from_numpy(np.tile(track, (reps, 1))[:cues.music_frames])[None]
+            cond.music = torch.from_numpy(np.tile(track, (reps, 1))[: cues.music_frames])[None]
         return cond
 
     # -- generation ----------------------------------------------------------------------
@@ -145,7 +154,8 @@ class ReactorStage:
         hop = self.streamer.config.hop
         revise = 0
         if self._rows_ready() - self.streamer.n_actor >= hop or (
-                self.predict_next and frames and self._rows_ready() - self.look_ahead - self._n_emitted >= hop):
+            self.predict_next and frames and self._rows_ready() - self.look_ahead - self._n_emitted >= hop
+        ):
             rows, revise = self._encode_pending()
         elif self.streamer.pending >= hop:
             rows = np.zeros((0, self.streamer.dim), np.float32)

@@ -24,8 +24,9 @@ class RetargetStage:
         names = tuple(joint_names) if joint_names is not None else tuple(robot.joint_names)
         missing = [n for n in names if n not in robot.joint_names]
         if missing:
-            raise BridgeError(f"retarget stage: the robot model has no joints {missing}; "
-                              "the hardware config and the MJCF disagree")
+            raise BridgeError(
+                f"retarget stage: the robot model has no joints {missing}; the hardware config and the MJCF disagree"
+            )
         self.joint_names = names
         self._index = np.array([robot.joint_names.index(n) for n in names])
 

@@ -43,7 +43,7 @@ class Channel:
         data = HEADER.pack(len(payload), kind[0]) + payload
         view = memoryview(data)
         while view:
-            view = view[os.write(self.wfd, view):]
+            view = view[os.write(self.wfd, view) :]
 
     def send_json(self, kind: bytes, obj) -> None:
         self.send(kind, json.dumps(obj).encode())
@@ -69,7 +69,7 @@ class Channel:
             n, kind = HEADER.unpack_from(buf, pos)
             if len(buf) - pos - HEADER.size < n:
                 break
-            out.append((bytes([kind]), bytes(buf[pos + HEADER.size: pos + HEADER.size + n])))
+            out.append((bytes([kind]), bytes(buf[pos + HEADER.size : pos + HEADER.size + n])))
             pos += HEADER.size + n
         del buf[:pos]
         return out
@@ -90,8 +90,9 @@ def encode_actor(index: int, arrival: float, positions) -> bytes:
 
 def decode_actor(payload: bytes) -> ActorFrame:
     if len(payload) != ACTOR.size + 8 * N_POS:
-        raise BridgeError(f"generator process: actor message of {len(payload)} bytes, "
-                          f"expected {ACTOR.size + 8 * N_POS}")
+        raise BridgeError(
+            f"generator process: actor message of {len(payload)} bytes, expected {ACTOR.size + 8 * N_POS}"
+        )
     index, arrival = ACTOR.unpack_from(payload)
     pos = np.frombuffer(payload, "<f8", N_POS, ACTOR.size).reshape(22, 3).copy()
     return ActorFrame(index, pos, arrival)
@@ -107,8 +108,10 @@ def encode_target(t: PartnerTarget) -> bytes:
 
 def decode_target(payload: bytes, n_joints: int) -> PartnerTarget:
     if len(payload) != TARGET.size + 8 * (n_joints + N_POS):
-        raise BridgeError(f"generator process: target message of {len(payload)} bytes, expected "
-                          f"{TARGET.size + 8 * (n_joints + N_POS)} for {n_joints} joints")
+        raise BridgeError(
+            f"generator process: target message of {len(payload)} bytes, expected "
+            f"{TARGET.size + 8 * (n_joints + N_POS)} for {n_joints} joints"
+        )
     index, actor_frame, arrival, gen, rt, held = TARGET.unpack_from(payload)
     q = np.frombuffer(payload, "<f8", n_joints, TARGET.size).copy()
     pos = np.frombuffer(payload, "<f8", N_POS, TARGET.size + 8 * n_joints).reshape(22, 3).copy()

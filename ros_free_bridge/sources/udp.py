@@ -82,8 +82,10 @@ def is_loopback(host: str) -> bool:
     except ValueError:
         pass
     try:
-        return all(ipaddress.ip_address(info[4][0]).is_loopback
-                   for info in socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM))
+        return all(
+            ipaddress.ip_address(info[4][0]).is_loopback
+            for info in socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)
+        )
     except (OSError, ValueError):
         return False
 
@@ -110,8 +112,18 @@ class UdpActorSource:
     live = True  #: frames sent before start() are stale and dropped
     finished = False  #: a live stream ends by a stop request, an e-stop or its watchdog
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 0, on_estop=None, *, allow_remote: bool = False,
-                 on_event=None, takeover_s: float = 0.5, max_packets: int = 256, report_every_s: float = 1.0):
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        on_estop=None,
+        *,
+        allow_remote: bool = False,
+        on_event=None,
+        takeover_s: float = 0.5,
+        max_packets: int = 256,
+        report_every_s: float = 1.0,
+    ):
         self.stats = UdpStats()
         self._on_estop = on_estop
         self.on_event = on_event
@@ -120,9 +132,11 @@ class UdpActorSource:
         self.report_every_s = float(report_every_s)
         self.remote = not is_loopback(host)
         if self.remote and not allow_remote:
-            raise BridgeError(f"udp actor source: {host} is not a loopback address; any host that can reach it could "
-                              "move the robot. Use udp://127.0.0.1:PORT, or pass --allow-remote-actor to listen there "
-                              "on purpose (on a trusted network only)")
+            raise BridgeError(
+                f"udp actor source: {host} is not a loopback address; any host that can reach it could "
+                "move the robot. Use udp://127.0.0.1:PORT, or pass --allow-remote-actor to listen there "
+                "on purpose (on a trusted network only)"
+            )
         self._last_seq: int | None = None
         self._sender: tuple | None = None  # (address, stream id) the source is locked onto
         self._last_accept = float("-inf")
@@ -133,7 +147,9 @@ class UdpActorSource:
             self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._sock.bind((host, port))
         except OSError as exc:
-            raise BridgeError(f"udp actor source: cannot listen on {host}:{port} ({exc.strerror}); pick another port") from None
+            raise BridgeError(
+                f"udp actor source: cannot listen on {host}:{port} ({exc.strerror}); pick another port"
+            ) from None
         self._sock.setblocking(False)
         self.estopped = False
 
@@ -187,8 +203,13 @@ class UdpActorSource:
                 self._estop()  # from anyone: stopping is always allowed
                 continue
             if not locked:
-                self._lock(addr, packet.stream, "first sender" if self._sender is None else
-                           f"the previous sender was silent for more than {self.takeover_s:g} s")
+                self._lock(
+                    addr,
+                    packet.stream,
+                    "first sender"
+                    if self._sender is None
+                    else f"the previous sender was silent for more than {self.takeover_s:g} s",
+                )
             elif packet.stream != self._sender[1]:
                 self._lock(addr, packet.stream, "the sender restarted (new stream id)")
             elif self._last_seq is not None:

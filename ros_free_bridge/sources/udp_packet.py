@@ -55,8 +55,11 @@ def encode_frame(seq: int, stamp: float, positions, stream: int = 0) -> bytes:
     pos = np.asarray(positions, dtype="<f4")
     if pos.shape != (22, 3):
         raise PacketError(f"positions must have shape (22, 3), got {pos.shape}")
-    return (HEADER.pack(MAGIC, VERSION, TYPE_FRAME, 0, seq & 0xFFFFFFFF, stream & 0xFFFFFFFF) + STAMP.pack(stamp)
-            + pos.tobytes())
+    return (
+        HEADER.pack(MAGIC, VERSION, TYPE_FRAME, 0, seq & 0xFFFFFFFF, stream & 0xFFFFFFFF)
+        + STAMP.pack(stamp)
+        + pos.tobytes()
+    )
 
 
 def encode_estop(seq: int, stamp: float, stream: int = 0) -> bytes:
@@ -79,8 +82,11 @@ def decode(data: bytes) -> ActorFramePacket | EStopPacket:
         if not (np.isfinite(stamp) and np.all(np.isfinite(pos))):
             raise PacketError(f"actor frame {seq} has NaN or inf values", "out_of_range")
         if np.abs(pos).max() > MAX_ABS_M:  # finite, but no person: 3e38 overflows float32 arithmetic
-            raise PacketError(f"actor frame {seq} has a joint {float(np.abs(pos).max()):.3g} m from the origin "
-                              f"(more than {MAX_ABS_M:g} m)", "out_of_range")
+            raise PacketError(
+                f"actor frame {seq} has a joint {float(np.abs(pos).max()):.3g} m from the origin "
+                f"(more than {MAX_ABS_M:g} m)",
+                "out_of_range",
+            )
         return ActorFramePacket(seq, stamp, pos.reshape(22, 3).astype(np.float64), stream)
     if kind == TYPE_ESTOP:
         if len(data) != ESTOP_SIZE:

@@ -150,9 +150,15 @@ class Telemetry:
         q = self.records["command"].astype(np.float64)
         if without_correction and "correction" in self.records.dtype.names:
             q = q - self.records["correction"].astype(np.float64)
-        return RobotTrajectory(self.joint_names, q, np.zeros((n, 3)),
-                               np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), self.rate_hz, robot,
-                               {"source": "telemetry commands"})
+        return RobotTrajectory(
+            self.joint_names,
+            q,
+            np.zeros((n, 3)),
+            np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+            self.rate_hz,
+            robot,
+            {"source": "telemetry commands"},
+        )
 
 
 #: Record fields every reader of a telemetry file relies on (plot, replay, demo's check).
@@ -180,37 +186,47 @@ def read_telemetry(path) -> Telemetry:
     except OSError as exc:
         raise BridgeError(f"{path}: cannot read telemetry ({exc.strerror})") from None
     if not raw.startswith(MAGIC) or b"\n" not in raw:
-        raise BridgeError(f"{path}: not a telemetry file (missing the {MAGIC.decode().strip()} header line); give the "
-                          "telemetry.dftl a run wrote")
+        raise BridgeError(
+            f"{path}: not a telemetry file (missing the {MAGIC.decode().strip()} header line); give the "
+            "telemetry.dftl a run wrote"
+        )
     line, body = raw.split(b"\n", 1)
-    header = _header(path, line[len(MAGIC):])
+    header = _header(path, line[len(MAGIC) :])
     dtype = header["dtype"]
     whole = len(body) // dtype.itemsize * dtype.itemsize
     records = np.frombuffer(body[:whole], dtype=dtype).copy()
     if len(records) == 0:
-        raise BridgeError(f"{path}: holds no tick records (the run ended before its first tick, or the file was cut); "
-                          "nothing to plot or replay")
+        raise BridgeError(
+            f"{path}: holds no tick records (the run ended before its first tick, or the file was cut); "
+            "nothing to plot or replay"
+        )
     command = records["command"]
     bad = ~np.isfinite(command) | (np.abs(command) > MAX_COMMAND_RAD)
     if bad.any():
         tick, joint = (int(i) for i in np.argwhere(bad.reshape(len(records), -1))[0])
-        raise BridgeError(f"{path}: record {tick}: the command of joint {header['joint_names'][joint]!r} is "
-                          f"{float(command.reshape(len(records), -1)[tick, joint])!r}, which the bridge never sends; "
-                          "the file is damaged")
+        raise BridgeError(
+            f"{path}: record {tick}: the command of joint {header['joint_names'][joint]!r} is "
+            f"{float(command.reshape(len(records), -1)[tick, joint])!r}, which the bridge never sends; "
+            "the file is damaged"
+        )
     events = read_events(path.with_name(path.name + ".events.jsonl"))
-    return Telemetry(tuple(header["joint_names"]), header["rate_hz"], records, header["meta"], events,
-                     len(body) - whole)
+    return Telemetry(
+        tuple(header["joint_names"]), header["rate_hz"], records, header["meta"], events, len(body) - whole
+    )
 
 
 def _header(path: Path, text: bytes) -> dict:
     """The header's fields checked: joint_names, rate_hz, meta and the record dtype."""
+
     def bad(field: str, why: str) -> BridgeError:
         return BridgeError(f"{path}: header field {field!r}: {why}; the file is damaged or not written by the bridge")
 
     try:
         header = json.loads(text)
     except (ValueError, RecursionError) as exc:
-        raise BridgeError(f"{path}: the telemetry header is not valid JSON ({str(exc)[:100]}); the file is damaged") from None
+        raise BridgeError(
+            f"{path}: the telemetry header is not valid JSON ({str(exc)[:100]}); the file is damaged"
+        ) from None
     if not isinstance(header, dict):
         raise BridgeError(f"{path}: the telemetry header must be a JSON object, got {type(header).__name__}")
     for key in ("joint_names", "rate_hz", "fields"):
@@ -230,9 +246,14 @@ def _header(path: Path, text: bytes) -> dict:
         raise bad("fields", "must be a list of [name, dtype, shape]")
     spec = []
     for item in fields:
-        if (not isinstance(item, list) or len(item) != 3 or not isinstance(item[0], str) or not isinstance(item[1], str)
-                or not isinstance(item[2], list) or not all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= 100000
-                                                            for k in item[2])):
+        if (
+            not isinstance(item, list)
+            or len(item) != 3
+            or not isinstance(item[0], str)
+            or not isinstance(item[1], str)
+            or not isinstance(item[2], list)
+            or not all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= 100000 for k in item[2])
+        ):
             raise bad("fields", f"entry {item!r:.80} is not [name, dtype, shape]")
         try:
             base = np.dtype(item[1])
@@ -271,8 +292,10 @@ def read_events(path) -> list[dict]:
     except OSError as exc:
         raise BridgeError(f"{path}: cannot read the events file ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
-        raise BridgeError(f"{path}: the events file is not UTF-8 text (byte {exc.start}); it is damaged or not an "
-                          "events file; remove or replace it") from None
+        raise BridgeError(
+            f"{path}: the events file is not UTF-8 text (byte {exc.start}); it is damaged or not an "
+            "events file; remove or replace it"
+        ) from None
     lines = text.split("\n")
     complete, last = lines[:-1], lines[-1]  # text after the last newline: a line cut by a crash
     events = []
@@ -284,8 +307,10 @@ def read_events(path) -> list[dict]:
         except (ValueError, RecursionError):
             event = None
         if not isinstance(event, dict) or not isinstance(event.get("kind"), str):
-            raise BridgeError(f"{path}, line {k}: not an event (one JSON object with a 'kind' per line); the events "
-                              "file is damaged; remove or repair that line")
+            raise BridgeError(
+                f"{path}, line {k}: not an event (one JSON object with a 'kind' per line); the events "
+                "file is damaged; remove or repair that line"
+            )
         events.append(event)
     if last.strip():
         try:

@@ -63,7 +63,11 @@ def plot_timing(tel: Telemetry, path: Path) -> Path:
     a.axhline(period_ms, color="r", lw=0.8, ls=":", label=f"period {period_ms:.1f} ms")
     a.set_ylabel("ms")
     a.legend(fontsize=8)
-    for field, label in (("generator_latency", "generator"), ("retarget_latency", "retarget"), ("end_to_end", "end to end")):
+    for field, label in (
+        ("generator_latency", "generator"),
+        ("retarget_latency", "retarget"),
+        ("end_to_end", "end to end"),
+    ):
         v = r[field] * 1e3
         ok = np.isfinite(v)
         b.plot(r["t"][ok], v[ok], ".", ms=2, label=label)
@@ -96,5 +100,8 @@ def plot_safety(tel: Telemetry, path: Path) -> Path:
 def plot_all(tel: Telemetry, out_dir: Path) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return [plot_joints(tel, out_dir / "joints.png"), plot_timing(tel, out_dir / "timing.png"),
-            plot_safety(tel, out_dir / "safety.png")]
+    return [
+        plot_joints(tel, out_dir / "joints.png"),
+        plot_timing(tel, out_dir / "timing.png"),
+        plot_safety(tel, out_dir / "safety.png"),
+    ]

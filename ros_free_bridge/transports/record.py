@@ -68,7 +68,11 @@ class RecordTransport:
     def save(self, path) -> Path:
         path = Path(path)
         tmp = path.with_name(path.name + ".partial.npz")
-        np.savez(tmp, t=np.asarray(self.times), command=np.asarray(self.commands).reshape(-1, len(self.joint_names)),
-                 joint_names=np.asarray(self.joint_names))
+        np.savez(
+            tmp,
+            t=np.asarray(self.times),
+            command=np.asarray(self.commands).reshape(-1, len(self.joint_names)),
+            joint_names=np.asarray(self.joint_names),
+        )
         tmp.replace(path)
         return path

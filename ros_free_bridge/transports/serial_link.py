@@ -33,11 +33,21 @@ class SerialLinkTransport:
     """Transport over a DFSL microcontroller link. Use as a context manager or call
     :meth:`open` / :meth:`close` (close is safe to call twice and after errors)."""
 
-    def __init__(self, bus: BusConfig, *, port: str | None = None, joint_names: tuple[str, ...] | None = None,
-                 stop_policy: str = "hold", reply_timeout: float = 0.05, retries: int = 2,
-                 watchdog_ms: int = 250) -> None:
+    def __init__(
+        self,
+        bus: BusConfig,
+        *,
+        port: str | None = None,
+        joint_names: tuple[str, ...] | None = None,
+        stop_policy: str = "hold",
+        reply_timeout: float = 0.05,
+        retries: int = 2,
+        watchdog_ms: int = 250,
+    ) -> None:
         if bus.protocol != "serial-link":
-            raise BridgeError(f"bus {bus.name!r} has protocol {bus.protocol}; the serial-link transport needs 'serial-link'")
+            raise BridgeError(
+                f"bus {bus.name!r} has protocol {bus.protocol}; the serial-link transport needs 'serial-link'"
+            )
         if stop_policy not in STOP_POLICIES:
             raise BridgeError(f"stop_policy {stop_policy!r} is not one of {STOP_POLICIES}")
         self.bus = bus
@@ -76,17 +86,30 @@ class SerialLinkTransport:
             self._ser = serial.Serial(self.port_name, self.bus.baud, timeout=0, exclusive=True)
         except (serial.SerialException, OSError, ValueError) as exc:
             text = str(exc)
-            hint = ("another process holds it; close that program" if "lock" in text.lower() or "busy" in text.lower()
-                    else "check the cable and the port name (ls /dev/ttyACM* /dev/ttyUSB*)")
+            hint = (
+                "another process holds it; close that program"
+                if "lock" in text.lower() or "busy" in text.lower()
+                else "check the cable and the port name (ls /dev/ttyACM* /dev/ttyUSB*)"
+            )
             raise BridgeError(f"serial link {self.port_name}: cannot open ({text}); {hint}") from None
         try:
-            ack = sl.HelloAck.unpack(self._request(sl.MsgType.HELLO, sl.Hello(sl.PROTOCOL_VERSION, self.watchdog_ms).pack(),
-                                                   sl.MsgType.HELLO_ACK, "HELLO"))
+            ack = sl.HelloAck.unpack(
+                self._request(
+                    sl.MsgType.HELLO,
+                    sl.Hello(sl.PROTOCOL_VERSION, self.watchdog_ms).pack(),
+                    sl.MsgType.HELLO_ACK,
+                    "HELLO",
+                )
+            )
             if ack.version != sl.PROTOCOL_VERSION:
-                raise BridgeError(f"serial link {self.port_name}: board speaks DFSL v{ack.version}, host v{sl.PROTOCOL_VERSION}; update the firmware")
+                raise BridgeError(
+                    f"serial link {self.port_name}: board speaks DFSL v{ack.version}, host v{sl.PROTOCOL_VERSION}; update the firmware"
+                )
             need = int(self._channels.max()) + 1
             if ack.n_channels < need:
-                raise BridgeError(f"serial link {self.port_name}: board {ack.name!r} has {ack.n_channels} channels but the config uses channel {need - 1}")
+                raise BridgeError(
+                    f"serial link {self.port_name}: board {ack.name!r} has {ack.n_channels} channels but the config uses channel {need - 1}"
+                )
             self.board = ack
             self._send_limits()
         except BaseException:
@@ -123,11 +146,18 @@ class SerialLinkTransport:
         tel = sl.Telemetry.unpack(self._request(sl.MsgType.TELEMETRY_REQ, b"", sl.MsgType.TELEMETRY, "TELEMETRY_REQ"))
         n = len(self.servos)
         state = JointState.unknown(n)
-        servo_rad = np.array([sl.cdeg_to_rad(tel.position_cdeg[c]) if c < len(tel.position_cdeg) else math.nan
-                              for c in self._channels])
+        servo_rad = np.array(
+            [sl.cdeg_to_rad(tel.position_cdeg[c]) if c < len(tel.position_cdeg) else math.nan for c in self._channels]
+        )
         state.position = self._directions * (servo_rad - self._offsets)
-        state.temperature = np.array([float(tel.temperature_c[c]) if c < len(tel.temperature_c) and tel.temperature_c[c] != sl.UNKNOWN_TEMP
-                                      else math.nan for c in self._channels])
+        state.temperature = np.array(
+            [
+                float(tel.temperature_c[c])
+                if c < len(tel.temperature_c) and tel.temperature_c[c] != sl.UNKNOWN_TEMP
+                else math.nan
+                for c in self._channels
+            ]
+        )
         state.voltage = np.full(n, tel.supply_mv / 1000.0)
         state.torque_enabled = np.array([bool(tel.enabled_mask >> c & 1) for c in self._channels])
         for j, c in zip(self.joint_names, self._channels):
@@ -143,8 +173,10 @@ class SerialLinkTransport:
         bad = ~np.isfinite(q) | (q < self._lower - 1e-9) | (q > self._upper + 1e-9)
         if bad.any():
             i = int(np.argmax(bad))
-            raise BridgeError(f"serial link: goal {q[i]:.4f} rad for joint {self.joint_names[i]} (channel {self._channels[i]}) "
-                              f"is outside its limits [{self._lower[i]:.4f}, {self._upper[i]:.4f}]; refusing to send")
+            raise BridgeError(
+                f"serial link: goal {q[i]:.4f} rad for joint {self.joint_names[i]} (channel {self._channels[i]}) "
+                f"is outside its limits [{self._lower[i]:.4f}, {self._upper[i]:.4f}]; refusing to send"
+            )
         self._raise_pending()
         cdeg = {int(c): self._to_cdeg(i, q[i]) for i, c in enumerate(self._channels)}
         for first, values in _runs(cdeg):
@@ -181,7 +213,9 @@ class SerialLinkTransport:
             # round inwards so the board's limits are never wider than the config's
             limits[s.id] = (math.ceil(lo * 18000.0 / math.pi - 1e-9), math.floor(hi * 18000.0 / math.pi + 1e-9))
         for first, values in _runs(limits):
-            self._request(sl.MsgType.SET_LIMITS, sl.SetLimits(first, tuple(values)).pack(), sl.MsgType.ACK, "SET_LIMITS")
+            self._request(
+                sl.MsgType.SET_LIMITS, sl.SetLimits(first, tuple(values)).pack(), sl.MsgType.ACK, "SET_LIMITS"
+            )
 
     def _send(self, mtype: int, payload: bytes) -> int:
         if self._ser is None:
@@ -191,7 +225,9 @@ class SerialLinkTransport:
         try:
             self._ser.write(raw)
         except Exception as exc:  # serial.SerialException, OSError, termios.error
-            raise BridgeError(f"serial link {self.port_name}: write failed ({exc}); the port is gone, check the cable") from None
+            raise BridgeError(
+                f"serial link {self.port_name}: write failed ({exc}); the port is gone, check the cable"
+            ) from None
         return self._seq
 
     def _request(self, mtype: int, payload: bytes, reply_type: int, what: str) -> bytes:
@@ -208,20 +244,26 @@ class SerialLinkTransport:
                             deadline = 0.0  # the board saw our frame damaged: resend now
                             break
                         if frame.seq == seq and err.code != sl.ErrorCode.TARGET_OUT_OF_LIMITS:
-                            raise BridgeError(f"serial link {self.port_name}: board answered {what} with error: {self._describe(err)}")
+                            raise BridgeError(
+                                f"serial link {self.port_name}: board answered {what} with error: {self._describe(err)}"
+                            )
                         self._pending_errors.append(err)
                         continue
                     if frame.type == reply_type and frame.seq == seq:
                         self._raise_pending()
                         return frame.payload
-        raise BridgeError(f"serial link {self.port_name}: no valid reply to {what} after {self.retries + 1} tries "
-                          f"({self.reply_timeout * 1000:.0f} ms each); check power, baud {self.bus.baud} and cable")
+        raise BridgeError(
+            f"serial link {self.port_name}: no valid reply to {what} after {self.retries + 1} tries "
+            f"({self.reply_timeout * 1000:.0f} ms each); check power, baud {self.bus.baud} and cable"
+        )
 
     def _read_frames(self) -> list[sl.Frame]:
         try:
             data = self._ser.read(self._ser.in_waiting or 1)
         except Exception as exc:
-            raise BridgeError(f"serial link {self.port_name}: read failed ({exc}); the port is gone, check the cable") from None
+            raise BridgeError(
+                f"serial link {self.port_name}: read failed ({exc}); the port is gone, check the cable"
+            ) from None
         if not data:
             time.sleep(0.0002)
             return []
@@ -259,4 +301,3 @@ def _runs(values: dict[int, object]) -> list[tuple[int, list]]:
         else:
             out.append((c, [values[c]]))
     return out
-

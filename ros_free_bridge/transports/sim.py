@@ -19,7 +19,9 @@ class SimTransport:
     """``robot``: a bundled robot name. ``clock``: "realtime" (the loop's clock drives physics)
     or "lockstep" (each write advances physics by one control period)."""
 
-    def __init__(self, robot: str = "op3", control_hz: float = 100.0, clock: str = "realtime", record: bool = True, **config):
+    def __init__(
+        self, robot: str = "op3", control_hz: float = 100.0, clock: str = "realtime", record: bool = True, **config
+    ):
         from sim.virtual_robot import VirtualRobot, VirtualRobotConfig
 
         self.robot = VirtualRobot(VirtualRobotConfig(robot=robot, control_hz=control_hz, clock=clock, **config))
@@ -66,6 +68,12 @@ class SimTransport:
         """The simulated robot's measured motion, one frame per command written (None if none)."""
         if not self._q:
             return None
-        return RobotTrajectory(self.joint_names, np.asarray(self._q), np.asarray(self._root_pos),
-                               np.asarray(self._root_quat), self.control_hz, self.robot.config.robot,
-                               {"source": "virtual robot, measured"})
+        return RobotTrajectory(
+            self.joint_names,
+            np.asarray(self._q),
+            np.asarray(self._root_pos),
+            np.asarray(self._root_quat),
+            self.control_hz,
+            self.robot.config.robot,
+            {"source": "virtual robot, measured"},
+        )

@@ -22,8 +22,10 @@ class TeeTransport:
         self.transports = (primary, *others)
         for t in others:
             if tuple(t.joint_names) != tuple(primary.joint_names):
-                raise BridgeError(f"tee transport: {type(t).__name__} has joints {t.joint_names}, the primary "
-                                  f"{primary.joint_names}; both must use the robot's joint order")
+                raise BridgeError(
+                    f"tee transport: {type(t).__name__} has joints {t.joint_names}, the primary "
+                    f"{primary.joint_names}; both must use the robot's joint order"
+                )
         self.joint_names = tuple(primary.joint_names)
         self.read_every = max(1, int(read_every))
         self._reads = 0

@@ -120,8 +120,9 @@ class BvhClip:
             ) from None
 
     def slice(self, start: int, stop: int | None = None) -> BvhClip:
-        return BvhClip(self.joints, self.frame_time, self.motion[start:stop], self.source,
-                       self.first_motion_line + start)
+        return BvhClip(
+            self.joints, self.frame_time, self.motion[start:stop], self.source, self.first_motion_line + start
+        )
 
     # -- kinematics --------------------------------------------------------
     def local_transforms(self) -> tuple[np.ndarray, np.ndarray]:
@@ -239,8 +240,11 @@ class _Tokens:
 
 def _parse_joint(tok: _Tokens, name: str, parent: int, joints: list[BvhJoint], line: int, depth: int = 1) -> None:
     if depth > MAX_DEPTH:
-        raise tok.error(f"joint {name!r} is nested {depth} joints deep, more than the {MAX_DEPTH} this reader "
-                        "accepts; the HIERARCHY is damaged (unbalanced braces?)", line)
+        raise tok.error(
+            f"joint {name!r} is nested {depth} joints deep, more than the {MAX_DEPTH} this reader "
+            "accepts; the HIERARCHY is damaged (unbalanced braces?)",
+            line,
+        )
     if len(joints) >= MAX_JOINTS:
         raise tok.error(f"the HIERARCHY has more than {MAX_JOINTS} joints; the file is damaged or not a skeleton", line)
     tok.expect("{")
@@ -255,8 +259,10 @@ def _parse_joint(tok: _Tokens, name: str, parent: int, joints: list[BvhJoint], l
         except ValueError:
             raise tok.error(f"CHANNELS of {name!r} must start with a count, found {count_tok!r}", count_line) from None
         if not 0 <= count <= 6:
-            raise tok.error(f"CHANNELS of {name!r} says {count}; a joint has 0 to 6 channels (X/Y/Z position "
-                            "and rotation)", count_line)
+            raise tok.error(
+                f"CHANNELS of {name!r} says {count}; a joint has 0 to 6 channels (X/Y/Z position and rotation)",
+                count_line,
+            )
         names = []
         for _ in range(count):
             ch, ch_line = tok.next(f"{count} channel names for {name!r}")
@@ -335,15 +341,21 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
         header[key] = (value.strip(), i)
     for key in ("frames", "frame time"):
         if key not in header:
-            raise DualFlowError(f"{source}, line {len(lines)}: the MOTION section has no '{key.title()}:' line (truncated file?)")
+            raise DualFlowError(
+                f"{source}, line {len(lines)}: the MOTION section has no '{key.title()}:' line (truncated file?)"
+            )
     try:
         n_frames = int(header["frames"][0])
     except ValueError:
-        raise DualFlowError(f"{source}, line {header['frames'][1]}: 'Frames:' must be an integer, found {header['frames'][0]!r}") from None
+        raise DualFlowError(
+            f"{source}, line {header['frames'][1]}: 'Frames:' must be an integer, found {header['frames'][0]!r}"
+        ) from None
     try:
         frame_time = float(header["frame time"][0])
     except ValueError:
-        raise DualFlowError(f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be a number, found {header['frame time'][0]!r}") from None
+        raise DualFlowError(
+            f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be a number, found {header['frame time'][0]!r}"
+        ) from None
     lo, hi = FRAME_TIME_RANGE
     if not lo <= frame_time <= hi:  # NaN fails too
         raise DualFlowError(

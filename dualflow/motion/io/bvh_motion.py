@@ -114,7 +114,9 @@ def bvh_to_motion(clip: BvhClip, options: BvhImportOptions = BvhImportOptions(),
     else:
         scale = float(options.scale)
         if not np.isfinite(scale) or scale <= 0:
-            raise DualFlowError(f"{source}: --scale must be a positive number of metres per unit, got {options.scale!r}")
+            raise DualFlowError(
+                f"{source}: --scale must be a positive number of metres per unit, got {options.scale!r}"
+            )
     height = size * scale
     check_height(height, scale, source, options.height_range)
 
@@ -128,7 +130,9 @@ def bvh_to_motion(clip: BvhClip, options: BvhImportOptions = BvhImportOptions(),
         raise DualFlowError(f"drop_first must be 'auto', True or False, got {options.drop_first!r}")
     if drop:
         if pos.shape[0] < 2:
-            raise DualFlowError(f"{source}: cannot drop the first frame of a one-frame file; keep it (--keep-first-frame)")
+            raise DualFlowError(
+                f"{source}: cannot drop the first frame of a one-frame file; keep it (--keep-first-frame)"
+            )
         pos = pos[1:]
         notes.append("dropped the first frame (a reference pose, not capture)")
     check_positions(pos, source)

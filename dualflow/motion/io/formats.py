@@ -87,8 +87,10 @@ def _text_field(data, key: str, source: str) -> str:
 def _positions_field(arr: np.ndarray, source: str, field: str) -> np.ndarray:
     arr = np.asarray(arr)
     if arr.dtype.kind != "f":
-        raise DualFlowError(f"{source}, field {field!r}: expected joint positions as floating-point numbers (metres), "
-                            f"got dtype {arr.dtype}; save them as float32 or float64")
+        raise DualFlowError(
+            f"{source}, field {field!r}: expected joint positions as floating-point numbers (metres), "
+            f"got dtype {arr.dtype}; save them as float32 or float64"
+        )
     if arr.ndim == 2 and arr.shape[1] % 3 == 0 and arr.shape[1] >= 3 * N_JOINTS:
         arr = arr.reshape(arr.shape[0], -1, 3)
     if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] < N_JOINTS:
@@ -145,7 +147,9 @@ def _read_npz(path: Path, opts: dict):
             except DualFlowError as exc:
                 raise DualFlowError(f"{source}: {exc}") from None
         if fmt:
-            raise DualFlowError(f"{source}, field 'format': unknown format {fmt!r}; expected {MOTION_FORMAT} or {DUET_FORMAT}")
+            raise DualFlowError(
+                f"{source}, field 'format': unknown format {fmt!r}; expected {MOTION_FORMAT} or {DUET_FORMAT}"
+            )
         key = next((k for k in _JOINT_KEYS if k in files), None)
         if key is None:
             if {"poses", "trans"} & files:
@@ -187,8 +191,10 @@ def _read_npy(path: Path, opts: dict):
     _magic(path, b"\x93NUMPY", ".npy")
     arr = read_npy(path)
     if arr.dtype.kind != "f":
-        raise DualFlowError(f"{source}: expected a numeric array of floating-point numbers, got dtype {arr.dtype}; "
-                            "save it as float32 or float64")
+        raise DualFlowError(
+            f"{source}: expected a numeric array of floating-point numbers, got dtype {arr.dtype}; "
+            "save it as float32 or float64"
+        )
     if arr.ndim >= 1 and arr.shape[0] < MIN_FRAMES:
         raise DualFlowError(frames_message(arr.shape[0], source))
     if not np.isfinite(arr).all():
@@ -285,7 +291,9 @@ def load_motion(path, **opts) -> Motion:
     """Load one person's motion (see :func:`load_any` for formats and options)."""
     m = load_any(path, **opts)
     if isinstance(m, TwoPersonMotion):
-        raise DualFlowError(f"{path}: holds two people; use load_any / load_pair (CLI: pass it alone to motion info/preview)")
+        raise DualFlowError(
+            f"{path}: holds two people; use load_any / load_pair (CLI: pass it alone to motion info/preview)"
+        )
     return m
 
 
@@ -305,8 +313,11 @@ def load_pair(actor_path, reactor_path, text: str = "", **opts) -> TwoPersonMoti
         shared = dict(opts, scale=ra.scale, axes=ra.axes)
         rb = read_bvh_motion(b, _bvh_options(shared), opts.get("fps"))
         actor, reactor = ra.motion, rb.motion
-        meta.update(scale=ra.scale, joint_map=[ra.joint_map, rb.joint_map],
-                    dropped_first_frame=[ra.dropped_first_frame, rb.dropped_first_frame])
+        meta.update(
+            scale=ra.scale,
+            joint_map=[ra.joint_map, rb.joint_map],
+            dropped_first_frame=[ra.dropped_first_frame, rb.dropped_first_frame],
+        )
     else:
         actor, reactor = load_motion(a, **opts), load_motion(b, **opts)
     pair = TwoPersonMotion.from_pair(actor, reactor, text)
@@ -318,9 +329,14 @@ def put_on_ground(motion: Motion | TwoPersonMotion) -> Motion | TwoPersonMotion:
     at z = 0. A pair gets one shared shift (the lower of the two), keeping its
     common frame. Readers never do this; it is for data whose floor is elsewhere."""
     if isinstance(motion, TwoPersonMotion):
-        low = min(motion.actor.positions[:, list(FOOT_JOINTS), 2].min(), motion.reactor.positions[:, list(FOOT_JOINTS), 2].min())
+        low = min(
+            motion.actor.positions[:, list(FOOT_JOINTS), 2].min(),
+            motion.reactor.positions[:, list(FOOT_JOINTS), 2].min(),
+        )
         shift = np.array([0.0, 0.0, -low])
-        return TwoPersonMotion(motion.actor.translated(shift), motion.reactor.translated(shift), motion.text, dict(motion.meta))
+        return TwoPersonMotion(
+            motion.actor.translated(shift), motion.reactor.translated(shift), motion.text, dict(motion.meta)
+        )
     low = motion.positions[:, list(FOOT_JOINTS), 2].min()
     return motion.translated([0.0, 0.0, -low])
 

@@ -45,8 +45,10 @@ def _sided(left: dict) -> dict:
     for smpl, src in left.items():
         if not smpl.startswith("left_"):
             continue
+
         def swap(n):
             return n.replace("Left", "Right").replace("LHip", "RHip").replace("LThumb", "RThumb")
+
         if isinstance(src, str):
             out["right_" + smpl[5:]] = swap(src)
         else:
@@ -62,40 +64,44 @@ def _sided(left: dict) -> dict:
 #: shoulders) and head takes Head; LeftShoulder also coincides with Spine1, so the
 #: collar is halfway along the clavicle from LeftShoulder to LeftArm, and
 #: left_shoulder is LeftArm (the gleno-humeral joint).
-CMU_CGSPEED: dict = _sided({
-    "pelvis": "Hips",
-    "left_hip": "LeftUpLeg",
-    "left_knee": "LeftLeg",
-    "left_ankle": "LeftFoot",
-    "left_foot": "LeftToeBase",
-    "spine1": "Spine",
-    "spine2": _between("Spine", "Spine1"),
-    "spine3": "Spine1",
-    "neck": "Neck1",
-    "head": "Head",
-    "left_collar": _between("LeftShoulder", "LeftArm"),
-    "left_shoulder": "LeftArm",
-    "left_elbow": "LeftForeArm",
-    "left_wrist": "LeftHand",
-})
+CMU_CGSPEED: dict = _sided(
+    {
+        "pelvis": "Hips",
+        "left_hip": "LeftUpLeg",
+        "left_knee": "LeftLeg",
+        "left_ankle": "LeftFoot",
+        "left_foot": "LeftToeBase",
+        "spine1": "Spine",
+        "spine2": _between("Spine", "Spine1"),
+        "spine3": "Spine1",
+        "neck": "Neck1",
+        "head": "Head",
+        "left_collar": _between("LeftShoulder", "LeftArm"),
+        "left_shoulder": "LeftArm",
+        "left_elbow": "LeftForeArm",
+        "left_wrist": "LeftHand",
+    }
+)
 
 #: Mixamo-style skeleton with three spine joints: one to one.
-MIXAMO: dict = _sided({
-    "pelvis": "Hips",
-    "left_hip": "LeftUpLeg",
-    "left_knee": "LeftLeg",
-    "left_ankle": "LeftFoot",
-    "left_foot": "LeftToeBase",
-    "spine1": "Spine",
-    "spine2": "Spine1",
-    "spine3": "Spine2",
-    "neck": "Neck",
-    "head": "Head",
-    "left_collar": "LeftShoulder",
-    "left_shoulder": "LeftArm",
-    "left_elbow": "LeftForeArm",
-    "left_wrist": "LeftHand",
-})
+MIXAMO: dict = _sided(
+    {
+        "pelvis": "Hips",
+        "left_hip": "LeftUpLeg",
+        "left_knee": "LeftLeg",
+        "left_ankle": "LeftFoot",
+        "left_foot": "LeftToeBase",
+        "spine1": "Spine",
+        "spine2": "Spine1",
+        "spine3": "Spine2",
+        "neck": "Neck",
+        "head": "Head",
+        "left_collar": "LeftShoulder",
+        "left_shoulder": "LeftArm",
+        "left_elbow": "LeftForeArm",
+        "left_wrist": "LeftHand",
+    }
+)
 
 #: Four spine joints (Spine just above the hips, then Spine1-3): SMPL's three
 #: spine joints take Spine1, Spine2 and Spine3, the upper three.
@@ -152,14 +158,15 @@ def _parse_source(value, where: str) -> JointSource:
         pair = value["between"]
         t = value.get("t", 0.5)
         if (
-            isinstance(pair, Sequence) and not isinstance(pair, str) and len(pair) == 2
+            isinstance(pair, Sequence)
+            and not isinstance(pair, str)
+            and len(pair) == 2
             and all(isinstance(n, str) and n for n in pair)
-            and isinstance(t, (int, float)) and 0.0 <= float(t) <= 1.0
+            and isinstance(t, (int, float))
+            and 0.0 <= float(t) <= 1.0
         ):
             return JointSource(pair[0], pair[1], float(t))
-    raise DualFlowError(
-        f"{where}: a source must be a joint name or {{between: [A, B], t: 0..1}}, got {value!r}"
-    )
+    raise DualFlowError(f"{where}: a source must be a joint name or {{between: [A, B], t: 0..1}}, got {value!r}")
 
 
 def make_joint_map(spec: Mapping, name: str = "custom", where: str = "joint map") -> JointMap:
@@ -201,14 +208,18 @@ def load_joint_map(path: str | os.PathLike) -> JointMap:
     except RecursionError:
         raise DualFlowError(f"{path}: nested too deeply to be a joint map; fix the syntax") from None
     if not isinstance(data, Mapping) or "joints" not in data or not isinstance(data["joints"], Mapping):
-        raise DualFlowError(f"{path}: a joint map needs a 'joints:' mapping of SMPL joint -> source (and optionally 'base:')")
+        raise DualFlowError(
+            f"{path}: a joint map needs a 'joints:' mapping of SMPL joint -> source (and optionally 'base:')"
+        )
     extra = sorted(set(data) - {"base", "joints"})
     if extra:
         raise DualFlowError(f"{path}: unknown key(s) {', '.join(extra)}; only 'base' and 'joints' are allowed")
     spec: dict = {}
     if data.get("base") is not None:
         if data["base"] not in BUILTIN_MAPS:
-            raise DualFlowError(f"{path}, field 'base': unknown map {data['base']!r}; choose one of: {', '.join(BUILTIN_MAPS)}")
+            raise DualFlowError(
+                f"{path}, field 'base': unknown map {data['base']!r}; choose one of: {', '.join(BUILTIN_MAPS)}"
+            )
         spec.update(BUILTIN_MAPS[data["base"]])
     spec.update(data["joints"])
     return make_joint_map(spec, name=str(path), where=str(path))

@@ -48,16 +48,21 @@ def _header(fp, where: str, error: type[Exception]) -> tuple[tuple, bool, np.dty
             raise ValueError(f"unknown .npy format version {version}")
     except Exception as exc:  # noqa: BLE001 - numpy's header parser raises many types on hostile text
         why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise error(f"{where}: not a readable .npy array header ({why[:160]}); the file is damaged "
-                    "or not written by numpy.save / numpy.savez") from None
+        raise error(
+            f"{where}: not a readable .npy array header ({why[:160]}); the file is damaged "
+            "or not written by numpy.save / numpy.savez"
+        ) from None
     return shape, fortran, dtype, fp.tell() - start
 
 
-def _check_header(shape, dtype: np.dtype, data_bytes: int | None, where: str, max_bytes: int,
-                  error: type[Exception]) -> None:
+def _check_header(
+    shape, dtype: np.dtype, data_bytes: int | None, where: str, max_bytes: int, error: type[Exception]
+) -> None:
     if dtype.hasobject:
-        raise error(f"{where}: holds Python objects (an object dtype, which needs pickle and is never "
-                    "loaded); re-save it as plain numeric arrays")
+        raise error(
+            f"{where}: holds Python objects (an object dtype, which needs pickle and is never "
+            "loaded); re-save it as plain numeric arrays"
+        )
     if any((not isinstance(n, int)) or n < 0 for n in shape):
         raise error(f"{where}: the header declares an invalid shape {shape}; the file is damaged")
     count = 1
@@ -65,12 +70,16 @@ def _check_header(shape, dtype: np.dtype, data_bytes: int | None, where: str, ma
         count *= n
     size = count * dtype.itemsize
     if size > max_bytes:
-        raise error(f"{where}: the header declares shape {shape} of {dtype} ({size / 2**30:.3g} GiB), more than "
-                    f"the {max_bytes / 2**30:.3g} GiB this reader accepts; the file is damaged or not a motion/"
-                    "trajectory file (split it)")
+        raise error(
+            f"{where}: the header declares shape {shape} of {dtype} ({size / 2**30:.3g} GiB), more than "
+            f"the {max_bytes / 2**30:.3g} GiB this reader accepts; the file is damaged or not a motion/"
+            "trajectory file (split it)"
+        )
     if data_bytes is not None and data_bytes < size:
-        raise error(f"{where}: the header declares {size} bytes of data ({shape} {dtype}) but only {data_bytes} "
-                    "follow; the file is truncated, re-export it")
+        raise error(
+            f"{where}: the header declares {size} bytes of data ({shape} {dtype}) but only {data_bytes} "
+            "follow; the file is truncated, re-export it"
+        )
 
 
 def read_npy(path, *, error: type[Exception] = DualFlowError, max_bytes: int = MAX_ARRAY_BYTES) -> np.ndarray:
@@ -109,8 +118,10 @@ class NpzFile:
         except OSError as exc:
             raise error(f"{self.path}: cannot read ({exc.strerror or exc})") from None
         if head[:2] != b"PK":
-            raise error(f"{self.path}: not a readable .npz archive (no zip header); the file is damaged, empty or of "
-                        "another kind")
+            raise error(
+                f"{self.path}: not a readable .npz archive (no zip header); the file is damaged, empty or of "
+                "another kind"
+            )
         try:
             self._zip = zipfile.ZipFile(self.path)
             members = self._zip.infolist()
@@ -150,8 +161,9 @@ class NpzFile:
         except self.error:
             raise
         except (zipfile.BadZipFile, OSError, EOFError, ValueError, zlib.error, NotImplementedError) as exc:
-            raise self.error(f"{where}: cannot be read ({str(exc)[:160]}); the file is damaged or truncated, "
-                             "re-export it") from None
+            raise self.error(
+                f"{where}: cannot be read ({str(exc)[:160]}); the file is damaged or truncated, re-export it"
+            ) from None
 
 
 def open_npz(path, *, error: type[Exception] = DualFlowError, max_bytes: int = MAX_ARRAY_BYTES) -> NpzFile:

@@ -102,8 +102,10 @@ def check_height(height_m: float, scale: float, source: str, height_range=HEIGHT
         return
     size = height_m / scale
     fits = [f"--scale {s:g} ({n})" for n, s in KNOWN_UNITS.items() if lo <= size * s <= hi]
-    fix = f"the file is probably in other units: use {fits[0]}" if fits else (
-        "check --scale (metres per file unit) and the joint map"
+    fix = (
+        f"the file is probably in other units: use {fits[0]}"
+        if fits
+        else ("check --scale (metres per file unit) and the joint map")
     )
     raise DualFlowError(
         f"{source}: with {unit_name(scale)} the person is {height_m:.2f} m tall, outside {lo}-{hi} m; {fix}"
@@ -163,8 +165,10 @@ def check_fps(fps: float, where: str) -> float:
     """``fps`` if it lies in :data:`FPS_RANGE`, else DualFlowError naming ``where``."""
     lo, hi = FPS_RANGE
     if not lo <= fps <= hi:  # NaN fails too
-        raise DualFlowError(f"{where}: fps must be > 0, within {lo:g}-{hi:g} frames/s, got {fps!r}; the field is damaged, "
-                            "or give the file's real rate (--source-fps)")
+        raise DualFlowError(
+            f"{where}: fps must be > 0, within {lo:g}-{hi:g} frames/s, got {fps!r}; the field is damaged, "
+            "or give the file's real rate (--source-fps)"
+        )
     return float(fps)
 
 
@@ -176,10 +180,14 @@ def check_positions(pos: np.ndarray, source: str) -> None:
     bad = ~np.isfinite(pos)
     if bad.any():
         frame, joint = np.argwhere(bad)[0][:2]
-        raise DualFlowError(f"{source}: positions contain NaN or inf (first at frame {frame}, joint {joint}); clean the file")
+        raise DualFlowError(
+            f"{source}: positions contain NaN or inf (first at frame {frame}, joint {joint}); clean the file"
+        )
     far = np.abs(pos) > MAX_COORDINATE_M
     if far.any():
         frame, joint = np.argwhere(far)[0][:2]
-        raise DualFlowError(f"{source}: a joint is {np.abs(pos).max():.3g} m from the origin (first at frame {frame}, "
-                            f"joint {joint}), beyond {MAX_COORDINATE_M:g} m; the values are damaged or in another unit "
-                            "(give --scale)")
+        raise DualFlowError(
+            f"{source}: a joint is {np.abs(pos).max():.3g} m from the origin (first at frame {frame}, "
+            f"joint {joint}), beyond {MAX_COORDINATE_M:g} m; the values are damaged or in another unit "
+            "(give --scale)"
+        )
