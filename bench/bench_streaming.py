@@ -111,7 +111,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         f"   (worst window {si.timing.max_window_s * 1000:.1f} ms; catch-up of the second start included)"
     )
     print(
-        f"  streamer hop {args.hop:<2d} (delay up to {L + args.hop - 1} frames + compute) {sh.timing.per_frame_s * 1000:8.2f}"
+        f"  streamer hop {args.hop:<2d} (delay up to {L + args.hop - 1} frames + compute) "
+        f"{sh.timing.per_frame_s * 1000:8.2f}"
         f"   (worst window {sh.timing.max_window_s * 1000:.1f} ms)"
     )
     print(f"  target: < {REALTIME_MS:.1f} ms per frame for 30 fps real time")

@@ -109,7 +109,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     print(f"DualFlow generation benchmark: {what}")
     n_params = sum(p.numel() for p in model.parameters())
     print(
-        f"model: {cfg.n_blocks} blocks x width {cfg.width} ({n_params / 1e6:.2f}M parameters, prediction={cfg.prediction}), "
+        f"model: {cfg.n_blocks} blocks x width {cfg.width} ({n_params / 1e6:.2f}M parameters, "
+        f"prediction={cfg.prediction}), "
         f"device {args.device}, torch {torch.__version__}, {torch.get_num_threads()} threads"
     )
     print(f"clip: {n} frames ({args.seconds:g} s at {args.fps:g} fps), look-ahead L = {cfg.look_ahead}")
@@ -155,7 +156,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     print()
     period_ms = 1000.0 / args.fps
     print(
-        f"{'streaming (window 60, ' + str(args.steps) + ' steps)':40s} {'ms/frame':>9s} {'max window ms':>14s} {'delay':>14s}"
+        f"{'streaming (window 60, ' + str(args.steps) + ' steps)':40s} {'ms/frame':>9s} "
+        f"{'max window ms':>14s} {'delay':>14s}"
     )
     with torch.inference_mode():
         for hop in (1, 8):

@@ -14,7 +14,8 @@ hop 1, 2 Euler steps, incremental windows, the newest actor row encoded with a p
 next frame; change with ``--window``, ``--steps``, ``--hop``, ``--sliding`` (re-run whole
 windows) and ``--exact-rows`` (wait for the next frame); the settings before the latency
 work: ``--steps 5 --hop 5 --sliding --exact-rows``). Jitter: mean over t, j of
-|p[t+1] - 2 p[t] + p[t-1]| (mm/frame^2), next to the rule follower's. Text: ``none`` (the demo's default, no cue) and/or ``rule``: each rule's
+|p[t+1] - 2 p[t] + p[t-1]| (mm/frame^2), next to the rule follower's. Text: ``none`` (the
+demo's default, no cue) and/or ``rule``: each rule's
 template sentence of ``make_duet(rule, 8 s, seed)``, whose leader is the same clip, so its
 follower is the right answer. Default checkpoint: the bundled one.
 

@@ -99,7 +99,8 @@ import ray
 from ros_free_bridge.batch.config import BatchConfig
 from ros_free_bridge.batch.ray_engine import start
 from ros_free_bridge.batch.run import run_batch
-files, out, robot, workers = [Path(f) for f in json.loads(sys.argv[1])], Path(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+files, out, robot, workers = [Path(f) for f in json.loads(sys.argv[1])], \
+Path(sys.argv[2]), sys.argv[3], int(sys.argv[4])
 t0 = time.perf_counter(); start(jobs=workers); up = time.perf_counter() - t0
 t0 = time.perf_counter()
 rows = run_batch(files, BatchConfig(robot=robot, out=out, video=False), jobs=workers, progress=False, engine="ray")

@@ -172,7 +172,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
             off_zmp._solver(offline_cfg.window, 30.0)
         stream = StreamingRetargeter(rb, 30.0)
     print(
-        f"compile/load: {c_build.wall:.1f} s wall ({off._solver(offline_cfg.window, 30.0)[-1]}; streaming {stream.compile_info})"
+        f"compile/load: {c_build.wall:.1f} s wall ({off._solver(offline_cfg.window, 30.0)[-1]}; "
+        f"streaming {stream.compile_info})"
     )
     warm_up(rb, xml, clips[0], (off, off_dist, off_zmp))
 

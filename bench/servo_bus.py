@@ -621,14 +621,18 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         r = runs[name] = sustained(2_000_000, TARGET_HZ, args.seconds, use_sdk=use_sdk, split=split)
         r["steal"] = steal_percent(cpu0, cpu_counters())
         print(
-            f"sustained {TARGET_HZ:.0f} Hz at 2 Mbit/s, {name}: {r['hz']:.1f} Hz; {r['overruns']}/{r['n']} ticks overran, "
+            f"sustained {TARGET_HZ:.0f} Hz at 2 Mbit/s, {name}: {r['hz']:.1f} Hz; "
+            f"{r['overruns']}/{r['n']} ticks overran, "
             f"{r['skipped']} skipped; lateness p50 {m(r['lateness']):.3f} / p99 {_pct(r['lateness'], 99):.3f} ms; "
             f"busy per tick p50 {m(r['busy']):.2f} / p99 {_pct(r['busy'], 99):.2f} ms of {1e3 / TARGET_HZ:.1f}; "
             f"load {os.getloadavg()[0]:.2f}; CPU time stolen by the host {r['steal']:.1f} %"
         )
     mine, blocking, base = runs.values()
     sched = f"; --rt {RT[0]}: emulator and our loop SCHED_FIFO" if RT[0] else ""
-    sched += f"; load {os.getloadavg()[0]:.1f}; CPU time stolen by the host {mine['steal']:.1f} % (ours), {base['steal']:.1f} % (SDK)"
+    sched += (
+        f"; load {os.getloadavg()[0]:.1f}; CPU time stolen by the host {mine['steal']:.1f} % (ours), "
+        f"{base['steal']:.1f} % (SDK)"
+    )
     out.append(
         Row(
             f"sustained bus loop @ 2 Mbit/s, {TARGET_HZ:.0f} Hz asked (Hz achieved; ROBOTIS OP3 framework "

@@ -168,7 +168,8 @@ def bench_render(frames: int) -> list[Row]:
         wall = (time.perf_counter() - w0) / frames
         filmer.close()
         print(
-            f"  offscreen render ({quality:4s}):         {1.0 / dt:8.1f} frames/s per CPU s   (wall {1.0 / wall:.1f} frames/s)"
+            f"  offscreen render ({quality:4s}):         {1.0 / dt:8.1f} frames/s per CPU s   "
+            f"(wall {1.0 / wall:.1f} frames/s)"
         )
         rows.append(
             Row(

@@ -4,7 +4,8 @@
 
 Clips: ``leaders``: the SYNTHETIC stepping leaders of bench/stepping_leaders.py (turning in place
 2-2.5 turns, walking straight and on a circle, side-stepping); ``pivot``: the rest pose turning
-2.5 turns on the spot at 0.8 and 0.5 rad/s without stepping (the root-yaw verdict's case); ``cmu``: the CMU two-person pair
+2.5 turns on the spot at 0.8 and 0.5 rad/s without stepping (the root-yaw verdict's case); \
+``cmu``: the CMU two-person pair
 (../shared/data/mocap/cmu, both people, when present); ``duets``: the rule followers of
 dualflow.synthetic.make_duet (generated partners, hand_hold and orbit). Each clip goes through four
 retargeters in the same run, on one core (sched_setaffinity, single-threaded BLAS), CPU time:
@@ -24,7 +25,8 @@ retargeters in the same run, on one core (sched_setaffinity, single-threaded BLA
   rows in single support, and a schedule without the robot's pace, standing start, swing
   clearance, start from rest and eased travel (StepConfig(min_double=0, start_double=0,
   robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0, travel_zmp_shift=0));
-- streaming with steps (StreamingConfig(balance=True, steps=True, preview=9): the person's contacts 0.3 s ahead); its baseline, *streaming before*:
+- streaming with steps (StreamingConfig(balance=True, steps=True, preview=9): the person's contacts \
+0.3 s ahead); its baseline, *streaming before*:
   StreamingConfig(balance=True) (feet always planted).
 
 Figures per retargeter, over the clips (a failed retarget counts as not performed):
@@ -97,7 +99,8 @@ def robot_steps(rb, X: np.ndarray, fps: float) -> tuple[int, np.ndarray]:
 
 
 def zmp_shares(rb, X: np.ndarray, down: np.ndarray, fps: float) -> tuple[float, float]:
-    """Shares of frames (with a foot down) whose cart-table ZMP is inside the support polygon, and with 1 cm to spare."""
+    """Shares of frames (with a foot down) whose cart-table ZMP is inside the support polygon, and with
+    1 cm to spare."""
     ev = rb.evaluate(X)
     c = ev["com"]
     acc = np.zeros_like(c[:, 0:2])

@@ -349,7 +349,8 @@ def load_checkpoint(path: str | os.PathLike, *, resume: bool = False) -> Checkpo
         )
     if version > VERSION:
         raise DualFlowError(
-            f"{path / CONFIG_FILE}: checkpoint version {version} is newer than this code ({VERSION}); update the package"
+            f"{path / CONFIG_FILE}: checkpoint version {version} is newer than this code ({VERSION}); "
+            "update the package"
         )
     config = _model_config(meta["model"], path / CONFIG_FILE)
     state = _load_tensors(path / MODEL_FILE)

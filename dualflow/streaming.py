@@ -368,7 +368,8 @@ class ReactiveStreamer:
             x = x[None]
         if x.ndim != 2 or x.shape[1] != self.dim:
             raise DualFlowError(
-                f"actor frames must have shape ({self.dim},) or (n, {self.dim}) (normalised features), got {tuple(x.shape)}"
+                f"actor frames must have shape ({self.dim},) or (n, {self.dim}) (normalised features), "
+                f"got {tuple(x.shape)}"
             )
         if not torch.isfinite(x).all():
             raise DualFlowError("actor frames contain NaN or inf; drop or repair those frames before pushing")

@@ -76,7 +76,10 @@ def _compile(c_file: Path, so_file: Path) -> str | None:
         return f"compiling {c_file.name} failed ({exc})"
     if res.returncode != 0:
         tmp.unlink(missing_ok=True)
-        return f"compiling {c_file.name} failed: {res.stderr.strip().splitlines()[-1] if res.stderr.strip() else res.returncode}"
+        return (
+            f"compiling {c_file.name} failed: "
+            f"{res.stderr.strip().splitlines()[-1] if res.stderr.strip() else res.returncode}"
+        )
     tmp.replace(so_file)
     return None
 

@@ -135,7 +135,8 @@ class RobotKinematics:
             if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
                 jname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
                 raise RetargetError(
-                    f"{source or name}: joint {jname!r} is a ball joint; only hinge, slide and one free root joint are supported"
+                    f"{source or name}: joint {jname!r} is a ball joint; "
+                    "only hinge, slide and one free root joint are supported"
                 )
         self._free_joint = free[0] if free else None
         if (
@@ -175,7 +176,8 @@ class RobotKinematics:
             elif jt == mujoco.mjtJoint.mjJNT_SLIDE:
                 jname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
                 raise RetargetError(
-                    f"{source or name}: joint {jname!r} is a slide joint; only hinge joints and one free root are supported"
+                    f"{source or name}: joint {jname!r} is a slide joint; "
+                    "only hinge joints and one free root are supported"
                 )
         hinges = self._actuator_order(hinges)
         self.joints: tuple[HingeJoint, ...] = tuple(hinges)
@@ -271,7 +273,8 @@ class RobotKinematics:
         if bid < 0:
             names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, self.model.nbody)]
             raise RetargetError(
-                f"{field}: the MJCF {self.source or self.name} has no body {name!r}; bodies are: {', '.join(n for n in names if n)}"
+                f"{field}: the MJCF {self.source or self.name} has no body {name!r}; "
+                f"bodies are: {', '.join(n for n in names if n)}"
             )
         return int(bid)
 
@@ -282,7 +285,8 @@ class RobotKinematics:
         if sid < 0:
             names = [mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_SITE, s) for s in range(self.model.nsite)]
             raise RetargetError(
-                f"{field}: the MJCF {self.source or self.name} has no site {name!r}; sites are: {', '.join(n for n in names if n) or '(none)'}"
+                f"{field}: the MJCF {self.source or self.name} has no site {name!r}; "
+                f"sites are: {', '.join(n for n in names if n) or '(none)'}"
             )
         return int(sid)
 
@@ -292,14 +296,16 @@ class RobotKinematics:
         gid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_GEOM, name)
         if gid < 0:
             raise RetargetError(
-                f"{field}: the MJCF {self.source or self.name} has no geom {name!r}; name the geom in the MJCF or give body/from/to/radius"
+                f"{field}: the MJCF {self.source or self.name} has no geom {name!r}; "
+                "name the geom in the MJCF or give body/from/to/radius"
             )
         return int(gid)
 
     def joint_index(self, name: str, field: str = "joint") -> int:
         if name not in self.joint_names:
             raise RetargetError(
-                f"{field}: the MJCF {self.source or self.name} has no hinge joint {name!r}; joints are: {', '.join(self.joint_names)}"
+                f"{field}: the MJCF {self.source or self.name} has no hinge joint {name!r}; "
+                f"joints are: {', '.join(self.joint_names)}"
             )
         return self.joint_names.index(name)
 
@@ -348,7 +354,8 @@ class RobotKinematics:
             half, radius, axis = size[k] - min(others), float(np.hypot(*others)), R[:, k]
         else:
             raise RetargetError(
-                f"collision geom {name or geom}: type {int(gt)} is not a capsule, cylinder, sphere or box; give body/from/to/radius instead"
+                f"collision geom {name or geom}: type {int(gt)} is not a capsule, cylinder, sphere or box; "
+                "give body/from/to/radius instead"
             )
         c = np.array(m.geom_pos[geom])
         return Capsule(name or f"geom{geom}", int(m.geom_bodyid[geom]), c - half * axis, c + half * axis, float(radius))

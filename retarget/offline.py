@@ -248,7 +248,10 @@ class OfflineRetargeter:
         nlp = {"x": w, "p": par, "f": J_x, "g": g_x}
         jac_g, hess = self._chain_rule_derivatives(sym, W, Y, R, g)
         name = f"rtw{W}"
-        ckey = f"{rb.fingerprint()}_{hash_config(replace(cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=(), steps=None))}_{int(round(fps * 1000))}"
+        key_cfg = replace(
+            cfg, max_iter=0, tol=0, retime=1.0, auto_retime=False, compile=True, ipopt_options=(), steps=None
+        )
+        ckey = f"{rb.fingerprint()}_{hash_config(key_cfg)}_{int(round(fps * 1000))}"
         solver, info = compiled_nlpsol(
             name, nlp, self._ipopt_options(), ckey, enable=cfg.compile, hess_lag=hess, jac_g=jac_g
         )

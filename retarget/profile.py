@@ -81,7 +81,8 @@ class RetargetProfile:
         path = Path(path)
         if not path.is_file():
             raise RetargetError(
-                f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, or run `dualflow-bridge robot init MODEL.xml -o DIR`)"
+                f"{path}: retarget profile not found; write one (see firmware_cfg/robots/op3/profile.yaml, "
+                "or run `dualflow-bridge robot init MODEL.xml -o DIR`)"
             )
         try:
             data = yaml.safe_load(path.read_bytes().decode("utf-8"))
@@ -171,7 +172,8 @@ def _parse_keypoints(data: dict, source: str) -> tuple[dict, list]:
     kps = data.get("keypoints")
     if not isinstance(kps, dict) or not kps:
         raise RetargetError(
-            f"{_where(source, 'keypoints')}: give a mapping human joint -> {{site: ...}} or {{body: ..., offset: [x, y, z]}}"
+            f"{_where(source, 'keypoints')}: give a mapping human joint -> {{site: ...}} "
+            "or {body: ..., offset: [x, y, z]}"
         )
     keypoints = []
     for human, spec in kps.items():
@@ -206,7 +208,8 @@ def _parse_scale(data: dict, kps: dict, source: str) -> tuple[float | None, dict
             root_scale = _positive(v, _where(source, "scale.root"))
         elif k not in kps:
             raise RetargetError(
-                f"{_where(source, 'scale.' + str(k))}: {k!r} is not one of the keypoints; scales are keyed by the child keypoint's human joint"
+                f"{_where(source, 'scale.' + str(k))}: {k!r} is not one of the keypoints; "
+                "scales are keyed by the child keypoint's human joint"
             )
         else:
             overrides[k] = _positive(v, _where(source, "scale." + k))

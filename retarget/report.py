@@ -206,18 +206,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     tk, person, clip_t = clip_targets(traj, targets)
     clip = clip_t >= -1e-9  # frames of the clip (after a lead-in)
     err = 1000 * np.linalg.norm(ev["keypoints"] - tk, axis=-1)  # NaN in a lead-in: no person there
-    contact_frames, slides, slide_frames = 0, [], []
-    on = robot_schedule(traj, person)
-    if robot.has_feet and robot.floating:
-        for side in range(2):
-            centre = ev["sole"][:, 4 * side : 4 * side + 4, 0:2].mean(axis=1)
-            both = on[1:, side] & on[:-1, side]
-            step = 1000 * np.linalg.norm(np.diff(centre, axis=0), axis=-1)
-            slides.append(step[both])
-            slide_frames.append(1 + np.flatnonzero(both))
-            contact_frames += int(both.sum())
-    slides = np.concatenate(slides) if slides else np.zeros(0)
-    slide_frames = np.concatenate(slide_frames) if slide_frames else np.zeros(0, int)
+    slides, slide_frames, contact_frames = _foot_slides(robot, ev, robot_schedule(traj, person))
     skate_share = float(np.mean(slides > SKATE_MM_PER_FRAME)) if slides.size else 0.0
     sole_z = ev["sole"][..., 2]
     penetration = float(max(0.0, -sole_z.min()) * 1000) if sole_z.size else 0.0
@@ -234,21 +223,10 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         failing.append(slide_frames[slides > SKATE_MM_PER_FRAME])
     failing = np.concatenate(failing)
     first_failure = round(float(clip_t[int(failing.min())]), 3) if failing.size else None
-    coll = 0
-    if robot.collision_pairs:
-        # overlap without the profile's margin: d² − (r_a + r_b + m)² < (r_a + r_b)² − (r_a + r_b + m)²
-        m = robot.profile.collision_margin
-        radii = np.array([robot.capsules[a].radius + robot.capsules[b].radius for a, b in robot.collision_pairs])
-        thresh = radii**2 - (radii + m) ** 2
-        coll = int(np.sum(ev["collision"] < thresh[None] - 1e-9))
+    coll = _self_collisions(robot, ev)
     jr, js = _jerk(ev["keypoints"][clip], fps), _jerk(targets.keypoints, fps)
     meta = dict(traj.meta)
-    changes = []
-    for c in meta.get("changes", []) or []:
-        there = (clip_t >= c["start_s"] - 1e-9) & (clip_t < c["end_s"] - 1e-9) & clip
-        if not there.any() and c["start_s"] >= 0:  # shorter than a frame: the nearest one
-            there[int(np.argmin(np.abs(clip_t - c["start_s"])))] = True
-        changes.append({**c, "keypoint_error_mm": float(err[there].mean())} if there.any() else dict(c))
+    changes = _change_errors(meta.get("changes", []) or [], clip_t, clip, err)
     return RetargetReport(
         clip=clip_name or str(meta.get("source", "")),
         robot=robot.name,
@@ -276,6 +254,47 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         steps=meta.get("steps"),
         lead_in=meta.get("lead_in"),
     )
+
+
+def _foot_slides(robot, ev: dict, on: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(slides (N,) mm, their frames (N,), contact frames): how far each foot's sole centre
+    moved between two frames both in contact (``on`` (T, 2)); empty for a robot without feet
+    or a fixed base."""
+    contact_frames, slides, slide_frames = 0, [], []
+    if robot.has_feet and robot.floating:
+        for side in range(2):
+            centre = ev["sole"][:, 4 * side : 4 * side + 4, 0:2].mean(axis=1)
+            both = on[1:, side] & on[:-1, side]
+            step = 1000 * np.linalg.norm(np.diff(centre, axis=0), axis=-1)
+            slides.append(step[both])
+            slide_frames.append(1 + np.flatnonzero(both))
+            contact_frames += int(both.sum())
+    slides = np.concatenate(slides) if slides else np.zeros(0)
+    slide_frames = np.concatenate(slide_frames) if slide_frames else np.zeros(0, int)
+    return slides, slide_frames, contact_frames
+
+
+def _self_collisions(robot, ev: dict) -> int:
+    """Frame-pair count of the robot's capsules overlapping (the profile's margin not counted)."""
+    if not robot.collision_pairs:
+        return 0
+    # overlap without the profile's margin: d² − (r_a + r_b + m)² < (r_a + r_b)² − (r_a + r_b + m)²
+    m = robot.profile.collision_margin
+    radii = np.array([robot.capsules[a].radius + robot.capsules[b].radius for a, b in robot.collision_pairs])
+    thresh = radii**2 - (radii + m) ** 2
+    return int(np.sum(ev["collision"] < thresh[None] - 1e-9))
+
+
+def _change_errors(changes: list, clip_t: np.ndarray, clip: np.ndarray, err: np.ndarray) -> list[dict]:
+    """Each change (a part the robot plays differently, :meth:`retarget.schedule.Change.to_dict`)
+    with the mean keypoint error (mm) over its clip frames (shorter than a frame: the nearest)."""
+    out = []
+    for c in changes:
+        there = (clip_t >= c["start_s"] - 1e-9) & (clip_t < c["end_s"] - 1e-9) & clip
+        if not there.any() and c["start_s"] >= 0:  # shorter than a frame: the nearest one
+            there[int(np.argmin(np.abs(clip_t - c["start_s"])))] = True
+        out.append({**c, "keypoint_error_mm": float(err[there].mean())} if there.any() else dict(c))
+    return out
 
 
 def clip_targets(traj: RobotTrajectory, targets: Targets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -236,7 +236,8 @@ class RetargetRobot:
         ]
         if unlimited:
             raise RetargetError(
-                f"{kin.source or kin.name}: joints {unlimited} have no range; give them range= in the MJCF or joint_limits in {src}"
+                f"{kin.source or kin.name}: joints {unlimited} have no range; "
+                f"give them range= in the MJCF or joint_limits in {src}"
             )
         return lo, hi
 

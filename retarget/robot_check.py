@@ -287,7 +287,8 @@ def _check_hardware(robot, m, hinges: dict, actuated: list, ctrl: dict, res: Che
                 included = set()
             if robot.mjcf.name not in included:
                 P(
-                    f"{src}: field mjcf: names {named}, but the folder's model is {robot.mjcf}; point it at the same model"
+                    f"{src}: field mjcf: names {named}, but the folder's model is {robot.mjcf}; "
+                    "point it at the same model"
                 )
     mapped = {}
     free = [j for j in actuated if j not in {s.joint for s in cfg.servos}]  # actuated, no servo yet
@@ -305,7 +306,8 @@ def _check_hardware(robot, m, hinges: dict, actuated: list, ctrl: dict, res: Che
                 continue
             if s.joint not in actuated:
                 P(
-                    f"{where}.joint: {s.joint!r} has no actuator in {robot.mjcf.name}, so the simulation cannot drive it; "
+                    f"{where}.joint: {s.joint!r} has no actuator in {robot.mjcf.name}, "
+                    "so the simulation cannot drive it; "
                     "add a <position joint=...> actuator or remove the servo"
                 )
             j = hinges[s.joint]

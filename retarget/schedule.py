@@ -222,39 +222,21 @@ def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarr
             if c[t, s]:
                 # a person's swing shorter than the robot's starts early enough, where the double
                 # support before it is long enough: lift n_swing frames before its landing
-                a = t + 1
-                while a < T and a < t + n_swing and c[a, s]:
-                    a += 1
-                e = a
-                while e < T and not c[e, s]:
-                    e += 1
-                if (
-                    a < T
-                    and not c[a, s]
-                    and e < T
-                    and e - t == n_swing
-                    and not lifted[o]
-                    and double >= need
-                    and c[t:e, o].all()
-                ):
+                if not lifted[o] and double >= need and _early_swing_fits(c, t, s, n_swing):
                     lifted[s] = early[s] = True
                 continue
             # the person's foot is up and the robot's down: lift now, wait, or skip this swing
-            end = t
-            while end < T and not c[end, s]:
-                end += 1
-            a = t  # the person's lift
-            while a > 0 and not c[a - 1, s]:
-                a -= 1
+            a, end = _person_swing(c, t, s)
+            side = ("left", "right")[s]
             if lifted[o] or double < need:
                 if end - (t + 1) < n_swing:  # waiting one more frame leaves too short a swing
                     skip_until[s] = end
                     changes.append(
-                        Change(
-                            round(a / fps, 3),
-                            round(end / fps, 3),
-                            "step skipped",
-                            f"the person's {('left', 'right')[s]} foot stepped faster than the robot "
+                        _step_skipped(
+                            a,
+                            end,
+                            fps,
+                            f"the person's {side} foot stepped faster than the robot "
                             f"can (it needs {cfg.min_double:g} s on both feet before a step and "
                             f"{cfg.robot_swing:g} s in the air); the robot's foot stayed down",
                         )
@@ -263,11 +245,11 @@ def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarr
             if end - t < n_swing and end < T:
                 skip_until[s] = end
                 changes.append(
-                    Change(
-                        round(a / fps, 3),
-                        round(end / fps, 3),
-                        "step skipped",
-                        f"the person's {('left', 'right')[s]} foot was up {(end - a) / fps:.2f} s, less "
+                    _step_skipped(
+                        a,
+                        end,
+                        fps,
+                        f"the person's {side} foot was up {(end - a) / fps:.2f} s, less "
                         f"than the robot's shortest swing ({cfg.robot_swing:g} s); the robot's foot "
                         "stayed down",
                     )
@@ -278,6 +260,38 @@ def _pace(c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarr
             out[t, s] = not lifted[s]
         double = double + 1 if out[t].all() else 0
     return out
+
+
+def _early_swing_fits(c: np.ndarray, t: int, s: int, n_swing: int) -> bool:
+    """Whether the person's foot ``s``, down at frame ``t`` of contacts ``c`` (T, 2), lifts
+    within ``n_swing`` frames and lands exactly ``n_swing`` frames after ``t`` with the other
+    foot down all along: a swing the robot can do by lifting at ``t``."""
+    T = c.shape[0]
+    a = t + 1
+    while a < T and a < t + n_swing and c[a, s]:
+        a += 1
+    e = a
+    while e < T and not c[e, s]:
+        e += 1
+    return bool(a < T and not c[a, s] and e < T and e - t == n_swing and c[t:e, 1 - s].all())
+
+
+def _person_swing(c: np.ndarray, t: int, s: int) -> tuple[int, int]:
+    """(lift frame, landing frame) of the person's swing of foot ``s`` that frame ``t`` is in
+    (``c[t, s]`` False); the landing is T when the foot never comes down."""
+    T = c.shape[0]
+    end = t
+    while end < T and not c[end, s]:
+        end += 1
+    a = t
+    while a > 0 and not c[a - 1, s]:
+        a -= 1
+    return a, end
+
+
+def _step_skipped(lift: int, landing: int, fps: float, why: str) -> Change:
+    """The ``step skipped`` change over the person's swing from frame ``lift`` to ``landing``."""
+    return Change(round(lift / fps, 3), round(landing / fps, 3), "step skipped", why)
 
 
 def _standing_footprint(robot, ank0: np.ndarray, head0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -508,7 +508,8 @@ class StreamingRetargeter:
         check_motion(motion, min_frames=2)
         if abs(motion.fps - self.fps) > 1e-9:
             raise RetargetError(
-                f"{motion.name or 'motion'}: is {motion.fps:g} fps but this retargeter runs at {self.fps:g}; resample the motion"
+                f"{motion.name or 'motion'}: is {motion.fps:g} fps "
+                f"but this retargeter runs at {self.fps:g}; resample the motion"
             )
         tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()

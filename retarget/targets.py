@@ -118,7 +118,8 @@ class KeypointScaler:
             hl = float(np.median(np.linalg.norm(ref[:, hidx[k]] - ref[:, hidx[p]], axis=-1)))
             if hl < 1e-4:
                 raise RetargetError(
-                    f"motion: the human bone {robot.keypoint_names[p]} -> {name} has zero length; check the joint positions"
+                    f"motion: the human bone {robot.keypoint_names[p]} -> {name} has zero length; "
+                    "check the joint positions"
                 )
             scales[k] = robot.bone_lengths[k] / hl
         self.bone_scales = scales

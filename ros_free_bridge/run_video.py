@@ -72,6 +72,7 @@ def render_video(result, path: Path, on_tick=None) -> Path:
     """Actor, generated partner and robot side by side, from the run's recorded motions
     (``on_tick(t)``: as the film reaches run time t, s)."""
     from ros_free_bridge.errors import BridgeError
+    from sim.human_figure import People
     from sim.render import RenderConfig, render_trajectory
 
     if result.robot_motion is None:
@@ -87,9 +88,7 @@ def render_video(result, path: Path, on_tick=None) -> Path:
         path,
         config,
         robot=result.files.ref,
-        actor=result.actor,
-        actor_placement=placement,
-        reactor=result.partner,
+        people=People(result.actor, placement, result.partner),
         on_tick=on_tick,
     )
     return out

@@ -177,86 +177,108 @@ MODEL_ONLY_TRANSPORTS = ("sim", "record")
 
 
 def open_transport(opts: SessionOptions, files: RobotFiles, hardware, names, rest, stack: ExitStack):
+    """(transport, info) for ``opts.transport``, joints in the order ``names``; ``rest`` (n,) rad
+    is the record transport's first reading. An emulator it starts is stopped by ``stack`` and
+    is ``info["emulator"]``."""
     kind = opts.transport
-    info: dict = {"transport": kind}
-    stop_policy = opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold")
     if kind not in TRANSPORTS:
         raise BridgeError(f"transport {kind!r}: choose one of {', '.join(TRANSPORTS)}")
-
-    def sim():
-        from ros_free_bridge.transports.sim import SimTransport
-
-        t = SimTransport(files.ref, control_hz=opts.rate_hz, clock=opts.sim_clock)
-        if tuple(t.joint_names) != tuple(names):
-            raise BridgeError(
-                f"robot {files.name}: the MJCF's joint order {t.joint_names} differs from the hardware "
-                f"config's {names}; list the servos in the MJCF's actuator order"
-            )
-        return t
-
-    def dynamixel():
-        from ros_free_bridge.dynamixel.transport import DynamixelTransport
-
-        bus = next((b for b in hardware.buses if b.protocol in ("1.0", "2.0")), None)
-        if bus is None:
-            raise BridgeError(f"{files.hardware}: no Dynamixel bus (protocol 1.0 or 2.0) in the hardware config")
-        port = opts.port
-        if opts.emulate:
-            # In its own process, like real hardware: its Python must not compete with the
-            # control loop for the GIL. It counts any goal outside the config's limits.
-            from firmware_cfg.servo_models import load_servo_model
-            from ros_free_bridge.dynamixel.servos import servo_tick_limits
-            from ros_free_bridge.emulators.process import EmulatorProcess
-
-            allowed = {s.id: servo_tick_limits(s, load_servo_model(s.model)) for s in bus.servos}
-            emu = EmulatorProcess(
-                [(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices],
-                bus.baud,
-                int(float(bus.protocol)),
-                wire_timing=False,
-                allowed=allowed,
-            )
-            stack.callback(emu.stop)
-            port = emu.port
-            info["emulator"] = emu
-        # An emulator is a process on a possibly busy machine, not a servo: allow it 100 ms to
-        # answer (a real bus answers within the latency timer, 16 ms at worst). At 50 ms, demos
-        # on a machine loaded to 5 and more ended in "no status packet" errors.
-        return DynamixelTransport(
-            bus, port=port, joint_names=names, stop_policy=stop_policy, latency_ms=100.0 if opts.emulate else 16.0
-        )
-
-    def serial():
-        from ros_free_bridge.transports.serial_link import SerialLinkTransport
-
-        bus = next((b for b in hardware.buses if b.protocol == "serial-link"), None)
-        if bus is None:
-            raise BridgeError(
-                f"{files.hardware}: no serial-link bus in the hardware config; add one with protocol: serial-link"
-            )
-        port = opts.port
-        if opts.emulate:
-            from ros_free_bridge.emulators.serial_mcu import SerialMcuEmulator
-
-            emu = SerialMcuEmulator(n_channels=len(bus.servos)).start()
-            stack.callback(emu.stop)
-            port = emu.port
-            info["emulator"] = emu
-        return SerialLinkTransport(bus, port=port, joint_names=names, stop_policy=stop_policy)
-
+    stop_policy = opts.stop_policy or (hardware.stop_policy if hardware is not None else "hold")
+    info: dict = {"transport": kind}
+    emu = None
     if kind == "sim":
-        return sim(), info
-    if kind == "record":
+        transport = _sim_transport(opts, files, names)
+    elif kind == "record":
         from ros_free_bridge.transports.record import RecordTransport
 
-        return RecordTransport(names, initial=rest), info
-    if kind == "dynamixel":
-        return dynamixel(), info
-    if kind == "serial":
-        return serial(), info
-    from ros_free_bridge.transports.tee import TeeTransport
+        transport = RecordTransport(names, initial=rest)
+    elif kind == "dynamixel":
+        transport, emu = _dynamixel_transport(opts, files, hardware, names, stop_policy, stack)
+    elif kind == "serial":
+        transport, emu = _serial_transport(opts, files, hardware, names, stop_policy, stack)
+    else:  # sim+dynamixel
+        from ros_free_bridge.transports.tee import TeeTransport
 
-    return TeeTransport(sim(), dynamixel()), info
+        sim = _sim_transport(opts, files, names)
+        dxl, emu = _dynamixel_transport(opts, files, hardware, names, stop_policy, stack)
+        transport = TeeTransport(sim, dxl)
+    if emu is not None:
+        info["emulator"] = emu
+    return transport, info
+
+
+def _sim_transport(opts: SessionOptions, files: RobotFiles, names):
+    """The MuJoCo virtual robot; its MJCF must list the joints in the hardware config's order."""
+    from ros_free_bridge.transports.sim import SimTransport
+
+    t = SimTransport(files.ref, control_hz=opts.rate_hz, clock=opts.sim_clock)
+    if tuple(t.joint_names) != tuple(names):
+        raise BridgeError(
+            f"robot {files.name}: the MJCF's joint order {t.joint_names} differs from the hardware "
+            f"config's {names}; list the servos in the MJCF's actuator order"
+        )
+    return t
+
+
+def _dynamixel_transport(opts: SessionOptions, files: RobotFiles, hardware, names, stop_policy, stack: ExitStack):
+    """(transport, emulator or None) on the hardware config's first Dynamixel bus; with
+    ``opts.emulate`` the bus is an emulator in its own process."""
+    from ros_free_bridge.dynamixel.transport import DynamixelTransport
+
+    bus = next((b for b in hardware.buses if b.protocol in ("1.0", "2.0")), None)
+    if bus is None:
+        raise BridgeError(f"{files.hardware}: no Dynamixel bus (protocol 1.0 or 2.0) in the hardware config")
+    port, emu = opts.port, None
+    if opts.emulate:
+        emu = _dynamixel_emulator(bus, stack)
+        port = emu.port
+    # An emulator is a process on a possibly busy machine, not a servo: allow it 100 ms to
+    # answer (a real bus answers within the latency timer, 16 ms at worst). At 50 ms, demos
+    # on a machine loaded to 5 and more ended in "no status packet" errors.
+    transport = DynamixelTransport(
+        bus, port=port, joint_names=names, stop_policy=stop_policy, latency_ms=100.0 if opts.emulate else 16.0
+    )
+    return transport, emu
+
+
+def _dynamixel_emulator(bus, stack: ExitStack):
+    """The emulated servos and devices of ``bus``, started (stopped by ``stack``). In its own
+    process, like real hardware: its Python must not compete with the control loop for the
+    GIL. It counts any goal outside the config's limits."""
+    from firmware_cfg.servo_models import load_servo_model
+    from ros_free_bridge.dynamixel.servos import servo_tick_limits
+    from ros_free_bridge.emulators.process import EmulatorProcess
+
+    allowed = {s.id: servo_tick_limits(s, load_servo_model(s.model)) for s in bus.servos}
+    emu = EmulatorProcess(
+        [(s.id, s.model) for s in bus.servos] + [(d.id, d.model) for d in bus.devices],
+        bus.baud,
+        int(float(bus.protocol)),
+        wire_timing=False,
+        allowed=allowed,
+    )
+    stack.callback(emu.stop)
+    return emu
+
+
+def _serial_transport(opts: SessionOptions, files: RobotFiles, hardware, names, stop_policy, stack: ExitStack):
+    """(transport, emulator or None) on the hardware config's serial-link bus; with
+    ``opts.emulate`` the MCU is emulated."""
+    from ros_free_bridge.transports.serial_link import SerialLinkTransport
+
+    bus = next((b for b in hardware.buses if b.protocol == "serial-link"), None)
+    if bus is None:
+        raise BridgeError(
+            f"{files.hardware}: no serial-link bus in the hardware config; add one with protocol: serial-link"
+        )
+    port, emu = opts.port, None
+    if opts.emulate:
+        from ros_free_bridge.emulators.serial_mcu import SerialMcuEmulator
+
+        emu = SerialMcuEmulator(n_channels=len(bus.servos)).start()
+        stack.callback(emu.stop)
+        port = emu.port
+    return SerialLinkTransport(bus, port=port, joint_names=names, stop_policy=stop_policy), emu
 
 
 def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionResult:
@@ -383,18 +405,7 @@ def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready,
     buffer = TargetBuffer(MOTION_FPS, interpolation="cubic", extrapolate=opts.extrapolate_frames)
     with ExitStack() as stack:
         transport, info = open_transport(opts, rb.files, rb.hardware, rb.names, rb.rest, stack)
-        telemetry = TelemetryWriter(
-            out / "telemetry.dftl",
-            rb.names,
-            opts.rate_hz,
-            meta={
-                "robot": rb.files.ref,
-                "actor": opts.actor,
-                "partner": opts.partner,
-                "transport": opts.transport,
-                "model": str(opts.model or "bundled"),
-            },
-        )
+        telemetry = _telemetry_writer(opts, rb, out)
         loop = ControlLoop(
             transport,
             rb.limits,
@@ -404,16 +415,8 @@ def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready,
             on_status=on_status,
             balance=_balance_model(rb.files, rb.names) if opts.stabilizer else None,
         )
-        udp = {}
-        if opts.actor.startswith("udp://"):
-            udp = {"allow_remote": opts.allow_remote_actor, "on_event": telemetry.event}
-        source, described = open_actor_source(
-            opts.actor, opts.seconds, opts.seed, on_estop=loop.estop, motion=actor_motion, **udp
-        )
-        stack.callback(source.close)
+        source, described = _open_source(opts, loop, telemetry, actor_motion, stack)
         stats = getattr(source, "stats", None)
-        if stats is not None:
-            loop.source_stats = stats  # the status line shows its drop counters
         telemetry.event(
             "session",
             actor=described,
@@ -441,17 +444,62 @@ def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready,
     result = SessionResult(summary, out, rb.files, transport_info={k: v for k, v in info.items() if k != "emulator"})
     if stats is not None:
         result.source_stats = stats
-        telemetry_events_append(
-            out / "telemetry.dftl",
-            "input",
-            received=stats.received,
-            accepted=stats.accepted,
-            estops=stats.estops,
-            flooded=stats.flooded,
-            senders=stats.senders,
-            dropped=stats.drops(),
-        )
-    result.pipeline_info = {
+        _log_input_stats(out / "telemetry.dftl", stats)
+    result.pipeline_info = _pipeline_info(opts, core, config, pipeline)
+    _save_outputs(result, pipeline, transport, info.get("emulator"))
+    return result
+
+
+def _telemetry_writer(opts: SessionOptions, rb: _Robot, out: Path) -> TelemetryWriter:
+    """``out/telemetry.dftl``, its header naming the robot, actor, partner, transport and model."""
+    return TelemetryWriter(
+        out / "telemetry.dftl",
+        rb.names,
+        opts.rate_hz,
+        meta={
+            "robot": rb.files.ref,
+            "actor": opts.actor,
+            "partner": opts.partner,
+            "transport": opts.transport,
+            "model": str(opts.model or "bundled"),
+        },
+    )
+
+
+def _open_source(opts: SessionOptions, loop: ControlLoop, telemetry: TelemetryWriter, actor_motion, stack: ExitStack):
+    """(source, description) of the actor's motion, closed by ``stack``; a UDP source's e-stop
+    stops ``loop`` and its events go to ``telemetry``, its drop counters to the status line."""
+    udp = {}
+    if opts.actor.startswith("udp://"):
+        udp = {"allow_remote": opts.allow_remote_actor, "on_event": telemetry.event}
+    source, described = open_actor_source(
+        opts.actor, opts.seconds, opts.seed, on_estop=loop.estop, motion=actor_motion, **udp
+    )
+    stack.callback(source.close)
+    stats = getattr(source, "stats", None)
+    if stats is not None:
+        loop.source_stats = stats  # the status line shows its drop counters
+    return source, described
+
+
+def _log_input_stats(telemetry_path: Path, stats) -> None:
+    """An ``input`` event with the actor source's packet counters, after the run."""
+    telemetry_events_append(
+        telemetry_path,
+        "input",
+        received=stats.received,
+        accepted=stats.accepted,
+        estops=stats.estops,
+        flooded=stats.flooded,
+        senders=stats.senders,
+        dropped=stats.drops(),
+    )
+
+
+def _pipeline_info(opts: SessionOptions, core, config: LoopConfig, pipeline) -> dict:
+    """The partner pipeline's figures for the summary: generator, playback margin (ms), frames
+    dropped, catch-ups, frames ahead and the generator's CPU s per s of actor motion."""
+    info = {
         **_generator_info(opts, core),
         "playback_margin_ms": round(1e3 * config.playback_margin, 1),
         "frames_dropped": pipeline.frames_dropped,
@@ -461,9 +509,8 @@ def _run(opts: SessionOptions, rb: _Robot, out: Path, core, on_status, on_ready,
     cpu = getattr(core, "streaming_cpu_s", float("nan"))
     if np.isfinite(cpu) and len(pipeline.actor_positions):
         # CPU seconds the generator process used per second of actor motion: < 1 fits one core
-        result.pipeline_info["generator_cpu_per_s"] = round(cpu / (len(pipeline.actor_positions) / MOTION_FPS), 3)
-    _save_outputs(result, pipeline, transport, info.get("emulator"))
-    return result
+        info["generator_cpu_per_s"] = round(cpu / (len(pipeline.actor_positions) / MOTION_FPS), 3)
+    return info
 
 
 def _save_outputs(result: SessionResult, pipeline, transport, emu) -> None:

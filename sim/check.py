@@ -16,12 +16,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from dualflow.motion import Motion
 from retarget.errors import RetargetError
 from retarget.trajectory import RobotTrajectory
 from sim.contacts import ContactClassifier, min_distance
 from sim.errors import SimError
-from sim.human_figure import FaceToFace, Placement
+from sim.human_figure import FaceToFace, People, Placement
 from sim.robot_index import body_label, geom_label
 from sim.scene import Scene, SceneConfig
 from sim.stabilizer import Stabilizer, StabilizerGains, balance_model
@@ -241,25 +240,22 @@ def check_trajectory(
     traj,
     config: CheckConfig | None = None,
     robot: str | None = None,
-    actor: Motion | None = None,
-    actor_placement: Placement | FaceToFace | None = None,
+    people: People | None = None,
     on_tick=None,
     joint_limits: dict | None = None,
     no_load_speed=None,
 ) -> CheckResult:
     """Play ``traj`` (RobotTrajectory or npz path) and judge it. ``robot`` overrides
-    ``traj.robot`` (default "op3"); ``actor`` adds the human figure (robot-human
-    penetration is then measured), placed by ``actor_placement`` (None: face to face at a
-    partner's distance, :class:`sim.human_figure.FaceToFace`); ``on_tick(t)`` as in
+    ``traj.robot`` (default "op3"); ``people`` (:class:`sim.human_figure.People`) adds the human
+    figures: with an actor, robot-human penetration is measured (its placement None: face to
+    face at a partner's distance, :class:`sim.human_figure.FaceToFace`); ``on_tick(t)`` as in
     :meth:`Checker.run` (e.g. progress);
     ``joint_limits`` / ``no_load_speed`` as in :class:`sim.scene.SceneConfig` (for what
     the MJCF does not say)."""
     config = config or CheckConfig()
     config.validate()
     traj = _as_trajectory(traj)
-    scene = scene_for(
-        traj, config, robot, actor, actor_placement, joint_limits=joint_limits, no_load_speed=no_load_speed
-    )
+    scene = scene_for(traj, config, robot, people, joint_limits=joint_limits, no_load_speed=no_load_speed)
     return Checker(scene, config).run(traj, on_tick=on_tick)
 
 
@@ -267,26 +263,16 @@ def scene_for(
     traj: RobotTrajectory,
     config: CheckConfig,
     robot: str | None = None,
-    actor: Motion | None = None,
-    actor_placement: Placement | FaceToFace | None = None,
-    reactor: Motion | None = None,
-    reactor_placement: Placement | FaceToFace | None = None,
+    people: People | None = None,
     joint_limits: dict | None = None,
     no_load_speed=None,
 ) -> Scene:
     """The scene a check of ``traj`` runs in (robot from ``robot``, ``traj.robot`` or op3). The
-    actor stands face to face with the robot's first frame unless ``actor_placement`` says
-    otherwise; the reactor (the person the robot plays) is drawn where ``reactor_placement`` puts
+    actor of ``people`` stands face to face with the robot's first frame unless its placement
+    says otherwise; the reactor (the person the robot plays) is drawn where its placement puts
     it (None: as the file has it)."""
     robot = robot or traj.robot or "op3"
-    actor_placement = actor_placement or FaceToFace()
-    if isinstance(actor_placement, FaceToFace) and actor_placement.path is None and config.mode == "free":
-        # keep the partner's distance from the root's planned path, not just its first frame
-        actor_placement = replace(
-            actor_placement,
-            path=tuple(map(tuple, np.round(traj.root_pos[:, :2], 6).tolist())),
-            path_fps=float(traj.fps),
-        )
+    people = people or People()
     return Scene(
         SceneConfig(
             robot=robot,
@@ -294,14 +280,29 @@ def scene_for(
             base_pos=tuple(traj.root_pos[0]),
             base_quat=tuple(traj.root_quat[0]),
             timestep=1.0 / config.physics_hz,
-            actor=actor,
-            actor_placement=actor_placement,
-            reactor=reactor,
-            reactor_placement=reactor_placement or Placement(),
+            actor=people.actor,
+            actor_placement=_actor_placement(traj, config, people.actor_placement),
+            reactor=people.reactor,
+            reactor_placement=people.reactor_placement or Placement(),
             joint_limits=joint_limits,
             no_load_speed=no_load_speed,
         )
     )
+
+
+def _actor_placement(
+    traj: RobotTrajectory, config: CheckConfig, placement: Placement | FaceToFace | None
+) -> Placement | FaceToFace:
+    """``placement`` (None: :class:`FaceToFace`); a free robot's face-to-face partner keeps its
+    distance from the root's planned path, not just from its first frame."""
+    placement = placement or FaceToFace()
+    if isinstance(placement, FaceToFace) and placement.path is None and config.mode == "free":
+        placement = replace(
+            placement,
+            path=tuple(map(tuple, np.round(traj.root_pos[:, :2], 6).tolist())),
+            path_fps=float(traj.fps),
+        )
+    return placement
 
 
 @dataclass
@@ -793,15 +794,21 @@ class Checker:
 
     def _judge(self, s: Series) -> list[Failure]:
         """The failed criteria (module docstring), each at its first tick."""
-        cfg, r, m = self.config, self.scene.robot, self.scene.model
-        t, q_cmd, q, tau, root_h, tilt, contacts = s.t, s.q_cmd, s.q, s.tau, s.root_h, s.tilt, s.contacts
-        self_min, human_min, K_run, fall_k, dt = contacts.self_min, s.human_min, s.k_run, s.fall_k, s.dt
-        names = r.joint_names
+        return [
+            *self._command_failures(s),
+            *self._fall_failures(s),
+            *self._contact_failures(s),
+            *self._sustained_failures(s),
+        ]
+
+    def _command_failures(self, s: Series) -> list[Failure]:
+        """Commands outside the joint limits or faster than the servos' no-load speed."""
+        cfg, r = self.config, self.scene.robot
+        t, q_cmd, names = s.t, s.q_cmd, r.joint_names
         out: list[Failure] = []
-        below = q_cmd < r.lower - 1e-6
-        above = q_cmd > r.upper + 1e-6
-        if (below | above).any():
-            k, j = np.argwhere(below | above)[0]
+        outside = (q_cmd < r.lower - 1e-6) | (q_cmd > r.upper + 1e-6)
+        if outside.any():
+            k, j = np.argwhere(outside)[0]
             out.append(
                 Failure(
                     "joint_limit",
@@ -810,7 +817,7 @@ class Checker:
                 )
             )
         if len(t) > 1:
-            speed = np.abs(np.diff(q_cmd, axis=0)) / dt
+            speed = np.abs(np.diff(q_cmd, axis=0)) / s.dt
             hit = speed > cfg.speed_tolerance * r.no_load_speed
             if hit.any():
                 k, j = np.argwhere(hit)[0]
@@ -822,15 +829,28 @@ class Checker:
                         f"above the servo's no-load speed {r.no_load_speed[j]:.2f} rad/s",
                     )
                 )
-        if fall_k is not None:
-            if contacts.non_foot[fall_k]:
-                parts = ", ".join(body_label(m, b) for b in contacts.non_foot_bodies(fall_k))
-                why = f"a part other than a foot touched the floor ({parts})"
-            elif tilt[fall_k] > cfg.fall_tilt_deg:
-                why = f"torso tilt {tilt[fall_k]:.0f} deg (limit {cfg.fall_tilt_deg:g} deg)"
-            else:
-                why = f"root height {root_h[fall_k]:.3f} m (standing {s.stand_h:.3f} m)"
-            out.append(Failure("fall", float(t[fall_k]), why))
+        return out
+
+    def _fall_failures(self, s: Series) -> list[Failure]:
+        """The fall (if any), with what made it one: a non-foot part down, tilt or root height."""
+        k = s.fall_k
+        if k is None:
+            return []
+        cfg, contacts = self.config, s.contacts
+        if contacts.non_foot[k]:
+            parts = ", ".join(body_label(self.scene.model, b) for b in contacts.non_foot_bodies(k))
+            why = f"a part other than a foot touched the floor ({parts})"
+        elif s.tilt[k] > cfg.fall_tilt_deg:
+            why = f"torso tilt {s.tilt[k]:.0f} deg (limit {cfg.fall_tilt_deg:g} deg)"
+        else:
+            why = f"root height {s.root_h[k]:.3f} m (standing {s.stand_h:.3f} m)"
+        return [Failure("fall", float(s.t[k]), why)]
+
+    def _contact_failures(self, s: Series) -> list[Failure]:
+        """Robot parts deep in each other, and the robot deep in the human figure."""
+        cfg, t, K_run = self.config, s.t, s.k_run
+        self_min = s.contacts.self_min
+        out: list[Failure] = []
         k = _first(self_min[:K_run] < -cfg.self_collision_depth)
         if k is not None:
             out.append(
@@ -842,39 +862,42 @@ class Checker:
                 )
             )
         if s.has_actor:
-            k = _first(human_min[:K_run] < -cfg.human_penetration_depth)
+            k = _first(s.human_min[:K_run] < -cfg.human_penetration_depth)
             if k is not None:
                 out.append(
                     Failure(
                         "human_penetration",
                         float(t[k]),
-                        f"robot enters the human figure by {-human_min[k] * 1000:.1f} mm",
+                        f"robot enters the human figure by {-s.human_min[k] * 1000:.1f} mm",
                     )
                 )
-        sat = np.abs(tau[:K_run]) >= 0.99 * r.stall_torque
-        w = int(round(cfg.saturation_window_s / dt))
-        firsts = [(_first_sustained(sat[:, j], w), j) for j in range(r.n)]
-        firsts = [(k, j) for k, j in firsts if k is not None]
-        if firsts:
-            k, j = min(firsts)
+        return out
+
+    def _sustained_failures(self, s: Series) -> list[Failure]:
+        """Stall torque or tracking error held for their windows, at the earliest joint's first tick."""
+        cfg, r, K_run, dt = self.config, self.scene.robot, s.k_run, s.dt
+        out: list[Failure] = []
+        sat = np.abs(s.tau[:K_run]) >= 0.99 * r.stall_torque
+        hit = _first_sustained_joint(sat, int(round(cfg.saturation_window_s / dt)))
+        if hit is not None:
+            k, j = hit
             out.append(
                 Failure(
                     "torque_saturation",
-                    float(t[k]),
-                    f"{names[j]} at its stall torque {r.stall_torque[j]:g} N m for over {cfg.saturation_window_s:g} s",
+                    float(s.t[k]),
+                    f"{r.joint_names[j]} at its stall torque {r.stall_torque[j]:g} N m "
+                    f"for over {cfg.saturation_window_s:g} s",
                 )
             )
-        err = np.abs(q[:K_run] - q_cmd[:K_run])
-        w = int(round(cfg.tracking_window_s / dt))
-        firsts = [(_first_sustained(err[:, j] > cfg.max_tracking_error, w), j) for j in range(r.n)]
-        firsts = [(k, j) for k, j in firsts if k is not None]
-        if firsts:
-            k, j = min(firsts)
+        lagging = np.abs(s.q[:K_run] - s.q_cmd[:K_run]) > cfg.max_tracking_error
+        hit = _first_sustained_joint(lagging, int(round(cfg.tracking_window_s / dt)))
+        if hit is not None:
+            k, j = hit
             out.append(
                 Failure(
                     "tracking_error",
-                    float(t[k]),
-                    f"{names[j]} lags its command by over "
+                    float(s.t[k]),
+                    f"{r.joint_names[j]} lags its command by over "
                     f"{cfg.max_tracking_error:g} rad for {cfg.tracking_window_s:g} s",
                 )
             )
@@ -1075,6 +1098,14 @@ def _first_sustained(mask: np.ndarray, window: int) -> int | None:
     c = np.concatenate([[0], np.cumsum(mask)])
     full = np.flatnonzero(c[window:] - c[:-window] == window)
     return int(full[0]) if len(full) else None
+
+
+def _first_sustained_joint(mask: np.ndarray, window: int) -> tuple[int, int] | None:
+    """(tick, joint) of the earliest run of ``window`` True ticks in any column of ``mask``
+    (K, n); ties go to the lower joint index."""
+    firsts = [(_first_sustained(mask[:, j], window), j) for j in range(mask.shape[1])]
+    firsts = [(k, j) for k, j in firsts if k is not None]
+    return min(firsts) if firsts else None
 
 
 def _per_joint(names, values) -> dict:

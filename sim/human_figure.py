@@ -121,6 +121,19 @@ class FaceToFace:
         return np.stack([np.interp(t, tp, path[:, i]) for i in (0, 1)], axis=1)
 
 
+@dataclass(frozen=True)
+class People:
+    """The people drawn beside the robot. ``actor``: the partner the robot answers, placed by
+    ``actor_placement`` (None: :class:`FaceToFace`); ``reactor``: the person the robot plays,
+    drawn for comparison where ``reactor_placement`` puts it (None: as its file has it). Either
+    motion None: that person is not in the scene."""
+
+    actor: Motion | None = None
+    actor_placement: Placement | FaceToFace | None = None
+    reactor: Motion | None = None
+    reactor_placement: Placement | FaceToFace | None = None
+
+
 def estimate_height(motion: Motion) -> float:
     """A person's standing height (m) from the first frame's head-to-foot span."""
     p = motion.positions[0]

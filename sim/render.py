@@ -184,13 +184,11 @@ def render_trajectory(
     config: RenderConfig | None = None,
     check_config=None,
     robot: str | None = None,
-    actor=None,
-    actor_placement=None,
-    reactor=None,
-    reactor_placement=None,
+    people=None,
     on_tick=None,
 ):
-    """Film ``traj`` (RobotTrajectory or npz path) to ``out_path`` (.mp4).
+    """Film ``traj`` (RobotTrajectory or npz path) to ``out_path`` (.mp4), with ``people``
+    (:class:`sim.human_figure.People`, None: the robot alone) beside the robot.
 
     Returns (path, CheckResult): the physics check of ``traj`` in the same scene, with the
     same people placed the same way (:func:`sim.check.check_trajectory` gives the same verdict):
@@ -209,7 +207,7 @@ def render_trajectory(
     check_config = check_config or CheckConfig()
     check_config.validate()
     traj = _as_trajectory(traj)
-    scene = scene_for(traj, check_config, robot, actor, actor_placement, reactor, reactor_placement)
+    scene = scene_for(traj, check_config, robot, people)
     filmer = Filmer(scene, config)
     result = None
     try:

@@ -143,7 +143,8 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
     for j in result.joint_names:
         lines.append(
             f"| {j} | {_num(m['tracking_rms_rad'][j])} | {_num(m['tracking_max_rad'][j])} | "
-            f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['stall_torque_nm'][j])} | {_num(m['torque_saturation_s'][j])} | "
+            f"{_num(m['max_abs_torque_nm'][j])} | {_num(m['stall_torque_nm'][j])} | "
+            f"{_num(m['torque_saturation_s'][j])} | "
             f"{_num(m['max_command_speed_rad_s'][j])} | {_num(m['no_load_speed_rad_s'][j])} | "
             f"{m['speed_limit_hits'][j]} |"
         )

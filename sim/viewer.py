@@ -32,11 +32,10 @@ def require_display() -> None:
         )
 
 
-def view(
-    traj=None, robot: str | None = None, check_config=None, actor=None, actor_placement=None, loop: bool = False
-) -> None:
+def view(traj=None, robot: str | None = None, check_config=None, people=None, loop: bool = False) -> None:
     """Open the viewer on ``traj`` (RobotTrajectory or npz path), or on the robot
-    standing still in its standing pose when ``traj`` is None."""
+    standing still in its standing pose when ``traj`` is None; ``people``
+    (:class:`sim.human_figure.People`) beside it."""
     require_display()
     import mujoco
     import mujoco.viewer
@@ -60,7 +59,7 @@ def view(
             robot=scene.config.robot,
         )
     traj = _as_trajectory(traj)
-    scene = scene_for(traj, check_config, robot, actor, actor_placement)
+    scene = scene_for(traj, check_config, robot, people)
     try:
         handle = mujoco.viewer.launch_passive(scene.model, scene.data)
     except Exception as exc:  # GLFW raises several types when the display is unusable

@@ -248,7 +248,8 @@ def test_firmware_cfg_imports_nothing_of_ours_and_no_torch():
 
     code = (
         "import sys, firmware_cfg.config, firmware_cfg.serial_link, firmware_cfg.servo_models\n"
-        "ours = [m for m in sys.modules if m.split('.')[0] in ('ros_free_bridge', 'sim', 'retarget', 'dualflow', 'torch')]\n"
+        "ours = [m for m in sys.modules if m.split('.')[0] in "
+        "('ros_free_bridge', 'sim', 'retarget', 'dualflow', 'torch')]\n"
         "assert not ours, ours\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

@@ -154,7 +154,10 @@ def test_a_clip_page_in_chromium_shows_the_video_plots_and_reports(report):
 
 
 def test_markdown_of_our_reports_becomes_html():
-    md = "# Title\n\n**FAIL: fall at 1.00 s**\n\n| a | b |\n|---|---|\n| 1 | <x> |\n\n- one\n- two\n\n![Plot](check_1.png)\n"
+    md = (
+        "# Title\n\n**FAIL: fall at 1.00 s**\n\n| a | b |\n|---|---|\n| 1 | <x> |\n\n"
+        "- one\n- two\n\n![Plot](check_1.png)\n"
+    )
     html = markdown_to_html(md, shift=1)
     assert "<h2>Title</h2>" in html and "<strong>FAIL: fall at 1.00 s</strong>" in html
     assert "<td>&lt;x&gt;</td>" in html and "<li>two</li>" in html and 'src="check_1.png"' in html

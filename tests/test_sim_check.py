@@ -13,7 +13,7 @@ from firmware_cfg.registry import joint_names
 from retarget import RobotTrajectory
 from sim import SimError
 from sim.check import HUMAN_DISTANCE_CAP, CheckConfig, check_trajectory, resample
-from sim.human_figure import Placement
+from sim.human_figure import People, Placement
 from sim.report import write_report
 from sim.scene import Scene, SceneConfig
 
@@ -140,13 +140,11 @@ def test_robot_entering_the_human_fails(stand):
     pos = np.tile(REST_POSE, (61, 1, 1))
     actor = Motion(pos, 30.0, name="overlapping person")
     # a person scaled to the robot's size standing where the robot stands
-    result = check_trajectory(
-        make(lambda tt: stand, 2.0), actor=actor, actor_placement=Placement("robot", (0.02, 0, 0))
-    )
+    result = check_trajectory(make(lambda tt: stand, 2.0), people=People(actor, Placement("robot", (0.02, 0, 0))))
     assert result.reason == "human_penetration"
     assert result.metrics["min_human_distance_m"] < -0.005
     far = check_trajectory(
-        make(lambda tt: stand, 1.0), actor=Motion(pos[:31], 30.0), actor_placement=Placement("robot", (0.6, 0, 0))
+        make(lambda tt: stand, 1.0), people=People(Motion(pos[:31], 30.0), Placement("robot", (0.6, 0, 0)))
     )
     assert far.passed and far.metrics["min_human_distance_m"] == pytest.approx(HUMAN_DISTANCE_CAP)
 
@@ -250,9 +248,9 @@ def test_cmu_actor_is_placed_and_measured(cmu_pair_paths, stand):
     assert 0.2 < scale < 0.4  # an adult scaled to a 0.51 m robot
     pelvis = reactor.positions[0, 0]
     apart = Placement(scale, (-scale * pelvis[0], -scale * pelvis[1], 0.0))
-    ok = check_trajectory(make(lambda tt: stand, 1.4), actor=actor, actor_placement=apart)
+    ok = check_trajectory(make(lambda tt: stand, 1.4), people=People(actor, apart))
     assert ok.passed, ok.failures
     assert ok.metrics["min_human_distance_m"] == pytest.approx(HUMAN_DISTANCE_CAP)  # over 0.1 m away
     on_top = Placement(scale, (-scale * actor.positions[0, 0, 0], -scale * actor.positions[0, 0, 1], 0.0))
-    hit = check_trajectory(make(lambda tt: stand, 1.4), actor=actor, actor_placement=on_top)
+    hit = check_trajectory(make(lambda tt: stand, 1.4), people=People(actor, on_top))
     assert hit.reason == "human_penetration"

@@ -19,7 +19,7 @@ from firmware_cfg.registry import joint_names
 from retarget import RobotTrajectory
 from ros_free_bridge.cli import main
 from sim.check import HUMAN_DISTANCE_CAP, CheckConfig, _stance_slides, check_trajectory, entry_duration
-from sim.human_figure import FaceToFace, Placement, place
+from sim.human_figure import FaceToFace, People, Placement, place
 from sim.scene import Scene, SceneConfig
 
 FPS = 30.0
@@ -203,10 +203,10 @@ def test_default_partner_does_not_collide_explicit_overlap_does(stand):
         return out
 
     traj = make(wave, 1.5, yaw=0.7)
-    ok = check_trajectory(traj, actor=actor)
+    ok = check_trajectory(traj, people=People(actor))
     assert ok.passed, ok.failures
     assert ok.metrics["min_human_distance_m"] == pytest.approx(HUMAN_DISTANCE_CAP)
-    on_top = check_trajectory(traj, actor=actor, actor_placement=Placement("robot", (0.02, 0.0, 0.0)))
+    on_top = check_trajectory(traj, people=People(actor, Placement("robot", (0.02, 0.0, 0.0))))
     assert on_top.reason == "human_penetration"
 
 
@@ -237,7 +237,7 @@ def test_cmu_actor_by_default_keeps_a_partner_distance(cmu_pair_paths, stand):
     gaps = np.linalg.norm(pelvis - path, axis=1)
     partner = 0.6 * sc.robot_height
     assert gaps.min() > partner - 0.003 and gaps[0] > partner + 0.05  # they start apart and close in
-    result = check_trajectory(traj, actor=actor)  # the default placement is this one
+    result = check_trajectory(traj, people=People(actor))  # the default placement is this one
     assert "human_penetration" not in reasons(result) and result.metrics["min_human_distance_m"] > 0
 
 
@@ -346,10 +346,13 @@ def test_render_verdict_is_the_checks(stand, tmp_path):
         return out
 
     traj = make(wave, 1.0)
-    check = check_trajectory(traj, actor=actor)
+    check = check_trajectory(traj, people=People(actor))
     for playback in ("physics", "kinematic"):
         _, filmed = render_trajectory(
-            traj, tmp_path / f"{playback}.mp4", RenderConfig(width=64, height=48, fps=5, playback=playback), actor=actor
+            traj,
+            tmp_path / f"{playback}.mp4",
+            RenderConfig(width=64, height=48, fps=5, playback=playback),
+            people=People(actor),
         )
         assert filmed.summary()["passed"] == check.passed and filmed.reason == check.reason
         assert filmed.metrics["min_human_distance_m"] == pytest.approx(check.metrics["min_human_distance_m"])

@@ -16,6 +16,7 @@ from firmware_cfg.registry import joint_names
 from retarget import RobotTrajectory
 from ros_free_bridge.cli import main
 from sim import SimError
+from sim.human_figure import People
 from sim.render import CameraConfig, RenderConfig, render_trajectory
 from sim.scene import Scene
 
@@ -59,7 +60,10 @@ def test_render_side_by_side_mp4(wave_npz, tmp_path):
     reactor = Motion(np.tile(REST_POSE, (31, 1, 1)), 30.0)
     out = tmp_path / "duet.mp4"
     path, result = _render(
-        wave_npz, out, RenderConfig(width=160, height=128, fps=10, side_by_side=True), actor=actor, reactor=reactor
+        wave_npz,
+        out,
+        RenderConfig(width=160, height=128, fps=10, side_by_side=True),
+        people=People(actor, reactor=reactor),
     )
     assert path == out and result.passed
     frames = [f for f in imageio.get_reader(out)]

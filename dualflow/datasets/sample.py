@@ -101,7 +101,8 @@ class DuetSample:
         """Frames [start, start + length) of the clip (music cut alike), as a new sample."""
         if start < 0 or length < 2 or start + length > self.n_frames:
             raise DualFlowError(
-                f"{self.source}/{self.name}: window [{start}, {start + length}) is outside the clip's {self.n_frames} frames"
+                f"{self.source}/{self.name}: window [{start}, {start + length}) "
+                f"is outside the clip's {self.n_frames} frames"
             )
         music = None if self.music is None else self.music[start : start + length]
         if music is not None and len(music) == 0:

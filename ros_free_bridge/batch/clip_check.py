@@ -195,14 +195,14 @@ def _scene_placement(robot, traj, reactor, fixed: bool):
 def _physics_check(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     """``check.md`` and its plots in ``out``; the row's verdict (a retarget failure stays the reason)."""
     from sim.check import CheckConfig, check_trajectory
+    from sim.human_figure import People
     from sim.report import write_report
 
     check = check_trajectory(
         scene.traj,
         CheckConfig(mode="fixed" if scene.fixed else "free"),
         robot=cfg.robot,
-        actor=scene.partner,
-        actor_placement=scene.placement,
+        people=People(scene.partner, scene.placement),
     )
     write_report(check, out, "check")
     res.files["check_report"] = "check.md"
@@ -225,7 +225,7 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
 
     from sim.check import CheckConfig
     from sim.errors import SimError
-    from sim.human_figure import Placement
+    from sim.human_figure import People, Placement
     from sim.render import RenderConfig, render_trajectory
 
     traj, robot, src, partner, placement = scene.traj, scene.robot, scene.src, scene.partner, scene.placement
@@ -241,10 +241,7 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
                 RenderConfig(width=w, height=h, fps=cfg.video_fps, side_by_side=True),
                 check_cfg,
                 robot=cfg.robot,
-                actor=partner,
-                actor_placement=placement,
-                reactor=src,
-                reactor_placement=on_robot,
+                people=People(partner, placement, src, on_robot),
             )
         else:
             # the person one robot height to the robot's left (as the robot faces at the first frame)
@@ -261,8 +258,7 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
                 RenderConfig(width=2 * w, height=h, fps=cfg.video_fps),
                 check_cfg,
                 robot=cfg.robot,
-                actor=src,
-                actor_placement=beside,
+                people=People(src, beside),
             )
         res.files["video"] = VIDEO
     except SimError as exc:  # e.g. no OpenGL context on this machine

@@ -177,7 +177,8 @@ def index_page(rows, settings: dict, total: int | None = None) -> str:
     note = (
         ""
         if total is None or total == n
-        else f' <span class="muted">({n} of {total} clips done: the batch was interrupted; --resume continues it)</span>'
+        else f' <span class="muted">({n} of {total} clips done: '
+        "the batch was interrupted; --resume continues it)</span>"
     )
     what = ", ".join(f"{k} {_e(settings[k])}" for k in ("robot", "retargeter") if settings.get(k) is not None)
     heads = "".join(

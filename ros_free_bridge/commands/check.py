@@ -21,7 +21,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--robot",
         metavar="NAME|DIR",
-        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF (default: the trajectory's robot, else op3)",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF "
+        "(default: the trajectory's robot, else op3)",
     )
     add_mode_option(p)
     p.add_argument(
@@ -140,6 +141,7 @@ def load_human(path):
 
 def run(args) -> int:
     from sim.check import CheckConfig, check_trajectory
+    from sim.human_figure import People
     from sim.report import warning_lines, write_json, write_report
 
     config = CheckConfig(
@@ -157,8 +159,7 @@ def run(args) -> int:
             args.trajectory,
             config,
             robot=args.robot,
-            actor=load_human(args.actor),
-            actor_placement=placement_from_args(args),
+            people=People(load_human(args.actor), placement_from_args(args)),
         )
     except (SimError, RetargetError) as exc:  # name the file where the message does not (a joint mismatch)
         if str(args.trajectory) in str(exc) or (args.actor and str(args.actor) in str(exc)):

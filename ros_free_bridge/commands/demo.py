@@ -77,13 +77,11 @@ def click_track(beat_times: np.ndarray, seconds: float, path: Path, sr: int = 22
 
 def demo(args) -> int:
     from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint
-    from ros_free_bridge.commands.run import StatusLine, generator_options, print_summary
+    from ros_free_bridge.commands.run import StatusLine, generator_options
     from ros_free_bridge.robots import resolve_robot
     from ros_free_bridge.run_video import render_video
     from ros_free_bridge.session import SessionOptions, run_session
-    from ros_free_bridge.telemetry.log import read_telemetry
-    from sim.check import CheckConfig, check_trajectory
-    from sim.report import stabilizer_line, write_report
+    from sim.report import write_report
 
     files = resolve_robot(args.robot)
     if files.hardware is None and not args.no_bus:
@@ -95,17 +93,7 @@ def demo(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.monotonic()
-    ckpt = load_checkpoint(args.model or BUNDLED_CHECKPOINT)
-    music = args.music
-    if str(ckpt.meta.get("music", "none")) == "none":
-        if music:
-            print("note: this model was trained without music; --music is ignored", file=sys.stderr)
-        music = None
-    elif music is None:
-        beats = leader_beats(args.actor, args.seconds, args.seed)
-        if beats is not None:
-            music = str(click_track(beats[0], beats[1], out / "music.wav"))
-            print(f"music: a click track {beats[2]} ({out / 'music.wav'})", file=sys.stderr)
+    music = _demo_music(args, load_checkpoint(args.model or BUNDLED_CHECKPOINT).meta, out)
 
     print(
         f"[1/3] streaming: leader -> DualFlow partner -> retarget -> virtual robot"
@@ -128,23 +116,59 @@ def demo(args) -> int:
     result = run_session(opts, on_status=StatusLine())
     sys.stderr.write("\n")
 
-    tel = read_telemetry(out / "telemetry.dftl")
-    # the commands without the loop's stabilizer corrections: the check runs its own stabilizer on
-    # its own simulated robot (off with --no-stabilizer, as in the run)
-    commands = tel.commands_trajectory(result.files.ref, without_correction=True)
-    with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
-        check = check_trajectory(
-            commands,
-            CheckConfig(control_hz=tel.rate_hz, stabilizer=not args.no_stabilizer),
-            robot=result.files.ref,
-            on_tick=tick,
-        )
+    check = _check_commands(result, out, stabilizer=not args.no_stabilizer)
     reports = write_report(check, out, "check")
 
     video = None
     if not args.no_video:
         with motion_progress("[3/3] rendering the video", result.robot_motion.duration) as tick:
             video = render_video(result, out / "demo.mp4", on_tick=tick)
+
+    _print_demo_summary(result, check, reports, video)
+    print(f"done in {time.monotonic() - t_start:.0f} s")
+    ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed
+    return 0 if ok else 1
+
+
+def _demo_music(args, model_meta: dict, out: Path) -> str | None:
+    """The music the partner hears: ``--music``, else a click track on the leader's beats
+    (written to ``out/music.wav``) when it has any; None for a model trained without music."""
+    music = args.music
+    if str(model_meta.get("music", "none")) == "none":
+        if music:
+            print("note: this model was trained without music; --music is ignored", file=sys.stderr)
+        return None
+    if music is None:
+        beats = leader_beats(args.actor, args.seconds, args.seed)
+        if beats is not None:
+            music = str(click_track(beats[0], beats[1], out / "music.wav"))
+            print(f"music: a click track {beats[2]} ({out / 'music.wav'})", file=sys.stderr)
+    return music
+
+
+def _check_commands(result, out: Path, stabilizer: bool):
+    """The physics check (:class:`sim.check.CheckResult`) of the commands the run sent, read
+    back from ``out/telemetry.dftl``."""
+    from ros_free_bridge.telemetry.log import read_telemetry
+    from sim.check import CheckConfig, check_trajectory
+
+    tel = read_telemetry(out / "telemetry.dftl")
+    # the commands without the loop's stabilizer corrections: the check runs its own stabilizer on
+    # its own simulated robot (off with --no-stabilizer, as in the run)
+    commands = tel.commands_trajectory(result.files.ref, without_correction=True)
+    with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
+        return check_trajectory(
+            commands,
+            CheckConfig(control_hz=tel.rate_hz, stabilizer=stabilizer),
+            robot=result.files.ref,
+            on_tick=tick,
+        )
+
+
+def _print_demo_summary(result, check, reports: dict, video) -> None:
+    """The run's summary, the check's verdict and the files written."""
+    from ros_free_bridge.commands.run import print_summary
+    from sim.report import stabilizer_line
 
     print_summary(result)
     print(
@@ -156,9 +180,6 @@ def demo(args) -> int:
         print(f"{name}: {path}")
     if video is not None:
         print(f"video: {video}")
-    print(f"done in {time.monotonic() - t_start:.0f} s")
-    ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed
-    return 0 if ok else 1
 
 
 def leader_beats(actor: str, seconds: float, seed: int):

@@ -50,6 +50,16 @@ def register(subparsers) -> None:
         "evaluator and print a table shaped like the paper's Table 1.",
     )
     _dataset_args(parser, "test")
+    _row_args(parser)
+    _protocol_args(parser)
+    _output_args(parser)
+    parser.set_defaults(func=run_eval)
+    sub = parser.add_subparsers(dest="eval_action", metavar="ACTION")
+    _register_train_evaluator(sub)
+
+
+def _row_args(parser) -> None:
+    """The checkpoints to score: the evaluator, the rows and the ablations of the paper's table."""
     parser.add_argument("--evaluator", default=None, help="evaluator folder from `eval train-evaluator`")
     parser.add_argument("--checkpoint", action="append", default=[], metavar="[LABEL=]PATH", help="a row (repeatable)")
     parser.add_argument("--full", metavar="PATH", help="the full model (row 'DualFlow')")
@@ -62,6 +72,10 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--retrieval-k", action="append", default=[], metavar="K=PATH", help="ablation: retrieval depth k"
     )
+
+
+def _protocol_args(parser) -> None:
+    """How the scoring runs: mode, sampling, replications and the metrics' sample counts."""
     parser.add_argument(
         "--mode",
         choices=("interactive", "reactive", "both"),
@@ -101,6 +115,10 @@ def register(subparsers) -> None:
         default=10,
         help="multimodality: pairs of those generations compared per condition (default 10)",
     )
+
+
+def _output_args(parser) -> None:
+    """The protocol's size, the ground-truth row and what is written."""
     parser.add_argument(
         "--quick", action="store_true", help="smaller protocol: " + ", ".join(f"{k}={v}" for k, v in QUICK.items())
     )
@@ -111,8 +129,10 @@ def register(subparsers) -> None:
         action="store_true",
         help="print the training overrides of every ablation switch and exit",
     )
-    parser.set_defaults(func=run_eval)
-    sub = parser.add_subparsers(dest="eval_action", metavar="ACTION")
+
+
+def _register_train_evaluator(sub) -> None:
+    """`eval train-evaluator`: train the motion-text evaluator the scores use."""
     tr = sub.add_parser(
         "train-evaluator",
         help="train the contrastive motion-text evaluator",

@@ -116,7 +116,8 @@ def describe(motion) -> str:
         lines.append(f"  pelvis height               {pos[:, 0, 2].min():.2f} .. {pos[:, 0, 2].max():.2f} m")
         lines.append(f"  lowest foot joint           {pos[:, list(FOOT_JOINTS), 2].min():+.3f} m")
         lines.append(
-            f"  extents  x {lo[0]:+.2f} .. {hi[0]:+.2f}   y {lo[1]:+.2f} .. {hi[1]:+.2f}   z {lo[2]:+.2f} .. {hi[2]:+.2f} m"
+            f"  extents  x {lo[0]:+.2f} .. {hi[0]:+.2f}   y {lo[1]:+.2f} .. {hi[1]:+.2f}   "
+            f"z {lo[2]:+.2f} .. {hi[2]:+.2f} m"
         )
         path = np.linalg.norm(np.diff(pos[:, 0, :2], axis=0), axis=-1).sum()
         lines.append(f"  pelvis ground path          {path:.2f} m")
@@ -268,7 +269,8 @@ def register(subparsers) -> None:
         nargs="?",
         const=DEFAULT_SAMPLE_RULE,
         metavar="RULE",
-        help=f"preview the bundled synthetic duet (rule: mirror, follow, hand_hold, orbit; default {DEFAULT_SAMPLE_RULE})",
+        help="preview the bundled synthetic duet (rule: mirror, follow, hand_hold, orbit; "
+        f"default {DEFAULT_SAMPLE_RULE})",
     )
     prev.add_argument("--seconds", type=float, default=8.0, help="length of the --sample clip (s)")
     prev.add_argument("--seed", type=int, default=0, help="seed of the --sample clip")

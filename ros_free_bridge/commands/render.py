@@ -20,7 +20,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--robot",
         metavar="NAME|DIR",
-        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF (default: the trajectory's robot, else op3)",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF "
+        "(default: the trajectory's robot, else op3)",
     )
     add_mode_option(p)
     p.add_argument(
@@ -52,6 +53,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ros_free_bridge.commands.check import load_human, placement_from_args
     from sim.check import CheckConfig
+    from sim.human_figure import People
     from sim.render import CameraConfig, RenderConfig, render_trajectory
     from sim.report import verdict, warning_lines
 
@@ -70,10 +72,12 @@ def run(args) -> int:
         config,
         CheckConfig(mode=args.mode),
         robot=args.robot,
-        actor=load_human(args.actor),
-        actor_placement=placement_from_args(args, "actor"),
-        reactor=load_human(args.reactor),
-        reactor_placement=placement_from_args(args, "reactor"),
+        people=People(
+            load_human(args.actor),
+            placement_from_args(args, "actor"),
+            load_human(args.reactor),
+            placement_from_args(args, "reactor"),
+        ),
     )
     print(f"wrote {path}")
     print(f"check: {verdict(result)}")  # the same check `check` runs, on the same scene

@@ -36,7 +36,8 @@ def register(subparsers) -> None:
         "--robot",
         default="op3",
         metavar="NAME|DIR",
-        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF with --profile (default op3)",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF "
+        "with --profile (default op3)",
     )
     p.add_argument("--profile", metavar="YAML", help="retarget profile (default: the robot folder's profile.yaml)")
     p.add_argument(

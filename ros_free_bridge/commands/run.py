@@ -153,7 +153,8 @@ def register(sub) -> None:
         "--robot",
         default="op3",
         metavar="NAME|DIR",
-        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`) or its hardware.yaml; sim and record need no hardware config (default: op3)",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`) or its hardware.yaml; "
+        "sim and record need no hardware config (default: op3)",
     )
     p.add_argument(
         "--actor",

@@ -461,7 +461,8 @@ def run_provision(args) -> int:
         )
         if not args.dry_run:
             print(
-                "note: RAM settings (gains, profiles, watchdog) are lost at power-off; the bridge re-applies them at start"
+                "note: RAM settings (gains, profiles, watchdog) are lost at power-off; "
+                "the bridge re-applies them at start"
             )
     return 0
 

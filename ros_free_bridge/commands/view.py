@@ -19,7 +19,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--robot",
         metavar="NAME|DIR",
-        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF (default: the trajectory's robot, else op3)",
+        help="the robot: a bundled name (op3, ub14), a robot folder (see `robot init`), or an MJCF "
+        "(default: the trajectory's robot, else op3)",
     )
     add_mode_option(p)
     p.add_argument("--loop", action="store_true", help="replay until the window is closed")
@@ -30,6 +31,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from ros_free_bridge.commands.check import load_human, placement_from_args
     from sim.check import CheckConfig
+    from sim.human_figure import People
     from sim.viewer import require_display, view
 
     require_display()
@@ -37,8 +39,7 @@ def run(args) -> int:
         args.trajectory,
         robot=args.robot,
         check_config=CheckConfig(mode=args.mode),
-        actor=load_human(args.actor),
-        actor_placement=placement_from_args(args),
+        people=People(load_human(args.actor), placement_from_args(args)),
         loop=args.loop,
     )
     return 0

@@ -100,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
             os.replace(tmp, args.link)
         print(emu.port_path, flush=True)
         print(
-            f"{len(servos) - len(args.device)} x {model} (+ {len(args.device)} device(s)) at {args.baud} bps, protocol {args.protocol}; Ctrl-C to stop",
+            f"{len(servos) - len(args.device)} x {model} (+ {len(args.device)} device(s)) "
+            f"at {args.baud} bps, protocol {args.protocol}; Ctrl-C to stop",
             file=sys.stderr,
             flush=True,
         )

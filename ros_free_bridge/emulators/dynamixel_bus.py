@@ -56,7 +56,8 @@ _BAUD_CONSTANTS = {
 @dataclass(frozen=True)
 class ServoSpec:
     """One servo on the emulated bus: its ID, model (name or number; a device model's name,
-    e.g. ``OpenCR``, makes a non-servo device instead), start position in ticks (None: the model's center) and an optional allowed goal range in ticks; a goal
+    e.g. ``OpenCR``, makes a non-servo device instead), start position in ticks (None: the model's
+    center) and an optional allowed goal range in ticks; a goal
     outside it is recorded in ``emu.violations`` (it is still applied if the servo's own
     limits accept it)."""
 

@@ -103,12 +103,14 @@ class SerialLinkTransport:
             )
             if ack.version != sl.PROTOCOL_VERSION:
                 raise BridgeError(
-                    f"serial link {self.port_name}: board speaks DFSL v{ack.version}, host v{sl.PROTOCOL_VERSION}; update the firmware"
+                    f"serial link {self.port_name}: board speaks DFSL v{ack.version}, "
+                    f"host v{sl.PROTOCOL_VERSION}; update the firmware"
                 )
             need = int(self._channels.max()) + 1
             if ack.n_channels < need:
                 raise BridgeError(
-                    f"serial link {self.port_name}: board {ack.name!r} has {ack.n_channels} channels but the config uses channel {need - 1}"
+                    f"serial link {self.port_name}: board {ack.name!r} has {ack.n_channels} channels "
+                    f"but the config uses channel {need - 1}"
                 )
             self.board = ack
             self._send_limits()

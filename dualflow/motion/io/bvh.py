@@ -354,7 +354,8 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
         frame_time = float(header["frame time"][0])
     except ValueError:
         raise DualFlowError(
-            f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be a number, found {header['frame time'][0]!r}"
+            f"{source}, line {header['frame time'][1]}: 'Frame Time:' must be a number, "
+            f"found {header['frame time'][0]!r}"
         ) from None
     lo, hi = FRAME_TIME_RANGE
     if not lo <= frame_time <= hi:  # NaN fails too

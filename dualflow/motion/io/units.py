@@ -126,7 +126,8 @@ def _signed_axis(v: np.ndarray, what: str, source: str) -> np.ndarray:
     k = int(np.argmax(np.abs(v)))
     if np.abs(v[k]) < 0.7 * np.linalg.norm(v):
         raise DualFlowError(
-            f"{source}: cannot tell the {what} axis from the rest pose (direction {np.round(v, 3).tolist()}); pass --up y or --up z"
+            f"{source}: cannot tell the {what} axis from the rest pose (direction {np.round(v, 3).tolist()}); "
+            "pass --up y or --up z"
         )
     out = np.zeros(3)
     out[k] = np.sign(v[k])
