@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 from dualflow.checkpoint import bundled_checkpoint, load_checkpoint  # noqa: E402
 from dualflow.datasets.training import positions_from_normalized  # noqa: E402
-from dualflow.flow import generate  # noqa: E402
+from dualflow.flow import SamplingSettings, generate  # noqa: E402
 from dualflow.model import Conditions  # noqa: E402
 from dualflow.motion.features import encode_pair  # noqa: E402
 from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report  # noqa: E402
@@ -93,9 +93,23 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     # 1. timing --------------------------------------------------------------------------
     with torch.no_grad():
         first = cond.slice_frames(0, args.window)
-        generate(model, args.window, first, mode="reactive", x_actor=actor[None, : args.window], steps=2)  # warm-up
+        generate(
+            model,
+            args.window,
+            first,
+            mode="reactive",
+            x_actor=actor[None, : args.window],
+            sampling=SamplingSettings(steps=2),
+        )  # warm-up
         tic = time.perf_counter()
-        generate(model, args.window, first, mode="reactive", x_actor=actor[None, : args.window], steps=args.steps)
+        generate(
+            model,
+            args.window,
+            first,
+            mode="reactive",
+            x_actor=actor[None, : args.window],
+            sampling=SamplingSettings(steps=args.steps),
+        )
         offline_ms = (time.perf_counter() - tic) * 1000 / args.window
     s1 = stream(model, actor, cond, stats, window=args.window, hop=1, steps=args.steps)
     si = stream(model, actor, cond, stats, window=args.window, hop=1, steps=args.steps, incremental=True)

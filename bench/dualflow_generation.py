@@ -34,7 +34,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.table import NA, Row, parse_args, script_main, verdict  # noqa: E402
-from dualflow.flow import generate  # noqa: E402
+from dualflow.flow import SamplingSettings, generate  # noqa: E402
 from dualflow.model import Conditions, DualFlow, DualFlowConfig  # noqa: E402
 from dualflow.motion.features import encode_person  # noqa: E402
 from dualflow.streaming import ReactiveStreamer, StreamConfig  # noqa: E402
@@ -119,9 +119,13 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         def run():
             with torch.inference_mode():
                 if mode == "reactive":
-                    generate(model, n, cond, mode="reactive", x_actor=actor, steps=steps, seed=0)
+                    generate(
+                        model, n, cond, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=steps, seed=0)
+                    )
                 else:
-                    generate(model, n, cond, mode="interactive", batch=1, steps=steps, seed=0)
+                    generate(
+                        model, n, cond, mode="interactive", batch=1, sampling=SamplingSettings(steps=steps, seed=0)
+                    )
 
         return run
 

@@ -60,7 +60,7 @@ class DuetGenerator:
         """(duet, the inputs the network got). actor / text / music / n_frames: see
         :meth:`ConditionBuilder.build`; steps / method / cfg_scale / seed: the ODE sampler
         (:func:`dualflow.flow.generate`)."""
-        from dualflow.flow import generate
+        from dualflow.flow import SamplingSettings, generate
 
         inputs = self.builder.build(actor=actor, text=text, music=music, n_frames=n_frames)
         param = next(self.model.parameters())
@@ -76,10 +76,7 @@ class DuetGenerator:
             cond,
             mode=inputs.mode,
             x_actor=None if inputs.actor is None else inputs.actor.to(param),
-            steps=steps,
-            method=method,
-            cfg_scale=cfg_scale,
-            seed=seed,
+            sampling=SamplingSettings(steps=steps, method=method, cfg_scale=cfg_scale, seed=seed),
         )
         fps = self.builder.fps
         stats = self.builder.stats

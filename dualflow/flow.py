@@ -10,11 +10,13 @@ Kept apart, as in facebookresearch/flow_matching:
 * ``ode_solve``         Euler (default) or Heun integration of dx/dt = v(x, t) from t = 0 to 1.
 * ``guided_velocity``   classifier-free guidance v = v_u + s (v_c - v_u).
 * ``generate``          sample a motion with the model (interactive: both persons; reactive:
-                         the reactor given the clean actor, which stays clean throughout).
+                         the reactor given the clean actor, which stays clean throughout);
+                         ``SamplingSettings`` groups its sampler options, ``StepSettings``
+                         those of ``flow_training_step``.
 
 Convention (paper): t = 0 is noise, t = 1 is data; sampling integrates forward in t.
 All tensors are (B, T, 262) normalised features per person unless stated otherwise.
-Determinism: ``generate`` draws its noise from a ``torch.Generator`` seeded with ``seed``
+Determinism: ``generate`` draws its noise from a ``torch.Generator`` seeded with ``sampling.seed``
 on the CPU, so a given seed gives the same sample on any device.
 """
 
@@ -132,6 +134,16 @@ class FlowStep:
     target_b: torch.Tensor
 
 
+@dataclass(frozen=True)
+class StepSettings:
+    """How ``flow_training_step`` noises a batch and calls the model: training-time sampler,
+    probability path, and the model's look-ahead in frames (None: the model's own)."""
+
+    time_sampler: TimeSampler = TimeSampler()
+    path: RectifiedPath = RectifiedPath()
+    look_ahead: int | None = None
+
+
 def flow_training_step(
     model: DualFlow,
     x0_a: torch.Tensor,
@@ -139,11 +151,9 @@ def flow_training_step(
     cond: Conditions | None = None,
     *,
     mode: str = "interactive",
-    look_ahead: int | None = None,
     frame_mask: torch.Tensor | None = None,
-    time_sampler: TimeSampler = TimeSampler(),
+    settings: StepSettings = StepSettings(),
     generator: torch.Generator | None = None,
-    path: RectifiedPath | None = None,
 ) -> FlowStep:
     """Noise a clean batch along the path, call the model, return L_flow and x0_hat.
 
@@ -153,12 +163,14 @@ def flow_training_step(
     L_flow = MSE over the reactor only.
     Noise and t come from ``generator`` so a seeded step is reproducible; they are drawn on the
     generator's device (a CUDA generator keeps them on the GPU: no host copy per step).
+    settings: the time sampler, the path and the model's look-ahead (see ``StepSettings``).
     """
-    path = path if path is not None else RectifiedPath()
+    path = settings.path
+    look_ahead = settings.look_ahead
     b = x0_a.shape[0]
     device = x0_a.device
     where = _draw_device(generator)
-    t = time_sampler.sample(b, generator, device).to(x0_a.dtype)
+    t = settings.time_sampler.sample(b, generator, device).to(x0_a.dtype)
     eps_b = torch.randn(x0_b.shape, generator=generator, device=where).to(device, x0_b.dtype)
     x_b = path.interpolate(x0_b, eps_b, t)
     target_b = path.target_velocity(x0_b, eps_b)
@@ -274,6 +286,21 @@ def guided_velocity(
     return velocity
 
 
+@dataclass(frozen=True)
+class SamplingSettings:
+    """How ``generate`` samples: ODE steps and method ("euler" | "heun"), classifier-free
+    guidance scale (1: none), the model's look-ahead in frames (None: the model's own), the seed
+    of the CPU generator that draws the initial noise, and an optional projection (see
+    ``ode_solve``)."""
+
+    steps: int = 20
+    method: str = "euler"
+    cfg_scale: float = 1.0
+    look_ahead: int | None = None
+    seed: int = 0
+    project: ProjectFn | None = None
+
+
 @torch.no_grad()
 def generate(
     model: DualFlow,
@@ -283,21 +310,17 @@ def generate(
     mode: str = "interactive",
     x_actor: torch.Tensor | None = None,
     batch: int | None = None,
-    steps: int = 20,
-    method: str = "euler",
-    cfg_scale: float = 1.0,
-    look_ahead: int | None = None,
-    seed: int = 0,
     noise: torch.Tensor | None = None,
-    project: ProjectFn | None = None,
+    sampling: SamplingSettings = SamplingSettings(),
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample motion; returns (x_a, x_b), each (B, T, 262) normalised features.
 
     interactive: both persons from noise; reactive: ``x_actor`` (B, T, 262) is required,
     stays clean (returned unchanged as x_a) and only the reactor is integrated.
     noise: optional initial state (B, T, 524 interactive | 262 reactive); otherwise drawn from
-    a CPU generator seeded with ``seed``. project: see ``ode_solve``.
+    a CPU generator seeded with ``sampling.seed``. sampling: see ``SamplingSettings``.
     """
+    s = sampling
     d = model.config.motion_dim
     if mode == "reactive":
         if x_actor is None:
@@ -312,19 +335,19 @@ def generate(
     param = next(model.parameters())
     device, dtype = param.device, param.dtype
     if noise is None:
-        gen = torch.Generator().manual_seed(int(seed))
+        gen = torch.Generator().manual_seed(int(s.seed))
         noise = torch.randn((batch, n_frames, width), generator=gen)
     if tuple(noise.shape) != (batch, n_frames, width):
         raise DualFlowError(f"noise must be {(batch, n_frames, width)}, got {tuple(noise.shape)}")
     noise = noise.to(device, dtype)
     if x_actor is not None:
         x_actor = x_actor.to(device, dtype)
-    velocity = guided_velocity(model, cond, mode=mode, x_actor=x_actor, cfg_scale=cfg_scale, look_ahead=look_ahead)
+    velocity = guided_velocity(model, cond, mode=mode, x_actor=x_actor, cfg_scale=s.cfg_scale, look_ahead=s.look_ahead)
     was_training = model.training
     if was_training:  # Module.eval() walks every submodule: only when needed
         model.eval()
     try:
-        x = ode_solve(velocity, noise, steps=steps, method=method, project=project)
+        x = ode_solve(velocity, noise, steps=s.steps, method=s.method, project=s.project)
     finally:
         if was_training:
             model.train(True)

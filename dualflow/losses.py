@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -265,46 +266,75 @@ def triplet_loss(
 # ---------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class LossSettings:
+    """Weights and thresholds of :func:`dualflow_losses`: the term weights, the sync loss's
+    pair weights, and the distance-map threshold in metres (only pairs nearer than it count)."""
+
+    weights: LossWeights = LossWeights()
+    sync_weights: SyncWeights = SyncWeights()
+    dm_threshold: float = 1.0
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What the network predicted for a batch: flow = L_flow (scalar), v_a / v_b the velocities,
+    x0_hat_a / x0_hat_b the predicted clean motions, all normalised (B, T, 262)."""
+
+    flow: torch.Tensor
+    v_a: torch.Tensor
+    v_b: torch.Tensor
+    x0_hat_a: torch.Tensor
+    x0_hat_b: torch.Tensor
+
+    @classmethod
+    def from_step(cls, step) -> Prediction:
+        """From a ``dualflow.flow.FlowStep``."""
+        return cls(step.loss, step.v_a, step.v_b, step.x0_hat_a, step.x0_hat_b)
+
+
+@dataclass(frozen=True)
+class CleanBatch:
+    """The ground truth of a batch: normalised clean motions x0_a / x0_b (B, T, 262) and the
+    (262,) mean / std (tensors or arrays) that de-normalise them."""
+
+    x0_a: torch.Tensor
+    x0_b: torch.Tensor
+    mean: torch.Tensor | np.ndarray
+    std: torch.Tensor | np.ndarray
+
+
 def dualflow_losses(
+    pred: Prediction,
+    truth: CleanBatch,
     *,
-    flow: torch.Tensor,
-    v_a: torch.Tensor,
-    v_b: torch.Tensor,
-    x0_hat_a: torch.Tensor,
-    x0_hat_b: torch.Tensor,
-    x0_a: torch.Tensor,
-    x0_b: torch.Tensor,
-    mean,
-    std,
     mode: str = "interactive",
     text: torch.Tensor | None = None,
     labels: torch.Tensor | None = None,
     frame_mask: torch.Tensor | None = None,
-    weights: LossWeights = LossWeights(),
-    sync_weights: SyncWeights = SyncWeights(),
-    dm_threshold: float = 1.0,
+    settings: LossSettings = LossSettings(),
 ) -> dict[str, torch.Tensor]:
     """Weighted loss terms and their sum: {"flow", "triplet", "foot", "vel", "bone", "dm", "ro",
     "sync", "total"} (scalars; each term already multiplied by its weight(s), see module docstring).
 
-    flow: L_flow (``FlowStep.loss``); v_a, v_b (B, T, 262) predicted velocities; x0_hat_* the
-    predicted clean motions and x0_* the ground truth, all *normalised* (B, T, 262); mean / std
-    (262,) de-normalise them. mode "reactive": geometric losses on the reactor only, interaction
-    losses between the ground-truth actor and the predicted reactor.
-    A ``dualflow.flow.FlowStep`` ``s`` fills the first five: flow=s.loss, v_a=s.v_a, ...
+    pred: the network's prediction (``Prediction.from_step`` of a ``dualflow.flow.FlowStep``);
+    truth: the clean batch and its normalisation stats. mode "reactive": geometric losses on the
+    reactor only, interaction losses between the ground-truth actor and the predicted reactor.
+    text (B, D) / labels (B,) pick triplet positives; frame_mask (B, T) bool marks real frames.
     """
     if mode not in ("interactive", "reactive"):
         raise DualFlowError(f"mode must be 'interactive' or 'reactive', got {mode!r}")
-    w = weights
-    feat_hat_b = denormalize(x0_hat_b, mean, std)
-    feat_b = denormalize(x0_b, mean, std)
+    w = settings.weights
+    x0_a, mean, std = truth.x0_a, truth.mean, truth.std
+    feat_hat_b = denormalize(pred.x0_hat_b, mean, std)
+    feat_b = denormalize(truth.x0_b, mean, std)
     feat_a = denormalize(x0_a, mean, std)
     p_hat_b, p_b, p_a = joint_positions(feat_hat_b), joint_positions(feat_b), joint_positions(feat_a)
     if mode == "reactive":
         p_hat_a = p_a  # eq. 9's note: the ground-truth actor
         persons = [(p_hat_b, p_b, feat_b)]
     else:
-        p_hat_a = joint_positions(denormalize(x0_hat_a, mean, std))
+        p_hat_a = joint_positions(denormalize(pred.x0_hat_a, mean, std))
         persons = [(p_hat_a, p_a, feat_a), (p_hat_b, p_b, feat_b)]
 
     def per_person(fn) -> torch.Tensor:
@@ -313,16 +343,16 @@ def dualflow_losses(
     foot = per_person(lambda pred, gt, feat: foot_contact_loss(pred, foot_contacts(feat), frame_mask))
     vel = per_person(lambda pred, gt, feat: joint_velocity_loss(pred, gt, frame_mask))
     bone = per_person(lambda pred, gt, feat: bone_length_loss(pred, gt, frame_mask))
-    dm = distance_map_loss(p_hat_a, p_hat_b, p_a, p_b, frame_mask, dm_threshold)
+    dm = distance_map_loss(p_hat_a, p_hat_b, p_a, p_b, frame_mask, settings.dm_threshold)
     ro = relative_orientation_loss(p_hat_a, p_hat_b, p_a, p_b, frame_mask)
-    sync = sync_loss(p_hat_a, p_hat_b, p_a, p_b, frame_mask, sync_weights)
-    v = torch.cat([v_a, v_b], -1)
+    sync = sync_loss(p_hat_a, p_hat_b, p_a, p_b, frame_mask, settings.sync_weights)
+    v = torch.cat([pred.v_a, pred.v_b], -1)
     if frame_mask is not None:
         v = v * frame_mask.to(v.dtype)[..., None]
     triplet = triplet_loss(v, text, labels)
 
     terms = {
-        "flow": w.flow * flow,
+        "flow": w.flow * pred.flow,
         "triplet": w.triplet * triplet,
         "foot": w.geo * w.foot * foot,
         "vel": w.geo * w.vel * vel,
@@ -340,17 +370,6 @@ def step_losses(step, x0_a: torch.Tensor, x0_b: torch.Tensor, mean, std, **kwarg
 
     The trainer's one call: ``terms = step_losses(out, x0_a, x0_b, stats.mean, stats.std,
     mode=mode, text=cond.text, labels=batch["rule"])``; ``terms["total"].backward()``.
-    kwargs: mode, text, labels, frame_mask, weights, sync_weights, dm_threshold.
+    kwargs: mode, text, labels, frame_mask, settings (a ``LossSettings``).
     """
-    return dualflow_losses(
-        flow=step.loss,
-        v_a=step.v_a,
-        v_b=step.v_b,
-        x0_hat_a=step.x0_hat_a,
-        x0_hat_b=step.x0_hat_b,
-        x0_a=x0_a,
-        x0_b=x0_b,
-        mean=mean,
-        std=std,
-        **kwargs,
-    )
+    return dualflow_losses(Prediction.from_step(step), CleanBatch(x0_a, x0_b, mean, std), **kwargs)

@@ -298,6 +298,73 @@ def _check_clip_args(seconds: float, fps: float) -> int:
     return max(int(round(seconds * fps)), 2)
 
 
+def _draw_slots(rng: np.random.Generator) -> dict[str, str]:
+    """One style per slot (step, arms, turn, travel), drawn in that order from ``rng``."""
+    return {
+        "step": STEP_STYLES[rng.integers(len(STEP_STYLES))],
+        "arms": ARM_STYLES[rng.integers(len(ARM_STYLES))],
+        "turn": TURN_STYLES[rng.integers(len(TURN_STYLES))],
+        "travel": TRAVEL_STYLES[rng.integers(len(TRAVEL_STYLES))],
+    }
+
+
+def _heading_curve(turn: str, heading0: float, turn_start: float, spin_len: float, period: float):
+    """Facing yaw (rad) as a function of time (s, array): constant, one full spin over ``spin_len``,
+    or a quarter turn left/right and back every 8 beats, starting at ``turn_start``."""
+
+    def heading(t):
+        t = np.asarray(t, dtype=np.float64)
+        if turn == "none":
+            return np.full(t.shape, heading0)
+        if turn == "spin":
+            return heading0 + 2 * np.pi * _smoothstep((t - turn_start) / spin_len)
+        sign = 1.0 if turn == "left" else -1.0
+        return heading0 + sign * 0.5 * np.pi * (
+            0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - turn_start, 0.0) / (8 * period))
+        )
+
+    return heading
+
+
+def _centre_curve(
+    heading, heading0: float, origin, travel_amp: float, sway_amp: float, first_beat: float, period: float
+):
+    """Ground position (m, (T, 2)) of the body centre over time (s, (T,)): ``origin`` plus a travel
+    along the initial facing (8-beat period) and a sideways sway (one side per beat)."""
+
+    def centre(t):
+        t = np.asarray(t, dtype=np.float64)
+        h0 = np.array([np.cos(heading0), np.sin(heading0)])
+        fwd = travel_amp * np.sin(2 * np.pi * t / (8 * period))
+        lat = sway_amp * np.sin(np.pi * (t - first_beat) / period)
+        h = heading(t)
+        left = np.stack([-np.sin(h), np.cos(h)], axis=-1)
+        return origin + fwd[:, None] * h0 + lat[:, None] * left
+
+    return centre
+
+
+def _arm_curves(arms: str, wave_amp: float, first_beat: float, period: float):
+    """(left, right) arm raise angle (rad) over time (s): a 2-beat wave, in phase for "both" and
+    half a cycle apart for "alternate", or held just off the side for an arm that does not wave."""
+
+    def wave(t, phase_beats):
+        t = np.asarray(t, dtype=np.float64)
+        return _ARM_DOWN + wave_amp * (
+            0.5 - 0.5 * np.cos(2 * np.pi * (t - first_beat) / (2 * period) + np.pi * phase_beats)
+        )
+
+    still = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.1)  # noqa: E731
+    arm_left = (lambda t: wave(t, 0.0)) if arms in ("both", "left", "alternate") else still
+    if arms in ("both", "right"):
+        arm_right = lambda t: wave(t, 0.0)  # noqa: E731
+    elif arms == "alternate":
+        arm_right = lambda t: wave(t, 1.0)  # noqa: E731
+    else:
+        arm_right = still
+    return arm_left, arm_right
+
+
 def make_leader_clip(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm: float | None = None) -> LeaderClip:
     """Synthesise a leader clip (see the module docstring for what it does).
 
@@ -311,12 +378,7 @@ def make_leader_clip(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm
     if not np.isfinite(bpm) or not 30.0 <= bpm <= 240.0:
         raise DualFlowError(f"synthetic leader: bpm must be within 30-240, got {bpm!r}")
     period = 60.0 / bpm
-    slots = {
-        "step": STEP_STYLES[rng.integers(len(STEP_STYLES))],
-        "arms": ARM_STYLES[rng.integers(len(ARM_STYLES))],
-        "turn": TURN_STYLES[rng.integers(len(TURN_STYLES))],
-        "travel": TRAVEL_STYLES[rng.integers(len(TRAVEL_STYLES))],
-    }
+    slots = _draw_slots(rng)
     heading0 = float(rng.uniform(-np.pi, np.pi))
     origin = rng.uniform(-0.5, 0.5, size=2)
     first_beat = float(rng.uniform(0.0, period))
@@ -329,42 +391,9 @@ def make_leader_clip(seconds: float = 4.0, fps: float = 30.0, seed: int = 0, bpm
     beat_times = first_beat - period + period * np.arange(int(np.ceil((duration + 2 * period) / period)) + 2)
     turn_start = first_beat + period
     spin_len = max(16 * period, duration - turn_start)
-
-    def heading(t):
-        t = np.asarray(t, dtype=np.float64)
-        if slots["turn"] == "none":
-            return np.full(t.shape, heading0)
-        if slots["turn"] == "spin":
-            return heading0 + 2 * np.pi * _smoothstep((t - turn_start) / spin_len)
-        sign = 1.0 if slots["turn"] == "left" else -1.0
-        return heading0 + sign * 0.5 * np.pi * (
-            0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - turn_start, 0.0) / (8 * period))
-        )
-
-    def centre(t):
-        t = np.asarray(t, dtype=np.float64)
-        h0 = np.array([np.cos(heading0), np.sin(heading0)])
-        fwd = travel_amp * np.sin(2 * np.pi * t / (8 * period))
-        lat = sway_amp * np.sin(np.pi * (t - first_beat) / period)
-        h = heading(t)
-        left = np.stack([-np.sin(h), np.cos(h)], axis=-1)
-        return origin + fwd[:, None] * h0 + lat[:, None] * left
-
-    def wave(t, phase_beats):
-        t = np.asarray(t, dtype=np.float64)
-        return _ARM_DOWN + wave_amp * (
-            0.5 - 0.5 * np.cos(2 * np.pi * (t - first_beat) / (2 * period) + np.pi * phase_beats)
-        )
-
-    still = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.1)  # noqa: E731
-    arms = slots["arms"]
-    arm_left = (lambda t: wave(t, 0.0)) if arms in ("both", "left", "alternate") else still
-    if arms in ("both", "right"):
-        arm_right = lambda t: wave(t, 0.0)  # noqa: E731
-    elif arms == "alternate":
-        arm_right = lambda t: wave(t, 1.0)  # noqa: E731
-    else:
-        arm_right = still
+    heading = _heading_curve(slots["turn"], heading0, turn_start, spin_len, period)
+    centre = _centre_curve(heading, heading0, origin, travel_amp, sway_amp, first_beat, period)
+    arm_left, arm_right = _arm_curves(slots["arms"], wave_amp, first_beat, period)
 
     plan = _BodyPlan(
         centre=centre,

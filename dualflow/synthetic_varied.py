@@ -10,6 +10,8 @@ follower is causal; clips are deterministic in (rule, seconds, fps, seed). numpy
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from dualflow.motion.container import Motion, TwoPersonMotion
@@ -47,100 +49,166 @@ def _window(t: np.ndarray, start: float, hold: float, ramp: float = 0.4) -> np.n
     return np.minimum(up, down)
 
 
+@dataclass(frozen=True)
+class _VariedDraws:
+    """The random choices of one varied leader (times in s, angles in rad, distances in m) and the
+    body curves they define; ``draw`` takes them from the generator in a fixed order."""
+
+    bpm: float
+    slots: dict
+    heading0: float
+    origin: np.ndarray
+    first_beat: float
+    first_foot: int
+    sway: float
+    travel_amp: float
+    walk_d: float
+    walk_v: float
+    walk_t0: float
+    turn_ang: float
+    turn_t0: float
+    turn_len: float
+    wave_amp: float
+    reach_t0: float
+    reach_hold: float
+    twist_phase: float
+
+    @property
+    def period(self) -> float:
+        return 60.0 / self.bpm
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, duration: float) -> _VariedDraws:
+        bpm = float(rng.uniform(70.0, 150.0))
+        period = 60.0 / bpm
+        slots = {
+            "step": ("in_place", "side_sway")[rng.integers(2)],
+            "arms": VARIED_ARMS[rng.integers(len(VARIED_ARMS))],
+            "turn": VARIED_TURNS[rng.integers(len(VARIED_TURNS))],
+            "travel": VARIED_TRAVEL[rng.choice(3, p=[0.3, 0.2, 0.5])],
+        }
+        heading0 = float(rng.uniform(-np.pi, np.pi))
+        origin = rng.uniform(-0.5, 0.5, size=2)
+        first_beat = float(rng.uniform(0.0, period))
+        first_foot = int(rng.integers(2))
+        sway = float(rng.uniform(0.04, 0.1)) if slots["step"] == "side_sway" else 0.0
+        travel_amp = float(rng.uniform(0.2, 0.35))
+        walk_d, walk_v = float(rng.uniform(0.4, 1.0)), float(rng.uniform(0.6, 1.2))
+        walk_t0 = float(rng.uniform(-0.5, 0.5 * duration))
+        turn_ang = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0))
+        turn_t0, turn_len = float(rng.uniform(-0.3, 0.6 * duration)), float(rng.uniform(0.6, 1.5))
+        wave_amp = float(rng.uniform(0.8, 1.8))
+        reach_t0, reach_hold = float(rng.uniform(-0.5, 0.6 * duration)), float(rng.uniform(0.8, 2.5))
+        twist_phase = float(rng.uniform(0.0, 1.0))
+        return cls(
+            bpm,
+            slots,
+            heading0,
+            origin,
+            first_beat,
+            first_foot,
+            sway,
+            travel_amp,
+            walk_d,
+            walk_v,
+            walk_t0,
+            turn_ang,
+            turn_t0,
+            turn_len,
+            wave_amp,
+            reach_t0,
+            reach_hold,
+            twist_phase,
+        )
+
+    def heading(self, t):
+        """Facing yaw (rad) at times ``t`` (s)."""
+        t = np.asarray(t, dtype=np.float64)
+        turn = self.slots["turn"]
+        if turn == "none":
+            return np.full(t.shape, self.heading0)
+        if turn == "turn_to":
+            return self.heading0 + self.turn_ang * _smoothstep((t - self.turn_t0) / self.turn_len)
+        sign = 1.0 if turn == "left" else -1.0
+        return self.heading0 + sign * 0.5 * np.pi * (
+            0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - self.first_beat, 0.0) / (8 * self.period))
+        )
+
+    def centre(self, t):
+        """Ground position (m, (T, 2)) of the body centre at times ``t`` (s, (T,))."""
+        t = np.asarray(t, dtype=np.float64)
+        h0 = np.array([np.cos(self.heading0), np.sin(self.heading0)])
+        if self.slots["travel"] == "walk_up":
+            fwd = -self.walk_d * (1.0 - _smoothstep((t - self.walk_t0) * self.walk_v / (1.5 * self.walk_d)))
+        elif self.slots["travel"] == "approach_retreat":
+            fwd = self.travel_amp * np.sin(2 * np.pi * t / (8 * self.period))
+        else:
+            fwd = np.zeros(t.shape)
+        lat = self.sway * np.sin(np.pi * (t - self.first_beat) / self.period)
+        h = self.heading(t)
+        left = np.stack([-np.sin(h), np.cos(h)], axis=-1)
+        return self.origin + fwd[:, None] * h0 + lat[:, None] * left
+
+    def arm_curves(self):
+        """(left, right) arm raise angle (rad) over time (s): a 2-beat wave or held off the side."""
+        period, first_beat, wave_amp = self.period, self.first_beat, self.wave_amp
+
+        def wave(phase_beats):
+            return lambda t: (
+                _ARM_DOWN
+                + wave_amp
+                * (
+                    0.5
+                    - 0.5
+                    * np.cos(
+                        2 * np.pi * (np.asarray(t, dtype=np.float64) - first_beat) / (2 * period) + np.pi * phase_beats
+                    )
+                )
+            )
+
+        still = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.1)  # noqa: E731
+        arms = self.slots["arms"]
+        arm_left = wave(0.0) if arms in ("both", "left", "alternate") else still
+        arm_right = wave(0.0) if arms in ("both", "right") else (wave(1.0) if arms == "alternate" else still)
+        return arm_left, arm_right
+
+    def reach(self, t):
+        """0-1 weight of the held-out hand at times ``t`` (s)."""
+        return _window(np.asarray(t, dtype=np.float64), self.reach_t0, self.reach_hold)
+
+
 def make_varied_leader(seconds: float, fps: float, seed: int) -> LeaderClip:
     """A leader of the wider repertoire (module docstring); deterministic in (seconds, fps, seed)."""
     n = _check_clip_args(seconds, fps)
     rng = np.random.default_rng([int(seed), 3])
-    bpm = float(rng.uniform(70.0, 150.0))
-    period = 60.0 / bpm
     duration = n / fps
-    slots = {
-        "step": ("in_place", "side_sway")[rng.integers(2)],
-        "arms": VARIED_ARMS[rng.integers(len(VARIED_ARMS))],
-        "turn": VARIED_TURNS[rng.integers(len(VARIED_TURNS))],
-        "travel": VARIED_TRAVEL[rng.choice(3, p=[0.3, 0.2, 0.5])],
-    }
-    heading0 = float(rng.uniform(-np.pi, np.pi))
-    origin = rng.uniform(-0.5, 0.5, size=2)
-    first_beat = float(rng.uniform(0.0, period))
-    first_foot = int(rng.integers(2))
-    sway = float(rng.uniform(0.04, 0.1)) if slots["step"] == "side_sway" else 0.0
-    travel_amp = float(rng.uniform(0.2, 0.35))
-    walk_d, walk_v = float(rng.uniform(0.4, 1.0)), float(rng.uniform(0.6, 1.2))
-    walk_t0 = float(rng.uniform(-0.5, 0.5 * duration))
-    turn_ang = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0))
-    turn_t0, turn_len = float(rng.uniform(-0.3, 0.6 * duration)), float(rng.uniform(0.6, 1.5))
-    wave_amp = float(rng.uniform(0.8, 1.8))
-    reach_t0, reach_hold = float(rng.uniform(-0.5, 0.6 * duration)), float(rng.uniform(0.8, 2.5))
-    twist_phase = float(rng.uniform(0.0, 1.0))
-    beat_times = first_beat - period + period * np.arange(int(np.ceil((duration + 2 * period) / period)) + 2)
-
-    def heading(t):
-        t = np.asarray(t, dtype=np.float64)
-        turn = slots["turn"]
-        if turn == "none":
-            return np.full(t.shape, heading0)
-        if turn == "turn_to":
-            return heading0 + turn_ang * _smoothstep((t - turn_t0) / turn_len)
-        sign = 1.0 if turn == "left" else -1.0
-        return heading0 + sign * 0.5 * np.pi * (
-            0.5 - 0.5 * np.cos(2 * np.pi * np.maximum(t - first_beat, 0.0) / (8 * period))
-        )
-
-    def centre(t):
-        t = np.asarray(t, dtype=np.float64)
-        h0 = np.array([np.cos(heading0), np.sin(heading0)])
-        if slots["travel"] == "walk_up":
-            fwd = -walk_d * (1.0 - _smoothstep((t - walk_t0) * walk_v / (1.5 * walk_d)))
-        elif slots["travel"] == "approach_retreat":
-            fwd = travel_amp * np.sin(2 * np.pi * t / (8 * period))
-        else:
-            fwd = np.zeros(t.shape)
-        lat = sway * np.sin(np.pi * (t - first_beat) / period)
-        h = heading(t)
-        left = np.stack([-np.sin(h), np.cos(h)], axis=-1)
-        return origin + fwd[:, None] * h0 + lat[:, None] * left
-
-    def wave(phase_beats):
-        return lambda t: (
-            _ARM_DOWN
-            + wave_amp
-            * (
-                0.5
-                - 0.5
-                * np.cos(
-                    2 * np.pi * (np.asarray(t, dtype=np.float64) - first_beat) / (2 * period) + np.pi * phase_beats
-                )
-            )
-        )
-
-    still = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.1)  # noqa: E731
-    arms = slots["arms"]
-    arm_left = wave(0.0) if arms in ("both", "left", "alternate") else still
-    arm_right = wave(0.0) if arms in ("both", "right") else (wave(1.0) if arms == "alternate" else still)
-    reach = lambda t: _window(np.asarray(t, dtype=np.float64), reach_t0, reach_hold)  # noqa: E731
+    d = _VariedDraws.draw(rng, duration)
+    period = d.period
+    beat_times = d.first_beat - period + period * np.arange(int(np.ceil((duration + 2 * period) / period)) + 2)
+    arm_left, arm_right = d.arm_curves()
+    arms = d.slots["arms"]
     plan = _BodyPlan(
-        centre=centre,
-        heading=heading,
+        centre=d.centre,
+        heading=d.heading,
         arm_left=arm_left,
         arm_right=arm_right,
         beat_times=beat_times,
-        first_foot=first_foot,
-        reach_left=reach if arms == "reach_left" else None,
-        reach_right=reach if arms == "reach_right" else None,
+        first_foot=d.first_foot,
+        reach_left=d.reach if arms == "reach_left" else None,
+        reach_right=d.reach if arms == "reach_right" else None,
     )
     times = np.arange(n) / fps
-    body = _synthesise(plan, times, period, twist_phase)
+    body = _synthesise(plan, times, period, d.twist_phase)
     return LeaderClip(
         body=body,
         plan=plan,
         times=times,
         fps=float(fps),
-        bpm=bpm,
+        bpm=d.bpm,
         beat_times=beat_times,
-        slots=slots,
-        origin=origin,
-        heading0=heading0,
+        slots=d.slots,
+        origin=d.origin,
+        heading0=d.heading0,
     )
 
 

@@ -39,8 +39,8 @@ from dualflow.checkpoint import checkpoint_text_encoder, load_checkpoint, replac
 from dualflow.datasets.config import TrainingDataConfig
 from dualflow.datasets.training import make_datasets
 from dualflow.errors import DualFlowError
-from dualflow.flow import TimeSampler, flow_training_step
-from dualflow.losses import LossWeights, step_losses
+from dualflow.flow import StepSettings, TimeSampler, flow_training_step
+from dualflow.losses import LossSettings, LossWeights, step_losses
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, sample_condition_drop
 from dualflow.retrieval import RagConfig
 from dualflow.text import as_text_embedder
@@ -436,14 +436,44 @@ class Trainer:
         self.text_encoder = checkpoint_text_encoder(
             {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None
         )
-        init = None
-        if config.init_from:
-            init = load_checkpoint(config.init_from)
-            if init.config != self.model_config:
-                raise DualFlowError(
-                    f"init_from {config.init_from}: its model config differs from this training "
-                    "config's; fine-tune with the same preset and model overrides"
-                )
+        init = self._init_checkpoint()
+        self._build_data(init)
+        self._build_model(init)
+        self._build_optimizer()
+        self.step = 0
+        self.resumed_from: Path | None = None
+        if resume:
+            self._resume()
+        if config.compile:  # after the EMA copy: only the trained model runs compiled
+            from dualflow.compile import compile_blocks
+
+            compile_blocks(self.model)
+        self._wrap_for_training()
+        self.time_sampler = TimeSampler(config.time_sampler, config.time_mean, config.time_std)
+        self.loss_weights = config.loss_weights_config()
+        self.stats_mean = torch.tensor(self.stats.mean, dtype=torch.float32, device=self.ctx.device)
+        self.stats_std = torch.tensor(self.stats.std, dtype=torch.float32, device=self.ctx.device)
+        use_amp = config.amp == "bf16" or (config.amp == "auto" and self.ctx.device.type == "cuda")
+        self.autocast_dtype = torch.bfloat16 if use_amp else None
+
+    # -- construction ---------------------------------------------------------------------
+
+    def _init_checkpoint(self):
+        """The checkpoint named by ``init_from`` (fine-tuning), or None; its model config must match."""
+        config = self.config
+        if not config.init_from:
+            return None
+        init = load_checkpoint(config.init_from)
+        if init.config != self.model_config:
+            raise DualFlowError(
+                f"init_from {config.init_from}: its model config differs from this training "
+                "config's; fine-tune with the same preset and model overrides"
+            )
+        return init
+
+    def _build_data(self, init) -> None:
+        """Training and validation sets and normalisation stats (the init checkpoint's when fine-tuning)."""
+        config = self.config
         self.train_set, self.val_set, self.stats = make_datasets(
             self.data_config,
             self.model_config.text_dim,
@@ -460,14 +490,20 @@ class Trainer:
                 if ds is not None:
                     ds.place(self.ctx.device)
 
-        torch.manual_seed(step_seed(config.seed, 0xA11CE))  # identical initial weights on every rank
+    def _build_model(self, init) -> None:
+        """The DualFlow model (seeded alike on every rank, or the init weights) and, with RAG, retrieval."""
+        torch.manual_seed(step_seed(self.config.seed, 0xA11CE))  # identical initial weights on every rank
         self.model = DualFlow(self.model_config).to(self.ctx.device)
         if init is not None:
             self.model.load_state_dict(init.state_dict)
-        self.rag = config.rag_config()
+        self.rag = self.config.rag_config()
         self.retrieval_encoder = self.retriever = self.val_retriever = None
         if self.rag.enabled:
             self._build_retrieval()
+
+    def _build_optimizer(self) -> None:
+        """AdamW over the model (and retrieval encoder) and, when ``ema_decay`` > 0, their EMA copies."""
+        config = self.config
         # fused AdamW on a GPU: one kernel for all parameters, step counters on the device (no host reads)
         self.optimizer = torch.optim.AdamW(
             self._parameters(),
@@ -483,17 +519,13 @@ class Trainer:
                 self.retrieval_ema = AveragedModel(
                     self.retrieval_encoder, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True
                 )
-        self.step = 0
-        self.resumed_from: Path | None = None
-        if resume:
-            self._resume()
-        if config.compile:  # after the EMA copy: only the trained model runs compiled
-            from dualflow.compile import compile_blocks
 
-            compile_blocks(self.model)
+    def _wrap_for_training(self) -> None:
+        """Freezes the unused music encoder and sets ``ddp``/``retrieval_ddp``: the modules themselves,
+        or their DistributedDataParallel wrappers when distributed."""
         self.ddp = self.model
         self.retrieval_ddp = self.retrieval_encoder
-        if config.music == "none":  # never fed: frozen, so that every trainable weight gets a gradient
+        if self.config.music == "none":  # never fed: frozen, so that every trainable weight gets a gradient
             for part in (self.model.music_in, self.model.music_encoder, self.model.music_norm):
                 part.requires_grad_(False)
         if self.ctx.distributed:
@@ -507,12 +539,6 @@ class Trainer:
                 self.retrieval_ddp = DistributedDataParallel(
                     self.retrieval_encoder, device_ids=ids, find_unused_parameters=True
                 )
-        self.time_sampler = TimeSampler(config.time_sampler, config.time_mean, config.time_std)
-        self.loss_weights = config.loss_weights_config()
-        self.stats_mean = torch.tensor(self.stats.mean, dtype=torch.float32, device=self.ctx.device)
-        self.stats_std = torch.tensor(self.stats.std, dtype=torch.float32, device=self.ctx.device)
-        use_amp = config.amp == "bf16" or (config.amp == "auto" and self.ctx.device.type == "cuda")
-        self.autocast_dtype = torch.bfloat16 if use_amp else None
 
     # -- retrieval ------------------------------------------------------------------------
 
@@ -735,8 +761,7 @@ class Trainer:
                 x_b,
                 cond,
                 mode=mode,
-                look_ahead=cfg.look_ahead,
-                time_sampler=self.time_sampler,
+                settings=StepSettings(time_sampler=self.time_sampler, look_ahead=cfg.look_ahead),
                 generator=gen,
             )
             terms = {"flow": out.loss}
@@ -750,7 +775,7 @@ class Trainer:
                     mode=mode,
                     text=cond.text,
                     labels=batch["rule"].to(ctx.device),
-                    weights=self.loss_weights,
+                    settings=LossSettings(weights=self.loss_weights),
                 )
                 loss = terms.pop("total")
             else:
@@ -815,8 +840,7 @@ class Trainer:
                 batch["reactor"].to(self.ctx.device),
                 cond,
                 mode="reactive",
-                look_ahead=self.config.look_ahead,
-                time_sampler=self.time_sampler,
+                settings=StepSettings(time_sampler=self.time_sampler, look_ahead=self.config.look_ahead),
                 generator=gen,
             )
             losses.append(float(out.loss))

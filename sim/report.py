@@ -77,8 +77,18 @@ def warning_lines(result: CheckResult) -> list[str]:
 
 
 def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
-    m = result.metrics
+    """The check report as Markdown: verdict, findings, summary, per-joint table, then the plots in ``images``."""
     lines = [f"# Physical check: {result.robot} ({result.mode} base)", "", f"**{verdict(result)}**", ""]
+    lines += _findings_lines(result)
+    lines += _summary_lines(result)
+    lines += _joint_table_lines(result)
+    lines += _image_lines(images)
+    return "\n".join(lines)
+
+
+def _findings_lines(result: CheckResult) -> list[str]:
+    """Warnings, unchecked reasons, robot-reading notes and the failure table, each block only if present."""
+    lines: list[str] = []
     if result.warnings:
         lines += ["Warnings (measured, not failures):", ""]
         lines += [f"- {w.kind} at {w.time:.2f} s: {w.detail}" for w in result.warnings]
@@ -95,13 +105,22 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
         lines += ["| reason | first at (s) | phase | detail |", "|---|---|---|---|"]
         lines += [f"| {f.reason} | {f.time:.2f} | {f.phase} | {f.detail} |" for f in result.failures]
         lines.append("")
+    return lines
+
+
+def _entry_text(m: dict) -> str:
+    """How the simulation started: from the first frame or by a transition from the standing pose."""
     entry, how = m.get("entry_transition_s", 0.0), m.get("entry") or {}
-    entered = (
+    return (
         f"entered from the standing pose by a {entry:.2f} s minimum-jerk transition (times before 0 s; "
         f"largest move {how.get('largest_move_joint')} {how.get('largest_move_rad', 0.0):.2f} rad)"
         if entry
         else "started in the first frame's pose"
     )
+
+
+def _foot_slip_text(m: dict) -> str:
+    """Largest slide per foot in mm, with the worst stance and the stance counts when known."""
     worst = m.get("worst_stance")
     slip = ", ".join(f"{s * 1000:.1f} mm" for s in m["foot_slip_m"]) or "n/a"
     if worst:
@@ -110,8 +129,15 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
             "stances per foot "
             f"{', '.join(str(n) for n in m['stances'])})"
         )
+    return slip
+
+
+def _summary_lines(result: CheckResult) -> list[str]:
+    """The '## Summary' section: timing, stabilizer, contacts, human distance, slip and balance margins."""
+    m = result.metrics
+    entered, slip = _entry_text(m), _foot_slip_text(m)
     place = m.get("actor_placement")
-    lines += [
+    return [
         "## Summary",
         "",
         f"- clip {m['duration_s']:.2f} s, simulated {m['simulated_s']:.2f} s; control {m['control_hz']:g} Hz, "
@@ -133,7 +159,12 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
         f"{_fmt(m['max_tilt_deg'], 1, 'deg')}",
         "",
     ]
-    lines += [
+
+
+def _joint_table_lines(result: CheckResult) -> list[str]:
+    """The '## Per joint' table: tracking error, torque, saturation and speed per joint."""
+    m = result.metrics
+    lines = [
         "## Per joint",
         "",
         "| joint | rms err (rad) | max err (rad) | max torque (N m) | stall (N m) | saturated (s) | "
@@ -149,6 +180,12 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
             f"{m['speed_limit_hits'][j]} |"
         )
     lines.append("")
+    return lines
+
+
+def _image_lines(images: dict[str, str] | None) -> list[str]:
+    """One section per plot that was written (keys joints_png, torque_png, balance_png)."""
+    lines: list[str] = []
     for key, title in (
         ("joints_png", "Joint angle, command and limits"),
         ("torque_png", "Servo torque"),
@@ -156,7 +193,7 @@ def markdown(result: CheckResult, images: dict[str, str] | None = None) -> str:
     ):
         if images and key in images:
             lines += [f"## {title}", "", f"![{title}]({images[key]})", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def _num(v) -> str:

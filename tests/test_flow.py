@@ -8,6 +8,7 @@ import torch
 from dualflow import DualFlowError
 from dualflow.flow import (
     RectifiedPath,
+    SamplingSettings,
     TimeSampler,
     flow_loss,
     flow_training_step,
@@ -131,14 +132,14 @@ def test_generate_is_deterministic_per_seed_and_counts_model_calls():
     calls = []
     m.register_forward_hook(lambda *_: calls.append(1))
     cond = Conditions(text=torch.randn(2, 384))
-    a1, b1 = generate(m, 10, cond, batch=2, steps=5, seed=11)
+    a1, b1 = generate(m, 10, cond, batch=2, sampling=SamplingSettings(steps=5, seed=11))
     assert len(calls) == 5
-    a2, b2 = generate(m, 10, cond, batch=2, steps=5, seed=11)
-    a3, b3 = generate(m, 10, cond, batch=2, steps=5, seed=12)
+    a2, b2 = generate(m, 10, cond, batch=2, sampling=SamplingSettings(steps=5, seed=11))
+    a3, b3 = generate(m, 10, cond, batch=2, sampling=SamplingSettings(steps=5, seed=12))
     assert torch.equal(a1, a2) and torch.equal(b1, b2)
     assert not torch.allclose(b1, b3)
     calls.clear()
-    generate(m, 10, cond, batch=2, steps=5, seed=11, method="heun", cfg_scale=2.5)
+    generate(m, 10, cond, batch=2, sampling=SamplingSettings(steps=5, method="heun", cfg_scale=2.5, seed=11))
     assert len(calls) == 5 * 2 * 2  # Heun: 2 evaluations per step; CFG: 2 calls per evaluation
     assert a1.shape == b1.shape == (2, 10, 262)
 
@@ -146,11 +147,11 @@ def test_generate_is_deterministic_per_seed_and_counts_model_calls():
 def test_reactive_generation_keeps_the_actor_clean():
     m = _tiny()
     actor = torch.randn(2, 12, 262)
-    x_a, x_b = generate(m, 12, mode="reactive", x_actor=actor, steps=3, seed=0)
+    x_a, x_b = generate(m, 12, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=3, seed=0))
     assert torch.equal(x_a, actor)
     assert x_b.shape == actor.shape and not torch.allclose(x_b, actor)
     with pytest.raises(DualFlowError, match="x_actor"):
-        generate(m, 12, mode="reactive", steps=3)
+        generate(m, 12, mode="reactive", sampling=SamplingSettings(steps=3))
 
 
 def test_classifier_free_guidance_combines_conditional_and_unconditional_fields():

@@ -12,7 +12,10 @@ from dualflow.losses import (
     HAND_JOINTS,
     LOWER_JOINTS,
     UPPER_JOINTS,
+    CleanBatch,
+    LossSettings,
     LossWeights,
+    Prediction,
     SyncWeights,
     bone_length_loss,
     bone_lengths,
@@ -182,17 +185,8 @@ def test_dualflow_losses_are_zero_for_a_perfect_prediction_and_weighted():
     fa, fb = _pair_batch()
     mean, std = torch.zeros(262, dtype=torch.float64), torch.ones(262, dtype=torch.float64)
     zero_v = torch.zeros_like(fa)
-    terms = dualflow_losses(
-        flow=torch.tensor(0.5, dtype=torch.float64),
-        v_a=zero_v,
-        v_b=zero_v,
-        x0_hat_a=fa,
-        x0_hat_b=fb,
-        x0_a=fa,
-        x0_b=fb,
-        mean=mean,
-        std=std,
-    )
+    truth = CleanBatch(x0_a=fa, x0_b=fb, mean=mean, std=std)
+    terms = dualflow_losses(Prediction(torch.tensor(0.5, dtype=torch.float64), zero_v, zero_v, fa, fb), truth)
     assert set(terms) == {"flow", "triplet", "foot", "vel", "bone", "dm", "ro", "sync", "total"}
     assert terms["total"].item() == pytest.approx(0.5)
     for name in ("triplet", "foot", "vel", "bone", "dm", "ro", "sync"):
@@ -201,33 +195,13 @@ def test_dualflow_losses_are_zero_for_a_perfect_prediction_and_weighted():
     # vel = 30 * |u|^2 / 2, and the distance-based terms become non-zero.
     u = torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)
     pos_b = joint_positions(fb) + torch.arange(T, dtype=torch.float64)[None, :, None, None] * u
-    terms = dualflow_losses(
-        flow=torch.tensor(0.0),
-        v_a=zero_v,
-        v_b=zero_v,
-        x0_hat_a=fa,
-        x0_hat_b=features(pos_b),
-        x0_a=fa,
-        x0_b=fb,
-        mean=mean,
-        std=std,
-    )
+    slid = Prediction(torch.tensor(0.0), zero_v, zero_v, fa, features(pos_b))
+    terms = dualflow_losses(slid, truth)
     assert terms["foot"].item() == pytest.approx(30 * 1e-4 / 2)
     assert terms["vel"].item() == pytest.approx(30 * 1e-4 / 2)
     assert terms["bone"].item() == pytest.approx(0.0, abs=1e-12)
     assert terms["sync"].item() > 0 and terms["dm"].item() > 0
-    custom = dualflow_losses(
-        flow=torch.tensor(0.0),
-        v_a=zero_v,
-        v_b=zero_v,
-        x0_hat_a=fa,
-        x0_hat_b=features(pos_b),
-        x0_a=fa,
-        x0_b=fb,
-        mean=mean,
-        std=std,
-        weights=LossWeights(geo=2.0),
-    )
+    custom = dualflow_losses(slid, truth, settings=LossSettings(weights=LossWeights(geo=2.0)))
     assert custom["foot"].item() == pytest.approx(2 * terms["foot"].item())
 
 
@@ -237,19 +211,10 @@ def test_reactive_losses_use_the_ground_truth_actor():
     zero_v = torch.zeros_like(fa)
     wrong_actor = fa.clone()
     wrong_actor[..., FEATURE_SLICES["positions"]] += 0.3
-    kw = dict(
-        flow=torch.tensor(0.0),
-        v_a=zero_v,
-        v_b=zero_v,
-        x0_hat_a=wrong_actor,
-        x0_hat_b=fb,
-        x0_a=fa,
-        x0_b=fb,
-        mean=mean,
-        std=std,
-    )
-    reactive = dualflow_losses(mode="reactive", **kw)
-    interactive = dualflow_losses(mode="interactive", **kw)
+    pred = Prediction(flow=torch.tensor(0.0), v_a=zero_v, v_b=zero_v, x0_hat_a=wrong_actor, x0_hat_b=fb)
+    truth = CleanBatch(x0_a=fa, x0_b=fb, mean=mean, std=std)
+    reactive = dualflow_losses(pred, truth, mode="reactive")
+    interactive = dualflow_losses(pred, truth, mode="interactive")
     assert reactive["total"].item() == pytest.approx(0.0, abs=1e-12)
     assert interactive["dm"].item() > 0 and interactive["sync"].item() > 0
 

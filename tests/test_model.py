@@ -217,13 +217,13 @@ def test_cached_actor_context_gives_the_same_reactive_field(model):
 
 
 def test_reactive_sampler_computes_the_actor_stream_once_per_condition(model, monkeypatch):
-    from dualflow.flow import generate
+    from dualflow.flow import SamplingSettings, generate
 
     calls = []
     original = model.actor_context
     monkeypatch.setattr(model, "actor_context", lambda *a, **k: calls.append(1) or original(*a, **k))
     x_a, _ = _x()
-    generate(model, T, _cond(), mode="reactive", x_actor=x_a, steps=4, cfg_scale=2.0)
+    generate(model, T, _cond(), mode="reactive", x_actor=x_a, sampling=SamplingSettings(steps=4, cfg_scale=2.0))
     assert len(calls) == 2  # conditional + unconditional, not 2 x 4 steps
 
 

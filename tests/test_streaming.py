@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from dualflow import DualFlowError
-from dualflow.flow import generate
+from dualflow.flow import SamplingSettings, generate
 from dualflow.model import Conditions, DualFlow, DualFlowConfig
 from dualflow.streaming import ReactiveStreamer, StreamConfig, seam_report, stream_noise
 
@@ -92,7 +92,9 @@ def test_first_window_equals_the_offline_reactive_sampler(model):
     s.push(actor[: 5 + L])
     assert s.emitted.shape[0] == 5
     eps = stream_noise(9, 5 + L)
-    _, offline = generate(model, 5 + L, mode="reactive", x_actor=actor[None, : 5 + L], steps=3, noise=eps[None])
+    _, offline = generate(
+        model, 5 + L, mode="reactive", x_actor=actor[None, : 5 + L], noise=eps[None], sampling=SamplingSettings(steps=3)
+    )
     torch.testing.assert_close(s.emitted, offline[0, :5])
 
 
@@ -105,7 +107,14 @@ def test_stream_equals_single_pass_generation_while_it_fits_in_one_window(model,
         s.push(actor[k : k + chunks])
     s.flush()
     assert len(s.timing.windows) > 2  # several windows, each with its own context
-    _, offline = generate(model, N, mode="reactive", x_actor=actor[None], steps=3, noise=stream_noise(4, N)[None])
+    _, offline = generate(
+        model,
+        N,
+        mode="reactive",
+        x_actor=actor[None],
+        noise=stream_noise(4, N)[None],
+        sampling=SamplingSettings(steps=3),
+    )
     torch.testing.assert_close(s.emitted, offline[0], atol=1e-5, rtol=1e-5)
     # Straight-path re-noising of the context (classic inpainting) is only approximately so.
     p = ReactiveStreamer(model, StreamConfig(window=N + 4, steps=3, seed=4, hop=hop, context="path"))

@@ -31,7 +31,7 @@ def test_bundled_checkpoint_is_complete_small_and_loads_offline():
 
 
 def test_bundled_model_generates_a_finite_reactor():
-    from dualflow.flow import generate
+    from dualflow.flow import SamplingSettings, generate
     from dualflow.model import Conditions
     from dualflow.motion.features import encode_pair
     from dualflow.synthetic import make_duet
@@ -42,7 +42,14 @@ def test_bundled_model_generates_a_finite_reactor():
     actor = torch.tensor(ck.stats.normalize(feats[:, 0]), dtype=torch.float32)[None]
     text = torch.tensor(ck.make_text_encoder().encode([pair.text]))
     music = torch.tensor(pair.meta["beats"][:30])[None]
-    _, reactor = generate(model, 30, Conditions(text=text, music=music), mode="reactive", x_actor=actor, steps=4)
+    _, reactor = generate(
+        model,
+        30,
+        Conditions(text=text, music=music),
+        mode="reactive",
+        x_actor=actor,
+        sampling=SamplingSettings(steps=4),
+    )
     assert reactor.shape == (1, 30, 262) and torch.isfinite(reactor).all()
     pos = ck.stats.denormalize(reactor[0].numpy())[:, :66].reshape(30, 22, 3)
     assert np.isfinite(pos).all() and np.abs(pos).max() < 5.0  # metres, near the actor

@@ -77,26 +77,11 @@ def load_interhuman(
     root = require_dir(
         Path(root), "InterHuman dataset", "pass the folder that holds train.txt, motions_processed/ and annots/"
     )
-    split_file = require_file(
-        root / f"{split}.txt",
-        f"split file for {split!r}",
-        "InterGen's layout has train.txt, val.txt and test.txt in the dataset root",
-    )
-    for person in PEOPLE:
-        require_dir(
-            root / "motions_processed" / person,
-            f"motions_processed/{person}",
-            "InterGen's layout keeps each person's .npy files under motions_processed/person1|person2",
-        )
-    require_dir(root / "annots", "annots", "InterGen's layout keeps one <name>.txt per clip under annots/")
+    split_file = _check_layout(root, split)
     ignore = set()
     if (root / "ignore_list.txt").is_file():
         ignore = set(read_name_list(root / "ignore_list.txt"))
-    labels = None
-    if actor_labels is True:
-        labels = read_actor_labels(root / LABEL_FILE)
-    elif actor_labels not in (None, False):
-        labels = read_actor_labels(Path(actor_labels))
+    labels = _actor_labels(root, actor_labels)
     source = "interhuman_as" if labels is not None else "interhuman"
 
     names = read_name_list(split_file)
@@ -110,22 +95,7 @@ def load_interhuman(
         if labels is not None and name not in labels:
             skipped[name] = "no actor-reactor label"
             continue
-        paths = [root / "motions_processed" / p / f"{name}.npy" for p in PEOPLE]
-        for p in paths:
-            require_file(
-                p, "motion file", f"clip {name!r} is listed in {split_file.name}; restore the file or remove the line"
-            )
-        text_path = require_file(
-            root / "annots" / f"{name}.txt",
-            "annotation file",
-            f"clip {name!r} needs its descriptions in annots/{name}.txt",
-        )
-        people = [load_motion(p, source_fps=30.0) for p in paths]
-        if people[0].n_frames != people[1].n_frames:
-            raise DualFlowError(
-                f"{paths[1]}: {people[1].n_frames} frames, but {paths[0].name} of person1 has "
-                f"{people[0].n_frames}; both people of a clip must have the same length"
-            )
+        paths, people, text_path = _read_clip(root, name, split_file)
         if people[0].n_frames < int(min_frames):
             skipped[name] = f"shorter than {min_frames} frames"
             continue
@@ -149,3 +119,50 @@ def load_interhuman(
             )
         )
     return DuetSet(source, split, root, samples, skipped)
+
+
+def _check_layout(root: Path, split: str) -> Path:
+    """The split's name list (``ROOT/<split>.txt``), after checking InterGen's folders are present."""
+    split_file = require_file(
+        root / f"{split}.txt",
+        f"split file for {split!r}",
+        "InterGen's layout has train.txt, val.txt and test.txt in the dataset root",
+    )
+    for person in PEOPLE:
+        require_dir(
+            root / "motions_processed" / person,
+            f"motions_processed/{person}",
+            "InterGen's layout keeps each person's .npy files under motions_processed/person1|person2",
+        )
+    require_dir(root / "annots", "annots", "InterGen's layout keeps one <name>.txt per clip under annots/")
+    return split_file
+
+
+def _actor_labels(root: Path, actor_labels: str | Path | bool | None) -> dict[str, str] | None:
+    """Clip name -> acting person read from the label file ``actor_labels`` names, or None for InterHuman."""
+    if actor_labels is True:
+        return read_actor_labels(root / LABEL_FILE)
+    if actor_labels not in (None, False):
+        return read_actor_labels(Path(actor_labels))
+    return None
+
+
+def _read_clip(root: Path, name: str, split_file: Path):
+    """(the two .npy paths, the two people's Motions of equal length, the annotation path) of clip ``name``."""
+    paths = [root / "motions_processed" / p / f"{name}.npy" for p in PEOPLE]
+    for p in paths:
+        require_file(
+            p, "motion file", f"clip {name!r} is listed in {split_file.name}; restore the file or remove the line"
+        )
+    text_path = require_file(
+        root / "annots" / f"{name}.txt",
+        "annotation file",
+        f"clip {name!r} needs its descriptions in annots/{name}.txt",
+    )
+    people = [load_motion(p, source_fps=30.0) for p in paths]
+    if people[0].n_frames != people[1].n_frames:
+        raise DualFlowError(
+            f"{paths[1]}: {people[1].n_frames} frames, but {paths[0].name} of person1 has "
+            f"{people[0].n_frames}; both people of a clip must have the same length"
+        )
+    return paths, people, text_path

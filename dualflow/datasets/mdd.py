@@ -45,29 +45,9 @@ def load_mdd(
     """Load one split of MDD (module docstring). music: "feature" (54-d) | "jukebox" (4800-d) | None."""
     if music is not None and music not in MUSIC_FOLDERS:
         raise DualFlowError(f"mdd: music must be one of {sorted(MUSIC_FOLDERS)} or None, got {music!r}")
-    skip = source_fps / fps
-    if abs(skip - round(skip)) > 1e-9 or round(skip) < 1:
-        raise DualFlowError(f"mdd: fps {fps:g} must divide the capture rate {source_fps:g} (e.g. 30, 60, 120)")
-    skip = int(round(skip))
+    skip = _frame_step(fps, source_fps)
     root = Path(root)
-    pos_dir = require_dir(
-        root / "motion" / "pos3d" / split,
-        f"MDD motion/pos3d/{split}",
-        "pass the folder that holds motion/, music/ and text/",
-    )
-    text_dir = require_dir(
-        root / "text" / "processed" / split,
-        f"MDD text/processed/{split}",
-        "MDD's descriptions live in text/processed/<split>/<genre>/<take>.txt",
-    )
-    music_dir = None
-    if music is not None:
-        folder, kind, width = MUSIC_FOLDERS[music]
-        music_dir = require_dir(
-            root / "music" / folder / split,
-            f"MDD music/{folder}/{split}",
-            "add the music features or load without music (music=None)",
-        )
+    pos_dir, text_dir, music_dir = _split_dirs(root, split, music)
     leads = sorted(pos_dir.glob("*/*_Lead.npy"))
     if not leads:
         raise DualFlowError(f"{pos_dir}: no <genre>/<take>_Lead.npy files; this is not MDD's pos3d folder")
@@ -89,15 +69,10 @@ def load_mdd(
         if music_path is not None and not music_path.is_file():
             skipped[key] = f"no music/{MUSIC_FOLDERS[music][0]} file"
             continue
-        people = []
-        for path, role in ((lead_path, "leader"), (follow_path, "follower")):
-            arr = load_array(path, ndim=(2, 3), min_rows=2)
-            arr = arr.reshape(len(arr), -1, 3) if arr.ndim == 2 and arr.shape[1] % 3 == 0 else arr
-            if arr.ndim != 3 or arr.shape[1] < 22 or arr.shape[2] != 3:
-                raise DualFlowError(f"{path}: expected joint positions (T, 165) or (T, 55, 3), got {arr.shape}")
-            arr = arr[::skip, :22]
-            check_up_axis(arr, str(path))
-            people.append(positions_motion(arr, fps, f"{take}_{role}", str(path)))
+        people = [
+            _load_dancer(path, f"{take}_{role}", skip, fps)
+            for path, role in ((lead_path, "leader"), (follow_path, "follower"))
+        ]
         n = min(p.n_frames for p in people)
         feats = None
         if music_path is not None:
@@ -129,6 +104,49 @@ def load_mdd(
             )
         )
     return DuetSet("mdd", split, root, samples, skipped)
+
+
+def _frame_step(fps: float, source_fps: float) -> int:
+    """Capture frames per output frame; ``fps`` must divide ``source_fps``."""
+    skip = source_fps / fps
+    if abs(skip - round(skip)) > 1e-9 or round(skip) < 1:
+        raise DualFlowError(f"mdd: fps {fps:g} must divide the capture rate {source_fps:g} (e.g. 30, 60, 120)")
+    return int(round(skip))
+
+
+def _split_dirs(root: Path, split: str, music: str | None) -> tuple[Path, Path, Path | None]:
+    """The split's (pos3d, processed text, music feature or None) folders, each checked to exist."""
+    pos_dir = require_dir(
+        root / "motion" / "pos3d" / split,
+        f"MDD motion/pos3d/{split}",
+        "pass the folder that holds motion/, music/ and text/",
+    )
+    text_dir = require_dir(
+        root / "text" / "processed" / split,
+        f"MDD text/processed/{split}",
+        "MDD's descriptions live in text/processed/<split>/<genre>/<take>.txt",
+    )
+    music_dir = None
+    if music is not None:
+        folder = MUSIC_FOLDERS[music][0]
+        music_dir = require_dir(
+            root / "music" / folder / split,
+            f"MDD music/{folder}/{split}",
+            "add the music features or load without music (music=None)",
+        )
+    return pos_dir, text_dir, music_dir
+
+
+def _load_dancer(path: Path, name: str, skip: int, fps: float):
+    """One dancer's Motion from MDD joint positions ((T, 165) or (T, 55, 3), metres): every ``skip``-th
+    frame, the 22 body joints."""
+    arr = load_array(path, ndim=(2, 3), min_rows=2)
+    arr = arr.reshape(len(arr), -1, 3) if arr.ndim == 2 and arr.shape[1] % 3 == 0 else arr
+    if arr.ndim != 3 or arr.shape[1] < 22 or arr.shape[2] != 3:
+        raise DualFlowError(f"{path}: expected joint positions (T, 165) or (T, 55, 3), got {arr.shape}")
+    arr = arr[::skip, :22]
+    check_up_axis(arr, str(path))
+    return positions_motion(arr, fps, name, str(path))
 
 
 def _focused(root: Path, split: str, genre: str, take: str) -> FocusedDescriptions | None:

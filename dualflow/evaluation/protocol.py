@@ -209,7 +209,7 @@ class CheckpointGenerator:
             self.retrieval_encoder = rag.encoder
 
     def __call__(self, indices: np.ndarray, seed: int) -> np.ndarray:
-        from dualflow.flow import generate
+        from dualflow.flow import SamplingSettings, generate
         from dualflow.model import Conditions
 
         torch = self.torch
@@ -231,10 +231,9 @@ class CheckpointGenerator:
                     cond,
                     mode="reactive",
                     x_actor=self.actor[idx],
-                    steps=self.steps,
-                    cfg_scale=self.cfg_scale,
-                    look_ahead=self.look_ahead,
-                    seed=seed,
+                    sampling=SamplingSettings(
+                        steps=self.steps, cfg_scale=self.cfg_scale, look_ahead=self.look_ahead, seed=seed
+                    ),
                 )
             else:
                 xa, xb = generate(
@@ -243,9 +242,7 @@ class CheckpointGenerator:
                     cond,
                     mode="interactive",
                     batch=len(idx),
-                    steps=self.steps,
-                    cfg_scale=self.cfg_scale,
-                    seed=seed,
+                    sampling=SamplingSettings(steps=self.steps, cfg_scale=self.cfg_scale, seed=seed),
                 )
         x = torch.stack([xa, xb], dim=2).float().cpu().numpy()
         return self.stats.denormalize(x.astype(np.float64)).astype(np.float32)

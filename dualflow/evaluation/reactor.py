@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from dualflow.datasets.training import DuetDataset, positions_from_normalized
-from dualflow.flow import generate
+from dualflow.flow import SamplingSettings, generate
 from dualflow.model import Conditions, DualFlow
 
 
@@ -65,7 +65,9 @@ def generate_reactor(
     if mask_actor:
         actor = torch.zeros_like(actor)
     cond = Conditions(text=batch["text"].to(device), music=batch["beats"].to(device) if music else None)
-    _, reactor = generate(model, dataset.n_frames, cond, mode="reactive", x_actor=actor, steps=steps, seed=seed)
+    _, reactor = generate(
+        model, dataset.n_frames, cond, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=steps, seed=seed)
+    )
     return reactor.cpu()
 
 

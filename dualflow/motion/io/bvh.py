@@ -311,6 +311,18 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
     tok = _Tokens(lines, source)
     if not tok.items:
         raise DualFlowError(f"{source}: the file is empty or has no HIERARCHY; is it a BVH file?")
+    joints = _parse_hierarchy(tok)
+    if tok.motion_line is None:
+        raise DualFlowError(f"{source}, line {len(lines)}: no MOTION section (truncated file?)")
+    n_frames, frame_time, first_row = _parse_motion_header(lines, tok.motion_line + 1, source)
+    rows, row_lines = _motion_rows(lines, first_row, n_frames, source)
+    n_channels = sum(len(j.channels) for j in joints)
+    motion = _motion_values(rows, row_lines, n_frames, n_channels, source)
+    return BvhClip(tuple(joints), frame_time, motion, source, row_lines[0])
+
+
+def _parse_hierarchy(tok: _Tokens) -> list[BvhJoint]:
+    """The joints of the HIERARCHY section (every ROOT and its subtree), in file order."""
     tok.expect("HIERARCHY")
     joints: list[BvhJoint] = []
     while tok.peek() is not None:
@@ -321,11 +333,12 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
         _parse_joint(tok, name, -1, joints, name_line)
     if not joints:
         raise tok.error("the HIERARCHY has no ROOT joint")
-    if tok.motion_line is None:
-        raise DualFlowError(f"{source}, line {len(lines)}: no MOTION section (truncated file?)")
+    return joints
 
-    # -- MOTION header ---------------------------------------------------
-    i = tok.motion_line + 1
+
+def _parse_motion_header(lines: list[str], i: int, source: str) -> tuple[int, float, int]:
+    """(frame count, frame time in s, index of the line after the header) from the 'Frames:' and
+    'Frame Time:' lines that follow MOTION (``i``: the index of the line after MOTION)."""
     header: dict[str, tuple[str, int]] = {}
     while i < len(lines) and len(header) < 2:
         stripped = lines[i].strip()
@@ -368,12 +381,14 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
             f"{source}, line {header['frames'][1]}: the file has zero frames ('Frames: {n_frames}'); "
             "a motion needs at least one frame"
         )
+    return n_frames, frame_time, i
 
-    # -- motion rows -------------------------------------------------------
-    n_channels = sum(len(j.channels) for j in joints)
+
+def _motion_rows(lines: list[str], start: int, n_frames: int, source: str) -> tuple[list[str], list[int]]:
+    """The non-blank lines from ``start`` on and their 1-based line numbers; exactly ``n_frames`` of them."""
     rows: list[str] = []
     row_lines: list[int] = []
-    for k in range(i, len(lines)):
+    for k in range(start, len(lines)):
         if lines[k].strip():
             rows.append(lines[k])
             row_lines.append(k + 1)
@@ -388,6 +403,11 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
             f"{source}, line {row_lines[n_frames]}: 'Frames: {n_frames}' but {len(rows)} motion lines follow; "
             "fix the Frames: count"
         )
+    return rows, row_lines
+
+
+def _motion_values(rows: list[str], row_lines: list[int], n_frames: int, n_channels: int, source: str) -> np.ndarray:
+    """The channel values (n_frames, n_channels) of the motion rows, each a finite number within MAX_VALUE."""
     counts = np.fromiter((len(r.split()) for r in rows), dtype=np.int64, count=len(rows))
     bad = np.flatnonzero(counts != n_channels)
     if bad.size:
@@ -414,7 +434,7 @@ def parse_bvh_text(text: str, source: str = "<bvh>") -> BvhClip:
             f"{source}, line {row_lines[k]}: channel {c + 1} is {float(motion[k, c])}; "
             f"motion values must be finite numbers within ±{MAX_VALUE:g} (drop or repair that frame)"
         )
-    return BvhClip(tuple(joints), frame_time, motion, source, row_lines[0])
+    return motion
 
 
 def read_bvh(path: str | os.PathLike) -> BvhClip:
