@@ -274,83 +274,110 @@ def lead_in(
     added; ``(motion, None)`` when its first frame is a standing double support at rest (unless
     ``force``). ``contacts`` (T, 4) or (T, 2) override the motion's labels; the result carries
     contact labels (T', 4)."""
-    cfg = config
     motion = _with_contacts(motion, contacts) if contacts is not None else motion
-    why = needs_lead_in(motion, cfg)
+    why = needs_lead_in(motion, config)
     if not why and not force:
         return motion, None
-    fps = motion.fps
-    p = np.asarray(motion.positions, dtype=np.float64)
-    c4 = _contacts4(motion)
-    c = side_contacts(c4)
-    first = p[0]
-    stand = standing_pose(first, _ground(motion, c4), cfg)
-    length = np.linalg.norm(first - first[list(PARENTS)], axis=1)
-    fwd = _rot_z(_heading(first))[:, 0]
-    frames: list[np.ndarray] = []
-    labels: list[tuple[bool, bool]] = []
-    n = lambda s: max(1, int(round(s * fps)))  # noqa: E731
+    b = _LeadInBuilder(motion, config)
+    b.hold()
+    stepped = [("left", "right")[s] for s in range(2) if b.step_if_needed(s)]
+    lifted = [("left", "right")[s] for s in range(2) if not b.c[0, s]]
+    b.move_into_first_frame()
+    lead = np.stack(b.frames[:-1])  # the last one is the first frame itself: the clip supplies it
+    lead_c = np.array(b.labels[:-1], dtype=bool)
+    ease = config.ease_s if motion.n_frames > 1 else 0.0
+    clip, clip_c4 = b.eased_clip(ease)
+    lead_c4 = np.repeat(lead_c, 2, axis=1)  # (left, right) -> (l_ankle, l_toe, r_ankle, r_toe)
+    out = Motion(
+        np.concatenate([lead, clip]).astype(motion.positions.dtype, copy=False),
+        fps=motion.fps,
+        contacts=np.concatenate([lead_c4, clip_c4]),
+        name=motion.name,
+    )
+    return out, LeadIn(len(lead), motion.fps, ease, tuple(stepped), tuple(lifted), why)
 
-    # the state: pelvis, upper body (every joint but the legs) relative to the pelvis, feet
-    upper = [j for j in range(22) if j not in LEG_JOINTS and j != PELVIS]
-    # one foot in the air in the first frame: the robot starts that frame at rest, so its weight
-    # must be over the other foot there; the body (pelvis, upper body, knees by half) is shifted
-    # ``shift_share`` of the way over that foot at the first frame, the shift fading out in the ease-in
-    body = [PELVIS] + upper
-    shift = np.zeros(3)
-    if c[0].sum() == 1:
-        st = int(np.flatnonzero(c[0])[0])
-        shift[0:2] = cfg.shift_share * (first[ANKLE[st], 0:2] - first[PELVIS, 0:2])
 
-    def shifted(f: np.ndarray, share: float) -> np.ndarray:
+class _LeadInBuilder:
+    """The lead-in's frames as they are built: the person's pelvis, upper body (every joint but
+    the legs) relative to the pelvis and feet; the knees by two-bone IK. ``frames`` (22, 3) each
+    and ``labels`` (left down, right down) each, in order."""
+
+    def __init__(self, motion: Motion, cfg: LeadInConfig):
+        self.cfg, self.fps, self.motion = cfg, motion.fps, motion
+        self.p = np.asarray(motion.positions, dtype=np.float64)
+        self.c4 = _contacts4(motion)
+        self.c = side_contacts(self.c4)
+        first = self.p[0]
+        self.stand = standing_pose(first, _ground(motion, self.c4), cfg)
+        self.length = np.linalg.norm(first - first[list(PARENTS)], axis=1)
+        self.fwd = _rot_z(_heading(first))[:, 0]
+        self.frames: list[np.ndarray] = []
+        self.labels: list[tuple[bool, bool]] = []
+        self.upper = [j for j in range(22) if j not in LEG_JOINTS and j != PELVIS]
+        # one foot in the air in the first frame: the robot starts that frame at rest, so its
+        # weight must be over the other foot there; the body (pelvis, upper body, knees by half)
+        # is shifted ``shift_share`` of the way over that foot at the first frame, the shift
+        # fading out in the ease-in
+        self.body = [PELVIS] + self.upper
+        self.shift = np.zeros(3)
+        if self.c[0].sum() == 1:
+            st = int(np.flatnonzero(self.c[0])[0])
+            self.shift[0:2] = cfg.shift_share * (first[ANKLE[st], 0:2] - first[PELVIS, 0:2])
+        self.first = self.shifted(first, 1.0)
+        self.feet = {s: (self.stand[ANKLE[s]].copy(), self.stand[TOE[s]].copy()) for s in range(2)}
+        # the first frame's knee against the straight-ahead IK knee: blended in during the move,
+        # so the knee ends where it is in the first frame without flipping through the leg's axis
+        f, L = self.first, self.length
+        self.knee_fix = [
+            f[KNEE[s]] - knee_ik(f[HIP[s]], f[ANKLE[s]], L[KNEE[s]], L[ANKLE[s]], self.fwd) for s in range(2)
+        ]
+        self.rel_stand = self.stand[self.upper] - self.stand[PELVIS]
+        self.pel = self.stand[PELVIS].copy()
+
+    def n(self, seconds: float) -> int:
+        return max(1, int(round(seconds * self.fps)))
+
+    def shifted(self, f: np.ndarray, share: float) -> np.ndarray:
         f = f.copy()
-        f[body] += share * shift
-        f[[L_KNEE, R_KNEE]] += 0.5 * share * shift
+        f[self.body] += share * self.shift
+        f[[L_KNEE, R_KNEE]] += 0.5 * share * self.shift
         return f
 
-    first = shifted(first, 1.0)
-    feet = {s: (stand[ANKLE[s]].copy(), stand[TOE[s]].copy()) for s in range(2)}
-
-    # the first frame's knee against the straight-ahead IK knee: blended in during the move, so the
-    # knee ends where it is in the first frame without flipping through the leg's axis
-    knee_fix = [
-        first[KNEE[s]] - knee_ik(first[HIP[s]], first[ANKLE[s]], length[KNEE[s]], length[ANKLE[s]], fwd)
-        for s in range(2)
-    ]
-
-    def emit(pelvis, rel, down, pole_share=0.0):
+    def emit(self, pelvis, rel, down, pole_share: float = 0.0) -> None:
         f = np.zeros((22, 3))
         f[PELVIS] = pelvis
-        f[upper] = pelvis + rel
+        f[self.upper] = pelvis + rel
         for s in range(2):
-            ank, toe = feet[s]
+            ank, toe = self.feet[s]
             f[ANKLE[s]], f[TOE[s]] = ank, toe
-            f[KNEE[s]] = knee_ik(f[HIP[s]], ank, length[KNEE[s]], length[ANKLE[s]], fwd) + pole_share * knee_fix[s]
-        frames.append(f)
-        labels.append(tuple(down))
+            knee = knee_ik(f[HIP[s]], ank, self.length[KNEE[s]], self.length[ANKLE[s]], self.fwd)
+            f[KNEE[s]] = knee + pole_share * self.knee_fix[s]
+        self.frames.append(f)
+        self.labels.append(tuple(down))
 
-    rel_stand = stand[upper] - stand[PELVIS]
-    pel = stand[PELVIS].copy()
-    for _ in range(n(cfg.hold_s)):
-        emit(pel, rel_stand, (True, True))
-    # 2. steps to the first frame's places of feet that are down there
-    stepped = []
-    for s in range(2):
-        if not c[0, s]:
-            continue
+    def hold(self) -> None:
+        """1. standing still."""
+        for _ in range(self.n(self.cfg.hold_s)):
+            self.emit(self.pel, self.rel_stand, (True, True))
+
+    def step_if_needed(self, s: int) -> bool:
+        """2. a step of foot ``s`` to its place in the first frame, if it is down there and stands
+        elsewhere: weight shift, swing, double support. Whether it stepped."""
+        cfg, stand, first, feet = self.cfg, self.stand, self.first, self.feet
+        if not self.c[0, s]:
+            return False
         moved, turned = _needs_step(stand, first, s, cfg)
         if moved <= cfg.step_distance and turned <= cfg.step_turn:
-            continue
-        stepped.append(("left", "right")[s])
-        o = 1 - s
+            return False
+        pel = self.pel
         over = pel.copy()
-        over[0:2] += cfg.shift_share * (feet[o][0][0:2] - pel[0:2])
-        k = n(cfg.shift_s)
+        over[0:2] += cfg.shift_share * (feet[1 - s][0][0:2] - pel[0:2])
+        k = self.n(cfg.shift_s)
         for i in range(1, k + 1):
-            emit(pel + (over - pel) * _min_jerk(np.array(i / k)), rel_stand, (True, True))
+            self.emit(pel + (over - pel) * _min_jerk(np.array(i / k)), self.rel_stand, (True, True))
         a0, t0 = feet[s]
         a1, t1 = first[ANKLE[s]].copy(), first[TOE[s]].copy()
-        k = n(cfg.swing_s)
+        k = self.n(cfg.swing_s)
         for i in range(1, k + 1):
             w = float(_min_jerk(np.array(i / k)))
             arc = cfg.lift * 4 * (i / k) * (1 - i / k)
@@ -358,62 +385,59 @@ def lead_in(
             toe_rel = (t0 - a0) + ((t1 - a1) - (t0 - a0)) * w
             toe_rel *= np.linalg.norm(t1 - a1) / max(np.linalg.norm(toe_rel), 1e-9)
             feet[s] = (ank, ank + toe_rel)
-            emit(over, rel_stand, (s == 1 or i == k, s == 0 or i == k))
+            self.emit(over, self.rel_stand, (s == 1 or i == k, s == 0 or i == k))
         feet[s] = (a1, t1)
         centre = pel.copy()
         centre[0:2] = 0.5 * (feet[0][0][0:2] + feet[1][0][0:2]) + (
             stand[PELVIS, 0:2] - 0.5 * (stand[L_ANKLE, 0:2] + stand[R_ANKLE, 0:2])
         )
-        k = n(cfg.double_s)
+        k = self.n(cfg.double_s)
         for i in range(1, k + 1):
-            emit(over + (centre - over) * _min_jerk(np.array(i / k)), rel_stand, (True, True))
-        pel = centre
-    # 3. into the first frame's pose; a foot in the air there lifts on the way
-    lifted = [("left", "right")[s] for s in range(2) if not c[0, s]]
-    start_feet = dict(feet)
-    rel0 = first[upper] - first[PELVIS]
-    moves = [np.linalg.norm(first[PELVIS] - pel)]
-    moves += [np.linalg.norm(first[ANKLE[s]] - start_feet[s][0]) for s in range(2)]
-    moves.append(float(np.max(np.linalg.norm(rel0 - rel_stand, axis=1))))
-    k = max(n(cfg.move_s), n(max(moves) / cfg.move_speed))
-    k_lift = min(k, n(cfg.swing_s))  # a foot in the air in the first frame lifts this late: less time on one foot
-    for i in range(1, k + 1):
-        w = float(_min_jerk(np.array(i / k)))
-        down = []
-        for s in range(2):
-            a0, t0 = start_feet[s]
-            a1, t1 = first[ANKLE[s]], first[TOE[s]]
-            wf = w if c[0, s] else float(_min_jerk(np.array((i - (k - k_lift)) / k_lift)))
-            arc = 0.0 if c[0, s] or i == k else 0.5 * cfg.lift * math.sin(math.pi * wf)
-            feet[s] = (a0 + (a1 - a0) * wf + np.array([0, 0, arc]), t0 + (t1 - t0) * wf + np.array([0, 0, arc]))
-            down.append(bool(c[0, s]) or wf < 1e-3)
-        emit(pel + (first[PELVIS] - pel) * w, rel_stand + (rel0 - rel_stand) * w, down, pole_share=w)
-    lead = np.stack(frames[:-1])  # the last one is the first frame itself: the clip supplies it
-    lead_c = np.array(labels[:-1], dtype=bool)
-    # 4. the clip, eased in
-    ease = cfg.ease_s if motion.n_frames > 1 else 0.0
-    t_clip = motion.times
-    u_end = t_clip[-1] + 0.5 * ease  # the trajectory time of the clip's last frame
-    u = np.arange(int(math.floor(u_end * fps + 1e-9)) + 1) / fps
-    tau = np.minimum(_warp(u, ease), t_clip[-1])
-    idx = np.clip(np.searchsorted(t_clip, tau, side="right") - 1, 0, motion.n_frames - 1)
-    nxt = np.minimum(idx + 1, motion.n_frames - 1)
-    span = np.maximum(t_clip[nxt] - t_clip[idx], 1e-12)
-    a = np.where(nxt > idx, (tau - t_clip[idx]) / span, 0.0)[:, None, None]
-    clip = (1 - a) * p[idx] + a * p[nxt]
-    if ease > 0 and shift.any():
-        fade = 1.0 - _min_jerk(u / ease)
-        clip = np.stack([shifted(f, float(w)) for f, w in zip(clip, fade)])
-    near = np.where(a[:, 0, 0] > 0.5, nxt, idx)
-    clip_c4 = c4[near]
-    lead_c4 = np.repeat(lead_c, 2, axis=1)  # (left, right) -> (l_ankle, l_toe, r_ankle, r_toe)
-    out = Motion(
-        np.concatenate([lead, clip]).astype(motion.positions.dtype, copy=False),
-        fps=fps,
-        contacts=np.concatenate([lead_c4, clip_c4]),
-        name=motion.name,
-    )
-    return out, LeadIn(len(lead), fps, ease, tuple(stepped), tuple(lifted), why)
+            self.emit(over + (centre - over) * _min_jerk(np.array(i / k)), self.rel_stand, (True, True))
+        self.pel = centre
+        return True
+
+    def move_into_first_frame(self) -> None:
+        """3. into the first frame's pose; a foot in the air there lifts on the way, late."""
+        cfg, first, c, pel, upper = self.cfg, self.first, self.c, self.pel, self.upper
+        start_feet = dict(self.feet)
+        rel0 = first[upper] - first[PELVIS]
+        moves = [np.linalg.norm(first[PELVIS] - pel)]
+        moves += [np.linalg.norm(first[ANKLE[s]] - start_feet[s][0]) for s in range(2)]
+        moves.append(float(np.max(np.linalg.norm(rel0 - self.rel_stand, axis=1))))
+        k = max(self.n(cfg.move_s), self.n(max(moves) / cfg.move_speed))
+        k_lift = min(k, self.n(cfg.swing_s))  # a foot in the air in the first frame lifts this late
+        for i in range(1, k + 1):
+            w = float(_min_jerk(np.array(i / k)))
+            down = []
+            for s in range(2):
+                a0, t0 = start_feet[s]
+                a1, t1 = first[ANKLE[s]], first[TOE[s]]
+                wf = w if c[0, s] else float(_min_jerk(np.array((i - (k - k_lift)) / k_lift)))
+                arc = 0.0 if c[0, s] or i == k else 0.5 * cfg.lift * math.sin(math.pi * wf)
+                lift = np.array([0, 0, arc])
+                self.feet[s] = (a0 + (a1 - a0) * wf + lift, t0 + (t1 - t0) * wf + lift)
+                down.append(bool(c[0, s]) or wf < 1e-3)
+            self.emit(pel + (first[PELVIS] - pel) * w, self.rel_stand + (rel0 - self.rel_stand) * w, down, pole_share=w)
+
+    def eased_clip(self, ease: float) -> tuple[np.ndarray, np.ndarray]:
+        """4. the clip's frames on the trajectory's clock, its first ``ease`` s eased in from rest
+        (the body shift fading out there), and their contact labels (T, 4)."""
+        motion, p, fps = self.motion, self.p, self.fps
+        t_clip = motion.times
+        u_end = t_clip[-1] + 0.5 * ease  # the trajectory time of the clip's last frame
+        u = np.arange(int(math.floor(u_end * fps + 1e-9)) + 1) / fps
+        tau = np.minimum(_warp(u, ease), t_clip[-1])
+        idx = np.clip(np.searchsorted(t_clip, tau, side="right") - 1, 0, motion.n_frames - 1)
+        nxt = np.minimum(idx + 1, motion.n_frames - 1)
+        span = np.maximum(t_clip[nxt] - t_clip[idx], 1e-12)
+        a = np.where(nxt > idx, (tau - t_clip[idx]) / span, 0.0)[:, None, None]
+        clip = (1 - a) * p[idx] + a * p[nxt]
+        if ease > 0 and self.shift.any():
+            fade = 1.0 - _min_jerk(u / ease)
+            clip = np.stack([self.shifted(f, float(w)) for f, w in zip(clip, fade)])
+        near = np.where(a[:, 0, 0] > 0.5, nxt, idx)
+        return clip, self.c4[near]
 
 
 def with_lead_in(traj, lead: LeadIn, contacts4=None):
