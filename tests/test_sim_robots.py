@@ -12,34 +12,13 @@ import mujoco
 import numpy as np
 import pytest
 import yaml
+from test_op3_reference import ROBOTIS_ID_ORDER
 
 from firmware_cfg.errors import ConfigError
 from firmware_cfg.registry import bundled_names, joint_limits, joint_names, resolve
 from sim.scene import Scene, SceneConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-OP3_IDS = (
-    "r_sho_pitch",
-    "l_sho_pitch",
-    "r_sho_roll",
-    "l_sho_roll",
-    "r_el",
-    "l_el",
-    "r_hip_yaw",
-    "l_hip_yaw",
-    "r_hip_roll",
-    "l_hip_roll",
-    "r_hip_pitch",
-    "l_hip_pitch",
-    "r_knee",
-    "l_knee",
-    "r_ank_pitch",
-    "l_ank_pitch",
-    "r_ank_roll",
-    "l_ank_roll",
-    "head_pan",
-    "head_tilt",
-)
 #: Retarget keypoint sites every bundled humanoid with legs has (its profile names them).
 KEYPOINT_SITES = (
     "pelvis",
@@ -106,7 +85,7 @@ def test_bundled_models_compile_with_stand_keyframe_and_sites(name):
 
 def test_op3_published_facts(op3):
     m = op3.model
-    assert joint_names("op3") == OP3_IDS
+    assert joint_names("op3") == ROBOTIS_ID_ORDER
     assert sum(m.body_mass) == pytest.approx(3.147, abs=0.001)  # ROBOTIS's description
     assert m.body("body_link").mass[0] == pytest.approx(1.34928)
     assert 0.48 <= op3.robot_height <= 0.54
@@ -143,7 +122,7 @@ def test_op3_limits_match_hardware_config():
     cfg = yaml.safe_load(path.read_text())
     servos = [s for bus in cfg["buses"] for s in bus["servos"]]
     by_id = sorted(servos, key=lambda s: s["id"])
-    assert tuple(s["joint"] for s in by_id) == OP3_IDS  # ID order = MJCF actuator order
+    assert tuple(s["joint"] for s in by_id) == ROBOTIS_ID_ORDER  # ID order = MJCF actuator order
     mjcf = joint_limits("op3")
     for s in servos:
         assert tuple(s["limits"]) == pytest.approx(mjcf[s["joint"]], abs=1e-6), s["joint"]
