@@ -291,7 +291,8 @@ class SamplingSettings:
     """How ``generate`` samples: ODE steps and method ("euler" | "heun"), classifier-free
     guidance scale (1: none), the model's look-ahead in frames (None: the model's own), the seed
     of the CPU generator that draws the initial noise, and an optional projection (see
-    ``ode_solve``)."""
+    ``ode_solve``). cuda_graph: on a CUDA device, replay the velocity from a CUDA graph
+    (``dualflow.cuda_graph``; the same kernels, launched once per step instead of one by one)."""
 
     steps: int = 20
     method: str = "euler"
@@ -299,6 +300,7 @@ class SamplingSettings:
     look_ahead: int | None = None
     seed: int = 0
     project: ProjectFn | None = None
+    cuda_graph: bool = True
 
 
 @torch.no_grad()
@@ -343,6 +345,10 @@ def generate(
     if x_actor is not None:
         x_actor = x_actor.to(device, dtype)
     velocity = guided_velocity(model, cond, mode=mode, x_actor=x_actor, cfg_scale=s.cfg_scale, look_ahead=s.look_ahead)
+    if s.cuda_graph and device.type == "cuda":
+        from dualflow.cuda_graph import GraphedVelocity
+
+        velocity = GraphedVelocity(velocity)
     was_training = model.training
     if was_training:  # Module.eval() walks every submodule: only when needed
         model.eval()

@@ -240,6 +240,14 @@ class MultiScaleConv(nn.Module):
 
     causal=False: centred ("same") padding. causal=True: left padding by k - 1 so output frame i
     sees input frames i-k+1 .. i only. z (N, T, W); frame_mask (N, T) zeroes padded frames first.
+
+    Two ways to compute the same sums (equal up to float rounding), chosen by ``gemm``:
+    ``Conv1d`` per kernel (False), or one tap-major window matrix of the largest kernel (N, T,
+    k_max * W) from which each kernel's taps are a contiguous column slice, multiplied by the
+    kernel's weights laid out tap-major: one large matrix product per kernel, no convolution
+    algorithm search (True). None (default): the matrix products on CUDA, where cuDNN's 1-D
+    convolutions with kernels 11 and 21 were the slowest part of a training step (issue 28,
+    bench/dualflow_gpu.py), and Conv1d elsewhere.
     """
 
     def __init__(self, width: int, kernels: tuple[int, ...], dropout: float):
@@ -248,15 +256,37 @@ class MultiScaleConv(nn.Module):
         self.convs = nn.ModuleList(nn.Conv1d(width, width, k) for k in self.kernels)
         self.gates = nn.Parameter(torch.full((len(self.kernels),), 0.1))
         self.drop = nn.Dropout(dropout)
+        self.gemm: bool | None = None
 
     def forward(self, z: torch.Tensor, causal: bool, frame_mask: torch.Tensor | None) -> torch.Tensor:
         x = z if frame_mask is None else z * frame_mask[..., None]
+        gemm = z.is_cuda if self.gemm is None else self.gemm
+        out = self._by_products(x, causal) if gemm else self._by_convolutions(x, causal)
+        return z + self.drop(out)
+
+    def _by_convolutions(self, x: torch.Tensor, causal: bool) -> torch.Tensor:
         x = x.transpose(1, 2)  # (N, W, T)
         out = 0
         for gamma, conv, k in zip(self.gates, self.convs, self.kernels):
             pad = (k - 1, 0) if causal else ((k - 1) // 2, (k - 1) // 2)
             out = out + gamma * F.gelu(conv(F.pad(x, pad)))
-        return z + self.drop(out.transpose(1, 2))
+        return out.transpose(1, 2)
+
+    def _by_products(self, x: torch.Tensor, causal: bool) -> torch.Tensor:
+        n, t, w = x.shape
+        k_max = max(self.kernels)
+        if torch.is_autocast_enabled(x.device.type):  # build the window matrix once, in the product dtype
+            x = x.to(torch.get_autocast_dtype(x.device.type))
+        pad = (k_max - 1, 0) if causal else ((k_max - 1) // 2, (k_max - 1) // 2)
+        # windows[n, i, u, :] = x[n, i - pad_left + u, :], tap u of frame i's k_max window, tap-major
+        windows = F.pad(x, (0, 0, *pad)).unfold(1, k_max, 1).transpose(2, 3).contiguous()
+        out = 0
+        for gamma, conv, k in zip(self.gates, self.convs, self.kernels):
+            first = k_max - k if causal else (k_max - k) // 2  # this kernel's taps within the window
+            taps = windows[:, :, first : first + k].reshape(n, t, k * w)
+            weight = conv.weight.permute(0, 2, 1).reshape(w, k * w)  # (out, tap-major in)
+            out = out + gamma * F.gelu(F.linear(taps, weight, conv.bias))
+        return out
 
 
 class FeedForward(nn.Module):

@@ -174,3 +174,74 @@ def test_compiled_blocks_share_their_graphs_and_compute_the_same():
         graphs.append(counters["stats"]["unique_graphs"])
     assert graphs[0] == graphs[1]  # twice the blocks, no more graphs: one compile serves every block
     torch._dynamo.reset()
+
+
+@pytest.mark.parametrize("causal", [False, True])
+def test_convolutions_as_matrix_products_equal_conv1d_values_and_gradients(causal):
+    """MultiScaleConv(gemm=True), the CUDA default, computes what Conv1d computes: centred and
+    causal padding, a frame mask, and the gradients of the input, weights, biases and gates."""
+    from dualflow.model import MultiScaleConv
+
+    torch.manual_seed(1)
+    conv = MultiScaleConv(12, (3, 7, 11), 0.0)
+    z = torch.randn(2, 17, 12)  # fewer frames than the largest kernel's reach on both sides
+    mask = (torch.rand(2, 17) > 0.3).float()
+    results = []
+    for gemm in (False, True):
+        conv.gemm = gemm
+        conv.zero_grad()
+        x = z.clone().requires_grad_(True)
+        y = conv(x, causal=causal, frame_mask=mask)
+        (y * torch.linspace(-1, 1, 12)).sum().backward()
+        grads = [x.grad] + [p.grad.clone() for p in conv.parameters()]
+        results.append((y.detach(), grads))
+    (y0, g0), (y1, g1) = results
+    torch.testing.assert_close(y1, y0, atol=1e-5, rtol=1e-5)
+    for a, b in zip(g1, g0):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+    if causal:  # frame i must not see later frames on the matrix-product path either
+        conv.gemm = True
+        late = z.clone()
+        late[:, 9:] += 5.0
+        torch.testing.assert_close(conv(late, True, None)[:, :9], conv(z, True, None)[:, :9])
+
+
+def test_graphed_velocity_off_the_gpu_calls_the_function_and_says_why():
+    from dualflow.cuda_graph import GraphedVelocity
+    from dualflow.flow import SamplingSettings, generate
+
+    calls = []
+
+    def velocity(x, t):
+        calls.append(t[0].item())
+        return -x
+
+    graphed = GraphedVelocity(velocity)
+    x = torch.ones(1, 3, 4)
+    torch.testing.assert_close(graphed(x, torch.zeros(1)), -x)
+    assert calls == [0.0] and graphed.graph is None and "not a CUDA device" in graphed.eager_reason
+    model = _random_model(4)
+    actor = torch.randn(1, 12, 262)
+    on = generate(model, 12, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=3, cuda_graph=True))[1]
+    off = generate(model, 12, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=3, cuda_graph=False))[1]
+    torch.testing.assert_close(on, off)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (CUDA graphs)")
+def test_graphed_generation_on_cuda_equals_eager_and_rejects_another_shape():
+    from dualflow.cuda_graph import GraphedVelocity
+    from dualflow.flow import SamplingSettings, generate
+
+    model = _random_model(5).cuda()
+    actor = torch.randn(1, 40, 262, device="cuda")
+    cond = Conditions(text=torch.randn(1, model.config.text_dim, device="cuda"))
+    runs = [
+        generate(model, 40, cond, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=4, cuda_graph=g))[1]
+        for g in (False, True)
+    ]
+    torch.testing.assert_close(runs[1], runs[0], atol=1e-5, rtol=1e-5)
+    graphed = GraphedVelocity(lambda x, t: x * t[:, None, None])
+    graphed(torch.ones(2, 3, 4, device="cuda"), torch.full((2,), 0.5, device="cuda"))
+    assert graphed.graph is not None
+    with pytest.raises(DualFlowError, match="differs from the captured"):
+        graphed(torch.ones(2, 5, 4, device="cuda"), torch.full((2,), 0.5, device="cuda"))
