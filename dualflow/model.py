@@ -624,9 +624,10 @@ class DualFlow(nn.Module):
         pe = self._pe(n_frames, device)
 
         if mode == "reactive":
-            if actor_context is None:
-                actor_context = self.actor_context(x_a, cond, frame_mask=frame_mask)
-            elif actor_context.shape != (b, n_frames) or len(actor_context.keys) != len(self.blocks):
+            if actor_context is None:  # both streams in one pass (training): see _reactive_stacked
+                z = self._reactive_stacked(x_a, x_b, t, z_text, (z_m, z_r), look_ahead, frame_mask)
+                return torch.zeros_like(x_a), self._velocity(self.out_b(self.out_norm(z)), x_b, t)
+            if actor_context.shape != (b, n_frames) or len(actor_context.keys) != len(self.blocks):
                 raise DualFlowError(
                     f"actor_context was built for (B, T) = {actor_context.shape}, but x_a is {(b, n_frames)}; "
                     "rebuild it with model.actor_context(x_a, cond)"
@@ -652,6 +653,40 @@ class DualFlow(nn.Module):
             z = block(z, z_d, z_m, z_r, masks)
         z = self.out_norm(z)
         return self._velocity(self.out_a(z[:b]), x_a, t), self._velocity(self.out_b(z[b:]), x_b, t)
+
+    def _reactive_stacked(self, x_a, x_b, t, z_text, cues, look_ahead: int, frame_mask) -> torch.Tensor:
+        """The reactor's last latent z (B, T, W) with the actor stream run alongside it.
+
+        The same arithmetic as ``actor_context`` followed by the reactor pass, but block by block
+        on the two streams stacked along the batch (rows [0, B) actor at flow time 1, [B, 2B)
+        reactor at t): the convolutions, self- and music attention, retrieval attention and
+        feed-forward run once over 2B rows instead of twice over B (half the kernel launches of
+        a reactive training step), and only the reactor's rows take the causal motion
+        cross-attention to the actor's keys of the same block. Equal to the two passes up to
+        float rounding (tests/test_dualflow_fast_paths.py). cues: (z_m, z_r) of the batch.
+        """
+        b, n_frames = x_a.shape[:2]
+        device = x_a.device
+        ones = torch.ones(b, dtype=x_a.dtype, device=device)
+        z_d = z_text.repeat(2, 1) + self.time_embedding(torch.cat([ones, t]))
+        reactor = self._reactive_masks(n_frames, look_ahead, frame_mask, device, x_b.dtype)
+        self_mask = reactor.self_mask
+        both = BlockMasks(
+            None if self_mask is None else self_mask.repeat(2, 1, 1, 1),
+            None,
+            causal=True,
+            frame_mask=None if reactor.frame_mask is None else reactor.frame_mask.repeat(2, 1),
+            self_causal=reactor.self_causal,
+        )
+        z_m, z_r = (cue.repeat(2, 1, 1) for cue in cues)
+        z = torch.cat([self.in_a(x_a), self.in_b(x_b)], 0) + self._pe(n_frames, device)
+        for block in self.blocks:
+            mods = block.modulations(z_d)
+            z2 = block.temporal(z, mods, z_m, both)
+            keys = block.keys_of(z2[:b])
+            z3 = block.motion_cross(z2[b:], [(scale[b:], shift[b:]) for scale, shift in mods], keys, reactor.cross_mask)
+            z = block.finish(torch.cat([z2[:b], z3], 0), mods, z_r)
+        return z[b:]
 
     def _velocity(self, out: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """The output linear's result as a velocity (B, T, 262), per ``config.prediction``.

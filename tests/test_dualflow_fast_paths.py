@@ -245,3 +245,31 @@ def test_graphed_generation_on_cuda_equals_eager_and_rejects_another_shape():
     assert graphed.graph is not None
     with pytest.raises(DualFlowError, match="differs from the captured"):
         graphed(torch.ones(2, 5, 4, device="cuda"), torch.full((2,), 0.5, device="cuda"))
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_reactive_pass_with_both_streams_stacked_equals_actor_context_then_reactor(masked):
+    """Training's reactive forward (no actor_context: the actor and reactor streams stacked along
+    the batch, block by block) gives what the sampler's two passes give, with and without a
+    frame mask, music and retrieval tokens; and its gradients reach the actor's input projection."""
+    model = _random_model(6)
+    b, n = 3, 14
+    torch.manual_seed(7)
+    x_a, x_b = torch.randn(b, n, 262), torch.randn(b, n, 262)
+    frame_mask = None
+    if masked:
+        frame_mask = torch.ones(b, n, dtype=torch.bool)
+        frame_mask[1, 10:] = False
+    cond = Conditions(
+        text=torch.randn(b, model.config.text_dim),
+        music=torch.randn(b, n, model.config.music_dim),
+        retrieval=torch.randn(b, 4, model.config.width),
+    )
+    t = torch.rand(b)
+    with torch.no_grad():
+        context = model.actor_context(x_a, cond, frame_mask=frame_mask)
+        want = model(x_a, x_b, t, cond, mode="reactive", frame_mask=frame_mask, actor_context=context)[1]
+    got = model(x_a, x_b, t, cond, mode="reactive", frame_mask=frame_mask)[1]
+    torch.testing.assert_close(got, want, atol=2e-5, rtol=2e-5)
+    got.square().sum().backward()
+    assert model.in_a.weight.grad is not None and model.in_a.weight.grad.abs().sum() > 0
