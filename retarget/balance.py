@@ -68,6 +68,11 @@ class BalancePlanner:
         self._min_stance_frames = round(cfg.min_stance * self.fps)
         self._max_swing_frames = round(cfg.max_swing * self.fps)
         self._settle_frames = round(cfg.settle * self.fps)
+        self._min_swing_frames = round(cfg.min_swing * self.fps)
+        self._min_double_frames = round(cfg.min_double * self.fps)
+        # leg length (hip above ankle standing; the CoM height without hip keypoints): scales step lengths
+        legs = [self._stand_kp[hip, 2] - self._stand_kp[ankle, 2] for hip, ankle in zip(self._hips or (), self._ankles)]
+        self._leg = float(np.mean(legs)) if legs else h
 
     def bind(self, anchor: np.ndarray, edges, points, point_w, cpred, zmp) -> None:
         """Where to write: the contact rows' anchor (2, 8) and views into the parameter buffer
@@ -110,6 +115,9 @@ class BalancePlanner:
         xy (2,)); returns the feet to hold."""
         self._sole1 = sole.copy()
         self._c1 = self._c2 = com_xy.copy()
+        for s in range(2):
+            self.touch_down(s)
+        self._stand_sep = float(np.linalg.norm(self._prints[0].mean(axis=0) - self._prints[1].mean(axis=0)))
         held = self.plan((True, True))
         self.set_points(True)
         return held
@@ -124,8 +132,35 @@ class BalancePlanner:
             if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
                 k = self._foot_kps[s]
                 targets[k, 2] = np.clip(targets[k, 2], self._foot_kp_h[s], self._foot_kp_h[s] + cfg.swing_height)
+                if self.planted[1 - s]:
+                    self._clamp_step(targets, s)
         self.set_points(False)
         return held
+
+    def _clamp_step(self, targets: np.ndarray, s: int) -> None:
+        """Keep the lifted foot s's targets (changed in place) where the robot can put it: in the
+        planted foot's frame (its footprint's centre and long axis, pointing along the foot's
+        heading), at least ``min_separation`` x the standing feet's distance to its own side (a
+        person's crossed or closed feet would put the robot's into its other leg), and at most
+        ``stride_limit`` x the leg length from the standing place forwards, backwards and
+        outwards. The foot's ankle and toe targets move together."""
+        cfg = self.config
+        fp = self._prints[1 - s]
+        centre = fp.mean(axis=0)
+        d = fp - centre
+        axis = np.linalg.eigh(d.T @ d)[1][:, 1]  # the footprint's long axis
+        heading = self._head_ref[1 - s]
+        if axis @ (math.cos(heading), math.sin(heading)) < 0:
+            axis = -axis
+        side = np.array([-axis[1], axis[0]]) * (1.0 if s == 0 else -1.0)  # towards foot s's own side
+        k = self._foot_kps[s]
+        rel = targets[k[0], 0:2] - centre
+        along, across = float(rel @ axis), float(rel @ side)
+        reach = cfg.stride_limit * self._leg
+        want_along = min(max(along, -reach), reach)
+        want_across = min(max(across, cfg.min_separation * self._stand_sep), self._stand_sep + reach)
+        shift = (want_along - along) * axis + (want_across - across) * side
+        targets[k, 0:2] += shift
 
     def record(self, sole: np.ndarray, com_xy: np.ndarray) -> None:
         """The emitted frame's sole corners (3, 8) and CoM xy (2,)."""
@@ -225,24 +260,8 @@ class BalancePlanner:
         foot is up, and lands when the person's does."""
         cfg = self.config
         contact = (bool(human_contact[0]), bool(human_contact[1]))
-        if ahead is not None and cfg.steps:
-            ahead = (bool(ahead[0]), bool(ahead[1]))
-            self._since += 1
-            want = [True, True]
-            for s in range(2):
-                planted, other = bool(self.planted[s]), 1 - s
-                if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
-                    self.touch_down(s)
-                    continue
-                if (
-                    planted
-                    and self._since[s] >= self._min_stance_frames
-                    and self.planted[other]
-                    and contact[other]
-                    and ((not ahead[s] and ahead[other]) or not contact[s])
-                ):
-                    want[s] = False
-            return self._shift_or_lift(want, lift_ok=[not contact[0], not contact[1]])
+        if cfg.steps and cfg.paced:
+            return self._plan_paced(contact)
         # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
         # the other, or its target moves step_distance or turns step_turn from where the robot put
         # it down) and the robot's foot has stood min_stance frames; a near-standing person's contact
@@ -270,6 +289,63 @@ class BalancePlanner:
                 dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
             )
         return self._shift_or_lift(want, lift_ok=[True, True])
+
+    def _plan_paced(self, contact) -> tuple[bool, bool]:
+        """``plan`` at the robot's own pace (``StreamingConfig.paced``): quick steps, no weight
+        shift, no preview needed.
+
+        Foot s lifts when the person's foot s is up, or when the
+        robot's planted foot s has fallen behind the person's (``step_distance``, ``step_turn``),
+        while the other foot is planted under the person's down foot, foot s has stood
+        ``min_stance`` and both have stood ``min_double`` since the last step. It lifts at once,
+        and the CoM's region stays the two feet's region from before the lift: the robot steps
+        the way its offline trajectories do, the CoM between the feet and a swing of about
+        ``min_swing``, caught by the landing foot. (A quasi-static shift of the CoM over the
+        stance foot first, the non-paced rule, loads one soft servo leg for half a second or
+        more: on the OP3 the body then rolls 6-10 degrees outwards over the stance foot and falls
+        at the first or second step; and a person stepping three times a second is faster than
+        that shift.) The lifted foot follows the person's foot s, kept where the robot can put
+        it (:meth:`_clamp_step`), and lands when the person's foot is down and the swing has
+        lasted ``min_swing``, or after ``max_swing``. So the robot steps as often as it can,
+        skips the steps it has no time for, and catches up where the person's feet went."""
+        cfg = self.config
+        self._since += 1
+        for s in range(2):
+            swing = int(self._since[s])
+            landed = (contact[s] and swing >= self._min_swing_frames) or swing >= self._max_swing_frames
+            if not self.planted[s] and landed:
+                self.touch_down(s)
+        if self.planted.all():
+            for s in range(2):
+                other = 1 - s
+                ready = (
+                    self._since[s] >= self._min_stance_frames
+                    and self._since[other] >= self._min_double_frames
+                    and contact[other]
+                )
+                if ready and (not contact[s] or self._behind(s)):
+                    self._lift(s)
+                    break
+        key = (bool(self.planted[0]), bool(self.planted[1]))
+        if self._region_key != key:
+            self._region_key = key
+            if key == (True, True):
+                self._double = double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset)
+            self.set_region(self._double)  # on one foot too: the CoM stays between the feet
+        return key
+
+    def _lift(self, s: int) -> None:
+        self.planted[s] = False
+        self._prints[s] = None
+        self._since[s] = 0
+        self._region_key = None
+
+    def _behind(self, s: int) -> bool:
+        """The robot's planted foot s is ``step_distance`` or ``step_turn`` from the person's (anchored)."""
+        cfg = self.config
+        (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
+        turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
+        return math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
 
     def _shift_or_lift(self, want, lift_ok) -> tuple[bool, bool]:
         """Lift a foot that should (``want[s]`` False) once the CoM has settled over the other

@@ -61,6 +61,13 @@ class StreamingConfig:
     step_turn: float = 0.35  # rad, ... or turns this far
     min_stance: float = 0.2  # a foot stands this long before it may lift again
     max_swing: float = 0.6  # a lifted foot comes down after this long even if the person's does not
+    # paced steps (the default rule with steps; BalancePlanner._plan_paced): quick steps with the
+    # CoM kept between the feet, no weight shift first, no preview needed
+    paced: bool = True  # False: the weight-shift rule (the CoM over the stance foot before a lift)
+    min_swing: float = 0.15  # a lifted foot stays up at least this long (it has to travel)
+    min_double: float = 0.15  # both feet stand this long between two steps
+    min_separation: float = 0.9  # a lifted foot lands at least this x the standing feet's distance from the other
+    stride_limit: float = 0.35  # ... and at most this x the leg length from its standing place
     swing_height: float = 0.02  # a lifted foot's ankle and toe targets stay this close above standing height
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
     # frames of the person's contacts known ahead of the frame being solved (a stream delayed by

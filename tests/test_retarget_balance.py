@@ -210,10 +210,10 @@ def test_leaning_person_keeps_the_com_inside_the_support_polygon(op3):
     assert np.abs(sole[:, :, 0:2] - sole[:1, :, 0:2]).max() < 2e-3  # and where they were put
 
 
-def test_a_step_lifts_the_foot_only_once_the_weight_is_on_the_other(op3):
+def test_with_the_shift_rule_a_step_lifts_the_foot_only_once_the_weight_is_on_the_other(op3):
     motion = person(seconds=4.0, lift=(1.2, 2.6))
-    cfg = StreamingConfig(balance=True, steps=True)
-    s, X, planted = stream(op3, motion, steps=True)
+    cfg = StreamingConfig(balance=True, steps=True, paced=False)
+    s, X, planted = stream(op3, motion, steps=True, paced=False)
     assert (~planted[:, 0]).sum() >= 5 and planted[:, 1].all()  # the left foot stepped, the right stood
     ev = op3.evaluate(X)
     up = ~planted[:, 0]
@@ -227,6 +227,59 @@ def test_a_step_lifts_the_foot_only_once_the_weight_is_on_the_other(op3):
     assert np.all(ev["com"][up, 1] > centre_y - 2e-3)
     # and it came back down flat
     assert np.abs(ev["sole"][-1, :, 2]).max() < 1e-3
+
+
+def test_paced_steps_lift_with_the_person_keep_the_com_between_the_feet_and_land_flat(op3):
+    """The default step rule (paced): the foot lifts as soon as the person's does (no weight
+    shift first), the CoM stays in the two feet's region while it is up, the swing lasts at
+    least min_swing and at most max_swing, and the feet stand min_double between steps."""
+    cfg = StreamingConfig(balance=True, steps=True)
+    motion = person(seconds=4.0, lift=(1.2, 1.55))
+    s, X, planted = stream(op3, motion, steps=True)
+    up = ~planted[:, 0]
+    assert planted[:, 1].all() and up.any()
+    first = int(np.argmax(up))
+    person_up = int(round(1.2 * FPS))
+    assert abs(first - person_up) <= 3, (first, person_up)  # lifted with the person, not after a shift
+    n_up = int(up.sum())
+    assert round(cfg.min_swing * FPS) <= n_up <= round(cfg.max_swing * FPS) + 1
+    ev = op3.evaluate(X)
+    assert ev["sole"][up, 0:4, 2].max() > 0.005  # it did leave the ground
+    both = np.ones((len(X), 2), bool)
+    m = com_margins(ev["com"][:, :2], ev["sole"], feet_local(op3), both)
+    assert m[up].min() > 0.0, m[up].min()  # the CoM between the feet, not pushed over the stance foot
+    assert np.abs(ev["sole"][-1, :, 2]).max() < 1e-3  # and it came back down flat
+    # a person standing on one leg for long: the robot steps in place, never longer than max_swing
+    s, X, planted = stream(op3, person(seconds=4.0, lift=(1.0, 3.0)), steps=True)
+    runs = np.diff(np.flatnonzero(np.diff(np.r_[1, planted[:, 0].astype(int), 1])))[::2]
+    assert len(runs) >= 2 and runs.max() <= round(cfg.max_swing * FPS) + 1, runs
+    downs = np.diff(np.flatnonzero(np.diff(np.r_[0, planted[:, 0].astype(int), 0])))[1::2]
+    assert downs[:-1].min() >= round(cfg.min_double * FPS), downs  # double support between the steps
+
+
+def test_a_step_longer_than_the_robot_can_take_lands_at_its_stride_limit(op3):
+    """A person's left foot put down half a metre ahead: the robot's left foot lands at most
+    stride_limit x its leg length from where it stood (without the limit it goes further)."""
+
+    def landing(**kw):
+        motion = person(seconds=3.0, lift=(1.0, 1.5))
+        pos = motion.positions.copy()
+        t = np.arange(motion.n_frames) / FPS
+        ahead = np.clip((t - 1.0) / 0.4, 0.0, 1.0)[:, None] * np.array([0.5, 0.0, 0.0])
+        for name in ("left_ankle", "left_foot"):
+            pos[:, J[name]] += ahead
+        s, X, planted = stream(op3, Motion(pos, fps=FPS, name="long step"), steps=True, **kw)
+        assert (~planted[:, 0]).any() and planted[-1].all()
+        sole = op3.evaluate(X)["sole"]
+        return float(np.linalg.norm(sole[-1, 0:4, 0:2].mean(axis=0) - sole[0, 0:4, 0:2].mean(axis=0)))
+
+    cfg = StreamingConfig(balance=True, steps=True)
+    stand = op3.evaluate(op3.x_stand[None])["keypoints"][0]
+    names = op3.keypoint_names
+    leg = stand[names.index("left_hip"), 2] - stand[names.index("left_ankle"), 2]
+    limited, free = landing(), landing(stride_limit=10.0)
+    assert limited <= cfg.stride_limit * leg + 0.01, (limited, cfg.stride_limit * leg)
+    assert free > limited + 0.01, (free, limited)
 
 
 @pytest.mark.slow
