@@ -9,32 +9,34 @@ would do to start that clip from rest:
 
 1. *stand* ``hold_s`` in a standing pose (:func:`standing_pose`) at the first frame's place
    (pelvis xy) and heading (hip line): legs under the hips, arms down, both feet on the floor;
-2. *step* each foot that is on the floor in the first frame but stands elsewhere (farther than
-   ``step_distance`` or turned more than ``step_turn`` from its standing place) to that place,
-   one at a time: the pelvis first shifts ``shift_share`` of the way over the other foot
-   (``shift_s``), the foot swings (``swing_s``, lifted ``lift`` m), lands and both feet stay
-   down ``double_s`` while the pelvis comes back;
+2. *step* each foot to its place in the first frame (farther than ``step_distance`` or turned
+   more than ``step_turn`` from its standing place), one at a time: the pelvis first shifts
+   ``shift_share`` of the way over the other foot (``shift_s``), the foot swings (``swing_s``,
+   lifted ``lift`` m), lands and both feet stay down ``double_s`` while the pelvis comes back.
+   A foot that is in the air in the first frame steps to the point on the floor below it (its
+   ankle and toe xy, at floor height): it is *held* down there;
 3. *move* (``move_s`` at least, longer for a large change at ``move_speed``) into the first
-   frame's pose along a minimum-jerk path, s(u) = 10u³ − 15u⁴ + 6u⁵: pelvis and upper body; a
-   foot that is in the air in the first frame lifts only in the move's last ``swing_s`` (on its
-   own minimum-jerk path), so the robot stands on one foot no longer than it must; ending at
-   rest exactly in the first frame;
-4. *ease in*: the clip's first ``ease_s`` seconds of trajectory time play it through a time warp
-   τ(u) whose speed τ'(u) = 3x² − 2x³ (x = u / ease_s) rises from 0 to 1, so the motion starts
-   from rest with continuous velocity and acceleration; τ(ease_s) = ease_s / 2, after which
-   the clip plays as it is, ``ease_s / 2`` seconds later than without the lead-in. With one
-   foot in the air in the first frame the robot must hold that frame at rest on the other
-   foot, so the body (pelvis, upper body; knees by half) is shifted ``shift_share`` of the way
-   over the stance foot there (the move ends in that shifted frame) and the shift fades out
-   along a minimum-jerk curve over the ease-in.
+   frame's pose along a minimum-jerk path, s(u) = 10u³ − 15u⁴ + 6u⁵: pelvis and upper body,
+   both feet on the floor, ending at rest in the first frame (a held foot on the floor below
+   its place there);
+4. *the clip* from that rest: a held foot stays on the floor and lifts ``swing_s`` before the
+   person's foot lands (at least ``shift_s`` into the clip, landing that much later then, before
+   the other foot lifts), swinging on a minimum-jerk blend to where the person puts it down; the
+   body (pelvis, upper body; knees by half) shifts ``shift_share`` of the way over the stance foot
+   over ``shift_s`` before the lift and back over ``double_s`` after the landing. The robot never
+   stands on one foot at rest: a one-foot pose held still, 8-10 mm inside the sole's edge as the
+   balance rows allow, tips the compliant servos over (cmu18_01 with the foot lifted in the
+   lead-in: 1.3 s on one foot, the torso's tilt 1.6 -> 51 deg). With ``ease_s`` > 0 the clip's
+   first ``ease_s`` seconds of trajectory time play it through a time warp τ(u) whose speed
+   τ'(u) = 3x² − 2x³ (x = u / ease_s) rises from 0 to 1; τ(ease_s) = ease_s / 2, after which the
+   clip plays as it is, ``ease_s / 2`` seconds later (off by default: see LeadInConfig).
 
 Legs are placed by their feet: each knee comes from a two-bone IK (the hip, the ankle, the
 thigh and shin lengths of the first frame, bent straight ahead), plus, during the move, the
 first frame's knee's offset from that IK knee blended in, so a planted foot stays put while the
-body moves and the last lead-in frame is the (shifted) first frame. Contact labels (T, 4) come
-with the frames: both feet down while standing, a stepping foot up during its swing, a foot
-in the air in the first frame up during the move; the clip's own labels (or detected ones)
-after that.
+body moves and the last lead-in frame is the first frame. Contact labels (T, 4) come with the
+frames: both feet down while standing and moving, a stepping foot up during its swing, a held
+foot down until its swing in the ease-in; the clip's own labels (or detected ones) after that.
 
 A clip whose first frame is already a standing double support at rest (both feet down, pelvis
 slower than ``rest_speed``, every joint slower than ``rest_joint_speed`` over ``rest_window_s``,
@@ -72,10 +74,13 @@ class LeadInConfig:
     hold_s: float = 0.3
     shift_s: float = 0.4
     swing_s: float = 0.4
+    min_swing_s: float = 0.2  # a held foot's swing in the ease-in is at least this long
     double_s: float = 0.3
     move_s: float = 0.6
     move_speed: float = 0.3  # m/s: the move takes at least (largest joint displacement) / move_speed
-    ease_s: float = 0.8
+    # 0: the clip plays at its own speed from the lead-in's rest (0.8 s made cmu19_01 fall 1.1 s into the
+    # clip: its first steps at half speed hold each foot longer on the compliant servos)
+    ease_s: float = 0.0
     lift: float = 0.05
     shift_share: float = 0.7
     step_distance: float = 0.03  # a foot farther than this from its standing place steps there
@@ -90,15 +95,18 @@ class LeadInConfig:
 class LeadIn:
     """What :func:`lead_in` added: ``frames`` lead-in frames before the clip's first frame
     (``t0_s`` = frames / fps), the ease-in (``ease_s`` of trajectory time playing the clip's first
-    ``ease_s / 2``), the feet that stepped (``steps``: 'left'/'right') and lifted (``lifted``),
-    and why a lead-in was needed (``why``)."""
+    ``ease_s / 2``), the feet that stepped (``steps``: 'left'/'right'), the feet in the air in the
+    first frame that the robot held on the floor (``held``) and the clip time (s) each of them
+    swings from there (``swing_from_s``: None for a foot the person never puts down, which
+    stays down), and why a lead-in was needed (``why``)."""
 
     frames: int
     fps: float
     ease_s: float
     steps: tuple
-    lifted: tuple
+    held: tuple
     why: str
+    swing_from_s: tuple = ()
 
     @property
     def t0_s(self) -> float:
@@ -116,7 +124,13 @@ class LeadIn:
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d.update(t0_s=round(self.t0_s, 6), delay_s=self.delay_s, steps=list(self.steps), lifted=list(self.lifted))
+        d.update(
+            t0_s=round(self.t0_s, 6),
+            delay_s=self.delay_s,
+            steps=list(self.steps),
+            held=list(self.held),
+            swing_from_s=list(self.swing_from_s),
+        )
         return d
 
     @classmethod
@@ -126,8 +140,9 @@ class LeadIn:
             float(d["fps"]),
             float(d["ease_s"]),
             tuple(d.get("steps", ())),
-            tuple(d.get("lifted", ())),
+            tuple(d.get("held", ())),
             str(d.get("why", "")),
+            tuple(d.get("swing_from_s", ())),
         )
 
 
@@ -281,12 +296,11 @@ def lead_in(
     b = _LeadInBuilder(motion, config)
     b.hold()
     stepped = [("left", "right")[s] for s in range(2) if b.step_if_needed(s)]
-    lifted = [("left", "right")[s] for s in range(2) if not b.c[0, s]]
     b.move_into_first_frame()
     lead = np.stack(b.frames[:-1])  # the last one is the first frame itself: the clip supplies it
     lead_c = np.array(b.labels[:-1], dtype=bool)
     ease = config.ease_s if motion.n_frames > 1 else 0.0
-    clip, clip_c4 = b.eased_clip(ease)
+    clip, clip_c4, swing_from = b.eased_clip(ease)
     lead_c4 = np.repeat(lead_c, 2, axis=1)  # (left, right) -> (l_ankle, l_toe, r_ankle, r_toe)
     out = Motion(
         np.concatenate([lead, clip]).astype(motion.positions.dtype, copy=False),
@@ -294,13 +308,15 @@ def lead_in(
         contacts=np.concatenate([lead_c4, clip_c4]),
         name=motion.name,
     )
-    return out, LeadIn(len(lead), motion.fps, ease, tuple(stepped), tuple(lifted), why)
+    held = tuple(("left", "right")[s] for s in b.held)
+    return out, LeadIn(len(lead), motion.fps, ease, tuple(stepped), held, why, tuple(swing_from))
 
 
 class _LeadInBuilder:
     """The lead-in's frames as they are built: the person's pelvis, upper body (every joint but
     the legs) relative to the pelvis and feet; the knees by two-bone IK. ``frames`` (22, 3) each
-    and ``labels`` (left down, right down) each, in order."""
+    and ``labels`` (left down, right down) each, in order. A foot in the air in the first frame
+    is ``held`` on the floor below it (``first_feet``) through the lead-in."""
 
     def __init__(self, motion: Motion, cfg: LeadInConfig):
         self.cfg, self.fps, self.motion = cfg, motion.fps, motion
@@ -308,22 +324,27 @@ class _LeadInBuilder:
         self.c4 = _contacts4(motion)
         self.c = side_contacts(self.c4)
         first = self.p[0]
-        self.stand = standing_pose(first, _ground(motion, self.c4), cfg)
+        ground = _ground(motion, self.c4)
+        self.stand = standing_pose(first, ground, cfg)
         self.length = np.linalg.norm(first - first[list(PARENTS)], axis=1)
         self.fwd = _rot_z(_heading(first))[:, 0]
         self.frames: list[np.ndarray] = []
         self.labels: list[tuple[bool, bool]] = []
         self.upper = [j for j in range(22) if j not in LEG_JOINTS and j != PELVIS]
-        # one foot in the air in the first frame: the robot starts that frame at rest, so its
-        # weight must be over the other foot there; the body (pelvis, upper body, knees by half)
-        # is shifted ``shift_share`` of the way over that foot at the first frame, the shift
-        # fading out in the ease-in
-        self.body = [PELVIS] + self.upper
-        self.shift = np.zeros(3)
-        if self.c[0].sum() == 1:
-            st = int(np.flatnonzero(self.c[0])[0])
-            self.shift[0:2] = cfg.shift_share * (first[ANKLE[st], 0:2] - first[PELVIS, 0:2])
-        self.first = self.shifted(first, 1.0)
+        self.held = [s for s in range(2) if not self.c[0, s]]
+        # where each foot stands when the lead-in ends: its first-frame place, a held foot on the
+        # floor below it (ankle and toe at the floor's heights, the toe's direction and length kept)
+        self.first_feet = {}
+        for s in range(2):
+            ank, toe = first[ANKLE[s]].copy(), first[TOE[s]].copy()
+            if s in self.held:
+                ank[2] = ground[0]
+                d = toe[0:2] - first[ANKLE[s], 0:2]
+                dz = ground[1] - ground[0]
+                horiz = math.sqrt(max(self.length[TOE[s]] ** 2 - dz**2, 0.0))
+                toe = ank + np.array([*(horiz * d / max(np.linalg.norm(d), 1e-9)), dz])
+            self.first_feet[s] = (ank, toe)
+        self.first = self._with_feet(first, self.first_feet)
         self.feet = {s: (self.stand[ANKLE[s]].copy(), self.stand[TOE[s]].copy()) for s in range(2)}
         # the first frame's knee against the straight-ahead IK knee: blended in during the move,
         # so the knee ends where it is in the first frame without flipping through the leg's axis
@@ -334,14 +355,18 @@ class _LeadInBuilder:
         self.rel_stand = self.stand[self.upper] - self.stand[PELVIS]
         self.pel = self.stand[PELVIS].copy()
 
+    def _with_feet(self, f: np.ndarray, feet: dict) -> np.ndarray:
+        """Frame ``f`` (22, 3) with the feet of ``feet`` ({side: (ankle, toe)}) placed there, each
+        knee moved by half its ankle's shift."""
+        f = f.copy()
+        for s in feet:
+            shift = feet[s][0] - f[ANKLE[s]]
+            f[ANKLE[s]], f[TOE[s]] = feet[s]
+            f[KNEE[s]] += 0.5 * shift
+        return f
+
     def n(self, seconds: float) -> int:
         return max(1, int(round(seconds * self.fps)))
-
-    def shifted(self, f: np.ndarray, share: float) -> np.ndarray:
-        f = f.copy()
-        f[self.body] += share * self.shift
-        f[[L_KNEE, R_KNEE]] += 0.5 * share * self.shift
-        return f
 
     def emit(self, pelvis, rel, down, pole_share: float = 0.0) -> None:
         f = np.zeros((22, 3))
@@ -361,12 +386,10 @@ class _LeadInBuilder:
             self.emit(self.pel, self.rel_stand, (True, True))
 
     def step_if_needed(self, s: int) -> bool:
-        """2. a step of foot ``s`` to its place in the first frame, if it is down there and stands
+        """2. a step of foot ``s`` to its place at the lead-in's end (``first_feet``) if that is
         elsewhere: weight shift, swing, double support. Whether it stepped."""
-        cfg, stand, first, feet = self.cfg, self.stand, self.first, self.feet
-        if not self.c[0, s]:
-            return False
-        moved, turned = _needs_step(stand, first, s, cfg)
+        cfg, stand, feet = self.cfg, self.stand, self.feet
+        moved, turned = _needs_step(stand, self.first, s, cfg)
         if moved <= cfg.step_distance and turned <= cfg.step_turn:
             return False
         pel = self.pel
@@ -376,7 +399,7 @@ class _LeadInBuilder:
         for i in range(1, k + 1):
             self.emit(pel + (over - pel) * _min_jerk(np.array(i / k)), self.rel_stand, (True, True))
         a0, t0 = feet[s]
-        a1, t1 = first[ANKLE[s]].copy(), first[TOE[s]].copy()
+        a1, t1 = self.first_feet[s]
         k = self.n(cfg.swing_s)
         for i in range(1, k + 1):
             w = float(_min_jerk(np.array(i / k)))
@@ -386,7 +409,7 @@ class _LeadInBuilder:
             toe_rel *= np.linalg.norm(t1 - a1) / max(np.linalg.norm(toe_rel), 1e-9)
             feet[s] = (ank, ank + toe_rel)
             self.emit(over, self.rel_stand, (s == 1 or i == k, s == 0 or i == k))
-        feet[s] = (a1, t1)
+        feet[s] = (a1.copy(), t1.copy())
         centre = pel.copy()
         centre[0:2] = 0.5 * (feet[0][0][0:2] + feet[1][0][0:2]) + (
             stand[PELVIS, 0:2] - 0.5 * (stand[L_ANKLE, 0:2] + stand[R_ANKLE, 0:2])
@@ -398,31 +421,72 @@ class _LeadInBuilder:
         return True
 
     def move_into_first_frame(self) -> None:
-        """3. into the first frame's pose; a foot in the air there lifts on the way, late."""
-        cfg, first, c, pel, upper = self.cfg, self.first, self.c, self.pel, self.upper
+        """3. into the first frame's pose on both feet (a held foot on the floor below its place)."""
+        cfg, first, pel, upper = self.cfg, self.first, self.pel, self.upper
         start_feet = dict(self.feet)
         rel0 = first[upper] - first[PELVIS]
         moves = [np.linalg.norm(first[PELVIS] - pel)]
-        moves += [np.linalg.norm(first[ANKLE[s]] - start_feet[s][0]) for s in range(2)]
+        moves += [np.linalg.norm(self.first_feet[s][0] - start_feet[s][0]) for s in range(2)]
         moves.append(float(np.max(np.linalg.norm(rel0 - self.rel_stand, axis=1))))
         k = max(self.n(cfg.move_s), self.n(max(moves) / cfg.move_speed))
-        k_lift = min(k, self.n(cfg.swing_s))  # a foot in the air in the first frame lifts this late
         for i in range(1, k + 1):
             w = float(_min_jerk(np.array(i / k)))
-            down = []
             for s in range(2):
-                a0, t0 = start_feet[s]
-                a1, t1 = first[ANKLE[s]], first[TOE[s]]
-                wf = w if c[0, s] else float(_min_jerk(np.array((i - (k - k_lift)) / k_lift)))
-                arc = 0.0 if c[0, s] or i == k else 0.5 * cfg.lift * math.sin(math.pi * wf)
-                lift = np.array([0, 0, arc])
-                self.feet[s] = (a0 + (a1 - a0) * wf + lift, t0 + (t1 - t0) * wf + lift)
-                down.append(bool(c[0, s]) or wf < 1e-3)
-            self.emit(pel + (first[PELVIS] - pel) * w, self.rel_stand + (rel0 - self.rel_stand) * w, down, pole_share=w)
+                (a0, t0), (a1, t1) = start_feet[s], self.first_feet[s]
+                self.feet[s] = (a0 + (a1 - a0) * w, t0 + (t1 - t0) * w)
+            self.emit(
+                pel + (first[PELVIS] - pel) * w,
+                self.rel_stand + (rel0 - self.rel_stand) * w,
+                (True, True),
+                pole_share=w,
+            )
 
-    def eased_clip(self, ease: float) -> tuple[np.ndarray, np.ndarray]:
-        """4. the clip's frames on the trajectory's clock, its first ``ease`` s eased in from rest
-        (the body shift fading out there), and their contact labels (T, 4)."""
+    def _held_swing(self, land: int, other_down: np.ndarray) -> tuple[int, int]:
+        """(lift, landing) frames of a held foot's swing in the eased clip: ``swing_s`` long,
+        landing with the person (``land``) or, when that leaves less than ``shift_s`` on both feet
+        after the clip's first frame for the weight shift, that much later while the other foot
+        (``other_down`` (T,) bool) is still down."""
+        k_swing, k_shift, T = self.n(self.cfg.swing_s), self.n(self.cfg.shift_s), len(other_down)
+        lift = min(max(land - k_swing, k_shift), T - 2)
+        end = lift + k_swing
+        while end > land and not other_down[min(end, T - 1)]:
+            end -= 1  # the other foot lifts before: land in time for it
+        return lift, min(max(end, lift + self.n(self.cfg.min_swing_s)), T - 1)
+
+    def _shift_over(self, clip: np.ndarray, st: int, lift: int, land: int) -> None:
+        """In place: the body (pelvis, upper body, knees by half) of ``clip`` (T, 22, 3) moved
+        ``shift_share`` of the way over the stance foot ``st``'s ankle while the other foot swings
+        (frames lift..land−1), ramping in over ``shift_s`` before the lift and out over
+        ``double_s`` after the landing (minimum-jerk)."""
+        cfg, T = self.cfg, len(clip)
+        k_in, k_out = self.n(cfg.shift_s), self.n(cfg.double_s)
+        body = [PELVIS] + self.upper
+        for i in range(max(lift - k_in, 0), min(land + k_out, T)):
+            if i < lift:
+                w = float(_min_jerk(np.array((i - (lift - k_in)) / k_in)))
+            elif i < land:
+                w = 1.0
+            else:
+                w = 1.0 - float(_min_jerk(np.array((i - land + 1) / k_out)))
+            d = np.zeros(3)
+            d[0:2] = cfg.shift_share * w * (clip[i, ANKLE[st], 0:2] - clip[i, PELVIS, 0:2])
+            clip[i, body] += d
+            clip[i, [L_KNEE, R_KNEE]] += 0.5 * d
+
+    @staticmethod
+    def _leg_of(target: np.ndarray, s: int, frame: np.ndarray) -> np.ndarray:
+        """``frame`` (22, 3) with foot ``s``'s ankle and toe from ``target`` (22, 3) and its knee
+        moved by half the ankle's shift."""
+        out = frame.copy()
+        shift = target[ANKLE[s]] - frame[ANKLE[s]]
+        out[ANKLE[s]], out[TOE[s]] = target[ANKLE[s]], target[TOE[s]]
+        out[KNEE[s]] += 0.5 * shift
+        return out
+
+    def eased_clip(self, ease: float) -> tuple[np.ndarray, np.ndarray, list]:
+        """4. the clip's frames on the trajectory's clock, its first ``ease`` s eased in from rest,
+        each held foot on the floor until its swing to the person's landing; their contact labels
+        (T, 4) and each held foot's swing start in clip time (s; None: it never lands)."""
         motion, p, fps = self.motion, self.p, self.fps
         t_clip = motion.times
         u_end = t_clip[-1] + 0.5 * ease  # the trajectory time of the clip's last frame
@@ -433,11 +497,28 @@ class _LeadInBuilder:
         span = np.maximum(t_clip[nxt] - t_clip[idx], 1e-12)
         a = np.where(nxt > idx, (tau - t_clip[idx]) / span, 0.0)[:, None, None]
         clip = (1 - a) * p[idx] + a * p[nxt]
-        if ease > 0 and self.shift.any():
-            fade = 1.0 - _min_jerk(u / ease)
-            clip = np.stack([self.shifted(f, float(w)) for f, w in zip(clip, fade)])
         near = np.where(a[:, 0, 0] > 0.5, nxt, idx)
-        return clip, self.c4[near]
+        c4 = self.c4[near].copy()
+        swing_from = []
+        for s in self.held:
+            down = np.flatnonzero(c4[:, 2 * s] | c4[:, 2 * s + 1])
+            land = int(down[0]) if down.size else len(u)
+            if land >= len(u):  # the person never puts it down: it stays down
+                c4[:, 2 * s : 2 * s + 2] = True
+                for i in range(len(u)):
+                    clip[i] = self._with_feet(clip[i], {s: self.first_feet[s]})
+                swing_from.append(None)
+                continue
+            lift, land = self._held_swing(land, c4[:, 2 * (1 - s)] | c4[:, 2 * (1 - s) + 1])
+            self._shift_over(clip, 1 - s, lift, land)
+            on_floor = [self._with_feet(f, {s: self.first_feet[s]}) for f in clip[:land]]
+            target = clip[min(land, len(clip) - 1)]
+            for i in range(land):  # on the floor until the lift, then to where the person landed
+                w = 0.0 if i < lift else float(_min_jerk(np.array((i - lift + 1) / (land - lift))))
+                clip[i] = on_floor[i] + w * (self._leg_of(target, s, on_floor[i]) - on_floor[i])
+                c4[i, 2 * s : 2 * s + 2] = i < lift
+            swing_from.append(round(float(tau[lift]), 3))
+        return clip, c4, swing_from
 
 
 def with_lead_in(traj, lead: LeadIn, contacts4=None):
@@ -462,9 +543,8 @@ def with_lead_in(traj, lead: LeadIn, contacts4=None):
     how = "stands at rest in its standing stance"
     if lead.steps:
         how += f", steps the {feet(lead.steps)} to the first frame's place"
-    if lead.lifted:
-        how += f", lifts the {feet(lead.lifted)}"
-        how += " with its weight over the other foot" if len(lead.lifted) == 1 else ""
+    if lead.held:
+        how += f", puts the {feet(lead.held)} down below the first frame's (in the air there)"
     head = [
         Change(
             round(-t0, 3),
@@ -473,15 +553,30 @@ def with_lead_in(traj, lead: LeadIn, contacts4=None):
             f"the clip starts mid-motion ({lead.why}): {t0:.2f} s before it the robot {how} and moves into "
             "its first pose, ending at rest",
         ),
-        Change(
-            0.0,
-            round(lead.delay_s, 3),
-            "eased in",
-            f"the clip's first {lead.delay_s:.2f} s play from rest over {lead.ease_s:.2f} s (speed ramping "
-            f"from 0 to 1){', the weight shift fading out' if len(lead.lifted) == 1 else ''}; "
-            f"the rest plays {lead.delay_s:.2f} s later than the clip's own time",
-        ),
     ]
+    if lead.ease_s > 0:
+        head.append(
+            Change(
+                0.0,
+                round(lead.delay_s, 3),
+                "eased in",
+                f"the clip's first {lead.delay_s:.2f} s play from rest over {lead.ease_s:.2f} s (speed ramping "
+                f"from 0 to 1); the rest plays {lead.delay_s:.2f} s later than the clip's own time",
+            )
+        )
+    for side, start in zip(lead.held, lead.swing_from_s):
+        if start is None:
+            head.append(Change(0.0, 0.0, "held down", f"the {side} foot, in the air in the first frame, stays down"))
+        else:
+            head.append(
+                Change(
+                    0.0,
+                    start,
+                    "held down",
+                    f"the {side} foot, in the air in the first frame, stays on the floor below it until "
+                    f"{start:.2f} s and then swings to where the person puts it down",
+                )
+            )
     meta["changes"] = [c.to_dict() for c in head] + sorted(changes, key=lambda c: c["start_s"])
     meta["lead_in"] = lead.to_dict()
     meta["t0_s"] = round(t0, 6)

@@ -3,8 +3,9 @@
 ``check_trajectory(traj, CheckConfig())`` returns a :class:`CheckResult`: FAIL only for an
 outcome (a fall, self-collision, a limit or servo-speed breach, sustained stall torque or
 tracking error, penetrating the human), each at its first time in the clip (negative while
-entering the clip's first pose from standing); slip and balance margins are warnings. A
-free robot plays through the bridge's balance stabilizer. Reference: docs/simulation.md.
+entering the clip's first pose from standing, and in a lead-in the retargeter put before the
+clip: ``meta["lead_in"]``); slip and balance margins are warnings. A free robot plays through
+the bridge's balance stabilizer. Reference: docs/simulation.md.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import mujoco
 import numpy as np
 
 from retarget.errors import RetargetError
+from retarget.lead_in import lead_in_of
 from retarget.trajectory import RobotTrajectory
 from sim.contacts import ContactClassifier, min_distance
 from sim.errors import SimError
@@ -114,8 +116,10 @@ class CheckConfig:
 @dataclass
 class Failure:
     """One failed criterion: ``reason`` (one of :data:`REASONS`), ``time`` (s in the clip's time:
-    negative during the entry transition), ``detail`` and ``phase`` ("entry": while moving from
-    standing to the clip's first pose; "clip": while playing the clip)."""
+    negative during the entry transition and a lead-in), ``detail`` and ``phase`` ("entry": while
+    moving from standing to the trajectory's first pose; "lead-in": in the lead-in the retargeter
+    put before a clip that starts mid-motion (:mod:`retarget.lead_in`); "clip": while playing
+    the clip)."""
 
     reason: str
     time: float  # s from the start of the clip
@@ -417,8 +421,10 @@ class Checker:
 
     def run(self, traj: RobotTrajectory, on_tick=None) -> CheckResult:
         """Play and judge ``traj``. ``on_tick(t)`` (optional) is called after each control
-        tick of the clip with the clip time t >= 0 in seconds (a renderer grabs frames
-        there); the entry transition before it is not reported there."""
+        tick of the trajectory with its time t >= 0 in seconds from its first frame (a renderer
+        grabs frames there; a lead-in included); the entry transition before it is not reported
+        there. Failures, warnings and ``series["t"]`` are in clip time: the trajectory's time
+        less a lead-in's (:meth:`retarget.lead_in.LeadIn.clip_time`), negative before the clip."""
         sc, cfg, r = self.scene, self.config, self.scene.robot
         q_traj = _joint_columns(traj, r.joint_names, sc.config.robot)
         dt = 1.0 / cfg.control_hz
@@ -427,8 +433,10 @@ class Checker:
         q_entry = self._start(traj, q_clip[0])  # robot placed and settled; (k0, n) transition commands
         k0 = len(q_entry)
         q_ref = np.concatenate([q_entry, q_clip]) if k0 else q_clip
-        t = (np.arange(k0 + n_clip) - k0) * dt  # clip time: the transition is negative
-        s = self._analyse(self._play(q_ref, t, k0, on_tick))
+        t_traj = (np.arange(k0 + n_clip) - k0) * dt  # trajectory time: the transition is negative
+        lead = lead_in_of(traj)
+        t = t_traj if lead is None else lead.clip_time(t_traj)  # clip time: also the lead-in is negative
+        s = self._analyse(self._play(q_ref, t, k0, on_tick, t_traj))
         failures = sorted(self._judge(s), key=lambda f: (f.time, REASONS.index(f.reason)))
         warnings = sorted(self._warn(s), key=lambda w: (w.time, WARNINGS.index(w.kind)))
         self._mark_entry(s, failures, warnings)
@@ -465,9 +473,10 @@ class Checker:
             float(k0 * dt),
         )
 
-    def _play(self, q_ref: np.ndarray, t: np.ndarray, k0: int, on_tick) -> _Recording:
+    def _play(self, q_ref: np.ndarray, t: np.ndarray, k0: int, on_tick, t_tick: np.ndarray) -> _Recording:
         """Play the commands ``q_ref`` (K, n), through the stabilizer when it is on, and record
-        the raw state at every control tick; stop ``stop_after_fall_s`` after a fall."""
+        the raw state at every control tick (clip times ``t`` (K,): the actor is posed there;
+        ``on_tick`` gets ``t_tick`` (K,)); stop ``stop_after_fall_s`` after a fall."""
         sc, cfg, m, d, r = self.scene, self.config, self.scene.model, self.scene.data, self.scene.robot
         K, n_sub = len(t), int(round(cfg.physics_hz / cfg.control_hz))
         rec = _Recording.empty(t, q_ref, m, len(self.feet), k0)
@@ -502,7 +511,7 @@ class Checker:
             if stop_at == K and (root_xpos[2] < fall_h or root_xmat[8] < cos_tilt):
                 stop_at = min(K, k + 1 + int(cfg.stop_after_fall_s * cfg.control_hz))
             if on_tick is not None and k >= k0:
-                on_tick(float(t[k]))
+                on_tick(float(t_tick[k]))
             if k + 1 >= stop_at:
                 break
         rec.k_run = min(stop_at, K)
@@ -584,11 +593,16 @@ class Checker:
         return s
 
     def _mark_entry(self, s: Series, failures: list, warnings: list) -> None:
-        """Say which failures and warnings happened while entering the clip's first pose."""
+        """Say which failures and warnings happened while entering the trajectory's first pose,
+        and which in a lead-in before the clip."""
+        entry_end = float(s.t[s.k0]) if s.k0 < len(s.t) else 0.0  # clip time of the trajectory's first frame
         for item in (*failures, *warnings):
-            if item.time < -1e-9:
+            if item.time < entry_end - 1e-9:
                 item.phase = "entry"
                 item.detail = f"entering the clip's first pose from standing: {item.detail}"
+            elif item.time < -1e-9:
+                item.phase = "lead-in"
+                item.detail = f"in the lead-in before the clip (moving into its first pose from rest): {item.detail}"
         if s.fall_k is not None and s.fall_k >= s.k0 and s.k0:
             onset = _tipping_since(s.fall_k, s.margin, s.zmp_margin, self.config)
             if onset < s.k0:  # it was already going over when the clip began: the first pose was not reached
@@ -612,6 +626,7 @@ class Checker:
             "simulated_s": float(K_run * dt),
             "entry_transition_s": float(s.k0 * dt),
             "entry": dict(self.entry),
+            "lead_in_s": float(lead_in_of(traj).t0_s) if lead_in_of(traj) is not None else 0.0,
             "control_hz": cfg.control_hz,
             "physics_hz": cfg.physics_hz,
             "tracking_rms_rad": _per_joint(names, np.sqrt(np.nanmean(err**2, axis=0))),
