@@ -153,8 +153,9 @@ def _check_commands(result, out: Path, stabilizer: bool):
     from sim.check import CheckConfig, check_trajectory
 
     tel = read_telemetry(out / "telemetry.dftl")
-    # the commands without the loop's stabilizer corrections: the check runs its own stabilizer on
-    # its own simulated robot (off with --no-stabilizer, as in the run)
+    # the commands the loop would have sent without its stabilizer (its pre-stabilizer targets
+    # through its safety filter, Telemetry.open_loop_commands): the check runs its own stabilizer
+    # on its own simulated robot (off with --no-stabilizer, as in the run)
     commands = tel.commands_trajectory(result.files.ref, without_correction=True)
     with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
         return check_trajectory(

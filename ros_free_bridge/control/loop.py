@@ -378,6 +378,17 @@ class ControlLoop:
             ]
             self._event("start_outside_limits", joints=bad)
         start = self.safety.reset(present)
+        # the filter's starting state and limits: with the targets recorded per tick they give
+        # the commands the loop would have sent without its stabilizer (Telemetry.open_loop_commands)
+        self._event(
+            "safety_filter",
+            dt=self.dt,
+            start=start,
+            lower=self.limits.lower,
+            upper=self.limits.upper,
+            max_velocity=self.limits.max_velocity,
+            max_acceleration=self.limits.max_acceleration,
+        )
         self.transport.write_goal(start)  # goal = present before torque on: no jump
         self.transport.set_torque(True)
         self._event("torque_on")
@@ -628,7 +639,14 @@ class ControlLoop:
                 self.limits.max_acceleration,
             )
             self.safety.limits = slow
-            self._event("degraded", joint=j, temperature=float(np.nanmax(temps)), factor=cfg.degrade_factor)
+            self._event(
+                "degraded",
+                joint=j,
+                temperature=float(np.nanmax(temps)),
+                factor=cfg.degrade_factor,
+                record=self.summary.ticks,  # the first tick record filtered with the slower limits
+                max_velocity=slow.max_velocity,
+            )
         finite_v = volts[np.isfinite(volts)]
         if finite_v.size and (finite_v.min() < cfg.voltage_min or finite_v.max() > cfg.voltage_max):
             faults |= Fault.VOLTAGE

@@ -38,7 +38,9 @@ def tick_dtype(n_joints: int) -> np.dtype:
             ("tick", "<u4"),
             ("lateness", "<f4"),  # wake-up time minus deadline
             ("compute", "<f4"),  # time spent in the tick before the bus write
-            ("target", "<f4", (n,)),  # what upstream asked for (before the safety filter)
+            # the loop's target before its stabilizer and safety filter; float64, the filter's own
+            # precision, so that filtering it again is exact (Telemetry.open_loop_commands)
+            ("target", "<f8", (n,)),
             ("correction", "<f4", (n,)),  # the balance stabilizer's change to the target (0: off)
             ("command", "<f4", (n,)),  # what was sent
             ("measured", "<f4", (n,)),  # present positions read this tick (NaN if not read)
@@ -139,17 +141,18 @@ class Telemetry:
     def commands_trajectory(self, robot: str = "", without_correction: bool = False):
         """The commands the run sent, as a RobotTrajectory at the control rate. The root is
         left at the origin, upright: a free robot is placed on the ground by whoever plays it.
-        ``without_correction``: minus the balance stabilizer's corrections (the ``correction``
-        field; absent in files of older runs: none), i.e. the commands as the loop would have
-        sent them open loop, for a check that runs its own stabilizer."""
+        ``without_correction``: the commands the loop would have sent without its balance
+        stabilizer (:meth:`open_loop_commands`), for a check that runs its own stabilizer."""
         from retarget import RobotTrajectory
 
         n = len(self.records)
         if n < 2:
             raise BridgeError("telemetry: fewer than 2 ticks were recorded; nothing to replay or check")
-        q = self.records["command"].astype(np.float64)
-        if without_correction and "correction" in self.records.dtype.names:
-            q = q - self.records["correction"].astype(np.float64)
+        source = "telemetry commands"
+        if without_correction:
+            q, source = self.open_loop_commands()
+        else:
+            q = self.records["command"].astype(np.float64)
         return RobotTrajectory(
             self.joint_names,
             q,
@@ -157,8 +160,112 @@ class Telemetry:
             np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
             self.rate_hz,
             robot,
-            {"source": "telemetry commands"},
+            {"source": source},
         )
+
+    def open_loop_commands(self) -> tuple[np.ndarray, str]:
+        """(commands (T, n) rad, how they were found): what the loop's safety filter made of its
+        targets before the balance stabilizer, i.e. what it would have sent open loop.
+
+        A run with no correction: its commands. Otherwise the recorded ``target`` of each tick
+        (the loop's pre-stabilizer target) is filtered again from the filter's start state and
+        limits (the ``safety_filter`` event, and ``degraded`` ones); ``command - correction``
+        would not do, since where the filter clipped a corrected command that difference is not
+        what the filter makes of the target. Files written before the ``safety_filter`` event:
+        ``command - correction``, said so in the returned text. Raises BridgeError when the
+        events do not describe the run: on a joint the stabilizer never touched, the filtered
+        targets must give the recorded commands back."""
+        r = self.records
+        command = r["command"].astype(np.float64)
+        if "correction" not in r.dtype.names or not np.any(r["correction"]):
+            return command, "telemetry commands (no stabilizer correction)"
+        correction = r["correction"].astype(np.float64)
+        settings = _filter_settings(self)
+        if settings is None:
+            return command - correction, (
+                "telemetry commands minus the stabilizer's corrections (a file without the safety_filter "
+                "event: inexact on ticks where the safety filter changed a corrected command)"
+            )
+        q = _refilter(r["target"].astype(np.float64), *settings)
+        untouched = np.cumsum(correction != 0, axis=0) == 0  # no correction on this joint yet
+        err = np.where(untouched, np.abs(q - command), 0.0)
+        if err.max() > OPEN_LOOP_TOLERANCE:
+            k, j = np.unravel_index(int(np.argmax(err)), err.shape)
+            raise BridgeError(
+                f"telemetry: the recorded targets filtered with the safety_filter event's limits give "
+                f"{q[k, j]:.4f} rad for joint {self.joint_names[j]!r} at record {k}, but the run sent "
+                f"{command[k, j]:.4f} rad; the events file does not belong to this run (or was edited)"
+            )
+        return q, "the loop's pre-stabilizer targets through its safety filter (open loop)"
+
+
+#: rad: on a joint the stabilizer never corrected, the targets filtered again and the sent commands
+#: (recorded as float32) may differ by this much
+OPEN_LOOP_TOLERANCE = 1e-5
+
+
+def _filter_settings(tel: Telemetry):
+    """(dt s, start (n,), JointLimits, [(record, max_velocity (n,)), ...]) from the ``safety_filter``
+    and ``degraded`` events; None for a file without them. Raises BridgeError naming the
+    field of a malformed event."""
+    from ros_free_bridge.control.safety import JointLimits
+
+    found = [e for e in tel.events if e["kind"] == "safety_filter"]
+    if not found:
+        return None
+    event, n = found[-1], len(tel.joint_names)
+
+    def joints(e: dict, key: str) -> np.ndarray:
+        v = e.get(key)
+        try:
+            arr = np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            arr = np.empty(0)
+        if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+            raise BridgeError(
+                f"telemetry events: {e['kind']} field {key!r} must be {n} finite numbers (one per joint); "
+                "the events file is damaged"
+            )
+        return arr
+
+    dt = event.get("dt")
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or abs(dt * tel.rate_hz - 1.0) > 1e-6:
+        raise BridgeError(
+            f"telemetry events: safety_filter field 'dt' is {dt!r}, not the period of the file's rate "
+            f"{tel.rate_hz:g} Hz; the events file does not belong to this run"
+        )
+    try:
+        limits = JointLimits(
+            tel.joint_names, *(joints(event, k) for k in ("lower", "upper", "max_velocity", "max_acceleration"))
+        )
+    except BridgeError as exc:
+        raise BridgeError(f"telemetry events: safety_filter: {exc}; the events file is damaged") from None
+    changes = []
+    for e in tel.events:
+        if e["kind"] == "degraded" and "record" in e:
+            k = e["record"]
+            if isinstance(k, bool) or not isinstance(k, int) or k < 0:
+                raise BridgeError(f"telemetry events: degraded field 'record' is {k!r}; the events file is damaged")
+            changes.append((k, joints(e, "max_velocity")))
+    return float(dt), joints(event, "start"), limits, sorted(changes, key=lambda c: c[0])
+
+
+def _refilter(target: np.ndarray, dt: float, start: np.ndarray, limits, changes: list) -> np.ndarray:
+    """The targets (T, n) through a SafetyFilter of period ``dt`` s started at ``start`` with
+    ``limits``, its velocity limits replaced from record k on for each (k, max_velocity) in
+    ``changes``."""
+    from ros_free_bridge.control.safety import JointLimits, SafetyFilter
+
+    f = SafetyFilter(limits, dt)
+    f.reset(start)
+    out = np.empty_like(target)
+    pending = list(changes)
+    for k in range(len(target)):
+        while pending and pending[0][0] <= k:
+            vmax = pending.pop(0)[1]
+            f.limits = JointLimits(limits.names, limits.lower, limits.upper, vmax, limits.max_acceleration)
+        out[k] = f.step(target[k])[0]
+    return out
 
 
 #: Record fields every reader of a telemetry file relies on (plot, replay, demo's check).
@@ -167,7 +274,7 @@ REQUIRED_FIELDS = ("t", "tick", "target", "command", "measured", "state", "fault
 JOINT_FIELDS = ("target", "command", "measured", "intervention")
 #: Control rates a telemetry file may declare (Hz).
 RATE_RANGE = (1.0, 10000.0)
-#: Largest record accepted (bytes): a 1000-joint robot's record is about 14 kB.
+#: Largest record accepted (bytes): a 1000-joint robot's record is about 21 kB.
 MAX_RECORD_BYTES = 1 << 20
 #: Largest commanded angle accepted, rad (the safety filter clips to the joint limits).
 MAX_COMMAND_RAD = 1e3
