@@ -15,19 +15,19 @@ retargeters in the same run, on one core (sched_setaffinity, single-threaded BLA
   the person's contacts held as they are and one streamed warm start for the whole clip (the
   code before this change);
 - *offline with the lead-in* (``--modes offline,offline-lead-in``; its baseline is *offline*):
-  the same with ``OfflineConfig.lead_in=LeadInConfig()`` (off by default): a clip that starts
-  mid-motion is started from the robot's standing stance at rest by retarget.lead_in instead of
-  the check's joint-space entry transition. The figures are over the clip's frames (after the
-  lead-in); the lead-in's own steps are not counted; physics failure times are after the clip's
-  first frame (the check's own times start at the lead-in);
+  the same with ``OfflineConfig.lead_in=LeadInConfig()`` and ``StepConfig(swing_clearance=0.02)``
+  (both off by default): a clip that starts mid-motion is started from the robot's standing
+  stance at rest by retarget.lead_in instead of the check's joint-space entry into its first
+  frame. The figures are over the clip's frames (after the lead-in); the lead-in's own steps
+  are not counted; physics failure times are the check's, in clip time (after the clip's start);
 - *offline previous* (``--modes offline-prev``): the same with every change of the physics
-  root-cause work off: the cart-table ZMP (one point mass at the CoM), no CoM-over-the-stance-foot
+  root-cause work off (the lead-in too): the cart-table ZMP (one point mass at the CoM), no CoM-over-the-stance-foot
   rows in single support, and a schedule without the robot's pace, standing start, swing
   clearance, start from rest and eased travel (StepConfig(min_double=0, start_double=0,
   robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0, travel_zmp_shift=0));
-- streaming with steps (StreamingConfig(balance=True, steps=True, preview=9): the person's contacts \
-0.3 s ahead); its baseline, *streaming before*:
-  StreamingConfig(balance=True) (feet always planted).
+- streaming with steps (StreamingConfig(balance=True, steps=True): quick steps at the robot's
+  pace, retarget.balance); its baseline, *streaming before*: StreamingConfig(balance=True) (feet
+  always planted).
 
 Figures per retargeter, over the clips (a failed retarget counts as not performed):
 
@@ -41,7 +41,9 @@ Figures per retargeter, over the clips (a failed retarget counts as not performe
   level footprints), and inside it with 1 cm to spare;
 - frames/s (CPU, one core);
 - with ``--physics``: sim's free-standing check as ``dualflow-bridge check`` runs it (with
-  sim's balance stabilizer where sim has it on by default): clips passed, first failure of each.
+  sim's balance stabilizer where sim has it on by default): clips passed, first failure of each,
+  and the lift-offs: how often a foot really left the floor in physics (sim's stances per foot,
+  less one), next to the person's steps (a reference step can be a shuffle on the servos).
 """
 
 from __future__ import annotations
@@ -163,7 +165,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     height = float(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2].max())
     print(f"robot {rb.name} (height {height:.3f} m), {len(clips)} clips, load {os.getloadavg()[0]:.2f}")
     off = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True))
-    off_lead = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig()))
+    off_lead = OfflineRetargeter(
+        rb, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig(), steps=StepConfig(swing_clearance=0.02))
+    )
     prev = StepConfig(
         min_double=0.0,
         start_double=0.0,
@@ -174,9 +178,12 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         travel_zmp_shift=0.0,
     )
     off_prev = OfflineRetargeter(
-        rb, OfflineConfig(balance=True, zmp=True, zmp_model="cart-table", single_support_com=False, steps=prev)
+        rb,
+        OfflineConfig(
+            balance=True, zmp=True, zmp_model="cart-table", single_support_com=False, steps=prev, lead_in=None
+        ),
     )
-    st_new = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True, preview=9))
+    st_new = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True))
     st_old = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True))
     modes = args.modes.split(",")
     stats = {
@@ -191,6 +198,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
             "zmp1": [],
             "done": 0,
             "phys": [],
+            "lift_offs": 0,
             "step_ratio": [],
         }
         for m in modes
@@ -247,9 +255,12 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
 
                     res = check_trajectory(traj, CheckConfig(mode="free"), robot=rb.name)
                     s["phys"].append(res.passed)
-                    t0 = float(traj.meta.get("t0_s", 0.0))  # the check's times start at the trajectory's start
-                    after = f"{res.first_failure_time - t0:.2f} s after the clip's start" if not res.passed else ""
+                    lift_offs = sum(res.metrics.get("stances", [])) - len(res.metrics.get("stances", []))
+                    s["lift_offs"] += lift_offs
+                    t0 = float(traj.meta.get("t0_s", 0.0))  # the lead-in's length (the check's times are clip times)
+                    after = f"{res.first_failure_time:.2f} s after the clip's start" if not res.passed else ""
                     note += ", physics " + ("pass" if res.passed else f"{res.reason} at {after}")
+                    note += f", {lift_offs} lift-offs"
                     if t0:
                         note += f" (lead-in {t0:.2f} s)"
             elif args.physics:
@@ -333,6 +344,14 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         if args.physics:
             v, bv = fig("phys", lambda a: float(np.mean(a)))
             out.append(Row(f"{label}: share of clips passing sim's free check (as `check` runs it)", v, bv))
+            out.append(
+                Row(
+                    f"{label}: feet lifted off the floor in physics / person steps (sim's stances; a step "
+                    "the reference takes may be a shuffle)",
+                    f"{s['lift_offs']}/{s['person']}",
+                    f"{b['lift_offs']}/{b['person']}" if b else "",
+                )
+            )
     return out
 
 

@@ -5,8 +5,8 @@ asks a :class:`BalancePlanner` once per frame for the anchored targets (:meth:`B
 the feet held down (:meth:`BalancePlanner.plan`) and the support region's half-planes and the
 CoM/DCM/ZMP row parameters, which it writes into the compiled function's parameter buffer
 (numpy views bound once, :meth:`BalancePlanner.bind`). Lengths m, times s. The rules (footprints,
-the two-foot and one-foot regions, when a foot may lift, the weight shift, preview) and why
-steps are off by default: docs/retargeting.md, section 4.
+the feet's region, when a foot may lift and where it lands) and why steps are off by default:
+docs/retargeting.md, section 4.
 """
 
 from __future__ import annotations
@@ -17,23 +17,20 @@ import numpy as np
 
 from retarget.errors import RetargetError
 from retarget.support import (
-    closest_point,
     convex_hull,
     double_support_points,
     halfplanes,
     level_footprint,
-    stance_points,
-    support_polygon,
 )
 
-#: half-planes of the balance region passed to the compiled function: the two-foot region has
-#: 4 corners, the stance region 4 plus the weight-shift point; unused rows are 0·c ≤ 1
+#: half-planes of the balance region passed to the compiled function (the two-foot region has
+#: 4 corners; unused rows are 0·c ≤ 1); kept at 6, the compiled function's parameter size
 N_EDGES = 6
 
 
 class BalancePlanner:
     """Planted feet, support region and target anchoring for one free-standing robot (see the
-    module docstring). ``planted`` (2,) bool, ``shifting``, ``offset`` (x, y) m and the heading
+    module docstring). ``planted`` (2,) bool, ``offset`` (x, y) m and the heading
     turn ``psi`` rad of the anchoring are public state."""
 
     def __init__(self, robot, config, fps: float):
@@ -58,7 +55,7 @@ class BalancePlanner:
         stand = rb.evaluate(rb.x_stand[None])
         self._stand_kp = stand["keypoints"][0]
         h = float(stand["com"][0, 2] - stand["sole"][0, :, 2].min())
-        self._zmp_k = h / 9.81 * self.fps**2  # ZMP = c − (h/g) c̈ = (1 + k) c − k (2c₋₁ − c₋₂)
+        self._zmp_k = h / 9.81 * self.fps**2  # ZMP = c − (h/g) c̈ = (1 − k) c + k (2c₋₁ − c₋₂)
         self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
         self._zmp_scale = np.sqrt(cfg.zmp_weight) * self._zmp_k
         self._w = np.sqrt([cfg.balance_weight, cfg.dcm_weight, cfg.zmp_limit_weight])
@@ -67,7 +64,6 @@ class BalancePlanner:
         self._anchor_alpha = 1.0 - math.exp(-1.0 / (self.fps * cfg.anchor_time))
         self._min_stance_frames = round(cfg.min_stance * self.fps)
         self._max_swing_frames = round(cfg.max_swing * self.fps)
-        self._settle_frames = round(cfg.settle * self.fps)
         self._min_swing_frames = round(cfg.min_swing * self.fps)
         self._min_double_frames = round(cfg.min_double * self.fps)
         # leg length (hip above ankle standing; the CoM height without hip keypoints): scales step lengths
@@ -91,12 +87,9 @@ class BalancePlanner:
         """No feet planted, no history; no balance rows until :meth:`start` plants the feet."""
         self.planted = np.zeros(2, dtype=bool)
         self._prints: list = [None, None]  # level footprints (4, 2) of the planted feet
-        self._settled = 0  # frames the CoM has been over the stance foot while the other waits to lift
-        self._stance: list = [None, None]  # per planted foot: (hull, A, b) of its region when it stands alone
         self._region_key = None
         self._c1 = self._c2 = None  # CoM xy of the last two emitted frames
         self._sole1 = None  # the last frame's sole corners (3, 8)
-        self.shifting = False
         #: the anchoring transform: offset (x, y) m and turn psi rad; the ankle targets and foot
         #: headings recorded when each foot touched down
         self.offset = (0.0, 0.0)
@@ -122,16 +115,17 @@ class BalancePlanner:
         self.set_points(True)
         return held
 
-    def next(self, human_contact, targets: np.ndarray, ahead=None) -> tuple[bool, bool]:
+    def next(self, human_contact, targets: np.ndarray) -> tuple[bool, bool]:
         """Any later frame: plan the feet, keep a lifted foot's targets low (``targets`` changed
-        in place), set the row parameters; returns the feet to hold. ``ahead``: the person's
-        contacts ``preview`` frames later (see :meth:`plan`), or None."""
-        held = self.plan(human_contact, ahead)
+        in place), set the row parameters; returns the feet to hold."""
+        held = self.plan(human_contact)
         cfg = self.config
         for s in range(2):
             if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
                 k = self._foot_kps[s]
-                targets[k, 2] = np.clip(targets[k, 2], self._foot_kp_h[s], self._foot_kp_h[s] + cfg.swing_height)
+                # clear the floor: a foot the person barely lifts would drag (ramped in over 3 frames)
+                low = self._foot_kp_h[s] + cfg.swing_clearance * min(1.0, self._since[s] / 3.0)
+                targets[k, 2] = np.clip(targets[k, 2], low, self._foot_kp_h[s] + cfg.swing_height)
                 if self.planted[1 - s]:
                     self._clamp_step(targets, s)
         self.set_points(False)
@@ -242,57 +236,29 @@ class BalancePlanner:
         px, py = 2 * c1x - c2x, 2 * c1y - c2y
         kd, kz = self._dcm_k, self._zmp_k
         # (3, 3) column-major: columns com, dcm, zmp of rows α, β_x, β_y
-        self._points[:] = (1.0, 0.0, 0.0, 1.0 + kd, -kd * c1x, -kd * c1y, 1.0 + kz, -kz * px, -kz * py)
+        self._points[:] = (1.0, 0.0, 0.0, 1.0 + kd, -kd * c1x, -kd * c1y, 1.0 - kz, kz * px, kz * py)
         self._point_w[:] = self._w0 if first else self._w
         self._cpred[:] = (px, py)
         self._zmp[:] = 0.0 if first else self._zmp_scale
 
-    def plan(self, human_contact, ahead=None) -> tuple[bool, bool]:
-        """Update :attr:`planted` from the human's contacts and the last frame's CoM, and set
-        the anchors, the balance region and the CoM prediction in the parameter buffer.
-        Returns the contacts (left, right) the solver holds on the ground this frame.
-
-        ``ahead`` (2,) bool: the person's contacts a preview later (a stream delayed by that
-        many frames knows them). With it, the weight shift towards the stance foot starts when
-        the person's foot *will* leave while the other stays down, so that the robot's foot can
-        lift when the person's does (a 0.3 s human swing is shorter than the shift and settle
-        the soft servo robot needs); the foot lifts once the shift has settled and the person's
-        foot is up, and lands when the person's does."""
-        cfg = self.config
+    def plan(self, human_contact) -> tuple[bool, bool]:
+        """Update :attr:`planted` from the person's contacts, and set the anchors and the balance
+        region in the parameter buffer. Returns the contacts (left, right) the solver holds on the
+        ground this frame. Without ``steps`` both feet stay planted; with them, see :meth:`_paced`."""
         contact = (bool(human_contact[0]), bool(human_contact[1]))
-        if cfg.steps and cfg.paced:
-            return self._plan_paced(contact)
-        # the person's feet: a lift counts only when the foot really leaves (rises lift_height above
-        # the other, or its target moves step_distance or turns step_turn from where the robot put
-        # it down) and the robot's foot has stood min_stance frames; a near-standing person's contact
-        # flicker then never makes the robot stand on one leg. A step stands on the other foot: with
-        # no foot down (a jump, a glide) both stay. A lifted foot comes down when the person's does,
-        # or after max_swing seconds.
-        self._since += 1
-        want = [True, True]
-        for s in range(2):
-            planted, other = bool(self.planted[s]), 1 - s
-            if not planted and (contact[s] or self._since[s] >= self._max_swing_frames):
-                self.touch_down(s)
-                continue
-            if (
-                not cfg.steps
-                or contact[s]
-                or not contact[other]
-                or (planted and self._since[s] < self._min_stance_frames)
-            ):
-                continue
-            dz = self._ankle_z[s] - self._ankle_z[other]
-            (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
-            turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
-            want[s] = not (
-                dz > cfg.lift_height or math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
-            )
-        return self._shift_or_lift(want, lift_ok=[True, True])
+        if self.config.steps:
+            self._paced(contact)
+        key = (bool(self.planted[0]), bool(self.planted[1]))
+        if self._region_key != key:
+            self._region_key = key
+            if key == (True, True):
+                cfg = self.config
+                self._double = double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset)
+            self.set_region(self._double)  # on one foot too: the CoM stays between the feet
+        return key
 
-    def _plan_paced(self, contact) -> tuple[bool, bool]:
-        """``plan`` at the robot's own pace (``StreamingConfig.paced``): quick steps, no weight
-        shift, no preview needed.
+    def _paced(self, contact) -> None:
+        """The feet with ``steps``: quick steps at the robot's own pace, no weight shift, no preview.
 
         Foot s lifts when the person's foot s is up, or when the
         robot's planted foot s has fallen behind the person's (``step_distance``, ``step_turn``),
@@ -301,14 +267,13 @@ class BalancePlanner:
         and the CoM's region stays the two feet's region from before the lift: the robot steps
         the way its offline trajectories do, the CoM between the feet and a swing of about
         ``min_swing``, caught by the landing foot. (A quasi-static shift of the CoM over the
-        stance foot first, the non-paced rule, loads one soft servo leg for half a second or
+        stance foot first, the rule before this one, loads one soft servo leg for half a second or
         more: on the OP3 the body then rolls 6-10 degrees outwards over the stance foot and falls
         at the first or second step; and a person stepping three times a second is faster than
         that shift.) The lifted foot follows the person's foot s, kept where the robot can put
         it (:meth:`_clamp_step`), and lands when the person's foot is down and the swing has
         lasted ``min_swing``, or after ``max_swing``. So the robot steps as often as it can,
         skips the steps it has no time for, and catches up where the person's feet went."""
-        cfg = self.config
         self._since += 1
         for s in range(2):
             swing = int(self._since[s])
@@ -326,13 +291,6 @@ class BalancePlanner:
                 if ready and (not contact[s] or self._behind(s)):
                     self._lift(s)
                     break
-        key = (bool(self.planted[0]), bool(self.planted[1]))
-        if self._region_key != key:
-            self._region_key = key
-            if key == (True, True):
-                self._double = double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset)
-            self.set_region(self._double)  # on one foot too: the CoM stays between the feet
-        return key
 
     def _lift(self, s: int) -> None:
         self.planted[s] = False
@@ -347,59 +305,12 @@ class BalancePlanner:
         turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
         return math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
 
-    def _shift_or_lift(self, want, lift_ok) -> tuple[bool, bool]:
-        """Lift a foot that should (``want[s]`` False) once the CoM has settled over the other
-        (and ``lift_ok[s]``), else shift the weight towards it; set the region. Returns the
-        contacts held."""
-        cfg = self.config
-        c1 = self._c1
-        shift_point = None
-        self.shifting = False
-        for s in range(2):
-            other = 1 - s
-            if want[s] or not self.planted[s] or not self.planted[other]:
-                continue
-            if self._stance[other] is None:
-                self._stance[other] = support_polygon(
-                    [stance_points(self._prints[other], self._prints[s], cfg.stance_margin)]
-                )
-            hull, A, b = self._stance[other]
-            inside = float(np.min(b - A @ c1)) >= -cfg.release_tolerance
-            self._settled = self._settled + 1 if inside else 0
-            if self._settled > self._settle_frames and lift_ok[s]:
-                self.planted[s] = False  # the weight is on the other foot: lift
-                self._prints[s] = None
-                self._since[s] = 0
-                self._region_key = None
-            else:  # shift the weight first: the CoM's region is the stance foot and a point on the way
-                self.shifting = True
-                gap = closest_point(c1, hull) - c1
-                dist = float(np.linalg.norm(gap))
-                # at most shift_speed, reached with at most shift_accel from the CoM's speed towards it
-                toward = max(0.0, float((self._c1 - self._c2) @ gap) / max(dist, 1e-12))
-                step = min(cfg.shift_speed / self.fps, toward + cfg.shift_accel / self.fps**2, dist)
-                shift_point = c1 + gap * (step / max(dist, 1e-12))
-                self._region_key = None
-                self.set_region(np.concatenate([hull, shift_point[None]]))
-            break  # one foot at a time
-        if not self.shifting:
-            self._settled = 0
-        key = (bool(self.planted[0]), bool(self.planted[1]))
-        if shift_point is None and self._region_key != key:
-            self._region_key = key
-            if key == (True, True):
-                self.set_region(double_support_points(self._prints, cfg.balance_margin, cfg.double_support_inset))
-            else:
-                self.set_region(np.concatenate([self._stance[f][0] for f in range(2) if self.planted[f]]))
-        return key
-
     def touch_down(self, s: int) -> None:
         """Plant foot s flat where it is now: its level footprint, the shrunk footprint's
         half-planes, the anchor of the contact rows and the ankle target it pins."""
         self.planted[s] = True
         fp = level_footprint(self._sole1[:, 4 * s : 4 * s + 4].T, self._sole_local[s])
         self._prints[s] = fp
-        self._stance = [None, None]
         self._anchor[:, 4 * s : 4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
         self._head_ref[s] = self._heads_now[s]

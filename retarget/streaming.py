@@ -49,30 +49,20 @@ class StreamingConfig:
     level_weight: float = 30.0  # sole corner heights differing within a foot
     upright_weight: float = 0.3  # per rad² of root pitch and roll (a leaning servo robot sags further)
     collision_weight: float = 1e5  # the profile's capsule pairs penetrating
-    stance_margin: float = 0.03  # on one foot the CoM stays in the inner half of its footprint shrunk by this
     feet_clearance: float = 0.015  # extra distance kept between the two feet's capsules
     double_support_inset: float = 0.01  # on two feet the CoM stays this far inside the feet's centre lines
-    shift_speed: float = 0.15  # m/s, CoM travel towards the stance foot before the other lifts
-    shift_accel: float = 1.0  # m/s², how fast that speed may grow
-    release_tolerance: float = 0.002  # CoM this far outside the stance footprint still lets the other lift
-    settle: float = 0.2  # ... once it has stayed there this long (the servos catch up with the shift)
-    lift_height: float = 0.01  # a person's foot leaves when its ankle target rises this far above the other's,
-    step_distance: float = 0.03  # ... or moves this far from where the robot's foot was put down,
-    step_turn: float = 0.35  # rad, ... or turns this far
+    # steps (BalancePlanner._paced): quick steps at the robot's pace, the CoM kept between the feet
+    step_distance: float = 0.03  # a planted foot the person's has moved this far from re-steps,
+    step_turn: float = 0.35  # rad, ... or turned this far
     min_stance: float = 0.2  # a foot stands this long before it may lift again
-    max_swing: float = 0.6  # a lifted foot comes down after this long even if the person's does not
-    # paced steps (the default rule with steps; BalancePlanner._plan_paced): quick steps with the
-    # CoM kept between the feet, no weight shift first, no preview needed
-    paced: bool = True  # False: the weight-shift rule (the CoM over the stance foot before a lift)
-    min_swing: float = 0.15  # a lifted foot stays up at least this long (it has to travel)
     min_double: float = 0.15  # both feet stand this long between two steps
-    min_separation: float = 0.9  # a lifted foot lands at least this x the standing feet's distance from the other
+    min_swing: float = 0.15  # a lifted foot stays up at least this long (it has to travel)
+    max_swing: float = 0.6  # ... and comes down after this long even if the person's does not
+    swing_clearance: float = 0.01  # its ankle and toe targets stay at least this above standing height
+    swing_height: float = 0.02  # ... and at most this
+    min_separation: float = 0.9  # it lands at least this x the standing feet's distance from the other
     stride_limit: float = 0.35  # ... and at most this x the leg length from its standing place
-    swing_height: float = 0.02  # a lifted foot's ankle and toe targets stay this close above standing height
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
-    # frames of the person's contacts known ahead of the frame being solved (a stream delayed by
-    # that many frames): the weight shift before a step starts that much earlier (BalancePlanner.plan)
-    preview: int = 0
 
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
@@ -441,12 +431,10 @@ class StreamingRetargeter:
                 best, best_cost = x, cost
         return best
 
-    def step(self, targets: np.ndarray, contact=(False, False), ahead=None) -> np.ndarray:
+    def step(self, targets: np.ndarray, contact=(False, False)) -> np.ndarray:
         """targets (K, 3) m, contact (2,) bool (the human's left, right foot) → configuration
         x (nx,) within all limits. With balance the robot's own foot contacts are in
-        :attr:`planted` afterwards (see the module docstring). ``ahead`` (2,) bool: the person's
-        contacts ``config.preview`` frames later, where the caller has them (balance with steps
-        uses them to shift the weight before a step; :meth:`run` passes them)."""
+        :attr:`planted` afterwards (see the module docstring)."""
         targets = np.asarray(targets, dtype=np.float64)
         if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
             raise RetargetError(
@@ -478,7 +466,7 @@ class StreamingRetargeter:
                 self._residual(x)
                 contact = self.planner.start(self._solebuf, self._combuf[0:2])
             else:
-                contact = self.planner.next(contact, targets, ahead)
+                contact = self.planner.next(contact, targets)
         self._contact = np.array(contact, dtype=bool)
         self._load_frame(x1, x2, acc, targets, contact)
         x = self._solve(x, iters, lo, hi, rtol=self._first_rtol if first else 0.0)
@@ -520,9 +508,7 @@ class StreamingRetargeter:
             )
         tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()
-        T, P = motion.n_frames, self.config.preview
-        ahead = (lambda t: tg.contacts[min(t + P, T - 1)]) if P > 0 and self.balance else (lambda t: None)
-        X = np.stack([self.step(tg.keypoints[t], tg.contacts[t], ahead(t)) for t in range(T)])
+        X = np.stack([self.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
         return trajectory_from_x(
             self.robot, X, motion.fps, {"mode": "streaming", "source": motion.name, "compiled": self.compile_info}
         )

@@ -210,27 +210,8 @@ def test_leaning_person_keeps_the_com_inside_the_support_polygon(op3):
     assert np.abs(sole[:, :, 0:2] - sole[:1, :, 0:2]).max() < 2e-3  # and where they were put
 
 
-def test_with_the_shift_rule_a_step_lifts_the_foot_only_once_the_weight_is_on_the_other(op3):
-    motion = person(seconds=4.0, lift=(1.2, 2.6))
-    cfg = StreamingConfig(balance=True, steps=True, paced=False)
-    s, X, planted = stream(op3, motion, steps=True, paced=False)
-    assert (~planted[:, 0]).sum() >= 5 and planted[:, 1].all()  # the left foot stepped, the right stood
-    ev = op3.evaluate(X)
-    up = ~planted[:, 0]
-    assert ev["sole"][up, 0:4, 2].max() > 0.005  # it did leave the ground
-    # while it is up, the CoM is over the right foot's footprint (shrunk by the stance margin,
-    # less the release tolerance) and on its inner half (at most the margin past its centre line)
-    on_right = np.stack([np.zeros(len(X), bool), np.ones(len(X), bool)], axis=1)
-    m = com_margins(ev["com"][:, :2], ev["sole"], feet_local(op3), on_right)
-    assert m[up].min() > cfg.stance_margin - cfg.release_tolerance - 1e-3, m[up].min()
-    centre_y = ev["sole"][up, 4:8, 1].mean(axis=1)
-    assert np.all(ev["com"][up, 1] > centre_y - 2e-3)
-    # and it came back down flat
-    assert np.abs(ev["sole"][-1, :, 2]).max() < 1e-3
-
-
-def test_paced_steps_lift_with_the_person_keep_the_com_between_the_feet_and_land_flat(op3):
-    """The default step rule (paced): the foot lifts as soon as the person's does (no weight
+def test_steps_lift_with_the_person_keep_the_com_between_the_feet_and_land_flat(op3):
+    """With steps on, the foot lifts as soon as the person's does (no weight
     shift first), the CoM stays in the two feet's region while it is up, the swing lasts at
     least min_swing and at most max_swing, and the feet stand min_double between steps."""
     cfg = StreamingConfig(balance=True, steps=True)
