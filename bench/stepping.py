@@ -11,20 +11,23 @@ dualflow.synthetic.make_duet (generated partners, hand_hold and orbit). Each cli
 retargeters in the same run, on one core (sched_setaffinity, single-threaded BLAS), CPU time:
 
 - offline (OfflineConfig(balance=True, zmp=True), as retarget-check runs it): the robot's own
-  contact schedule (retarget.schedule) and per-window warm starts; its baseline, *offline before*:
-  the person's contacts held as they are and one streamed warm start for the whole clip (the
-  code before this change);
-- *offline with the lead-in* (``--modes offline,offline-lead-in``; its baseline is *offline*):
-  the same with ``OfflineConfig.lead_in=LeadInConfig()`` and ``StepConfig(swing_clearance=0.02)``
-  (both off by default): a clip that starts mid-motion is started from the robot's standing
-  stance at rest by retarget.lead_in instead of the check's joint-space entry into its first
-  frame. The figures are over the clip's frames (after the lead-in); the lead-in's own steps
-  are not counted; physics failure times are the check's, in clip time (after the clip's start);
+  contact schedule (retarget.schedule), per-window warm starts, and by default the lead-in
+  (``OfflineConfig.lead_in=LeadInConfig()``: a clip that starts mid-motion is started from the
+  robot's standing stance at rest by retarget.lead_in instead of the check's joint-space entry
+  into its first frame) and the swing clearance (``StepConfig(swing_clearance=0.02)``). The
+  figures are over the clip's frames (after the lead-in); the lead-in's own steps are not
+  counted; physics failure times are the check's, in clip time (after the clip's start). Its
+  baseline, *offline before*: the person's contacts held as they are and one streamed warm start
+  for the whole clip, without a lead-in (the code before the stepping work);
+- *offline without the lead-in* (``--modes offline,offline-no-lead-in``, then *offline*'s
+  baseline): the same with ``lead_in=None`` and ``StepConfig(swing_clearance=0.0)`` (the defaults
+  before both were switched on);
 - *offline previous* (``--modes offline-prev``): the same with every change of the physics
-  root-cause work off (the lead-in too): the cart-table ZMP (one point mass at the CoM), no CoM-over-the-stance-foot
-  rows in single support, and a schedule without the robot's pace, standing start, swing
-  clearance, start from rest and eased travel (StepConfig(min_double=0, start_double=0,
-  robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0, travel_zmp_shift=0));
+  root-cause work off (the lead-in too): the cart-table ZMP (one point mass at the CoM), no
+  CoM-over-the-stance-foot rows in single support, and a schedule without the robot's pace,
+  standing start, swing clearance, start from rest and eased travel (StepConfig(min_double=0,
+  start_double=0, robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0,
+  travel_zmp_shift=0));
 - streaming with steps (StreamingConfig(balance=True, steps=True): quick steps at the robot's
   pace, retarget.balance); its baseline, *streaming before*: StreamingConfig(balance=True) (feet
   always planted).
@@ -66,7 +69,6 @@ from bench.retarget_speed import Clock, load_clips  # noqa: E402
 from bench.stepping_leaders import leaders  # noqa: E402
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 from retarget.errors import RetargetError  # noqa: E402
-from retarget.lead_in import LeadInConfig  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter, _Infeasible, feet_apart  # noqa: E402
 from retarget.report import clip_targets, evaluate  # noqa: E402
 from retarget.robot import load_robot  # noqa: E402
@@ -165,8 +167,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     height = float(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2].max())
     print(f"robot {rb.name} (height {height:.3f} m), {len(clips)} clips, load {os.getloadavg()[0]:.2f}")
     off = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True))
-    off_lead = OfflineRetargeter(
-        rb, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig(), steps=StepConfig(swing_clearance=0.02))
+    off_plain = OfflineRetargeter(
+        rb, OfflineConfig(balance=True, zmp=True, lead_in=None, steps=StepConfig(swing_clearance=0.0))
     )
     prev = StepConfig(
         min_double=0.0,
@@ -213,8 +215,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 with Clock() as ck:
                     if mode == "offline":
                         traj = off.retarget(motion)
-                    elif mode == "offline-lead-in":
-                        traj = off_lead.retarget(motion)
+                    elif mode == "offline-no-lead-in":
+                        traj = off_plain.retarget(motion)
                     elif mode == "offline-prev":
                         traj = off_prev.retarget(motion)
                     elif mode == "offline-before":
@@ -270,8 +272,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     for mode in modes:
         s = stats[mode]
         base = {
-            "offline": "offline-prev" if "offline-prev" in stats else "offline-before",
-            "offline-lead-in": "offline",
+            "offline": next((m for m in ("offline-no-lead-in", "offline-prev", "offline-before") if m in stats), None),
             "streaming": "streaming-before",
         }.get(mode)
         b = stats.get(base) if base else None
@@ -296,7 +297,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 v,
                 bv,
                 "1.0",
-                verdict(v >= 1.0) if mode in ("offline", "offline-lead-in", "streaming") else "n/a",
+                verdict(v >= 1.0) if mode in ("offline", "streaming") else "n/a",
             )
         )
         out.append(

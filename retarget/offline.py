@@ -92,17 +92,17 @@ class OfflineConfig:
     # the robot's contact schedule from the person's (retarget.schedule: re-steps for pivots and
     # slides, no flight); None holds the person's contacts as they are
     steps: StepConfig | None = StepConfig()
-    # LeadInConfig(): a clip whose first frame is not a standing double support at rest is started
-    # from the robot's standing stance at rest (retarget.lead_in: stand, step into the first
-    # frame's stance, a foot in the air there held on the floor below it, move into the first
-    # pose); the trajectory then starts before the clip: meta["t0_s"] is the clip's first frame,
-    # meta["lead_in"] what was added. None (default): the clip as it is. With it and
-    # StepConfig(swing_clearance=0.02) the op3 bench (bench/stepping.py --modes
-    # offline,offline-lead-in --physics) passes 7/9 clips against 6/9 and cmu18_01 passes instead
-    # of falling 0.24 s into the clip; still off by default because with both on one synthetic
-    # leader (make_leader(4.0, seed=4), tests/test_retarget_feet.py) stops unconverged in its last
-    # window (sole_z at its last frame); each alone retargets it
-    lead_in: LeadInConfig | None = None
+    # LeadInConfig() (default): a clip whose first frame is not a standing double support at rest
+    # is started from the robot's standing stance at rest (retarget.lead_in: stand, step into the
+    # first frame's stance, a foot in the air there held on the floor below it, move into the
+    # first pose); the trajectory then starts before the clip: meta["t0_s"] is the clip's first
+    # frame, meta["lead_in"] what was added. None: the clip as it is, from its first frame. With
+    # StepConfig's swing clearance (0.02) the op3 bench (bench/stepping.py --modes
+    # offline,offline-no-lead-in --physics) passes 7/9 clips against 6/9 without both, and
+    # cmu18_01 passes instead of falling 0.24 s into the clip. Its cost: the lead-in's frames are
+    # solved too (3.07 s before each 2.5 s CMU clip: bench/retarget_speed.py's offline frames/s
+    # per clip frame 126 -> 43)
+    lead_in: LeadInConfig | None = LeadInConfig()
 
 
 @dataclass(frozen=True)

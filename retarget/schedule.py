@@ -3,9 +3,11 @@
 Contract: :func:`robot_contacts` turns the person's side contacts (T, 2) bool (left, right)
 into the robot's (T, 2), which the offline solver holds as hard constraints, and returns the
 changes it made as :class:`Change` (start and end s, what, why): turns and slides become
-re-steps, frames with both feet up keep the feet down, swings too short are filled, and the
-opt-in rules of :class:`StepConfig` (standing start, the robot's pace). Lengths m, angles rad,
-times s. The rules in full: docs/retargeting.md, section 5.
+re-steps, frames with both feet up keep the feet down, swings too short are filled, a foot
+lifts no earlier than one frame after the other lands, a swing that has not landed by the
+clip's last frame is not made, and the opt-in rules of :class:`StepConfig` (standing start,
+the robot's pace). Lengths m, angles rad, times s. The rules in full: docs/retargeting.md,
+section 5.
 """
 
 from __future__ import annotations
@@ -30,16 +32,17 @@ class StepConfig:
     # note) they did not raise the physics pass rate: they fixed the fall at the entry of a clip
     # that starts mid-step (cmu18_01: 0.21 s -> 0.95 s) but made cmu19_01 fall, which passes
     # without them. Values that were measured: min_double 0.13, start_double 0.4, robot_swing 0.13,
-    # standing_start True, start_ramp 0.3, travel_zmp_shift 0.015. The swing clearance 0.02 with
-    # the lead-in (retarget.lead_in) took the bench from 6/9 to 7/9 physics passes (cmu18_01
-    # passes; with the lead-in alone it falls 1.07 s into the clip, its first swing foot not
-    # landing); alone it changed no verdict. Off by default with the lead-in (see OfflineConfig)
+    # standing_start True, start_ramp 0.3, travel_zmp_shift 0.015. The swing clearance (0.02, on
+    # by default) with the lead-in (retarget.lead_in, on by default, see OfflineConfig) took the
+    # bench from 6/9 to 7/9 physics passes (cmu18_01 passes; with the lead-in alone it falls 1.07 s
+    # into the clip, its first swing foot not landing); alone it changed no verdict
     min_double: float = 0.0  # s, both feet down before a lift (the weight shift)
     start_double: float = 0.0  # s, both feet down at the clip's start
     robot_swing: float = 0.0  # s, the shortest swing the robot makes
     # the offline solver's swing (retarget.offline.swing_floor): the sole clears the floor by this
-    # share of the robot's standing height in a swing's middle frames; lift-off and touch-down are vertical
-    swing_clearance: float = 0.0
+    # share of the robot's standing height in a swing's middle frames (0.02: 9 mm on the op3);
+    # lift-off and touch-down are vertical; 0: the sole only stays above the floor
+    swing_clearance: float = 0.02
     standing_start: bool = False
     # the offline solver starts the clip from rest over this long (s; 0: at the clip's speed):
     # the robot stands still when the clip begins (retarget.offline.OfflineRetargeter.solve)
@@ -122,8 +125,58 @@ def robot_contacts(
         return c, changes
     out = _restep_pivots(robot, poses, c, fps, cfg, changes)
     out = _pace(out, fps, cfg, changes)
+    _double_support_at_each_switch(out)
+    _land_unfinished_swings(out, fps, changes)
     changes.sort(key=lambda ch: ch.start_s)
     return out, changes
+
+
+def _double_support_at_each_switch(c: np.ndarray) -> None:
+    """In place on contacts c (T, 2) bool: a foot that would lift in the frame the other foot
+    lands lifts one frame later, so that the weight moves from one foot to the other over at
+    least one frame on both feet, never between two frames (no rule makes one by default; the
+    person's own steps, a flight's end and a lead-in's held foot can). The swing is one frame
+    shorter; not reported (33 ms at 30 fps).
+
+    A switch in zero frames asks the offline solver for the CoM (or ZMP) over one foot in one
+    frame and over the other in the next, with both feet where they land and lift (the swing
+    clearance's vertical lift-off and touch-down hold them there): CMU 19_01 with the lead-in,
+    the clearance and OfflineConfig(balance=True) stopped at IPOPT's iteration limit with
+    1e-5 violations all over the window (25 iterations with the frame of double support)."""
+    for t in range(1, c.shape[0]):
+        for s in range(2):
+            o = 1 - s
+            if not c[t - 1, s] and c[t, s] and c[t - 1, o] and not c[t, o]:
+                c[t, o] = True
+
+
+def _land_unfinished_swings(c: np.ndarray, fps: float, changes: list) -> None:
+    """In place on contacts c (T, 2) bool: a foot still in the air in the last frame (a swing
+    that lands after the clip) stays down from its lift on; one "unfinished step" change each.
+
+    Such a swing would end the trajectory with the robot on one foot, which it then has to hold
+    still (the lead-in's reason for never standing at rest on one foot, retarget.lead_in), and it
+    leaves the offline solver's last window ill-posed: its padding past the clip repeats the last
+    frame's schedule, a foot held above the floor (swing_floor) for a whole padding (~1 s) while
+    the posture term pulls the legs back to standing (make_leader(4.0, seed=4) with the lead-in
+    and a swing clearance of 0.02: IPOPT at its iteration limit with the stance foot sliding
+    and sinking 17 mm in the padding)."""
+    T = c.shape[0]
+    for s in range(2):
+        if T == 0 or c[-1, s]:
+            continue
+        down = np.flatnonzero(c[:, s])
+        lift = int(down[-1]) + 1 if down.size else 0
+        c[lift:, s] = True
+        changes.append(
+            Change(
+                round(lift / fps, 3),
+                round(T / fps, 3),
+                "unfinished step",
+                f"the person's {('left', 'right')[s]} foot was still in the air at the clip's end "
+                f"({(T - lift) / fps:.2f} s after it lifted); the robot kept it down rather than end on one foot",
+            )
+        )
 
 
 def _keep_feet_down_in_flight(c: np.ndarray, fps: float, changes: list) -> None:
@@ -150,8 +203,9 @@ def _keep_feet_down_in_flight(c: np.ndarray, fps: float, changes: list) -> None:
 def _restep_pivots(robot, poses: tuple, c: np.ndarray, fps: float, cfg: StepConfig, changes: list) -> np.ndarray:
     """Contacts (T, 2) bool in which a planted foot the person turns more than ``step_turn`` or
     slides more than ``step_distance`` on lifts for a ``swing`` and comes down at its new place,
-    once it has stood ``min_stance`` and the other foot stands for the whole swing (else a pivot
-    beyond twice the turn is reported). poses: the feet's ankle xy (T, 2, 2) m and heading (T, 2) rad."""
+    once it has stood ``min_stance``, the other foot stands for the whole swing and the swing
+    lands before the clip's last frame (else a pivot beyond twice the turn is reported). poses:
+    the feet's ankle xy (T, 2, 2) m and heading (T, 2) rad."""
     ank, head = poses
     T = c.shape[0]
     start_n = int(round(cfg.start_double * fps))
@@ -184,8 +238,10 @@ def _restep_pivots(robot, poses: tuple, c: np.ndarray, fps: float, cfg: StepConf
             other_ok = (
                 out[t, o] and t >= lifted_until[o] and since[o] >= stance_n and c[t : min(T, t + swing_n), o].all()
             )
-            if since[s] >= stance_n and other_ok and t >= start_n:
-                end = min(T, t + swing_n)
+            # a re-step lands inside the clip (one that would land after it is not started:
+            # it would end the clip on one foot, see _land_unfinished_swings)
+            if since[s] >= stance_n and other_ok and t >= start_n and t + swing_n < T:
+                end = t + swing_n
                 out[t:end, s] = False
                 lifted_until[s] = end
                 since[s] = 0

@@ -298,14 +298,18 @@ def _actor_placement(
     traj: RobotTrajectory, config: CheckConfig, placement: Placement | FaceToFace | None
 ) -> Placement | FaceToFace:
     """``placement`` (None: :class:`FaceToFace`); a free robot's face-to-face partner keeps its
-    distance from the root's planned path, not just from its first frame."""
+    distance from the root's planned path, not just from its first frame. The path is in clip
+    time, as the actor is posed (a lead-in's frames before the clip left out, an ease-in's warp
+    undone), so that each of the actor's frames is matched with where the robot is then."""
     placement = placement or FaceToFace()
     if isinstance(placement, FaceToFace) and placement.path is None and config.mode == "free":
-        placement = replace(
-            placement,
-            path=tuple(map(tuple, np.round(traj.root_pos[:, :2], 6).tolist())),
-            path_fps=float(traj.fps),
-        )
+        xy = traj.root_pos[:, :2]
+        lead = lead_in_of(traj)
+        if lead is not None:  # the root at clip times 0, 1/fps, ... (clamped at the trajectory's end)
+            tc = lead.clip_time(traj.times)
+            t = np.arange(int(np.floor(max(float(tc[-1]), 0.0) * traj.fps + 1e-9)) + 1) / traj.fps
+            xy = np.stack([np.interp(t, tc, xy[:, i]) for i in (0, 1)], axis=1)
+        placement = replace(placement, path=tuple(map(tuple, np.round(xy, 6).tolist())), path_fps=float(traj.fps))
     return placement
 
 

@@ -31,7 +31,11 @@ def test_retarget_a_duet_file_writes_trajectory_report_and_figure(tmp_path, caps
     for suffix in (".npz", ".csv", ".report.json", ".report.md", ".joints.png"):
         assert (out / f"duet{suffix}").is_file(), suffix
     traj = RobotTrajectory.load_npz(out / "duet.npz")
-    assert traj.robot == "op3" and traj.n_frames == 24 and traj.joint_names[0] == "r_sho_pitch"
+    # the arms move from the first frame: by default the robot is led in from standing, and the
+    # clip's 24 frames follow the lead-in (meta t0_s, saved with the trajectory)
+    t0 = traj.meta["t0_s"]
+    assert t0 > 0 and traj.meta["lead_in"]["frames"] == round(t0 * 30)
+    assert traj.robot == "op3" and traj.n_frames == 24 + round(t0 * 30) and traj.joint_names[0] == "r_sho_pitch"
     rep = json.loads((out / "duet.report.json").read_text())
     assert rep["limit_violations"] == 0 and rep["velocity_violations"] == 0 and rep["passed"] is True
     # the reactor (standing at x = 0) was retargeted, not the actor (at x = 1 m)

@@ -65,8 +65,8 @@ def op3():
 
 
 # -- the person's lead-in -------------------------------------------------------------
-def test_the_lead_in_is_off_by_default():
-    assert OfflineConfig().lead_in is None and StepConfig().swing_clearance == 0.0
+def test_the_lead_in_and_the_swing_clearance_are_on_by_default():
+    assert OfflineConfig().lead_in == LeadInConfig() and StepConfig().swing_clearance == 0.02
 
 
 def test_a_standing_clip_gets_no_lead_in():
@@ -174,6 +174,29 @@ def test_the_standing_pose_keeps_the_bone_lengths():
     np.testing.assert_allclose(bone_lengths(s)[[3, 4, 6, 7]], bone_lengths(m.positions[0])[[3, 4, 6, 7]], atol=1e-6)
 
 
+def test_the_check_keeps_the_partner_away_from_where_the_robot_is_in_clip_time():
+    """The physics check's face-to-face partner is posed in clip time; the robot's root path it
+    keeps its distance from must be too: after a 1 s lead-in standing at x = 0 the robot walks
+    +x at 0.5 m/s, so the path's first point is the clip's first frame (x = 0) and its point at
+    clip time 1 s is x = 0.5 m, not the trajectory's (x = 0, still in the lead-in)."""
+    from retarget import RobotTrajectory
+    from retarget.lead_in import LeadIn
+    from sim.check import CheckConfig, _actor_placement
+
+    lead = LeadIn(30, FPS, 0.0, (), (), "the pelvis moves")
+    t = np.arange(90) / FPS
+    root = np.zeros((90, 3))
+    root[:, 0] = 0.5 * np.maximum(t - lead.t0_s, 0.0)
+    names = ("a", "b")
+    meta = {"lead_in": lead.to_dict(), "t0_s": lead.t0_s}
+    traj = RobotTrajectory(names, np.zeros((90, 2)), root, np.tile([1.0, 0, 0, 0], (90, 1)), FPS, "op3", meta)
+    path = np.asarray(_actor_placement(traj, CheckConfig(mode="free"), None).path)
+    assert len(path) == 60  # the clip's 2 s (frames 0..59 of clip time)
+    assert path[0, 0] == pytest.approx(0.0) and path[30, 0] == pytest.approx(0.5, abs=1e-6)
+    plain = RobotTrajectory(names, np.zeros((90, 2)), root, np.tile([1.0, 0, 0, 0], (90, 1)), FPS, "op3")
+    assert len(_actor_placement(plain, CheckConfig(mode="free"), None).path) == 90  # no lead-in: as it is
+
+
 # -- the robot ------------------------------------------------------------------------------
 @pytest.mark.slow
 def test_offline_starts_a_mid_step_clip_from_the_standing_stance_and_reports_it(op3):
@@ -209,7 +232,7 @@ def test_offline_starts_a_mid_step_clip_from_the_standing_stance_and_reports_it(
 @pytest.mark.slow
 def test_offline_leaves_a_standing_clip_as_it_is(op3):
     m = standing_clip()
-    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig())).retarget(m)
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)  # the default lead-in
     assert lead_in_of(traj) is None and "t0_s" not in traj.meta
     assert traj.n_frames == m.n_frames
     assert not any(c["what"] in ("lead-in", "eased in") for c in traj.meta["changes"])
@@ -219,13 +242,13 @@ def test_offline_leaves_a_standing_clip_as_it_is(op3):
 def test_cmu_18_01_starts_mid_step_and_stays_up_offline(op3, cmu_pair_paths):
     """Real capture: 18_01 starts mid-step (its right foot up, the pelvis at 1 m/s). Offline with
     the lead-in and the swing clearance it gets a lead-in (reported) and passes the physics check
-    (it falls 0.24 s into the clip without them); the check's times are clip times."""
+    (it falls 0.24 s into the clip without them); the check's times are clip times. Both are the
+    defaults: the configuration retarget-check runs."""
     from dualflow.motion.io import load_any
     from sim.check import CheckConfig, check_trajectory
 
     m = load_any(cmu_pair_paths[0]).resample(30.0)
-    cfg = OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig(), steps=StepConfig(swing_clearance=0.02))
-    traj = OfflineRetargeter(op3, cfg).retarget(m)
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
     info = lead_in_of(traj)
     assert info is not None and info.held == ("right",)
     assert traj.meta["changes"][0]["what"] == "lead-in"

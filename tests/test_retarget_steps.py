@@ -62,6 +62,40 @@ def test_a_real_step_is_kept_and_flicker_is_filled(op3):
     assert changes == [] and count_steps(planned) == 1
 
 
+def test_a_swing_that_has_not_landed_by_the_clips_end_is_not_made(op3):
+    """The person lifts the left foot 5 frames before the clip ends (and never puts it down in
+    the clip): the robot keeps it down from the lift on, so that it does not end the clip standing
+    on one foot, and says so; a step that lands in the last frame is kept."""
+    T = 60
+    person = np.ones((T, 2), dtype=bool)
+    person[20:30, 1] = False  # a real step of the right foot
+    person[55:, 0] = False  # the left lifts at frame 55 and is still up in the last frame
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS)
+    assert planned[:, 0].all() and not planned[20:30, 1].any() and planned[30:, 1].all()
+    assert [c.what for c in changes] == ["unfinished step"] and "left" in changes[0].why
+    assert changes[0].start_s == pytest.approx(55 / FPS, abs=1e-3) and changes[0].end_s == pytest.approx(T / FPS)
+    person[T - 1, 0] = True  # lands in the last frame: a finished step
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS)
+    assert not planned[55 : T - 1, 0].any() and planned[T - 1, 0] and changes == []
+
+
+def test_the_weight_never_changes_feet_without_a_frame_on_both(op3):
+    """The person lands the left foot in the frame the right lifts (here after a jump, whose
+    frames keep the right down): the robot's right lifts one frame later, so that one frame has
+    both feet down; the rest of the swing is the person's."""
+    T = 60
+    person = np.ones((T, 2), dtype=bool)
+    person[10:30, 0] = False  # the left up ...
+    person[22:40, 1] = False  # ... the right lifts at 22 (both up 22-29: a flight) ...
+    # ... and the left lands at 30, where the robot's right (kept down in the flight) would lift
+    planned, changes = robot_contacts(op3, still_targets(op3, T), person, FPS)
+    assert planned[30].all() and not planned[31:40, 1].any() and planned[40:, 1].all()
+    assert not planned[10:30, 0].any() and planned[30:, 0].all()
+    assert [c.what for c in changes] == ["flight"]
+    switch = (~planned[:-1] & planned[1:]) & (planned[:-1] & ~planned[1:])[:, ::-1]
+    assert not switch.any(), "a landing and the other foot's lift in the same frame"
+
+
 def test_a_clip_starting_mid_step_starts_on_both_feet(op3):
     """The person's right foot is up in the first 0.3 s: the robot cannot be put into that pose
     from standing, so it starts on both feet (its weight shift takes start_double) and reports
