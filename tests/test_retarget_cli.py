@@ -88,3 +88,15 @@ def test_user_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     save_motion(Motion(REST_POSE[None], 30.0, name="single"), tmp_path / "single.npz")
     assert main(["retarget", str(tmp_path / "single.npz"), "--no-compile", "--out", str(tmp_path)]) == 2
     assert "at least 2" in capsys.readouterr().err
+
+
+def test_no_lead_in_starts_the_trajectory_at_the_clips_first_frame(tmp_path, capsys):
+    from dualflow.motion.io import save_motion
+
+    src = tmp_path / "one.npz"
+    save_motion(Motion(_clip(), 30.0, name="one"), src)
+    out = tmp_path / "out"
+    argv = ["retarget", str(src), "--robot", "op3", "--no-compile", "--window", "0", "--out", str(out)]
+    assert main([*argv, "--no-lead-in"]) == 0, capsys.readouterr()
+    traj = RobotTrajectory.load_npz(out / "one.npz")
+    assert traj.n_frames == 24 and traj.meta.get("t0_s", 0.0) == 0.0 and not traj.meta.get("lead_in")

@@ -33,8 +33,9 @@ class _Scene:
 
 def _robot(cfg: BatchConfig):
     """The retarget robot and the retargeter, built once per worker process."""
-    key = (cfg.robot, cfg.fixed_base, cfg.balance, cfg.auto_retime, cfg.compile, cfg.retargeter, cfg.fps)
+    key = (cfg.robot, cfg.fixed_base, cfg.balance, cfg.auto_retime, cfg.lead_in, cfg.compile, cfg.retargeter, cfg.fps)
     if key not in _ROBOT:
+        from retarget.lead_in import LeadInConfig
         from retarget.offline import OfflineConfig, OfflineRetargeter
         from retarget.robot import load_robot
         from retarget.streaming import StreamingConfig, StreamingRetargeter
@@ -47,7 +48,14 @@ def _robot(cfg: BatchConfig):
             retarget = StreamingRetargeter(robot, cfg.fps, StreamingConfig(compile=cfg.compile, balance=balance)).run
         else:
             retarget = OfflineRetargeter(
-                robot, OfflineConfig(balance=balance, zmp=True, auto_retime=cfg.auto_retime, compile=cfg.compile)
+                robot,
+                OfflineConfig(
+                    balance=balance,
+                    zmp=True,
+                    auto_retime=cfg.auto_retime,
+                    compile=cfg.compile,
+                    lead_in=LeadInConfig() if cfg.lead_in else None,
+                ),
             ).retarget
         _ROBOT[key] = (robot, retarget, fixed)
     return _ROBOT[key]

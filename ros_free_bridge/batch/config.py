@@ -17,6 +17,9 @@ class BatchConfig:
     fps: float = 30.0
     balance: bool = True
     auto_retime: bool = False
+    #: offline: a clip that starts mid-motion is led in from the robot's standing stance
+    #: (retarget.lead_in; the trajectory starts before the clip)
+    lead_in: bool = True
     fixed_base: bool | None = None  #: None: the robot's own (fixed for upper-body robots)
     compile: bool = True
     #: "offline": the whole clip in windows (CasADi/IPOPT, ZMP balance); "streaming": frame by
@@ -36,6 +39,7 @@ class BatchConfig:
             "fps": self.fps,
             "balance": self.balance,
             "auto_retime": self.auto_retime,
+            "lead_in": self.lead_in,
             "fixed_base": self.fixed_base,
             "retargeter": self.retargeter,
         }

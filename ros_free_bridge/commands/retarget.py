@@ -83,6 +83,12 @@ def register(subparsers) -> None:
     p.add_argument("--retime", type=float, default=1.0, help="play the clip this many times slower (e.g. 1.5)")
     p.add_argument("--auto-retime", action="store_true", help="if infeasible, try 1.25x, 1.5x, 2x slower")
     p.add_argument(
+        "--no-lead-in",
+        action="store_true",
+        help="offline: start the trajectory at the clip's first frame even when it is mid-motion (default: the "
+        "robot is led in from its standing stance first; meta t0_s is where the clip starts)",
+    )
+    p.add_argument(
         "--no-compile", action="store_true", help="skip C code generation (slower; for machines without a compiler)"
     )
     p.add_argument("--out", default="out/retarget", help="output folder (default out/retarget)")
@@ -134,6 +140,7 @@ def run(args) -> int:
 
 
 def _retarget(args, robot, motion):
+    from retarget.lead_in import LeadInConfig
     from retarget.offline import OfflineConfig, OfflineRetargeter
     from retarget.streaming import StreamingConfig, StreamingRetargeter
 
@@ -153,6 +160,7 @@ def _retarget(args, robot, motion):
         retime=args.retime,
         auto_retime=args.auto_retime,
         compile=not args.no_compile,
+        lead_in=None if args.no_lead_in else LeadInConfig(),
     )
     return OfflineRetargeter(robot, cfg).retarget(motion)
 

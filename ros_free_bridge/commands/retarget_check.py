@@ -63,6 +63,12 @@ def register(sub) -> None:
         "--auto-retime", action="store_true", help="slow infeasible clips down (1.25x, 1.5x, 2x) instead of failing"
     )
     p.add_argument(
+        "--no-lead-in",
+        action="store_true",
+        help="offline: judge a clip that starts mid-motion from its first frame, without the lead-in from "
+        "standing (the check's joint-space entry only)",
+    )
+    p.add_argument(
         "--retargeter",
         choices=("offline", "streaming"),
         default="offline",
@@ -125,6 +131,7 @@ def run(args) -> int:
         out=Path(args.out),
         balance=not args.no_balance,
         auto_retime=args.auto_retime,
+        lead_in=not args.no_lead_in,
         compile=not args.no_compile,
         retargeter=args.retargeter,
         video=not args.no_video,
