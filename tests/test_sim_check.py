@@ -136,6 +136,22 @@ def test_leaning_over_the_toes_warns_on_balance_then_falls(stand):
     assert result.metrics["min_com_margin_m"] < 0
 
 
+def test_after_a_fall_the_ticks_never_sent_are_not_judged_for_speed(stand):
+    """A fast lean that falls with the stabilizer at its limit: the check stops
+    stop_after_fall_s after the fall, and the commands it never played (where the corrected
+    command would jump back to the plan) are not read as a servo commanded past its speed."""
+
+    def q(tt):
+        out = stand.copy()
+        out[idx("l_ank_pitch")] += 1.0 * ramp(tt, 1.5)
+        out[idx("r_ank_pitch")] += -1.0 * ramp(tt, 1.5)
+        return out
+
+    result = check_trajectory(make(q, 3.0))
+    assert result.reason == "fall", result.failures
+    assert [f.reason for f in result.failures] == ["fall"], result.failures
+
+
 def test_robot_entering_the_human_fails(stand):
     pos = np.tile(REST_POSE, (61, 1, 1))
     actor = Motion(pos, 30.0, name="overlapping person")
