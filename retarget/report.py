@@ -57,6 +57,9 @@ class RetargetReport:
     steps: dict | None = None
     #: the lead-in before the clip (retarget.lead_in.LeadIn.to_dict: frames, t0_s, ease_s, ...), None: none
     lead_in: dict | None = None
+    #: mean keypoint error (mm) over the clip's frames outside every change: how closely the robot
+    #: follows the person where it means to (None: no such frame)
+    keypoint_error_followed_mm: float | None = None
 
     @property
     def passed(self) -> bool:
@@ -76,6 +79,10 @@ class RetargetReport:
     def to_markdown(self) -> str:
         rows = [
             ("keypoint error mean / max", f"{self.keypoint_error_mean_mm:.1f} / {self.keypoint_error_max_mm:.1f} mm"),
+            (
+                "keypoint error where it follows the person (outside the changes)",
+                "n/a" if self.keypoint_error_followed_mm is None else f"{self.keypoint_error_followed_mm:.1f} mm",
+            ),
             ("foot skate (> 5 mm/frame)", f"{100 * self.skate_share:.2f} % of {self.contact_frames} contact frames"),
             ("worst slide", f"{self.worst_slide_mm:.2f} mm/frame"),
             ("ground penetration", f"{self.penetration_mm:.2f} mm"),
@@ -227,6 +234,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
     jr, js = _jerk(ev["keypoints"][clip], fps), _jerk(targets.keypoints, fps)
     meta = dict(traj.meta)
     changes = _change_errors(meta.get("changes", []) or [], clip_t, clip, err)
+    followed = clip & ~_inside_changes(changes, clip_t)
     return RetargetReport(
         clip=clip_name or str(meta.get("source", "")),
         robot=robot.name,
@@ -253,6 +261,7 @@ def evaluate(robot, traj: RobotTrajectory, targets: Targets, clip: str = "") -> 
         changes=tuple(changes),
         steps=meta.get("steps"),
         lead_in=meta.get("lead_in"),
+        keypoint_error_followed_mm=float(err[followed].mean()) if followed.any() else None,
     )
 
 
@@ -283,6 +292,14 @@ def _self_collisions(robot, ev: dict) -> int:
     radii = np.array([robot.capsules[a].radius + robot.capsules[b].radius for a, b in robot.collision_pairs])
     thresh = radii**2 - (radii + m) ** 2
     return int(np.sum(ev["collision"] < thresh[None] - 1e-9))
+
+
+def _inside_changes(changes: list, clip_t: np.ndarray) -> np.ndarray:
+    """(T,) bool: frames inside any change (start_s <= t < end_s, clip times)."""
+    inside = np.zeros(len(clip_t), dtype=bool)
+    for c in changes:
+        inside |= (clip_t >= c["start_s"] - 1e-9) & (clip_t < c["end_s"] - 1e-9)
+    return inside
 
 
 def _change_errors(changes: list, clip_t: np.ndarray, clip: np.ndarray, err: np.ndarray) -> list[dict]:

@@ -53,3 +53,24 @@ def test_first_failure_is_the_earliest_failing_frame_and_none_when_passing():
     assert not rep.passed and rep.limit_violations == 5
     assert rep.first_failure_s == round(7 / 30.0, 3)
     assert "first failure at 0.233 s" in rep.to_markdown()
+
+
+def test_error_where_the_robot_follows_leaves_out_the_reported_changes():
+    """A person who raises the wrists in frames 6-11 only, a robot that stands: the whole-clip
+    error includes the raised wrists; with frames 6-11 reported as a change, the error where the
+    robot follows the person is that of the still frames alone."""
+    rb = toy_robot()
+    pos = np.repeat(REST_POSE[None], 12, axis=0).copy()
+    pos[6:, 20:, 2] += 0.3
+    targets = make_targets(rb, Motion(pos, fps=30.0, name="raise"))
+    plain = evaluate(rb, _standing(rb), targets)
+    kp = rb.evaluate(np.tile(rb.x_stand, (12, 1)))["keypoints"]
+    still_mm = 1000 * np.linalg.norm(kp[:6] - targets.keypoints[:6], axis=-1).mean()
+    change = {"start_s": 6 / 30.0, "end_s": 12 / 30.0, "what": "test", "why": "hand-made"}
+    traj = trajectory_from_x(rb, np.tile(rb.x_stand, (12, 1)), 30.0, {"mode": "test", "changes": [change]})
+    rep = evaluate(rb, traj, targets)
+    assert plain.keypoint_error_followed_mm == plain.keypoint_error_mean_mm  # no change: the same frames
+    assert rep.keypoint_error_followed_mm < rep.keypoint_error_mean_mm
+    assert abs(rep.keypoint_error_followed_mm - still_mm) < 1e-6
+    assert rep.changes[0]["keypoint_error_mm"] > rep.keypoint_error_mean_mm
+    assert "where it follows the person" in rep.to_markdown()

@@ -251,8 +251,12 @@ def test_the_written_profile_retargets_the_cmu_pair_as_written(name, tmp_path):
     for rep in reports:
         assert rep.limit_violations == 0 and rep.velocity_violations == 0, rep
         assert rep.self_collisions == 0 and rep.penetration_mm < 1.0, rep
-        # OP3 ~28 mm of 0.46 m, G1 ~25 mm of 1.25 m: its 3-DOF arm cannot follow a human elbow exactly
-        assert rep.keypoint_error_mean_mm < 0.08 * 1000 * height, (rep.keypoint_error_mean_mm, height)
+        # where the robot follows the person (outside the parts it reports doing differently: the
+        # lead-in's held foot, a step the clip ends in): OP3 ~28 mm of 0.46 m, G1 ~25 mm of 1.25 m
+        # (its 3-DOF arm cannot follow a human elbow exactly); over the whole clip, within 10 %
+        followed = rep.keypoint_error_followed_mm
+        assert followed is not None and followed < 0.08 * 1000 * height, (followed, height)
+        assert rep.keypoint_error_mean_mm < 0.1 * 1000 * height, (rep.keypoint_error_mean_mm, height)
 
 
 # -- a humanoid with meaningless names ----------------------------------------------------------
