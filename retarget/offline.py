@@ -467,21 +467,34 @@ class OfflineRetargeter:
         """Retarget a clip; raises RetargetError if it is infeasible at its speed (see ``retime``).
         ``contacts`` (T, 4) or (T, 2) bool overrides the motion's; ``scaler`` a KeypointScaler
         (default: fitted on this clip's own bone lengths). With ``OfflineConfig.lead_in`` set, a clip
-        that starts mid-motion gets a lead-in from standing at rest (:mod:`retarget.lead_in`)."""
+        that starts mid-motion gets a lead-in from standing at rest (:mod:`retarget.lead_in`); a
+        lead-in that cannot be solved is dropped (the clip is retargeted as it is, and a
+        "lead-in dropped" change says why)."""
         check_motion(motion, min_frames=2)
         cfg = self.config
-        lead = None
         if cfg.lead_in is not None and self.robot.floating and self.robot.has_feet:
-            clip = motion
-            motion, lead = lead_in(clip, cfg.lead_in, contacts)
+            led, lead = lead_in(motion, cfg.lead_in, contacts)
             if lead is not None:  # the lead-in's motion carries its contacts; bones scaled as the clip's
-                contacts, scaler = None, scaler or KeypointScaler(self.robot, clip.positions)
+                try:
+                    traj = self._retarget_retimed(led, None, scaler or KeypointScaler(self.robot, motion.positions))
+                    return with_lead_in(traj, lead, led.contacts)
+                except RetargetError as exc:
+                    dropped = exc
+                traj = self._retarget_retimed(motion, contacts, scaler)
+                why = f"the clip led in from standing could not be retargeted ({str(dropped)[:300]})"
+                traj.meta["changes"] = [Change(0.0, 0.0, "lead-in dropped", why).to_dict(), *traj.meta["changes"]]
+                return traj
+        return self._retarget_retimed(motion, contacts, scaler)
+
+    def _retarget_retimed(self, motion: Motion, contacts, scaler) -> RobotTrajectory:
+        """``_retarget_at`` at ``retime`` (and the slower factors with ``auto_retime``); RetargetError
+        naming the first infeasible window of the last factor tried."""
+        cfg = self.config
         factors = [cfg.retime] + ([cfg.retime * f for f in (1.25, 1.5, 2.0)] if cfg.auto_retime else [])
         last = None
         for factor in factors:
             try:
-                traj = self._retarget_at(motion, contacts, factor, scaler)
-                return traj if lead is None else with_lead_in(traj, lead, motion.contacts)
+                return self._retarget_at(motion, contacts, factor, scaler)
             except _Infeasible as exc:
                 last, last_factor = exc, factor
         speed = "its speed" if factors[-1] == 1.0 else f"{factors[-1]:g}x slower"
@@ -570,6 +583,12 @@ class OfflineRetargeter:
         if self.config.steps is not None and self.config.steps.start_ramp > 0:
             ramp = int(round(self.config.steps.start_ramp * fps))
         X, stats = self.solve(tg, X0, warm, swing, anchor, ramp)
+        for a, b in stats.pop("no_clearance_frames"):
+            why = (
+                "this window's swings could not clear the floor by the swing clearance "
+                f"({self.config.steps.swing_clearance:g} x height) and converge; its feet only stay above the floor"
+            )
+            changes.append(Change(round(a / fps, 3), round(b / fps, 3), "no floor clearance", why))
         stats["seconds"] = time.perf_counter() - t0
         stats["retime"] = factor
         stats["contacts"] = tg.contacts.astype(int).tolist()  # the robot's schedule, (T, 2) 0/1
@@ -613,14 +632,25 @@ class OfflineRetargeter:
         starts = [0]
         while starts[-1] + W < T:
             starts.append(starts[-1] + hop)
-        iters, info, statuses = 0, "", []
+        iters, info, statuses, unclear = 0, "", [], []
         done = 0  # frames 0..done−1 are solved
         for wi, s in enumerate(starts):
             if warm is not None:
                 warm(X, done, min(s + W, T))
-            Xw, it, info, status = self._solve_window(tg, X, s, W, fixed=wi > 0, swing=swing, anchor=anchor, ramp=ramp)
-            statuses.append(status)
             n_real = min(W, T - s)
+            try:
+                Xw, it, info, status = self._solve_window(
+                    tg, X, s, W, fixed=wi > 0, swing=swing, anchor=anchor, ramp=ramp
+                )
+            except _Infeasible:
+                if swing is None:
+                    raise
+                # the floor clearance is a wish, not a limit: a window whose swings cannot clear
+                # it (a big robot's short swings, a foot that has to travel far) keeps its feet
+                # above the floor only, and says so (OfflineRetargeter._retarget_at's change)
+                Xw, it, info, status = self._solve_window(tg, X, s, W, fixed=wi > 0, anchor=anchor, ramp=ramp)
+                unclear.append((s, s + n_real))
+            statuses.append(status)
             keep_from = 0 if wi == 0 else cfg.n_fix
             X[s + keep_from : s + n_real] = Xw[keep_from:n_real]
             done = s + n_real
@@ -633,6 +663,7 @@ class OfflineRetargeter:
             "ipopt_status": statuses,
             "collision_model": cfg.collision_model if cfg.self_collision else "off",
             "compiled": info,
+            "no_clearance_frames": unclear,
         }
 
     def _solve_window(

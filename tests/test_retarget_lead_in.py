@@ -255,3 +255,18 @@ def test_cmu_18_01_starts_mid_step_and_stays_up_offline(op3, cmu_pair_paths):
     res = check_trajectory(traj, CheckConfig(mode="free"), robot="op3")
     assert res.passed, (res.reason, res.first_failure_time, res.failures[:1])
     assert res.series["t"][0] < -info.t0_s < 0 < res.series["t"][-1]
+
+
+@pytest.mark.slow
+def test_a_floor_clearance_no_swing_can_reach_is_dropped_window_by_window_and_reported(op3):
+    """A swing clearance of half the robot's height cannot be met by any swing: the windows are
+    solved with the feet only above the floor instead of failing, and the change says so."""
+    from retarget.schedule import StepConfig
+
+    m = mid_step_clip()
+    cfg = OfflineConfig(balance=True, zmp=True, lead_in=None, steps=StepConfig(swing_clearance=0.5))
+    traj = OfflineRetargeter(op3, cfg).retarget(m)
+    dropped = [c for c in traj.meta["changes"] if c["what"] == "no floor clearance"]
+    assert dropped and dropped[0]["start_s"] == 0.0 and "swing clearance" in dropped[0]["why"]
+    sole = op3.evaluate(configurations(op3, traj))["sole"]
+    assert sole[..., 2].min() > -1e-4  # the feet still stay above the floor
