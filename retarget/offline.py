@@ -583,12 +583,7 @@ class OfflineRetargeter:
         if self.config.steps is not None and self.config.steps.start_ramp > 0:
             ramp = int(round(self.config.steps.start_ramp * fps))
         X, stats = self.solve(tg, X0, warm, swing, anchor, ramp)
-        for a, b in stats.pop("no_clearance_frames"):
-            why = (
-                "this window's swings could not clear the floor by the swing clearance "
-                f"({self.config.steps.swing_clearance:g} x height) and converge; its feet only stay above the floor"
-            )
-            changes.append(Change(round(a / fps, 3), round(b / fps, 3), "no floor clearance", why))
+        changes += _no_clearance_changes(stats.pop("no_clearance_frames"), fps, self.config.steps)
         stats["seconds"] = time.perf_counter() - t0
         stats["retime"] = factor
         stats["contacts"] = tg.contacts.astype(int).tolist()  # the robot's schedule, (T, 2) 0/1
@@ -836,6 +831,16 @@ class OfflineRetargeter:
         rb = self.robot
         root = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")
         return root[i] if i < rb.n_root else rb.joint_names[i - rb.n_root]
+
+
+def _no_clearance_changes(spans, fps: float, steps) -> list[Change]:
+    """One "no floor clearance" change per window (start, stop) frames solved without the swing
+    clearance (OfflineRetargeter.solve)."""
+    why = (
+        f"this window's swings could not clear the floor by the swing clearance ({steps.swing_clearance:g} x "
+        "height) and converge; its feet only stay above the floor"
+    )
+    return [Change(round(a / fps, 3), round(b / fps, 3), "no floor clearance", why) for a, b in spans]
 
 
 class _Infeasible(Exception):
