@@ -82,6 +82,17 @@ class LoopConfig:
     #: predecessor: targets.RevisionSmoother); position and velocity stay continuous and the
     #: command joins the new curve within a few 1 / ω. 0: sample the curve as it is
     revision_smoothing: float = 15.0
+    #: s: the shortest blend from the pose the loop holds onto the stream, when streaming starts
+    #: (from the rest pose to the first frame) and when it resumes after a hold: the command
+    #: starts where it was and the offset to the curve fades along a minimum-jerk profile, over
+    #: this long or longer where half the joints' velocity and acceleration limits need it
+    #: (targets.RevisionSmoother.join). 0: jump onto the curve (the safety filter spreads the jump)
+    stream_join_s: float = 0.5
+    #: the playback clock never runs more frames past the newest frame than the buffer
+    #: extrapolates (and not past the first frame alone): a stalled stream stops the motion
+    #: instead of the clock running on and the motion skipping ahead when the frames come
+    #: (PlaybackPolicy.run_ahead). False: the clock runs on (as before)
+    playback_waits: bool = True
     min_ramp: float = 1.0  #: shortest start / stop ramp
     max_duration: float | None = None  #: stop after this long streaming (None: until the stream ends)
     temperature_warn: float = 65.0  #: degrade (slow down) above this
@@ -124,6 +135,8 @@ class LoopConfig:
             raise BridgeError(
                 f"loop config: revision_smoothing must be >= 0 rad/s (0: off), got {self.revision_smoothing}"
             )
+        if not 0 <= self.stream_join_s < float("inf"):
+            raise BridgeError(f"loop config: stream_join_s must be >= 0 s (0: no blend), got {self.stream_join_s}")
         if not 0 <= self.realtime_priority <= 99:
             raise BridgeError(
                 f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
@@ -167,6 +180,7 @@ class TickPlayback:
         self.t0 = first_index / float(fps)
         self.dt = float(dt)
         self.ticks = 0  #: motion time t0 + ticks * dt at the next call
+        self.stalled = 0.0  #: never stops for a late frame (PlaybackClock.stalled)
 
     def arrived(self, newest_index: int, now: float) -> None:
         pass
@@ -194,7 +208,8 @@ class _Sent(NamedTuple):
 class _Stream:
     """The streaming state the loop carries between ticks: the buffer's ``curve`` (revisions
     smoothed), the ``playback`` clock (frame k is played at t0 + k / fps), when the stream
-    started, when a new frame last arrived and its index, and when waiting began."""
+    started, when a new frame last arrived and its index, when waiting began, whether the
+    next target joins the curve from the held pose, and how long the clock has waited."""
 
     curve: RevisionSmoother
     playback: object = None
@@ -202,6 +217,9 @@ class _Stream:
     last_new: float = 0.0
     last_frame_index: int = -1
     wait_since: float = 0.0
+    joining: bool = False  #: the next streamed target starts a blend from the held pose
+    stalled: float = 0.0  #: the playback clock's stalled seconds at the last tick
+    wait_began: float | None = None  #: its stalled seconds when the current wait began (None: not waiting)
 
 
 class ControlLoop:
@@ -440,9 +458,11 @@ class ControlLoop:
                     cfg.playback_lead_frames,
                     quantile=cfg.playback_quantile,
                     fixed=not cfg.adaptive_playback,
+                    run_ahead=self.targets.extrapolate if cfg.playback_waits else None,
                 )
                 stream.playback = PlaybackClock(self.targets.fps, first.index, now, policy)
             stream.start = stream.last_new = now
+            stream.joining = True
             self.state = State.RUNNING
             self._event("streaming", first_frame=first.index)
         elif self.targets.closed or now - stream.wait_since > cfg.start_timeout:
@@ -491,10 +511,41 @@ class ControlLoop:
             return held, None, faults | (Fault.ACTOR_TIMEOUT if quiet > cfg.actor_timeout else Fault.NONE)
         if self.state == State.HOLD:
             self._event("resume")
+            stream.joining = True
         self.state = State.RUNNING
         if not np.all(np.isfinite(sample.q)):
             faults |= Fault.NONFINITE
+            return sample.q, sample.newest, faults
+        self._note_wait(stream, now)
+        if stream.joining:
+            stream.joining = False
+            return self._join(stream, held, sample.q, now), sample.newest, faults
         return sample.q, sample.newest, faults
+
+    def _join(self, stream: _Stream, held: np.ndarray, q: np.ndarray, now: float) -> np.ndarray:
+        """Start following the curve (at ``q`` now) from the ``held`` pose: the offset between
+        them fades over a minimum-jerk blend (LoopConfig.stream_join_s); returns this tick's
+        target, ``held`` itself."""
+        offset = np.asarray(held, float) - q
+        if self.config.stream_join_s <= 0 or not np.any(offset):
+            return q
+        lim = self.safety.limits
+        half = JointLimits(lim.names, lim.lower, lim.upper, 0.5 * lim.max_velocity, 0.5 * lim.max_acceleration)
+        duration = min_jerk_duration(np.zeros_like(offset), offset, half, self.config.stream_join_s)
+        stream.curve.join(offset, duration, now)
+        self._event("join", seconds=round(duration, 3), largest_offset=float(np.max(np.abs(offset))))
+        return q + offset
+
+    def _note_wait(self, stream: _Stream, now: float) -> None:
+        """A ``playback_waited`` event when the playback clock resumes after waiting for a
+        late frame (PlaybackPolicy.run_ahead)."""
+        stalled = stream.playback.stalled
+        if stalled > stream.stalled and stream.wait_began is None:
+            stream.wait_began = stream.stalled
+        elif stalled == stream.stalled and stream.wait_began is not None:
+            self._event("playback_waited", seconds=round(stalled - stream.wait_began, 3))
+            stream.wait_began = None
+        stream.stalled = stalled
 
     def _ramp_out_target(self) -> np.ndarray:
         """The stop ramp's next target (built on its first tick), then the rest pose."""

@@ -3,7 +3,11 @@
 Frame k plays at t0 + k / fps. :class:`PlaybackClock` moves t0, at a bounded rate, toward the
 earliest value at which (a quantile of) the recent frames arrived in time, so the latency
 follows the generator's actual delay rather than the first frame's; motion time never jumps
-or runs backwards. Times in seconds. The reasoning and the formula: docs/bridge_timing.md.
+or runs backwards. With ``run_ahead`` set, motion time also never runs more than that many
+frames past the newest frame (none past the first frame while it is the only one): while the
+stream stalls the clock stops, and the motion resumes where it stopped when frames come,
+instead of jumping to where the clock had run meanwhile. Times in seconds. The reasoning and
+the formula: docs/bridge_timing.md.
 """
 
 from __future__ import annotations
@@ -21,7 +25,12 @@ class PlaybackPolicy:
     ``window_s``: s of recent arrivals considered. ``quantile``: the share of them that must
     be in time (1.0: all). ``speed_up`` / ``slow_down``: the largest rate (s per s) at which t0
     moves earlier / later, i.e. playback at most 1 + speed_up and at least 1 - slow_down
-    times real time. ``fixed``: t0 stays where the first frame put it."""
+    times real time. ``fixed``: t0 stays where the first frame put it (but for ``run_ahead``).
+    ``run_ahead``: the most frames motion time may run past the newest frame that has arrived
+    (the buffer's extrapolation horizon; 0 while only the first frame is in): at that point t0
+    moves later with the wall clock, i.e. playback stops until the next frame comes. None: no
+    bound (motion time runs on through a stall, and the played motion skips ahead when the
+    late frames come)."""
 
     margin: float
     lead_frames: float = 1.0
@@ -30,6 +39,7 @@ class PlaybackPolicy:
     slow_down: float = 0.5
     quantile: float = 0.9
     fixed: bool = False
+    run_ahead: float | None = None
 
 
 class PlaybackClock:
@@ -45,6 +55,9 @@ class PlaybackClock:
         self.slow_down = float(policy.slow_down)
         self.fixed = bool(policy.fixed)
         self.quantile = float(policy.quantile)
+        self.run_ahead = None if policy.run_ahead is None else float(policy.run_ahead)
+        self.first_index = first_index
+        self.stalled = 0.0  #: seconds the run-ahead bound has stopped motion time so far
         self.t0 = now + self.margin - first_index / self.fps  # the fixed clock's t0 (as before)
         self._offsets: deque[tuple[float, float]] = deque()  # (arrival, a_k)
         self._seen = first_index
@@ -90,4 +103,13 @@ class PlaybackClock:
                 self.t0 = max(want, self.t0 - self.speed_up * dt)
             else:
                 self.t0 = min(want, self.t0 + self.slow_down * dt)
+        if self.run_ahead is not None:
+            # frames past the newest that may be played: none past the first frame alone (the
+            # buffer can extrapolate only from two); the clock waits there for the next one
+            ahead = 0.0 if self._seen == self.first_index else self.run_ahead
+            bound = (self._seen + ahead) / self.fps + 1e-9  # a hair past it: k / fps * fps may round below k
+            if now - self.t0 > bound:
+                later = now - bound
+                self.stalled += later - self.t0
+                self.t0 = later
         return now - self.t0

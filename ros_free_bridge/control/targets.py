@@ -172,6 +172,13 @@ class RevisionSmoother:
     end) since the last call; the curve is then re-sampled at the last two played times to
     measure what changed. ``reset()`` forgets the offset (after the loop held or ramped
     on its own).
+
+    ``join(offset, duration, now)``: the command is ``offset`` (rad, (n,)) away from the curve
+    now (the loop starts following the curve from a pose that is not on it: the rest pose at
+    the stream's start, the held pose after a hold) and joins it along a minimum-jerk fade of
+    that offset over ``duration`` s: offset · (1 - (10 s³ - 15 s⁴ + 6 s⁵)), s = elapsed /
+    duration, whose velocity and acceleration are zero at both ends. It adds to the revision
+    offset above and ends with ``reset()``.
     """
 
     def __init__(self, buffer: TargetBuffer, omega: float):
@@ -187,8 +194,29 @@ class RevisionSmoother:
         self._played: list[tuple[float, np.ndarray]] = []  # (motion time, curve there), the last two
         self._seen: tuple[int, bool] | None = None  # (newest index, closed) at the last call
         self._now: float | None = None
+        self._join: tuple[np.ndarray, float, float] | None = None  # (offset, start, duration)
+
+    def join(self, offset: np.ndarray, duration: float, now: float) -> None:
+        self._join = (np.asarray(offset, float).copy(), float(now), float(duration)) if duration > 0 else None
+
+    def _join_offset(self, now: float) -> np.ndarray | float:
+        if self._join is None:
+            return 0.0
+        offset, start, duration = self._join
+        x = (now - start) / duration
+        if x >= 1.0:
+            self._join = None
+            return 0.0
+        x = max(0.0, x)
+        return offset * (1.0 - x * x * x * (10.0 - 15.0 * x + 6.0 * x * x))
 
     def sample(self, t: float, now: float) -> Sample:
+        s = self._sample(t, now)
+        if s.q is None or self._join is None:
+            return s
+        return replace(s, q=s.q + self._join_offset(now))
+
+    def _sample(self, t: float, now: float) -> Sample:
         buf = self.buffer
         s = buf.sample(t)
         if s.q is None or self.omega == 0:
