@@ -836,6 +836,8 @@ class OfflineRetargeter:
 def _no_clearance_changes(spans, fps: float, steps) -> list[Change]:
     """One "no floor clearance" change per window (start, stop) frames solved without the swing
     clearance (OfflineRetargeter.solve)."""
+    if not spans:
+        return []
     why = (
         f"this window's swings could not clear the floor by the swing clearance ({steps.swing_clearance:g} x "
         "height) and converge; its feet only stay above the floor"

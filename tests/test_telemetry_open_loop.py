@@ -45,7 +45,16 @@ def _run_op3(path, stabilizer: bool):
         SimTransport("op3", clock="lockstep"),
         limits,
         buf,
-        LoopConfig(handle_signals=False, min_ramp=0.3, pace="ticks", rest_pose=rest, stabilizer=stabilizer),
+        # no blend onto the stream (stream_join_s=0): the jump to the first frame is what makes the
+        # safety filter clip corrected commands here (a fast partner motion does it in a real run)
+        LoopConfig(
+            handle_signals=False,
+            min_ramp=0.3,
+            pace="ticks",
+            rest_pose=rest,
+            stabilizer=stabilizer,
+            stream_join_s=0.0,
+        ),
         TelemetryWriter(path, names, 100.0),
         balance=balance_model("op3", joint_names=tuple(names)),
     )

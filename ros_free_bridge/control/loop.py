@@ -479,7 +479,8 @@ class ControlLoop:
         newest = self.targets.newest()
         if newest is not None:
             stream.playback.arrived(newest.index, now)
-        sample = stream.curve.sample(stream.playback.motion_time(now), now)
+        t = stream.playback.motion_time(now)
+        sample = stream.curve.sample(t, now)
         if self.targets.error is not None:
             self._begin_stop(f"generator failed: {self.targets.error}", fault=True)
             return held, None, Fault.GENERATOR_ERROR
@@ -519,10 +520,10 @@ class ControlLoop:
         self._note_wait(stream, now)
         if stream.joining:
             stream.joining = False
-            return self._join(stream, held, sample.q, now), sample.newest, faults
+            return self._join(stream, held, sample.q, t), sample.newest, faults
         return sample.q, sample.newest, faults
 
-    def _join(self, stream: _Stream, held: np.ndarray, q: np.ndarray, now: float) -> np.ndarray:
+    def _join(self, stream: _Stream, held: np.ndarray, q: np.ndarray, t: float) -> np.ndarray:
         """Start following the curve (at ``q`` now) from the ``held`` pose: the offset between
         them fades over a minimum-jerk blend (LoopConfig.stream_join_s); returns this tick's
         target, ``held`` itself."""
@@ -532,7 +533,7 @@ class ControlLoop:
         lim = self.safety.limits
         half = JointLimits(lim.names, lim.lower, lim.upper, 0.5 * lim.max_velocity, 0.5 * lim.max_acceleration)
         duration = min_jerk_duration(np.zeros_like(offset), offset, half, self.config.stream_join_s)
-        stream.curve.join(offset, duration, now)
+        stream.curve.join(offset, duration, t)
         self._event("join", seconds=round(duration, 3), largest_offset=float(np.max(np.abs(offset))))
         return q + offset
 

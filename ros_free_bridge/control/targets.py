@@ -173,11 +173,13 @@ class RevisionSmoother:
     measure what changed. ``reset()`` forgets the offset (after the loop held or ramped
     on its own).
 
-    ``join(offset, duration, now)``: the command is ``offset`` (rad, (n,)) away from the curve
-    now (the loop starts following the curve from a pose that is not on it: the rest pose at
-    the stream's start, the held pose after a hold) and joins it along a minimum-jerk fade of
-    that offset over ``duration`` s: offset · (1 - (10 s³ - 15 s⁴ + 6 s⁵)), s = elapsed /
-    duration, whose velocity and acceleration are zero at both ends. It adds to the revision
+    ``join(offset, duration, t)``: the command is ``offset`` (rad, (n,)) away from the curve
+    at motion time t (the loop starts following the curve from a pose that is not on it: the
+    rest pose at the stream's start, the held pose after a hold) and joins it along a
+    minimum-jerk fade of that offset over ``duration`` s of motion time: offset · (1 - (10 s³ -
+    15 s⁴ + 6 s⁵)), s = elapsed / duration, whose velocity and acceleration are zero at both
+    ends. In motion time, so that a run paced by ticks blends the same every time, and a blend
+    pauses with the playback clock while it waits for a late frame. It adds to the revision
     offset above and ends with ``reset()``.
     """
 
@@ -196,14 +198,14 @@ class RevisionSmoother:
         self._now: float | None = None
         self._join: tuple[np.ndarray, float, float] | None = None  # (offset, start, duration)
 
-    def join(self, offset: np.ndarray, duration: float, now: float) -> None:
-        self._join = (np.asarray(offset, float).copy(), float(now), float(duration)) if duration > 0 else None
+    def join(self, offset: np.ndarray, duration: float, t: float) -> None:
+        self._join = (np.asarray(offset, float).copy(), float(t), float(duration)) if duration > 0 else None
 
-    def _join_offset(self, now: float) -> np.ndarray | float:
+    def _join_offset(self, t: float) -> np.ndarray | float:
         if self._join is None:
             return 0.0
         offset, start, duration = self._join
-        x = (now - start) / duration
+        x = (t - start) / duration
         if x >= 1.0:
             self._join = None
             return 0.0
@@ -214,7 +216,7 @@ class RevisionSmoother:
         s = self._sample(t, now)
         if s.q is None or self._join is None:
             return s
-        return replace(s, q=s.q + self._join_offset(now))
+        return replace(s, q=s.q + self._join_offset(t))
 
     def _sample(self, t: float, now: float) -> Sample:
         buf = self.buffer
