@@ -103,3 +103,16 @@ def test_the_streaming_retargeter_can_do_the_checking(tmp_path):
     assert row.status == "pass" and row.limit_violations == 0
     with np.load(tmp_path / "out" / "clips" / "standing.npz" / "trajectory.npz", allow_pickle=False) as traj:
         assert json.loads(str(traj["header"]))["meta"]["mode"] == "streaming"
+
+
+def test_the_changed_column_gives_no_error_for_a_lead_in_that_has_no_person_to_measure():
+    from ros_free_bridge.batch.clip_check import changes_summary
+
+    cell = changes_summary(
+        [
+            {"start_s": -3.07, "end_s": 0.0, "what": "lead-in", "why": "mid-step start"},
+            {"start_s": 0.0, "end_s": 0.4, "what": "held down", "why": "in the air", "keypoint_error_mm": 32.4},
+            {"start_s": 1.0, "end_s": 1.2, "what": "held down", "why": "in the air", "keypoint_error_mm": 40.6},
+        ]
+    )
+    assert cell == "lead-in: 1x 3.07 s from -3.07 s; held down: 2x 0.60 s from 0.00 s (up to 41 mm)"

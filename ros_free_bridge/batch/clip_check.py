@@ -287,13 +287,15 @@ def changes_summary(changes, retime: float = 1.0) -> str:
     """One cell for the ``changed`` column: per kind of change (retarget.schedule / offline: step
     skipped, speed-limited, slower travel, flight, pivot, standing start), in order of first
     appearance, "what: N× T s from a s (up to E mm)", times in seconds into the motion file
-    (a re-timed clip's divided by ``retime``), E the worst mean keypoint error over one part."""
+    (a re-timed clip's divided by ``retime``), E the worst mean keypoint error over one part
+    (left out where no part has one: a lead-in before the clip has no person to measure against)."""
     kinds: dict[str, list] = {}
     for c in changes:
         kinds.setdefault(c["what"], []).append(c)
     cells = []
     for what, cs in kinds.items():
         total = sum(c["end_s"] - c["start_s"] for c in cs) / retime
-        worst = max(c.get("keypoint_error_mm", 0.0) for c in cs)
-        cells.append(f"{what}: {len(cs)}x {total:.2f} s from {cs[0]['start_s'] / retime:.2f} s (up to {worst:.0f} mm)")
+        errors = [c["keypoint_error_mm"] for c in cs if c.get("keypoint_error_mm") is not None]
+        worst = f" (up to {max(errors):.0f} mm)" if errors else ""
+        cells.append(f"{what}: {len(cs)}x {total:.2f} s from {cs[0]['start_s'] / retime:.2f} s{worst}")
     return "; ".join(cells)
