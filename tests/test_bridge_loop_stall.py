@@ -98,10 +98,10 @@ def steady(tmp_path_factory):
     return _peak_acceleration(q), int(flags.any(axis=1).sum())
 
 
-# frame 0 in, then nothing for 300 ms: the generator's warm-up. Not tested here, a known gap
-# (docs/bridge_timing.md): after a stall mid-run the motion stops (the clock waits) and restarts
-# at full speed through the revision smoother, ~3.5x the steady stream's peak acceleration; a
-# resume ramp fixed that but changed the start's timing and made the 18_01 demo fall.
+# frame 0 in, then nothing for 300 ms: the generator's warm-up. A stall mid-run is not tested
+# here, a known gap (docs/bridge_timing.md): the motion stops (the clock waits) and restarts at
+# full speed through the revision smoother, ~3.5x the steady stream's peak acceleration; a resume
+# ramp fixed that but changed the start's timing and made the 18_01 demo fall.
 @pytest.mark.parametrize("stall_before, stall_s", [(1, 0.3)])
 def test_a_stalled_stream_moves_no_harder_than_a_steady_one(tmp_path, steady, stall_before, stall_s):
     steady_acc, steady_interventions = steady
@@ -137,3 +137,29 @@ def test_the_stream_join_is_checked_where_it_is_set():
     for bad in (-0.1, float("inf"), float("nan")):
         with pytest.raises(BridgeError, match="stream_join_s"):
             LoopConfig(stream_join_s=bad)
+
+
+def test_the_blend_onto_the_stream_runs_on_smoothly_while_the_playback_clock_waits():
+    """The join's offset fades on the loop's tick clock: when the playback clock stops at a late
+    frame in the middle of the blend (motion time held), the blend goes on along its minimum-jerk
+    profile instead of stopping and restarting in one tick each (in motion time that was a
+    ~200 rad/s^2 kick on a 0.55 rad offset)."""
+    from ros_free_bridge.control.targets import RevisionSmoother
+
+    pose = np.array([0.1, -0.2, 0.3])
+    buf = TargetBuffer(FPS)
+    for k in range(4):
+        buf.push(TargetFrame(k, pose, 0.0))
+    curve = RevisionSmoother(buf, 15.0)
+    offset, duration = np.full(3, 0.55), 0.5
+    curve.join(offset, duration, 0.0)
+    q = []
+    for k in range(80):
+        clock = k * DT
+        motion_time = min(clock, 0.1)  # the playback clock waits at 0.1 s, mid-blend
+        q.append(curve.sample(motion_time, clock, clock).q)
+    q = np.array(q)
+    acc = np.abs(np.diff(q, 2, axis=0)).max() / DT**2
+    assert acc <= 1.05 * 5.78 * 0.55 / duration**2, acc  # a minimum-jerk fade's own peak acceleration
+    np.testing.assert_allclose(q[0], pose + offset)
+    np.testing.assert_allclose(q[-1], pose, atol=1e-12)  # the blend ended on the curve

@@ -364,7 +364,7 @@ class ControlLoop:
                 target = self._rest
                 faults |= self._await_first_frame(stream, now)
             elif self.state in (State.RUNNING, State.HOLD):
-                target, used, more = self._stream_target(stream, now, target)
+                target, used, more = self._stream_target(stream, now, target, tick.index * self.dt)
                 faults |= more
             if ramping_out:
                 target = self._ramp_out_target()
@@ -472,20 +472,22 @@ class ControlLoop:
             )
         return Fault.NONE
 
-    def _stream_target(self, stream: _Stream, now: float, held: np.ndarray):
+    def _stream_target(self, stream: _Stream, now: float, held: np.ndarray, clock: float):
         """(target, the frame used or None, faults) while streaming: the interpolated curve, a
-        hold when the stream goes quiet, or the start of a stop."""
+        hold when the stream goes quiet, or the start of a stop. ``clock``: this tick's time (s,
+        tick number x period), the time base of the blend onto the stream."""
         cfg = self.config
         newest = self.targets.newest()
         if newest is not None:
             stream.playback.arrived(newest.index, now)
-        t = stream.playback.motion_time(now)
-        sample = stream.curve.sample(t, now)
+        sample = stream.curve.sample(stream.playback.motion_time(now), now, clock)
         if self.targets.error is not None:
             self._begin_stop(f"generator failed: {self.targets.error}", fault=True)
             return held, None, Fault.GENERATOR_ERROR
         if sample.finished:
             self._begin_stop("the motion ended")
+            if stream.joining:  # ended before the blend began: the stop ramp starts from the held pose
+                return held, sample.newest, Fault.NONE
             return sample.q, sample.newest, Fault.NONE  # play the last frame, then ramp to rest
         if self._stop_reason is not None:
             self._begin_stop(self._stop_reason)
@@ -520,10 +522,10 @@ class ControlLoop:
         self._note_wait(stream, now)
         if stream.joining:
             stream.joining = False
-            return self._join(stream, held, sample.q, t), sample.newest, faults
+            return self._join(stream, held, sample.q, clock), sample.newest, faults
         return sample.q, sample.newest, faults
 
-    def _join(self, stream: _Stream, held: np.ndarray, q: np.ndarray, t: float) -> np.ndarray:
+    def _join(self, stream: _Stream, held: np.ndarray, q: np.ndarray, clock: float) -> np.ndarray:
         """Start following the curve (at ``q`` now) from the ``held`` pose: the offset between
         them fades over a minimum-jerk blend (LoopConfig.stream_join_s); returns this tick's
         target, ``held`` itself."""
@@ -533,7 +535,7 @@ class ControlLoop:
         lim = self.safety.limits
         half = JointLimits(lim.names, lim.lower, lim.upper, 0.5 * lim.max_velocity, 0.5 * lim.max_acceleration)
         duration = min_jerk_duration(np.zeros_like(offset), offset, half, self.config.stream_join_s)
-        stream.curve.join(offset, duration, t)
+        stream.curve.join(offset, duration, clock)
         self._event("join", seconds=round(duration, 3), largest_offset=float(np.max(np.abs(offset))))
         return q + offset
 

@@ -173,13 +173,14 @@ class RevisionSmoother:
     measure what changed. ``reset()`` forgets the offset (after the loop held or ramped
     on its own).
 
-    ``join(offset, duration, t)``: the command is ``offset`` (rad, (n,)) away from the curve
-    at motion time t (the loop starts following the curve from a pose that is not on it: the
-    rest pose at the stream's start, the held pose after a hold) and joins it along a
-    minimum-jerk fade of that offset over ``duration`` s of motion time: offset · (1 - (10 s³ -
-    15 s⁴ + 6 s⁵)), s = elapsed / duration, whose velocity and acceleration are zero at both
-    ends. In motion time, so that a run paced by ticks blends the same every time, and a blend
-    pauses with the playback clock while it waits for a late frame. It adds to the revision
+    ``join(offset, duration, clock)``: the command is ``offset`` (rad, (n,)) away from the curve
+    at ``clock`` (the loop starts following the curve from a pose that is not on it: the rest
+    pose at the stream's start, the held pose after a hold) and joins it along a minimum-jerk
+    fade of that offset over ``duration`` s: offset · (1 - (10 s³ - 15 s⁴ + 6 s⁵)), s = elapsed /
+    duration, whose velocity and acceleration are zero at both ends. ``clock`` (s) is the loop's
+    tick time (tick number x period), passed again to every ``sample``: a run paced by ticks
+    blends the same every time, and the blend runs on smoothly while the playback clock waits
+    for a late frame (in motion time it would stop and restart in one tick each). It adds to the revision
     offset above and ends with ``reset()``.
     """
 
@@ -198,25 +199,26 @@ class RevisionSmoother:
         self._now: float | None = None
         self._join: tuple[np.ndarray, float, float] | None = None  # (offset, start, duration)
 
-    def join(self, offset: np.ndarray, duration: float, t: float) -> None:
-        self._join = (np.asarray(offset, float).copy(), float(t), float(duration)) if duration > 0 else None
+    def join(self, offset: np.ndarray, duration: float, clock: float) -> None:
+        self._join = (np.asarray(offset, float).copy(), float(clock), float(duration)) if duration > 0 else None
 
-    def _join_offset(self, t: float) -> np.ndarray | float:
+    def _join_offset(self, clock: float) -> np.ndarray | float:
         if self._join is None:
             return 0.0
         offset, start, duration = self._join
-        x = (t - start) / duration
+        x = (clock - start) / duration
         if x >= 1.0:
             self._join = None
             return 0.0
         x = max(0.0, x)
         return offset * (1.0 - x * x * x * (10.0 - 15.0 * x + 6.0 * x * x))
 
-    def sample(self, t: float, now: float) -> Sample:
+    def sample(self, t: float, now: float, clock: float = 0.0) -> Sample:
+        """The curve at motion time t (s), plus the revision offset and the join's (at ``clock``)."""
         s = self._sample(t, now)
         if s.q is None or self._join is None:
             return s
-        return replace(s, q=s.q + self._join_offset(t))
+        return replace(s, q=s.q + self._join_offset(clock))
 
     def _sample(self, t: float, now: float) -> Sample:
         buf = self.buffer
