@@ -121,10 +121,10 @@ def robot_contacts(
     c = _pace(c, fps, cfg, changes)
     # 4. pivots and slides on a planted foot -> re-steps
     poses = foot_poses(robot, keypoints)
-    if poses is None:
-        return c, changes
-    out = _restep_pivots(robot, poses, c, fps, cfg, changes)
-    out = _pace(out, fps, cfg, changes)
+    out = c
+    if poses is not None:  # a profile without ankle keypoints has no foot poses to re-step on
+        out = _restep_pivots(robot, poses, c, fps, cfg, changes)
+        out = _pace(out, fps, cfg, changes)
     _double_support_at_each_switch(out)
     _land_unfinished_swings(out, fps, changes)
     changes.sort(key=lambda ch: ch.start_s)

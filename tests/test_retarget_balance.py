@@ -174,6 +174,26 @@ def test_double_support_region_lies_between_the_feet(op3):
 
 # -- balance in the streaming retargeter --------------------------------------------
 @pytest.mark.slow
+def test_the_balance_rows_measure_the_zmp_and_capture_point_of_the_next_frame(op3):
+    """The rows' affine maps of the next frame's CoM c are the ZMP c - (h/g) c'' and the capture
+    point c + c'/omega, with c'' and c' from c and the two frames already emitted (a sign error
+    in the ZMP once pushed c + (h/g) c'' into the support region instead)."""
+    s, X, _ = stream(op3, person(seconds=1.0, sway=0.05))
+    pl = s.planner
+    c1, c2 = np.asarray(pl._c1), np.asarray(pl._c2)
+    assert np.linalg.norm(c1 - c2) > 1e-5  # the CoM is moving: the acceleration terms count
+    c = c1 + np.array([0.003, -0.002])
+    pl.set_points(False)  # the rows for the frame after the last one emitted
+    points = np.asarray(s._pbuf[s._p_points]).reshape(3, 3, order="F")  # columns com, dcm, zmp
+    mapped = [points[0, i] * c + points[1:3, i] for i in range(3)]
+    h_over_g = pl._zmp_k / FPS**2
+    acc = (c - 2 * c1 + c2) * FPS**2
+    vel = (c - c1) * FPS
+    np.testing.assert_allclose(mapped[0], c)
+    np.testing.assert_allclose(mapped[1], c + vel * pl._dcm_k / FPS, rtol=1e-9)
+    np.testing.assert_allclose(mapped[2], c - h_over_g * acc, rtol=1e-9, atol=1e-12)
+
+
 def test_near_standing_person_keeps_op3_on_its_feet_in_physics(op3):
     """Arms waving, the body swaying: streamed with balance, the free-standing op3 passes sim's check."""
     from sim.check import CheckConfig, check_trajectory
