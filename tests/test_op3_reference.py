@@ -23,6 +23,28 @@ needs_reference = pytest.mark.skipif(
     reason=f"reference model not found at {REFERENCE_XML} (../shared/robots is absent on this machine)",
 )
 
+#: Retarget keypoint sites every bundled humanoid with legs has (its profile names them).
+KEYPOINT_SITES = (
+    "pelvis",
+    "torso",
+    "head",
+    "l_shoulder",
+    "r_shoulder",
+    "l_elbow",
+    "r_elbow",
+    "l_hand",
+    "r_hand",
+    "l_hip",
+    "r_hip",
+    "l_knee",
+    "r_knee",
+    "l_ankle",
+    "r_ankle",
+    "l_foot",
+    "r_foot",
+    "l_toe",
+    "r_toe",
+)
 #: ROBOTIS's servo IDs 1..20, in order.
 ROBOTIS_ID_ORDER = (
     "r_sho_pitch",
@@ -160,27 +182,7 @@ def test_servo_id_order_imu_and_keypoint_sites(ours):
     ):
         s = ours.sensor(sensor)
         assert s.type[0] == kind and s.objid[0] == imu.id, sensor
-    for site in (
-        "pelvis",
-        "torso",
-        "head",
-        "l_shoulder",
-        "r_shoulder",
-        "l_elbow",
-        "r_elbow",
-        "l_hand",
-        "r_hand",
-        "l_hip",
-        "r_hip",
-        "l_knee",
-        "r_knee",
-        "l_ankle",
-        "r_ankle",
-        "l_foot",
-        "r_foot",
-        "l_toe",
-        "r_toe",
-    ):
+    for site in KEYPOINT_SITES:
         ours.site(site)
     for foot in ("l_foot", "r_foot"):
         g = ours.geom(foot)

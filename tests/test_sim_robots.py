@@ -12,35 +12,13 @@ import mujoco
 import numpy as np
 import pytest
 import yaml
-from test_op3_reference import ROBOTIS_ID_ORDER
+from test_op3_reference import KEYPOINT_SITES, ROBOTIS_ID_ORDER
 
 from firmware_cfg.errors import ConfigError
 from firmware_cfg.registry import bundled_names, joint_limits, joint_names, resolve
 from sim.scene import Scene, SceneConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Retarget keypoint sites every bundled humanoid with legs has (its profile names them).
-KEYPOINT_SITES = (
-    "pelvis",
-    "torso",
-    "head",
-    "l_shoulder",
-    "r_shoulder",
-    "l_elbow",
-    "r_elbow",
-    "l_hand",
-    "r_hand",
-    "l_hip",
-    "r_hip",
-    "l_knee",
-    "r_knee",
-    "l_ankle",
-    "r_ankle",
-    "l_foot",
-    "r_foot",
-    "l_toe",
-    "r_toe",
-)
 PI = math.pi
 #: ROBOTIS's software limits (op3_kinematics_dynamics) for the head and the LEFT side, in
 #: ROBOTIS's axes; the knee widened to 0.8 pi for ROBOTIS's sitting pose (op3.xml header).
