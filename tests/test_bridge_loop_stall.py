@@ -134,9 +134,11 @@ def test_the_stream_join_is_checked_where_it_is_set():
     from ros_free_bridge.errors import BridgeError
 
     assert LoopConfig(stream_join_s=0.0).stream_join_s == 0.0
-    for bad in (-0.1, float("inf"), float("nan")):
+    for bad in (-0.1, float("inf"), float("nan"), "0.5", None, True):
         with pytest.raises(BridgeError, match="stream_join_s"):
             LoopConfig(stream_join_s=bad)
+    with pytest.raises(BridgeError, match="playback_waits"):
+        LoopConfig(playback_waits="yes")
 
 
 def test_the_blend_onto_the_stream_runs_on_smoothly_while_the_playback_clock_waits():

@@ -135,8 +135,11 @@ class LoopConfig:
             raise BridgeError(
                 f"loop config: revision_smoothing must be >= 0 rad/s (0: off), got {self.revision_smoothing}"
             )
-        if not 0 <= self.stream_join_s < float("inf"):
-            raise BridgeError(f"loop config: stream_join_s must be >= 0 s (0: no blend), got {self.stream_join_s}")
+        join = self.stream_join_s
+        if isinstance(join, bool) or not isinstance(join, (int, float)) or not 0 <= join < float("inf"):
+            raise BridgeError(f"loop config: stream_join_s must be a number >= 0 s (0: no blend), got {join!r}")
+        if not isinstance(self.playback_waits, bool):
+            raise BridgeError(f"loop config: playback_waits must be true or false, got {self.playback_waits!r}")
         if not 0 <= self.realtime_priority <= 99:
             raise BridgeError(
                 f"loop config: realtime_priority must be 0 (normal scheduling) or a SCHED_FIFO "
