@@ -28,7 +28,7 @@ retargeters in the same run, on one core (sched_setaffinity, single-threaded BLA
   standing start, swing clearance, start from rest and eased travel (StepConfig(min_double=0,
   start_double=0, robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0,
   travel_zmp_shift=0));
-- streaming with steps (StreamingConfig(balance=True, steps=True): quick steps at the robot's
+- streaming with steps (StreamingConfig(balance=True, steps=True): steps at the robot's
   pace, retarget.balance); its baseline, *streaming before*: StreamingConfig(balance=True) (feet
   always planted).
 

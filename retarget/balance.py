@@ -1,11 +1,12 @@
-"""The streaming retargeter's balance planner: planted feet, the support region, the targets' anchoring.
+"""The streaming retargeter's balance planner: planted feet, steps, the support region, the targets' anchoring.
 
 Contract: with ``StreamingConfig.balance`` the :class:`retarget.streaming.StreamingRetargeter`
 asks a :class:`BalancePlanner` once per frame for the anchored targets (:meth:`BalancePlanner.anchor`),
-the feet held down (:meth:`BalancePlanner.plan`) and the support region's half-planes and the
-CoM/DCM/ZMP row parameters, which it writes into the compiled function's parameter buffer
-(numpy views bound once, :meth:`BalancePlanner.bind`). Lengths m, times s. The rules (footprints,
-the feet's region, when a foot may lift and where it lands) and why steps are off by default:
+the feet held down (:meth:`BalancePlanner.plan`), a swinging foot's path and height, and the
+support region's half-planes and the CoM/DCM/ZMP row parameters (in a step, the CoM of a ZMP
+preview plan: :mod:`retarget.preview`), which it writes into the compiled function's parameter
+buffer (numpy views bound once, :meth:`BalancePlanner.bind`). Lengths m, times s. The rules
+(footprints, the feet's region, when a foot lifts, how it swings and where it lands):
 docs/retargeting.md, section 4.
 """
 
@@ -16,6 +17,7 @@ import math
 import numpy as np
 
 from retarget.errors import RetargetError
+from retarget.preview import ZmpPreview
 from retarget.support import (
     convex_hull,
     double_support_points,
@@ -69,24 +71,40 @@ class BalancePlanner:
         # leg length (hip above ankle standing; the CoM height without hip keypoints): scales step lengths
         legs = [self._stand_kp[hip, 2] - self._stand_kp[ankle, 2] for hip, ankle in zip(self._hips or (), self._ankles)]
         self._leg = float(np.mean(legs)) if legs else h
+        frames = lambda t: max(0, round(t * self.fps))  # noqa: E731
+        self._preview = ZmpPreview(h / 9.81 * self.fps**2, max(2, frames(cfg.step_preview)))
+        self._shift_frames = frames(cfg.step_shift)
+        self._rise_frames = max(1, (self._min_swing_frames + 1) // 2)  # a swing rises over the first half of min_swing
+        self._fall_frames = max(1, self._min_swing_frames - self._rise_frames)  # ... and comes down over the rest
+        self._settle_frames = self._min_double_frames + frames(cfg.step_settle)
+        self._plan_scale = math.sqrt(cfg.plan_weight)
+        # each sole's centre from its ankle keypoint standing, in the foot's heading frame (the
+        # stand pose faces +x): where a swinging foot's targets would put its footprint
+        soles = stand["sole"][0]
+        self._sole_from_ankle = [
+            soles[4 * s : 4 * s + 4, 0:2].mean(axis=0) - self._stand_kp[self._ankles[s], 0:2] for s in range(2)
+        ]
 
-    def bind(self, anchor: np.ndarray, edges, points, point_w, cpred, zmp) -> None:
+    def bind(self, anchor: np.ndarray, edges, points, point_w, cpred, zmp, lift) -> None:
         """Where to write: the contact rows' anchor (2, 8) and views into the parameter buffer
         for the region's half-planes (3·N_EDGES), the rows' (3, 3) points, their √weights (3),
-        the CoM prediction (2) and the ZMP-offset scale (1)."""
-        self._anchor, self._edges, self._points, self._point_w, self._cpred, self._zmp = (
+        the CoM prediction (2), the ZMP-offset scale (1) and the swing rows' parameters: the
+        soles' heights (2), then their on/off flags (2)."""
+        self._anchor, self._edges, self._points, self._point_w, self._cpred, self._zmp, self._lift_h = (
             anchor,
             edges,
             points,
             point_w,
             cpred,
             zmp,
+            lift,
         )
 
     def reset(self) -> None:
         """No feet planted, no history; no balance rows until :meth:`start` plants the feet."""
         self.planted = np.zeros(2, dtype=bool)
         self._prints: list = [None, None]  # level footprints (4, 2) of the planted feet
+        self._lift_print: list = [None, None]  # ... and of each foot where it last lifted
         self._region_key = None
         self._c1 = self._c2 = None  # CoM xy of the last two emitted frames
         self._sole1 = None  # the last frame's sole corners (3, 8)
@@ -97,11 +115,17 @@ class BalancePlanner:
         self._ankle_ref = [(0.0, 0.0), (0.0, 0.0)]
         self._head_ref = [0.0, 0.0]
         self._since = np.zeros(2, dtype=int)  # frames since each foot last touched down or lifted
+        self._descend_at = [None, None]  # a swinging foot's frame of its swing when it began to come down
+        self._frame = 0  # frames since start()
+        self._shifting = None  # (foot, frame it lifts at) while the weight moves before a step
+        self._zmp_keys = None  # the step's ZMP reference: (frames, points (n, 2)), linear in between
+        self._plan_until = -1  # the last frame the CoM follows the preview plan
         self._edges[:] = np.tile([0.0, 0.0, 1.0], N_EDGES)
         self._points[:] = 0.0
         self._point_w[:] = 0.0
         self._cpred[:] = 0.0
         self._zmp[:] = 0.0
+        self._lift_h[:] = 0.0  # heights (2,) and flags (2,) of the swing rows
 
     def start(self, sole: np.ndarray, com_xy: np.ndarray) -> tuple[bool, bool]:
         """First frame: both feet put down flat where the fit left them (``sole`` (3, 8), CoM
@@ -116,45 +140,99 @@ class BalancePlanner:
         return held
 
     def next(self, human_contact, targets: np.ndarray) -> tuple[bool, bool]:
-        """Any later frame: plan the feet, keep a lifted foot's targets low (``targets`` changed
-        in place), set the row parameters; returns the feet to hold."""
+        """Any later frame: plan the feet, put a lifted foot's targets on its swing path
+        (``targets`` changed in place), set the row parameters; returns the feet to hold."""
         held = self.plan(human_contact)
         cfg = self.config
         for s in range(2):
-            if not self.planted[s]:  # a foot in the air steps low: it lands soon and softly
+            lift = self._lift_h[s] = self._swing_lift(s)
+            self._lift_h[2 + s] = 0.0 if self.planted[s] else 1.0
+            if not self.planted[s]:
                 k = self._foot_kps[s]
-                # clear the floor: a foot the person barely lifts would drag (ramped in over 3 frames)
-                low = self._foot_kp_h[s] + cfg.swing_clearance * min(1.0, self._since[s] / 3.0)
-                targets[k, 2] = np.clip(targets[k, 2], low, self._foot_kp_h[s] + cfg.swing_height)
-                if self.planted[1 - s]:
-                    self._clamp_step(targets, s)
+                # clear the floor as the swing does: a foot the person barely lifts would drag
+                low = self._foot_kp_h[s] + lift
+                targets[k, 2] = np.clip(targets[k, 2], low, self._foot_kp_h[s] + max(cfg.swing_height, lift))
+                aimed = self._sole_centre(targets, s)
+                self._landing = self._clamp_step(aimed, s) if self.planted[1 - s] else aimed
+                targets[k, 0:2] += self._swing_path(s) - aimed
         self.set_points(False)
         return held
 
-    def _clamp_step(self, targets: np.ndarray, s: int) -> None:
-        """Keep the lifted foot s's targets (changed in place) where the robot can put it: in the
-        planted foot's frame (its footprint's centre and long axis, pointing along the foot's
-        heading), at least ``min_separation`` x the standing feet's distance to its own side (a
-        person's crossed or closed feet would put the robot's into its other leg), and at most
-        ``stride_limit`` x the leg length from the standing place forwards, backwards and
-        outwards. The foot's ankle and toe targets move together."""
+    def _sole_centre(self, targets: np.ndarray, s: int) -> np.ndarray:
+        """(2,) where foot s's ankle target and the person's foot heading put its sole's centre."""
+        c, sn = math.cos(self._heads_now[s]), math.sin(self._heads_now[s])
+        ox, oy = self._sole_from_ankle[s]
+        return targets[self._ankles[s], 0:2] + (c * ox - sn * oy, sn * ox + c * oy)
+
+    def _swing_frames(self, s: int) -> int:
+        """How long foot s's swing takes (frames): ``min_swing``, longer for a step longer than
+        ``swing_speed`` covers in that time, at most ``max_swing``."""
+        dist = float(np.linalg.norm(self._landing - self._lift_print[s].mean(axis=0)))
+        n = math.ceil(dist / self.config.swing_speed * self.fps)
+        return min(max(n, self._rise_frames + self._fall_frames), self._max_swing_frames)
+
+    def _swing_path(self, s: int) -> np.ndarray:
+        """Foot s's sole in this frame of its swing, written as the swing rows' anchor (its
+        corners xy): the footprint it lifted from, moved towards the landing place and turned
+        towards the person's foot heading (by at most ``max_step_turn``) by the share
+        sin²(π/2 · swing / its length) of the way (:meth:`_swing_frames`); the centre travels
+        around the stance foot's centre (radius and bearing interpolated), so a foot crossing
+        from behind to the front never passes through the other. Returns the sole's centre (2,)."""
+        start = self._lift_print[s]
+        c0 = start.mean(axis=0)
+        u = min(1.0, int(self._since[s]) / self._swing_frames(s))
+        share = math.sin(0.5 * math.pi * u) ** 2
+        h0 = _heading(_long_axis(start, self._head_ref[s]))
+        want = self._heads_now[s]
+        if self.planted[1 - s]:  # toes in or out at most max_step_turn from the stance foot's
+            hs = _heading(_long_axis(self._prints[1 - s], self._head_ref[1 - s]))
+            want = hs + _clip(_wrap(want - hs), self.config.max_step_turn)
+        turn = share * _wrap(want - h0)
+        c, sn = math.cos(turn), math.sin(turn)
+        if self.planted[1 - s]:  # around the stance foot's centre, not through it
+            cs = self._prints[1 - s].mean(axis=0)
+            a, b = c0 - cs, self._landing - cs
+            r = (1 - share) * math.hypot(*a) + share * math.hypot(*b)
+            th = math.atan2(a[1], a[0]) + share * _wrap(math.atan2(b[1], b[0]) - math.atan2(a[1], a[0]))
+            centre = cs + r * np.array([math.cos(th), math.sin(th)])
+        else:
+            centre = c0 + share * (self._landing - c0)
+        self._anchor[:, 4 * s : 4 * s + 4] = ((start - c0) @ np.array([[c, sn], [-sn, c]]) + centre).T
+        return centre
+
+    def _swing_lift(self, s: int) -> float:
+        """How high foot s's sole is held above the floor this frame (m): 0 planted; in a swing,
+        ``swing_clearance`` x sin²(π/2 · rise) while it rises, held while the person's foot is up,
+        x cos²(π/2 · fall) while it comes down (rise and fall: the share of each half of
+        ``min_swing`` done). A servo robot's stance leg sags by about a centimetre under the
+        whole weight: a foot aimed only just above the floor drags."""
+        if self.planted[s]:
+            return 0.0
+        swing, down_at = int(self._since[s]), self._descend_at[s]
+        up = min(swing if down_at is None else down_at, self._rise_frames) / self._rise_frames
+        share = math.sin(0.5 * math.pi * up) ** 2
+        if down_at is not None:
+            share *= math.cos(0.5 * math.pi * min((swing - down_at) / self._fall_frames, 1.0)) ** 2
+        return self.config.swing_clearance * share
+
+    def _clamp_step(self, centre_s: np.ndarray, s: int) -> np.ndarray:
+        """Where the robot can put the lifted foot s whose sole the person's foot would put at
+        ``centre_s`` (2,): in the planted foot's frame (its footprint's centre and long axis,
+        pointing along the foot's heading), at least ``min_separation`` x the standing feet's
+        distance (sole centre to sole centre) to its own side (a person's narrower, crossed or
+        closed feet would put the robot's into its other leg), and at most ``stride_limit`` x
+        the leg length from the standing place forwards, backwards and outwards."""
         cfg = self.config
         fp = self._prints[1 - s]
         centre = fp.mean(axis=0)
-        d = fp - centre
-        axis = np.linalg.eigh(d.T @ d)[1][:, 1]  # the footprint's long axis
-        heading = self._head_ref[1 - s]
-        if axis @ (math.cos(heading), math.sin(heading)) < 0:
-            axis = -axis
+        axis = _long_axis(fp, self._head_ref[1 - s])
         side = np.array([-axis[1], axis[0]]) * (1.0 if s == 0 else -1.0)  # towards foot s's own side
-        k = self._foot_kps[s]
-        rel = targets[k[0], 0:2] - centre
+        rel = np.asarray(centre_s) - centre
         along, across = float(rel @ axis), float(rel @ side)
         reach = cfg.stride_limit * self._leg
         want_along = min(max(along, -reach), reach)
         want_across = min(max(across, cfg.min_separation * self._stand_sep), self._stand_sep + reach)
-        shift = (want_along - along) * axis + (want_across - across) * side
-        targets[k, 0:2] += shift
+        return centre + want_along * axis + want_across * side
 
     def record(self, sole: np.ndarray, com_xy: np.ndarray) -> None:
         """The emitted frame's sole corners (3, 8) and CoM xy (2,)."""
@@ -240,6 +318,16 @@ class BalancePlanner:
         self._point_w[:] = self._w0 if first else self._w
         self._cpred[:] = (px, py)
         self._zmp[:] = 0.0 if first else self._zmp_scale
+        if not first and self._frame <= self._plan_until:
+            # during a step the CoM row follows the preview plan instead of the smooth prediction
+            self._cpred[:] = self._preview.next_com(self._c1, self._c2, self._zmp_reference())
+            self._zmp[:] = self._plan_scale
+
+    def _zmp_reference(self) -> np.ndarray:
+        """(N, 2): the step's ZMP reference for this frame and the preview's next N − 1."""
+        frames, points = self._zmp_keys
+        t = np.arange(self._frame, self._frame + self._preview.frames)
+        return np.stack([np.interp(t, frames, points[:, 0]), np.interp(t, frames, points[:, 1])], axis=1)
 
     def plan(self, human_contact) -> tuple[bool, bool]:
         """Update :attr:`planted` from the person's contacts, and set the anchors and the balance
@@ -258,28 +346,46 @@ class BalancePlanner:
         return key
 
     def _paced(self, contact) -> None:
-        """The feet with ``steps``: quick steps at the robot's own pace, no weight shift, no preview.
+        """The feet with ``steps``: steps at the robot's own pace, each with a weight shift planned
+        by a ZMP preview (:class:`retarget.preview.ZmpPreview`).
 
-        Foot s lifts when the person's foot s is up, or when the
-        robot's planted foot s has fallen behind the person's (``step_distance``, ``step_turn``),
-        while the other foot is planted under the person's down foot, foot s has stood
-        ``min_stance`` and both have stood ``min_double`` since the last step. It lifts at once,
-        and the CoM's region stays the two feet's region from before the lift: the robot steps
-        the way its offline trajectories do, the CoM between the feet and a swing of about
-        ``min_swing``, caught by the landing foot. (A quasi-static shift of the CoM over the
-        stance foot first, the rule before this one, loads one soft servo leg for half a second or
-        more: on the OP3 the body then rolls 6-10 degrees outwards over the stance foot and falls
-        at the first or second step; and a person stepping three times a second is faster than
-        that shift.) The lifted foot follows the person's foot s, kept where the robot can put
-        it (:meth:`_clamp_step`), and lands when the person's foot is down and the swing has
-        lasted ``min_swing``, or after ``max_swing``. So the robot steps as often as it can,
-        skips the steps it has no time for, and catches up where the person's feet went."""
+        The robot decides to step with foot s when the person's foot s is up, or when the robot's
+        planted foot s has fallen behind the person's (``step_distance``, ``step_turn``), while
+        the other foot is planted under the person's down foot, foot s has stood ``min_stance``
+        and both have stood ``min_double`` since the last step. From then the ZMP reference
+        moves under the stance foot, and the foot lifts ``step_shift`` later, once the plan has
+        put the weight there (:meth:`_begin_step`). The lifted foot rises over half of
+        ``min_swing``, follows the person's foot s, kept where the robot can put it
+        (:meth:`_clamp_step`), begins to come down when the person's foot is down (or so as to
+        land by ``max_swing``) and lands over the other half. So the robot steps as often as it
+        can, skips the steps it has no time for, and catches up where the person's feet went.
+        (Without the shift, a foot lifted with the CoM between the feet stays loaded: the soft
+        servos bend the leg instead of lifting it, and the steps were shuffles; with a
+        quasi-static shift and no preview the body rolled over the stance foot: docs/retargeting.md
+        section 4.)"""
         self._since += 1
+        self._frame += 1
         for s in range(2):
+            if self.planted[s]:
+                continue
             swing = int(self._since[s])
-            landed = (contact[s] and swing >= self._min_swing_frames) or swing >= self._max_swing_frames
-            if not self.planted[s] and landed:
+            if (
+                self._descend_at[s] is None
+                and swing >= max(self._rise_frames, self._swing_frames(s) - self._fall_frames)
+                and (contact[s] or swing >= self._max_swing_frames - self._fall_frames)
+            ):
+                self._descend_at[s] = swing
+            if self._descend_at[s] is not None and swing >= self._descend_at[s] + self._fall_frames:
                 self.touch_down(s)
+                self._plan_landing()
+            else:
+                self._plan_swing(s)
+        if self._shifting is not None:
+            s, lift_at = self._shifting
+            if self._frame >= lift_at:
+                self._shifting = None
+                self._lift(s)
+            return
         if self.planted.all():
             for s in range(2):
                 other = 1 - s
@@ -289,13 +395,59 @@ class BalancePlanner:
                     and contact[other]
                 )
                 if ready and (not contact[s] or self._behind(s)):
-                    self._lift(s)
+                    self._begin_step(s)
                     break
+
+    def _begin_step(self, s: int) -> None:
+        """Decide to step with foot s: the ZMP reference moves from the CoM to the stance point
+        (``zmp_stance_inset`` inwards of the stance foot's centre) over ``step_shift``, and the
+        foot lifts then."""
+        stance, swing = self._prints[1 - s].mean(axis=0), self._prints[s].mean(axis=0)
+        towards = (swing - stance) / max(float(np.linalg.norm(swing - stance)), 1e-9)
+        self._stance_point = stance + self.config.zmp_stance_inset * towards
+        self._step_start = (self._frame, np.array(self._c1, dtype=float))
+        self._landing = swing  # until the swing's targets say where it lands
+        self._shifting = (s, self._frame + self._shift_frames)
+        self._plan_swing(s)
+        if self._shift_frames == 0:
+            self._shifting = None
+            self._lift(s)
+
+    def _plan_swing(self, s: int) -> None:
+        """The ZMP keys of foot s's step under way: from the CoM at the decision to the stance
+        point by the lift, there until the landing (``min_swing`` after the lift, or, while the
+        foot is still up, a fall's length from now), then between the stance point and where the
+        swing lands."""
+        (n0, c0), stance_pt = self._step_start, self._stance_point
+        mid = 0.5 * (stance_pt + self._landing)
+        lift = n0 + self._shift_frames
+        if self._descend_at[s] is not None:
+            land = lift + self._descend_at[s] + self._fall_frames
+        elif self._shifting is not None:
+            land = lift + self._rise_frames + self._fall_frames
+        else:
+            land = max(lift + self._swing_frames(s), self._frame + self._fall_frames)
+        settle = land + self._min_double_frames
+        self._zmp_keys = (np.array([n0, lift, land, settle + 1]), np.array([c0, stance_pt, stance_pt, mid]))
+        self._plan_until = settle + self._settle_frames
+
+    def _plan_landing(self) -> None:
+        """A foot touched down: the ZMP reference moves from the stance point to between the
+        planted feet over ``min_double``; the plan ends ``step_settle`` later."""
+        if self._zmp_keys is None:
+            return
+        stance_pt = self._stance_point
+        mid = 0.5 * (self._prints[0].mean(axis=0) + self._prints[1].mean(axis=0))
+        n = self._frame
+        self._zmp_keys = (np.array([n, n + self._min_double_frames + 1]), np.array([stance_pt, mid]))
+        self._plan_until = n + self._settle_frames
 
     def _lift(self, s: int) -> None:
         self.planted[s] = False
+        self._lift_print[s] = self._prints[s]
         self._prints[s] = None
         self._since[s] = 0
+        self._descend_at[s] = None
         self._region_key = None
 
     def _behind(self, s: int) -> bool:
@@ -325,3 +477,23 @@ class BalancePlanner:
             A, b = halfplanes(hull)
             edges[: len(b), 0:2], edges[: len(b), 2] = A, b
         self._edges[:] = edges.reshape(-1)  # (3, E) column-major = rows of (E, 3)
+
+
+def _long_axis(footprint: np.ndarray, heading: float) -> np.ndarray:
+    """The unit long axis (2,) of a footprint (4, 2), pointing along ``heading`` (rad) rather than against it."""
+    d = footprint - footprint.mean(axis=0)
+    axis = np.linalg.eigh(d.T @ d)[1][:, 1]
+    return -axis if axis @ (math.cos(heading), math.sin(heading)) < 0 else axis
+
+
+def _heading(axis: np.ndarray) -> float:
+    return math.atan2(axis[1], axis[0])
+
+
+def _wrap(angle: float) -> float:
+    """``angle`` (rad) in [-π, π)."""
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def _clip(value: float, limit: float) -> float:
+    return min(max(value, -limit), limit)

@@ -39,7 +39,7 @@ class StreamingConfig:
     # balance (free-base robots with feet; see the module docstring). Weights are per m² of
     # the residual named; lengths m, times s.
     balance: bool = False
-    steps: bool = False  # let a foot lift when the person steps (off: both feet stay planted)
+    steps: bool = True  # the robot steps when the person does (off: both feet stay planted)
     balance_margin: float = 0.02  # footprints shrunk by this; the CoM, DCM and ZMP stay inside
     balance_weight: float = 1e4  # CoM outside the support region
     dcm_weight: float = 1e3  # capture point outside it
@@ -56,13 +56,27 @@ class StreamingConfig:
     step_turn: float = 0.35  # rad, ... or turned this far
     min_stance: float = 0.2  # a foot stands this long before it may lift again
     min_double: float = 0.15  # both feet stand this long between two steps
-    min_swing: float = 0.15  # a lifted foot stays up at least this long (it has to travel)
+    min_swing: float = 0.27  # a lifted foot rises over half of this and comes down over the other half
     max_swing: float = 0.6  # ... and comes down after this long even if the person's does not
-    swing_clearance: float = 0.01  # its ankle and toe targets stay at least this above standing height
-    swing_height: float = 0.02  # ... and at most this
-    min_separation: float = 0.9  # it lands at least this x the standing feet's distance from the other
+    # its ankle and toe targets stay at least this above standing height (with the weight shift,
+    # its sole is lifted this high mid-swing: BalancePlanner._swing_lift) ...
+    swing_clearance: float = 0.03
+    swing_height: float = 0.045  # ... and at most this
+    min_separation: float = 1.0  # it lands at least this x the standing feet's distance from the other
     stride_limit: float = 0.35  # ... and at most this x the leg length from its standing place
+    max_step_turn: float = 0.6  # rad: a step turns the foot at most this far
+    swing_speed: float = 0.4  # m/s: a step longer than this covers in min_swing takes longer
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
+    # the weight shift of a step (BalancePlanner._paced, retarget.preview): a receding-horizon ZMP
+    # preview over step_preview s plans the CoM so that the ZMP moves under the stance foot
+    # (zmp_stance_inset inwards of its centre) by the lift, step_shift s after the robot decides to
+    # step, stays there through the swing, and returns between the feet over min_double after
+    # touch-down; the CoM follows the plan with plan_weight (per m²) until step_settle after that
+    step_preview: float = 1.0
+    step_shift: float = 0.17
+    step_settle: float = 0.3
+    zmp_stance_inset: float = 0.015
+    plan_weight: float = 3e4
 
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
@@ -99,7 +113,10 @@ def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, m
 class _FrameSymbols:
     """The per-frame parameters of the streaming residual: targets (3, K), the two frames
     emitted before (nx,) each, √w_a·fps² (0 without history), contacts (2,), the planted
-    feet's sole corners xy (2, 8)."""
+    feet's sole corners xy (2, 8) (a swinging foot's: where its swing path is this frame), and
+    the height (2,) m each swinging foot's sole corners are held at, on for the feet whose
+    ``swing`` (2,) is 1 (a foot in a step's swing is lifted clear of the floor, moved and put
+    down on a planned path)."""
 
     tgt: ca.SX
     x1: ca.SX
@@ -107,6 +124,8 @@ class _FrameSymbols:
     acc_scale: ca.SX
     contact: ca.SX
     anchor: ca.SX
+    lift: ca.SX
+    swing: ca.SX
 
     @classmethod
     def make(cls, rb) -> _FrameSymbols:
@@ -117,6 +136,8 @@ class _FrameSymbols:
             ca.SX.sym("acc_scale"),
             ca.SX.sym("contact", 2),
             ca.SX.sym("anchor", 2, 8),
+            ca.SX.sym("lift", 2),
+            ca.SX.sym("swing", 2),
         )
 
 
@@ -172,6 +193,8 @@ class StreamingRetargeter:
             sym.acc_scale,
             sym.contact,
             ca.reshape(sym.anchor, -1, 1),
+            sym.lift,
+            sym.swing,
         ]
         com = ca.SX.zeros(3, 1)
         if self.balance:
@@ -209,6 +232,7 @@ class StreamingRetargeter:
                 pb[self._p_point_w],
                 pb[self._p_cpred],
                 pb[self._p_zmp : self._p_zmp + 1],
+                pb[self._p_lift],
             )
 
     def _posture_weight(self) -> float:
@@ -233,6 +257,11 @@ class StreamingRetargeter:
             res.append(wc * ca.reshape(sole[0:2, cols] - sym.anchor[:, cols], -1, 1))
         w_ground = max(cfg.ground_weight, cfg.balance_contact_weight) if self.balance else cfg.ground_weight
         res.append(np.sqrt(w_ground) * ca.reshape(ca.fmin(sole[2, :], 0), -1, 1))
+        for s in range(2):  # a swinging sole on its path: corners xy at the anchor, at the profile's height
+            cols = slice(4 * s, 4 * s + 4)
+            ws = np.sqrt(w_contact) * sym.swing[s]
+            res.append(ws * ca.reshape(sole[2, cols] - sym.lift[s], -1, 1))
+            res.append(ws * ca.reshape(sole[0:2, cols] - sym.anchor[:, cols], -1, 1))
         if self.balance and cfg.upright_weight > 0 and rb.n_root:  # trunk upright: root pitch and roll
             res.append(np.sqrt(cfg.upright_weight) * x[4:6])
         if self.balance and cfg.level_weight > 0:  # soles level, in the air too (a foot lands flat)
@@ -307,7 +336,8 @@ class StreamingRetargeter:
         self._p_acc = n_t + 2 * nx
         self._p_contact = slice(n_t + 2 * nx + 1, n_t + 2 * nx + 3)
         self._p_anchor = slice(n_t + 2 * nx + 3, n_t + 2 * nx + 19)
-        n_b = n_t + 2 * nx + 19
+        self._p_lift = slice(n_t + 2 * nx + 19, n_t + 2 * nx + 23)  # lift (2,), then swing (2,)
+        n_b = n_t + 2 * nx + 23
         self._p_edges = slice(n_b, n_b + 3 * N_EDGES)
         n_b += 3 * N_EDGES
         self._p_points = slice(n_b, n_b + 9)
@@ -508,10 +538,14 @@ class StreamingRetargeter:
             )
         tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()
-        X = np.stack([self.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
-        return trajectory_from_x(
-            self.robot, X, motion.fps, {"mode": "streaming", "source": motion.name, "compiled": self.compile_info}
-        )
+        X, held = [], []
+        for t in range(motion.n_frames):
+            X.append(self.step(tg.keypoints[t], tg.contacts[t]))
+            held.append(self.planted.astype(int).tolist())
+        meta = {"mode": "streaming", "source": motion.name, "compiled": self.compile_info}
+        if self.balance:  # the robot's own contacts (it steps at its own pace), as the offline schedule's
+            meta["contacts"] = held
+        return trajectory_from_x(self.robot, np.stack(X), motion.fps, meta)
 
 
 def hash_config(cfg) -> str:

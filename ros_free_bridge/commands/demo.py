@@ -125,6 +125,7 @@ def demo(args) -> int:
             video = render_video(result, out / "demo.mp4", on_tick=tick)
 
     _print_demo_summary(result, check, reports, video)
+    print(steps_line(out / "partner.npz", check))
     print(f"done in {time.monotonic() - t_start:.0f} s")
     ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed
     return 0 if ok else 1
@@ -181,6 +182,22 @@ def _print_demo_summary(result, check, reports: dict, video) -> None:
         print(f"{name}: {path}")
     if video is not None:
         print(f"video: {video}")
+
+
+def steps_line(partner_file: Path, check) -> str:
+    """The partner's steps (touch-downs of its detected foot contacts) next to the robot's
+    (its feet's lift-offs in the physics check: sim's stances per foot, less one)."""
+    from dualflow.motion.io import load_any
+    from retarget.schedule import count_steps
+    from retarget.targets import detect_contacts, side_contacts
+
+    stances = check.metrics.get("stances") or []
+    robot = sum(stances) - len(stances)
+    try:
+        person = count_steps(side_contacts(detect_contacts(load_any(partner_file))))
+    except (OSError, ValueError) as exc:  # the run ended before it wrote the partner
+        return f"steps: the robot {robot} (the partner's not counted: {exc})"
+    return f"steps: the partner {person}, the robot {robot} (its feet lifted off the floor in physics)"
 
 
 def leader_beats(actor: str, seconds: float, seed: int):
