@@ -22,8 +22,8 @@ import numpy as np
 
 from retarget.errors import RetargetError
 
-#: Speed limit (rad/s) when the model gives none: XM430-class servos do 4.5-6 rad/s unloaded.
-DEFAULT_SPEED = 5.0
+#: The servo model hardware.yaml guesses until the user fills in theirs.
+GUESSED_SERVO = "XM430-W350"
 #: SMPL rest pose ratios (dualflow.motion.skeleton.REST_POSE): pelvis above the hips, over the
 #: hips' height (0.08 / 0.87), and spine3 between pelvis and shoulders (0.30 / 0.45).
 PELVIS_ABOVE_HIPS = 0.092
@@ -796,17 +796,22 @@ def joint_limits(m, an: Anatomy) -> tuple[dict, dict]:
 
 def speed_limits(m) -> tuple[float, dict, str]:
     """(default rad/s, {joint: rad/s} where lower, why): the MJCF's ``servo_no_load_speed`` less
-    10 % (one value, or one per actuator), else :data:`DEFAULT_SPEED`."""
+    10 % (one value, or one per actuator), else the no-load speed of the servo model that
+    hardware.yaml guesses (:data:`GUESSED_SERVO`) less 10 %. (A flat 5 rad/s guess let the
+    retargeter command 5.0 rad/s where the physics check, going by the guessed servo, allows 4.82.)"""
     import mujoco
+
+    from firmware_cfg import servo_models
 
     nid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_NUMERIC, "servo_no_load_speed")
     if nid < 0:
+        guess = servo_models.load_servo_model(GUESSED_SERVO).no_load_speed_rad_s
         return (
-            DEFAULT_SPEED,
+            round(0.9 * guess, 3),
             {},
             (
-                f"{FILL[2:]}: rad/s, a servo-class guess; use your actuators' no-load speed "
-                "less 10 % (the retargeter never commands faster)"
+                f"{FILL[2:]}: rad/s, the guessed servo's ({GUESSED_SERVO}) no-load speed less 10 %; "
+                "use your actuators' no-load speed less 10 % (the retargeter never commands faster)"
             ),
         )
     adr, size = int(m.numeric_adr[nid]), int(m.numeric_size[nid])
@@ -1114,7 +1119,7 @@ def _hardware_text(m, robot: str, model_name: str, rel: str, profile_limits: dic
     from firmware_cfg import servo_models
     from firmware_cfg.config import spec_angle_range
 
-    spec = servo_models.load_servo_model("XM430-W350")
+    spec = servo_models.load_servo_model(GUESSED_SERVO)
     smin, smax = spec_angle_range(spec)
     joints = []
     for a in range(m.nu):
@@ -1136,7 +1141,7 @@ def _hardware_text(m, robot: str, model_name: str, rel: str, profile_limits: dic
         f"mjcf: {rel}",
         "stop_policy: hold",
         "servo_defaults:",
-        f"  model: XM430-W350  {FILL}: your servo model ({', '.join(servo_models.servo_model_names())})",
+        f"  model: {GUESSED_SERVO}  {FILL}: your servo model ({', '.join(servo_models.servo_model_names())})",
         "  direction: 1",
         "  zero_offset: 0.0",
         "buses:",
