@@ -183,11 +183,7 @@ class BalancePlanner:
         u = min(1.0, int(self._since[s]) / self._swing_frames(s))
         share = math.sin(0.5 * math.pi * u) ** 2
         h0 = _heading(_long_axis(start, self._head_ref[s]))
-        want = self._heads_now[s]
-        if self.planted[1 - s]:  # toes in or out at most max_step_turn from the stance foot's
-            hs = _heading(_long_axis(self._prints[1 - s], self._head_ref[1 - s]))
-            want = hs + _clip(_wrap(want - hs), self.config.max_step_turn)
-        turn = share * _wrap(want - h0)
+        turn = share * _wrap(self._landing_heading(s) - h0)
         c, sn = math.cos(turn), math.sin(turn)
         if self.planted[1 - s]:  # around the stance foot's centre, not through it
             cs = self._prints[1 - s].mean(axis=0)
@@ -199,6 +195,16 @@ class BalancePlanner:
             centre = c0 + share * (self._landing - c0)
         self._anchor[:, 4 * s : 4 * s + 4] = ((start - c0) @ np.array([[c, sn], [-sn, c]]) + centre).T
         return centre
+
+    def _landing_heading(self, s: int) -> float:
+        """The heading (rad) the lifted foot s lands with: the person's own foot heading (not the
+        anchored one: a pivot on a planted foot that the anchoring absorbed is made up by
+        stepping), toed in or out at most ``max_step_turn`` from the stance foot's."""
+        want = self._heads_person[s]
+        if not self.planted[1 - s]:
+            return want
+        hs = self._head_ref[1 - s]
+        return hs + _clip(_wrap(want - hs), self.config.max_step_turn)
 
     def _swing_lift(self, s: int) -> float:
         """How high foot s's sole is held above the floor this frame (m): 0 planted; in a swing,
@@ -221,17 +227,23 @@ class BalancePlanner:
         pointing along the foot's heading), at least ``min_separation`` x the standing feet's
         distance (sole centre to sole centre) to its own side (a person's narrower, crossed or
         closed feet would put the robot's into its other leg), and at most ``stride_limit`` x
-        the leg length from the standing place forwards, backwards and outwards."""
+        the leg length from the standing place forwards, backwards and outwards. A foot landing
+        turned by δ from the stance foot (toes in or out) sweeps its inner corners inwards by
+        l·|sin δ| − w·(1 − cos δ) (half length l, half width w): it lands that much further out."""
         cfg = self.config
         fp = self._prints[1 - s]
         centre = fp.mean(axis=0)
         axis = _long_axis(fp, self._head_ref[1 - s])
         side = np.array([-axis[1], axis[0]]) * (1.0 if s == 0 else -1.0)  # towards foot s's own side
+        half_l, half_w = np.abs((fp - centre) @ axis).max(), np.abs((fp - centre) @ side).max()
+        delta = _wrap(self._landing_heading(s) - self._head_ref[1 - s])
+        turned = max(0.0, half_l * abs(math.sin(delta)) - half_w * (1.0 - math.cos(delta)))
         rel = np.asarray(centre_s) - centre
         along, across = float(rel @ axis), float(rel @ side)
         reach = cfg.stride_limit * self._leg
         want_along = min(max(along, -reach), reach)
-        want_across = min(max(across, cfg.min_separation * self._stand_sep), self._stand_sep + reach)
+        closest = cfg.min_separation * self._stand_sep + turned
+        want_across = min(max(across, closest), max(closest, self._stand_sep + reach))
         return centre + want_along * axis + want_across * side
 
     def record(self, sole: np.ndarray, com_xy: np.ndarray) -> None:
@@ -286,6 +298,7 @@ class BalancePlanner:
         ox, oy = self.offset
         self._ankles_now = [(c * x - sn * y + ox, sn * x + c * y + oy) for x, y in ankles]
         self._heads_now = [heads[0] + self.psi, heads[1] + self.psi]
+        self._heads_person = heads
         self._ankle_z = (lz, rz)
         return targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
 
@@ -454,7 +467,9 @@ class BalancePlanner:
         """The robot's planted foot s is ``step_distance`` or ``step_turn`` from the person's (anchored)."""
         cfg = self.config
         (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
-        turn = abs((self._heads_now[s] - self._head_ref[s] + np.pi) % (2 * np.pi) - np.pi)
+        # the person's foot heading against the robot's planted foot's (not the anchored one: the
+        # anchoring absorbs a pivot on a planted foot, which the robot makes up by stepping)
+        turn = abs(_wrap(self._heads_person[s] - self._head_ref[s]))
         return math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
 
     def touch_down(self, s: int) -> None:
@@ -465,7 +480,7 @@ class BalancePlanner:
         self._prints[s] = fp
         self._anchor[:, 4 * s : 4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
-        self._head_ref[s] = self._heads_now[s]
+        self._head_ref[s] = _heading(_long_axis(fp, self._heads_now[s]))  # the foot's own heading
         self._since[s] = 0
         self._region_key = None
 
