@@ -28,9 +28,9 @@ retargeters in the same run, on one core (sched_setaffinity, single-threaded BLA
   standing start, swing clearance, start from rest and eased travel (StepConfig(min_double=0,
   start_double=0, robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0,
   travel_zmp_shift=0));
-- streaming with steps (StreamingConfig(balance=True, steps=True): steps at the robot's
-  pace, retarget.balance); its baseline, *streaming before*: StreamingConfig(balance=True) (feet
-  always planted).
+- streaming with steps (StreamingConfig(balance=True, steps=True), the default: steps at the
+  robot's pace with a planned weight shift, retarget.balance); its baseline, *streaming
+  before*: StreamingConfig(balance=True, steps=False) (feet always planted).
 
 Figures per retargeter, over the clips (a failed retarget counts as not performed):
 
@@ -186,7 +186,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         ),
     )
     st_new = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True))
-    st_old = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True))
+    st_old = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=False))
     modes = args.modes.split(",")
     stats = {
         m: {
