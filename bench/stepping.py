@@ -4,8 +4,10 @@
 
 Clips: ``leaders``: the SYNTHETIC stepping leaders of bench/stepping_leaders.py (turning in place
 2-2.5 turns, walking straight and on a circle, side-stepping); ``pivot``: the rest pose turning
-2.5 turns on the spot at 0.8 and 0.5 rad/s without stepping (the root-yaw verdict's case); \
-``cmu``: the CMU two-person pair
+2.5 turns on the spot at 0.8 and 0.5 rad/s without stepping (the root-yaw verdict's case);
+``heldout``: other stepping leaders (bench/stepping_leaders.held_out_leaders) and eight other
+generated duets (mirror, follow, hand_hold, orbit; seeds 2 and 3), to check the rules on clips
+they were not tuned on; ``cmu``: the CMU two-person pair
 (../shared/data/mocap/cmu, both people, when present); ``duets``: the rule followers of
 dualflow.synthetic.make_duet (generated partners, hand_hold and orbit). Each clip goes through four
 retargeters in the same run, on one core (sched_setaffinity, single-threaded BLAS), CPU time:
@@ -155,6 +157,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         if cmu[0].name.startswith("cmu"):
             clips += cmu
             clean |= {c.name for c in cmu}
+    if "heldout" in kinds:  # other leaders and duet seeds than the figures' (see held_out_leaders)
+        from bench.stepping_leaders import held_out_leaders
+        from dualflow.synthetic import make_duet
+
+        clips += held_out_leaders()
+        clips += [
+            make_duet(r, seconds=10.0, fps=30.0, seed=seed).reactor.replace(name=f"duet_{r}_{seed}")
+            for r in ("mirror", "follow", "hand_hold", "orbit")
+            for seed in (2, 3)
+        ]
     if "duets" in kinds:
         from dualflow.synthetic import make_duet
 

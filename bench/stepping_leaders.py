@@ -115,6 +115,22 @@ def leaders() -> list[Motion]:
     ]
 
 
+def held_out_leaders() -> list[Motion]:
+    """Stepping leaders with speeds, rates and rhythms the figures' set does not use (a check
+    that the rules are not tuned to it): a slow and a fast turn, a faster walk, two circles,
+    a wide quick and a narrow slow side-step, and a pivot on the spot."""
+    return [
+        turning_leader(1.5, 0.4),
+        turning_leader(1.0, -1.2),
+        walking_leader(8.0, 0.5),
+        walking_leader(8.0, 0.2, -0.5),
+        walking_leader(8.0, 0.4, 0.6, bpm=130.0),
+        sidestep_leader(8.0, 0.2, bpm=120.0),
+        sidestep_leader(8.0, 0.06, bpm=70.0),
+        pivot_turn(0.8, 1.5),
+    ]
+
+
 def pivot_turn(rate: float = 0.8, turns: float = 2.5, fps: float = 30.0, lead_in: float = 0.5) -> Motion:
     """The rest pose turning ``turns`` full turns at ``rate`` rad/s on the spot, after ``lead_in``
     s still and before 0.5 s still; no contact labels (detected: both feet stay down)."""

@@ -71,6 +71,7 @@ class BalancePlanner:
         # leg length (hip above ankle standing; the CoM height without hip keypoints): scales step lengths
         legs = [self._stand_kp[hip, 2] - self._stand_kp[ankle, 2] for hip, ankle in zip(self._hips or (), self._ankles)]
         self._leg = float(np.mean(legs)) if legs else h
+        _check_step_timing(cfg, self.fps)
         frames = lambda t: max(0, round(t * self.fps))  # noqa: E731
         self._preview = ZmpPreview(h / 9.81 * self.fps**2, max(2, frames(cfg.step_preview)))
         self._shift_frames = frames(cfg.step_shift)
@@ -116,6 +117,7 @@ class BalancePlanner:
         self._head_ref = [0.0, 0.0]
         self._since = np.zeros(2, dtype=int)  # frames since each foot last touched down or lifted
         self._descend_at = [None, None]  # a swinging foot's frame of its swing when it began to come down
+        self._swing_heading = [None, None]  # a swinging foot's heading on its path (rad)
         self._frame = 0  # frames since start()
         self._shifting = None  # (foot, frame it lifts at) while the weight moves before a step
         self._zmp_keys = None  # the step's ZMP reference: (frames, points (n, 2)), linear in between
@@ -184,6 +186,7 @@ class BalancePlanner:
         share = math.sin(0.5 * math.pi * u) ** 2
         h0 = _heading(_long_axis(start, self._head_ref[s]))
         turn = share * _wrap(self._landing_heading(s) - h0)
+        self._swing_heading[s] = h0 + turn  # where the foot points now: names its axis's direction at touch-down
         c, sn = math.cos(turn), math.sin(turn)
         if self.planted[1 - s]:  # around the stance foot's centre, not through it
             cs = self._prints[1 - s].mean(axis=0)
@@ -227,7 +230,8 @@ class BalancePlanner:
         pointing along the foot's heading), at least ``min_separation`` x the standing feet's
         distance (sole centre to sole centre) to its own side (a person's narrower, crossed or
         closed feet would put the robot's into its other leg), and at most ``stride_limit`` x
-        the leg length from the standing place forwards, backwards and outwards. A foot landing
+        the leg length forwards, backwards and outwards from where it would stand beside the
+        stance foot (at the standing distance). A foot landing
         turned by δ from the stance foot (toes in or out) sweeps its inner corners inwards by
         l·|sin δ| − w·(1 − cos δ) (half length l, half width w): it lands that much further out."""
         cfg = self.config
@@ -418,6 +422,7 @@ class BalancePlanner:
         stance, swing = self._prints[1 - s].mean(axis=0), self._prints[s].mean(axis=0)
         towards = (swing - stance) / max(float(np.linalg.norm(swing - stance)), 1e-9)
         self._stance_point = stance + self.config.zmp_stance_inset * towards
+        self._stance_centre = stance
         self._step_start = (self._frame, np.array(self._c1, dtype=float))
         self._landing = swing  # until the swing's targets say where it lands
         self._shifting = (s, self._frame + self._shift_frames)
@@ -432,7 +437,7 @@ class BalancePlanner:
         foot is still up, a fall's length from now), then between the stance point and where the
         swing lands."""
         (n0, c0), stance_pt = self._step_start, self._stance_point
-        mid = 0.5 * (stance_pt + self._landing)
+        mid = 0.5 * (self._stance_centre + self._landing)  # between the feet once landed, as _plan_landing
         lift = n0 + self._shift_frames
         if self._descend_at[s] is not None:
             land = lift + self._descend_at[s] + self._fall_frames
@@ -441,7 +446,7 @@ class BalancePlanner:
         else:
             land = max(lift + self._swing_frames(s), self._frame + self._fall_frames)
         settle = land + self._min_double_frames
-        self._zmp_keys = (np.array([n0, lift, land, settle + 1]), np.array([c0, stance_pt, stance_pt, mid]))
+        self._zmp_keys = _keys([n0, lift, land, settle + 1], [c0, stance_pt, stance_pt, mid])
         self._plan_until = settle + self._settle_frames
 
     def _plan_landing(self) -> None:
@@ -452,7 +457,7 @@ class BalancePlanner:
         stance_pt = self._stance_point
         mid = 0.5 * (self._prints[0].mean(axis=0) + self._prints[1].mean(axis=0))
         n = self._frame
-        self._zmp_keys = (np.array([n, n + self._min_double_frames + 1]), np.array([stance_pt, mid]))
+        self._zmp_keys = _keys([n, n + self._min_double_frames + 1], [stance_pt, mid])
         self._plan_until = n + self._settle_frames
 
     def _lift(self, s: int) -> None:
@@ -469,7 +474,9 @@ class BalancePlanner:
         (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
         # the person's foot heading against the robot's planted foot's (not the anchored one: the
         # anchoring absorbs a pivot on a planted foot, which the robot makes up by stepping)
-        turn = abs(_wrap(self._heads_person[s] - self._head_ref[s]))
+        # (what a step could turn it: the person's feet turned further apart than max_step_turn
+        # would otherwise make it re-step for ever)
+        turn = abs(_wrap(self._landing_heading(s) - self._head_ref[s]))
         return math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
 
     def touch_down(self, s: int) -> None:
@@ -480,7 +487,11 @@ class BalancePlanner:
         self._prints[s] = fp
         self._anchor[:, 4 * s : 4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
-        self._head_ref[s] = _heading(_long_axis(fp, self._heads_now[s]))  # the foot's own heading
+        # the foot's own heading; the axis's direction from where the swing pointed it (the
+        # anchored person's heading can be more than π/2 off it after fast turns)
+        hint = self._heads_now[s] if self._swing_heading[s] is None else self._swing_heading[s]
+        self._head_ref[s] = _heading(_long_axis(fp, hint))
+        self._swing_heading[s] = None
         self._since[s] = 0
         self._region_key = None
 
@@ -512,3 +523,33 @@ def _wrap(angle: float) -> float:
 
 def _clip(value: float, limit: float) -> float:
     return min(max(value, -limit), limit)
+
+
+def _keys(frames: list, points: list) -> tuple[np.ndarray, np.ndarray]:
+    """ZMP reference keys (frames (n,), points (n, 2)) with repeated frames dropped (the later
+    point kept): np.interp does not say which of two points at one frame it returns."""
+    out_f, out_p = [], []
+    for f, p in zip(frames, points):
+        if out_f and f <= out_f[-1]:
+            out_p[-1] = p
+            continue
+        out_f.append(f)
+        out_p.append(p)
+    return np.array(out_f), np.array(out_p, dtype=float)
+
+
+def _check_step_timing(cfg, fps: float) -> None:
+    """One RetargetError naming the StreamingConfig field whose step timing cannot work."""
+    problems = []
+    if not cfg.swing_speed > 0:
+        problems.append(f"swing_speed must be above 0 m/s (got {cfg.swing_speed})")
+    if round(cfg.min_swing * fps) < 2:
+        problems.append(f"min_swing must last at least 2 frames ({2 / fps:.3f} s at {fps:g} fps; got {cfg.min_swing})")
+    if cfg.max_swing < cfg.min_swing:
+        problems.append(f"max_swing ({cfg.max_swing}) must be at least min_swing ({cfg.min_swing})")
+    if round(cfg.step_preview * fps) < 2:
+        problems.append(f"step_preview must last at least 2 frames (got {cfg.step_preview})")
+    if cfg.step_shift < 0:
+        problems.append(f"step_shift must be 0 or more (got {cfg.step_shift})")
+    if problems:
+        raise RetargetError("StreamingConfig: " + "; ".join(problems))

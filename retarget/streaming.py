@@ -51,7 +51,8 @@ class StreamingConfig:
     collision_weight: float = 1e5  # the profile's capsule pairs penetrating
     feet_clearance: float = 0.015  # extra distance kept between the two feet's capsules
     double_support_inset: float = 0.01  # on two feet the CoM stays this far inside the feet's centre lines
-    # steps (BalancePlanner._paced): quick steps at the robot's pace, the CoM kept between the feet
+    # steps (BalancePlanner._paced): steps at the robot's pace, the weight shifted over the stance
+    # foot by a ZMP preview first (below)
     step_distance: float = 0.03  # a planted foot the person's has moved this far from re-steps,
     step_turn: float = 0.35  # rad, ... or turned this far
     min_stance: float = 0.2  # a foot stands this long before it may lift again
@@ -63,7 +64,7 @@ class StreamingConfig:
     swing_clearance: float = 0.03
     swing_height: float = 0.045  # ... and at most this
     min_separation: float = 1.0  # it lands at least this x the standing feet's distance from the other
-    stride_limit: float = 0.35  # ... and at most this x the leg length from its standing place
+    stride_limit: float = 0.35  # ... and at most this x the leg length from its place beside the stance foot
     max_step_turn: float = 0.6  # rad: a step turns the foot at most this far
     swing_speed: float = 0.4  # m/s: a step longer than this covers in min_swing takes longer
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet

@@ -290,6 +290,82 @@ def test_with_steps_op3_really_steps_in_place_with_the_person_in_physics(op3):
     assert lift_offs >= 2, result.metrics["stances"]
 
 
+def _sole_headings(robot, X):
+    """(T, 2) rad: each sole's heading, heel to toe (the sole's long edge, towards the toe keypoint)."""
+    ev = robot.evaluate(X)
+    names = robot.keypoint_names
+    out = np.zeros((len(X), 2))
+    for s, side in enumerate(("left", "right")):
+        corners = ev["sole"][:, 4 * s : 4 * s + 4, 0:2]
+        d = corners - corners.mean(axis=1, keepdims=True)
+        toe = (
+            ev["keypoints"][:, names.index(f"{side}_foot"), 0:2] - ev["keypoints"][:, names.index(f"{side}_ankle"), 0:2]
+        )
+        for t in range(len(X)):
+            axis = np.linalg.eigh(d[t].T @ d[t])[1][:, 1]
+            axis = -axis if axis @ toe[t] < 0 else axis
+            out[t, s] = np.arctan2(axis[1], axis[0])
+    return out
+
+
+def test_a_fast_turn_keeps_each_foot_heading_and_the_feet_within_max_step_turn(op3):
+    """Two turns at 2 rad/s: the robot turns by stepping, its record of each planted foot's
+    heading stays that foot's (it once flipped by π after a fast turn, and the next step turned
+    the other foot 2 rad the wrong way), and the feet never stand turned further apart than
+    max_step_turn."""
+    from bench.stepping_leaders import turning_leader
+    from retarget.targets import make_targets
+
+    cfg = StreamingConfig(balance=True, steps=True)
+    motion = turning_leader(2.0, 2.0)
+    s = StreamingRetargeter(op3, FPS, cfg)
+    tg = make_targets(op3, motion)
+    s.reset()
+    X, refs, planted = [], [], []
+    for t in range(motion.n_frames):
+        X.append(s.step(tg.keypoints[t], tg.contacts[t]))
+        refs.append(list(s.planner._head_ref))
+        planted.append(s.planted.copy())
+    X, refs, planted = np.array(X), np.array(refs), np.array(planted)
+    actual = _sole_headings(op3, X)
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    for side in range(2):
+        off = np.abs(wrap(refs[planted[:, side], side] - actual[planted[:, side], side]))
+        assert off.max() < 0.2, off.max()
+    both = planted.all(axis=1)
+    apart = np.abs(wrap(actual[both, 0] - actual[both, 1]))
+    assert apart.max() < cfg.max_step_turn + 0.15, apart.max()
+    # it did turn, by stepping (about 1 rad/s at most: it lags the person's 2 rad/s, and past a
+    # lag of π it turns the shorter way towards the person's heading)
+    assert np.unwrap(actual[:, 0])[-1] - actual[0, 0] > 1.0
+
+
+def test_a_person_standing_with_a_foot_turned_out_does_not_make_the_robot_march(op3):
+    """The person stands still, the left toe turned 1 rad out: more than a step may turn the
+    robot's foot from the other (max_step_turn). The robot takes at most one step towards it
+    and then stands (it used to re-step every min_stance, for ever)."""
+    motion = person(seconds=4.0)
+    pos = motion.positions.copy()
+    ankle, toe = J["left_ankle"], J["left_foot"]
+    c, sn = np.cos(1.0), np.sin(1.0)
+    rel = pos[:, toe] - pos[:, ankle]
+    pos[:, toe, 0] = pos[:, ankle, 0] + c * rel[:, 0] - sn * rel[:, 1]
+    pos[:, toe, 1] = pos[:, ankle, 1] + sn * rel[:, 0] + c * rel[:, 1]
+    contacts = np.ones((motion.n_frames, 2), bool)
+    s = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True))
+    from retarget.targets import make_targets
+
+    tg = make_targets(op3, Motion(pos, fps=FPS, name="toe out"), contacts)
+    s.reset()
+    planted = []
+    for t in range(motion.n_frames):
+        s.step(tg.keypoints[t], tg.contacts[t])
+        planted.append(s.planted.copy())
+    planted = np.array(planted)
+    lifts = int(np.sum(planted[:-1] & ~planted[1:]))
+    assert lifts <= 1, lifts
+
+
 def test_a_step_longer_than_the_robot_can_take_lands_at_its_stride_limit(op3):
     """A person's left foot put down half a metre ahead: the robot's left foot lands at most
     stride_limit x its leg length from where it stood (without the limit it goes further)."""
@@ -364,3 +440,14 @@ def test_bridge_retarget_stage_balances_free_standing_robots_only(op3):
     for t in range(motion.n_frames):
         stage.step(motion.positions[t], None)
     assert stage.streamer.planted.all()
+
+
+def test_step_timing_that_cannot_work_is_one_error_naming_the_field(op3):
+    for kw, field in (
+        ({"swing_speed": 0.0}, "swing_speed"),
+        ({"min_swing": 0.03}, "min_swing"),
+        ({"max_swing": 0.1}, "max_swing"),
+        ({"step_preview": 0.0}, "step_preview"),
+    ):
+        with pytest.raises(RetargetError, match=field):
+            StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, **kw))
