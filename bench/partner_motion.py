@@ -3,7 +3,7 @@
     python bench/partner_motion.py [CHECKPOINT ...] [--seeds 0,1] [--seconds 8] [--window 60]
                                    [--steps 2] [--hop 1] [--sliding] [--exact-rows]
                                    [--texts none,rule] [--json out.json]
-    python bench/partner_motion.py [CHECKPOINT ...] --cmu [--cmu-seeds 8] [--json out.json]
+    python bench/partner_motion.py [CHECKPOINT ...] --cmu [--cmu-seeds 8] [--cmu-stream-seeds 8] [--json out.json]
 
 A quality check, not a speed benchmark (the figures do not depend on the machine's load).
 For each leader seed: the SYNTHETIC leader of ``dualflow.synthetic.make_leader_clip`` (8 s,
@@ -33,7 +33,8 @@ Figures per stream (world frame, Z up, metres; partner frame k pairs with actor 
 ``dualflow.evaluation.plausibility`` (skate, jerk, bone-length CV, facing error, MPJPE to the
 real partner 19_01, distance, diversity across seeds and texts) for the real partner, a static
 first pose, the mirrored actor, and each checkpoint offline and streamed, raw and cleaned
-(``dualflow.body``); also the cleanup's cost per streamed frame.
+(``dualflow.body``); also the cleanup's cost per streamed frame and each row's jerk range over
+seeds (8 offline, 8 streamed: one seed's partner can run off and jerk 10x another's).
 """
 
 from __future__ import annotations
@@ -168,12 +169,14 @@ def _mirror_baseline(actor: np.ndarray, real: np.ndarray) -> np.ndarray:
     return _reflect(actor, np.broadcast_to(mid, (n, 2)), np.broadcast_to(normal, (n, 2)))
 
 
-def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: int = 20) -> list[dict]:
+def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 8, steps: int = 20) -> list[dict]:
     """The issue-28 table on the real CMU actor 18_01 against its real partner 19_01 (30 fps):
     baselines (real, static first pose, mirrored actor) and, per checkpoint, offline generation
     (``seeds`` seeds, no text; then the four CUE_TEXTS at seed 0) and the bridge's streamer
     (demo settings, ``stream_seeds`` seeds), each raw (``clean=False``) and cleaned
-    (``dualflow.body``). Diversity: mean pairwise MPJPE across seeds / across texts."""
+    (``dualflow.body``). Diversity: mean pairwise MPJPE across seeds / across texts. Offline
+    and streamed use as many seeds by default: the jerk differs up to 10x between seeds (a
+    partner that runs off in the clip's last second), so two seeds are not a sample."""
     import time
 
     from dualflow.duet_generator import DuetGenerator
@@ -190,6 +193,8 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 2, steps: i
     def add(name, clips, **extra):
         figs = [plausibility(c, actor, real) for c in clips]
         row = {"partner": name, **{k: float(np.mean([f[k] for f in figs])) for k in figs[0]}, **extra}
+        if len(clips) > 1:
+            row["jerk_seeds"] = [float(f["jerk"]) for f in figs]
         if len(clips) > 1:
             row.setdefault("diversity_seeds", diversity(clips))
         rows.append(row)
@@ -253,6 +258,12 @@ def print_cmu_table(rows: list[dict]) -> None:
             f"{r['mpjpe_real']:.2f} | {r['dist_mean']:.2f} | {100 * r['dist_in_range']:.0f} % | "
             f"{div('diversity_seeds')} | {div('diversity_texts')} |"
             + (f" cleanup {r['clean_ms_per_frame']:.2f} ms/frame" if "clean_ms_per_frame" in r else "")
+            + (
+                f" jerk per seed {min(r['jerk_seeds']):.0f}-{max(r['jerk_seeds']):.0f}"
+                f" (median {np.median(r['jerk_seeds']):.0f})"
+                if "jerk_seeds" in r
+                else ""
+            )
         )
 
 
@@ -284,13 +295,14 @@ def main(argv: list[str] | None = None) -> int:
         "(../shared/data/mocap/cmu), baselines and each checkpoint raw / cleaned",
     )
     ap.add_argument("--cmu-seeds", type=int, default=8, help="offline seeds for --cmu (default 8)")
+    ap.add_argument("--cmu-stream-seeds", type=int, default=8, help="streamed seeds for --cmu (default 8)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.cmu:
         if not (CMU_DIR / "18_01.bvh").is_file():
             print(f"error: {CMU_DIR}/18_01.bvh not found; --cmu needs the CMU pair in ../shared/data", file=sys.stderr)
             return 2
-        rows = cmu_table(args.checkpoints or [None], seeds=args.cmu_seeds)
+        rows = cmu_table(args.checkpoints or [None], seeds=args.cmu_seeds, stream_seeds=args.cmu_stream_seeds)
         print_cmu_table(rows)
         if args.json:
             Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")

@@ -974,7 +974,9 @@ def run_from_args(args: argparse.Namespace) -> int:
     if args.evaluate:
         from dualflow.evaluation.reactor import evaluate_checkpoint
 
-        errors = evaluate_checkpoint(None if args.evaluate == "bundled" else args.evaluate, n_clips=args.eval_clips)
+        errors = evaluate_checkpoint(
+            None if args.evaluate == "bundled" else args.evaluate, n_clips=args.eval_clips, mid_dance=args.mid_dance
+        )
         print(errors.summary())
         return 0
     overrides = list(args.overrides)

@@ -38,6 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--eval-clips", type=int, default=32, help="validation clips for --evaluate")
     parser.add_argument(
+        "--mid-dance",
+        action="store_true",
+        help="with --evaluate: validation windows cut at random offsets from longer duets (as a live stream sees them)",
+    )
+    parser.add_argument(
         "--print-params",
         action="store_true",
         help="print the parameter count of each model preset (paper, small, tiny) and exit",

@@ -175,3 +175,70 @@ def test_make_leader_and_errors():
 def test_importing_the_generator_does_not_import_torch():
     code = "import sys, dualflow.synthetic as s; s.make_duet('orbit'); assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# -- training windows cut at random offsets (issue 28) ----------------------------------------
+
+
+def _crop_config(**kw):
+    from dualflow.datasets.config import TrainingDataConfig
+
+    return TrainingDataConfig(**{"n_clips": 24, "val_clips": 4, "frames": 30, "crop": 1.0, "crop_max_s": 4.0, **kw})
+
+
+def test_crops_start_at_random_offsets_and_validation_clips_do_not():
+    from dualflow.datasets.synthetic import build_split
+
+    train = build_split(_crop_config(), "train")
+    assert train.offsets.shape == (24,)
+    assert (train.offsets >= 1).all() and (train.offsets <= 120).all()
+    assert len(set(train.offsets.tolist())) >= 16 and train.offsets.std() > 15  # spread over 4 s, not one offset
+    assert (build_split(_crop_config(), "val").offsets == 0).all()
+    assert (build_split(_crop_config(), "val", crop_any_split=True).offsets > 0).all()  # --evaluate --mid-dance
+    half = build_split(_crop_config(n_clips=64, crop=0.5), "train").offsets
+    assert 16 <= int((half > 0).sum()) <= 48
+    # no crop: the classic clips, byte for byte
+    from dualflow.motion.features import encode_pair
+
+    classic = build_split(_crop_config(crop=0.0), "train")
+    assert (classic.offsets == 0).all()
+    np.testing.assert_array_equal(classic.features[5], encode_pair(make_duet(RULES[1], 31 / 30.0, 30.0, 5))[0])
+
+
+def test_a_crop_cuts_leader_follower_and_beats_at_the_same_frames():
+    from dualflow.datasets.synthetic import build_split
+    from dualflow.motion.features import encode_pair
+
+    cfg = _crop_config(n_clips=8)
+    split = build_split(cfg, "train")
+    for i in range(8):
+        o, seed, rule = int(split.offsets[i]), int(split.seeds[i]), RULES[i % 4]
+        whole = make_duet(rule, (o + 31) / 30.0, 30.0, seed)
+        want, _ = encode_pair(whole.slice(o, o + 31))
+        assert whole.actor.n_frames == o + 31  # the source clip the crop was cut from, no longer
+        np.testing.assert_allclose(split.features[i], want, atol=1e-6)
+        np.testing.assert_array_equal(split.beats[i], whole.meta["beats"][o : o + 30])
+        # the check would see a follower cut one frame off the leader
+        off = TwoPersonMotion(whole.actor.slice(o - 1, o + 30), whole.reactor.slice(o, o + 31))
+        assert np.abs(encode_pair(off)[0][:, 1] - want[:, 1]).max() > 1e-3
+
+
+def test_a_cropped_follow_clip_still_follows_and_speed_and_mirror_keep_a_valid_duet():
+    from dualflow.datasets.synthetic import CropDraw, cropped_duet
+
+    lag = int(round(FOLLOW_LAG_S * 30.0))
+    pair = cropped_duet("follow", 61, 30.0, 3, CropDraw(offset=47))
+    lead, foll = pair.actor.positions, pair.reactor.positions
+    shift = foll[lag:] - lead[:-lag]
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(shift[0, 0]), FOLLOW_SIDE_M, atol=1e-9)
+    # 1.25x as fast: the beats come 1.25x as often, bones stay exact, mirrored sides swap in the text
+    slow = cropped_duet("mirror", 150, 30.0, 4, CropDraw(offset=20))
+    fast = cropped_duet("mirror", 150, 30.0, 4, CropDraw(offset=20, speed=1.25, mirrored=True))
+    gap = lambda p: np.diff(p.meta["beat_frames"]).mean()  # noqa: E731
+    np.testing.assert_allclose(gap(slow) / gap(fast), 1.25, rtol=0.05)
+    for person in (fast.actor, fast.reactor):
+        np.testing.assert_allclose(bone_lengths(person.positions), np.broadcast_to(REST_BONES, (150, 21)), atol=1e-9)
+    assert fast.actor.fps == 30.0 and len(fast.actor.positions) == 150
+    if "left" in slow.text or "right" in slow.text:
+        assert fast.text != slow.text

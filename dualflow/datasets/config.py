@@ -20,6 +20,7 @@ from dualflow.synthetic import RULES
 SYNTHETIC = "synthetic"
 #: The fields that describe the synthetic clips (the data cache key uses only these).
 SYNTHETIC_FIELDS = ("n_clips", "val_clips", "frames", "fps", "rules", "seed", "varied")
+SYNTHETIC_FIELDS += ("crop", "crop_max_s", "crop_speed", "crop_mirror")
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,14 @@ class TrainingDataConfig:
     of clips (0-1) drawn from the wider repertoire of :mod:`dualflow.synthetic_varied` (leaders
     that walk up, turn and reach out a hand, responsive followers, mirrored duets); 0 = the
     classic clips only (what every checkpoint before it was trained on).
+
+    Crops (training split only; validation clips always start at the start of a dance, so
+    held-out figures stay comparable): crop: share of training clips (0-1) cut at a random
+    offset from a longer clip instead of starting at its first frame (the leader mid-dance,
+    away from its start, the follower mid-response); crop_max_s: latest offset, seconds;
+    crop_speed: the longer clip plays 1 ± up to this much faster (0 = real speed; beats scale
+    with it); crop_mirror: share of cropped clips reflected left-right (both persons, text
+    sides swapped). :func:`dualflow.datasets.synthetic.crop_draw` draws them.
     """
 
     n_clips: int = 512
@@ -53,6 +62,10 @@ class TrainingDataConfig:
     stride: int | None = None
     options: dict = field(default_factory=dict)
     varied: float = 0.0
+    crop: float = 0.0
+    crop_max_s: float = 6.0
+    crop_speed: float = 0.0
+    crop_mirror: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rules", tuple(self.rules))
@@ -69,6 +82,13 @@ class TrainingDataConfig:
             raise DualFlowError(f"data.fps must be > 0, got {self.fps!r}")
         if not 0.0 <= float(self.varied) <= 1.0:
             raise DualFlowError(f"data.varied is a share of clips, 0 to 1; got {self.varied!r}")
+        for name in ("crop", "crop_mirror"):
+            if not 0.0 <= float(getattr(self, name)) <= 1.0:
+                raise DualFlowError(f"data.{name} is a share of clips, 0 to 1; got {getattr(self, name)!r}")
+        if not float(self.crop_max_s) * float(self.fps) >= 1.0:
+            raise DualFlowError(f"data.crop_max_s must be at least one frame (seconds > 0), got {self.crop_max_s!r}")
+        if not 0.0 <= float(self.crop_speed) < 0.5:
+            raise DualFlowError(f"data.crop_speed is a relative speed change in [0, 0.5), got {self.crop_speed!r}")
         self._check_dataset()
 
     def _check_dataset(self) -> None:

@@ -3,9 +3,12 @@
 Nothing here is captured motion. Clip ``i`` of a split is
 ``make_duet(rules[i % len(rules)], seconds=(frames + 1) / fps, fps, seed)`` with the split's
 seed ``seed·10⁶ + offset + i`` (offsets: train 0, val 500000, test 750000, so splits never
-share a clip). :func:`build_split` gives the trainer's raw arrays (:class:`SyntheticSplit`,
-optionally cached as npz); :func:`load_synthetic` gives the same clips as :class:`DuetSample`
-objects (template sentence, (T, 4) beat track as "beats4" music, rule as ``style``).
+share a clip); with ``data.crop`` a share of the training clips is instead a window cut at a
+random offset from a longer clip (:func:`crop_draw`, :func:`cropped_duet`), so the model also
+sees windows that start mid-dance, as a live stream's do. :func:`build_split` gives the
+trainer's raw arrays (:class:`SyntheticSplit`, optionally cached as npz); :func:`load_synthetic`
+gives the whole clips as :class:`DuetSample` objects (template sentence, (T, 4) beat track as
+"beats4" music, rule as ``style``).
 numpy only (librosa is imported only for :func:`click_track_music`).
 """
 
@@ -40,7 +43,8 @@ class SyntheticSplit:
     features (N, T, 2, 262) float32; texts: N sentences; beats (N, T, 4) float32
     [beat impulse, sin 2π·phase, cos 2π·phase, downbeat impulse]; rules (N,) int64 index into
     the config's rules; seeds (N,) int64; music (N, T, D) float32 per-frame music features of
-    kind ``music_kind`` (dualflow.music) or None.
+    kind ``music_kind`` (dualflow.music) or None; offsets (N,) int64: first frame of each clip
+    in its longer source clip (0: a whole clip from the start of the dance; empty when unknown).
     """
 
     features: np.ndarray
@@ -50,6 +54,70 @@ class SyntheticSplit:
     seeds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     music: np.ndarray | None = None
     music_kind: str | None = None
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class CropDraw:
+    """How one training clip is cut: ``offset`` frames into a longer clip played ``speed``
+    times as fast (1 = as generated), reflected left-right when ``mirrored``."""
+
+    offset: int
+    speed: float = 1.0
+    mirrored: bool = False
+
+
+def crop_draw(config: TrainingDataConfig, split: str, seed: int, any_split: bool = False) -> CropDraw | None:
+    """The crop of the clip with ``seed`` (None: a whole clip from the start of the dance).
+
+    Only training clips are cropped (any_split: validation clips too, for a held-out figure
+    on windows that start mid-dance), a share ``config.crop`` of them; offset uniform in
+    [1, crop_max_s·fps] frames, speed uniform in 1 ± crop_speed, mirrored with probability
+    crop_mirror; all drawn from the clip's seed, so a split is reproducible."""
+    share = float(getattr(config, "crop", 0.0))
+    if (split != "train" and not any_split) or share <= 0.0:
+        return None
+    rng = np.random.default_rng([int(seed), 28])
+    if rng.uniform() >= share:
+        return None
+    offset = int(rng.integers(1, max(1, int(round(float(config.crop_max_s) * float(config.fps)))) + 1))
+    spread = float(config.crop_speed)
+    speed = float(rng.uniform(1.0 - spread, 1.0 + spread)) if spread > 0 else 1.0
+    return CropDraw(offset, speed, bool(rng.uniform() < float(config.crop_mirror)))
+
+
+def _swap_sides(text: str) -> str:
+    return " ".join({"left": "right", "right": "left"}.get(w, w) for w in text.split(" "))
+
+
+def cropped_duet(rule: str, n_frames: int, fps: float, seed: int, draw: CropDraw, varied: bool = False):
+    """Motion frames [offset, offset + n_frames) of ``make_duet(rule, ..., seed)`` generated
+    long enough and at fps / speed (so it plays ``speed`` times as fast at ``fps``), both
+    persons cut at the same frames; mirrored: both reflected in the vertical plane y = 0
+    (left and right joints, contacts and the text's sides swapped). meta["beats"] is cut with
+    them; meta gains "crop_offset", "speed" and "crop_mirrored"."""
+    from dualflow.motion.container import TwoPersonMotion
+    from dualflow.synthetic import _CONTACT_MIRROR, _reflect
+
+    gen_fps = float(fps) / draw.speed
+    total = draw.offset + int(n_frames)
+    pair = make_duet(rule, seconds=total / gen_fps, fps=gen_fps, seed=seed, varied=varied)
+    if len(pair.actor.positions) != total:
+        raise DualFlowError(f"cropped synthetic clip: expected {total} frames, got {len(pair.actor.positions)}")
+    cut = slice(draw.offset, total)
+    people = []
+    for person in (pair.actor, pair.reactor):
+        pos, contacts = person.positions[cut], None if person.contacts is None else person.contacts[cut]
+        if draw.mirrored:
+            n = len(pos)
+            pos = _reflect(pos, np.zeros((n, 2)), np.broadcast_to(np.array([0.0, 1.0]), (n, 2)))
+            contacts = None if contacts is None else contacts[:, _CONTACT_MIRROR]
+        people.append(person.replace(positions=pos, contacts=contacts, fps=float(fps)))
+    meta = dict(pair.meta)
+    meta.update(beats=pair.meta["beats"][cut], crop_offset=draw.offset, speed=draw.speed, crop_mirrored=draw.mirrored)
+    meta["beat_frames"] = np.flatnonzero(meta["beats"][:, 0] > 0.5)
+    text = _swap_sides(pair.text) if draw.mirrored else pair.text
+    return TwoPersonMotion(people[0], people[1], text, meta)
 
 
 def clip_seed(config: TrainingDataConfig, split: str, index: int) -> int:
@@ -83,7 +151,10 @@ def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path) -> Sy
     path = _cache_file(config, split, cache_dir)
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
-            return SyntheticSplit(z["features"], [str(t) for t in z["texts"]], z["beats"], z["rules"], z["seeds"])
+            offsets = z["offsets"] if "offsets" in z.files else np.zeros(0, dtype=np.int64)
+            return SyntheticSplit(
+                z["features"], [str(t) for t in z["texts"]], z["beats"], z["rules"], z["seeds"], offsets=offsets
+            )
     out = build_split(config, split)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
@@ -94,13 +165,17 @@ def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path) -> Sy
         beats=out.beats,
         rules=out.rules,
         seeds=out.seeds,
+        offsets=out.offsets,
     )
     os.replace(tmp, path)
     return out
 
 
 def build_split(
-    config: TrainingDataConfig, split: str = "train", cache_dir: str | os.PathLike | None = None
+    config: TrainingDataConfig,
+    split: str = "train",
+    cache_dir: str | os.PathLike | None = None,
+    crop_any_split: bool = False,
 ) -> SyntheticSplit:
     """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core).
 
@@ -108,8 +183,9 @@ def build_split(
     frame; InterGen drops the last motion frame, hence ``frames + 1`` generated frames).
     cache_dir: when given, the split is read from / written to an npz there (no pickle:
     texts are stored as a unicode array), keyed by the config and the generator's source.
+    crop_any_split: crop validation clips too (:func:`crop_draw`; not cached).
     """
-    if cache_dir is not None:
+    if cache_dir is not None and not crop_any_split:
         return _cached_split(config, split, Path(cache_dir))
     n = int(config.n_clips if split == "train" else config.val_clips)
     frames = int(config.frames)
@@ -119,16 +195,24 @@ def build_split(
     texts: list[str] = []
     rules = np.empty(n, dtype=np.int64)
     seeds = np.empty(n, dtype=np.int64)
+    offsets = np.zeros(n, dtype=np.int64)
     for i in range(n):
         rule_index = i % len(config.rules)
         seed = clip_seed(config, split, i)
-        pair = make_duet(
-            config.rules[rule_index],
-            seconds=seconds,
-            fps=float(config.fps),
-            seed=seed,
-            varied=is_varied_clip(config, i),
-        )
+        draw = crop_draw(config, split, seed, crop_any_split)
+        if draw is not None:
+            pair = cropped_duet(
+                config.rules[rule_index], frames + 1, float(config.fps), seed, draw, varied=is_varied_clip(config, i)
+            )
+            offsets[i] = draw.offset
+        else:
+            pair = make_duet(
+                config.rules[rule_index],
+                seconds=seconds,
+                fps=float(config.fps),
+                seed=seed,
+                varied=is_varied_clip(config, i),
+            )
         f, _ = encode_pair(pair)
         if f.shape[0] != frames:
             raise DualFlowError(
@@ -139,7 +223,7 @@ def build_split(
         texts.append(pair.text)
         rules[i] = rule_index
         seeds[i] = seed
-    return SyntheticSplit(feats, texts, beats, rules, seeds)
+    return SyntheticSplit(feats, texts, beats, rules, seeds, offsets=offsets)
 
 
 def click_track_music(beats: np.ndarray, kind: str = "edge35", fps: float = 30.0) -> np.ndarray:
@@ -174,7 +258,8 @@ def click_track_music(beats: np.ndarray, kind: str = "edge35", fps: float = 30.0
 def with_click_music(split: SyntheticSplit, kind: str, fps: float) -> SyntheticSplit:
     """The same split with ``music`` = :func:`click_track_music` of every clip's beat track."""
     music = np.stack([click_track_music(b, kind, fps) for b in split.beats]).astype(np.float32)
-    return SyntheticSplit(split.features, split.texts, split.beats, split.rules, split.seeds, music, kind)
+    s = split
+    return SyntheticSplit(s.features, s.texts, s.beats, s.rules, s.seeds, music, kind, s.offsets)
 
 
 def load_synthetic(

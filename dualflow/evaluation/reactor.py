@@ -105,11 +105,16 @@ def reactor_errors(
     return ReactorErrors(errors[False], errors[True], static, len(dataset), steps)
 
 
-def evaluate_checkpoint(path=None, *, n_clips: int = 32, steps: int = 20, seed: int = 0) -> ReactorErrors:
+def evaluate_checkpoint(
+    path=None, *, n_clips: int = 32, steps: int = 20, seed: int = 0, mid_dance: bool = False
+) -> ReactorErrors:
     """Reactor errors of a checkpoint (default: the bundled one) on ``n_clips`` synthetic
     validation clips of the checkpoint's own data config (seeds disjoint from training),
     normalised with the checkpoint's statistics; the static pose is the mean reactor pose of
-    as many training clips. Music is the beat track when the checkpoint was trained with it."""
+    as many training clips. Music is the beat track when the checkpoint was trained with it.
+    mid_dance: every validation clip is instead cut at a random offset (up to 6 s, real speed,
+    not mirrored) from a longer clip of the same seed (``dualflow.datasets.synthetic.crop_draw``):
+    the windows a live stream sees after its first seconds."""
     from dataclasses import replace
 
     from dualflow.checkpoint import load_model
@@ -123,9 +128,11 @@ def evaluate_checkpoint(path=None, *, n_clips: int = 32, steps: int = 20, seed: 
 
         raise DualFlowError(f"{ck.path}: config.json has no 'data' section; it was not trained on synthetic duets")
     cfg = replace(TrainingDataConfig.from_dict(data), n_clips=n_clips, val_clips=n_clips)
+    if mid_dance:
+        cfg = replace(cfg, crop=1.0, crop_max_s=6.0, crop_speed=0.0, crop_mirror=0.0)
     from dualflow.text import as_text_embedder
 
     embed = as_text_embedder(ck.make_text_encoder())
-    val = DuetDataset(build_split(cfg, "val"), ck.stats, model.config.text_dim, embed)
+    val = DuetDataset(build_split(cfg, "val", crop_any_split=mid_dance), ck.stats, model.config.text_dim, embed)
     train = DuetDataset(build_split(cfg, "train"), ck.stats, model.config.text_dim, embed)
     return reactor_errors(model, val, train, steps=steps, seed=seed, music=ck.meta.get("music") == "beats")
