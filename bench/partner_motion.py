@@ -207,6 +207,7 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 8, steps: i
     for ck in checkpoints:
         label = Path(ck).name if ck else "bundled"
         gen = DuetGenerator.from_checkpoint(ck)
+        raw_runs = {}
         for clean in (False, True):
             tag = "clean" if clean else "raw"
             gen.clean = clean
@@ -215,6 +216,8 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 8, steps: i
                 gen.generate(actor=pair.actor, text=t, seed=0, steps=steps)[0].reactor.positions for t in CUE_TEXTS
             ]
             add(f"{label} offline {seeds} seeds, no text, {tag}", seeded, diversity_texts=diversity(texted))
+            if not clean:
+                raw_runs["offline"] = seeded
             streamed, per_frame = [], []
             for s in range(stream_seeds):
                 cfg = StreamConfig(window=d.window, steps=d.steps, hop=d.hop, incremental=True, seed=s)
@@ -239,6 +242,18 @@ def cmu_table(checkpoints: list, seeds: int = 8, stream_seeds: int = 8, steps: i
                     per_frame.append((time.perf_counter() - t0) / len(frames))
             extra = {"clean_ms_per_frame": 1e3 * float(np.mean(per_frame))} if per_frame else {}
             add(f"{label} streaming (demo settings), {tag}", streamed, **extra)
+            if not clean:
+                raw_runs["streaming (demo settings)"] = streamed
+        # the same raw clips cleaned as before the travel limit (CleanConfig.max_speed / max_accel
+        # off): the cleaner only reads the frames it is given, so this is the old row, same run
+        from dualflow.body import CleanConfig, clean_positions
+
+        before = CleanConfig(max_speed=0.0, max_accel=0.0)
+        for mode, clips in raw_runs.items():
+            add(
+                f"{label} {mode}, clean without the travel limit",
+                [clean_positions(c, 30.0, config=before)[0] for c in clips],
+            )
     return rows
 
 

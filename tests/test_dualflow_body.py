@@ -124,3 +124,33 @@ def test_bad_input_gets_one_clear_error():
         BodyCleaner(lengths=np.ones(5))
     with pytest.raises(DualFlowError, match="order"):
         CleanConfig(order=0)
+
+
+def test_a_body_running_off_travels_at_a_persons_speed_and_a_walk_is_left_alone():
+    """The generated pelvis (the whole body) runs off at 4 m/s from standing and stops dead
+    (a partner chasing an actor that steps back): cleaned, it travels at most max_speed and
+    changes speed at most max_accel, and comes to rest where the generated body stopped
+    without running past it. A walk at 1 m/s (under both limits after its start) is left where
+    it is."""
+    cfg = CleanConfig(smooth=False, feet=False)
+    still = make_leader_clip(3.0, 30.0, 0).body.positions[:1]
+    T = 90
+    x = np.clip(np.arange(T) - 20, 0, 20) * (4.0 / 30.0)  # 4 m/s for 20 frames (2.67 m), then still
+    run = np.repeat(still, T, axis=0)
+    run[:, :, 0] += x[:, None]
+    out, _ = clean_positions(run, 30.0, config=cfg)
+    v = np.diff(out[:, 0, :2], axis=0) * 30.0
+    a = np.diff(v, axis=0) * 30.0
+    assert np.linalg.norm(v, axis=1).max() <= cfg.max_speed + 1e-9
+    assert np.linalg.norm(a, axis=1).max() <= cfg.max_accel + 1e-9
+    moved = out[:, 0, 0] - out[0, 0, 0]
+    assert moved.max() <= x[-1] + 2e-3  # no overshoot (the braking is frame by frame: about 1 mm)
+    assert abs(moved[-1] - x[-1]) < 1e-3  # and it got there
+    # the body moves as one: bones and posture relative to the pelvis untouched
+    np.testing.assert_allclose(out - out[:, :1], run - run[:, :1], atol=1e-12)
+    walk = np.repeat(still, T, axis=0)
+    walk[:, :, 0] += (np.arange(T) * (1.0 / 30.0))[:, None]
+    out, _ = clean_positions(walk, 30.0, config=cfg)
+    assert np.abs(out[15:, 0, 0] - walk[15:, 0, 0]).max() < 1e-9  # caught up after the start, then exact
+    with pytest.raises(DualFlowError, match="max_speed"):
+        CleanConfig(max_speed=2.0, max_accel=0.0)
