@@ -184,7 +184,7 @@ class BalancePlanner:
         c0 = start.mean(axis=0)
         u = min(1.0, int(self._since[s]) / self._swing_frames(s))
         share = math.sin(0.5 * math.pi * u) ** 2
-        h0 = _heading(_long_axis(start, self._head_ref[s]))
+        h0 = self._head_ref[s]  # the heading of the footprint it lifted from (touch_down)
         turn = share * _wrap(self._landing_heading(s) - h0)
         self._swing_heading[s] = h0 + turn  # where the foot points now: names its axis's direction at touch-down
         c, sn = math.cos(turn), math.sin(turn)
@@ -237,7 +237,7 @@ class BalancePlanner:
         cfg = self.config
         fp = self._prints[1 - s]
         centre = fp.mean(axis=0)
-        axis = _long_axis(fp, self._head_ref[1 - s])
+        axis = np.array([math.cos(self._head_ref[1 - s]), math.sin(self._head_ref[1 - s])])  # its long axis
         side = np.array([-axis[1], axis[0]]) * (1.0 if s == 0 else -1.0)  # towards foot s's own side
         half_l, half_w = np.abs((fp - centre) @ axis).max(), np.abs((fp - centre) @ side).max()
         delta = _wrap(self._landing_heading(s) - self._head_ref[1 - s])
@@ -490,7 +490,8 @@ class BalancePlanner:
         # the foot's own heading; the axis's direction from where the swing pointed it (the
         # anchored person's heading can be more than π/2 off it after fast turns)
         hint = self._heads_now[s] if self._swing_heading[s] is None else self._swing_heading[s]
-        self._head_ref[s] = _heading(_long_axis(fp, hint))
+        axis = _long_axis(fp, hint)
+        self._head_ref[s] = math.atan2(axis[1], axis[0])
         self._swing_heading[s] = None
         self._since[s] = 0
         self._region_key = None
@@ -510,10 +511,6 @@ def _long_axis(footprint: np.ndarray, heading: float) -> np.ndarray:
     d = footprint - footprint.mean(axis=0)
     axis = np.linalg.eigh(d.T @ d)[1][:, 1]
     return -axis if axis @ (math.cos(heading), math.sin(heading)) < 0 else axis
-
-
-def _heading(axis: np.ndarray) -> float:
-    return math.atan2(axis[1], axis[0])
 
 
 def _wrap(angle: float) -> float:
