@@ -3,7 +3,7 @@
 Contract: :meth:`RetargetProfile.load` reads ``profile.yaml`` (fields: ``robot``, ``mjcf``,
 ``root``, ``keypoints``, ``scale``, ``joint_limits``, ``velocity_limits``, ``capsules``,
 ``collision_pairs``, ``collision_margin``, ``feet``, ``rigid_offsets``, ``posture_weight``,
-``stand_keyframe``) into a frozen :class:`RetargetProfile`; every error is a
+``stand_keyframe``, ``streaming_steps``) into a frozen :class:`RetargetProfile`; every error is a
 :class:`retarget.errors.RetargetError` naming the file and the field. Lengths m, angles rad,
 speeds rad/s. Validation against the MJCF happens in :class:`retarget.robot.RetargetRobot`.
 What each field means: docs/retargeting.md, section 8.
@@ -72,6 +72,9 @@ class RetargetProfile:
     feet: dict = field(default_factory=dict)
     posture_weight: float = 0.02
     stand_keyframe: str = "stand"
+    #: whether the streaming retargeter (the live bridge) steps with this free-standing robot
+    #: when the person steps (True), or keeps its feet planted (StreamingConfig.steps None)
+    streaming_steps: bool = True
     rigid_offsets: tuple = ("left_hip", "right_hip", "left_shoulder", "right_shoulder")
     source: str = ""
 
@@ -116,6 +119,7 @@ class RetargetProfile:
             "posture_weight",
             "stand_keyframe",
             "rigid_offsets",
+            "streaming_steps",
         }
         unknown = sorted(set(data) - known)
         if unknown:
@@ -154,6 +158,7 @@ class RetargetProfile:
                 data.get("posture_weight", 0.02), _where(source, "posture_weight"), allow_zero=True
             ),
             stand_keyframe=str(data.get("stand_keyframe", "stand")),
+            streaming_steps=_flag(data.get("streaming_steps", True), _where(source, "streaming_steps")),
             source=source,
         )
 
@@ -332,6 +337,12 @@ def _vec3(v, where: str) -> tuple[float, float, float]:
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise RetargetError(f"{where}: give three numbers [x, y, z] in metres, got {v!r}")
     return tuple(float(x) for x in a)
+
+
+def _flag(v, where: str) -> bool:
+    if not isinstance(v, bool):
+        raise RetargetError(f"{where}: must be true or false, got {v!r}")
+    return v
 
 
 def _positive(v, where: str, allow_zero: bool = False) -> float:

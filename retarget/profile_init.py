@@ -1081,6 +1081,10 @@ def _profile_text(d: _ProfileDraft) -> str:
     L.append("# Hips and shoulders at the robot's own offsets, turned with the person's pelvis and chest.")
     L.append(f"rigid_offsets: [{', '.join(rigid)}]")
     L.append("posture_weight: 0.02")
+    L.append("# The live bridge keeps the feet planted until you turn steps on (true) and")
+    L.append("# `dualflow-bridge retarget-check CLIPS --robot DIR --retargeter streaming` passes with them:")
+    L.append("# the step timing was tuned on the bundled op3; a published OP3 and G1 fell more often with them.")
+    L.append("streaming_steps: false")
     L.append(f"stand_keyframe: {d.stand[0]}  # {d.stand[1]}")
     return "\n".join(L) + "\n"
 

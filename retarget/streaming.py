@@ -10,7 +10,7 @@ rules: docs/retargeting.md (sections 4 and 6).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
@@ -39,7 +39,9 @@ class StreamingConfig:
     # balance (free-base robots with feet; see the module docstring). Weights are per m² of
     # the residual named; lengths m, times s.
     balance: bool = False
-    steps: bool = True  # the robot steps when the person does (off: both feet stay planted)
+    # the robot steps when the person does (False: both feet stay planted; None: the robot
+    # profile's streaming_steps)
+    steps: bool | None = None
     balance_margin: float = 0.02  # footprints shrunk by this; the CoM, DCM and ZMP stay inside
     balance_weight: float = 1e4  # CoM outside the support region
     dcm_weight: float = 1e3  # capture point outside it
@@ -172,6 +174,8 @@ class StreamingRetargeter:
     def __init__(self, robot, fps: float, config: StreamingConfig = StreamingConfig()):
         self.robot = robot
         self.fps = float(fps)
+        if config.steps is None:
+            config = replace(config, steps=robot.profile.streaming_steps)
         self.config = config
         self._build()
         self.reset()

@@ -451,3 +451,23 @@ def test_step_timing_that_cannot_work_is_one_error_naming_the_field(op3):
     ):
         with pytest.raises(RetargetError, match=field):
             StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, **kw))
+
+
+def test_steps_follow_the_robot_profile_unless_the_config_says():
+    """StreamingConfig.steps None takes the profile's streaming_steps (robot init writes false
+    for a robot the step timing was not measured on); True or False overrides it."""
+    import dataclasses
+
+    from retarget.robot import RetargetRobot
+
+    op3 = load_robot("op3")
+    assert op3.profile.streaming_steps  # the bundled op3 steps (bench/stepping.py)
+    planted = RetargetRobot(op3.kin, dataclasses.replace(op3.profile, streaming_steps=False))
+    motion = person(seconds=3.0, lift=(1.0, 1.4))
+    for robot, cfg, lifts in (
+        (op3, StreamingConfig(balance=True), True),
+        (planted, StreamingConfig(balance=True), False),
+        (planted, StreamingConfig(balance=True, steps=True), True),
+    ):
+        s, X, held = stream(robot, motion, steps=cfg.steps)
+        assert s.config.steps is lifts and bool((~held).any()) is lifts

@@ -38,6 +38,7 @@ def _with(path, value):
         (("joint_limits",), {"no_joint": [0.0, 1.0]}, r"joint_limits\.no_joint.*no hinge joint"),
         (("velocity_limits",), {"default": -1}, r"velocity_limits\.default.*> 0"),
         (("posture_weight",), "heavy", r"posture_weight.*number"),
+        (("streaming_steps",), "yes", r"streaming_steps.*true or false"),
     ],
 )
 def test_bad_profiles_name_the_field(path, value, match):

@@ -291,6 +291,7 @@ def test_the_anatomy_comes_from_the_tree_and_geometry_not_the_names(toy_folder, 
     prof = yaml.safe_load((toy_folder / "profile.yaml").read_text())
     # the hip is the pitch hinge (the last of three at one point), the wrist the end of the forearm capsule
     assert "joint m3" in (toy_folder / "profile.yaml").read_text()
+    assert prof["streaming_steps"] is False  # a robot the step timing was not measured on keeps its feet planted
     assert prof["keypoints"]["left_wrist"]["offset"] == pytest.approx([0, 0, -0.152], abs=1e-3)
     # the sole: the box's bottom face, in the foot's frame, counter-clockwise from above
     corners = np.array(prof["feet"]["left"]["corners"])
