@@ -54,6 +54,11 @@ class BalancePlanner:
         self._foot_kps = [[self._ankles[s]] + ([self._toes[s]] if self._toes else []) for s in range(2)]
         self._foot_kp_h = [rb.standing_heights[k] for k in self._foot_kps]
         self._feet_idx = self._ankles + (self._toes if self._toes is not None else self._hips)
+        # the body turned towards the person's heading ahead of the feet (``body_twist``):
+        # everything above the knees (the hip yaw joints turn the pelvis over the legs)
+        below = {index[n] for n in ("left_knee", "right_knee") if n in index}
+        below |= set(self._ankles) | set(self._toes or ())
+        self._twisted = [k for k in range(len(names)) if k not in below]
         stand = rb.evaluate(rb.x_stand[None])
         self._stand_kp = stand["keypoints"][0]
         h = float(stand["com"][0, 2] - stand["sole"][0, :, 2].min())
@@ -268,7 +273,9 @@ class BalancePlanner:
         pivot p = mean_s a_s move towards it by α = 1 − exp(−1 / (fps τ)), τ = ``anchor_time``.
         The robot then follows the person's steps (and turns step by step), not the drift,
         turning on the spot or skating of the feet (generated motion often slides them),
-        which it could not do standing."""
+        which it could not do standing. With ``body_twist`` the body above the knees is then
+        turned back towards the person's heading about the pelvis target, by
+        limit·tanh(−ψ / limit): the hips turn the trunk ahead of feet that lag the person's turn."""
         feet = targets[self._feet_idx, 0:3].tolist()  # left/right ankle, then left/right toe or hip
         (lx, ly, lz), (rx, ry, rz) = feet[0], feet[1]
         if self._toes is not None:
@@ -304,7 +311,19 @@ class BalancePlanner:
         self._heads_now = [heads[0] + self.psi, heads[1] + self.psi]
         self._heads_person = heads
         self._ankle_z = (lz, rz)
-        return targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
+        out = targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
+        limit = self.config.body_twist
+        if limit > 0 and not first:
+            self._twist(out, limit * math.tanh(-_wrap(self.psi) / limit))
+        return out
+
+    def _twist(self, out: np.ndarray, angle: float) -> None:
+        """Turn the body above the knees by ``angle`` rad about the pelvis target, in place: the
+        anchoring turned the whole body with the planted feet."""
+        root = out[self.robot.root_keypoint, 0:2].copy()
+        c, sn = math.cos(angle), math.sin(angle)
+        idx = self._twisted
+        out[idx, 0:2] = root + (out[idx, 0:2] - root) @ np.array([[c, sn], [-sn, c]])
 
     def neutral_stance(self, targets: np.ndarray) -> np.ndarray:
         """``targets`` (K, 3) with the ankle and toe targets moved to where the robot's stand
