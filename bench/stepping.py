@@ -12,17 +12,19 @@ they were not tuned on; ``cmu``: the CMU two-person pair
 dualflow.synthetic.make_duet (generated partners, hand_hold and orbit). Each clip goes through four
 retargeters in the same run, on one core (sched_setaffinity, single-threaded BLAS), CPU time:
 
-- offline (OfflineConfig(balance=True, zmp=True), as retarget-check runs it): the robot's own
-  contact schedule (retarget.schedule), per-window warm starts, and by default the lead-in
-  (``OfflineConfig.lead_in=LeadInConfig()``: a clip that starts mid-motion is started from the
-  robot's standing stance at rest by retarget.lead_in instead of the check's joint-space entry
-  into its first frame) and the swing clearance (``StepConfig(swing_clearance=0.02)``). The
-  figures are over the clip's frames (after the lead-in); the lead-in's own steps are not
-  counted; physics failure times are the check's, in clip time (after the clip's start). Its
-  baseline, *offline before*: the person's contacts held as they are and one streamed warm start
-  for the whole clip, without a lead-in (the code before the stepping work);
+- offline (OfflineConfig(balance=True, zmp=True), as retarget-check runs it; engine "auto": on a
+  free-standing robot the step planner of retarget.planned, the streaming solver over the whole
+  clip seeing the person's contacts 0.1 s early). Its baseline, *offline ipopt*
+  (``engine="ipopt"``, the default before): the window optimisation with the robot's own contact
+  schedule (retarget.schedule), per-window warm starts, the lead-in (``OfflineConfig.lead_in``:
+  a clip that starts mid-motion is started from the robot's standing stance at rest by
+  retarget.lead_in) and the swing clearance (``StepConfig(swing_clearance=0.02)``); its figures
+  are over the clip's frames (after the lead-in), physics failure times in clip time. *offline
+  before* (``--modes offline-before``): the window optimisation with the person's contacts held as
+  they are and one streamed warm start for the whole clip, without a lead-in (the code before the
+  stepping work);
 - *offline without the lead-in* (``--modes offline,offline-no-lead-in``, then *offline*'s
-  baseline): the same with ``lead_in=None`` and ``StepConfig(swing_clearance=0.0)`` (the defaults
+  baseline): the window optimisation with ``lead_in=None`` and ``StepConfig(swing_clearance=0.0)`` (the defaults
   before both were switched on);
 - *offline previous* (``--modes offline-prev``): the same with every change of the physics
   root-cause work off (the lead-in too): the cart-table ZMP (one point mass at the CoM), no
@@ -104,6 +106,10 @@ def robot_steps(rb, X: np.ndarray, fps: float) -> tuple[int, np.ndarray]:
     return count_steps(down), down
 
 
+#: the offline mode's baseline: the first of these that ran
+OFFLINE_BASELINES = ("offline-ipopt", "offline-no-lead-in", "offline-prev", "offline-before")
+
+
 def zmp_shares(rb, X: np.ndarray, down: np.ndarray, fps: float) -> tuple[float, float]:
     """Shares of frames (with a foot down) whose cart-table ZMP is inside the support polygon, and with
     1 cm to spare."""
@@ -139,7 +145,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap.add_argument("--clips", default="leaders,cmu,duets")
     ap.add_argument("--max-clips", type=int, default=0, help="at most this many clips (0: all)")
     ap.add_argument("--physics", action="store_true", help="also run sim's free-standing check")
-    ap.add_argument("--modes", default="offline,offline-before,streaming,streaming-before")
+    ap.add_argument("--modes", default="offline,offline-ipopt,streaming,streaming-before")
     args = parse_args(ap, argv, quick, QUICK)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
@@ -179,8 +185,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     height = float(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2].max())
     print(f"robot {rb.name} (height {height:.3f} m), {len(clips)} clips, load {os.getloadavg()[0]:.2f}")
     off = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True))
+    off_ipopt = OfflineRetargeter(rb, OfflineConfig(balance=True, zmp=True, engine="ipopt"))
     off_plain = OfflineRetargeter(
-        rb, OfflineConfig(balance=True, zmp=True, lead_in=None, steps=StepConfig(swing_clearance=0.0))
+        rb, OfflineConfig(balance=True, zmp=True, lead_in=None, steps=StepConfig(swing_clearance=0.0), engine="ipopt")
     )
     prev = StepConfig(
         min_double=0.0,
@@ -194,7 +201,13 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     off_prev = OfflineRetargeter(
         rb,
         OfflineConfig(
-            balance=True, zmp=True, zmp_model="cart-table", single_support_com=False, steps=prev, lead_in=None
+            balance=True,
+            zmp=True,
+            zmp_model="cart-table",
+            single_support_com=False,
+            steps=prev,
+            lead_in=None,
+            engine="ipopt",
         ),
     )
     st_new = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True))
@@ -227,6 +240,8 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 with Clock() as ck:
                     if mode == "offline":
                         traj = off.retarget(motion)
+                    elif mode == "offline-ipopt":
+                        traj = off_ipopt.retarget(motion)
                     elif mode == "offline-no-lead-in":
                         traj = off_plain.retarget(motion)
                     elif mode == "offline-prev":
@@ -284,7 +299,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     for mode in modes:
         s = stats[mode]
         base = {
-            "offline": next((m for m in ("offline-no-lead-in", "offline-prev", "offline-before") if m in stats), None),
+            "offline": next((m for m in OFFLINE_BASELINES if m in stats), None),
             "streaming": "streaming-before",
         }.get(mode)
         b = stats.get(base) if base else None

@@ -23,7 +23,17 @@ from dualflow.motion import Motion
 from retarget.codegen import compiled_nlpsol, single_threaded_linear_algebra
 from retarget.errors import RetargetError
 from retarget.lead_in import LeadInConfig, lead_in, with_lead_in
-from retarget.schedule import Change, StepConfig, count_steps, robot_contacts, standing_soles, standing_start
+from retarget.planned import planned_trajectory
+from retarget.schedule import (
+    Change,
+    StepConfig,
+    changes_over,
+    count_steps,
+    robot_contacts,
+    speed_limited,
+    standing_soles,
+    standing_start,
+)
 from retarget.shaping import ease_travel
 from retarget.streaming import StreamingConfig, StreamingRetargeter, hash_config, trajectory_from_x
 from retarget.targets import KeypointScaler, Targets, check_motion, make_targets
@@ -48,6 +58,7 @@ _ERRORS = {
     "Invalid_Number_Detected",
 }
 GRAVITY = 9.81  # m/s²
+ENGINES = ("auto", "planner", "ipopt")
 #: MUMPS working space beyond its estimate (%), IPOPT's ``mumps_mem_percent`` (see _solver)
 MUMPS_MEM_PERCENT = 100
 
@@ -103,6 +114,16 @@ class OfflineConfig:
     # solved too (3.07 s before each 2.5 s CMU clip: bench/retarget_speed.py's offline frames/s
     # per clip frame 126 -> 43)
     lead_in: LeadInConfig | None = LeadInConfig()
+    # which method: "auto" retargets a free-standing robot with feet (with balance and contacts
+    # on) by the step planner (retarget.planned: the streaming solver and its balance planner
+    # over the whole clip, seeing the person's foot contacts ``lookahead`` s early), any other
+    # robot by the window optimisation above; "planner" and "ipopt" choose one. Measured on op3
+    # (bench/stepping.py --physics, 9 clips): the planner 9/9 clips without a fall, keypoint error
+    # 7.3 % of height, ~2000 frames/s; the window optimisation 7/9, 3.7 %, ~90 frames/s. The
+    # planner starts standing by construction (``lead_in`` and ``steps`` are the window
+    # optimisation's) and never fails a clip: ``changes`` say where it did something else
+    engine: str = "auto"
+    lookahead: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -183,6 +204,17 @@ class OfflineRetargeter:
         self._height = (
             float(np.ptp(robot.evaluate(robot.x_stand[None])["keypoints"][0][:, 2])) if robot.n_keypoints else 0.0
         )
+        if config.engine not in ENGINES:
+            raise RetargetError(f"OfflineConfig.engine: {config.engine!r} is not one of {', '.join(ENGINES)}")
+        free = robot.floating and robot.has_feet and config.balance and config.contacts
+        if config.engine == "planner" and not free:
+            raise RetargetError(
+                f"OfflineConfig.engine: the planner retargets a free-standing robot with feet, balance and "
+                f"contacts on ({robot.name}: floating {robot.floating}, feet {robot.has_feet}, balance "
+                f"{config.balance}, contacts {config.contacts}); use engine='ipopt'"
+            )
+        self._planners: dict[float, StreamingRetargeter] = {}  # by fps, built once
+        self.engine = "planner" if config.engine == "planner" or (config.engine == "auto" and free) else "ipopt"
 
     # -- problem construction -----------------------------------------------------
     def _build_frame_function(self) -> ca.Function:
@@ -472,6 +504,8 @@ class OfflineRetargeter:
         "lead-in dropped" change says why)."""
         check_motion(motion, min_frames=2)
         cfg = self.config
+        if self.engine == "planner":
+            return self._retarget_planned(motion, contacts, scaler)
         if cfg.lead_in is not None and self.robot.floating and self.robot.has_feet:
             led, lead = lead_in(motion, cfg.lead_in, contacts)
             if lead is not None:  # the lead-in's motion carries its contacts; bones scaled as the clip's
@@ -485,6 +519,19 @@ class OfflineRetargeter:
                 traj.meta["changes"] = [Change(0.0, 0.0, "lead-in dropped", why).to_dict(), *traj.meta["changes"]]
                 return traj
         return self._retarget_retimed(motion, contacts, scaler)
+
+    def _retarget_planned(self, motion: Motion, contacts, scaler) -> RobotTrajectory:
+        """The step planner's trajectory (:mod:`retarget.planned`), at ``retime``."""
+        cfg = self.config
+        if cfg.retime != 1.0:
+            motion, contacts = slowed(motion, cfg.retime), None  # contacts re-detected on the slowed clip
+        stream = self._planners.get(motion.fps)
+        if stream is None:
+            planner = StreamingConfig(balance=True, compile=cfg.compile)
+            stream = self._planners[motion.fps] = StreamingRetargeter(self.robot, motion.fps, planner)
+        traj = planned_trajectory(stream, motion, contacts, scaler, cfg.lookahead, cfg.velocity_safety)
+        traj.meta["retime"] = cfg.retime
+        return traj
 
     def _retarget_retimed(self, motion: Motion, contacts, scaler) -> RobotTrajectory:
         """``_retarget_at`` at ``retime`` (and the slower factors with ``auto_retime``); RetargetError
@@ -515,10 +562,7 @@ class OfflineRetargeter:
     def _retarget_at(self, motion: Motion, contacts, factor: float, scaler=None) -> RobotTrajectory:
         fps = motion.fps
         if factor != 1.0:
-            if contacts is not None:
-                contacts = None  # re-detected on the slowed clip
-            slowed = Motion(motion.positions, fps=fps / factor, contacts=motion.contacts, name=motion.name)
-            motion = slowed.resample(fps)
+            motion, contacts = slowed(motion, factor), None  # contacts re-detected on the slowed clip
         tg = make_targets(self.robot, motion, contacts, scaler)
         t0 = time.perf_counter()
         person_steps = count_steps(tg.contacts)
@@ -544,7 +588,7 @@ class OfflineRetargeter:
             if self.config.steps.travel_zmp_shift > 0:
                 a_max = GRAVITY * self.config.steps.travel_zmp_shift / max(self._com_height, 1e-3)
                 kp, shift = ease_travel(kp, self.robot.root_keypoint, fps, a_max)
-                changes += _runs_over(
+                changes += changes_over(
                     np.linalg.norm(shift, axis=1),
                     0.02,
                     fps,
@@ -915,57 +959,11 @@ def _static_stance(contacts: np.ndarray, pre: int) -> np.ndarray:
     return out
 
 
-def _runs_over(value: np.ndarray, level: float, fps: float, what: str, why: str) -> list:
-    """One Change per run of frames with ``value`` (T,) above ``level``."""
-    out, T, t = [], len(value), 0
-    while t < T:
-        if value[t] > level:
-            e = t
-            while e < T and value[e] > level:
-                e += 1
-            out.append(Change(round(t / fps, 3), round(e / fps, 3), what, why))
-            t = e
-        else:
-            t += 1
-    return out
-
-
-def speed_limited(
-    robot, X: np.ndarray, fps: float, safety: float = 1.0, share: float = 0.98, min_frames: int = 2, gap: int = 2
-) -> list:
-    """Parts where the solution runs at a speed limit: runs of at least ``min_frames`` frames
-    (gaps up to ``gap`` frames bridged) in which some joint or root DOF moves at ``share`` of
-    its velocity bound or more; there the robot follows the person at reduced amplitude. One
-    :class:`retarget.schedule.Change` ("speed-limited", naming the joints) per run. X (T, nx)."""
-    v = np.concatenate([robot.root_velocity_limits, robot.velocity_limits]) * safety / fps
-    if X.shape[0] < 2:
-        return []
-    hit = np.abs(np.diff(X, axis=0)) >= share * v[None]  # (T-1, nx): frame t → t+1
-    any_hit = hit.any(axis=1)
-    names = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")[: robot.n_root] + tuple(
-        robot.joint_names
+def slowed(motion: Motion, factor: float) -> Motion:
+    """``motion`` played ``factor`` times slower, at its own frame rate."""
+    return Motion(motion.positions, fps=motion.fps / factor, contacts=motion.contacts, name=motion.name).resample(
+        motion.fps
     )
-    out, t, T1 = [], 0, len(any_hit)
-    while t < T1:
-        if not any_hit[t]:
-            t += 1
-            continue
-        e = t + 1
-        while e < T1 and (any_hit[e] or any_hit[e : e + gap + 1].any()):
-            e += 1
-        if e - t >= min_frames:
-            joints = [names[j] for j in np.flatnonzero(hit[t:e].any(axis=0))]
-            out.append(
-                Change(
-                    round(t / fps, 3),
-                    round((e + 1) / fps, 3),
-                    "speed-limited",
-                    f"{', '.join(joints[:4])}{' ...' if len(joints) > 4 else ''} at the servo's speed limit: "
-                    "the robot follows the person at reduced amplitude",
-                )
-            )
-        t = e
-    return out
 
 
 def mass_groups(model, share: float = 0.35) -> list[list[int]]:

@@ -76,6 +76,15 @@ def _runs(c: np.ndarray):
     return out
 
 
+def changes_over(value: np.ndarray, level: float, fps: float, what: str, why: str) -> list[Change]:
+    """One Change per run of frames with ``value`` (T,) above ``level``."""
+    return [
+        Change(round(start / fps, 3), round(stop / fps, 3), what, why)
+        for start, stop, over in _runs(np.asarray(value) > level)
+        if over
+    ]
+
+
 def foot_poses(robot, keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """Per frame, each foot's ankle xy (T, 2, 2) and heading (T, 2) rad (ankle → toe; the hips'
     facing for a profile without toe keypoints), from robot keypoint targets (T, K, 3); None
@@ -110,7 +119,7 @@ def robot_contacts(
     changes: list[Change] = []
     if T == 0:
         return c, changes
-    _keep_feet_down_in_flight(c, fps, changes)  # 1. both feet up -> the feet down before stay down
+    keep_feet_down_in_flight(c, fps, changes)  # 1. both feet up -> the feet down before stay down
     # 2. fill swings shorter than min_swing (only between two stances of the same foot)
     n_swing = max(1, int(round(cfg.min_swing * fps)))
     for s in range(2):
@@ -179,7 +188,7 @@ def _land_unfinished_swings(c: np.ndarray, fps: float, changes: list) -> None:
         )
 
 
-def _keep_feet_down_in_flight(c: np.ndarray, fps: float, changes: list) -> None:
+def keep_feet_down_in_flight(c: np.ndarray, fps: float, changes: list) -> None:
     """In place on contacts c (T, 2) bool: frames with both feet up keep the feet that were down
     before (both at the start); one "flight" change per such run."""
     why = "both of the person's feet were off the ground (a jump or a run): the robot kept its feet down"
@@ -437,3 +446,41 @@ def count_steps(contacts: np.ndarray) -> int:
     """Touch-downs after the first frame: rising edges of the side contacts (T, 2)."""
     c = np.asarray(contacts, dtype=bool)
     return int(np.sum(c[1:] & ~c[:-1]))
+
+
+def speed_limited(
+    robot, X: np.ndarray, fps: float, safety: float = 1.0, share: float = 0.98, min_frames: int = 2, gap: int = 2
+) -> list:
+    """Parts where the solution runs at a speed limit: runs of at least ``min_frames`` frames
+    (gaps up to ``gap`` frames bridged) in which some joint or root DOF moves at ``share`` of
+    its velocity bound or more; there the robot follows the person at reduced amplitude. One
+    :class:`retarget.schedule.Change` ("speed-limited", naming the joints) per run. X (T, nx)."""
+    v = np.concatenate([robot.root_velocity_limits, robot.velocity_limits]) * safety / fps
+    if X.shape[0] < 2:
+        return []
+    hit = np.abs(np.diff(X, axis=0)) >= share * v[None]  # (T-1, nx): frame t → t+1
+    any_hit = hit.any(axis=1)
+    names = ("root x", "root y", "root z", "root yaw", "root pitch", "root roll")[: robot.n_root] + tuple(
+        robot.joint_names
+    )
+    out, t, T1 = [], 0, len(any_hit)
+    while t < T1:
+        if not any_hit[t]:
+            t += 1
+            continue
+        e = t + 1
+        while e < T1 and (any_hit[e] or any_hit[e : e + gap + 1].any()):
+            e += 1
+        if e - t >= min_frames:
+            joints = [names[j] for j in np.flatnonzero(hit[t:e].any(axis=0))]
+            out.append(
+                Change(
+                    round(t / fps, 3),
+                    round((e + 1) / fps, 3),
+                    "speed-limited",
+                    f"{', '.join(joints[:4])}{' ...' if len(joints) > 4 else ''} at the servo's speed limit: "
+                    "the robot follows the person at reduced amplitude",
+                )
+            )
+        t = e
+    return out

@@ -203,7 +203,9 @@ def test_offline_starts_a_mid_step_clip_from_the_standing_stance_and_reports_it(
     m = mid_step_clip()
     # eased in, so that the joints' speed is continuous at the clip's start (the default plays the
     # clip at its own speed from the lead-in's rest)
-    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig(ease_s=0.8))).retarget(m)
+    traj = OfflineRetargeter(
+        op3, OfflineConfig(balance=True, zmp=True, lead_in=LeadInConfig(ease_s=0.8), engine="ipopt")
+    ).retarget(m)
     info = lead_in_of(traj)
     assert info is not None and traj.meta["t0_s"] == pytest.approx(info.t0_s, abs=1e-6)
     n = info.frames
@@ -232,7 +234,9 @@ def test_offline_starts_a_mid_step_clip_from_the_standing_stance_and_reports_it(
 @pytest.mark.slow
 def test_offline_leaves_a_standing_clip_as_it_is(op3):
     m = standing_clip()
-    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)  # the default lead-in
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, engine="ipopt")).retarget(
+        m
+    )  # the default lead-in
     assert lead_in_of(traj) is None and "t0_s" not in traj.meta
     assert traj.n_frames == m.n_frames
     assert not any(c["what"] in ("lead-in", "eased in") for c in traj.meta["changes"])
@@ -248,7 +252,7 @@ def test_cmu_18_01_starts_mid_step_and_stays_up_offline(op3, cmu_pair_paths):
     from sim.check import CheckConfig, check_trajectory
 
     m = load_any(cmu_pair_paths[0]).resample(30.0)
-    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, engine="ipopt")).retarget(m)
     info = lead_in_of(traj)
     assert info is not None and info.held == ("right",)
     assert traj.meta["changes"][0]["what"] == "lead-in"
@@ -264,7 +268,7 @@ def test_a_floor_clearance_no_swing_can_reach_is_dropped_window_by_window_and_re
     from retarget.schedule import StepConfig
 
     m = mid_step_clip()
-    cfg = OfflineConfig(balance=True, zmp=True, lead_in=None, steps=StepConfig(swing_clearance=0.5))
+    cfg = OfflineConfig(balance=True, zmp=True, lead_in=None, steps=StepConfig(swing_clearance=0.5), engine="ipopt")
     traj = OfflineRetargeter(op3, cfg).retarget(m)
     dropped = [c for c in traj.meta["changes"] if c["what"] == "no floor clearance"]
     assert dropped and dropped[0]["start_s"] == 0.0 and "swing clearance" in dropped[0]["why"]

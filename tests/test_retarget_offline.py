@@ -80,7 +80,7 @@ def test_windows_blend_without_a_velocity_jump_at_the_seams():
 def toy_with_contacts():
     rb = toy_robot()
     motion = _noisy_walk(T=60, seed=1)
-    cfg = OfflineConfig(window=30, overlap=10, balance=True, balance_margin=0.005, zmp=False, **FAST)
+    cfg = OfflineConfig(window=30, overlap=10, balance=True, balance_margin=0.005, zmp=False, **FAST, engine="ipopt")
     traj = OfflineRetargeter(rb, cfg).retarget(motion)
     return rb, motion, traj
 
@@ -146,7 +146,9 @@ def test_zmp_balance_keeps_the_zmp_over_the_shrunk_support_polygon():
     rb = toy_robot()
     motion = _noisy_walk(T=30, seed=2)
     margin = 0.005
-    cfg = OfflineConfig(window=0, balance=True, balance_margin=margin, zmp=True, zmp_model="cart-table", **FAST)
+    cfg = OfflineConfig(
+        window=0, balance=True, balance_margin=margin, zmp=True, zmp_model="cart-table", **FAST, engine="ipopt"
+    )
     traj = OfflineRetargeter(rb, cfg).retarget(motion)
     ev = rb.evaluate(configurations(rb, traj))
     com = ev["com"]

@@ -16,7 +16,7 @@ from retarget.offline import OfflineConfig, OfflineRetargeter
 def test_chain_rule_derivatives_equal_casadis_ad(robot, zmp):
     rb = robot()
     W = 9
-    off = OfflineRetargeter(rb, OfflineConfig(window=W, balance=True, zmp=zmp, compile=False))
+    off = OfflineRetargeter(rb, OfflineConfig(window=W, balance=True, zmp=zmp, compile=False, engine="ipopt"))
     off._solver(W, 30.0)
     prob = off._problems[(W, 30.0)]
     nlp = prob["nlp"]

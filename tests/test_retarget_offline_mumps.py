@@ -16,7 +16,9 @@ from retarget.offline import MUMPS_MEM_PERCENT, OfflineConfig, OfflineRetargeter
 def _solve(mem_percent=None):
     rb = toy_robot()
     extra = () if mem_percent is None else (("mumps_mem_percent", mem_percent),)
-    cfg = OfflineConfig(window=30, overlap=10, balance=True, balance_margin=0.005, ipopt_options=extra, **FAST)
+    cfg = OfflineConfig(
+        window=30, overlap=10, balance=True, balance_margin=0.005, ipopt_options=extra, **FAST, engine="ipopt"
+    )
     return OfflineRetargeter(rb, cfg).retarget(_noisy_walk(T=45, seed=3))
 
 

@@ -15,10 +15,10 @@ import pytest
 
 from dualflow.motion import REST_POSE, Motion
 from retarget import RetargetError
-from retarget.offline import OfflineConfig, OfflineRetargeter, mass_groups, speed_limited, swing_floor
+from retarget.offline import OfflineConfig, OfflineRetargeter, mass_groups, swing_floor
 from retarget.report import configurations, evaluate
 from retarget.robot import load_robot
-from retarget.schedule import StepConfig, count_steps, foot_poses, robot_contacts, standing_start
+from retarget.schedule import StepConfig, count_steps, foot_poses, robot_contacts, speed_limited, standing_start
 from retarget.streaming import StreamingConfig, StreamingRetargeter
 from retarget.targets import make_targets
 
@@ -186,7 +186,7 @@ def test_a_slow_pivot_turn_is_feasible_offline_and_turned_by_steps(op3):
     a root-yaw jump of that size: "infeasible at its speed: ... velocity of root yaw" (and
     the same at 2x slower). Now: solved, within the velocity limits, the robot turning by steps."""
     m = pivot_turn(0.8, 2.5)
-    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True))
+    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, engine="ipopt"))
     traj = off.retarget(m)
     X = configurations(op3, traj)
     yaw = np.unwrap(X[:, 3])
@@ -208,7 +208,7 @@ def test_the_person_holding_the_contacts_as_given_cannot_turn(op3):
     cannot follow 2.5 turns; the per-window warm start still leaves no root-yaw jump, so IPOPT's
     verdict, if any, is not a velocity violation of root yaw."""
     m = pivot_turn(0.8, 1.0)
-    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, steps=None))
+    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, steps=None, engine="ipopt"))
     try:
         traj = off.retarget(m)
     except RetargetError as exc:
@@ -224,7 +224,7 @@ def test_the_person_holding_the_contacts_as_given_cannot_turn(op3):
 )
 def test_offline_steps_when_the_person_steps(op3, make):
     m = make()
-    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, engine="ipopt")).retarget(m)
     person = leader_steps(m.contacts)
     X = configurations(op3, traj)
     sole = op3.evaluate(X)["sole"][..., 2]
@@ -249,17 +249,18 @@ def test_streaming_resume_continues_from_given_frames(op3):
 
 
 @pytest.mark.slow
-def test_a_jump_is_played_on_the_ground_and_reported(op3):
+@pytest.mark.parametrize("engine", ["planner", "ipopt"])
+def test_a_jump_is_played_on_the_ground_and_reported(op3, engine):
     """A person standing, jumping 10 cm for 0.3 s, standing: the clip is still produced, the robot's
     feet stay down (the flight replaced by the closest thing on the ground) and the report says
-    which seconds and how far from the person."""
+    which seconds and how far from the person, whichever offline engine."""
     T = 60
     pos = np.repeat(REST_POSE[None], T, axis=0).copy()
     lift = np.zeros(T)
     lift[25:34] = 0.10 * np.sin(np.pi * (np.arange(9) + 1) / 10)
     pos[..., 2] += lift[:, None]
     m = Motion(pos, FPS, name="jump")
-    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, engine=engine)).retarget(m)
     flights = [c for c in traj.meta["changes"] if c["what"] == "flight"]
     assert len(flights) == 1
     c = flights[0]

@@ -33,7 +33,17 @@ class _Scene:
 
 def _robot(cfg: BatchConfig):
     """The retarget robot and the retargeter, built once per worker process."""
-    key = (cfg.robot, cfg.fixed_base, cfg.balance, cfg.auto_retime, cfg.lead_in, cfg.compile, cfg.retargeter, cfg.fps)
+    key = (
+        cfg.robot,
+        cfg.fixed_base,
+        cfg.balance,
+        cfg.auto_retime,
+        cfg.lead_in,
+        cfg.compile,
+        cfg.retargeter,
+        cfg.offline_engine,
+        cfg.fps,
+    )
     if key not in _ROBOT:
         from retarget.lead_in import LeadInConfig
         from retarget.offline import OfflineConfig, OfflineRetargeter
@@ -55,6 +65,7 @@ def _robot(cfg: BatchConfig):
                     auto_retime=cfg.auto_retime,
                     compile=cfg.compile,
                     lead_in=LeadInConfig() if cfg.lead_in else None,
+                    engine=cfg.offline_engine,
                 ),
             ).retarget
         _ROBOT[key] = (robot, retarget, fixed)

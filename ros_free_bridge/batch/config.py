@@ -22,9 +22,12 @@ class BatchConfig:
     lead_in: bool = True
     fixed_base: bool | None = None  #: None: the robot's own (fixed for upper-body robots)
     compile: bool = True
-    #: "offline": the whole clip in windows (CasADi/IPOPT, ZMP balance); "streaming": frame by
-    #: frame as the live bridge runs it (feet planted, CoM, capture point and ZMP over them)
+    #: "offline": the whole clip at once (retarget.offline); "streaming": frame by frame as the
+    #: live bridge runs it (steps at the robot's pace, CoM, capture point and ZMP over its feet)
     retargeter: str = "offline"
+    #: offline: "auto" (the step planner for a free-standing robot, the window optimisation for
+    #: any other), "planner" or "ipopt" (retarget.offline.OfflineConfig.engine)
+    offline_engine: str = "auto"
     #: film each clip (person and robot side by side, physics playback) into ``video.mp4``
     video: bool = True
     video_size: tuple[int, int] = (256, 192)  #: pixels per panel (width, height; multiples of 16 for the encoder)
@@ -42,6 +45,7 @@ class BatchConfig:
             "lead_in": self.lead_in,
             "fixed_base": self.fixed_base,
             "retargeter": self.retargeter,
+            "offline_engine": self.offline_engine,
         }
 
 

@@ -44,8 +44,8 @@ def register(subparsers) -> None:
         "--mode",
         choices=("offline", "streaming"),
         default="offline",
-        help="offline: the whole clip in overlapping windows (contacts, balance, smoothness as hard "
-        "constraints); streaming: frame by frame as the live bridge does it (default offline)",
+        help="offline: the whole clip at once (--offline-engine: the step planner or the window "
+        "optimisation); streaming: frame by frame as the live bridge does it (default offline)",
     )
     p.add_argument("--fps", type=float, default=30.0, help="resample the motion to this rate first (default 30)")
     p.add_argument("--ground", action="store_true", help="shift the motion so its lowest foot joint is at z = 0")
@@ -78,6 +78,13 @@ def register(subparsers) -> None:
         help="offline: keep the feet apart by a smooth separating plane along their lateral axis (default; "
         "about half the solver iterations, but feet cannot cross sideways) or by capsule distances "
         "(slower; lets a foot pass in front of the other)",
+    )
+    p.add_argument(
+        "--offline-engine",
+        choices=("auto", "planner", "ipopt"),
+        default="auto",
+        help="offline: planner (the step planner over the whole clip), ipopt (the window optimisation) or "
+        "auto (default: the planner for a free-standing robot with --balance, ipopt otherwise)",
     )
     p.add_argument("--fixed-base", action="store_true", help="bolt the robot's root in place (upper-body partner)")
     p.add_argument("--retime", type=float, default=1.0, help="play the clip this many times slower (e.g. 1.5)")
@@ -161,6 +168,7 @@ def _retarget(args, robot, motion):
         auto_retime=args.auto_retime,
         compile=not args.no_compile,
         lead_in=None if args.no_lead_in else LeadInConfig(),
+        engine=args.offline_engine,
     )
     return OfflineRetargeter(robot, cfg).retarget(motion)
 

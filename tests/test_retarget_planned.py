@@ -1,0 +1,85 @@
+"""Offline retargeting by the step planner (retarget.planned): which robots it takes, what the
+look-ahead changes, and what it reports."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from retarget import RetargetError
+from retarget.offline import OfflineConfig, OfflineRetargeter
+from retarget.report import evaluate
+from retarget.robot import load_robot
+from retarget.targets import make_targets
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.stepping_leaders import pivot_turn, walking_leader  # noqa: E402
+
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def op3():
+    return load_robot("op3")
+
+
+def test_auto_plans_a_free_standing_robot_and_optimises_any_other(op3):
+    assert OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).engine == "planner"
+    assert OfflineRetargeter(op3, OfflineConfig(balance=False)).engine == "ipopt"
+    assert OfflineRetargeter(op3, OfflineConfig(balance=True, engine="ipopt")).engine == "ipopt"
+    fixed = load_robot("op3", fixed_base=True)
+    assert OfflineRetargeter(fixed, OfflineConfig(balance=True)).engine == "ipopt"
+    with pytest.raises(RetargetError, match=r"OfflineConfig.engine: .*use engine='ipopt'"):
+        OfflineRetargeter(fixed, OfflineConfig(balance=True, engine="planner"))
+    with pytest.raises(RetargetError, match=r"OfflineConfig.engine: 'qp' is not one of auto, planner, ipopt"):
+        OfflineRetargeter(op3, OfflineConfig(balance=True, engine="qp"))
+
+
+def _lift_delays(person, robot) -> list[int]:
+    """Frames from each lift of a robot foot back to the person's last lift of that foot."""
+    up_p, up_r = ~np.asarray(person, dtype=bool), ~np.asarray(robot, dtype=bool)
+    out = []
+    for s in range(2):
+        lifts_p = np.flatnonzero(up_p[1:, s] & ~up_p[:-1, s]) + 1
+        for f in np.flatnonzero(up_r[1:, s] & ~up_r[:-1, s]) + 1:
+            before = lifts_p[lifts_p <= f]
+            if len(before):
+                out.append(int(f - before[-1]))
+    return out
+
+
+def test_the_look_ahead_lifts_the_robot_foot_with_the_person_s(op3):
+    """Streamed, the robot decides to step when the person's foot lifts, and its own foot leaves
+    the floor step_shift (0.17 s, 5 frames) later, once its weight is over the other foot.
+    Offline the planner sees the person's contacts lookahead (0.1 s, 3 frames) early: where its
+    pace allows, its foot lifts that much sooner, 2 frames after the person's."""
+    m = walking_leader(6.0, 0.3, 0.0)
+    person = make_targets(op3, m).contacts
+    delays = {}
+    for ahead in (0.0, 0.1):
+        traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True, lookahead=ahead)).retarget(m)
+        assert traj.meta["engine"] == "planner" and traj.meta["lookahead_s"] == pytest.approx(ahead)
+        delays[ahead] = _lift_delays(person, traj.meta["contacts"])
+    assert len(delays[0.0]) >= 8 and min(delays[0.0]) == 5, delays
+    assert min(delays[0.1]) == 2 and np.mean(delays[0.1]) < np.mean(delays[0.0]), delays
+
+
+def test_the_planner_keeps_the_limits_and_reports_what_it_changed(op3):
+    """A person turning 2.5 times on the spot at 0.8 rad/s without stepping: the robot turns by
+    steps of its own, within every joint and speed limit, and the trajectory says which seconds
+    it did something else than the person and why; the report carries them."""
+    m = pivot_turn(0.8, 2.5)
+    traj = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True)).retarget(m)
+    assert traj.meta["mode"] == "offline" and traj.n_frames == m.n_frames
+    assert np.asarray(traj.meta["contacts"]).shape == (m.n_frames, 2)
+    assert traj.meta["steps"]["person"] == 0 and traj.meta["steps"]["robot"] >= 10
+    rep = evaluate(op3, traj, make_targets(op3, m))
+    assert rep.limit_violations == 0 and rep.velocity_violations == 0
+    whats = {c["what"] for c in traj.meta["changes"]}
+    assert whats & {"own pace", "own place"}, whats
+    assert all(0 <= c["start_s"] < c["end_s"] <= m.n_frames / FPS + 1e-9 for c in traj.meta["changes"])
+    assert "own p" in rep.changes_text()
