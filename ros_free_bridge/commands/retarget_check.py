@@ -36,6 +36,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from ros_free_bridge.commands.retarget import add_offline_engine
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -75,15 +77,7 @@ def register(sub) -> None:
         help="offline: the whole clip at once (default; see --offline-engine); streaming: frame by frame as "
         "the live bridge does it (steps at the robot's pace, its weight over its feet)",
     )
-    p.add_argument(
-        "--offline-engine",
-        choices=("auto", "planner", "ipopt"),
-        default="auto",
-        help="offline: planner: the streaming solver and its step planner over the whole clip, seeing the "
-        "person's foot contacts 0.1 s early (never fails a clip; says where it changed it); ipopt: the "
-        "window optimisation (closer tracking, but fast steps can make a free-standing robot fall); "
-        "auto (default): the planner for a free-standing robot, ipopt for any other",
-    )
+    add_offline_engine(p)
     p.add_argument("--no-compile", action="store_true", help="skip C code generation (for machines without a compiler)")
     p.add_argument(
         "--pairs",
