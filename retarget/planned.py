@@ -7,7 +7,8 @@ a :class:`retarget.trajectory.RobotTrajectory` whose ``meta`` has the window opt
 (mode ``offline``, ``engine`` ``planner``, the robot's own contact schedule, step counts, what
 it changed, seconds). It never fails for a clip it can read: where the person does what the
 robot cannot (steps faster than its pace, turns on the spot, slides, drifts), it does the
-closest thing it can balance and the ``changes`` say which seconds and why.
+closest thing it can balance and the ``changes`` say which seconds and why (``own pace``,
+``own place``, ``step skipped``, ``flight``, ``speed-limited``).
 
 What the future buys offline: the planner sees the person's foot contacts ``lookahead`` s
 early, so the robot's weight shift (``StreamingConfig.step_shift``) starts before the person's
@@ -63,6 +64,7 @@ def planned_trajectory(
         held.append(stream.planted.copy())
     X, held = np.stack(X), np.array(held)
     changes = flights + _changes(rb, X, tg.keypoints, fps, stream.config) + speed_limited(rb, X, fps, velocity_safety)
+    changes += skipped_steps(person, held, fps, stream.config)
     meta = {
         "mode": "offline",
         "engine": "planner",
@@ -103,3 +105,37 @@ def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[
         f"and steps no further than its stride): its pelvis stood over {100 * PLACE_CHANGE:g} % of its "
         "height from the person's",
     )
+
+
+def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg) -> list[Change]:
+    """One ``step skipped`` Change per swing of the person's foot (contacts ``person`` (T, 2)
+    bool) that no lift of the robot's same foot answers: each robot lift answers one swing, the
+    first unanswered one it may belong to (a lift from ``step_shift`` before the person's, for
+    the look-ahead, to ``step_shift`` + ``min_swing`` after their landing, for a late step)."""
+    person, robot = np.asarray(person, dtype=bool), np.asarray(robot, dtype=bool)
+    T = len(person)
+    early, late = round(cfg.step_shift * fps), round((cfg.step_shift + cfg.min_swing) * fps)
+    why = (
+        "the person stepped faster than the robot's pace "
+        f"({cfg.min_double:g} s on both feet, a {cfg.step_shift:g} s weight shift and {cfg.min_swing:g} s swings at "
+        "least): the robot kept this foot down and caught up where the person's went"
+    )
+    out = []
+    for s in range(2):
+        swings = _runs_up(person[:, s])
+        lifts = [a for a, _ in _runs_up(robot[:, s])]
+        k = 0
+        for a, b in swings:
+            while k < len(lifts) and lifts[k] < a - early:
+                k += 1  # a lift before this swing could answer: it answered an earlier one or none
+            if k < len(lifts) and lifts[k] <= b + late:
+                k += 1
+            elif a > 0 and b < T:  # up at the clip's start or end is not a step
+                out.append(Change(round(a / fps, 3), round(b / fps, 3), "step skipped", why))
+    return out
+
+
+def _runs_up(down: np.ndarray) -> list[tuple[int, int]]:
+    """(first, stop) frames of each run of ``down`` (T,) bool being False."""
+    up = np.r_[False, ~down, False]
+    return list(zip(np.flatnonzero(up[1:] & ~up[:-1]), np.flatnonzero(~up[1:] & up[:-1])))

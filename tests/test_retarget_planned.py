@@ -83,3 +83,21 @@ def test_the_planner_keeps_the_limits_and_reports_what_it_changed(op3):
     assert whats & {"own pace", "own place"}, whats
     assert all(0 <= c["start_s"] < c["end_s"] <= m.n_frames / FPS + 1e-9 for c in traj.meta["changes"])
     assert "own p" in rep.changes_text()
+
+
+def test_steps_faster_than_the_robot_s_pace_are_reported_skipped(op3):
+    """The generated partner orbiting its actor steps 3.5 times a second, about twice the robot's
+    pace: the steps it does not take are reported one by one (which seconds, why); a walk at
+    the robot's pace skips none."""
+    from dualflow.synthetic import make_duet
+
+    off = OfflineRetargeter(op3, OfflineConfig(balance=True, zmp=True))
+    fast = off.retarget(make_duet("orbit", seconds=10.0, fps=FPS, seed=1).reactor)
+    skipped = [c for c in fast.meta["changes"] if c["what"] == "step skipped"]
+    steps = fast.meta["steps"]
+    assert steps["robot"] < 0.7 * steps["person"], steps
+    assert abs(len(skipped) - (steps["person"] - steps["robot"])) <= 3, (len(skipped), steps)
+    assert all("faster than the robot's pace" in c["why"] and c["end_s"] > c["start_s"] for c in skipped)
+    walk = off.retarget(walking_leader(6.0, 0.3, 0.0))
+    assert walk.meta["steps"]["robot"] == walk.meta["steps"]["person"]
+    assert not [c for c in walk.meta["changes"] if c["what"] == "step skipped"]
