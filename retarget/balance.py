@@ -275,7 +275,8 @@ class BalancePlanner:
         turning on the spot or skating of the feet (generated motion often slides them),
         which it could not do standing. With ``body_twist`` the body above the knees is then
         turned back towards the person's heading about the pelvis target, by
-        limit·tanh(−ψ / limit): the hips turn the trunk ahead of feet that lag the person's turn."""
+        limit·tanh(−ψ / limit) (faded out as |ψ| goes from π/2 to π, where it would flip sides):
+        the hips turn the trunk ahead of feet that lag the person's turn."""
         feet = targets[self._feet_idx, 0:3].tolist()  # left/right ankle, then left/right toe or hip
         (lx, ly, lz), (rx, ry, rz) = feet[0], feet[1]
         if self._toes is not None:
@@ -314,7 +315,10 @@ class BalancePlanner:
         out = targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
         limit = self.config.body_twist
         if limit > 0 and not first:
-            self._twist(out, limit * math.tanh(-_wrap(self.psi) / limit))
+            lag = _wrap(self.psi)
+            # faded out from a lag of π/2 to π, where the wrap would flip it by 2·limit in one frame
+            fade = math.cos(max(0.0, abs(lag) - 0.5 * math.pi)) ** 2
+            self._twist(out, fade * limit * math.tanh(-lag / limit))
         return out
 
     def _twist(self, out: np.ndarray, angle: float) -> None:

@@ -206,6 +206,11 @@ class OfflineRetargeter:
         )
         if config.engine not in ENGINES:
             raise RetargetError(f"OfflineConfig.engine: {config.engine!r} is not one of {', '.join(ENGINES)}")
+        if not (math.isfinite(config.lookahead) and 0 <= config.lookahead <= 1.0):
+            raise RetargetError(
+                f"OfflineConfig.lookahead: {config.lookahead!r} s; give 0 to 1 s (the planner's view of the "
+                "person's contacts ahead; default 0.1)"
+            )
         free = robot.floating and robot.has_feet and config.balance and config.contacts
         if config.engine == "planner" and not free:
             raise RetargetError(

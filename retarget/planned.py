@@ -64,7 +64,7 @@ def planned_trajectory(
         held.append(stream.planted.copy())
     X, held = np.stack(X), np.array(held)
     changes = flights + _changes(rb, X, tg.keypoints, fps, stream.config) + speed_limited(rb, X, fps, velocity_safety)
-    changes += skipped_steps(person, held, fps, stream.config)
+    changes += skipped_steps(person, held, fps, stream.config, ahead)
     meta = {
         "mode": "offline",
         "engine": "planner",
@@ -107,14 +107,15 @@ def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[
     )
 
 
-def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg) -> list[Change]:
+def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg, ahead: int = 0) -> list[Change]:
     """One ``step skipped`` Change per swing of the person's foot (contacts ``person`` (T, 2)
-    bool) that no lift of the robot's same foot answers: each robot lift answers one swing, the
-    first unanswered one it may belong to (a lift from ``step_shift`` before the person's, for
-    the look-ahead, to ``step_shift`` + ``min_swing`` after their landing, for a late step)."""
+    bool) that no lift of the robot's same foot (``robot`` (T, 2)) answers. A lift may answer a
+    swing from ``ahead`` frames (the look-ahead) + ``step_shift`` before it begins to
+    ``step_shift`` + ``min_swing`` after it ends (a late step); each lift answers one swing, the
+    latest one begun by then that is not answered yet."""
     person, robot = np.asarray(person, dtype=bool), np.asarray(robot, dtype=bool)
     T = len(person)
-    early, late = round(cfg.step_shift * fps), round((cfg.step_shift + cfg.min_swing) * fps)
+    early, late = ahead + round(cfg.step_shift * fps), round((cfg.step_shift + cfg.min_swing) * fps)
     why = (
         "the person stepped faster than the robot's pace "
         f"({cfg.min_double:g} s on both feet, a {cfg.step_shift:g} s weight shift and {cfg.min_swing:g} s swings at "
@@ -123,14 +124,13 @@ def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg) -> lis
     out = []
     for s in range(2):
         swings = _runs_up(person[:, s])
-        lifts = [a for a, _ in _runs_up(robot[:, s])]
-        k = 0
-        for a, b in swings:
-            while k < len(lifts) and lifts[k] < a - early:
-                k += 1  # a lift before this swing could answer: it answered an earlier one or none
-            if k < len(lifts) and lifts[k] <= b + late:
-                k += 1
-            elif a > 0 and b < T:  # up at the clip's start or end is not a step
+        answered = [False] * len(swings)
+        for lift, _ in _runs_up(robot[:, s]):
+            open_ = [i for i, (a, b) in enumerate(swings) if a - early <= lift <= b + late and not answered[i]]
+            if open_:
+                answered[max(open_, key=lambda i: swings[i][0])] = True
+        for (a, b), done in zip(swings, answered):
+            if not done and a > 0 and b < T:  # up at the clip's start or end is not a step
                 out.append(Change(round(a / fps, 3), round(b / fps, 3), "step skipped", why))
     return out
 

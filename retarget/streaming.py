@@ -71,9 +71,10 @@ class StreamingConfig:
     swing_speed: float = 0.4  # m/s: a step longer than this covers in min_swing takes longer
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
     # rad: the body above the knees turns towards the person's own heading ahead of the planted
-    # feet, this far at most (softly: limit·tanh(lag / limit)); the feet catch up by stepping
-    # (BalancePlanner.anchor). 0: the whole body turns with the feet. Measured on op3 with steps
-    # (bench/stepping.py's 9 clips): keypoint error 9.1 -> 8.2 % of height, all clips still pass
+    # feet, this far at most (softly: limit·tanh(lag / limit), faded out for a lag beyond π/2);
+    # the feet catch up by stepping (BalancePlanner.anchor). 0: the whole body turns with the
+    # feet. Measured on op3 with steps (bench/stepping.py's 9 clips): keypoint error 9.1 -> 8.2 %
+    # of height, all clips still pass
     body_twist: float = 0.8
     # the weight shift of a step (BalancePlanner._paced, retarget.preview): a receding-horizon ZMP
     # preview over step_preview s plans the CoM so that the ZMP moves under the stance foot

@@ -372,6 +372,25 @@ def test_the_body_turns_ahead_of_the_feet_within_body_twist(op3):
     assert lag[0.8].mean() < 0.85 * lag[0.0].mean(), (lag[0.8].mean(), lag[0.0].mean())
 
 
+def test_the_body_twist_does_not_flip_where_the_lag_wraps_around(op3):
+    """A lag just under +π and just over −π is almost the same turn: the body's targets must be
+    almost the same too (the twist once flipped from one side to the other there, 1.6 rad in one
+    frame, and drove the hip yaw joints at their speed limit)."""
+    from retarget.targets import make_targets
+
+    s = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True, body_twist=0.8))
+    tg = make_targets(op3, person(seconds=1.0))
+    s.reset()
+    for t in range(5):
+        s.step(tg.keypoints[t], tg.contacts[t])
+    out = {}
+    for psi in (np.pi - 0.01, -np.pi + 0.01):
+        s.planner.psi = psi
+        out[psi] = s.planner.anchor(tg.keypoints[5].copy(), (False, False), False)  # no foot to re-anchor on
+    a, b = out.values()
+    assert np.abs(a - b).max() < 0.01, np.abs(a - b).max()
+
+
 def test_a_person_standing_with_a_foot_turned_out_does_not_make_the_robot_march(op3):
     """The person stands still, the left toe turned 1 rad out: more than a step may turn the
     robot's foot from the other (max_step_turn). The robot takes at most one step towards it

@@ -116,3 +116,20 @@ def test_the_changed_column_gives_no_error_for_a_lead_in_that_has_no_person_to_m
         ]
     )
     assert cell == "lead-in: 1x 3.07 s from -3.07 s; held down: 2x 0.60 s from 0.00 s (up to 41 mm)"
+
+
+def test_the_planner_asked_for_a_robot_it_cannot_plan_is_one_error_before_any_clip(tmp_path, capsys):
+    """--offline-engine planner plans a free-standing robot's steps with balance: on the
+    fixed-base ub14, or with --no-balance, retarget-check stops at once with exit 2 naming the
+    option and the fix (it once failed every clip of the folder, one row each); retarget without
+    --balance likewise."""
+    clip = tmp_path / "clips" / "standing.npz"
+    clip.parent.mkdir()
+    save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clip)
+    out = tmp_path / "out"
+    for extra in (["--robot", "ub14"], ["--no-balance"]):
+        code = main(["retarget-check", str(clip.parent), "-o", str(out), "--offline-engine", "planner", *extra])
+        assert code == 2 and "--offline-engine planner" in capsys.readouterr().err
+        assert not out.exists()
+    assert main(["retarget", str(clip), "--offline-engine", "planner", "--out", str(out)]) == 2
+    assert "add --balance" in capsys.readouterr().err

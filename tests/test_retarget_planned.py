@@ -37,6 +37,9 @@ def test_auto_plans_a_free_standing_robot_and_optimises_any_other(op3):
         OfflineRetargeter(fixed, OfflineConfig(balance=True, engine="planner"))
     with pytest.raises(RetargetError, match=r"OfflineConfig.engine: 'qp' is not one of auto, planner, ipopt"):
         OfflineRetargeter(op3, OfflineConfig(balance=True, engine="qp"))
+    for bad in (float("nan"), -0.1, 2.0):
+        with pytest.raises(RetargetError, match=r"OfflineConfig.lookahead: .* give 0 to 1 s"):
+            OfflineRetargeter(op3, OfflineConfig(balance=True, lookahead=bad))
 
 
 def _lift_delays(person, robot) -> list[int]:
@@ -101,3 +104,24 @@ def test_steps_faster_than_the_robot_s_pace_are_reported_skipped(op3):
     walk = off.retarget(walking_leader(6.0, 0.3, 0.0))
     assert walk.meta["steps"]["robot"] == walk.meta["steps"]["person"]
     assert not [c for c in walk.meta["changes"] if c["what"] == "step skipped"]
+
+
+def test_each_robot_lift_answers_the_swing_it_belongs_to():
+    """Skipped steps name the right seconds: with the person's left foot up over frames 10-19 and
+    25-34 and one robot lift at 30, the second swing was answered (late) and the first skipped;
+    a robot lifting 12 frames early (a 0.4 s look-ahead) answers the swings it anticipated."""
+    from retarget.planned import skipped_steps
+    from retarget.streaming import StreamingConfig
+
+    cfg = StreamingConfig()
+    person = np.ones((60, 2), bool)
+    person[10:20, 0] = person[25:35, 0] = False
+    robot = np.ones((60, 2), bool)
+    robot[30:38, 0] = False
+    out = skipped_steps(person, robot, FPS, cfg)
+    assert [(c.start_s, c.end_s) for c in out] == [(round(10 / FPS, 3), round(20 / FPS, 3))]
+    early = np.ones((60, 2), bool)
+    early[0:6, 0] = early[13:21, 0] = False  # the lifts 10 and 12 frames before the person's
+    # without the look-ahead the second lift is taken for a late answer to the first swing
+    assert [c.start_s for c in skipped_steps(person, early, FPS, cfg)] == [round(25 / FPS, 3)]
+    assert skipped_steps(person, early, FPS, cfg, ahead=12) == []

@@ -45,7 +45,7 @@ class BatchConfig:
             "lead_in": self.lead_in,
             "fixed_base": self.fixed_base,
             "retargeter": self.retargeter,
-            "offline_engine": self.offline_engine,
+            "offline_engine": self.offline_engine if self.retargeter == "offline" else None,
         }
 
 

@@ -107,7 +107,9 @@ def add_offline_engine(p) -> None:
         help="offline: planner: the streaming solver and its step planner over the whole clip, seeing the "
         "person's foot contacts 0.1 s early (never fails a clip; says where it changed it); ipopt: the "
         "window optimisation (closer tracking, but fast steps can make a free-standing robot fall); "
-        "auto (default): the planner for a free-standing robot with balance on, ipopt for any other",
+        "auto (default): the planner for a free-standing robot with balance on, ipopt for any other. "
+        "The window, collision, ZMP, lead-in and re-timing options are ipopt's (the planner keeps its own "
+        "margins, steps and start from standing; --retime applies to both)",
     )
 
 
@@ -141,6 +143,11 @@ def run(args) -> int:
 
     motion, stem = _load(args)
     robot = load_robot(args.robot, args.profile, fixed_base=args.fixed_base)
+    if args.mode == "offline" and args.offline_engine == "planner" and not (args.balance and robot.floating):
+        raise RetargetError(
+            "--offline-engine planner: plans a free-standing robot's steps with balance on: add --balance "
+            "(and leave out --fixed-base), or use --offline-engine ipopt or auto"
+        )
     try:
         traj = _retarget(args, robot, motion)
     except RetargetError as exc:

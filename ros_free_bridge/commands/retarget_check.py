@@ -122,6 +122,15 @@ def run(args) -> int:
         raise BridgeError(f"--jobs {args.jobs}: give at least 1 worker process")
     if args.address and args.engine != "ray":
         raise BridgeError("--address names a Ray cluster: add --engine ray")
+    if args.retargeter == "offline" and args.offline_engine == "planner":
+        from ros_free_bridge.robots import resolve_robot
+
+        if args.no_balance or resolve_robot(args.robot).fixed_base:
+            raise BridgeError(
+                f"--offline-engine planner: plans a free-standing robot's steps with balance on ({args.robot} is "
+                f"{'fixed-base' if resolve_robot(args.robot).fixed_base else 'checked with --no-balance'}); "
+                "use --offline-engine ipopt or auto"
+            )
     pairs = PairPattern.parse(args.pairs) if args.pairs else None
     clips = find_clips(args.folder, recursive=args.recursive, exclude=args.out, pairs=pairs)
     if not clips:
