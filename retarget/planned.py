@@ -51,9 +51,8 @@ def planned_trajectory(
     ``velocity_safety`` of a speed limit are reported too (:func:`retarget.schedule.speed_limited`)."""
     rb, fps = stream.robot, motion.fps
     tg = make_targets(rb, motion, contacts, scaler)
-    flights: list[Change] = []
     person = np.array(tg.contacts, dtype=bool)
-    keep_feet_down_in_flight(person, fps, flights)  # a jump: the feet down before it stay down
+    keep_feet_down_in_flight(person, fps, [])  # a jump: the feet down before it stay down
     ahead = max(0, int(round(lookahead * fps)))
     seen = np.concatenate([person[ahead:], np.repeat(person[-1:], min(ahead, len(person)), axis=0)])
     t0 = time.perf_counter()
@@ -63,8 +62,6 @@ def planned_trajectory(
         X.append(stream.step(tg.keypoints[t], seen[t]))
         held.append(stream.planted.copy())
     X, held = np.stack(X), np.array(held)
-    changes = flights + _changes(rb, X, tg.keypoints, fps, stream.config) + speed_limited(rb, X, fps, velocity_safety)
-    changes += skipped_steps(person, held, fps, stream.config, ahead)
     meta = {
         "mode": "offline",
         "engine": "planner",
@@ -73,9 +70,23 @@ def planned_trajectory(
         "seconds": time.perf_counter() - t0,
         "contacts": held.astype(int).tolist(),  # the robot's schedule, (T, 2) 0/1
         "steps": {"person": count_steps(tg.contacts), "robot": count_steps(held)},
-        "changes": [c.to_dict() for c in sorted(changes, key=lambda c: c.start_s)],
+        "changes": what_changed(rb, X, tg, held, stream.config, ahead, velocity_safety),
     }
     return trajectory_from_x(rb, X, fps, meta)
+
+
+def what_changed(rb, X: np.ndarray, tg, held, cfg, ahead: int = 0, velocity_safety: float = 1.0) -> list[dict]:
+    """The changes (as dicts, by start time) of a planner's trajectory X (T, nx) against the person's
+    :class:`retarget.targets.Targets` ``tg`` (keypoints, foot contacts, fps), with the robot's own
+    contacts ``held`` (T, 2), the planner's StreamingConfig ``cfg`` and its look-ahead ``ahead``
+    (frames): flights, ``own pace``, ``own place``, speed-limited runs and skipped steps."""
+    flights: list[Change] = []
+    fps = tg.fps
+    person = np.array(tg.contacts, dtype=bool)
+    keep_feet_down_in_flight(person, fps, flights)
+    changes = flights + _changes(rb, X, tg.keypoints, fps, cfg) + speed_limited(rb, X, fps, velocity_safety)
+    changes += skipped_steps(person, np.asarray(held, dtype=bool), fps, cfg, ahead)
+    return [c.to_dict() for c in sorted(changes, key=lambda c: c.start_s)]
 
 
 def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[Change]:

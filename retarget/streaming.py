@@ -554,9 +554,13 @@ class StreamingRetargeter:
             X.append(self.step(tg.keypoints[t], tg.contacts[t]))
             held.append(self.planted.astype(int).tolist())
         meta = {"mode": "streaming", "source": motion.name, "compiled": self.compile_info}
+        X = np.stack(X)
         if self.balance:  # the robot's own contacts (it steps at its own pace), as the offline schedule's
+            from retarget.planned import what_changed  # (planned builds on this module)
+
             meta["contacts"] = held
-        return trajectory_from_x(self.robot, np.stack(X), motion.fps, meta)
+            meta["changes"] = what_changed(self.robot, X, tg, held, self.config)
+        return trajectory_from_x(self.robot, X, motion.fps, meta)
 
 
 def hash_config(cfg) -> str:

@@ -125,3 +125,18 @@ def test_each_robot_lift_answers_the_swing_it_belongs_to():
     # without the look-ahead the second lift is taken for a late answer to the first swing
     assert [c.start_s for c in skipped_steps(person, early, FPS, cfg)] == [round(25 / FPS, 3)]
     assert skipped_steps(person, early, FPS, cfg, ahead=12) == []
+
+
+def test_the_streamed_trajectory_says_what_it_changed_too(op3):
+    """retarget-check --retargeter streaming and retarget --mode streaming show the same kinds of
+    change as the offline planner: the fast orbiting partner's skipped steps among them."""
+    from dualflow.synthetic import make_duet
+    from retarget.schedule import count_steps
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+
+    m = make_duet("orbit", seconds=10.0, fps=FPS, seed=1).reactor
+    traj = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True)).run(m)
+    whats = [c["what"] for c in traj.meta["changes"]]
+    person, robot = count_steps(make_targets(op3, m).contacts), count_steps(np.array(traj.meta["contacts"], bool))
+    assert robot < 0.7 * person and "own pace" in whats, (person, robot, whats)
+    assert abs(whats.count("step skipped") - (person - robot)) <= 3, (whats.count("step skipped"), person, robot)
