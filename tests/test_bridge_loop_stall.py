@@ -105,10 +105,18 @@ def steady(tmp_path_factory):
 @pytest.mark.parametrize("stall_before, stall_s", [(1, 0.3)])
 def test_a_stalled_stream_moves_no_harder_than_a_steady_one(tmp_path, steady, stall_before, stall_s):
     steady_acc, steady_interventions = steady
-    q, flags, summary, tr = _run(tmp_path, _motion(), stall_before, stall_s, actor_timeout=0.5)
+    bound = max(2.0 * steady_acc, 10.0)
+    # a real-time run: on a busy machine the OS can hold the producer or the loop back for a few
+    # ticks (the full suite on 2 cores did, about 1 run in 4: 2.6x the steady peak). Up to three
+    # tries: the catch-up jump this guards against (~1400 rad/s², 70x) shows in every one
+    for attempt in range(3):
+        (tmp_path / str(attempt)).mkdir()
+        q, flags, summary, tr = _run(tmp_path / str(attempt), _motion(), stall_before, stall_s, actor_timeout=0.5)
+        if _peak_acceleration(q) <= bound and int(flags.any(axis=1).sum()) <= steady_interventions + 3:
+            break
     # the stall pauses the motion and it resumes where it stopped: no skip ahead, no catch-up
     # jump for the safety filter to spread
-    assert _peak_acceleration(q) <= max(2.0 * steady_acc, 10.0), (_peak_acceleration(q), steady_acc)
+    assert _peak_acceleration(q) <= bound, (_peak_acceleration(q), steady_acc)
     assert int(flags.any(axis=1).sum()) <= steady_interventions + 3  # a tick or two where a joint turns
     cmds = np.asarray(tr.commands)
     assert np.all(np.abs(np.diff(cmds, axis=0)) <= LIMITS.max_velocity * DT + 1e-9)
