@@ -571,5 +571,7 @@ def _check_step_timing(cfg, fps: float) -> None:
         problems.append(f"step_preview must last at least 2 frames (got {cfg.step_preview})")
     if cfg.step_shift < 0:
         problems.append(f"step_shift must be 0 or more (got {cfg.step_shift})")
+    if not (math.isfinite(cfg.body_twist) and cfg.body_twist >= 0):
+        problems.append(f"body_twist must be 0 rad or more (got {cfg.body_twist})")
     if problems:
         raise RetargetError("StreamingConfig: " + "; ".join(problems))

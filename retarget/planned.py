@@ -27,7 +27,7 @@ import numpy as np
 from dualflow.motion import Motion
 from retarget.schedule import Change, changes_over, count_steps, keep_feet_down_in_flight, speed_limited
 from retarget.streaming import StreamingRetargeter, trajectory_from_x
-from retarget.targets import make_targets
+from retarget.targets import bool_runs, make_targets
 from retarget.trajectory import RobotTrajectory
 
 #: a run of frames whose pose (pelvis-relative keypoints, mean) differs from the person's by more
@@ -134,9 +134,9 @@ def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg, ahead:
     )
     out = []
     for s in range(2):
-        swings = _runs_up(person[:, s])
+        swings = [(a, b) for a, b, down in bool_runs(person[:, s]) if not down]
         answered = [False] * len(swings)
-        for lift, _ in _runs_up(robot[:, s]):
+        for lift in [a for a, _, down in bool_runs(robot[:, s]) if not down]:
             open_ = [i for i, (a, b) in enumerate(swings) if a - early <= lift <= b + late and not answered[i]]
             if open_:
                 answered[max(open_, key=lambda i: swings[i][0])] = True
@@ -144,9 +144,3 @@ def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg, ahead:
             if not done and a > 0 and b < T:  # up at the clip's start or end is not a step
                 out.append(Change(round(a / fps, 3), round(b / fps, 3), "step skipped", why))
     return out
-
-
-def _runs_up(down: np.ndarray) -> list[tuple[int, int]]:
-    """(first, stop) frames of each run of ``down`` (T,) bool being False."""
-    up = np.r_[False, ~down, False]
-    return list(zip(np.flatnonzero(up[1:] & ~up[:-1]), np.flatnonzero(~up[1:] & up[:-1])))

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from retarget.targets import bool_runs
+
 
 @dataclass(frozen=True)
 class StepConfig:
@@ -66,21 +68,11 @@ class Change:
         return {"start_s": self.start_s, "end_s": self.end_s, "what": self.what, "why": self.why}
 
 
-def _runs(c: np.ndarray):
-    """(start, stop, value) of the runs of a bool array."""
-    out, start = [], 0
-    for i in range(1, len(c) + 1):
-        if i == len(c) or c[i] != c[start]:
-            out.append((start, i, bool(c[start])))
-            start = i
-    return out
-
-
 def changes_over(value: np.ndarray, level: float, fps: float, what: str, why: str) -> list[Change]:
     """One Change per run of frames with ``value`` (T,) above ``level``."""
     return [
         Change(round(start / fps, 3), round(stop / fps, 3), what, why)
-        for start, stop, over in _runs(np.asarray(value) > level)
+        for start, stop, over in bool_runs(np.asarray(value) > level)
         if over
     ]
 
@@ -123,7 +115,7 @@ def robot_contacts(
     # 2. fill swings shorter than min_swing (only between two stances of the same foot)
     n_swing = max(1, int(round(cfg.min_swing * fps)))
     for s in range(2):
-        for a, b, v in _runs(c[:, s]):
+        for a, b, v in bool_runs(c[:, s]):
             if not v and b - a < n_swing and a > 0 and b < T and c[a:b, 1 - s].all():
                 c[a:b, s] = True
     # 3. the robot's pace: double support before every lift, no swing shorter than robot_swing

@@ -64,14 +64,15 @@ def _debounce(c: np.ndarray, n: int) -> np.ndarray:
     """Fill False gaps shorter than n between True runs, then drop True runs shorter than n."""
     c = c.copy()
     for value in (False, True):
-        runs = _runs(c)
+        runs = bool_runs(c)
         for start, stop, v in runs:
             if v == value and stop - start < n and (value or (start > 0 and stop < len(c))):
                 c[start:stop] = not value
     return c
 
 
-def _runs(c: np.ndarray):
+def bool_runs(c: np.ndarray) -> list[tuple[int, int, bool]]:
+    """(start, stop, value) of the runs of a bool array (T,)."""
     out, start = [], 0
     for i in range(1, len(c) + 1):
         if i == len(c) or c[i] != c[start]:

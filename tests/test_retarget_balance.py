@@ -499,6 +499,8 @@ def test_step_timing_that_cannot_work_is_one_error_naming_the_field(op3):
         ({"min_swing": 0.03}, "min_swing"),
         ({"max_swing": 0.1}, "max_swing"),
         ({"step_preview": 0.0}, "step_preview"),
+        ({"body_twist": float("nan")}, "body_twist"),
+        ({"body_twist": -0.5}, "body_twist"),
     ):
         with pytest.raises(RetargetError, match=field):
             StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, **kw))

@@ -125,10 +125,11 @@ def run(args) -> int:
     if args.retargeter == "offline" and args.offline_engine == "planner":
         from ros_free_bridge.robots import resolve_robot
 
-        if args.no_balance or resolve_robot(args.robot).fixed_base:
+        fixed = resolve_robot(args.robot).fixed_base
+        if args.no_balance or fixed:
             raise BridgeError(
                 f"--offline-engine planner: plans a free-standing robot's steps with balance on ({args.robot} is "
-                f"{'fixed-base' if resolve_robot(args.robot).fixed_base else 'checked with --no-balance'}); "
+                f"{'fixed-base' if fixed else 'checked with --no-balance'}); "
                 "use --offline-engine ipopt or auto"
             )
     pairs = PairPattern.parse(args.pairs) if args.pairs else None
