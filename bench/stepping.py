@@ -1,13 +1,14 @@
 """Stepping, tracking and balance of the retargeted robot, next to the behaviour before stepping.
 
-    python bench/stepping.py [--robot op3] [--clips leaders,cmu,duets] [--physics] [--quick]
+    python bench/stepping.py [--robot op3] [--clips leaders,quick,cmu,duets] [--physics] [--quick]
 
 Clips: ``leaders``: the SYNTHETIC stepping leaders of bench/stepping_leaders.py (turning in place
 2-2.5 turns, walking straight and on a circle, side-stepping); ``pivot``: the rest pose turning
 2.5 turns on the spot at 0.8 and 0.5 rad/s without stepping (the root-yaw verdict's case);
-``heldout``: other stepping leaders (bench/stepping_leaders.held_out_leaders) and eight other
-generated duets (mirror, follow, hand_hold, orbit; seeds 2 and 3), to check the rules on clips
-they were not tuned on; ``cmu``: the CMU two-person pair
+``quick``: leaders stepping at a dance's pace, 2 to 2.7 steps a second
+(bench/stepping_leaders.quick_leaders); ``heldout``: other stepping leaders
+(bench/stepping_leaders.held_out_leaders) and eight other generated duets (mirror, follow,
+hand_hold, orbit; seeds 2 and 3), to check the rules on clips they were not tuned on; ``cmu``: the CMU two-person pair
 (../shared/data/mocap/cmu, both people, when present); ``duets``: the rule followers of
 dualflow.synthetic.make_duet (generated partners, hand_hold and orbit). Each clip goes through four
 retargeters in the same run, on one core (sched_setaffinity, single-threaded BLAS), CPU time:
@@ -33,8 +34,11 @@ retargeters in the same run, on one core (sched_setaffinity, single-threaded BLA
   start_double=0, robot_swing=0, swing_clearance=0, standing_start=False, start_ramp=0,
   travel_zmp_shift=0));
 - streaming with steps (StreamingConfig(balance=True, steps=True), the default: steps at the
-  robot's pace with a planned weight shift, retarget.balance); its baseline, *streaming
-  before*: StreamingConfig(balance=True, steps=False) (feet always planted).
+  robot's pace, quickened to the person's, with a planned weight shift, retarget.balance); its
+  baseline, *streaming before*: StreamingConfig(balance=True, steps=False) (feet always planted);
+- *offline fixed pace* and *streaming fixed pace* (``--modes``; each, when run, is its mode's
+  baseline): the planner and the streamer at the robot's configured pace only
+  (``StreamingConfig(pace_floor=1.0)``, the default before the pace followed the person's).
 
 Figures per retargeter, over the clips (a failed retarget counts as not performed):
 
@@ -74,6 +78,7 @@ from bench.stepping_leaders import leaders  # noqa: E402
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 from retarget.errors import RetargetError  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter, _Infeasible, feet_apart  # noqa: E402
+from retarget.planned import planned_trajectory  # noqa: E402
 from retarget.report import clip_targets, evaluate  # noqa: E402
 from retarget.robot import load_robot  # noqa: E402
 from retarget.schedule import StepConfig, count_steps  # noqa: E402
@@ -106,8 +111,9 @@ def robot_steps(rb, X: np.ndarray, fps: float) -> tuple[int, np.ndarray]:
     return count_steps(down), down
 
 
-#: the offline mode's baseline: the first of these that ran
-OFFLINE_BASELINES = ("offline-ipopt", "offline-no-lead-in", "offline-prev", "offline-before")
+#: the offline mode's baseline: the first of these that ran (the streaming mode's likewise)
+OFFLINE_BASELINES = ("offline-fixed-pace", "offline-ipopt", "offline-no-lead-in", "offline-prev", "offline-before")
+STREAMING_BASELINES = ("streaming-fixed-pace", "streaming-before")
 
 
 def zmp_shares(rb, X: np.ndarray, down: np.ndarray, fps: float) -> tuple[float, float]:
@@ -142,7 +148,7 @@ def offline_before(off: OfflineRetargeter, rb, motion, tg):
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robot", default="op3")
-    ap.add_argument("--clips", default="leaders,cmu,duets")
+    ap.add_argument("--clips", default="leaders,quick,cmu,duets")
     ap.add_argument("--max-clips", type=int, default=0, help="at most this many clips (0: all)")
     ap.add_argument("--physics", action="store_true", help="also run sim's free-standing check")
     ap.add_argument("--modes", default="offline,offline-ipopt,streaming,streaming-before")
@@ -154,6 +160,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     kinds = args.clips.split(",")
     if "leaders" in kinds:
         clips += leaders()
+    if "quick" in kinds:
+        from bench.stepping_leaders import quick_leaders
+
+        clips += quick_leaders()
     if "pivot" in kinds:
         from bench.stepping_leaders import pivot_turn
 
@@ -212,6 +222,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     )
     st_new = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True))
     st_old = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=False))
+    st_fixed = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True, pace_floor=1.0))
     modes = args.modes.split(",")
     stats = {
         m: {
@@ -250,8 +261,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                         traj = trajectory_from_x(
                             rb, offline_before(off, rb, motion, tg), motion.fps, {"mode": "offline"}
                         )
+                    elif mode == "offline-fixed-pace":
+                        traj = planned_trajectory(st_fixed, motion)
                     else:
-                        traj = (st_new if mode == "streaming" else st_old).run(motion)
+                        traj = {"streaming": st_new, "streaming-fixed-pace": st_fixed}.get(mode, st_old).run(motion)
             except (RetargetError, _Infeasible) as exc:  # _Infeasible: the old solve() raises it bare
                 note = f"retarget failed: {str(exc)[:110]}"
                 traj = None
@@ -300,7 +313,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
         s = stats[mode]
         base = {
             "offline": next((m for m in OFFLINE_BASELINES if m in stats), None),
-            "streaming": "streaming-before",
+            "streaming": next((m for m in STREAMING_BASELINES if m in stats), None),
         }.get(mode)
         b = stats.get(base) if base else None
 

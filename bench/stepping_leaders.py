@@ -131,6 +131,21 @@ def held_out_leaders() -> list[Motion]:
     ]
 
 
+def quick_leaders() -> list[Motion]:
+    """Leaders stepping at a dance's pace, 2 to 2.7 steps a second (120, 140 and 160 bpm, one
+    step per beat; the other leaders step 1.5-1.8 times a second): walking at 0.3 m/s, side-
+    stepping 0.12 m, one turn at 0.8 rad/s and stepping in place, 6 s each."""
+    out = []
+    for bpm in (120.0, 140.0, 160.0):
+        out += [
+            walking_leader(6.0, 0.3, bpm=bpm).replace(name=f"quick_walk_{bpm:g}bpm"),
+            sidestep_leader(6.0, 0.12, bpm=bpm).replace(name=f"quick_sidestep_{bpm:g}bpm"),
+            turning_leader(1.0, 0.8, bpm=bpm).replace(name=f"quick_turn_{bpm:g}bpm"),
+            walking_leader(6.0, 0.0, bpm=bpm).replace(name=f"quick_in_place_{bpm:g}bpm"),
+        ]
+    return out
+
+
 def pivot_turn(rate: float = 0.8, turns: float = 2.5, fps: float = 30.0, lead_in: float = 0.5) -> Motion:
     """The rest pose turning ``turns`` full turns at ``rate`` rad/s on the spot, after ``lead_in``
     s still and before 0.5 s still; no contact labels (detected: both feet stay down)."""

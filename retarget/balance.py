@@ -69,20 +69,14 @@ class BalancePlanner:
         self._w0 = np.sqrt([cfg.balance_weight, 0.0, 0.0])
         self._sole_local = [f.corners for f in rb.feet]
         self._anchor_alpha = 1.0 - math.exp(-1.0 / (self.fps * cfg.anchor_time))
-        self._min_stance_frames = round(cfg.min_stance * self.fps)
         self._max_swing_frames = round(cfg.max_swing * self.fps)
-        self._min_swing_frames = round(cfg.min_swing * self.fps)
-        self._min_double_frames = round(cfg.min_double * self.fps)
         # leg length (hip above ankle standing; the CoM height without hip keypoints): scales step lengths
         legs = [self._stand_kp[hip, 2] - self._stand_kp[ankle, 2] for hip, ankle in zip(self._hips or (), self._ankles)]
         self._leg = float(np.mean(legs)) if legs else h
         _check_step_timing(cfg, self.fps)
         frames = lambda t: max(0, round(t * self.fps))  # noqa: E731
         self._preview = ZmpPreview(h / 9.81 * self.fps**2, max(2, frames(cfg.step_preview)))
-        self._shift_frames = frames(cfg.step_shift)
-        self._rise_frames = max(1, (self._min_swing_frames + 1) // 2)  # a swing rises over the first half of min_swing
-        self._fall_frames = max(1, self._min_swing_frames - self._rise_frames)  # ... and comes down over the rest
-        self._settle_frames = self._min_double_frames + frames(cfg.step_settle)
+        self._set_pace(1.0)
         self._plan_scale = math.sqrt(cfg.plan_weight)
         # each sole's centre from its ankle keypoint standing, in the foot's heading frame (the
         # stand pose faces +x): where a swinging foot's targets would put its footprint
@@ -90,6 +84,36 @@ class BalancePlanner:
         self._sole_from_ankle = [
             soles[4 * s : 4 * s + 4, 0:2].mean(axis=0) - self._stand_kp[self._ankles[s], 0:2] for s in range(2)
         ]
+
+    def _set_pace(self, k: float) -> None:
+        """The step's phases at ``k`` x their configured lengths: ``min_stance``, ``min_double``,
+        ``step_shift`` and ``min_swing`` (at least 2 frames)."""
+        cfg = self.config
+        frames = lambda t: max(0, round(t * k * self.fps))  # noqa: E731
+        self._pace = k
+        self._min_stance_frames = frames(cfg.min_stance)
+        self._min_swing_frames = max(2, frames(cfg.min_swing))
+        self._min_double_frames = frames(cfg.min_double)
+        self._shift_frames = frames(cfg.step_shift)
+        self._rise_frames = max(1, (self._min_swing_frames + 1) // 2)  # a swing rises over the first half of min_swing
+        self._fall_frames = max(1, self._min_swing_frames - self._rise_frames)  # ... and comes down over the rest
+        self._settle_frames = self._min_double_frames + max(0, round(cfg.step_settle * self.fps))
+
+    def _person_pace(self) -> float:
+        """How much shorter than configured the next step's phases are (``pace_floor`` .. 1): the
+        person's step period (frames between its last two lift-offs, either foot, or since the
+        last one if longer) against the robot's configured cycle (``min_double`` + ``step_shift``
+        + ``min_swing``). A person stepping faster than :data:`CHASE_LIMIT` allows is not chased:
+        the configured pace (1)."""
+        cfg = self.config
+        lifts = self._person_lifts
+        if cfg.pace_floor >= 1.0 or len(lifts) < 2:
+            return 1.0
+        cycle = (cfg.min_double + cfg.step_shift + cfg.min_swing) * self.fps
+        period = max(lifts[-1] - lifts[-2], self._frame - lifts[-1])
+        if period < CHASE_LIMIT * cfg.pace_floor * cycle:
+            return 1.0  # not chased: the robot skips steps either way, and at its quickest it fell
+        return min(1.0, max(cfg.pace_floor, period / cycle))
 
     def bind(self, anchor: np.ndarray, edges, points, point_w, cpred, zmp, lift) -> None:
         """Where to write: the contact rows' anchor (2, 8) and views into the parameter buffer
@@ -127,6 +151,9 @@ class BalancePlanner:
         self._shifting = None  # (foot, frame it lifts at) while the weight moves before a step
         self._zmp_keys = None  # the step's ZMP reference: (frames, points (n, 2)), linear in between
         self._plan_until = -1  # the last frame the CoM follows the preview plan
+        self._person_down = np.ones(2, dtype=bool)  # the person's feet down last frame
+        self._person_lifts: list[int] = []  # frames of the person's last lift-offs (either foot)
+        self._set_pace(1.0)
         self._edges[:] = np.tile([0.0, 0.0, 1.0], N_EDGES)
         self._points[:] = 0.0
         self._point_w[:] = 0.0
@@ -405,6 +432,10 @@ class BalancePlanner:
         section 4.)"""
         self._since += 1
         self._frame += 1
+        down = np.asarray(contact, dtype=bool)
+        if (self._person_down & ~down).any():
+            self._person_lifts = self._person_lifts[-1:] + [self._frame]
+        self._person_down = down.copy()
         for s in range(2):
             if self.planted[s]:
                 continue
@@ -427,6 +458,7 @@ class BalancePlanner:
                 self._lift(s)
             return
         if self.planted.all():
+            self._set_pace(self._person_pace())
             for s in range(2):
                 other = 1 - s
                 ready = (
@@ -558,6 +590,13 @@ def _keys(frames: list, points: list) -> tuple[np.ndarray, np.ndarray]:
     return np.array(out_f), np.array(out_p, dtype=float)
 
 
+#: a person whose step period is below this share of the robot's quickest cycle (``pace_floor`` x
+#: the configured one) is not chased: the robot steps at its configured pace and skips the steps
+#: it has no time for. Measured on op3 (16 generated duets stepping 3.4 times a second with
+#: 0.17 s swings): chased at the quickest pace, 3 fell or hit themselves; not chased, none
+CHASE_LIMIT = 0.85
+
+
 def _check_step_timing(cfg, fps: float) -> None:
     """One RetargetError naming the StreamingConfig field whose step timing cannot work."""
     problems = []
@@ -569,6 +608,8 @@ def _check_step_timing(cfg, fps: float) -> None:
         problems.append(f"max_swing ({cfg.max_swing}) must be at least min_swing ({cfg.min_swing})")
     if round(cfg.step_preview * fps) < 2:
         problems.append(f"step_preview must last at least 2 frames (got {cfg.step_preview})")
+    if not 0 < cfg.pace_floor <= 1:
+        problems.append(f"pace_floor must be above 0 and at most 1 (got {cfg.pace_floor})")
     if cfg.step_shift < 0:
         problems.append(f"step_shift must be 0 or more (got {cfg.step_shift})")
     if not (math.isfinite(cfg.body_twist) and cfg.body_twist >= 0):

@@ -96,10 +96,7 @@ def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[
     height = float(np.ptp(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2]))
     pose = np.linalg.norm((kp - kp[:, r : r + 1]) - (keypoints - keypoints[:, r : r + 1]), axis=-1).mean(axis=1)
     place = np.linalg.norm(kp[:, r, 0:2] - keypoints[:, r, 0:2], axis=-1)
-    pace = (
-        f"{cfg.min_stance:g} s on a foot, {cfg.min_double:g} s on both and {cfg.min_swing:g} s swings at least, "
-        f"{cfg.max_step_turn:g} rad of turn per step"
-    )
+    pace = f"{_quickest(cfg)}, {cfg.max_step_turn:g} rad of turn per step"
     return changes_over(
         pose / height,
         POSE_CHANGE,
@@ -118,6 +115,15 @@ def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[
     )
 
 
+def _quickest(cfg) -> str:
+    """The robot's quickest step in words (``StreamingConfig`` phases at ``pace_floor``)."""
+    k = cfg.pace_floor
+    return (
+        f"at its quickest {k * cfg.min_stance:.2g} s on a foot, {k * cfg.min_double:.2g} s on both, "
+        f"a {k * cfg.step_shift:.2g} s weight shift and {k * cfg.min_swing:.2g} s swings"
+    )
+
+
 def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg, ahead: int = 0) -> list[Change]:
     """One ``step skipped`` Change per swing of the person's foot (contacts ``person`` (T, 2)
     bool) that no lift of the robot's same foot (``robot`` (T, 2)) answers. A lift may answer a
@@ -128,9 +134,8 @@ def skipped_steps(person: np.ndarray, robot: np.ndarray, fps: float, cfg, ahead:
     T = len(person)
     early, late = ahead + round(cfg.step_shift * fps), round((cfg.step_shift + cfg.min_swing) * fps)
     why = (
-        "the person stepped faster than the robot's pace "
-        f"({cfg.min_double:g} s on both feet, a {cfg.step_shift:g} s weight shift and {cfg.min_swing:g} s swings at "
-        "least): the robot kept this foot down and caught up where the person's went"
+        f"the person stepped faster than the robot's pace ({_quickest(cfg)}): the robot kept this foot "
+        "down and caught up where the person's went"
     )
     out = []
     for s in range(2):

@@ -501,6 +501,9 @@ def test_step_timing_that_cannot_work_is_one_error_naming_the_field(op3):
         ({"step_preview": 0.0}, "step_preview"),
         ({"body_twist": float("nan")}, "body_twist"),
         ({"body_twist": -0.5}, "body_twist"),
+        ({"pace_floor": 0.0}, "pace_floor"),
+        ({"pace_floor": 1.5}, "pace_floor"),
+        ({"pace_floor": float("nan")}, "pace_floor"),
     ):
         with pytest.raises(RetargetError, match=field):
             StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, **kw))

@@ -128,6 +128,38 @@ def test_the_robot_keeps_its_own_pace(op3):
     assert [c.what for c in changes] == ["step skipped"] and changes[0].start_s == pytest.approx(66 / FPS, abs=1e-3)
 
 
+def _streamed_steps(op3, motion, **kw) -> tuple[int, object]:
+    traj = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True, **kw)).run(motion)
+    return count_steps(np.array(traj.meta["contacts"], dtype=bool)), traj
+
+
+def test_the_robot_quickens_its_pace_to_a_person_stepping_quickly(op3):
+    """A person stepping 2.5 times a second (faster than the configured 1.7): the streamed op3
+    shortens its phases to the person's step period and takes the steps (within 20 %), in
+    MuJoCo too; at its configured pace alone (pace_floor 1) it skipped nearly half."""
+    from sim.check import CheckConfig, check_trajectory
+
+    motion = walking_leader(6.0, 0.0, bpm=150.0)
+    person = leader_steps(motion.contacts)
+    quick, traj = _streamed_steps(op3, motion)
+    assert abs(quick / person - 1) <= 0.2, (quick, person)
+    assert _streamed_steps(op3, motion, pace_floor=1.0)[0] <= 0.6 * person
+    result = check_trajectory(traj, CheckConfig(mode="free"))
+    assert result.passed, result.failures
+    assert sum(result.metrics["stances"]) - len(result.metrics["stances"]) >= 0.8 * person
+
+
+def test_a_person_faster_than_the_quickest_pace_is_not_chased(op3):
+    """4 steps a second is beyond the robot's quickest pace (2.7): it keeps its configured pace
+    (the same steps as with pace_floor 1) and reports the steps it skipped; 3 a second it chases."""
+    motion = walking_leader(6.0, 0.0, bpm=240.0)
+    steps, traj = _streamed_steps(op3, motion)
+    assert steps == _streamed_steps(op3, motion, pace_floor=1.0)[0]
+    assert sum(c["what"] == "step skipped" for c in traj.meta["changes"]) >= leader_steps(motion.contacts) - steps - 2
+    three = walking_leader(6.0, 0.0, bpm=180.0)
+    assert _streamed_steps(op3, three)[0] > _streamed_steps(op3, three, pace_floor=1.0)[0] + 3
+
+
 def test_the_robot_starts_in_its_standing_footprint(op3):
     """Feet staggered 8 cm and turned apart in the first frame: until each foot's first lift its
     targets stand where the robot's standing feet would, centred on the person's."""
