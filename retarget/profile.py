@@ -72,6 +72,9 @@ class RetargetProfile:
     feet: dict = field(default_factory=dict)
     posture_weight: float = 0.02
     stand_keyframe: str = "stand"
+    #: ((joint, rad), ...): the standing pose where the MJCF has no keyframe ``stand_keyframe``
+    #: (robot init derives one: retarget.stand_init); joints not named keep their qpos0
+    stand_pose: tuple = ()
     #: whether the streaming retargeter (the live bridge) steps with this free-standing robot
     #: when the person steps (True), or keeps its feet planted (StreamingConfig.steps None)
     streaming_steps: bool = True
@@ -118,6 +121,7 @@ class RetargetProfile:
             "feet",
             "posture_weight",
             "stand_keyframe",
+            "stand_pose",
             "rigid_offsets",
             "streaming_steps",
         }
@@ -158,6 +162,7 @@ class RetargetProfile:
                 data.get("posture_weight", 0.02), _where(source, "posture_weight"), allow_zero=True
             ),
             stand_keyframe=str(data.get("stand_keyframe", "stand")),
+            stand_pose=_parse_stand_pose(data, source),
             streaming_steps=_flag(data.get("streaming_steps", True), _where(source, "streaming_steps")),
             source=source,
         )
@@ -337,6 +342,23 @@ def _vec3(v, where: str) -> tuple[float, float, float]:
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise RetargetError(f"{where}: give three numbers [x, y, z] in metres, got {v!r}")
     return tuple(float(x) for x in a)
+
+
+def _parse_stand_pose(data: dict, source: str) -> tuple:
+    raw = data.get("stand_pose") or {}
+    where = _where(source, "stand_pose")
+    if not isinstance(raw, dict):
+        raise RetargetError(f"{where}: must map joint names to angles in rad, e.g. {{l_knee: 0.6}}; got {raw!r}")
+    out = []
+    for name, v in raw.items():
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise RetargetError(f"{where}.{name}: give an angle in rad, got {v!r}") from None
+        if not np.isfinite(x):
+            raise RetargetError(f"{where}.{name}: give a finite angle in rad, got {v!r}")
+        out.append((str(name), x))
+    return tuple(out)
 
 
 def _flag(v, where: str) -> bool:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from retarget.errors import RetargetError
+from retarget.stand_init import derive_stand_pose
 
 #: The servo model hardware.yaml guesses until the user fills in theirs.
 GUESSED_SERVO = "XM430-W350"
@@ -469,8 +470,8 @@ def _limb(rest: _Rest, kind: str, side: str, chain: list, end_point) -> Limb:
             u = u / max(np.linalg.norm(u), 1e-9)
             t = (pts - a0) @ u
             tip = pts[t >= t.max() - 0.2 * (t.max() - t.min())]
-            side = (tip - a0) - np.outer((tip - a0) @ u, u)
-            end_point = a0 + t.max() * u + side.mean(axis=0)
+            across = (tip - a0) - np.outer((tip - a0) @ u, u)
+            end_point = a0 + t.max() * u + across.mean(axis=0)
         else:
             end_point = np.array(rest.d.xpos[chain[-1]])
     return Limb(kind, side, chain, joints, None if end_point is None else np.array(end_point))
@@ -841,8 +842,9 @@ def stand_keyframe(m) -> tuple[str, str]:
     if len(named) == 1:
         return named[0], f"the model's only keyframe {named[0]!r}"
     return "stand", (
-        "the model has no stand keyframe: the solvers start from its zero pose (qpos0); "
-        'add <key name="stand" qpos=...> to the MJCF for a better seed'
+        "the model has no stand keyframe: the robot stands in stand_pose where that is given (robot init "
+        'derives it for a free-standing robot), else in its zero pose; a <key name="stand" qpos=... ctrl=...> '
+        "in the MJCF takes its place"
     )
 
 
@@ -942,7 +944,8 @@ def init_robot_folder(
 class _ProfileDraft:
     """What ``robot init`` found in the model for the profile it writes: the robot's and model's
     names, the model's path relative to the folder, the anatomy, keypoint frames, joint and speed
-    limits with their reasons, capsules and pairs (with notes), the margin and the stand keyframe."""
+    limits with their reasons, capsules and pairs (with notes), the margin and the stand keyframe
+    (name, why, and where the model has none the derived stand pose and why, else None, None)."""
 
     m: object
     robot: str
@@ -977,13 +980,19 @@ def _draft_profile(m, model_path: Path, robot: str, rel: str) -> _ProfileDraft:
     rest = _Rest(m)
     stand_name, stand_why = stand_keyframe(m)
     kid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, stand_name)
+    limits, limit_why = joint_limits(m, an)
     poses = [np.array(m.qpos0)] + ([np.array(m.key_qpos[kid])] if kid >= 0 else [])
+    derived = derive_stand_pose(m, an, limits) if kid < 0 else None
+    if derived is not None:
+        stand_qpos = np.array(m.qpos0)
+        for name, angle in derived[0].items():
+            stand_qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]] = angle
+        poses.append(stand_qpos)
     margin = float(np.clip(round(0.008 * an.height, 3), 0.003, 0.01))
     caps = build_capsules(rest, an)
     pairs, pair_notes = clear_rest_collisions(m, caps, collision_pairs(caps), poses, margin)
     used = {c for p in pairs for c in p}
     caps = {k: v for k, v in caps.items() if k in used}
-    limits, limit_why = joint_limits(m, an)
     speed, speeds, speed_why = speed_limits(m)
     draft = _ProfileDraft(
         m,
@@ -1002,7 +1011,7 @@ def _draft_profile(m, model_path: Path, robot: str, rel: str) -> _ProfileDraft:
         pairs,
         pair_notes,
         margin,
-        (stand_name, stand_why),
+        (stand_name, stand_why) + (derived or (None, None)),
     )
     _require_names(draft)
     return draft
@@ -1086,6 +1095,9 @@ def _profile_text(d: _ProfileDraft) -> str:
     L.append("# the step timing was tuned on the bundled op3; a published OP3 and G1 fell more often with them.")
     L.append("streaming_steps: false")
     L.append(f"stand_keyframe: {d.stand[0]}  # {d.stand[1]}")
+    if d.stand[2]:
+        L.append(f"# The standing pose without that keyframe (rad), {d.stand[3]}:")
+        L.append("stand_pose: {" + ", ".join(f"{k}: {_f(v)}" for k, v in d.stand[2].items()) + "}")
     return "\n".join(L) + "\n"
 
 

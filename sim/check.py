@@ -804,7 +804,11 @@ class Checker:
             if joints:
                 out.append(f"joint limits from {what} (no range in the MJCF) for {', '.join(joints)}")
         out += list(sc.facts.notes)
-        if sc.stand_source == "derived":
+        if sc.stand_source == "profile":
+            out.append(
+                "no 'stand' keyframe: standing in the retarget profile's stand_pose (lowest contact geom on the floor)"
+            )
+        elif sc.stand_source == "derived":
             out.append(
                 "no 'stand' keyframe: standing pose derived (joints at 0 clipped into their limits, lowest "
                 "contact geom on the floor)"

@@ -39,6 +39,8 @@ class RobotFacts:
     no_load_speed: dict = field(default_factory=dict)
     speed_source: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
+    #: {joint: rad}: the profile's ``stand_pose``, where the MJCF has no stand keyframe
+    stand_pose: dict = field(default_factory=dict)
 
 
 def robot_facts(robot, joint_limits: Mapping | None = None, no_load_speed=None) -> RobotFacts:
@@ -60,7 +62,8 @@ def robot_facts(robot, joint_limits: Mapping | None = None, no_load_speed=None) 
     profile, hardware = files
     if profile is not None:
         try:
-            limits = _profile_limits(profile)
+            limits, stand = _profile_limits(profile)
+            facts.stand_pose.update(stand)
         except SimError as exc:
             facts.notes.append(f"retarget profile left out: {exc}")
             limits = {}
@@ -96,13 +99,20 @@ def _robot_files(robot) -> tuple[Path | None, Path | None] | None:
     return r.profile, r.hardware
 
 
-def _profile_limits(path: Path) -> dict:
+def _profile_limits(path: Path) -> tuple[dict, dict]:
+    """The profile's ``joint_limits`` and ``stand_pose`` ({joint: rad})."""
     try:
         data = yaml.safe_load(Path(path).read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise SimError(f"{path}: cannot read the retarget profile ({str(exc).splitlines()[0]}); fix the file") from None
-    raw = data.get("joint_limits") if isinstance(data, dict) else None
-    return _limits(raw or {}, f"{path}: joint_limits")
+    data = data if isinstance(data, dict) else {}
+    stand = data.get("stand_pose") or {}
+    if not isinstance(stand, dict) or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in stand.values()
+    ):
+        raise SimError(f"{path}: field stand_pose: must map joint names to finite angles in rad; fix the file")
+    limits = _limits(data.get("joint_limits") or {}, f"{path}: joint_limits")
+    return limits, {str(k): float(v) for k, v in stand.items()}
 
 
 def _hardware_servos(path: Path):

@@ -2,8 +2,8 @@
 
 A :class:`Scene` owns one ``MjModel``/``MjData`` pair built from the robot's MJCF as published
 (found through :mod:`firmware_cfg.registry`): a floor at z = 0 unless the model brings one,
-the ``stand`` keyframe or a derived standing pose, optionally a bolted base, and kinematic
-figures of the people that exert no forces. Reference: docs/simulation.md.
+the ``stand`` keyframe, else the profile's ``stand_pose`` or a derived standing pose,
+optionally a bolted base, and kinematic figures of the people that exert no forces. Reference: docs/simulation.md.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ class Scene:
     """The compiled scene. Attributes: ``model``, ``data``, ``robot`` (RobotIndex),
     ``actor`` / ``reactor`` (HumanFigure or None), ``floor_geom`` (id), ``floor_name``,
     ``stand_ctrl`` (n,) the standing pose's servo goals in joint order, ``stand_source``
-    ("keyframe" or "derived", see the module docstring), ``stand_root_height`` (m, root
+    ("keyframe", "profile": its ``stand_pose``, or "derived", see the module docstring), ``stand_root_height`` (m, root
     body z when standing), ``robot_height`` (m, top of the robot when standing; exact for
     meshes and primitives), ``floating`` (the MJCF gives the robot a freejoint: it stands on
     its own feet, even where this scene bolts it down; only then are feet looked for, in
@@ -124,7 +124,9 @@ class Scene:
         probe_data = mujoco.MjData(probe)
         self.facts = robot_facts(config.robot, config.joint_limits, config.no_load_speed)
         robot_probe = RobotIndex.from_model(probe, self.root_name, self.facts)
-        self.stand_source = "keyframe" if self._stand_key(probe) is not None else "derived"
+        self.stand_source = (
+            "keyframe" if self._stand_key(probe) is not None else "profile" if self.facts.stand_pose else "derived"
+        )
         self._stand_qpos, self.stand_ctrl = self._standing_pose(probe, probe_data, robot_probe)
         z = np.array([geom_z_range(probe, probe_data, int(g)) for g in robot_probe.geom_ids]).reshape(-1, 2)
         self.robot_height = float(np.max(z[:, 1]) - 0.0)
@@ -305,6 +307,10 @@ class Scene:
             mujoco.mj_resetDataKeyframe(model, data, key)
             mujoco.mj_forward(model, data)
             return data.qpos.copy(), model.key_ctrl[key, robot.actuator_ids].copy()
+        for name, angle in self.facts.stand_pose.items():  # the profile's standing pose (robot init)
+            j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if j >= 0:
+                data.qpos[model.jnt_qposadr[j]] = angle
         q = np.clip(data.qpos[robot.qpos_adr], robot.lower, robot.upper)
         data.qpos[robot.qpos_adr] = q
         mujoco.mj_forward(model, data)

@@ -264,7 +264,87 @@ def test_the_written_profile_retargets_the_cmu_pair_as_written(name, tmp_path):
         assert rep.keypoint_error_mean_mm < 0.1 * 1000 * height, (rep.keypoint_error_mean_mm, height)
 
 
+@pytest.mark.slow
+def test_the_published_op3_stands_in_its_derived_pose_and_performs_the_cmu_pair(tmp_path):
+    """The published OP3 has no stand keyframe and a straight-legged T-pose at zero: from that
+    pose both CMU clips fell at 0.85 s in physics (planned offline). robot init derives a bent-knee
+    stand with the arms hanging; both clips are performed."""
+    from retarget.planned import planned_trajectory
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+    from sim.check import CheckConfig, check_trajectory
+
+    out = tmp_path / "pop3"
+    assert init(reference("robotis_op3"), out) == 0
+    stand = yaml.safe_load((out / "profile.yaml").read_text())["stand_pose"]
+    assert stand["l_knee"] > 0.3 and stand["r_knee"] < -0.3 and abs(stand["l_sho_roll"]) > 1.0, stand
+    rb = load(out)
+    pair = cmu_pair()
+    for person in (pair.actor, pair.reactor):
+        traj = planned_trajectory(StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True)), person)
+        result = check_trajectory(traj, CheckConfig(mode="free"), robot=out)
+        assert result.passed, (person.name, result.failures)
+
+
 # -- a humanoid with meaningless names ----------------------------------------------------------
+
+
+def test_init_derives_a_bent_knee_stand_for_a_model_without_one(toy, toy_folder):
+    """The toy has no keyframe and straight legs: the profile's stand_pose bends each knee to its
+    bending side so the hip drops 6 % of the leg, keeps each foot level, unturned and under its
+    hip, and hangs each arm 0.3 rad out from vertical; the retargeter and the physics scene both
+    stand in it."""
+    import mujoco
+
+    from retarget.stand_init import ARM_ABDUCTION, KNEE_DROP
+    from sim.scene import Scene, SceneConfig
+
+    stand = yaml.safe_load((toy_folder / "profile.yaml").read_text())["stand_pose"]
+    m = mujoco.MjModel.from_xml_path(str(toy))
+    rest, bent = mujoco.MjData(m), mujoco.MjData(m)
+    for name, angle in stand.items():
+        bent.qpos[m.joint(name).qposadr[0]] = angle
+    mujoco.mj_kinematics(m, rest)
+    mujoco.mj_kinematics(m, bent)
+    assert stand["m4"] > 0.3 and stand["m10"] < -0.3, stand  # both knees bent, each to its bending side
+    for hip, ankle, foot in (("m1", "m5", "q3"), ("m7", "m11", "q6")):
+        a, b = (d.xanchor[m.joint(ankle).id] - d.xanchor[m.joint(hip).id] for d in (rest, bent))
+        assert np.linalg.norm(b) == pytest.approx((1 - KNEE_DROP) * np.linalg.norm(a), rel=0.01)
+        assert np.linalg.norm(b[:2] - a[:2]) < 0.003  # still under the hip
+        assert np.abs(bent.xmat[m.body(foot).id] - rest.xmat[m.body(foot).id]).max() < 0.01  # level, unturned
+    for shoulder, forearm, out in (("k5", "q12", 1.0), ("k2", "q10", -1.0)):
+        hand = bent.xpos[m.body(forearm).id] + bent.xmat[m.body(forearm).id].reshape(3, 3) @ [0, 0, -0.13]
+        v = hand - bent.xanchor[m.joint(shoulder).id]
+        assert np.degrees(np.arctan2(out * v[1], -v[2])) == pytest.approx(np.degrees(ARM_ABDUCTION), abs=5)
+    rb = load(toy_folder)
+    for name, angle in stand.items():
+        assert rb.x_stand[rb.n_root + rb.joint_names.index(name)] == pytest.approx(angle, abs=1e-6)
+    scene = Scene(SceneConfig(robot=toy_folder))
+    assert scene.stand_source == "profile"
+    for name, angle in stand.items():
+        assert scene.stand_ctrl[scene.robot.joint_names.index(name)] == pytest.approx(angle, abs=1e-6)
+
+
+def test_a_model_with_a_stand_keyframe_gets_no_derived_pose(toy, tmp_path):
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_path(str(toy))
+    qpos = " ".join(f"{v:g}" for v in m.qpos0)
+    key = f'  <keyframe><key name="stand" qpos="{qpos}"/></keyframe>'
+    toy.write_text(TOY.replace("  </actuator>", "  </actuator>\n" + key))
+    assert init(toy, tmp_path / "keyed") == 0
+    profile = yaml.safe_load((tmp_path / "keyed" / "profile.yaml").read_text())
+    assert "stand_pose" not in profile and profile["stand_keyframe"] == "stand"
+
+
+def test_a_stand_pose_naming_no_joint_or_no_angle_is_one_error(toy_folder):
+    from retarget import RetargetError
+
+    path = toy_folder / "profile.yaml"
+    text = path.read_text()
+    for bad, field in (("{m4: high}", "stand_pose.m4"), ("[0.3]", "stand_pose"), ("{m99: 0.3}", "stand_pose.m99")):
+        path.write_text(re.sub(r"stand_pose: \{.*\}", f"stand_pose: {bad}", text))
+        with pytest.raises(RetargetError, match=re.escape(field)):
+            load(toy_folder)
 
 
 def test_the_anatomy_comes_from_the_tree_and_geometry_not_the_names(toy_folder, capsys):
