@@ -30,8 +30,11 @@ class CleanConfig:
 
     smooth: bool = True
     order: int = 2
-    min_cutoff: float = 1.5
-    beta: float = 1.5
+    # Hz and s/m: the one-euro cutoff at rest and its rise with speed. At 1.5 and 1.5 (with the
+    # old landing) the streamed CMU partner's jerk was 175 m/s³ (now 154); the price is lag: the
+    # pelvis trails a steady 0.5 m/s walk by 129 ms (96 ms). docs/model.md
+    min_cutoff: float = 1.0
+    beta: float = 1.0
     d_cutoff: float = 1.0
     feet: bool = True
     floor: float = 0.0
@@ -187,8 +190,12 @@ class BodyCleaner:
         a_lim, t_lim = (c.lock_ankle_m, c.lock_toe_m) if on else (c.release_ankle_m, c.release_toe_m)
         return bool(ankle[2] - c.floor < a_lim or toe[2] - c.floor < t_lim)
 
-    def _foot_target(self, foot: _Foot, ankle: np.ndarray, toe_vec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(ankle, toe - ankle) wanted for one foot this frame; updates its lock state."""
+    def _foot_target(
+        self, foot: _Foot, ankle: np.ndarray, toe_vec: np.ndarray, at=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(ankle, toe - ankle) wanted for one foot this frame; updates its lock state. ``at``: where
+        the foot's ankle was put last frame (a foot that touches down is planted there, not
+        where the generated foot is: it would slide the difference)."""
         c = self.config
         if foot.mode == "locked":
             if not self._low(ankle, ankle + toe_vec, on=False):
@@ -200,15 +207,16 @@ class BodyCleaner:
         if foot.mode == "step":
             foot.progress += 1.0 / c.step_frames
             s = foot.progress
-            w = _smoothstep((s - 0.25) / 0.5)  # moves only while lifted
+            w = _smoothstep((s - 0.2) / 0.45)  # moves only while lifted
             lift = c.step_lift_m * _smoothstep(s / 0.25) * _smoothstep((1.0 - s) / 0.25)
             out = (1 - w) * foot.anchor + w * ankle
             out[2] += lift
             tv = (1 - w) * foot.toe + w * toe_vec
+            tv[2] = max(tv[2], foot.toe[2])  # the toe no lower than planted: a pointed toe drags
             tv *= np.linalg.norm(toe_vec) / max(np.linalg.norm(tv), 1e-9)
             if s >= 1.0 - 1e-9:
                 foot.mode, foot.offset = "free", np.zeros(3)
-                return self._foot_target(foot, ankle, toe_vec)  # lands (locks) if low, else swings on
+                return self._foot_target(foot, ankle, toe_vec, at)  # lands (locks) if low, else swings on
             return out, tv
         # free: follow the generated foot, the offset of a release fading out: height first, the
         # horizontal part only once the foot is off the floor (no sliding while it touches)
@@ -219,6 +227,8 @@ class BodyCleaner:
             out = ankle + foot.offset
         if self._low(ankle, ankle + toe_vec, on=True):  # the generated foot touches down: plant it here
             foot.mode, foot.anchor, foot.toe = "locked", out.copy(), toe_vec.copy()
+            if at is not None:
+                foot.anchor[:2] = at[:2]
             # planted at a height the ankle and the toe can keep (the checks in step)
             floor = self.config.floor
             foot.anchor[2] = max(foot.anchor[2], floor + self._ankle_floor(), floor - toe_vec[2])
@@ -279,7 +289,8 @@ class BodyCleaner:
         if not c.feet:
             return q, np.zeros(4, dtype=bool)
         targets = [
-            self._foot_target(foot, q[ank].copy(), q[toe] - q[ank]) for foot, (_, _, ank, toe) in zip(self._feet, _LEGS)
+            self._foot_target(foot, q[ank].copy(), q[toe] - q[ank], None if last is None else last[0])
+            for foot, (_, _, ank, toe), last in zip(self._feet, _LEGS, self._foot_out)
         ]
         for i, (a, tv) in enumerate(targets):  # the ankle not below its standing height, the toe not below the floor
             lowest = max(c.floor + self._ankle_floor(), c.floor - tv[2])
@@ -289,7 +300,14 @@ class BodyCleaner:
             for i, (a, tv) in enumerate(targets):
                 prev = self._foot_out[i]
                 if prev is not None:
-                    a = prev[0] + c.foot_blend * (a - prev[0])
+                    # a planted or stepping foot is where its target says (its step is smooth
+                    # already): low-passed across the floor, it slid after each landing
+                    moving = self._feet[i].mode != "locked"
+                    a = (
+                        prev[0] + c.foot_blend * (a - prev[0])
+                        if moving
+                        else np.r_[a[:2], prev[0][2] + c.foot_blend * (a[2] - prev[0][2])]
+                    )
                     mixed = prev[1] + c.foot_blend * (tv - prev[1])
                     tv = mixed * (np.linalg.norm(tv) / max(np.linalg.norm(mixed), 1e-9))
                 targets[i] = self._foot_out[i] = (a, tv)
