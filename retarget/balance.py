@@ -142,6 +142,7 @@ class BalancePlanner:
         #: headings recorded when each foot touched down
         self.offset = (0.0, 0.0)
         self.psi = 0.0
+        self._pelvis_xy = None  # the pelvis target's place under the anchoring, last frame
         self._ankle_ref = [(0.0, 0.0), (0.0, 0.0)]
         self._head_ref = [0.0, 0.0]
         self._since = np.zeros(2, dtype=int)  # frames since each foot last touched down or lifted
@@ -333,8 +334,17 @@ class BalancePlanner:
                 self.psi += al * d
                 c, sn = math.cos(self.psi), math.sin(self.psi)
                 self.offset = (tx - (c * px - sn * py), ty - (sn * px + c * py))
+            elif self._pelvis_xy is not None and not any(contact):
+                # the person in the air (a jump, a run, a generated partner's hop): its travel
+                # is not followed, the pelvis target held where it was (the robot, its feet
+                # down, leaned after targets out of reach, bowed 43° and fell)
+                c, sn = math.cos(self.psi), math.sin(self.psi)
+                x, y = targets[self.robot.root_keypoint, 0:2]
+                self.offset = (self._pelvis_xy[0] - (c * x - sn * y), self._pelvis_xy[1] - (sn * x + c * y))
         c, sn = math.cos(self.psi), math.sin(self.psi)
         ox, oy = self.offset
+        x, y = targets[self.robot.root_keypoint, 0:2]
+        self._pelvis_xy = (c * x - sn * y + ox, sn * x + c * y + oy)
         self._ankles_now = [(c * x - sn * y + ox, sn * x + c * y + oy) for x, y in ankles]
         self._heads_now = [heads[0] + self.psi, heads[1] + self.psi]
         self._heads_person = heads

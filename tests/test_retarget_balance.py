@@ -493,6 +493,23 @@ def test_bridge_retarget_stage_balances_free_standing_robots_only(op3):
     assert stage.streamer.planted.all()
 
 
+def test_a_person_hopping_away_is_not_chased_by_leaning(op3):
+    """The whole person leaves the floor for 0.5 s and lands 0.8 m further on (a generated
+    partner's hop): its travel in the air is not followed, so the robot, feet down, does not
+    lean after targets out of reach (it pitched 10° here, and 43° and fell on the demo's
+    partner standing on one foot); the hop is reported as a flight."""
+    T = 120
+    t = np.arange(T) / FPS
+    s = np.clip((t - 1.0) / 0.5, 0.0, 1.0)
+    pos = np.repeat(REST_POSE[None], T, axis=0).copy()
+    pos[:, :, 0] += 0.8 * (s * s * (3 - 2 * s))[:, None]
+    pos[:, :, 2] += (np.where((t > 1.0) & (t < 1.5), np.sin(np.pi * s), 0.0) * 0.12)[:, None]
+    traj = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True)).run(Motion(pos, FPS, name="hop"))
+    pitch = np.degrees(np.abs(2 * np.arctan2(traj.root_quat[:, 2], traj.root_quat[:, 0])))
+    assert pitch.max() < 6.0, pitch.max()
+    assert any(c["what"] == "flight" for c in traj.meta["changes"])
+
+
 def test_step_timing_that_cannot_work_is_one_error_naming_the_field(op3):
     for kw, field in (
         ({"swing_speed": 0.0}, "swing_speed"),
