@@ -1,12 +1,13 @@
 """Stepping, tracking and balance of the retargeted robot, next to the behaviour before stepping.
 
-    python bench/stepping.py [--robot op3] [--clips leaders,quick,cmu,duets] [--physics] [--quick]
+    python bench/stepping.py [--robot op3] [--clips leaders,quick,gestures,cmu,duets] [--physics] [--quick]
 
 Clips: ``leaders``: the SYNTHETIC stepping leaders of bench/stepping_leaders.py (turning in place
 2-2.5 turns, walking straight and on a circle, side-stepping); ``pivot``: the rest pose turning
 2.5 turns on the spot at 0.8 and 0.5 rad/s without stepping (the root-yaw verdict's case);
 ``quick``: leaders stepping at a dance's pace, 2 to 2.7 steps a second
-(bench/stepping_leaders.quick_leaders); ``heldout``: other stepping leaders
+(bench/stepping_leaders.quick_leaders); ``gestures``: everyday gestures standing still (bow, hand
+over, high fives, handshake, side lean, wave; bench/gestures.py); ``heldout``: other stepping leaders
 (bench/stepping_leaders.held_out_leaders) and eight other generated duets (mirror, follow,
 hand_hold, orbit; seeds 2 and 3), to check the rules on clips they were not tuned on; ``cmu``: the CMU two-person pair
 (../shared/data/mocap/cmu, both people, when present); ``duets``: the rule followers of
@@ -148,7 +149,7 @@ def offline_before(off: OfflineRetargeter, rb, motion, tg):
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robot", default="op3")
-    ap.add_argument("--clips", default="leaders,quick,cmu,duets")
+    ap.add_argument("--clips", default="leaders,quick,gestures,cmu,duets")
     ap.add_argument("--max-clips", type=int, default=0, help="at most this many clips (0: all)")
     ap.add_argument("--physics", action="store_true", help="also run sim's free-standing check")
     ap.add_argument("--modes", default="offline,offline-ipopt,streaming,streaming-before")
@@ -160,6 +161,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     kinds = args.clips.split(",")
     if "leaders" in kinds:
         clips += leaders()
+    if "gestures" in kinds:
+        from bench.gestures import gestures
+
+        clips += gestures()
     if "quick" in kinds:
         from bench.stepping_leaders import quick_leaders
 
