@@ -90,7 +90,6 @@ class BalancePlanner:
         ``step_shift`` and ``min_swing`` (at least 2 frames)."""
         cfg = self.config
         frames = lambda t: max(0, round(t * k * self.fps))  # noqa: E731
-        self._pace = k
         self._min_stance_frames = frames(cfg.min_stance)
         self._min_swing_frames = max(2, frames(cfg.min_swing))
         self._min_double_frames = frames(cfg.min_double)

@@ -982,7 +982,11 @@ def _draft_profile(m, model_path: Path, robot: str, rel: str) -> _ProfileDraft:
     kid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, stand_name)
     limits, limit_why = joint_limits(m, an)
     poses = [np.array(m.qpos0)] + ([np.array(m.key_qpos[kid])] if kid >= 0 else [])
-    derived = derive_stand_pose(m, an, limits) if kid < 0 else None
+    try:
+        derived = derive_stand_pose(m, an, limits) if kid < 0 else None
+    except (ValueError, np.linalg.LinAlgError) as exc:  # the robot stands in its zero pose then
+        derived = None
+        an.notes.append(f"no standing pose derived ({exc}); add a stand keyframe to the MJCF")
     if derived is not None:
         stand_qpos = np.array(m.qpos0)
         for name, angle in derived[0].items():

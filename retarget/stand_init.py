@@ -47,17 +47,20 @@ def derive_stand_pose(m, an, limits: dict) -> tuple[dict, str] | None:
     q0 = np.clip(m.qpos0[adr], lo, hi)
     # the start: each knee bent into its range (straight, the hip's drop has no gradient, and a
     # knee at its bound gets no step from the bounded solver)
-    start = np.clip(q0, lo + 1e-3, hi - 1e-3)
+    inset = np.minimum(1e-3, 0.25 * (hi - lo))
+    start = q0.copy()
     for leg in an.legs.values():
         if leg.mid is not None and leg.mid.id in ids:
             i = ids.index(leg.mid.id)
             start[i] += 0.5 if hi[i] - q0[i] >= q0[i] - lo[i] else -0.5
-    start = np.clip(start, lo + 1e-3, hi - 1e-3)
+    start = np.clip(start, lo + inset, hi - inset)
     d = mujoco.MjData(m)
     d.qpos[:] = m.qpos0
     mujoco.mj_kinematics(m, d)
     legs = [_leg_rest(d, leg) for leg in an.legs.values()]
     arms = [_arm_rest(d, arm, an) for arm in an.arms.values()]
+    from scipy.optimize import least_squares
+
     for alpha in _ABDUCTIONS:
 
         def residuals(x, alpha=alpha):
@@ -65,8 +68,6 @@ def derive_stand_pose(m, an, limits: dict) -> tuple[dict, str] | None:
             mujoco.mj_kinematics(m, d)
             r = [_leg_rows(d, leg) for leg in legs] + [_arm_rows(d, arm, alpha) for arm in arms]
             return np.concatenate(r + [0.01 * (x - q0)])
-
-        from scipy.optimize import least_squares
 
         x = least_squares(residuals, start, bounds=(lo, hi)).x
         touching = _arm_contacts(m, d, adr, x, an)
