@@ -311,11 +311,11 @@ class RetargetRobot:
         m = self.kin.model
         kid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, self.profile.stand_keyframe)
         qpos = np.array(m.key_qpos[kid]) if kid >= 0 else np.array(m.qpos0)
-        if kid < 0:
-            for name, angle in self.profile.stand_pose:
-                j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
-                if j < 0 or m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
-                    raise RetargetError(f"{src}: field stand_pose.{name}: the MJCF has no hinge joint {name!r}")
+        for name, angle in self.profile.stand_pose:  # checked even where a keyframe takes its place
+            j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if j < 0 or m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+                raise RetargetError(f"{src}: field stand_pose.{name}: the MJCF has no hinge joint {name!r}")
+            if kid < 0:
                 qpos[m.jnt_qposadr[j]] = angle
         x = self.kin.x_from_qpos(qpos)
         return np.clip(x, self.x_lower, self.x_upper)

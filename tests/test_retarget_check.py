@@ -118,6 +118,36 @@ def test_the_changed_column_gives_no_error_for_a_lead_in_that_has_no_person_to_m
     assert cell == "lead-in: 1x 3.07 s from -3.07 s; held down: 2x 0.60 s from 0.00 s (up to 41 mm)"
 
 
+def test_an_unknown_robot_or_a_broken_profile_is_one_error_before_any_clip(tmp_path, capsys):
+    """A robot that cannot load (an unknown name, a profile field that does not parse or bind)
+    stops retarget-check at once with exit 2 naming it; it used to fail every clip, one row
+    each, exit 1."""
+    import shutil
+
+    from firmware_cfg.registry import resolve
+
+    clip = tmp_path / "clips" / "standing.npz"
+    clip.parent.mkdir()
+    save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clip)
+    op3 = resolve("op3")
+    folder = tmp_path / "my_op3"
+    shutil.copytree(Path(op3.profile).parent, folder)
+    profile = folder / "profile.yaml"
+    text = profile.read_text()
+    out = tmp_path / "out"
+    for robot, bad, named in (
+        ("nosuchbot", None, "unknown robot"),
+        (str(folder), "stand_pose: {l_knee: .nan}", "stand_pose.l_knee"),
+        (str(folder), "stand_pose: {no_joint: 0.3}", "stand_pose.no_joint"),
+    ):
+        if bad:
+            profile.write_text(text.rstrip("\n") + "\n" + bad + "\n")
+        assert main(["retarget-check", str(clip.parent), "-o", str(out), "--robot", robot]) == 2
+        err = capsys.readouterr().err
+        assert named in err and "Traceback" not in err, err
+        assert not out.exists()
+
+
 def test_the_planner_asked_for_a_robot_it_cannot_plan_is_one_error_before_any_clip(tmp_path, capsys):
     """--offline-engine planner plans a free-standing robot's steps with balance: on the
     fixed-base ub14, or with --no-balance, retarget-check stops at once with exit 2 naming the

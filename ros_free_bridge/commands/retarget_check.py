@@ -132,6 +132,7 @@ def run(args) -> int:
                 f"{'fixed-base' if fixed else 'checked with --no-balance'}); "
                 "use --offline-engine ipopt or auto"
             )
+    _require_robot(args.robot)
     pairs = PairPattern.parse(args.pairs) if args.pairs else None
     clips = find_clips(args.folder, recursive=args.recursive, exclude=args.out, pairs=pairs)
     if not clips:
@@ -159,3 +160,16 @@ def run(args) -> int:
     print(markdown_table(results))
     print(f"wrote {cfg.out / 'results.csv'}, {cfg.out / 'results.md'} and {cfg.out / 'index.html'}")
     return 0 if all(r.status == "pass" for r in results) else 1
+
+
+def _require_robot(robot: str) -> None:
+    """The robot and its profile load and bind (well under a second), or one BridgeError naming
+    the file and field: an unknown robot or a broken profile failed every clip, one row each."""
+    from retarget.errors import RetargetError
+    from retarget.robot import load_robot
+    from ros_free_bridge.errors import BridgeError
+
+    try:
+        load_robot(robot)
+    except RetargetError as exc:
+        raise BridgeError(str(exc)) from None
