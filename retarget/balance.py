@@ -70,6 +70,7 @@ class BalancePlanner:
         self._sole_local = [f.corners for f in rb.feet]
         self._anchor_alpha = 1.0 - math.exp(-1.0 / (self.fps * cfg.anchor_time))
         self._max_swing_frames = round(cfg.max_swing * self.fps)
+        self._k = None  # the pace the step phases were last set for (_set_pace)
         # leg length (hip above ankle standing; the CoM height without hip keypoints): scales step lengths
         legs = [self._stand_kp[hip, 2] - self._stand_kp[ankle, 2] for hip, ankle in zip(self._hips or (), self._ankles)]
         self._leg = float(np.mean(legs)) if legs else h
@@ -88,6 +89,9 @@ class BalancePlanner:
     def _set_pace(self, k: float) -> None:
         """The step's phases at ``k`` x their configured lengths: ``min_stance``, ``min_double``,
         ``step_shift`` and ``min_swing`` (at least 2 frames)."""
+        if k == self._k:  # called every frame on both feet: the phases change only with k
+            return
+        self._k = k
         cfg = self.config
         frames = lambda t: max(0, round(t * k * self.fps))  # noqa: E731
         self._min_stance_frames = frames(cfg.min_stance)

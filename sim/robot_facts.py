@@ -62,7 +62,7 @@ def robot_facts(robot, joint_limits: Mapping | None = None, no_load_speed=None) 
     profile, hardware = files
     if profile is not None:
         try:
-            limits, stand = _profile_limits(profile)
+            limits, stand = _profile_facts(profile)
             facts.stand_pose.update(stand)
         except SimError as exc:
             facts.notes.append(f"retarget profile left out: {exc}")
@@ -99,7 +99,7 @@ def _robot_files(robot) -> tuple[Path | None, Path | None] | None:
     return r.profile, r.hardware
 
 
-def _profile_limits(path: Path) -> tuple[dict, dict]:
+def _profile_facts(path: Path) -> tuple[dict, dict]:
     """The profile's ``joint_limits`` and ``stand_pose`` ({joint: rad})."""
     try:
         data = yaml.safe_load(Path(path).read_text())

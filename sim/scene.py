@@ -3,7 +3,8 @@
 A :class:`Scene` owns one ``MjModel``/``MjData`` pair built from the robot's MJCF as published
 (found through :mod:`firmware_cfg.registry`): a floor at z = 0 unless the model brings one,
 the ``stand`` keyframe, else the profile's ``stand_pose`` or a derived standing pose,
-optionally a bolted base, and kinematic figures of the people that exert no forces. Reference: docs/simulation.md.
+optionally a bolted base, and kinematic figures of the people that exert no forces.
+Reference: docs/simulation.md.
 """
 
 from __future__ import annotations
@@ -71,8 +72,8 @@ class Scene:
     """The compiled scene. Attributes: ``model``, ``data``, ``robot`` (RobotIndex),
     ``actor`` / ``reactor`` (HumanFigure or None), ``floor_geom`` (id), ``floor_name``,
     ``stand_ctrl`` (n,) the standing pose's servo goals in joint order, ``stand_source``
-    ("keyframe", "profile": its ``stand_pose``, or "derived", see the module docstring), ``stand_root_height`` (m, root
-    body z when standing), ``robot_height`` (m, top of the robot when standing; exact for
+    ("keyframe", "profile": its ``stand_pose``, or "derived", see the module docstring),
+    ``stand_root_height`` (m, root body z when standing), ``robot_height`` (m, top of the robot when standing; exact for
     meshes and primitives), ``floating`` (the MJCF gives the robot a freejoint: it stands on
     its own feet, even where this scene bolts it down; only then are feet looked for, in
     ``robot.feet``), ``facts`` (:class:`sim.robot_facts.RobotFacts`) and ``actor_placement`` /
