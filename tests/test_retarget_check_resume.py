@@ -183,6 +183,30 @@ def test_a_changed_input_file_or_a_new_partner_makes_a_clip_run_again(tmp_path):
     assert ResultLog(cfg, [a, paired], resume=True).complete() == {}
 
 
+def test_an_interrupt_right_after_a_row_is_written_keeps_it_in_the_tables(tmp_path, monkeypatch):
+    """Ctrl-C landing after a clip's line reached results.jsonl but before the batch counted
+    it: results.csv, results.md and the report still list it (they are written from the lines
+    on disk too); they once lacked it while --resume kept the clip (seen in the Ray Ctrl-C test
+    under load)."""
+    from ros_free_bridge.batch.run import run_batch
+
+    folder = tmp_path / "clips"
+    folder.mkdir()
+    save_motion(Motion(np.repeat(REST_POSE[None], 20, 0), 30.0), folder / "stand.npz")
+    real_add = ResultLog.add
+
+    def add_then_interrupt(self, clip, res):
+        real_add(self, clip, res)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ResultLog, "add", add_then_interrupt)
+    cfg = _cfg(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        run_batch([Clip("stand.npz", folder / "stand.npz")], cfg, jobs=1)
+    assert [row["clip"] for row in table(cfg.out)] == ["stand.npz"]
+    assert "stand.npz" in (cfg.out / "results.md").read_text()
+
+
 def test_without_resume_a_batch_starts_afresh(tmp_path):
     cfg = _cfg(tmp_path)
     a = _clip(tmp_path, "a.npz")

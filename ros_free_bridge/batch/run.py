@@ -12,7 +12,7 @@ from ros_free_bridge.batch.clips import Clip, as_clips
 from ros_free_bridge.batch.config import BatchConfig, clip_dir
 from ros_free_bridge.batch.local import run_local
 from ros_free_bridge.batch.report_html import write_html_report
-from ros_free_bridge.batch.results import ClipResult, ResultLog, write_results
+from ros_free_bridge.batch.results import ClipResult, ResultLog, read_results, write_results
 
 
 def run_batch(
@@ -83,6 +83,11 @@ def run_batch(
             else:
                 run_local(runnable, cfg, jobs, done)
     finally:
+        # a row whose line was written as the interrupt came (between log.add and results) is
+        # on disk, so it is in the tables too; they once lacked it while --resume kept the clip
+        for row in read_results(cfg.out):
+            if row["clip"] in wanted:
+                results.setdefault(row["clip"], ClipResult.from_row(row))
         finish(cfg, clips, [results[c.name] for c in clips if c.name in results])
     return [results[n] for n in names]
 
