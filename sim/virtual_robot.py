@@ -51,9 +51,9 @@ class ImuProbe:
         if self.site >= 0:
             R = data.site_xmat[self.site].reshape(3, 3)
             objtype, obj = mj.mjtObj.mjOBJ_SITE, self.site
-        else:
+        else:  # the body's own frame: mjOBJ_BODY would give the rate in its principal-inertia frame
             R = data.xmat[self.root].reshape(3, 3)
-            objtype, obj = mj.mjtObj.mjOBJ_BODY, self.root
+            objtype, obj = mj.mjtObj.mjOBJ_XBODY, self.root
         if self._quat is not None:
             quat = data.sensordata[self._quat].copy()
         else:

@@ -181,3 +181,28 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     assert np.all(np.abs(np.diff(cmd, axis=0)) <= limits.max_velocity * 0.01 + 1e-5)
     events = [e["kind"] for e in read_telemetry(tmp_path / "t.dftl").events]
     assert "stabilizer" in events
+
+
+def test_a_robot_without_an_imu_site_reads_its_body_rate_in_the_body_frame():
+    """With no IMU site the root body's own frame stands in for the IMU: a pitch rate must read
+    as a pitch rate, also where the body's principal axes of inertia are turned (the published
+    OP3's torso: a quarter turn about x; the rate came out as yaw, and the rate feedback then
+    drove the ankles with the body's yaw rate while the robot walked)."""
+    import mujoco
+
+    from sim.virtual_robot import ImuProbe
+
+    xml = """<mujoco><worldbody><body name="torso" pos="0 0 1"><freejoint/>
+      <inertial pos="0 0 0" quat="0.7071068 0.7071068 0 0" mass="1" diaginertia="0.01 0.02 0.03"/>
+      </body></worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    d.qpos[3:7] = [np.cos(0.15), 0.0, 0.0, np.sin(0.15)]  # turned 0.3 rad about the vertical
+    d.qvel[3:6] = [0.2, 1.0, -0.5]  # the free joint's angular velocity, body frame
+    mujoco.mj_forward(m, d)
+    probe = ImuProbe(m, 1)
+    assert probe.site == -1
+    reading = probe.read(d)
+    np.testing.assert_allclose(reading.gyro, [0.2, 1.0, -0.5], atol=1e-9)
+    np.testing.assert_allclose(reading.quat, d.qpos[3:7], atol=1e-9)
+    np.testing.assert_allclose(reading.accel, [0.0, 0.0, 9.81], atol=1e-9)
