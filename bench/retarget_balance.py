@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench.retarget_speed import Clock, gmr_style, load_clips  # noqa: E402
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
-from retarget.robot import load_robot, resolve_paths  # noqa: E402
+from retarget.robot import load_robot, resolve_paths, robot_ref  # noqa: E402
 from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x  # noqa: E402
 from retarget.support import com_margins  # noqa: E402
 from retarget.targets import make_targets  # noqa: E402
@@ -119,10 +119,11 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     if not args.no_physics:
         from sim.check import CheckConfig, check_trajectory
 
+        ref = robot_ref(args.robot)
         for label, xs in (("with", x_bal), ("without", x_plain)):
             verdicts, fell = [], False
             for clip, X in zip(clips, xs):
-                res = check_trajectory(trajectory_from_x(rb, X, 30.0, {}), CheckConfig(mode="free"), robot=rb.name)
+                res = check_trajectory(trajectory_from_x(rb, X, 30.0, {}), CheckConfig(mode="free"), robot=ref)
                 verdicts.append(
                     f"{clip.name}: " + ("pass" if res.passed else f"{res.reason} at {res.first_failure_time:.2f} s")
                 )

@@ -81,7 +81,7 @@ from retarget.errors import RetargetError  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter, _Infeasible, feet_apart  # noqa: E402
 from retarget.planned import planned_trajectory  # noqa: E402
 from retarget.report import clip_targets, evaluate  # noqa: E402
-from retarget.robot import load_robot  # noqa: E402
+from retarget.robot import load_robot, robot_ref  # noqa: E402
 from retarget.schedule import StepConfig, count_steps  # noqa: E402
 from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x  # noqa: E402
 from retarget.support import com_margins  # noqa: E402
@@ -300,7 +300,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 if args.physics:
                     from sim.check import CheckConfig, check_trajectory
 
-                    res = check_trajectory(traj, CheckConfig(mode="free"), robot=rb.name)
+                    res = check_trajectory(traj, CheckConfig(mode="free"), robot=robot_ref(args.robot))
                     s["phys"].append(res.passed)
                     lift_offs = sum(res.metrics.get("stances", [])) - len(res.metrics.get("stances", []))
                     s["lift_offs"] += lift_offs
