@@ -126,14 +126,21 @@ def test_the_stream_starts_from_the_rest_pose_without_a_jump(tmp_path, steady):
     # the first frame is 0.3 rad from the rest pose: the command blends onto the stream
     # (stream_join_s) instead of stepping there, which the safety filter would clip
     steady_acc, _ = steady
-    track, flags, _, _ = _run(tmp_path, _motion(offset=-0.3))
+    # a real-time run: under the full suite on 2 cores a held-back tick once made the filter
+    # step in 4 times. Up to three tries: a stepped start (10 or more, below) shows in every one
+    for attempt in range(3):
+        (tmp_path / str(attempt)).mkdir()
+        track, flags, _, _ = _run(tmp_path / str(attempt), _motion(offset=-0.3))
+        joined = int(flags.any(axis=1).sum())
+        if joined <= 3 and _peak_acceleration(track) <= max(2.0 * steady_acc, 10.0):
+            break
     q = track[1]
     np.testing.assert_allclose(q[0], 0.0)  # the last waiting tick: at rest
     assert np.max(np.abs(np.diff(q, axis=0))) <= 0.05  # rad per tick: nothing near a 0.3 rad step
-    joined = int(flags.any(axis=1).sum())
     assert joined <= 3  # the filter hardly had to step in (a tick or two where a joint turns)
     assert _peak_acceleration(track) <= max(2.0 * steady_acc, 10.0)
-    (_, q), flags, _, _ = _run(tmp_path, _motion(offset=-0.3), stream_join_s=0.0)
+    (tmp_path / "unjoined").mkdir()
+    (_, q), flags, _, _ = _run(tmp_path / "unjoined", _motion(offset=-0.3), stream_join_s=0.0)
     # the step it replaced, which the filter spreads over 10 ticks or more (3 rad/s)
     assert np.max(np.abs(np.diff(q, axis=0))) >= 0.29 and int(flags.any(axis=1).sum()) >= max(10, joined + 5)
 
