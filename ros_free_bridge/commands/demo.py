@@ -186,17 +186,43 @@ def _print_demo_summary(result, check, reports: dict, video) -> None:
 
 def steps_line(partner_file: Path, check) -> str:
     """The partner's steps (touch-downs of its detected foot contacts) next to the robot's
-    (its feet's lift-offs in the physics check: sim's stances per foot, less one)."""
+    (its feet's lift-offs in the physics check: sim's stances per foot, less one). Touch-downs
+    that end a jump (both of the partner's feet up) are named: the robot keeps its feet down
+    through a jump, so it has no step there to match."""
     from dualflow.motion.io import load_any
     from retarget.schedule import count_steps
     from retarget.targets import detect_contacts, side_contacts
 
     robot = sum(max(0, n - 1) for n in check.metrics.get("stances") or [])
     try:
-        person = count_steps(side_contacts(detect_contacts(load_any(partner_file))))
+        motion = load_any(partner_file)
+        contacts = side_contacts(detect_contacts(motion))
     except Exception as exc:  # noqa: BLE001 - a summary line; the run's verdict is already made
         return f"steps: the robot {robot} (the partner's not counted: {exc})"
-    return f"steps: the partner {person}, the robot {robot} (its feet lifted off the floor in physics)"
+    person = f"the partner {count_steps(contacts)}"
+    jumps, landings, airborne = jump_landings(contacts, motion.fps)
+    if jumps:
+        person += (
+            f" ({landings} of them landing from {jumps} jump{'s' if jumps > 1 else ''}, {airborne:.1f} s in the air,"
+            " which the robot stands through)"
+        )
+    return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics)"
+
+
+def jump_landings(contacts, fps: float) -> tuple[int, int, float]:
+    """(jumps, touch-downs that end one, seconds in the air) of side contacts (T, 2): a jump is
+    a run of frames with both feet up that ends with a foot down (retarget.schedule's flights)."""
+    import numpy as np
+
+    from retarget.schedule import keep_feet_down_in_flight
+
+    c = np.asarray(contacts, dtype=bool)
+    flights: list = []
+    keep_feet_down_in_flight(c.copy(), fps, flights)
+    ends = [round(f.end_s * fps) for f in flights]
+    landed = [(f, e) for f, e in zip(flights, ends) if 0 < e < len(c)]
+    landings = sum(int(c[e].sum()) for _, e in landed)
+    return len(landed), landings, sum(f.end_s - f.start_s for f, _ in landed)
 
 
 def leader_beats(actor: str, seconds: float, seed: int):

@@ -1,0 +1,35 @@
+"""The demo's steps line: the partner's touch-downs that end a jump are named, because the robot
+keeps its feet down through a jump and has no step there to match."""
+
+import numpy as np
+
+from dualflow.motion import Motion
+from dualflow.motion.io import save_motion
+from ros_free_bridge.commands.demo import jump_landings, steps_line
+
+
+class _Check:
+    metrics = {"stances": [2, 1]}  # the robot lifted its left foot once
+
+
+def test_jump_landings_counts_the_touch_downs_that_end_a_jump():
+    c = np.array([[1, 1], [1, 0], [0, 0], [0, 0], [1, 1], [1, 1], [0, 1], [1, 1], [0, 0]], bool)
+    jumps, landings, airborne = jump_landings(c, 10.0)
+    assert (jumps, landings) == (1, 2)  # both feet came down after frames 2-3; the last run never lands
+    assert abs(airborne - 0.2) < 1e-9
+    assert jump_landings(c[:2], 10.0) == (0, 0, 0)  # no frame with both feet up
+
+
+def test_the_steps_line_names_the_partners_jump(tmp_path):
+    from dualflow.synthetic import make_leader
+
+    leader = make_leader(4.0, 30.0, seed=0)
+    still = np.repeat(leader.positions[:1], 60, axis=0)  # standing, both feet down
+    hop = still.copy()
+    hop[25:35, :, 2] += 0.25  # the whole body 25 cm up for a third of a second, then down
+    path = tmp_path / "partner.npz"
+    save_motion(Motion(hop, 30.0, name="partner"), path)
+    line = steps_line(path, _Check())
+    assert "landing from 1 jump" in line and "the robot 1" in line, line
+    save_motion(Motion(still, 30.0, name="partner"), path)
+    assert "jump" not in steps_line(path, _Check())
