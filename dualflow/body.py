@@ -47,6 +47,13 @@ class CleanConfig:
     step_lift_m: float = 0.08
     max_drop_m: float = 0.15
     foot_blend: float = 0.5
+    # a foot leaves the floor only while the other one is planted, and a body with no foot
+    # planted puts its lower foot down: the training duets never have both feet off the floor,
+    # and a generated partner that bobs up would otherwise hop (the demo's: 38 % of its frames)
+    one_foot_down: bool = True
+    # per frame: how fast the body comes down to a planted foot's reach. With one_foot_down,
+    # 0.5 made the streamed CMU partner jerk 197 m/s³ (154 without); 0.12 keeps it at 154
+    drop_gain: float = 0.12
     # the body's travel over the floor (pelvis xy): at most this fast (m/s) and this quick to
     # change speed (m/s²); 0 turns the limit off. The real CMU partners peak at 1.3 m/s (95th
     # percentile of acceleration 5-6 m/s²); generated partners chasing an actor reached 3.5 m/s.
@@ -62,6 +69,8 @@ class CleanConfig:
             raise DualFlowError("clean config: foot_blend must be in (0, 1] (1 = feet follow their targets at once)")
         if self.order < 1:
             raise DualFlowError("clean config: order (one-euro filters in a row) must be >= 1")
+        if not 0.0 < self.drop_gain <= 1.0:
+            raise DualFlowError("clean config: drop_gain must be in (0, 1] (1 = the body comes down at once)")
         if self.step_frames < 2 or self.max_drift_m <= 0:
             raise DualFlowError("clean config: step_frames must be >= 2 and max_drift_m > 0")
         if self.max_speed < 0 or self.max_accel < 0 or (self.max_speed > 0) != (self.max_accel > 0):
@@ -191,13 +200,17 @@ class BodyCleaner:
         return bool(ankle[2] - c.floor < a_lim or toe[2] - c.floor < t_lim)
 
     def _foot_target(
-        self, foot: _Foot, ankle: np.ndarray, toe_vec: np.ndarray, at=None
+        self, foot: _Foot, ankle: np.ndarray, toe_vec: np.ndarray, at=None, other_down: bool = True
     ) -> tuple[np.ndarray, np.ndarray]:
         """(ankle, toe - ankle) wanted for one foot this frame; updates its lock state. ``at``: where
         the foot's ankle was put last frame (a foot that touches down is planted there, not
-        where the generated foot is: it would slide the difference)."""
+        where the generated foot is: it would slide the difference). ``other_down``: the other
+        foot is planted (with ``one_foot_down``, a foot lifts only then, and a free foot is put
+        down where it is when the other is not)."""
         c = self.config
         if foot.mode == "locked":
+            if not (other_down or not c.one_foot_down):  # the other foot is up: this one stays
+                return foot.anchor.copy(), foot.toe.copy()
             if not self._low(ankle, ankle + toe_vec, on=False):
                 foot.mode, foot.offset = "free", foot.anchor - ankle
             elif np.linalg.norm((ankle - foot.anchor)[:2]) > c.max_drift_m:
@@ -216,7 +229,7 @@ class BodyCleaner:
             tv *= np.linalg.norm(toe_vec) / max(np.linalg.norm(tv), 1e-9)
             if s >= 1.0 - 1e-9:
                 foot.mode, foot.offset = "free", np.zeros(3)
-                return self._foot_target(foot, ankle, toe_vec, at)  # lands (locks) if low, else swings on
+                return self._foot_target(foot, ankle, toe_vec, at, other_down)  # lands (locks) if low, else swings on
             return out, tv
         # free: follow the generated foot, the offset of a release fading out: height first, the
         # horizontal part only once the foot is off the floor (no sliding while it touches)
@@ -225,13 +238,15 @@ class BodyCleaner:
         if not self._low(out, out + toe_vec, on=False):
             foot.offset[:2] *= 0.7
             out = ankle + foot.offset
-        if self._low(ankle, ankle + toe_vec, on=True):  # the generated foot touches down: plant it here
+        grounded = c.one_foot_down and not other_down  # no foot planted: this one comes down
+        if grounded or self._low(ankle, ankle + toe_vec, on=True):  # the generated foot touches down: plant it here
             foot.mode, foot.anchor, foot.toe = "locked", out.copy(), toe_vec.copy()
             if at is not None:
                 foot.anchor[:2] = at[:2]
             # planted at a height the ankle and the toe can keep (the checks in step)
             floor = self.config.floor
-            foot.anchor[2] = max(foot.anchor[2], floor + self._ankle_floor(), floor - toe_vec[2])
+            lowest = max(floor + self._ankle_floor(), floor - toe_vec[2])
+            foot.anchor[2] = lowest if grounded else max(foot.anchor[2], lowest)
             return foot.anchor.copy(), foot.toe.copy()
         return out, toe_vec
 
@@ -288,10 +303,11 @@ class BodyCleaner:
         q = self._project(p)
         if not c.feet:
             return q, np.zeros(4, dtype=bool)
-        targets = [
-            self._foot_target(foot, q[ank].copy(), q[toe] - q[ank], None if last is None else last[0])
-            for foot, (_, _, ank, toe), last in zip(self._feet, _LEGS, self._foot_out)
-        ]
+        targets = []
+        for i, (foot, (_, _, ank, toe), last) in enumerate(zip(self._feet, _LEGS, self._foot_out)):
+            other_down = self._feet[1 - i].mode == "locked"  # the left foot's update counts for the right
+            at = None if last is None else last[0]
+            targets.append(self._foot_target(foot, q[ank].copy(), q[toe] - q[ank], at, other_down))
         for i, (a, tv) in enumerate(targets):  # the ankle not below its standing height, the toe not below the floor
             lowest = max(c.floor + self._ankle_floor(), c.floor - tv[2])
             if a[2] < lowest:
@@ -312,7 +328,7 @@ class BodyCleaner:
                     tv = mixed * (np.linalg.norm(tv) / max(np.linalg.norm(mixed), 1e-9))
                 targets[i] = self._foot_out[i] = (a, tv)
         need = self._pelvis_drop(q, targets)
-        self._drop += 0.5 * (need - self._drop)
+        self._drop += self.config.drop_gain * (need - self._drop)
         if self._drop > 1e-6:
             q[:, 2] -= self._drop
         for leg, (a, tv) in zip(_LEGS, targets):

@@ -203,7 +203,7 @@ def steps_line(partner_file: Path, check) -> str:
     jumps, landings, airborne = jump_landings(contacts, motion.fps)
     if jumps:
         person += (
-            f" ({landings} of them landing from {jumps} jump{'s' if jumps > 1 else ''}, {airborne:.1f} s in the air,"
+            f" ({landings} of them landing from {jumps} jump{'s' if jumps > 1 else ''}, {airborne:.2f} s in the air,"
             " which the robot stands through)"
         )
     return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics)"
