@@ -157,6 +157,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     rb = load_robot(args.robot)
+    ref = robot_ref(args.robot)  # the check finds a robot folder again by it, a bundled robot by name
     clips, clean = [], set()
     kinds = args.clips.split(",")
     if "leaders" in kinds:
@@ -300,7 +301,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 if args.physics:
                     from sim.check import CheckConfig, check_trajectory
 
-                    res = check_trajectory(traj, CheckConfig(mode="free"), robot=robot_ref(args.robot))
+                    res = check_trajectory(traj, CheckConfig(mode="free"), robot=ref)
                     s["phys"].append(res.passed)
                     lift_offs = sum(res.metrics.get("stances", [])) - len(res.metrics.get("stances", []))
                     s["lift_offs"] += lift_offs

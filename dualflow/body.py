@@ -212,7 +212,7 @@ class BodyCleaner:
         down where it is when the other is not)."""
         c = self.config
         if foot.mode == "locked":
-            if not (other_down or not c.one_foot_down):  # the other foot is up: this one stays
+            if c.one_foot_down and not other_down:  # the other foot is up: this one stays
                 return foot.anchor.copy(), foot.toe.copy()
             if not self._low(ankle, ankle + toe_vec, on=False):
                 foot.mode, foot.offset = "free", foot.anchor - ankle
@@ -331,7 +331,7 @@ class BodyCleaner:
                     tv = mixed * (np.linalg.norm(tv) / max(np.linalg.norm(mixed), 1e-9))
                 targets[i] = self._foot_out[i] = (a, tv)
         need = self._pelvis_drop(q, targets)
-        self._drop += self.config.drop_gain * (need - self._drop)
+        self._drop += c.drop_gain * (need - self._drop)
         if self._drop > 1e-6:
             q[:, 2] -= self._drop
         for leg, (a, tv) in zip(_LEGS, targets):
