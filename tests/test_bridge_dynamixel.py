@@ -92,21 +92,23 @@ def test_file_replay_drives_the_bus_in_order_and_ends_at_rest(op3, tmp_path):
     bus, limits = op3
     clip = tmp_path / "actor.npz"
     save_motion(make_leader(2.0, 30.0, seed=4), clip)
-    opts = SessionOptions(
-        actor=str(clip),
-        partner="imitate",
-        transport="dynamixel",
-        emulate=True,
-        out=tmp_path / "run",
-        handle_signals=False,
-    )
-    result = run_session(opts)
-    s = result.summary
-    assert s.end_state == "STOPPED" and s.reason == "the motion ended"
+    # a real-time run against an emulator process: under the full suite on 2 cores one try
+    # ended in an e-stop (a bus fault: the emulator did not answer within its retries). Up to
+    # three tries, retried only for that end; any other end, or the same fault every time, fails
+    for attempt in range(3):
+        out = tmp_path / f"run{attempt}"
+        opts = SessionOptions(
+            actor=str(clip), partner="imitate", transport="dynamixel", emulate=True, out=out, handle_signals=False
+        )
+        result = run_session(opts)
+        s = result.summary
+        if not (s.end_state == "ESTOP" and s.reason.startswith(("bus error", "I/O error"))):
+            break
+    assert (s.end_state, s.reason) == ("STOPPED", "the motion ended")
     assert result.transport_info["bus_violations"] == 0
     # a sync write to all 20 servos every tick (the transport adds goal = present on open and stop)
     assert 20 * (s.ticks + 1) <= result.transport_info["bus_goal_writes"] <= 20 * (s.ticks + 6)
-    tel = read_telemetry(tmp_path / "run" / "telemetry.dftl")
+    tel = read_telemetry(out / "telemetry.dftl")
     assert len(tel.records) == s.ticks and tel.truncated_bytes == 0
 
 
