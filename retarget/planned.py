@@ -49,6 +49,7 @@ def planned_trajectory(
     person's contacts ``lookahead`` s early. ``contacts`` (T, 2) bool overrides the motion's;
     ``scaler`` a :class:`retarget.targets.KeypointScaler` (default: fitted on this clip); runs at
     ``velocity_safety`` of a speed limit are reported too (:func:`retarget.schedule.speed_limited`)."""
+    stream.check_clip(motion)
     rb, fps = stream.robot, motion.fps
     tg = make_targets(rb, motion, contacts, scaler)
     person = np.array(tg.contacts, dtype=bool)

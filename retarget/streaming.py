@@ -543,15 +543,20 @@ class StreamingRetargeter:
         pos, quat = self.robot.kin.root_pose(np.asarray(x)[None])
         return np.array(x[self.robot.n_root :]), pos[0], quat[0]
 
-    def run(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
-        """Retarget a whole clip frame by frame (as the live bridge would). ``scaler``: a
-        :class:`retarget.targets.KeypointScaler` (default: fitted on this clip)."""
+    def check_clip(self, motion: Motion) -> None:
+        """One RetargetError for a clip this retargeter cannot run: too short, or at another
+        frame rate than its own (its step timings and speed limits are per frame)."""
         check_motion(motion, min_frames=2)
         if abs(motion.fps - self.fps) > 1e-9:
             raise RetargetError(
                 f"{motion.name or 'motion'}: is {motion.fps:g} fps "
                 f"but this retargeter runs at {self.fps:g}; resample the motion"
             )
+
+    def run(self, motion: Motion, contacts=None, scaler=None) -> RobotTrajectory:
+        """Retarget a whole clip frame by frame (as the live bridge would). ``scaler``: a
+        :class:`retarget.targets.KeypointScaler` (default: fitted on this clip)."""
+        self.check_clip(motion)
         tg = make_targets(self.robot, motion, contacts, scaler)
         self.reset()
         X, held = [], []

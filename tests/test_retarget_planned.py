@@ -42,6 +42,20 @@ def test_auto_plans_a_free_standing_robot_and_optimises_any_other(op3):
             OfflineRetargeter(op3, OfflineConfig(balance=True, lookahead=bad))
 
 
+def test_the_planner_refuses_a_clip_at_another_frame_rate(op3):
+    """The step timings and speed limits are per frame: a 120 fps clip through a 30 fps planner
+    would step and move 4x too fast. It once ran silently; the streamed run already refused."""
+    from retarget.planned import planned_trajectory
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+
+    clip = walking_leader(seconds=2.0, fps=FPS)
+    fast = clip.replace(fps=120.0)
+    stream = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True))
+    for run in (stream.run, lambda m: planned_trajectory(stream, m)):
+        with pytest.raises(RetargetError, match=r"is 120 fps but this retargeter runs at 30; resample the motion"):
+            run(fast)
+
+
 def _lift_delays(person, robot) -> list[int]:
     """Frames from each lift of a robot foot back to the person's last lift of that foot."""
     up_p, up_r = ~np.asarray(person, dtype=bool), ~np.asarray(robot, dtype=bool)
