@@ -179,6 +179,16 @@ def test_everyday_gestures_are_performed_standing(op3, index):
     assert error < 0.08, (motion.name, error)
 
 
+def test_the_step_count_target_matches_counts_not_ratios():
+    """bench/stepping.py's "steps within 20 %": a robot standing with a person who stands is a
+    match (it read 0/0 as 0 %, so the six standing gestures failed the target); one step of 4
+    missed (25 %) and half the steps (16 of 35) are not; 13 of 14 is."""
+    from bench.stepping import steps_match
+
+    assert steps_match(0, 0) and steps_match(13, 14) and steps_match(16, 20)
+    assert not steps_match(3, 4) and not steps_match(16, 35) and not steps_match(1, 0)
+
+
 def test_the_robot_starts_in_its_standing_footprint(op3):
     """Feet staggered 8 cm and turned apart in the first frame: until each foot's first lift its
     targets stand where the robot's standing feet would, centred on the person's."""
