@@ -463,6 +463,37 @@ def test_robot_list_names_the_bundled_robots(capsys):
 # -- check: every problem named, with its fix --------------------------------------------------
 
 
+def _outside(points: np.ndarray, p0, p1, r: float) -> float:
+    """How far the farthest of ``points`` lies outside the capsule (p0, p1, r) (m; <= 0: inside)."""
+    a = np.asarray(p1) - np.asarray(p0)
+    L = float(np.linalg.norm(a))
+    t = np.clip((points - p0) @ (a / L), 0.0, L) if L > 1e-12 else np.zeros(len(points))
+    axis = a / L if L > 1e-12 else np.zeros(3)
+    return float(np.max(np.linalg.norm(points - (p0 + np.outer(t, axis)), axis=1)) - r)
+
+
+def test_a_fitted_capsule_holds_all_of_its_geometry():
+    """The retargeter keeps capsules collision_margin apart, so a capsule must hold the part's
+    geometry: the 90th-percentile fit left the G1's hand points 9 mm outside and its streamed
+    hand went 13.5 mm into the hip. A box's corners, a long limb-like cloud and a flat plate; the
+    fit stays tight (the box's capsule about as wide as its half diagonal across the long axis)."""
+    from retarget.profile_init import fit_capsule
+
+    rng = np.random.default_rng(3)
+    half = np.array([0.04, 0.021, 0.023])
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    clouds = [
+        np.vstack([corners, rng.uniform(-1, 1, (300, 3)) * half]),
+        rng.normal(size=(500, 3)) * [0.12, 0.03, 0.025] + [0.0, 0.0, -0.1],
+        rng.uniform(-1, 1, (400, 3)) * [0.05, 0.05, 0.004],
+    ]
+    for pts in clouds:
+        p0, p1, r = fit_capsule(pts)
+        assert _outside(pts, p0, p1, r) <= 1e-9
+    p0, p1, r = fit_capsule(clouds[0])
+    assert r <= 1.15 * np.hypot(half[1], half[2]) and np.linalg.norm(p1 - p0) < 2 * half[0]
+
+
 def edit(path: Path, old: str, new: str, count: int = 1) -> None:
     text = path.read_text()
     assert old in text, old
@@ -493,7 +524,10 @@ def test_check_wants_feet_on_a_free_standing_robot(toy_folder, capsys):
 
 
 def test_check_reports_capsules_that_touch_in_the_stand_pose(toy_folder, capsys):
-    edit(toy_folder / "profile.yaml", "radius: 0.0347}", "radius: 0.08}")  # fat thighs
+    profile = toy_folder / "profile.yaml"
+    fat = re.sub(r"(  [lr]_thigh: .*radius: )[0-9.]+\}", r"\g<1>0.08}", profile.read_text())  # fat thighs
+    assert fat.count("radius: 0.08}") == 2
+    profile.write_text(fat)
     rc, problems, _ = check(toy_folder, capsys)
     assert rc == 2 and any("[l_thigh, r_thigh]" in p and "overlap" in p and "shrink" in p for p in problems), problems
 
