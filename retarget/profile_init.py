@@ -650,6 +650,9 @@ def build_capsules(rest: _Rest, an: Anatomy) -> dict:
 
     pre = {"left": "l_", "right": "r_"}
     for side, limb in an.legs.items():
+        # the bodies between the pelvis and the thigh (a hip motor beside the pelvis: the G1's
+        # hand hit its hip-pitch link, which no capsule held, 19 mm deep in a streamed duet)
+        limb_capsule(pre[side] + "hip", _segment_bodies(limb, None, limb.top))
         limb_capsule(pre[side] + "thigh", _segment_bodies(limb, limb.top, limb.mid))
         limb_capsule(pre[side] + "shin", _segment_bodies(limb, limb.mid, limb.bottom))
     for side, limb in an.arms.items():
@@ -670,7 +673,9 @@ def build_capsules(rest: _Rest, an: Anatomy) -> dict:
             lo, hi = float(t.min()) + r, float(t.max()) - r
             if hi < lo:
                 lo = hi = 0.5 * (lo + hi)
-            caps["torso"] = FittedCapsule("torso", an.chest_body, base + lo * up, base + hi * up, r, 0.5 * r)
+            # it does not shrink (min_radius = r): up to six arm parts are kept off it, and a
+            # cut for one arm that touches at rest left it under the chest for the others
+            caps["torso"] = FittedCapsule("torso", an.chest_body, base + lo * up, base + hi * up, r, r)
     # feet: the sole edge facing the other foot, spheres on it, a sphere at the sole's centre
     if len(an.legs) == 2:
         edge_r = 0.003
@@ -701,8 +706,10 @@ def collision_pairs(caps: dict) -> list:
             pairs.append([a, b])
 
     for s in ("l_", "r_"):
+        add(s + "upper_arm", "torso")
         for part in ("forearm", "hand"):
             add(s + part, "torso")
+            add(s + part, s + "hip")
             add(s + part, s + "thigh")
     add("l_forearm", "r_forearm")
     add("l_hand", "r_hand")

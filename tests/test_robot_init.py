@@ -286,6 +286,33 @@ def test_the_published_op3_stands_in_its_derived_pose_and_performs_the_cmu_pair(
 
 
 @pytest.mark.slow
+def test_the_g1_keeps_its_arms_off_its_hips_and_torso_in_physics(tmp_path):
+    """The G1 from robot init, feet planted, streamed: the CMU pair, a generated hand-hold duet
+    and the wave. Before: the hand went into the hip-pitch link (no capsule held it; 4.2 and
+    2.3 mm deep in physics) and the upper arm into the torso (no pair kept them apart: 2.1 mm,
+    and a shoulder held at its stall torque). The upper arm and the torso are kept apart, the
+    torso's capsule at its full size (a cut for one arm that touched it at rest left it under
+    the chest for the others)."""
+    from bench.gestures import gestures
+    from dualflow.synthetic import make_duet
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+    from sim.check import CheckConfig, check_trajectory
+
+    out = tmp_path / "g1"
+    assert init(reference("unitree_g1"), out) == 0
+    profile = yaml.safe_load((out / "profile.yaml").read_text())
+    assert ["l_upper_arm", "torso"] in profile["collision_pairs"] and ["r_hand", "r_hip"] in profile["collision_pairs"]
+    rb = load(out)
+    pair = cmu_pair()
+    wave = next(g for g in gestures() if g.name == "gesture_wave")
+    duet = make_duet("hand_hold", seconds=10.0, fps=30.0, seed=1).reactor
+    for clip in (pair.actor, pair.reactor, duet, wave):
+        traj = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=False)).run(clip)
+        result = check_trajectory(traj, CheckConfig(mode="free"), robot=out)
+        assert result.passed, (clip.name, result.failures)
+
+
+@pytest.mark.slow
 def test_the_published_op3_walks_with_steps_and_gives_a_high_five_under_its_stabilizer(tmp_path):
     """The published OP3 has no IMU site: the stabilizer reads the torso body's own frame. Its
     rate was read in the torso's principal-inertia frame (a quarter turn about x), so the ankles
@@ -492,6 +519,28 @@ def test_a_fitted_capsule_holds_all_of_its_geometry():
         assert _outside(pts, p0, p1, r) <= 1e-9
     p0, p1, r = fit_capsule(clouds[0])
     assert r <= 1.15 * np.hypot(half[1], half[2]) and np.linalg.norm(p1 - p0) < 2 * half[0]
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCE))
+def test_each_leg_is_held_by_capsules_from_the_pelvis_to_the_knee(name, tmp_path):
+    """Every collision point of a leg's bodies above the knee lies in one of the profile's
+    capsules (zero pose): a hand or forearm kept off the thigh must also be kept off the hip
+    motors beside the pelvis. The G1's hip-pitch link had no capsule and its hand went 19 mm
+    into it in a streamed duet (the published OP3's hip yaw and roll links neither)."""
+    from retarget.profile_init import _Rest, _segment_bodies, infer_anatomy, load_model, robot_model_file
+    from retarget.robot import load_robot
+
+    assert init(reference(name), tmp_path / name) == 0
+    rb = load_robot(str(tmp_path / name))
+    m = load_model(robot_model_file(reference(name))[0])
+    rest, an = _Rest(m), infer_anatomy(m)
+    caps = [(rest.to_world(c.body, c.p0), rest.to_world(c.body, c.p1), c.radius) for c in rb.capsules.values()]
+    for side, leg in an.legs.items():
+        bodies = _segment_bodies(leg, None, leg.mid)
+        points = rest.points(rest.geoms(set().union(*[rest.rigid(b) for b in bodies]), collision_only=True))
+        assert len(points) > 8, (name, side)
+        outside = np.min([[_outside(p[None], a, b, r) for a, b, r in caps] for p in points], axis=1)
+        assert np.max(outside) <= 2e-4, (name, side, float(np.max(outside)))  # the profile is written to 0.1 mm
 
 
 def edit(path: Path, old: str, new: str, count: int = 1) -> None:
