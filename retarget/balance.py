@@ -153,6 +153,7 @@ class BalancePlanner:
         self._swing_heading = [None, None]  # a swinging foot's heading on its path (rad)
         self._frame = 0  # frames since start()
         self._shifting = None  # (foot, frame it lifts at) while the weight moves before a step
+        self._lift_by = self._lifted_at = -1  # ... the latest frame it may lift at, and when it did
         self._zmp_keys = None  # the step's ZMP reference: (frames, points (n, 2)), linear in between
         self._plan_until = -1  # the last frame the CoM follows the preview plan
         self._person_down = np.ones(2, dtype=bool)  # the person's feet down last frame
@@ -467,8 +468,12 @@ class BalancePlanner:
         if self._shifting is not None:
             s, lift_at = self._shifting
             if self._frame >= lift_at:
-                self._shifting = None
-                self._lift(s)
+                if self._frame < self._lift_by and not self._weight_shifted():
+                    self._shifting = (s, self._frame + 1)  # the weight is not over there yet: wait
+                    self._plan_swing(s)
+                else:
+                    self._shifting = None
+                    self._lift(s)
             return
         if self.planted.all():
             self._set_pace(self._person_pace())
@@ -494,6 +499,7 @@ class BalancePlanner:
         self._step_start = (self._frame, np.array(self._c1, dtype=float))
         self._landing = swing  # until the swing's targets say where it lands
         self._shifting = (s, self._frame + self._shift_frames)
+        self._lift_by = self._frame + 2 * self._shift_frames
         self._plan_swing(s)
         if self._shift_frames == 0:
             self._shifting = None
@@ -506,7 +512,7 @@ class BalancePlanner:
         swing lands."""
         (n0, c0), stance_pt = self._step_start, self._stance_point
         mid = 0.5 * (self._stance_centre + self._landing)  # between the feet once landed, as _plan_landing
-        lift = n0 + self._shift_frames
+        lift = self._shifting[1] if self._shifting is not None else self._lifted_at
         if self._descend_at[s] is not None:
             land = lift + self._descend_at[s] + self._fall_frames
         elif self._shifting is not None:
@@ -528,7 +534,17 @@ class BalancePlanner:
         self._zmp_keys = _keys([n, n + self._min_double_frames + 1], [stance_pt, mid])
         self._plan_until = n + self._settle_frames
 
+    def _weight_shifted(self) -> bool:
+        """The planned CoM has covered ``lift_shift`` of its way from the step's decision to the
+        stance point (or that way is under 5 mm)."""
+        if self.config.lift_shift <= 0:
+            return True
+        (_, c0), way = self._step_start, self._stance_point - self._step_start[1]
+        length2 = float(way @ way)
+        return length2 < 0.005**2 or float((np.asarray(self._c1) - c0) @ way) >= self.config.lift_shift * length2
+
     def _lift(self, s: int) -> None:
+        self._lifted_at = self._frame
         self.planted[s] = False
         self._lift_print[s] = self._prints[s]
         self._prints[s] = None
@@ -625,6 +641,8 @@ def _check_step_timing(cfg, fps: float) -> None:
         problems.append(f"pace_floor must be above 0 and at most 1 (got {cfg.pace_floor})")
     if cfg.step_shift < 0:
         problems.append(f"step_shift must be 0 or more (got {cfg.step_shift})")
+    if not 0 <= cfg.lift_shift <= 1:
+        problems.append(f"lift_shift must be 0 to 1 (got {cfg.lift_shift})")
     if not (math.isfinite(cfg.body_twist) and cfg.body_twist >= 0):
         problems.append(f"body_twist must be 0 rad or more (got {cfg.body_twist})")
     if problems:

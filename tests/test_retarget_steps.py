@@ -179,6 +179,47 @@ def test_everyday_gestures_are_performed_standing(op3, index):
     assert error < 0.08, (motion.name, error)
 
 
+def test_a_foot_lifts_once_the_weight_has_moved_towards_the_stance_foot(op3, monkeypatch):
+    """StreamingConfig.lift_shift: a foot lifts once the planned CoM has covered 15 % of its
+    way from the step's decision to the stance point, or after waiting step_shift longer. At
+    160 steps a minute the quickened shift (3 frames) lifted the foot with the CoM 6-7 % of the
+    way there (a generated partner's steps, planned: 4-9 %, and the op3 fell off the foot it
+    lifted); the leader's steps are all still taken."""
+    from bench.stepping_leaders import quick_leaders
+    from retarget.balance import BalancePlanner
+
+    lifts = []
+    lift = BalancePlanner._lift
+
+    def recorded(self, s):
+        (_, c0), way = self._step_start, self._stance_point - self._step_start[1]
+        lifts.append((float((np.asarray(self._c1) - c0) @ way / (way @ way)), self._frame >= self._lift_by))
+        return lift(self, s)
+
+    monkeypatch.setattr(BalancePlanner, "_lift", recorded)
+    clip = next(c for c in quick_leaders() if c.name == "quick_sidestep_160bpm")
+    person = count_steps(make_targets(op3, clip).contacts)
+    steps = {}
+    for gate in (0.0, 0.15):
+        lifts.clear()
+        traj = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True, lift_shift=gate)).run(clip)
+        steps[gate] = count_steps(np.array(traj.meta["contacts"], dtype=bool))
+        progress = np.array([p for p, _ in lifts])
+        if gate == 0.0:
+            assert progress.min() < 0.1, progress  # the early lifts this guards against
+        else:
+            assert all(p >= gate - 1e-9 or waited_out for p, waited_out in lifts), lifts
+    assert steps[0.15] >= steps[0.0] - 1 and abs(steps[0.15] - person) <= 0.2 * person, (steps, person)
+
+
+@pytest.mark.parametrize(
+    "field, value", [("lift_shift", 1.5), ("lift_shift", -0.1), ("pace_floor", 0.0), ("body_twist", float("nan"))]
+)
+def test_a_step_timing_that_cannot_work_is_named(op3, field, value):
+    with pytest.raises(RetargetError, match=rf"StreamingConfig: {field} must"):
+        StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True, **{field: value}))
+
+
 def test_the_step_count_target_matches_counts_not_ratios():
     """bench/stepping.py's "steps within 20 %": a robot standing with a person who stands is a
     match (it read 0/0 as 0 %, so the six standing gestures failed the target); one step of 4
