@@ -159,3 +159,34 @@ def test_distance_model_still_available_and_agrees_on_feasibility(op3):
         assert rep.self_collisions == 0 and rep.limit_violations == 0, (model, rep)
     with pytest.raises(Exception, match="collision_model"):
         OfflineRetargeter(op3, OfflineConfig(collision_model="boxes"))
+
+
+def test_op3_torso_shell_and_its_handles_are_held_by_the_forearms_capsules(op3):
+    """Every corner of the op3's torso shell and of its back handles lies inside a capsule the
+    forearms are kept off. The one upright capsule of the shell's half width left its vertical
+    edges 24 mm outside: a planned generated partner put the forearm 17 mm into the shell's
+    back edge (MuJoCo's geometry) while the capsules stood apart, and physics failed on it."""
+    import mujoco
+
+    m = op3.kin.model
+    guarded = {b for a, b in op3.collision_pairs if a == "l_forearm"} | {
+        b for a, b in op3.collision_pairs if a == "r_forearm"
+    }
+    caps = [op3.capsules[n] for n in guarded]
+    body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "body_link")
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    for name in ("torso", "torso_back_l", "torso_back_r"):
+        g = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
+        assert m.geom_bodyid[g] == body
+        R = np.array(m.geom_quat[g])
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, R)
+        corners = m.geom_pos[g] + (signs * m.geom_size[g]) @ rot.reshape(3, 3).T
+        for p in corners:
+            inside = [
+                c
+                for c in caps
+                if c.body == body
+                and float(segment_distance_sq(p, p, np.asarray(c.p0), np.asarray(c.p1))) <= (c.radius + 1e-6) ** 2
+            ]
+            assert inside, (name, p)
