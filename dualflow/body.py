@@ -51,12 +51,14 @@ class CleanConfig:
     # planted puts its lower foot down: the training duets never have both feet off the floor,
     # and a generated partner that bobs up hops (the streamed CMU partner: both feet up in 38 %
     # of its frames; with this 9 %, skate 0.047 -> 0.017, jerk 154 -> 154 with drop_gain 0.12).
-    # Off by default: the op3 following such a partner steps more and hit itself or fell on 3 of
-    # 8 demo-like partners streamed (0 of 8 without) and 5 of 8 planned (3 of 8). docs/model.md
-    one_foot_down: bool = False
+    # The op3 steps more with such a partner: before its torso shell's edges had capsules and
+    # its lifts waited for the weight it hit itself or fell on 3 of 8 demo-like partners
+    # streamed and 5 of 8 planned; now 1 of 16 (bench/stepping.py --clips partners; 2 of 16
+    # with the rule off). docs/model.md
+    one_foot_down: bool = True
     # per frame: how fast the body comes down to a planted foot's reach (with one_foot_down,
     # 0.5 made the streamed CMU partner jerk 197 m/s³, 0.12 154)
-    drop_gain: float = 0.5
+    drop_gain: float = 0.12
     # the body's travel over the floor (pelvis xy): at most this fast (m/s) and this quick to
     # change speed (m/s²); 0 turns the limit off. The real CMU partners peak at 1.3 m/s (95th
     # percentile of acceleration 5-6 m/s²); generated partners chasing an actor reached 3.5 m/s.
