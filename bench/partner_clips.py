@@ -12,31 +12,21 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 from dualflow.motion import Motion
 
 
-def demo_partners(leader_seeds=range(4), partner_seeds=(0, 1), seconds: float = 8.0, fps: float = 30.0) -> list[Motion]:
-    """One partner per (leader seed, partner seed), named ``partner_l{leader}_s{seed}``."""
-    from dualflow.streaming import StreamConfig
+def demo_partners(leader_seeds=range(4), partner_seeds=(0, 1), seconds: float = 8.0) -> list[Motion]:
+    """One partner per (leader seed, partner seed), named ``partner_l{leader}_s{seed}`` (30 fps)."""
+    from bench.partner_motion import stream_partner
     from dualflow.synthetic import make_leader_clip
     from ros_free_bridge.commands.demo import click_track
-    from ros_free_bridge.partner.reactor import Cues, ReactorStage
 
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         for lead in leader_seeds:
-            clip = make_leader_clip(seconds, fps, lead)
-            leader = clip.body.positions
+            clip = make_leader_clip(seconds, 30.0, lead)
             music = str(click_track(clip.beat_times, seconds, Path(tmp) / f"click{lead}.wav"))
             for seed in partner_seeds:
-                config = StreamConfig(window=60, steps=2, hop=1, incremental=True, seed=seed)
-                stage = ReactorStage(fps, None, config, Cues(None, music, music_frames=len(leader) + 60))
-                frames = []
-                for k, p in enumerate(leader):
-                    frames += stage.push(p, 0.0, k)
-                frames += stage.flush(0.0, len(leader) - 1)
-                pos = np.stack([f.positions for f in sorted(frames, key=lambda f: f.index)])
-                out.append(Motion(pos, fps, name=f"partner_l{lead}_s{seed}"))
+                pos = stream_partner(None, clip.body.positions, music, None, window=60, seed=seed)
+                out.append(Motion(pos, 30.0, name=f"partner_l{lead}_s{seed}"))
     return out

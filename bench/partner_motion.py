@@ -82,6 +82,7 @@ def stream_partner(
     hop: int = 1,
     incremental: bool = True,
     predict_next: bool = True,
+    seed: int = 0,
 ) -> np.ndarray:
     """Partner positions (N, 22, 3) streamed by the bridge's ReactorStage (demo settings)."""
     from dualflow.streaming import StreamConfig
@@ -90,7 +91,7 @@ def stream_partner(
     stage = ReactorStage(
         30.0,
         checkpoint,
-        StreamConfig(window=window, steps=steps, hop=hop, incremental=incremental),
+        StreamConfig(window=window, steps=steps, hop=hop, incremental=incremental, seed=seed),
         Cues(text, music, music_frames=len(leader) + 60),
         predict_next=predict_next,
     )

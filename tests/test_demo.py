@@ -28,7 +28,7 @@ def test_demo_writes_every_output(tmp_path, capsys):
     out = tmp_path / "demo"
     code = main(["demo", "--model", str(ckpt), "--seconds", "2", "--steps", "2", "-o", str(out)])
     printed = capsys.readouterr().out
-    assert "STOPPED (the motion ended)" in printed and "bus_violations: 0" in printed
+    assert "STOPPED (the motion ended)" in printed and "bus_violations: 0" in printed, printed
     check = json.loads((out / "check.json").read_text())
     # exit code: the run stopped normally with no out-of-limit bus command, and physics says PASS
     # (an untrained tiny model's partner may well make the robot fall: either verdict is fine

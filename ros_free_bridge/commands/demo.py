@@ -212,8 +212,6 @@ def steps_line(partner_file: Path, check) -> str:
 def jump_landings(contacts, fps: float) -> tuple[int, int, float]:
     """(jumps, touch-downs that end one, seconds in the air) of side contacts (T, 2): a jump is
     a run of frames with both feet up that ends with a foot down (retarget.schedule's flights)."""
-    import numpy as np
-
     from retarget.schedule import keep_feet_down_in_flight
 
     c = np.asarray(contacts, dtype=bool)
