@@ -38,7 +38,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dualflow.flow import SamplingSettings, generate  # noqa: E402
+from dualflow.flow import SamplingSettings, cuda_tf32, generate  # noqa: E402
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, MultiScaleConv  # noqa: E402
 
 TARGETS = {"train_samples_per_s": 700.0, "generate_s": 0.25, "stream_ms_per_frame": 33.0}
@@ -202,49 +202,100 @@ def _actor_and_cond(cfg: DualFlowConfig, n: int, device: str):
     return actor, Conditions(text=text, music=torch.zeros(1, n, cfg.music_dim, device=device))
 
 
+#: (label, CUDA graph, compiled blocks, SamplingSettings.precision); the first is the
+#: configuration before issue 28, the third what ``generate`` does by default now
+GENERATE_VARIANTS = [
+    ("eager, float32", False, False, "float32"),
+    ("CUDA graph, float32", True, False, "float32"),
+    ("CUDA graph, TF32 (default)", True, False, "tf32"),
+    ("CUDA graph, bf16 autocast", True, False, "bf16"),
+    ("compiled blocks + CUDA graph, TF32", True, True, "tf32"),
+    ("compiled blocks + CUDA graph, bf16 autocast", True, True, "bf16"),
+]
+
+
+def profile_call(fn, device: str, rows: int = 12) -> dict:
+    """One call of fn() under torch.profiler: the number of device kernels, their summed device
+    time against the call's wall time (a wall time far above the kernels' says the call is bound
+    by launching them), and the top kernels by device time."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.startswith("cuda")
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    fn()
+    sync(device)
+    with profile(activities=activities) as prof:
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        wall = time.perf_counter() - t0
+    kernels = [e for e in prof.events() if e.device_type == DeviceType.CUDA]
+    key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
+    return {
+        "kernels": len(kernels),
+        "kernel_ms": round(sum(getattr(e, "device_time", 0.0) for e in kernels) / 1000, 2),
+        "wall_ms_profiled": round(1000 * wall, 2),
+        "table": prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=50),
+    }
+
+
 def bench_generate(rec: Recorder, args, model: DualFlow) -> None:
-    """Eager (today), CUDA-graph replay, and compiled blocks (dualflow.compile) + CUDA graph."""
+    """A 10 s clip, reactive, 20 Euler steps: the variants of ``GENERATE_VARIANTS``, each's
+    largest difference from float32 eager sampling, and a profile of one network call."""
     from dualflow.compile import compile_blocks
+    from dualflow.flow import guided_velocity
 
     n = 60 if args.quick else 300
     steps = 5 if args.quick else 20
     actor, cond = _actor_and_cond(model.config, n, args.device)
     outputs = {}
     compiled = None
-    for label, graph, use_compiled in (
-        ("eager (today)", False, False),
-        ("CUDA graph", True, False),
-        ("compiled blocks + CUDA graph", True, True),
-    ):
-        if use_compiled:  # a second model with the same weights: the others stay eager
+    for label, graph, use_compiled, precision in GENERATE_VARIANTS:
+        if time.perf_counter() - args.t0 > args.budget_s:
+            rec.put("generate", label, "skipped: out of time")
+            continue
+        if use_compiled and compiled is None:  # a second model with the same weights: the others stay eager
             compiled = DualFlow(model.config).to(args.device).eval()
             compiled.load_state_dict(model.state_dict())
             compile_blocks(compiled)
+        net = compiled if use_compiled else model
+        sampling = SamplingSettings(steps=steps, seed=0, cuda_graph=graph, precision=precision)
 
-        def run(graph=graph, label=label, net=compiled if use_compiled else model):
+        def run(net=net, sampling=sampling, label=label):
             with torch.inference_mode():
-                outputs[label] = generate(
-                    net,
-                    n,
-                    cond,
-                    mode="reactive",
-                    x_actor=actor,
-                    sampling=SamplingSettings(steps=steps, seed=0, cuda_graph=graph),
-                )[1]
+                outputs[label] = generate(net, n, cond, mode="reactive", x_actor=actor, sampling=sampling)[1]
 
-        t0 = time.perf_counter()
-        run()
-        sync(args.device)
-        first = time.perf_counter() - t0
-        seconds = timed(run, args.repeats, args.device, warmup=0)
-        rec.put(
-            "generate",
-            f"{label}: {n} frames, {steps} Euler steps (s)",
-            {"s": round(seconds, 4), "first_call_s": round(first, 2)},
-        )
-    for label in list(outputs)[1:]:
-        diff = (outputs["eager (today)"] - outputs[label]).abs().max().item()
-        rec.put("generate", f"max |eager - {label}| (normalised features)", diff)
+        try:
+            t0 = time.perf_counter()
+            run()
+            sync(args.device)
+            first = time.perf_counter() - t0
+            seconds = timed(run, args.repeats, args.device, warmup=0)
+            rec.put(
+                "generate",
+                f"{label}: {n} frames, {steps} Euler steps (s)",
+                {"s": round(seconds, 4), "first_call_s": round(first, 2)},
+            )
+        except Exception as exc:  # noqa: BLE001 (a bench row: the error is the figure)
+            rec.put("generate", label, f"error: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}")
+    base = GENERATE_VARIANTS[0][0]
+    for label in list(outputs):
+        if label != base and base in outputs:
+            diff = (outputs[base] - outputs[label]).abs().max().item()
+            rec.put("generate", f"max |{base} - {label}| (normalised features)", diff)
+    if args.profile_generate:
+        x = torch.randn(1, n, model.config.motion_dim, device=args.device)
+        t = torch.full((1,), 0.5, device=args.device)
+        for precision in ("float32", "tf32", "bf16"):
+            velocity = guided_velocity(model, cond, mode="reactive", x_actor=actor)
+
+            def call(velocity=velocity, precision=precision):
+                bf16 = torch.autocast(x.device.type, torch.bfloat16, enabled=precision == "bf16")
+                with torch.inference_mode(), bf16, cuda_tf32(precision == "tf32"):
+                    velocity(x, t)
+
+            rec.put("profile", f"one network call of generate, eager, {precision}", profile_call(call, args.device))
 
 
 def bench_stream(rec: Recorder, args, model: DualFlow) -> None:
@@ -269,6 +320,10 @@ def bench_stream(rec: Recorder, args, model: DualFlow) -> None:
                 for i in range(streamer.look_ahead + 4, streamer.look_ahead + 4 + frames):
                     streamer.push(actor[0, i])
                 t = streamer.timing
+                if args.profile_stream and config.steps == 2:
+                    nxt = iter(actor[0, streamer.look_ahead + 4 + frames :])
+                    prof = profile_call(lambda s=streamer, it=nxt: s.push(next(it)), args.device)
+                    rec.put("profile", f"one frame of streaming, {label}", prof)
             rec.put(
                 "stream",
                 f"{label}: ms per frame (hop 1)",
@@ -295,13 +350,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-s", type=float, default=400.0, help="skip what would start after this many seconds")
     p.add_argument("--train-variants", default="", help="indices into TRAIN_VARIANTS, e.g. 0,6 ('' = all)")
     p.add_argument("--profile", default="batch 256, gemm convolutions", help="train variant to profile ('' = none)")
+    p.add_argument("--no-profile-generate", dest="profile_generate", action="store_false")
+    p.add_argument("--no-profile-stream", dest="profile_stream", action="store_false")
     p.add_argument("--quick", action="store_true", help="smoke run: tiny preset on the CPU, small sizes")
     args = p.parse_args(argv)
     if args.quick:
         args.device, args.preset, args.repeats, args.train_steps, args.train_warmup = "cpu", "tiny", 1, 2, 1
         args.profile = TRAIN_VARIANTS[0][0]
     args.t0 = time.perf_counter()
-    if args.device.startswith("cuda"):
+    if args.device.startswith("cuda"):  # training's float32 products (outside its bf16 autocast)
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True
     rec = Recorder(args.json, args.device)

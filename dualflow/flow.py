@@ -22,6 +22,7 @@ on the CPU, so a given seed gives the same sample on any device.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -292,7 +293,13 @@ class SamplingSettings:
     guidance scale (1: none), the model's look-ahead in frames (None: the model's own), the seed
     of the CPU generator that draws the initial noise, and an optional projection (see
     ``ode_solve``). cuda_graph: on a CUDA device, replay the velocity from a CUDA graph
-    (``dualflow.cuda_graph``; the same kernels, launched once per step instead of one by one)."""
+    (``dualflow.cuda_graph``; the same kernels, launched once per step instead of one by one).
+    precision: the network's matrix products on a CUDA device: "tf32" (default; float32
+    products on the tensor cores, 10-bit mantissa inputs, float32 sums), "bf16" (autocast as
+    training does there) or "float32" (exact float32, about 1.4x slower on an H100). The ODE
+    state and each step's update stay in the model's dtype; off CUDA it does nothing. The output
+    differs from float32 sampling by the products' rounding (bench/dualflow_gpu.py prints how
+    much)."""
 
     steps: int = 20
     method: str = "euler"
@@ -301,6 +308,40 @@ class SamplingSettings:
     seed: int = 0
     project: ProjectFn | None = None
     cuda_graph: bool = True
+    precision: str = "tf32"
+
+    def __post_init__(self):
+        if self.precision not in PRECISIONS:
+            raise DualFlowError(f"SamplingSettings.precision must be one of {PRECISIONS}, got {self.precision!r}")
+
+
+PRECISIONS = ("tf32", "bf16", "float32")
+
+
+def _bf16_velocity(velocity: VelocityFn, dtype: torch.dtype) -> VelocityFn:
+    """``velocity`` with the network under CUDA bf16 autocast, its output back in ``dtype``.
+    The autocast weight cache is off: a CUDA graph cannot capture a cache that outlives it, so
+    each call casts the weights it uses (one read of them per call)."""
+
+    def run(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        with torch.autocast("cuda", dtype=torch.bfloat16, cache_enabled=False):
+            v = velocity(x, t)
+        return v.to(dtype)
+
+    return run
+
+
+@contextlib.contextmanager
+def cuda_tf32(on: bool):
+    """CUDA float32 matrix products on the tensor cores (TF32) inside the block, the setting
+    before it restored after. (A process-wide switch of torch's: another thread's products in
+    the meantime follow it too.)"""
+    before = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = on
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = before
 
 
 @torch.no_grad()
@@ -345,6 +386,8 @@ def generate(
     if x_actor is not None:
         x_actor = x_actor.to(device, dtype)
     velocity = guided_velocity(model, cond, mode=mode, x_actor=x_actor, cfg_scale=s.cfg_scale, look_ahead=s.look_ahead)
+    if s.precision == "bf16" and device.type == "cuda":
+        velocity = _bf16_velocity(velocity, dtype)
     if s.cuda_graph and device.type == "cuda":
         from dualflow.cuda_graph import GraphedVelocity
 
@@ -353,7 +396,8 @@ def generate(
     if was_training:  # Module.eval() walks every submodule: only when needed
         model.eval()
     try:
-        x = ode_solve(velocity, noise, steps=s.steps, method=s.method, project=s.project)
+        with cuda_tf32(s.precision == "tf32") if device.type == "cuda" else contextlib.nullcontext():
+            x = ode_solve(velocity, noise, steps=s.steps, method=s.method, project=s.project)
     finally:
         if was_training:
             model.train(True)

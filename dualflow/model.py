@@ -223,16 +223,38 @@ class Attention(nn.Module):
         self.dropout = dropout
 
     def forward(
-        self, query: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None, is_causal: bool = False
+        self,
+        query: torch.Tensor,
+        context: torch.Tensor | tuple[torch.Tensor, torch.Tensor],
+        mask: torch.Tensor | None,
+        is_causal: bool = False,
     ) -> torch.Tensor:
+        """context: (N, Tk, W), or its keys and values as ``project(context)`` gives them."""
         n, tq, w = query.shape
         h = self.n_heads
         q = self.q(query).view(n, tq, h, w // h).transpose(1, 2)
-        k, v = self.kv(context).view(n, context.shape[1], 2, h, w // h).permute(2, 0, 3, 1, 4)
+        k, v = context if isinstance(context, tuple) else self.project(context)
         y = F.scaled_dot_product_attention(
             q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0, is_causal=is_causal
         )
         return self.out(y.transpose(1, 2).reshape(n, tq, w))
+
+    def project(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keys and values (N, heads, Tk, W / heads) of a context (N, Tk, W)."""
+        n, tk, w = context.shape
+        k, v = self.kv(context).view(n, tk, 2, self.n_heads, w // self.n_heads).permute(2, 0, 3, 1, 4)
+        return k, v
+
+    def single_key(self, context: torch.Tensor) -> torch.Tensor:
+        """The output (N, 1, W) for a context of one key (N, 1, W), whatever the query: softmax
+        over one logit is 1, so every query row gets that key's value through ``out``."""
+        return self.out(self.kv(context)[..., context.shape[-1] :])
+
+
+def _inference(module: nn.Module) -> bool:
+    """No autograd and no dropout: where the inference-only shortcuts below may be taken (they
+    compute the same values; in training they would change which weights get gradients)."""
+    return not (module.training or torch.is_grad_enabled())
 
 
 class MultiScaleConv(nn.Module):
@@ -257,6 +279,8 @@ class MultiScaleConv(nn.Module):
         self.gates = nn.Parameter(torch.full((len(self.kernels),), 0.1))
         self.drop = nn.Dropout(dropout)
         self.gemm: bool | None = None
+        #: inference: per kernel, (weight's data pointer, its version, the tap-major layout)
+        self._tap_major: list[tuple | None] = [None] * len(self.kernels)
 
     def forward(self, z: torch.Tensor, causal: bool, frame_mask: torch.Tensor | None) -> torch.Tensor:
         x = z if frame_mask is None else z * frame_mask[..., None]
@@ -281,12 +305,29 @@ class MultiScaleConv(nn.Module):
         # windows[n, i, u, :] = x[n, i - pad_left + u, :], tap u of frame i's k_max window, tap-major
         windows = F.pad(x, (0, 0, *pad)).unfold(1, k_max, 1).transpose(2, 3).contiguous()
         out = 0
-        for gamma, conv, k in zip(self.gates, self.convs, self.kernels):
+        for i, (gamma, conv, k) in enumerate(zip(self.gates, self.convs, self.kernels)):
             first = k_max - k if causal else (k_max - k) // 2  # this kernel's taps within the window
             taps = windows[:, :, first : first + k].reshape(n, t, k * w)
-            weight = conv.weight.permute(0, 2, 1).reshape(w, k * w)  # (out, tap-major in)
-            out = out + gamma * F.gelu(F.linear(taps, weight, conv.bias))
+            out = out + gamma * F.gelu(F.linear(taps, self._weight(i, conv), conv.bias))
         return out
+
+    def train(self, mode: bool = True):
+        self._tap_major = [None] * len(self.kernels)  # training changes the weights: keep no copy
+        return super().train(mode)
+
+    def _weight(self, i: int, conv: nn.Conv1d) -> torch.Tensor:
+        """Kernel i's weight (out, tap-major in) = (W, k W); in inference kept between calls
+        while the weight's storage and version are the same (a sampler calls the network once
+        per ODE step: otherwise every call copies all the convolution weights)."""
+        weight = conv.weight
+        w, _, k = weight.shape
+        if not _inference(self) or torch.compiler.is_compiling():  # compiled: the compiler fuses the copy
+            return weight.permute(0, 2, 1).reshape(w, k * w)
+        key = (weight.data_ptr(), weight._version, weight.device)
+        cached = self._tap_major[i]
+        if cached is None or cached[0] != key:
+            cached = self._tap_major[i] = (key, weight.permute(0, 2, 1).reshape(w, k * w).contiguous())
+        return cached[1]
 
 
 class FeedForward(nn.Module):
@@ -366,23 +407,32 @@ class DualFlowBlock(nn.Module):
 
     def temporal(self, z, mods, z_m, masks: BlockMasks) -> torch.Tensor:
         """Conv, self-attention (11) and music cross-attention (12): z^(j) -> z^(j,2).
-        mods: ``modulations(z_d)``."""
+        mods: ``modulations(z_d)``; z_m: the music latent or its ``Attention.project``."""
         z = self.conv(z, causal=masks.causal, frame_mask=masks.frame_mask)
         h = ada_norm(self.norm, z, mods[0])
         z = z + self.drop(self.self_attn(h, h, masks.self_mask, is_causal=masks.self_causal))
-        return z + self.drop(self.music_attn(ada_norm(self.norm, z, mods[1]), z_m, None))
+        return z + self.drop(self._cross(self.music_attn, z, mods[1], z_m))
+
+    def _cross(self, attn: Attention, z, mod, context) -> torch.Tensor:
+        """Unmasked cross-attention of LN(z, z_d) to ``context``; with a single key (the learned
+        null music or retrieval token) in inference, that key's constant output (N, 1, W)
+        without the norm, the query projection and the attention."""
+        if not isinstance(context, tuple) and context.shape[1] == 1 and _inference(self):
+            return attn.single_key(context)
+        return attn(ada_norm(self.norm, z, mod), context, None)
 
     def keys_of(self, z2: torch.Tensor) -> torch.Tensor:
         """What the other person's motion cross-attention reads: LN0(z^(j,2))."""
         return self.other_norm(z2)
 
     def motion_cross(self, z2, mods, other_keys, mask) -> torch.Tensor:
-        """z^(3) = z^(2) + Attn(Q=LN(z^(2), z_d), K=V=other_keys)  (13; causal in reactive mode)."""
+        """z^(3) = z^(2) + Attn(Q=LN(z^(2), z_d), K=V=other_keys)  (13; causal in reactive mode);
+        other_keys (N, T, W) or their ``Attention.project``."""
         return z2 + self.drop(self.motion_attn(ada_norm(self.norm, z2, mods[2]), other_keys, mask))
 
     def finish(self, z, mods, z_r) -> torch.Tensor:
         """Retrieval cross-attention (14) and feed-forward (15): z^(j,3) -> z^(j+1)."""
-        z = z + self.drop(self.retrieval_attn(ada_norm(self.norm, z, mods[3]), z_r, None))
+        z = z + self.drop(self._cross(self.retrieval_attn, z, mods[3], z_r))
         return z + self.drop(self.ffn(ada_norm(self.norm, z, mods[4])))
 
     def forward(self, z, z_d, z_m, z_r, masks: BlockMasks) -> torch.Tensor:
@@ -427,10 +477,16 @@ def fuse_old_modulations(state_dict: dict) -> bool:
 
 @dataclass
 class ActorContext:
-    """The reactive actor stream's per-block keys/values LN0(z^(j,2)_a), each (B, T, W)."""
+    """The reactive actor stream's per-block keys/values LN0(z^(j,2)_a), each (B, T, W), and the
+    conditioning latents it was built with, which do not change over a sampler's steps either:
+    text + task (B, W), music z_m and retrieval z_r, and per block the keys and values of the
+    reactor's music and motion cross-attention (``Attention.project``; music None for a single
+    null token). ``DualFlow.forward`` reuses them all."""
 
     keys: list[torch.Tensor]
     shape: tuple[int, int]
+    cues: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    projected: list[tuple[tuple | None, tuple]] | None = None
 
 
 def look_ahead_mask(t_query: int, t_key: int, look_ahead: int, device=None) -> torch.Tensor:
@@ -570,19 +626,21 @@ class DualFlow(nn.Module):
         self._check(x_a, x_a, cond, "reactive", 0, frame_mask)
         b, n_frames = x_a.shape[:2]
         device = x_a.device
-        z_d = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index("reactive")]
-        z_d = z_d + self.time_embedding(torch.ones(b, dtype=x_a.dtype, device=device))
+        z_text = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index("reactive")]
+        z_d = z_text + self.time_embedding(torch.ones(b, dtype=x_a.dtype, device=device))
         z_m = self.music_latent(cond, b, n_frames)
         z_r = self.retrieval_latent(cond, b)
         masks = self._reactive_masks(n_frames, 0, frame_mask, device, x_a.dtype)
         z = self.in_a(x_a) + self._pe(n_frames, device)
-        keys = []
+        keys, projected = [], []
         for block in self.blocks:
             mods = block.modulations(z_d)
-            z2 = block.temporal(z, mods, z_m, masks)
+            music = block.music_attn.project(z_m) if z_m.shape[1] > 1 else None
+            z2 = block.temporal(z, mods, z_m if music is None else music, masks)
             keys.append(block.keys_of(z2))
+            projected.append((music, block.motion_attn.project(keys[-1])))
             z = block.finish(z2, mods, z_r)
-        return ActorContext(keys=keys, shape=(b, n_frames))
+        return ActorContext(keys=keys, shape=(b, n_frames), cues=(z_text, z_m, z_r), projected=projected)
 
     def _reactive_masks(self, n_frames, look_ahead, frame_mask, device, dtype) -> BlockMasks:
         cross = look_ahead_mask(n_frames, n_frames, look_ahead, device)
@@ -618,9 +676,12 @@ class DualFlow(nn.Module):
         device = x_a.device
         t = torch.as_tensor(t, dtype=x_a.dtype, device=device).reshape(-1).expand(b)
         # z_d = text + time + task, the conditioning of every adaptive LayerNorm.
-        z_text = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index(mode)]
-        z_m = self.music_latent(cond, b, n_frames)
-        z_r = self.retrieval_latent(cond, b)
+        if actor_context is not None and actor_context.cues is not None and mode == "reactive":
+            z_text, z_m, z_r = actor_context.cues  # built from the same cond (see actor_context)
+        else:
+            z_text = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index(mode)]
+            z_m = self.music_latent(cond, b, n_frames)
+            z_r = self.retrieval_latent(cond, b)
         pe = self._pe(n_frames, device)
 
         if mode == "reactive":
@@ -635,10 +696,11 @@ class DualFlow(nn.Module):
             z_d = z_text + self.time_embedding(t)
             masks = self._reactive_masks(n_frames, look_ahead, frame_mask, device, x_b.dtype)
             z = self.in_b(x_b) + pe
-            for block, keys in zip(self.blocks, actor_context.keys):
+            projected = actor_context.projected or [(None, keys) for keys in actor_context.keys]
+            for block, (music, motion) in zip(self.blocks, projected):
                 mods = block.modulations(z_d)
-                z2 = block.temporal(z, mods, z_m, masks)
-                z3 = block.motion_cross(z2, mods, keys, masks.cross_mask)
+                z2 = block.temporal(z, mods, z_m if music is None else music, masks)
+                z3 = block.motion_cross(z2, mods, motion, masks.cross_mask)
                 z = block.finish(z3, mods, z_r)
             return torch.zeros_like(x_a), self._velocity(self.out_b(self.out_norm(z)), x_b, t)
 

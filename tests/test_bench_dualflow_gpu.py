@@ -26,6 +26,7 @@ def test_quick_run_measures_every_section_without_errors(tmp_path):
             assert not (isinstance(value, str) and value.startswith("error")), (name, key, value)
     generate = sections["generate"]
     diffs = [v for k, v in generate.items() if k.startswith("max |eager")]
-    assert len(diffs) == 2 and max(diffs) < 1e-4  # graph and compiled paths give the eager output
+    # on the CPU every variant (CUDA graph, precision, compiled blocks) computes the eager float32 output
+    assert len(diffs) == len(dualflow_gpu.GENERATE_VARIANTS) - 1 and max(diffs) < 1e-4
     rates = [v["samples_per_s"] for v in sections["train"].values() if isinstance(v, dict)]
     assert rates and min(rates) > 0

@@ -247,6 +247,45 @@ def test_graphed_generation_on_cuda_equals_eager_and_rejects_another_shape():
         graphed(torch.ones(2, 5, 4, device="cuda"), torch.full((2,), 0.5, device="cuda"))
 
 
+def test_sampling_precision_changes_nothing_off_the_gpu_and_is_checked():
+    from dualflow.flow import SamplingSettings, generate
+
+    model = _random_model(4)
+    actor = torch.randn(1, 12, 262)
+    runs = [
+        generate(model, 12, mode="reactive", x_actor=actor, sampling=SamplingSettings(steps=3, precision=p))[1]
+        for p in ("float32", "tf32", "bf16")
+    ]
+    assert all(torch.equal(runs[0], r) and r.dtype == torch.float32 for r in runs[1:])
+    with pytest.raises(DualFlowError, match="precision must be one of"):
+        SamplingSettings(precision="fp16")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (bf16 autocast, CUDA graphs)")
+def test_reduced_precision_sampling_on_cuda_keeps_the_state_in_float32_and_graphs_it():
+    from dualflow.flow import SamplingSettings, generate
+
+    model = _random_model(5).cuda()
+    with torch.no_grad():  # the output head starts at zero: give the velocity something to say
+        torch.nn.init.normal_(model.out_b.weight, std=0.05)
+    actor = torch.randn(1, 40, 262, device="cuda")
+    cond = Conditions(text=torch.randn(1, model.config.text_dim, device="cuda"))
+
+    def run(graph, precision):
+        s = SamplingSettings(steps=4, cuda_graph=graph, precision=precision)
+        return generate(model, 40, cond, mode="reactive", x_actor=actor, sampling=s)[1]
+
+    tf32_before = torch.backends.cuda.matmul.allow_tf32
+    fp32 = run(False, "float32")
+    for precision, limit in (("bf16", 0.05), ("tf32", 0.01)):
+        eager, graphed = run(False, precision), run(True, precision)
+        assert graphed.dtype == torch.float32
+        torch.testing.assert_close(graphed, eager, atol=1e-5, rtol=1e-5)  # the same kernels, replayed
+        diff = (eager - fp32).abs().max().item()
+        assert 0 < diff < limit * fp32.abs().max().item(), precision  # rounding: changed, only a little
+    assert torch.backends.cuda.matmul.allow_tf32 == tf32_before  # the switch is put back
+
+
 @pytest.mark.parametrize("masked", [False, True])
 def test_reactive_pass_with_both_streams_stacked_equals_actor_context_then_reactor(masked):
     """Training's reactive forward (no actor_context: the actor and reactor streams stacked along
@@ -273,3 +312,49 @@ def test_reactive_pass_with_both_streams_stacked_equals_actor_context_then_react
     torch.testing.assert_close(got, want, atol=2e-5, rtol=2e-5)
     got.square().sum().backward()
     assert model.in_a.weight.grad is not None and model.in_a.weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("music", [False, True])
+@pytest.mark.parametrize("mode", ["interactive", "reactive"])
+def test_inference_shortcuts_compute_what_the_full_network_does(mode, music):
+    """In inference (eval, no autograd) a cross-attention to a single key (the null music and
+    retrieval tokens) is that key's constant output, the convolutions' tap-major weights are
+    kept between calls, and a reactive actor context carries its conditioning latents and the
+    music and motion keys projected once: each must equal the full computation that runs with
+    autograd on."""
+    model = _random_model(6)
+    for block in model.blocks:
+        block.conv.gemm = True
+    x_a, x_b = torch.randn(2, 1, 14, 262).unbind(0)
+    cond = Conditions(  # no retrieval (a single null key), music or its null key
+        text=torch.randn(1, model.config.text_dim),
+        music=torch.randn(1, 14, model.config.music_dim) if music else None,
+    )
+    context = model.actor_context(x_a, cond) if mode == "reactive" else None
+    assert mode == "interactive" or (context.cues is not None and (context.projected[0][0] is not None) == music)
+    want = model(x_a, x_b, 0.4, cond, mode=mode)
+    with torch.no_grad():
+        got = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
+        conv = model.blocks[0].conv
+        assert conv._tap_major[0] is not None  # kept for the next call
+        conv.convs[0].weight.mul_(1.5)  # an in-place change of the weights must not reuse it
+        changed = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, atol=1e-5, rtol=1e-5)
+    with torch.enable_grad():
+        want_changed = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
+    torch.testing.assert_close(changed[1], want_changed[1], atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(changed[1], got[1])
+    model.train()
+    assert all(entry is None for block in model.blocks for entry in block.conv._tap_major)
+
+
+def test_single_key_attention_is_the_key_value_through_the_output():
+    from dualflow.model import Attention
+
+    torch.manual_seed(3)
+    attn = Attention(16, 4, 0.0).eval()
+    key = torch.randn(2, 1, 16)
+    query = torch.randn(2, 5, 16)
+    full = attn(query, key, None)
+    torch.testing.assert_close(attn.single_key(key).expand_as(full), full)
