@@ -14,10 +14,15 @@ short still leaves what it measured):
   EMA, fused AdamW, bf16 autocast), samples/s after warm-up; the first variant is today's
   configuration (batch 32, Conv1d, no algorithm search), the others change one thing each;
 * generate: ``dualflow.flow.generate``, reactive, a 10 s clip (300 frames), 20 Euler steps,
-  random paper-preset weights: eager (today) against the CUDA-graph replay;
-* stream: ``ReactiveStreamer`` at hop 1, window 60: the bench's 20-step full-window setting
-  (today's figure), the incremental path at 20 steps, and the live bridge's setting
-  (incremental, 2 steps), ms of compute per emitted frame.
+  random paper-preset weights: eager float32 (before issue 28) against the CUDA-graph replay
+  at each ``SamplingSettings.precision`` and with compiled blocks (``GENERATE_VARIANTS``), each
+  output's largest difference from eager float32, and a profile of one network call;
+* stream: ``ReactiveStreamer`` at hop 1, window 60, in steady state: full windows (eager and
+  replayed from a CUDA graph) and incremental windows, at 20 and at 2 Euler steps (the live
+  bridge's setting), ms per emitted frame timed per ``push`` with the device synchronised,
+  and a profile of one frame at 2 steps.
+
+``--no-profile-generate`` / ``--no-profile-stream`` skip the profiles (torch.profiler).
 
 Targets (issue 28): training >= 700 samples/s (10x today's 67 on an H200), generation <= 0.25 s,
 streaming hop 1 <= 33 ms per frame.
@@ -40,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dualflow.flow import SamplingSettings, cuda_tf32, generate  # noqa: E402
 from dualflow.model import Conditions, DualFlow, DualFlowConfig, MultiScaleConv  # noqa: E402
+from dualflow.streaming import StreamConfig  # noqa: E402
 
 TARGETS = {"train_samples_per_s": 700.0, "generate_s": 0.25, "stream_ms_per_frame": 33.0}
 #: (label, batch, gemm convolutions, cuDNN algorithm search, compiled blocks); the first is
@@ -251,7 +257,8 @@ def bench_generate(rec: Recorder, args, model: DualFlow) -> None:
     actor, cond = _actor_and_cond(model.config, n, args.device)
     outputs = {}
     compiled = None
-    for label, graph, use_compiled, precision in GENERATE_VARIANTS:
+    variants = [GENERATE_VARIANTS[int(i)] for i in args.generate_variants.split(",")] if args.generate_variants else []
+    for label, graph, use_compiled, precision in variants or GENERATE_VARIANTS:
         if time.perf_counter() - args.t0 > args.budget_s:
             rec.put("generate", label, "skipped: out of time")
             continue
@@ -298,16 +305,28 @@ def bench_generate(rec: Recorder, args, model: DualFlow) -> None:
             rec.put("profile", f"one network call of generate, eager, {precision}", profile_call(call, args.device))
 
 
+#: (label, StreamConfig): full windows eager and replayed from a CUDA graph, and incremental windows
+STREAM_SETTINGS = [
+    ("full windows, 20 steps, eager", StreamConfig(window=60, steps=20, cuda_graph=False)),
+    ("full windows, 20 steps, CUDA graph", StreamConfig(window=60, steps=20)),
+    ("full windows, 2 steps, eager", StreamConfig(window=60, steps=2, cuda_graph=False)),
+    ("full windows, 2 steps, CUDA graph", StreamConfig(window=60, steps=2)),
+    ("incremental, 20 steps", StreamConfig(window=60, steps=20, incremental=True)),
+    ("incremental, 2 steps (the live bridge's setting)", StreamConfig(window=60, steps=2, incremental=True)),
+]
+
+
 def bench_stream(rec: Recorder, args, model: DualFlow) -> None:
-    from dualflow.streaming import ReactiveStreamer, StreamConfig
+    """ms per emitted frame at hop 1, window 60, in steady state (full windows), timed per
+    ``push`` with the device synchronised (a replayed graph returns before its kernels end)."""
+    from dualflow.streaming import ReactiveStreamer
 
     frames = 8 if args.quick else args.stream_frames
     actor, cond = _actor_and_cond(model.config, 120, args.device)
-    settings = [
-        ("full windows, 20 steps (today's bench)", StreamConfig(window=60, hop=1, steps=20)),
-        ("incremental, 20 steps", StreamConfig(window=60, hop=1, steps=20, incremental=True)),
-        ("incremental, 2 steps (the live bridge)", StreamConfig(window=60, hop=1, steps=2, incremental=True)),
-    ]
+    settings = STREAM_SETTINGS
+    if args.stream_settings:
+        settings = [settings[int(i)] for i in args.stream_settings.split(",")]
+    outputs = {}
     for label, config in settings:
         if time.perf_counter() - args.t0 > args.budget_s:
             rec.put("stream", label, "skipped: out of time")
@@ -315,26 +334,38 @@ def bench_stream(rec: Recorder, args, model: DualFlow) -> None:
         try:
             with torch.inference_mode():
                 streamer = ReactiveStreamer(model, config, cond)
-                streamer.push(actor[0, : streamer.look_ahead + 4])  # warm-up
-                streamer.timing.windows.clear()
-                for i in range(streamer.look_ahead + 4, streamer.look_ahead + 4 + frames):
+                first = config.window + 4  # in one push: a few wide windows, then full windows at hop 1
+                streamer.push(actor[0, :first])
+                for i in range(first, first + 3):  # the graphed setting captures here
                     streamer.push(actor[0, i])
-                t = streamer.timing
+                times = []
+                for i in range(first + 3, first + 3 + frames):
+                    sync(args.device)
+                    t0 = time.perf_counter()
+                    streamer.push(actor[0, i])
+                    sync(args.device)
+                    times.append(time.perf_counter() - t0)
+                outputs[label] = streamer.emitted.clone()
                 if args.profile_stream and config.steps == 2:
-                    nxt = iter(actor[0, streamer.look_ahead + 4 + frames :])
+                    nxt = iter(actor[0, first + 3 + frames :])
                     prof = profile_call(lambda s=streamer, it=nxt: s.push(next(it)), args.device)
                     rec.put("profile", f"one frame of streaming, {label}", prof)
             rec.put(
                 "stream",
                 f"{label}: ms per frame (hop 1)",
                 {
-                    "ms_per_frame": round(1000 * t.per_frame_s, 2),
-                    "max_ms": round(1000 * t.max_window_s, 2),
-                    "frames": t.frames,
+                    "ms_per_frame": round(1000 * statistics.mean(times), 2),
+                    "max_ms": round(1000 * max(times), 2),
+                    "frames": len(times),
                 },
             )
         except Exception as exc:  # noqa: BLE001
             rec.put("stream", label, f"error: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}")
+    for steps in (20, 2):
+        eager, graphed = f"full windows, {steps} steps, eager", f"full windows, {steps} steps, CUDA graph"
+        if eager in outputs and graphed in outputs:
+            diff = (outputs[eager] - outputs[graphed]).abs().max().item()
+            rec.put("stream", f"max |{eager} - {graphed}| over the stream (normalised features)", diff)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -348,6 +379,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train-warmup", type=int, default=3)
     p.add_argument("--stream-frames", type=int, default=12)
     p.add_argument("--budget-s", type=float, default=400.0, help="skip what would start after this many seconds")
+    p.add_argument("--generate-variants", default="", help="indices into GENERATE_VARIANTS ('' = all)")
+    p.add_argument("--stream-settings", default="", help="indices into STREAM_SETTINGS ('' = all)")
     p.add_argument("--train-variants", default="", help="indices into TRAIN_VARIANTS, e.g. 0,6 ('' = all)")
     p.add_argument("--profile", default="batch 256, gemm convolutions", help="train variant to profile ('' = none)")
     p.add_argument("--no-profile-generate", dest="profile_generate", action="store_false")

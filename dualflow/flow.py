@@ -318,7 +318,7 @@ class SamplingSettings:
 PRECISIONS = ("tf32", "bf16", "float32")
 
 
-def _bf16_velocity(velocity: VelocityFn, dtype: torch.dtype) -> VelocityFn:
+def bf16_velocity(velocity: VelocityFn, dtype: torch.dtype) -> VelocityFn:
     """``velocity`` with the network under CUDA bf16 autocast, its output back in ``dtype``.
     The autocast weight cache is off: a CUDA graph cannot capture a cache that outlives it, so
     each call casts the weights it uses (one read of them per call)."""
@@ -387,7 +387,7 @@ def generate(
         x_actor = x_actor.to(device, dtype)
     velocity = guided_velocity(model, cond, mode=mode, x_actor=x_actor, cfg_scale=s.cfg_scale, look_ahead=s.look_ahead)
     if s.precision == "bf16" and device.type == "cuda":
-        velocity = _bf16_velocity(velocity, dtype)
+        velocity = bf16_velocity(velocity, dtype)
     if s.cuda_graph and device.type == "cuda":
         from dualflow.cuda_graph import GraphedVelocity
 

@@ -66,16 +66,17 @@ prints it for trajectory context, straight-path context, per-window frames and n
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
 import torch
 
 from dualflow.errors import DualFlowError
-from dualflow.flow import RectifiedPath, guided_velocity, ode_solve
+from dualflow.flow import PRECISIONS, RectifiedPath, bf16_velocity, guided_velocity, ode_solve
 from dualflow.model import Conditions, DualFlow
 from dualflow.motion.features import FEATURE_SLICES
 from dualflow.motion.skeleton import FACE_JOINTS, N_JOINTS
@@ -169,6 +170,10 @@ class StreamConfig:
     P = window - L; cost proportional to bases). prefetch: in idle time (``prepare``), make
     the part of the next pass's convolutions that reads only older frames, so that a frame
     waits for fewer products (``WindowCache.prefetch``; the same results to float rounding).
+    cuda_graph: on a CUDA device, a full window (not incremental) of a shape seen before is
+    replayed from a CUDA graph: the actor stream, every ODE step and the context's inpainting
+    in one launch (``dualflow.cuda_graph``; the same kernels). precision: the matrix products
+    on CUDA, as ``dualflow.flow.SamplingSettings.precision`` ("bf16": full windows only).
     """
 
     window: int = 60
@@ -185,6 +190,8 @@ class StreamConfig:
     incremental: bool = False
     bases: int = 2
     prefetch: bool = True
+    cuda_graph: bool = True
+    precision: str = "tf32"
 
 
 @dataclass
@@ -289,6 +296,11 @@ class ReactiveStreamer:
                     f"window can take (window {config.window} - look-ahead {self.look_ahead}, "
                     f"{config.bases} starts); lower hop or bases, or raise window"
                 )
+        if config.precision not in PRECISIONS or (config.incremental and config.precision == "bf16"):
+            raise DualFlowError(
+                f"StreamConfig.precision must be one of {PRECISIONS} ('bf16' with incremental=False only), "
+                f"got {config.precision!r}"
+            )
         if config.context not in ("trajectory", "path"):
             raise DualFlowError(f"StreamConfig.context must be 'trajectory' or 'path', got {config.context!r}")
         if config.hop < 1:
@@ -318,6 +330,7 @@ class ReactiveStreamer:
             0, config.steps + (0 if config.incremental else 1), self.dim, dtype=self.dtype, device=self.device
         )
         self._traj_start = 0
+        self._graphs: dict = {}  # full windows on CUDA: GraphedCall (None: seen once) per shape (``_window_graph``)
         self._inc = None  # incremental mode: dualflow.incremental.IncrementalModel, built on first use
         self._bases: list = []  # incremental mode: dualflow.incremental.WindowCache, oldest first
         self._mean = self._std = None
@@ -632,8 +645,17 @@ class ReactiveStreamer:
     @torch.no_grad()
     def _generate(self, first_new: int, upto: int) -> torch.Tensor:
         """Generate and emit reactor frames [first_new, upto) in one window."""
-        if self.config.incremental:
-            return self._generate_incremental(first_new, upto)
+        from dualflow.flow import cuda_tf32
+
+        on_cuda = self.device.type == "cuda"
+        with cuda_tf32(self.config.precision == "tf32") if on_cuda else contextlib.nullcontext():
+            if self.config.incremental:
+                return self._generate_incremental(first_new, upto)
+            return self._generate_window(first_new, upto)
+
+    @torch.no_grad()
+    def _generate_window(self, first_new: int, upto: int) -> torch.Tensor:
+        """One full window over the frames [first_new - context, upto + L) (module docstring)."""
         tic = time.perf_counter()
         stop = min(upto + self.look_ahead, self.n_actor)
         stop = max(stop, upto)
@@ -648,13 +670,40 @@ class ReactiveStreamer:
             actor = self._norm(frame.to_local(self._denorm(actor)))
             known = self._norm(frame.to_local(self._denorm(known)))
         actor, known = actor[None], known[None]
-
         n_new = upto - first_new
-        steps = self.config.steps
         use_traj = self.config.context == "trajectory" and frame is None
         ctx_traj = None
         if use_traj and n_ctx > 0:
             ctx_traj = self._traj[start - self._traj_start : first_new - self._traj_start]  # (n_ctx, S+1, D)
+        cond = self._window_conditions(start, stop)
+        # Module.train()/eval() walk every submodule (~3 ms each for the small model): switch only
+        # when needed, not twice per window
+        was_training = self.model.training
+        if was_training:
+            self.model.eval()
+        try:
+            graphed = self._window_graph(stop - start, n_ctx, n_new) if ctx_traj is not None else None
+            if graphed is not None:
+                music = () if cond.music is None else (cond.music,)
+                new, record = graphed(actor, eps, ctx_traj, *music)
+            else:
+                new, record = self._solve_window(cond, n_ctx, n_new, actor, eps, ctx_traj, known)
+        finally:
+            if was_training:
+                self.model.train(True)
+        if use_traj:
+            self._traj = torch.cat([self._traj, record], 0)
+            drop = max(0, self._traj.shape[0] - self.config.window)
+            self._traj, self._traj_start = self._traj[drop:], self._traj_start + drop
+        if frame is not None:
+            new = self._norm(frame.to_global(self._denorm(new)))
+        return self._emit(first_new, new, tic)
+
+    def _solve_window(self, cond, n_ctx, n_new, actor, eps, ctx_traj, known=None):
+        """The window's ODE solve: (its new frames (n_new, D), their state at every grid time
+        (n_new, S + 1, D)). Context frames are held at ``ctx_traj``'s states (trajectory
+        context) or on the straight path to ``known`` (see ``StreamConfig.context``)."""
+        steps = self.config.steps
         record = torch.zeros(n_new, steps + 1, self.dim, dtype=self.dtype, device=self.device)
 
         def project(x: torch.Tensor, t: float) -> torch.Tensor:
@@ -670,30 +719,43 @@ class ReactiveStreamer:
 
         velocity = guided_velocity(
             self.model,
-            self._window_conditions(start, stop),
+            cond,
             mode="reactive",
             x_actor=actor,
             cfg_scale=self.config.cfg_scale,
             look_ahead=self.look_ahead,
         )
-        # Module.train()/eval() walk every submodule (~3 ms each for the small model): switch only
-        # when needed, not twice per window
-        was_training = self.model.training
-        if was_training:
-            self.model.eval()
-        try:
-            x = ode_solve(velocity, eps, steps=self.config.steps, method=self.config.method, project=project)
-        finally:
-            if was_training:
-                self.model.train(True)
-        new = x[0, n_ctx : n_ctx + n_new]
-        if use_traj:
-            self._traj = torch.cat([self._traj, record], 0)
-            drop = max(0, self._traj.shape[0] - self.config.window)
-            self._traj, self._traj_start = self._traj[drop:], self._traj_start + drop
-        if frame is not None:
-            new = self._norm(frame.to_global(self._denorm(new)))
-        return self._emit(first_new, new, tic)
+        if self.config.precision == "bf16" and self.device.type == "cuda":
+            velocity = bf16_velocity(velocity, self.dtype)
+        x = ode_solve(velocity, eps, steps=steps, method=self.config.method, project=project)
+        return x[0, n_ctx : n_ctx + n_new], record
+
+    #: at most this many window shapes get a CUDA graph (a steady stream uses one; the rest,
+    #: the first and last windows, run eagerly)
+    MAX_WINDOW_GRAPHS = 4
+
+    def _window_graph(self, width: int, n_ctx: int, n_new: int):
+        """The ``GraphedCall`` of a window of this shape with trajectory context, or None
+        (``StreamConfig.cuda_graph`` off, not on CUDA, or a window not worth a graph: one not
+        yet full, the first of its shape (a shape seen once, like the last window's, would cost
+        a capture and two warm-up runs), or more shapes than ``MAX_WINDOW_GRAPHS``). Its inputs: the actor rows, the
+        noise, the context's trajectory and the music rows (when the stream has music);
+        text and retrieval are the stream's, the same for every window."""
+        if not (self.config.cuda_graph and self.device.type == "cuda" and width == self.config.window):
+            return None
+        key = (width, n_ctx, n_new)
+        graphed = self._graphs.get(key)
+        if graphed is None and key not in self._graphs:  # a shape's first window runs eagerly
+            self._graphs[key] = None
+        elif graphed is None and sum(g is not None for g in self._graphs.values()) < self.MAX_WINDOW_GRAPHS:
+            from dualflow.cuda_graph import GraphedCall
+
+            def solve(actor, eps, ctx_traj, music=None):
+                cond = self.cond if music is None else replace(self.cond, music=music)
+                return self._solve_window(cond, n_ctx, n_new, actor, eps, ctx_traj)
+
+            graphed = self._graphs[key] = GraphedCall(solve, names=("actor", "noise", "context", "music"))
+        return graphed
 
 
 # ---------------------------------------------------------------------------------------------

@@ -314,17 +314,19 @@ def test_reactive_pass_with_both_streams_stacked_equals_actor_context_then_react
     assert model.in_a.weight.grad is not None and model.in_a.weight.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("gemm", [False, True])
 @pytest.mark.parametrize("music", [False, True])
 @pytest.mark.parametrize("mode", ["interactive", "reactive"])
-def test_inference_shortcuts_compute_what_the_full_network_does(mode, music):
+def test_inference_shortcuts_compute_what_the_full_network_does(mode, music, gemm):
     """In inference (eval, no autograd) a cross-attention to a single key (the null music and
     retrieval tokens) is that key's constant output, the convolutions' tap-major weights are
-    kept between calls, and a reactive actor context carries its conditioning latents and the
-    music and motion keys projected once: each must equal the full computation that runs with
+    kept between calls, the modulated norms and the gated convolution sums are fused
+    multiply-adds, and a reactive actor context carries its conditioning latents and the music
+    and motion keys projected once: each must equal the full computation that runs with
     autograd on."""
     model = _random_model(6)
     for block in model.blocks:
-        block.conv.gemm = True
+        block.conv.gemm = gemm
     x_a, x_b = torch.randn(2, 1, 14, 262).unbind(0)
     cond = Conditions(  # no retrieval (a single null key), music or its null key
         text=torch.randn(1, model.config.text_dim),
@@ -336,7 +338,7 @@ def test_inference_shortcuts_compute_what_the_full_network_does(mode, music):
     with torch.no_grad():
         got = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
         conv = model.blocks[0].conv
-        assert conv._tap_major[0] is not None  # kept for the next call
+        assert (conv._tap_major[0] is not None) == gemm  # kept for the next call
         conv.convs[0].weight.mul_(1.5)  # an in-place change of the weights must not reuse it
         changed = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
     for g, w in zip(got, want):
@@ -358,3 +360,31 @@ def test_single_key_attention_is_the_key_value_through_the_output():
     query = torch.randn(2, 5, 16)
     full = attn(query, key, None)
     torch.testing.assert_close(attn.single_key(key).expand_as(full), full)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (CUDA graphs)")
+@pytest.mark.parametrize("music", [False, True])
+def test_streamed_full_windows_replayed_from_a_graph_equal_the_eager_stream(music):
+    from dualflow.streaming import ReactiveStreamer, StreamConfig
+
+    model = _random_model(7).cuda()
+    n = 40
+    cond = Conditions(
+        text=torch.randn(1, model.config.text_dim, device="cuda"),
+        music=torch.randn(1, n, model.config.music_dim, device="cuda") if music else None,
+    )
+    actor = torch.randn(n, 262, device="cuda")
+    streams = []
+    for graph in (False, True):
+        config = StreamConfig(window=16, steps=3, cuda_graph=graph, precision="float32")
+        streamer = ReactiveStreamer(model, config, cond)
+        for i in range(n):
+            streamer.push(actor[i])
+        streamer.flush()
+        streams.append((streamer.emitted, streamer._graphs))
+    (eager, no_graphs), (replayed, graphs) = streams
+    captured = [g for g in graphs.values() if g is not None]
+    assert not no_graphs and len(captured) == 1  # the steady full window; the last one's shape ran once
+    assert captured[0].graph is not None
+    assert replayed.shape == eager.shape == (n, 262)
+    torch.testing.assert_close(replayed, eager, atol=1e-5, rtol=1e-5)
