@@ -156,6 +156,11 @@ class Conditions:
         music = None if self.music is None else self.music[:, start:stop]
         return replace(self, music=music)
 
+    def to(self, device) -> Conditions:
+        """The same conditions with every tensor on ``device``."""
+        moved = {f.name: getattr(self, f.name) for f in fields(self)}
+        return Conditions(**{k: None if v is None else v.to(device) for k, v in moved.items()})
+
 
 def sample_condition_drop(
     batch: int,

@@ -58,8 +58,12 @@ class SessionOptions:
     #: partner frame i waits for actor frame i + L instead of i + L + 1 (partner.reactor.ReactorStage)
     predict_next: bool = True
     #: cache each frame's activations in fixed-start windows and compute only new frames
-    #: (dualflow.incremental): ~3x less compute per frame than re-running 60-frame windows
+    #: (dualflow.incremental): ~3x less compute per frame than re-running 60-frame windows.
+    #: On the CPU only: on a CUDA device full windows replayed from CUDA graphs are faster
     incremental: bool = True
+    #: where DualFlow runs: "cpu", or a CUDA device ("cuda", "cuda:1") for a model too large for
+    #: the CPU in real time (the paper preset streams at ~15 ms per frame on an H100)
+    partner_device: str = "cpu"
     #: the loop's playback clock follows the frames' recent arrival times (ros_free_bridge.control.playback)
     #: instead of staying where the first frame put it
     adaptive_playback: bool = True
@@ -290,6 +294,10 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         raise BridgeError(f"partner {opts.partner!r}: choose one of {', '.join(PARTNERS)}")
     if opts.generator not in GENERATORS:
         raise BridgeError(f"generator {opts.generator!r}: choose one of {', '.join(GENERATORS)}")
+    if opts.partner == "dualflow":
+        from ros_free_bridge.partner.reactor import partner_device
+
+        partner_device(opts.partner_device)  # no GPU for a cuda device: said before anything starts
     from retarget.robot import load_robot
 
     actor_motion = load_actor_file(opts.actor)  # a bad file is named before anything starts
@@ -337,6 +345,7 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
                 max_lag=opts.max_lag,
                 predict_next=opts.predict_next,
                 incremental=opts.incremental,
+                device=opts.partner_device,
             )
         )
         stack.callback(gen.close)
@@ -347,9 +356,19 @@ def _partner_core(opts: SessionOptions, files: RobotFiles, robot, names, limits,
         from dualflow.streaming import StreamConfig
         from ros_free_bridge.partner.reactor import Cues, ReactorStage
 
-        stream = StreamConfig(window=opts.window, steps=opts.steps, hop=opts.hop, incremental=opts.incremental)
+        stream = StreamConfig(
+            window=opts.window,
+            steps=opts.steps,
+            hop=opts.hop,
+            incremental=opts.incremental and opts.partner_device == "cpu",
+        )
         reactor = ReactorStage(
-            MOTION_FPS, opts.model, stream, Cues(opts.text, opts.music), predict_next=opts.predict_next
+            MOTION_FPS,
+            opts.model,
+            stream,
+            Cues(opts.text, opts.music),
+            predict_next=opts.predict_next,
+            device=opts.partner_device,
         )
     return PartnerCore(reactor, retarget, opts.max_lag), rest
 
@@ -587,7 +606,8 @@ def _generator_info(opts: SessionOptions, core) -> dict:
         "steps": opts.steps,
         "hop": opts.hop,
         "window": opts.window,
-        "incremental": opts.incremental,
+        "incremental": opts.incremental and opts.partner_device == "cpu",
+        "partner_device": opts.partner_device,
         "predict_next": opts.predict_next,
     }
     ready = getattr(core, "ready_info", {})

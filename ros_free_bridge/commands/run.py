@@ -68,6 +68,13 @@ def add_generator_options(p) -> None:
         help=f"frames per generation window (default {d.window}, the training clip length)",
     )
     p.add_argument(
+        "--partner-device",
+        default=d.partner_device,
+        metavar="DEVICE",
+        help="where DualFlow runs: cpu (default) or a CUDA device (cuda, cuda:1), for a model too large to "
+        "stream in real time on the CPU",
+    )
+    p.add_argument(
         "--generator",
         choices=("process", "thread"),
         default=d.generator,
@@ -135,6 +142,7 @@ def generator_options(args) -> dict:
         steps=args.steps,
         hop=args.hop,
         window=args.window,
+        partner_device=args.partner_device,
         generator=args.generator,
         playback_margin=args.playback_margin,
         playback_quantile=args.playback_quantile,

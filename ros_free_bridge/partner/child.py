@@ -31,7 +31,8 @@ def build_core(cfg: GeneratorConfig):
     from ros_free_bridge.robots import resolve_robot
 
     torch.set_num_threads(max(1, int(cfg.threads)))
-    stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed, incremental=cfg.incremental)
+    incremental = cfg.incremental and cfg.device == "cpu"  # on CUDA full windows from CUDA graphs are faster
+    stream = StreamConfig(window=cfg.window, steps=cfg.steps, hop=cfg.hop, seed=cfg.seed, incremental=incremental)
     # the model first: a bad checkpoint or condition fails before the slower retargeter build
     reactor = ReactorStage(
         cfg.fps,
@@ -40,6 +41,7 @@ def build_core(cfg: GeneratorConfig):
         Cues(cfg.text, cfg.music, cfg.music_frames),
         threads=cfg.threads,
         predict_next=cfg.predict_next,
+        device=cfg.device,
     )
     files = resolve_robot(cfg.robot)
     retarget = RetargetStage(load_robot(files.mjcf, files.profile), cfg.fps, cfg.joint_names)

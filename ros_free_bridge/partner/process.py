@@ -56,6 +56,7 @@ class GeneratorConfig:
     nice: int = 5
     predict_next: bool = True  #: ReactorStage's provisional newest row (one frame less delay)
     incremental: bool = True  #: StreamConfig.incremental: cached activations, new frames only
+    device: str = "cpu"  #: where the model runs (ReactorStage); on CUDA full windows, not incremental ones
 
 
 class GeneratorProcess:

@@ -41,11 +41,39 @@ class Cues:
     music_frames: int = 30 * 60 * 30
 
 
+def partner_device(device: str) -> str:
+    """``device`` checked: "cpu", or a CUDA device torch can use; BridgeError naming the fix."""
+    import torch
+
+    name = str(device)
+    if name == "cpu":
+        return name
+    if not name.startswith("cuda"):
+        raise BridgeError(f"partner device {name!r}: choose 'cpu' or a CUDA device ('cuda', 'cuda:1')")
+    if not torch.cuda.is_available():
+        raise BridgeError(
+            f"partner device {name!r}: torch sees no CUDA device here (a CPU-only torch build, or no GPU); "
+            "use --partner-device cpu"
+        )
+    try:
+        torch.device(name)
+        index = torch.device(name).index or 0
+    except RuntimeError:
+        raise BridgeError(f"partner device {name!r}: not a device name; write 'cuda' or 'cuda:N'") from None
+    if index >= torch.cuda.device_count():
+        raise BridgeError(
+            f"partner device {name!r}: torch sees {torch.cuda.device_count()} CUDA device(s); "
+            f"choose cuda:0 .. cuda:{torch.cuda.device_count() - 1}"
+        )
+    return name
+
+
 class ReactorStage:
     """Generate the partner (reactor) from actor world positions, causally, frame by frame.
 
     checkpoint: a checkpoint directory (None: the bundled one). cues: :class:`Cues` (None: no
-    text, no music). threads: torch threads (1 leaves a core to the control loop).
+    text, no music). threads: torch threads (1 leaves a core to the control loop). device:
+    where the model runs, "cpu" or a CUDA device ("cuda", "cuda:1"; see :func:`partner_device`).
 
     ``predict_next`` (default): an actor frame's 262-d row needs the next frame (its velocity
     p[n+1] - p[n] and the foot contacts from it), which would add one frame (33 ms) to the
@@ -69,6 +97,7 @@ class ReactorStage:
         threads: int = 1,
         predict_next: bool = True,
         clean: bool = True,
+        device: str = "cpu",
     ):
         import torch
 
@@ -79,10 +108,12 @@ class ReactorStage:
         torch.set_num_threads(max(1, int(threads)))  # leave a core to the control loop
         ckpt = load_checkpoint(checkpoint or BUNDLED_CHECKPOINT)
         self.stats = ckpt.stats
-        self.model = ckpt.build_model("cpu")
+        self.model = ckpt.build_model(partner_device(device))
         self.fps = float(fps)
         cues = cues or Cues()
         self._cond = self._conditions(ckpt, cues) if (cues.text or cues.music is not None) else None
+        if self._cond is not None:
+            self._cond = self._cond.to(self.model.out_b.weight.device)
         self._stream_config = stream_config or StreamConfig()
         self._streamer_type = ReactiveStreamer
         self.streamer = ReactiveStreamer(self.model, self._stream_config, self._cond)
