@@ -76,7 +76,8 @@ class GraphedCall:
 
     def _capture(self, inputs: tuple[torch.Tensor, ...]) -> None:
         device = inputs[0].device
-        self._inputs = tuple(x.detach().clone() for x in inputs)
+        with torch.inference_mode(False):  # copied into at every call, in inference mode or not
+            self._inputs = tuple(x.detach().clone() for x in inputs)
         side = torch.cuda.Stream(device=device)
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):

@@ -333,15 +333,15 @@ def bf16_velocity(velocity: VelocityFn, dtype: torch.dtype) -> VelocityFn:
 
 @contextlib.contextmanager
 def cuda_tf32(on: bool):
-    """CUDA float32 matrix products on the tensor cores (TF32) inside the block, the setting
-    before it restored after. (A process-wide switch of torch's: another thread's products in
+    """CUDA float32 matrix products and cuDNN convolutions on the tensor cores (TF32) inside the
+    block, the settings before it restored after. (A process-wide switch of torch's: another thread's products in
     the meantime follow it too.)"""
-    before = torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = on
+    before = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
     try:
         yield
     finally:
-        torch.backends.cuda.matmul.allow_tf32 = before
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = before
 
 
 @torch.no_grad()

@@ -325,22 +325,26 @@ class MultiScaleConv(nn.Module):
         return out
 
     def train(self, mode: bool = True):
-        self._tap_major = [None] * len(self.kernels)  # training changes the weights: keep no copy
+        if mode:  # training changes the weights: keep no copy (eval() keeps it: a CUDA graph may read it)
+            self._tap_major = [None] * len(self.kernels)
         return super().train(mode)
 
     def _weight(self, i: int, conv: nn.Conv1d) -> torch.Tensor:
         """Kernel i's weight (out, tap-major in) = (W, k W); in inference kept between calls
         while the weight's storage and version are the same (a sampler calls the network once
-        per ODE step: otherwise every call copies all the convolution weights)."""
+        per ODE step: otherwise every call copies all the convolution weights). The copy is
+        made again when the weight is another tensor or was changed in place (its version
+        counter; an edit through ``.data`` bypasses it); weights made under inference mode have
+        no version counter and are not kept."""
         weight = conv.weight
         w, _, k = weight.shape
-        if not _inference(self) or torch.compiler.is_compiling():  # compiled: the compiler fuses the copy
-            return weight.permute(0, 2, 1).reshape(w, k * w)
-        key = (weight.data_ptr(), weight._version, weight.device)
+        if not _inference(self) or torch.compiler.is_compiling() or weight.is_inference():
+            return weight.permute(0, 2, 1).reshape(w, k * w)  # (compiled: the compiler fuses the copy)
+        key = (weight.data_ptr(), weight._version)  # moved (``.to``, ``load_state_dict``) or changed in place
         cached = self._tap_major[i]
-        if cached is None or cached[0] != key:
-            cached = self._tap_major[i] = (key, weight.permute(0, 2, 1).reshape(w, k * w).contiguous())
-        return cached[1]
+        if cached is None or cached[0] is not weight or cached[1] != key:
+            cached = self._tap_major[i] = (weight, key, weight.permute(0, 2, 1).reshape(w, k * w).contiguous())
+        return cached[2]
 
 
 class FeedForward(nn.Module):
@@ -500,6 +504,18 @@ class ActorContext:
     shape: tuple[int, int]
     cues: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
     projected: list[tuple[tuple | None, tuple]] | None = None
+    #: the conditions' tensors it was built with: the latents are reused only for these very ones
+    source: tuple | None = None
+
+
+def _tensors(cond: Conditions) -> tuple:
+    """The tensors ``cond`` holds (None for a missing one), in field order."""
+    return tuple(getattr(cond, f.name) for f in fields(cond))
+
+
+def _same_tensors(a: tuple | None, b: tuple) -> bool:
+    """Whether ``a`` holds the very tensors of ``b`` (identity, not equal values)."""
+    return a is not None and len(a) == len(b) and all(x is y for x, y in zip(a, b))
 
 
 def look_ahead_mask(t_query: int, t_key: int, look_ahead: int, device=None) -> torch.Tensor:
@@ -653,7 +669,9 @@ class DualFlow(nn.Module):
             keys.append(block.keys_of(z2))
             projected.append((music, block.motion_attn.project(keys[-1])))
             z = block.finish(z2, mods, z_r)
-        return ActorContext(keys=keys, shape=(b, n_frames), cues=(z_text, z_m, z_r), projected=projected)
+        return ActorContext(
+            keys=keys, shape=(b, n_frames), cues=(z_text, z_m, z_r), projected=projected, source=_tensors(cond)
+        )
 
     def _reactive_masks(self, n_frames, look_ahead, frame_mask, device, dtype) -> BlockMasks:
         cross = look_ahead_mask(n_frames, n_frames, look_ahead, device)
@@ -689,8 +707,9 @@ class DualFlow(nn.Module):
         device = x_a.device
         t = torch.as_tensor(t, dtype=x_a.dtype, device=device).reshape(-1).expand(b)
         # z_d = text + time + task, the conditioning of every adaptive LayerNorm.
-        if actor_context is not None and actor_context.cues is not None and mode == "reactive":
-            z_text, z_m, z_r = actor_context.cues  # built from the same cond (see actor_context)
+        same_cues = actor_context is not None and _same_tensors(actor_context.source, _tensors(cond))
+        if same_cues and actor_context.cues is not None and mode == "reactive":
+            z_text, z_m, z_r = actor_context.cues  # built from these very conditions
         else:
             z_text = self.text_latent(cond, b, device) + self.task_embed.weight[MODES.index(mode)]
             z_m = self.music_latent(cond, b, n_frames)
@@ -709,7 +728,8 @@ class DualFlow(nn.Module):
             z_d = z_text + self.time_embedding(t)
             masks = self._reactive_masks(n_frames, look_ahead, frame_mask, device, x_b.dtype)
             z = self.in_b(x_b) + pe
-            projected = actor_context.projected or [(None, keys) for keys in actor_context.keys]
+            projected = actor_context.projected if same_cues and actor_context.projected else None
+            projected = projected or [(None, keys) for keys in actor_context.keys]
             for block, (music, motion) in zip(self.blocks, projected):
                 mods = block.modulations(z_d)
                 z2 = block.temporal(z, mods, z_m if music is None else music, masks)

@@ -172,8 +172,10 @@ class StreamConfig:
     waits for fewer products (``WindowCache.prefetch``; the same results to float rounding).
     cuda_graph: on a CUDA device, a full window (not incremental) of a shape seen before is
     replayed from a CUDA graph: the actor stream, every ODE step and the context's inpainting
-    in one launch (``dualflow.cuda_graph``; the same kernels). precision: the matrix products
-    on CUDA, as ``dualflow.flow.SamplingSettings.precision`` ("bf16": full windows only).
+    in one launch (``dualflow.cuda_graph``; the same kernels). The second window of a shape
+    captures it, which costs that window about three windows' time (once per shape and
+    streamer; a live caller that restarts its streamer pays it again). precision: the matrix
+    products on CUDA, as ``dualflow.flow.SamplingSettings.precision`` ("bf16": full windows only).
     """
 
     window: int = 60
@@ -331,6 +333,7 @@ class ReactiveStreamer:
         )
         self._traj_start = 0
         self._graphs: dict = {}  # full windows on CUDA: GraphedCall (None: seen once) per shape (``_window_graph``)
+        self._graphs_weights = None  # the model's weights the graphs were captured with (``_weights_key``)
         self._inc = None  # incremental mode: dualflow.incremental.IncrementalModel, built on first use
         self._bases: list = []  # incremental mode: dualflow.incremental.WindowCache, oldest first
         self._mean = self._std = None
@@ -682,7 +685,10 @@ class ReactiveStreamer:
         if was_training:
             self.model.eval()
         try:
-            graphed = self._window_graph(stop - start, n_ctx, n_new) if ctx_traj is not None else None
+            # (a model in training mode changes between windows: no graph of its weights)
+            graphed = (
+                self._window_graph(stop - start, n_ctx, n_new) if ctx_traj is not None and not was_training else None
+            )
             if graphed is not None:
                 music = () if cond.music is None else (cond.music,)
                 new, record = graphed(actor, eps, ctx_traj, *music)
@@ -743,6 +749,9 @@ class ReactiveStreamer:
         text and retrieval are the stream's, the same for every window."""
         if not (self.config.cuda_graph and self.device.type == "cuda" and width == self.config.window):
             return None
+        weights = _weights_key(self.model)
+        if weights != self._graphs_weights:  # a graph replays the weights it was captured with
+            self._graphs, self._graphs_weights = {}, weights
         key = (width, n_ctx, n_new)
         graphed = self._graphs.get(key)
         if graphed is None and key not in self._graphs:  # a shape's first window runs eagerly
@@ -756,6 +765,12 @@ class ReactiveStreamer:
 
             graphed = self._graphs[key] = GraphedCall(solve, names=("actor", "noise", "context", "music"))
         return graphed
+
+
+def _weights_key(model: torch.nn.Module) -> tuple:
+    """Where each parameter's data is and how often it was changed in place: another key means
+    other weights than a CUDA graph captured (moved, loaded or trained since)."""
+    return tuple((p.data_ptr(), 0 if p.is_inference() else p._version) for p in model.parameters())
 
 
 # ---------------------------------------------------------------------------------------------

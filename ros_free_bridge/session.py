@@ -297,7 +297,9 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
     if opts.partner == "dualflow":
         from ros_free_bridge.partner.reactor import partner_device
 
-        partner_device(opts.partner_device)  # no GPU for a cuda device: said before anything starts
+        # the name now; whether torch sees the GPU where the model runs: the generator process
+        # says so when it starts, before the robot moves (this process does not import torch)
+        partner_device(opts.partner_device, check_torch=opts.generator == "thread")
     from retarget.robot import load_robot
 
     actor_motion = load_actor_file(opts.actor)  # a bad file is named before anything starts

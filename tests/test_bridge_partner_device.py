@@ -1,6 +1,9 @@
 """Where the partner model runs (``--partner-device``): a device torch cannot use is one clear
 error before anything starts; on a GPU the live partner is the CPU's, from full windows."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -12,14 +15,27 @@ from ros_free_bridge.partner.reactor import partner_device
 
 def test_a_device_torch_cannot_use_is_named_with_the_fix():
     assert partner_device("cpu") == "cpu"
-    with pytest.raises(BridgeError, match="choose 'cpu' or a CUDA device"):
-        partner_device("tpu")
+    for bad in ("tpu", "cuda:x", "cuda1"):
+        with pytest.raises(BridgeError, match="choose 'cpu' or a CUDA device"):
+            partner_device(bad, check_torch=False)
     if not torch.cuda.is_available():
         with pytest.raises(BridgeError, match="use --partner-device cpu"):
             partner_device("cuda")
     else:
         with pytest.raises(BridgeError, match="choose cuda:0"):
             partner_device(f"cuda:{torch.cuda.device_count()}")
+
+
+def test_the_bridge_process_checks_the_name_without_importing_torch():
+    code = (
+        "import sys\n"
+        "from ros_free_bridge.partner.reactor import partner_device\n"
+        "assert partner_device('cuda:1', check_torch=False) == 'cuda:1'\n"
+        "assert partner_device('cpu') == 'cpu'\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the error is for a machine without CUDA")

@@ -337,6 +337,9 @@ def test_inference_shortcuts_compute_what_the_full_network_does(mode, music, gem
     want = model(x_a, x_b, 0.4, cond, mode=mode)
     with torch.no_grad():
         got = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
+        if mode == "reactive":  # the actor stream's own shortcuts: its context built in inference
+            inferred = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=model.actor_context(x_a, cond))
+            torch.testing.assert_close(inferred[1], want[1], atol=1e-5, rtol=1e-5)
         conv = model.blocks[0].conv
         assert (conv._tap_major[0] is not None) == gemm  # kept for the next call
         conv.convs[0].weight.mul_(1.5)  # an in-place change of the weights must not reuse it
@@ -347,6 +350,8 @@ def test_inference_shortcuts_compute_what_the_full_network_does(mode, music, gem
         want_changed = model(x_a, x_b, 0.4, cond, mode=mode, actor_context=context)
     torch.testing.assert_close(changed[1], want_changed[1], atol=1e-5, rtol=1e-5)
     assert not torch.allclose(changed[1], got[1])
+    model.eval()  # a CUDA graph may hold the kept copy: eval() must not free it
+    assert (conv._tap_major[0] is not None) == gemm
     model.train()
     assert all(entry is None for block in model.blocks for entry in block.conv._tap_major)
 
@@ -388,3 +393,23 @@ def test_streamed_full_windows_replayed_from_a_graph_equal_the_eager_stream(musi
     assert captured[0].graph is not None
     assert replayed.shape == eager.shape == (n, 262)
     torch.testing.assert_close(replayed, eager, atol=1e-5, rtol=1e-5)
+
+
+def test_an_actor_context_reuses_its_latents_only_for_its_own_conditions():
+    """A context built with other conditions (e.g. the guidance's null) still reads its actor
+    keys, as before, but the reactor's text, music and retrieval latents come from the
+    conditions given, not from the context."""
+    from dualflow.model import ActorContext
+
+    model = _random_model(8)
+    x_a, x_b = torch.randn(2, 1, 12, 262).unbind(0)
+    cond_a = Conditions(text=torch.randn(1, model.config.text_dim), music=torch.randn(1, 12, model.config.music_dim))
+    cond_b = Conditions(text=torch.randn(1, model.config.text_dim))
+    with torch.no_grad():
+        context = model.actor_context(x_a, cond_a)
+        bare = ActorContext(keys=context.keys, shape=context.shape)  # the context as it was: keys only
+        got = model(x_a, x_b, 0.3, cond_b, mode="reactive", actor_context=context)[1]
+        want = model(x_a, x_b, 0.3, cond_b, mode="reactive", actor_context=bare)[1]
+        own = model(x_a, x_b, 0.3, cond_a, mode="reactive", actor_context=context)[1]
+    torch.testing.assert_close(got, want)
+    assert not torch.allclose(got, own)

@@ -41,29 +41,29 @@ class Cues:
     music_frames: int = 30 * 60 * 30
 
 
-def partner_device(device: str) -> str:
-    """``device`` checked: "cpu", or a CUDA device torch can use; BridgeError naming the fix."""
-    import torch
-
+def partner_device(device: str, check_torch: bool = True) -> str:
+    """``device`` checked: "cpu", or a CUDA device name that (with ``check_torch``) torch can
+    use; BridgeError naming the fix. Without ``check_torch`` only the name is checked and torch
+    is not imported (the bridge's process leaves torch to the generator)."""
     name = str(device)
     if name == "cpu":
         return name
-    if not name.startswith("cuda"):
+    head, _, index = name.partition(":")
+    if head != "cuda" or (index and not index.isdigit()):
         raise BridgeError(f"partner device {name!r}: choose 'cpu' or a CUDA device ('cuda', 'cuda:1')")
+    if not check_torch:
+        return name
+    import torch
+
     if not torch.cuda.is_available():
         raise BridgeError(
             f"partner device {name!r}: torch sees no CUDA device here (a CPU-only torch build, or no GPU); "
             "use --partner-device cpu"
         )
-    try:
-        torch.device(name)
-        index = torch.device(name).index or 0
-    except RuntimeError:
-        raise BridgeError(f"partner device {name!r}: not a device name; write 'cuda' or 'cuda:N'") from None
-    if index >= torch.cuda.device_count():
+    count = torch.cuda.device_count()
+    if int(index or 0) >= count:
         raise BridgeError(
-            f"partner device {name!r}: torch sees {torch.cuda.device_count()} CUDA device(s); "
-            f"choose cuda:0 .. cuda:{torch.cuda.device_count() - 1}"
+            f"partner device {name!r}: torch sees {count} CUDA device(s); choose cuda:0 .. cuda:{count - 1}"
         )
     return name
 
