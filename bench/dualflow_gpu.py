@@ -20,7 +20,10 @@ short still leaves what it measured):
 * stream: ``ReactiveStreamer`` at hop 1, window 60, in steady state: full windows (eager and
   replayed from a CUDA graph) and incremental windows, at 20 and at 2 Euler steps (the live
   bridge's setting), ms per emitted frame timed per ``push`` with the device synchronised,
-  and a profile of one frame at 2 steps.
+  and a profile of one frame at 2 steps;
+* partner: the bridge's partner stage (``ReactorStage``, ``--partner-device``) with this model:
+  ms per actor frame at hop 1, 2 steps, full windows (CUDA graphs on CUDA) against incremental
+  windows.
 
 ``--no-profile-generate`` / ``--no-profile-stream`` skip the profiles (torch.profiler).
 
@@ -368,11 +371,48 @@ def bench_stream(rec: Recorder, args, model: DualFlow) -> None:
             rec.put("stream", f"max |{eager} - {graphed}| over the stream (normalised features)", diff)
 
 
+def bench_partner(rec: Recorder, args, model: DualFlow) -> None:
+    """The bridge's partner stage (``ReactorStage``, ``--partner-device``) with this model saved
+    as a checkpoint: ms per actor frame at hop 1, 2 Euler steps, window 60, steady state (frames
+    from 80 on), with full windows (replayed from CUDA graphs on CUDA) and with incremental
+    windows (the CPU's default), each push timed with the device synchronised."""
+    from dualflow.checkpoint import BUNDLED_CHECKPOINT, load_checkpoint, save_checkpoint
+    from dualflow.synthetic import make_leader
+    from ros_free_bridge.partner.reactor import ReactorStage
+    from ros_free_bridge.sources.udp import ActorFrame
+
+    frames = 100 if args.quick else 180
+    folder = Path(tempfile.mkdtemp(prefix="dualflow_gpu_partner_")) / "model"
+    save_checkpoint(folder, model=model, stats=load_checkpoint(BUNDLED_CHECKPOINT).stats)
+    leader = make_leader(frames / 30.0, 30.0, seed=3).positions
+    for label, incremental in (("full windows", False), ("incremental windows", True)):
+        config = StreamConfig(window=60, steps=2, incremental=incremental)
+        stage = ReactorStage(30.0, folder, config, device=args.device)
+        times = []
+        for i, pos in enumerate(leader):
+            sync(args.device)
+            t0 = time.perf_counter()
+            stage.push_many([ActorFrame(i, pos, i / 30.0)])
+            sync(args.device)
+            times.append(time.perf_counter() - t0)
+        steady = times[80:]
+        rec.put(
+            "partner",
+            f"ReactorStage, {label}: ms per actor frame (hop 1, 2 steps)",
+            {
+                "median_ms": round(1000 * statistics.median(steady), 2),
+                "mean_ms": round(1000 * statistics.mean(steady), 2),
+                "max_ms": round(1000 * max(steady), 2),
+                "frames": len(steady),
+            },
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--preset", default="paper")
-    p.add_argument("--sections", default="conv,generate,stream,train")
+    p.add_argument("--sections", default="conv,generate,stream,partner,train")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--train-steps", type=int, default=8)
@@ -398,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"device: {rec.data['device']}, torch {torch.__version__}, preset {args.preset}", flush=True)
     sections = args.sections.split(",")
     model = None
-    if {"generate", "stream"} & set(sections):
+    if {"generate", "stream", "partner"} & set(sections):
         torch.manual_seed(0)
         model = DualFlow(DualFlowConfig.preset(args.preset)).to(args.device).eval()
         with torch.no_grad():  # the output heads start at zero (v = 0): give them weights, so outputs compare
@@ -413,9 +453,11 @@ def main(argv: list[str] | None = None) -> int:
                 bench_generate(rec, args, model)
             elif name == "stream":
                 bench_stream(rec, args, model)
+            elif name == "partner":
+                bench_partner(rec, args, model)
         except Exception:  # noqa: BLE001 (keep measuring the other sections)
             rec.put(name, "error", traceback.format_exc()[-1500:])
-        if name in ("generate", "stream") and model is not None and name == sections[-1]:
+        if name in ("generate", "stream", "partner") and model is not None and name == sections[-1]:
             model = None
     print(json.dumps(rec.data, indent=2))
     return 0

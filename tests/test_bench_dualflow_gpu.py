@@ -20,7 +20,7 @@ def test_quick_run_measures_every_section_without_errors(tmp_path):
     assert dualflow_gpu.main(["--quick", "--json", str(out)]) == 0
     data = json.loads(out.read_text())
     sections = data["sections"]
-    assert set(sections) >= {"conv", "generate", "stream", "train"}
+    assert set(sections) >= {"conv", "generate", "stream", "partner", "train"}
     for name, figures in sections.items():
         for key, value in figures.items():
             assert not (isinstance(value, str) and value.startswith("error")), (name, key, value)
