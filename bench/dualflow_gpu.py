@@ -88,14 +88,20 @@ def timed(fn, repeats: int, device: str, warmup: int = 1) -> float:
     """Median wall time (s) of fn() over ``repeats`` runs after ``warmup`` runs."""
     for _ in range(warmup):
         fn()
+    return statistics.median(call_times([fn] * repeats, device))
+
+
+def call_times(calls, device: str) -> list[float]:
+    """Wall time (s) of each call in ``calls`` (zero-argument functions), the device
+    synchronised before and after each (a CUDA call returns before its kernels end)."""
     times = []
-    for _ in range(repeats):
+    for fn in calls:
         sync(device)
         t0 = time.perf_counter()
         fn()
         sync(device)
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return times
 
 
 def bench_conv(rec: Recorder, args) -> None:
@@ -341,13 +347,8 @@ def bench_stream(rec: Recorder, args, model: DualFlow) -> None:
                 streamer.push(actor[0, :first])
                 for i in range(first, first + 3):  # the graphed setting captures here
                     streamer.push(actor[0, i])
-                times = []
-                for i in range(first + 3, first + 3 + frames):
-                    sync(args.device)
-                    t0 = time.perf_counter()
-                    streamer.push(actor[0, i])
-                    sync(args.device)
-                    times.append(time.perf_counter() - t0)
+                pushes = [lambda i=i, s=streamer: s.push(actor[0, i]) for i in range(first + 3, first + 3 + frames)]
+                times = call_times(pushes, args.device)
                 outputs[label] = streamer.emitted.clone()
                 if args.profile_stream and config.steps == 2:
                     nxt = iter(actor[0, first + 3 + frames :])
@@ -388,14 +389,10 @@ def bench_partner(rec: Recorder, args, model: DualFlow) -> None:
     for label, incremental in (("full windows", False), ("incremental windows", True)):
         config = StreamConfig(window=60, steps=2, incremental=incremental)
         stage = ReactorStage(30.0, folder, config, device=args.device)
-        times = []
-        for i, pos in enumerate(leader):
-            sync(args.device)
-            t0 = time.perf_counter()
-            stage.push_many([ActorFrame(i, pos, i / 30.0)])
-            sync(args.device)
-            times.append(time.perf_counter() - t0)
-        steady = times[80:]
+        pushes = [
+            lambda i=i, pos=pos, s=stage: s.push_many([ActorFrame(i, pos, i / 30.0)]) for i, pos in enumerate(leader)
+        ]
+        steady = call_times(pushes, args.device)[80:]
         rec.put(
             "partner",
             f"ReactorStage, {label}: ms per actor frame (hop 1, 2 steps)",

@@ -334,14 +334,20 @@ def bf16_velocity(velocity: VelocityFn, dtype: torch.dtype) -> VelocityFn:
 @contextlib.contextmanager
 def cuda_tf32(on: bool):
     """CUDA float32 matrix products and cuDNN convolutions on the tensor cores (TF32) inside the
-    block, the settings before it restored after. (A process-wide switch of torch's: another thread's products in
-    the meantime follow it too.)"""
+    block, the settings before it restored after. (A process-wide switch of torch's: another
+    thread's products in the meantime follow it too.)"""
     before = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = on
     try:
         yield
     finally:
         torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = before
+
+
+def precision_context(device: torch.device, precision: str):
+    """Where a sampler at ``precision`` (``PRECISIONS``) runs its network: TF32 switched on or
+    off on a CUDA device (``cuda_tf32``), nothing elsewhere."""
+    return cuda_tf32(precision == "tf32") if device.type == "cuda" else contextlib.nullcontext()
 
 
 @torch.no_grad()
@@ -396,7 +402,7 @@ def generate(
     if was_training:  # Module.eval() walks every submodule: only when needed
         model.eval()
     try:
-        with cuda_tf32(s.precision == "tf32") if device.type == "cuda" else contextlib.nullcontext():
+        with precision_context(device, s.precision):
             x = ode_solve(velocity, noise, steps=s.steps, method=s.method, project=s.project)
     finally:
         if was_training:

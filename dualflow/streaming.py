@@ -66,7 +66,6 @@ prints it for trajectory context, straight-path context, per-window frames and n
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
@@ -76,7 +75,7 @@ import numpy as np
 import torch
 
 from dualflow.errors import DualFlowError
-from dualflow.flow import PRECISIONS, RectifiedPath, bf16_velocity, guided_velocity, ode_solve
+from dualflow.flow import PRECISIONS, RectifiedPath, bf16_velocity, guided_velocity, ode_solve, precision_context
 from dualflow.model import Conditions, DualFlow
 from dualflow.motion.features import FEATURE_SLICES
 from dualflow.motion.skeleton import FACE_JOINTS, N_JOINTS
@@ -648,10 +647,7 @@ class ReactiveStreamer:
     @torch.no_grad()
     def _generate(self, first_new: int, upto: int) -> torch.Tensor:
         """Generate and emit reactor frames [first_new, upto) in one window."""
-        from dualflow.flow import cuda_tf32
-
-        on_cuda = self.device.type == "cuda"
-        with cuda_tf32(self.config.precision == "tf32") if on_cuda else contextlib.nullcontext():
+        with precision_context(self.device, self.config.precision):
             if self.config.incremental:
                 return self._generate_incremental(first_new, upto)
             return self._generate_window(first_new, upto)
