@@ -18,6 +18,7 @@ import numpy as np
 
 from retarget.errors import RetargetError
 from retarget.preview import ZmpPreview
+from retarget.step_turn import step_turn_limits
 from retarget.support import (
     convex_hull,
     double_support_points,
@@ -78,6 +79,7 @@ class BalancePlanner:
         frames = lambda t: max(0, round(t * self.fps))  # noqa: E731
         self._preview = ZmpPreview(h / 9.81 * self.fps**2, max(2, frames(cfg.step_preview)))
         self._set_pace(1.0)
+        self._turn_limits = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)  # (toes out, toes in) rad
         self._plan_scale = math.sqrt(cfg.plan_weight)
         # each sole's centre from its ankle keypoint standing, in the foot's heading frame (the
         # stand pose faces +x): where a swinging foot's targets would put its footprint
@@ -213,7 +215,7 @@ class BalancePlanner:
     def _swing_path(self, s: int) -> np.ndarray:
         """Foot s's sole in this frame of its swing, written as the swing rows' anchor (its
         corners xy): the footprint it lifted from, moved towards the landing place and turned
-        towards the person's foot heading (by at most ``max_step_turn``) by the share
+        towards the person's foot heading (as far as :meth:`_landing_heading` allows) by the share
         sin²(π/2 · swing / its length) of the way (:meth:`_swing_frames`); the centre travels
         around the stance foot's centre (radius and bearing interpolated), so a foot crossing
         from behind to the front never passes through the other. Returns the sole's centre (2,)."""
@@ -239,12 +241,16 @@ class BalancePlanner:
     def _landing_heading(self, s: int) -> float:
         """The heading (rad) the lifted foot s lands with: the person's own foot heading (not the
         anchored one: a pivot on a planted foot that the anchoring absorbed is made up by
-        stepping), toed in or out at most ``max_step_turn`` from the stance foot's."""
+        stepping), toed out or in from the stance foot's at most as far as the robot's legs allow
+        (:func:`retarget.step_turn.step_turn_limits` with ``step_turn_clearance``, at most
+        ``max_step_turn``)."""
         want = self._heads_person[s]
         if not self.planted[1 - s]:
             return want
         hs = self._head_ref[1 - s]
-        return hs + _clip(_wrap(want - hs), self.config.max_step_turn)
+        out, toe_in = self._turn_limits  # the left foot's heading minus the right's: + is toes out
+        lo, hi = (-toe_in, out) if s == 0 else (-out, toe_in)
+        return hs + min(max(_wrap(want - hs), lo), hi)
 
     def _swing_lift(self, s: int) -> float:
         """How high foot s's sole is held above the floor this frame (m): 0 planted; in a swing,
@@ -558,7 +564,7 @@ class BalancePlanner:
         (ax, ay), (rx, ry) = self._ankles_now[s], self._ankle_ref[s]
         # the person's foot heading against the robot's planted foot's (not the anchored one: the
         # anchoring absorbs a pivot on a planted foot, which the robot makes up by stepping)
-        # (what a step could turn it: the person's feet turned further apart than max_step_turn
+        # (what a step could turn it: the person's feet turned further apart than a step may turn
         # would otherwise make it re-step for ever)
         turn = abs(_wrap(self._landing_heading(s) - self._head_ref[s]))
         return math.hypot(ax - rx, ay - ry) > cfg.step_distance or turn > cfg.step_turn
@@ -600,10 +606,6 @@ def _long_axis(footprint: np.ndarray, heading: float) -> np.ndarray:
 def _wrap(angle: float) -> float:
     """``angle`` (rad) in [-π, π)."""
     return (angle + math.pi) % (2 * math.pi) - math.pi
-
-
-def _clip(value: float, limit: float) -> float:
-    return min(max(value, -limit), limit)
 
 
 def _keys(frames: list, points: list) -> tuple[np.ndarray, np.ndarray]:

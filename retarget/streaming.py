@@ -67,7 +67,14 @@ class StreamingConfig:
     swing_height: float = 0.045  # ... and at most this
     min_separation: float = 1.0  # it lands at least this x the standing feet's distance from the other
     stride_limit: float = 0.35  # ... and at most this x the leg length from its place beside the stance foot
-    max_step_turn: float = 0.6  # rad: a step turns the foot at most this far
+    max_step_turn: float = 0.6  # rad: a step turns the foot at most this far from the other ...
+    # ... and no further than the legs' capsule pairs allow with this much room (m) to spare
+    # (retarget.step_turn). Measured on op3 (bench/stepping.py, both clip sets, physics): at 3 mm
+    # (0.39 rad toes out) the CMU clips' worst streamed jerk ratio is 0.93 and one fast orbiting
+    # duet falls, streamed; at 0 (0.45 rad) all 51 clips pass in both modes and the keypoint error
+    # is lower, but CMU 18_01 streamed reaches 1.05 (its body's turn over the feet runs into an
+    # arm capsule and stops within a frame)
+    step_turn_clearance: float = 0.0
     swing_speed: float = 0.4  # m/s: a step longer than this covers in min_swing takes longer
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
     # rad: the body above the knees turns towards the person's own heading ahead of the planted

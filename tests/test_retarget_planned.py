@@ -96,10 +96,13 @@ def test_the_planner_keeps_the_limits_and_reports_what_it_changed(op3):
     assert traj.meta["steps"]["person"] == 0 and traj.meta["steps"]["robot"] >= 10
     rep = evaluate(op3, traj, make_targets(op3, m))
     assert rep.limit_violations == 0 and rep.velocity_violations == 0
+    # (since its steps may turn each foot as far as the hip-servo blocks allow, 0.39 rad out, the
+    # robot keeps within the "own pace" pose threshold of the person; its steps' hip yaws run at
+    # the servos' speed limit, and that is what it reports)
     whats = {c["what"] for c in traj.meta["changes"]}
-    assert whats & {"own pace", "own place"}, whats
+    assert whats and whats <= {"own pace", "own place", "speed-limited"}, whats
     assert all(0 <= c["start_s"] < c["end_s"] <= m.n_frames / FPS + 1e-9 for c in traj.meta["changes"])
-    assert "own p" in rep.changes_text()
+    assert all(w in rep.changes_text() for w in whats)
 
 
 def test_steps_faster_than_the_robot_s_pace_are_reported_skipped(op3):
