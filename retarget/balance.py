@@ -79,6 +79,9 @@ class BalancePlanner:
         frames = lambda t: max(0, round(t * self.fps))  # noqa: E731
         self._preview = ZmpPreview(h / 9.81 * self.fps**2, max(2, frames(cfg.step_preview)))
         self._set_pace(1.0)
+        # the smoothing row's CoM prediction: the last velocity, decaying by this share a frame
+        tau = cfg.com_velocity_decay
+        self._com_decay = math.exp(-1.0 / (self.fps * tau)) if tau > 0 else 1.0
         self._turn_limits = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)  # (toes out, toes in) rad
         self._plan_scale = math.sqrt(cfg.plan_weight)
         # each sole's centre from its ankle keypoint standing, in the foot's heading frame (the
@@ -403,7 +406,8 @@ class BalancePlanner:
         # (3, 3) column-major: columns com, dcm, zmp of rows α, β_x, β_y
         self._points[:] = (1.0, 0.0, 0.0, 1.0 + kd, -kd * c1x, -kd * c1y, 1.0 - kz, kz * px, kz * py)
         self._point_w[:] = self._w0 if first else self._w
-        self._cpred[:] = (px, py)
+        g = self._com_decay  # the CoM's velocity, decaying towards rest
+        self._cpred[:] = (c1x + g * (c1x - c2x), c1y + g * (c1y - c2y))
         self._zmp[:] = 0.0 if first else self._zmp_scale
         if not first and self._frame <= self._plan_until:
             # during a step the CoM row follows the preview plan instead of the smooth prediction
@@ -647,5 +651,9 @@ def _check_step_timing(cfg, fps: float) -> None:
         problems.append(f"lift_shift must be 0 to 1 (got {cfg.lift_shift})")
     if not (math.isfinite(cfg.body_twist) and cfg.body_twist >= 0):
         problems.append(f"body_twist must be 0 rad or more (got {cfg.body_twist})")
+    for name, unit in (("max_step_turn", "rad"), ("step_turn_clearance", "m"), ("com_velocity_decay", "s")):
+        value = getattr(cfg, name)
+        if not (math.isfinite(value) and value >= 0):
+            problems.append(f"{name} must be 0 {unit} or more (got {value})")
     if problems:
         raise RetargetError("StreamingConfig: " + "; ".join(problems))

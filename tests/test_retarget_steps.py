@@ -213,7 +213,16 @@ def test_a_foot_lifts_once_the_weight_has_moved_towards_the_stance_foot(op3, mon
 
 
 @pytest.mark.parametrize(
-    "field, value", [("lift_shift", 1.5), ("lift_shift", -0.1), ("pace_floor", 0.0), ("body_twist", float("nan"))]
+    "field, value",
+    [
+        ("lift_shift", 1.5),
+        ("lift_shift", -0.1),
+        ("pace_floor", 0.0),
+        ("body_twist", float("nan")),
+        ("max_step_turn", -0.1),
+        ("step_turn_clearance", float("inf")),
+        ("com_velocity_decay", -0.15),
+    ],
 )
 def test_a_step_timing_that_cannot_work_is_named(op3, field, value):
     with pytest.raises(RetargetError, match=rf"StreamingConfig: {field} must"):
