@@ -80,9 +80,14 @@ class BalancePlanner:
         self._preview = ZmpPreview(h / 9.81 * self.fps**2, max(2, frames(cfg.step_preview)))
         self._set_pace(1.0)
         # the smoothing row's CoM prediction: the last velocity, decaying by this share a frame
-        tau = cfg.com_velocity_decay
-        self._com_decay = math.exp(-1.0 / (self.fps * tau)) if tau > 0 else 1.0
+        self._com_decay = math.exp(-1.0 / (self.fps * cfg.com_velocity_decay))
         self._turn_limits = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)  # (toes out, toes in) rad
+        if cfg.step_turn_clearance > 0 and cfg.max_step_turn > 0 and max(self._turn_limits) == 0:
+            raise RetargetError(
+                f"StreamingConfig: step_turn_clearance {cfg.step_turn_clearance:g} m leaves "
+                f"{rb.profile.source or rb.name}'s legs no turn at all between steps (its capsule pairs off "
+                "the feet stand closer than that); lower it"
+            )
         self._plan_scale = math.sqrt(cfg.plan_weight)
         # each sole's centre from its ankle keypoint standing, in the foot's heading frame (the
         # stand pose faces +x): where a swinging foot's targets would put its footprint
@@ -651,9 +656,13 @@ def _check_step_timing(cfg, fps: float) -> None:
         problems.append(f"lift_shift must be 0 to 1 (got {cfg.lift_shift})")
     if not (math.isfinite(cfg.body_twist) and cfg.body_twist >= 0):
         problems.append(f"body_twist must be 0 rad or more (got {cfg.body_twist})")
-    for name, unit in (("max_step_turn", "rad"), ("step_turn_clearance", "m"), ("com_velocity_decay", "s")):
+    for name, unit in (("max_step_turn", "rad"), ("step_turn_clearance", "m")):
         value = getattr(cfg, name)
         if not (math.isfinite(value) and value >= 0):
             problems.append(f"{name} must be 0 {unit} or more (got {value})")
+    if not cfg.com_velocity_decay > 0:
+        problems.append(
+            f"com_velocity_decay must be above 0 s, math.inf to keep the velocity (got {cfg.com_velocity_decay})"
+        )
     if problems:
         raise RetargetError("StreamingConfig: " + "; ".join(problems))

@@ -26,6 +26,7 @@ import numpy as np
 
 from dualflow.motion import Motion
 from retarget.schedule import Change, changes_over, count_steps, keep_feet_down_in_flight, speed_limited
+from retarget.step_turn import step_turn_limits
 from retarget.streaming import StreamingRetargeter, trajectory_from_x
 from retarget.targets import bool_runs, make_targets
 from retarget.trajectory import RobotTrajectory
@@ -97,7 +98,8 @@ def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[
     height = float(np.ptp(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2]))
     pose = np.linalg.norm((kp - kp[:, r : r + 1]) - (keypoints - keypoints[:, r : r + 1]), axis=-1).mean(axis=1)
     place = np.linalg.norm(kp[:, r, 0:2] - keypoints[:, r, 0:2], axis=-1)
-    pace = f"{_quickest(cfg)}, {cfg.max_step_turn:g} rad of turn per step"
+    out, toe_in = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)
+    pace = f"{_quickest(cfg)}, a foot turned at most {out:g} rad out and {toe_in:g} rad in per step"
     return changes_over(
         pose / height,
         POSE_CHANGE,

@@ -47,7 +47,7 @@ class StreamingConfig:
     dcm_weight: float = 1e3  # capture point outside it
     zmp_limit_weight: float = 300.0  # ZMP outside it
     zmp_weight: float = 30.0  # ZMP offset (h/g)·CoM acceleration (smooth CoM motion) ...
-    # ... against a CoM velocity that decays with this time constant (s; 0: kept, no decay).
+    # ... against a CoM velocity that decays with this time constant (s; math.inf: kept).
     # Kept, tracking alone pulled a moving CoM back, weakly: a generated partner standing still
     # drifted 5 cm to the edge of its feet in 0.5 s and fell. Measured on op3 (physics), 16
     # generated duets of other seeds than the bench's, planned and streamed: 26 of 32 pass kept,

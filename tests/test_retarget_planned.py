@@ -96,7 +96,7 @@ def test_the_planner_keeps_the_limits_and_reports_what_it_changed(op3):
     assert traj.meta["steps"]["person"] == 0 and traj.meta["steps"]["robot"] >= 10
     rep = evaluate(op3, traj, make_targets(op3, m))
     assert rep.limit_violations == 0 and rep.velocity_violations == 0
-    # (since its steps may turn each foot as far as the hip-servo blocks allow, 0.39 rad out, the
+    # (since its steps may turn each foot as far as the hip-servo blocks allow, 0.45 rad out, the
     # robot keeps within the "own pace" pose threshold of the person; its steps' hip yaws run at
     # the servos' speed limit, and that is what it reports)
     whats = {c["what"] for c in traj.meta["changes"]}

@@ -126,3 +126,46 @@ def test_a_fast_turn_never_plants_the_feet_turned_further_apart_than_the_legs_al
     assert tilt < 15.0, tilt
     yaw = np.unwrap(np.arctan2(np.sin(heads).sum(1), np.cos(heads).sum(1)))
     assert np.sign(rate) * (yaw[-1] - yaw[0]) > 1.0  # it did turn, lagging the person
+
+
+def _toy_with_waist(unnamed_right_hip_yaw: bool):
+    """The toy humanoid with a waist yaw hinge above both legs (and optionally an unnamed right
+    hip yaw)."""
+    from retarget_toy import TOY_PROFILE, TOY_XML
+
+    from retarget.profile import RetargetProfile
+    from retarget.robot import robot_from_xml_string
+
+    xml = TOY_XML.replace(
+        '<body name="r_hip_yaw_link"',
+        '<body name="waist" pos="0 0 0"><joint name="waist_yaw" axis="0 0 1" range="-1 1"/><body name="r_hip_yaw_link"',
+        1,
+    )
+    end = xml.index("</body>\n    </body>\n  </worldbody>")
+    xml = (
+        xml[:end]
+        + "</body>\n</body>\n    </body>\n  </worldbody>"
+        + xml[end + len("</body>\n    </body>\n  </worldbody>") :]
+    )
+    xml = xml.replace("0 1.2 -0.3  0 0 -0.2", "0 1.2 -0.3  0  0 0 -0.2")  # the waist's angle in the stand key
+    if unnamed_right_hip_yaw:
+        xml = xml.replace('<joint name="r_hip_yaw" ', "<joint ")
+    return robot_from_xml_string(xml, RetargetProfile.from_dict(dict(TOY_PROFILE), source="toy.yaml"))
+
+
+@pytest.mark.parametrize("unnamed", [False, True])
+def test_a_waist_yaw_above_both_legs_is_not_a_legs_yaw(unnamed):
+    """A waist turns both legs together (it once was taken as each leg's yaw: the two half-turns
+    cancelled on one joint and the limits came out as the cap); an unnamed hinge is found too."""
+    robot = _toy_with_waist(unnamed)
+    assert "waist_yaw" in robot.joint_names
+    found = [robot.joint_names[j - robot.n_root] for j, _ in leg_yaw_joints(robot)]
+    right = "r_hip_yaw" if not unnamed else next(n for n in robot.joint_names if n.startswith("joint"))
+    assert found == ["l_hip_yaw", right]
+    out, toe_in = step_turn_limits(robot, 0.6)
+    assert 0.0 < out <= 0.6 and 0.0 < toe_in <= 0.6
+
+
+def test_a_cap_below_the_grid_is_the_limit(op3):
+    assert step_turn_limits(op3, 0.005) == (0.005, 0.005)
+    assert step_turn_limits(op3, 0.0) == (0.0, 0.0)

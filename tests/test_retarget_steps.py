@@ -222,6 +222,7 @@ def test_a_foot_lifts_once_the_weight_has_moved_towards_the_stance_foot(op3, mon
         ("max_step_turn", -0.1),
         ("step_turn_clearance", float("inf")),
         ("com_velocity_decay", -0.15),
+        ("com_velocity_decay", 0.0),
     ],
 )
 def test_a_step_timing_that_cannot_work_is_named(op3, field, value):
