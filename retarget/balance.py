@@ -81,8 +81,9 @@ class BalancePlanner:
         self._set_pace(1.0)
         # the smoothing row's CoM prediction: the last velocity, decaying by this share a frame
         self._com_decay = math.exp(-1.0 / (self.fps * cfg.com_velocity_decay))
-        self._turn_limits = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)  # (toes out, toes in) rad
-        if cfg.step_turn_clearance > 0 and cfg.max_step_turn > 0 and max(self._turn_limits) == 0:
+        #: how far a step may turn a foot from the other (toes out, toes in) rad: retarget.step_turn
+        self.turn_limits = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)
+        if cfg.step_turn_clearance > 0 and cfg.max_step_turn > 0 and max(self.turn_limits) == 0:
             raise RetargetError(
                 f"StreamingConfig: step_turn_clearance {cfg.step_turn_clearance:g} m leaves "
                 f"{rb.profile.source or rb.name}'s legs no turn at all between steps (its capsule pairs off "
@@ -256,7 +257,7 @@ class BalancePlanner:
         if not self.planted[1 - s]:
             return want
         hs = self._head_ref[1 - s]
-        out, toe_in = self._turn_limits  # the left foot's heading minus the right's: + is toes out
+        out, toe_in = self.turn_limits  # the left foot's heading minus the right's: + is toes out
         lo, hi = (-toe_in, out) if s == 0 else (-out, toe_in)
         return hs + min(max(_wrap(want - hs), lo), hi)
 

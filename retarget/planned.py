@@ -26,7 +26,6 @@ import numpy as np
 
 from dualflow.motion import Motion
 from retarget.schedule import Change, changes_over, count_steps, keep_feet_down_in_flight, speed_limited
-from retarget.step_turn import step_turn_limits
 from retarget.streaming import StreamingRetargeter, trajectory_from_x
 from retarget.targets import bool_runs, make_targets
 from retarget.trajectory import RobotTrajectory
@@ -72,34 +71,36 @@ def planned_trajectory(
         "seconds": time.perf_counter() - t0,
         "contacts": held.astype(int).tolist(),  # the robot's schedule, (T, 2) 0/1
         "steps": {"person": count_steps(tg.contacts), "robot": count_steps(held)},
-        "changes": what_changed(rb, X, tg, held, stream.config, ahead, velocity_safety),
+        "changes": what_changed(rb, X, tg, held, stream.planner, ahead, velocity_safety),
     }
     return trajectory_from_x(rb, X, fps, meta)
 
 
-def what_changed(rb, X: np.ndarray, tg, held, cfg, ahead: int = 0, velocity_safety: float = 1.0) -> list[dict]:
+def what_changed(rb, X: np.ndarray, tg, held, planner, ahead: int = 0, velocity_safety: float = 1.0) -> list[dict]:
     """The changes (as dicts, by start time) of a planner's trajectory X (T, nx) against the person's
     :class:`retarget.targets.Targets` ``tg`` (keypoints, foot contacts, fps), with the robot's own
-    contacts ``held`` (T, 2), the planner's StreamingConfig ``cfg`` and its look-ahead ``ahead``
-    (frames): flights, ``own pace``, ``own place``, speed-limited runs and skipped steps."""
+    contacts ``held`` (T, 2), the :class:`retarget.balance.BalancePlanner` that made it and its
+    look-ahead ``ahead`` (frames): flights, ``own pace``, ``own place``, speed-limited runs and
+    skipped steps."""
+    cfg = planner.config
     flights: list[Change] = []
     fps = tg.fps
     person = np.array(tg.contacts, dtype=bool)
     keep_feet_down_in_flight(person, fps, flights)
-    changes = flights + _changes(rb, X, tg.keypoints, fps, cfg) + speed_limited(rb, X, fps, velocity_safety)
+    changes = flights + _changes(rb, X, tg.keypoints, fps, planner) + speed_limited(rb, X, fps, velocity_safety)
     changes += skipped_steps(person, np.asarray(held, dtype=bool), fps, cfg, ahead)
     return [c.to_dict() for c in sorted(changes, key=lambda c: c.start_s)]
 
 
-def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, cfg) -> list[Change]:
+def _changes(rb, X: np.ndarray, keypoints: np.ndarray, fps: float, planner) -> list[Change]:
     """Where the robot's pose or place differs from the person's (module constants)."""
     ev = rb.evaluate(X)
     kp, r = ev["keypoints"], rb.root_keypoint
     height = float(np.ptp(rb.evaluate(rb.x_stand[None])["keypoints"][0][:, 2]))
     pose = np.linalg.norm((kp - kp[:, r : r + 1]) - (keypoints - keypoints[:, r : r + 1]), axis=-1).mean(axis=1)
     place = np.linalg.norm(kp[:, r, 0:2] - keypoints[:, r, 0:2], axis=-1)
-    out, toe_in = step_turn_limits(rb, cfg.max_step_turn, cfg.step_turn_clearance)
-    pace = f"{_quickest(cfg)}, a foot turned at most {out:g} rad out and {toe_in:g} rad in per step"
+    out, toe_in = planner.turn_limits
+    pace = f"{_quickest(planner.config)}, a foot turned at most {out:g} rad out and {toe_in:g} rad in per step"
     return changes_over(
         pose / height,
         POSE_CHANGE,

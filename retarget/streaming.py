@@ -591,7 +591,7 @@ class StreamingRetargeter:
             from retarget.planned import what_changed  # (planned builds on this module)
 
             meta["contacts"] = held
-            meta["changes"] = what_changed(self.robot, X, tg, held, self.config)
+            meta["changes"] = what_changed(self.robot, X, tg, held, self.planner)
         return trajectory_from_x(self.robot, X, motion.fps, meta)
 
 
