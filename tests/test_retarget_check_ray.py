@@ -1,8 +1,9 @@
 """retarget-check --engine ray: the clips as Ray tasks on a real local Ray instance give the same
 rows and files as the local engine; a worker process that dies (SIGKILL) costs its clip one
 retry, and a clip whose worker dies again gets an error row; Ctrl-C (SIGINT to the batch's
-process group) cancels the tasks, stops the Ray instance the batch started, keeps the finished
-rows, and --resume completes the table. Skips where Ray is not installed
+process group) exits 130 and stops the Ray instance the batch started (its tasks with it), keeps
+the finished rows, and --resume completes the table; in a Ray the caller started, an interrupted
+batch cancels its own tasks and leaves that Ray up. Skips where Ray is not installed
 (`pip install -e ".[cluster]"` installs it; CI does).
 
 Ray runs in child processes only, never in the test process: its gRPC threads do not survive
@@ -150,6 +151,57 @@ def test_a_dead_worker_gets_one_retry_then_an_error_row(tmp_path):
     assert (folder / "once.npz.died").exists() and not report["ray_still_up"]  # the batch stopped its Ray
 
 
+#: A caller that started Ray itself and runs a batch in it: one clip ends at once, the other would
+#: hold its CPU for ten minutes; the caller's ``done`` is interrupted when the first row comes.
+CALLERS_RAY = textwrap.dedent("""
+    import json, sys, time
+    import ray
+    from ros_free_bridge.batch.clips import as_clips
+    from ros_free_bridge.batch.config import BatchConfig
+    from ros_free_bridge.batch.ray_engine import run_ray
+    from ros_free_bridge.batch.results import ClipResult
+
+    def work(path, cfg, name=None, **kw):
+        if "slow" in str(path):
+            time.sleep(600)
+        return ClipResult(name, status="pass")
+
+    def done(clip, res):
+        raise KeyboardInterrupt
+
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+    cfg = BatchConfig(robot="ub14", out=sys.argv[2], compile=False, video=False)
+    clips = as_clips([f"{sys.argv[1]}/quick.npz", f"{sys.argv[1]}/slow.npz"], None)
+    try:
+        run_ray(clips, cfg, done, work=work)
+    except KeyboardInterrupt:
+        pass
+    deadline = time.monotonic() + 60  # the cancelled task's worker is being killed
+    while ray.available_resources().get("CPU", 0) < 1 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    print(json.dumps({"cpu_free": ray.available_resources().get("CPU", 0), "ray_up": ray.is_initialized()}))
+""")
+
+
+def test_an_interrupted_batch_in_the_callers_ray_cancels_its_tasks_and_leaves_ray_up(tmp_path):
+    folder = tmp_path / "clips"
+    folder.mkdir()
+    for n in ("quick", "slow"):
+        standing(folder / f"{n}.npz")
+    script = tmp_path / "caller.py"
+    script.write_text(CALLERS_RAY)
+    done = subprocess.run(
+        [sys.executable, str(script), str(folder), str(tmp_path / "out")],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report == {"cpu_free": 1.0, "ray_up": True}  # the slow clip's task no longer holds the CPU
+
+
 def _session_processes(sid: int) -> list[str]:
     """Command lines of the processes still alive in session ``sid``."""
     found = []
@@ -163,7 +215,7 @@ def _session_processes(sid: int) -> list[str]:
     return found
 
 
-def test_ctrl_c_cancels_the_tasks_stops_ray_and_resume_completes(tmp_path):
+def test_ctrl_c_stops_the_batchs_ray_and_resume_completes(tmp_path):
     clips = tmp_path / "clips"
     clips.mkdir()
     for k in range(8):
@@ -216,3 +268,29 @@ def test_ctrl_c_cancels_the_tasks_stops_ray_and_resume_completes(tmp_path):
     assert [r["clip"] for r in table(out)] == [f"s{k}.npz" for k in range(8)]
     assert {r["status"] for r in table(out)} == {"pass"}
     assert (out / "results.jsonl").read_text().count("\n") == 8  # no clip recorded twice
+
+
+def test_an_address_where_no_cluster_answers_is_one_error_naming_it(tmp_path):
+    clips = tmp_path / "clips"
+    clips.mkdir()
+    standing(clips / "s.npz")
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on once this closes
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    done = subprocess.run(
+        [sys.executable, "-m", "ros_free_bridge.cli", "retarget-check", str(clips), "-o", str(tmp_path / "out")]
+        + ["--engine", "ray", "--address", f"127.0.0.1:{port}", *FAST],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    last = done.stderr.strip().splitlines()[-1]
+    assert (
+        last.startswith(f"error: --address 127.0.0.1:{port}: no Ray cluster answers there")
+        and "ray start --head" in last
+    )
+    assert "Traceback" not in done.stderr

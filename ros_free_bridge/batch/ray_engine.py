@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import socket
 import tempfile
 from pathlib import Path
 
@@ -43,12 +44,34 @@ def start(jobs: int | None = None, address: str | None = None) -> bool:
         runtime_env={"env_vars": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}},
     )
     if address:
-        ray.init(address=address, **common)
+        try:
+            _reachable(address)
+            ray.init(address=address, **common)
+        except ConnectionError as exc:
+            from ros_free_bridge.errors import BridgeError
+
+            raise BridgeError(
+                f"--address {address}: no Ray cluster answers there ({exc}); start one with "
+                "`ray start --head` on its head node and give the address it prints (or 'auto' on a node "
+                "of the cluster), or leave --address out to start Ray on this machine"
+            ) from None
     else:
         ray.init(
             address="local", num_cpus=jobs or usable_cores(), object_store_memory=LOCAL_OBJECT_STORE_BYTES, **common
         )
     return True
+
+
+def _reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Raise ConnectionError when a ``host:port`` address takes no TCP connection within
+    ``timeout_s`` (Ray itself keeps retrying for minutes). Other forms ('auto', ray://) are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit() or "://" in address:
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ConnectionError(f"no answer at {host}:{port}: {exc}") from None
 
 
 def _inputs(clip: Clip) -> dict[str, bytes]:
@@ -118,30 +141,39 @@ def run_ray(
         queue = list(reversed(clips))
         running: dict = {}
         try:
-            while queue or running:
-                while queue and len(running) < limit:
-                    clip = queue.pop()
-                    running[task.remote(work, clip, cfg, _inputs(clip))] = clip
-                ready, _ = ray.wait(list(running), num_returns=1)
-                for ref in ready:
-                    clip = running.pop(ref)
-                    try:
-                        res, files = ray.get(ref)
-                    except ray.exceptions.RayTaskError as exc:  # the per-clip function raised (it should not)
-                        res, files = (
-                            ClipResult(
-                                clip.name, status="error", reason=f"unexpected {type(exc.cause).__name__}: {exc.cause}"
-                            ),
-                            {},
-                        )
-                    except ray.exceptions.RayError as exc:  # the worker (or its node) died twice
-                        res, files = _died(clip, exc), {}
-                    _save_outputs(cfg, clip.name, files)
-                    done(clip, res)
-        except BaseException:  # Ctrl-C (or a failure in the driver): stop every task in flight
-            for ref in running:
-                ray.cancel(ref, force=True, recursive=True)
+            _drain(task, work, cfg, queue, running, limit, done)
+        except BaseException:  # Ctrl-C, or a failure in the driver
+            if not owner:  # the caller's Ray stays up: stop this batch's tasks in it
+                for ref in running:
+                    ray.cancel(ref, force=True, recursive=True)
             raise
     finally:
+        # Shutting down ends this driver's job, and Ray stops the job's tasks with it (a local
+        # instance this call started stops altogether). No ray.cancel first: cancelling a task
+        # whose result is already on its way back trips a check in Ray's task manager ("Tried
+        # to complete task that was not pending") that ends the driver with exit code 1 before
+        # the tables are written; it did so in about 1 of 20 Ctrl-C's.
         if owner:
             ray.shutdown()
+
+
+def _drain(task, work, cfg: BatchConfig, queue: list[Clip], running: dict, limit: int, done) -> None:
+    """Keep ``limit`` tasks in flight until ``queue`` and ``running`` (ref -> clip) are empty."""
+    while queue or running:
+        while queue and len(running) < limit:
+            clip = queue.pop()
+            running[task.remote(work, clip, cfg, _inputs(clip))] = clip
+        ready, _ = ray.wait(list(running), num_returns=1)
+        for ref in ready:
+            clip = running.pop(ref)
+            try:
+                res, files = ray.get(ref)
+            except ray.exceptions.RayTaskError as exc:  # the per-clip function raised (it should not)
+                res, files = (
+                    ClipResult(clip.name, status="error", reason=f"unexpected {type(exc.cause).__name__}: {exc.cause}"),
+                    {},
+                )
+            except ray.exceptions.RayError as exc:  # the worker (or its node) died twice
+                res, files = _died(clip, exc), {}
+            _save_outputs(cfg, clip.name, files)
+            done(clip, res)
