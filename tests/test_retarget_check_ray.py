@@ -127,13 +127,15 @@ DYING_WORKERS = textwrap.dedent("""
 """)
 
 
-def test_a_dead_worker_gets_one_retry_then_an_error_row(tmp_path):
+def run_driver(tmp_path: Path, source: str, clips: tuple[str, ...]) -> dict:
+    """Run ``source`` as a Python script (its own process: Ray never starts in this one) with a
+    folder of standing clips named ``clips`` and an output folder; the JSON it printed last."""
     folder = tmp_path / "clips"
     folder.mkdir()
-    for n in ("always", "fine", "once"):
+    for n in clips:
         standing(folder / f"{n}.npz")
     script = tmp_path / "driver.py"
-    script.write_text(DYING_WORKERS)
+    script.write_text(source)
     done = subprocess.run(
         [sys.executable, str(script), str(folder), str(tmp_path / "out")],
         env=ENV,
@@ -142,7 +144,12 @@ def test_a_dead_worker_gets_one_retry_then_an_error_row(tmp_path):
         timeout=600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_a_dead_worker_gets_one_retry_then_an_error_row(tmp_path):
+    report = run_driver(tmp_path, DYING_WORKERS, ("always", "fine", "once"))
+    folder = tmp_path / "clips"
     by = {r["clip"]: r for r in report["rows"]}
     assert by["once.npz"]["status"] == "pass"  # died once, passed when retried
     assert by["fine.npz"]["status"] == "pass"
@@ -184,21 +191,7 @@ CALLERS_RAY = textwrap.dedent("""
 
 
 def test_an_interrupted_batch_in_the_callers_ray_cancels_its_tasks_and_leaves_ray_up(tmp_path):
-    folder = tmp_path / "clips"
-    folder.mkdir()
-    for n in ("quick", "slow"):
-        standing(folder / f"{n}.npz")
-    script = tmp_path / "caller.py"
-    script.write_text(CALLERS_RAY)
-    done = subprocess.run(
-        [sys.executable, str(script), str(folder), str(tmp_path / "out")],
-        env=ENV,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
+    report = run_driver(tmp_path, CALLERS_RAY, ("quick", "slow"))
     assert report == {"cpu_free": 1.0, "ray_up": True}  # the slow clip's task no longer holds the CPU
 
 

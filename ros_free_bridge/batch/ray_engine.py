@@ -152,7 +152,7 @@ def run_ray(
         # instance this call started stops altogether). No ray.cancel first: cancelling a task
         # whose result is already on its way back trips a check in Ray's task manager ("Tried
         # to complete task that was not pending") that ends the driver with exit code 1 before
-        # the tables are written; it did so in about 1 of 20 Ctrl-C's.
+        # the tables are written; it did so in 1 of 40 Ctrl-C's at random moments of a batch.
         if owner:
             ray.shutdown()
 
