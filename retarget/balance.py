@@ -62,16 +62,6 @@ class BalancePlanner:
         self._twisted = [k for k in range(len(names)) if k not in below]
         stand = rb.evaluate(rb.x_stand[None])
         self._stand_kp = stand["keypoints"][0]
-        # each foot's heading less the hips' in the stand pose (toes out: + on the left), so that
-        # planted feet name the heading of a body standing square on them
-        self._stand_toe_out = [0.0, 0.0]
-        if self._toes is not None and self._hips is not None:
-            kp = self._stand_kp
-            across = kp[self._hips[0], 0:2] - kp[self._hips[1], 0:2]
-            hips = math.atan2(-across[0], across[1])
-            for side in range(2):
-                d = kp[self._toes[side], 0:2] - kp[self._ankles[side], 0:2]
-                self._stand_toe_out[side] = _wrap(math.atan2(d[1], d[0]) - hips)
         h = float(stand["com"][0, 2] - stand["sole"][0, :, 2].min())
         self._zmp_k = h / 9.81 * self.fps**2  # ZMP = c − (h/g) c̈ = (1 − k) c + k (2c₋₁ − c₋₂)
         self._dcm_k = self.fps * np.sqrt(h / 9.81)  # DCM = c + ċ/ω = (1 + k) c − k c₋₁
@@ -331,10 +321,9 @@ class BalancePlanner:
         The robot then follows the person's steps (and turns step by step), not the drift,
         turning on the spot or skating of the feet (generated motion often slides them),
         which it could not do standing. With ``body_twist`` the body above the knees is then
-        turned about the pelvis target to within ``body_twist`` of the robot's planted feet,
-        towards the person's heading (:meth:`_twist_over_feet`; for a profile without hip
-        keypoints by limit·tanh(−ψ / limit), faded out as |ψ| goes from π/2 to π): the hips turn
-        the trunk ahead of feet that lag the person's turn."""
+        turned back towards the person's heading about the pelvis target, by
+        limit·tanh(−ψ / limit) (faded out as |ψ| goes from π/2 to π, where it would flip sides):
+        the hips turn the trunk ahead of feet that lag the person's turn."""
         feet = targets[self._feet_idx, 0:3].tolist()  # left/right ankle, then left/right toe or hip
         (lx, ly, lz), (rx, ry, rz) = feet[0], feet[1]
         if self._toes is not None:
@@ -382,33 +371,11 @@ class BalancePlanner:
         out = targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
         limit = self.config.body_twist
         if limit > 0 and not first:
-            if self._hips is not None and self.planted.any():
-                self._twist_over_feet(out, limit)
-            else:
-                lag = _wrap(self.psi)
-                fade = math.cos(max(0.0, abs(lag) - 0.5 * math.pi)) ** 2
-                self._twist(out, fade * limit * math.tanh(-lag / limit))
+            lag = _wrap(self.psi)
+            # faded out from a lag of π/2 to π, where the wrap would flip it by 2·limit in one frame
+            fade = math.cos(max(0.0, abs(lag) - 0.5 * math.pi)) ** 2
+            self._twist(out, fade * limit * math.tanh(-lag / limit))
         return out
-
-    def _twist_over_feet(self, out: np.ndarray, limit: float) -> None:
-        """Turn the body above the knees of the anchored targets ``out`` (K, 3), in place, to the
-        heading F of a body standing square on the robot's planted feet, turned towards the
-        person's own heading H by limit·tanh(wrap(H − F) / limit). Measured from the planted
-        feet rather than from psi: the person's own twist over their feet (a spin's hips running
-        ahead of the feet) and a psi that no foot anchors (the robot standing on the foot the
-        person lifted) turned the body 1.8 rad over the robot's stance foot, and a generated
-        partner's stance hip yaw stalled. Faded out as |H − F| goes from π/2 to π, where the wrap
-        would flip it by 2·limit in one frame."""
-        hips = out[self._hips[0], 0:2] - out[self._hips[1], 0:2]
-        h_out = math.atan2(-hips[0], hips[1])
-        ref = [s for s in range(2) if self.planted[s]]
-        feet = math.atan2(
-            sum(math.sin(self._head_ref[s] - self._stand_toe_out[s]) for s in ref),
-            sum(math.cos(self._head_ref[s] - self._stand_toe_out[s]) for s in ref),
-        )
-        ahead = _wrap(h_out - self.psi - feet)  # the person's heading ahead of the robot's feet
-        fade = math.cos(max(0.0, abs(ahead) - 0.5 * math.pi)) ** 2
-        self._twist(out, _wrap(feet + fade * limit * math.tanh(ahead / limit) - h_out))
 
     def _twist(self, out: np.ndarray, angle: float) -> None:
         """Turn the body above the knees by ``angle`` rad about the pelvis target, in place: the

@@ -92,14 +92,11 @@ class StreamingConfig:
     swing_speed: float = 0.4  # m/s: a step longer than this covers in min_swing takes longer
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
     # rad: the body above the knees turns towards the person's own heading ahead of the planted
-    # feet, this far at most (softly: limit·tanh(lead / limit), lead the person's heading ahead of
-    # a body standing square on the robot's planted feet, faded out for a lead beyond π/2); the
-    # feet catch up by stepping (BalancePlanner._twist_over_feet). 0: the whole body turns with
-    # the feet. Measured on op3 with steps (bench/stepping.py's 9 clips): keypoint error 9.1 ->
-    # 8.2 % of height, all clips still pass. Since the limit holds over the feet (not only over
-    # the anchoring's lag), 1.0 (0.8 before): the benches' keypoint error as before, and on 28
-    # further generated clips no fall (planned and streamed; with 0.8: also none)
-    body_twist: float = 1.0
+    # feet, this far at most (softly: limit·tanh(lag / limit), faded out for a lag beyond π/2);
+    # the feet catch up by stepping (BalancePlanner.anchor). 0: the whole body turns with the
+    # feet. Measured on op3 with steps (bench/stepping.py's 9 clips): keypoint error 9.1 -> 8.2 %
+    # of height, all clips still pass
+    body_twist: float = 0.8
     # the weight shift of a step (BalancePlanner._paced, retarget.preview): a receding-horizon ZMP
     # preview over step_preview s plans the CoM so that the ZMP moves under the stance foot
     # (zmp_stance_inset inwards of its centre) by the lift, step_shift s after the robot decides to
