@@ -132,6 +132,7 @@ def test_bundled_profiles_load():
         load_robot("no_such_robot")
 
 
+
 @pytest.mark.parametrize("name", ["op3", "ub14", "toy"])
 def test_arm_bodies_are_the_chains_to_the_hands_and_nothing_of_the_trunk_or_legs(name):
     rb = toy_robot() if name == "toy" else load_robot(name)
@@ -144,7 +145,6 @@ def test_arm_bodies_are_the_chains_to_the_hands_and_nothing_of_the_trunk_or_legs
     parent = rb.kin.model.body_parentid
     assert all(int(parent[b]) in rb.arm_bodies for b in range(1, rb.kin.model.nbody) if int(parent[b]) in arms)
     assert not {f.body for f in rb.feet} & rb.arm_bodies
-
 
 def test_an_mjcf_path_never_picks_up_a_bundled_profile(tmp_path):
     """A user's model called op3.xml outside a robot folder is not the bundled op3: it has no
