@@ -33,10 +33,6 @@ from retarget.errors import RetargetError
 from retarget.kinematics import Capsule, RobotKinematics, quat_to_mat
 from retarget.profile import RetargetProfile
 
-#: keypoints whose bodies (and their ancestors) are the trunk, and those whose chains are the arms
-TRUNK_KEYPOINTS = ("pelvis", "spine1", "spine2", "spine3", "neck", "head", "left_hip", "right_hip")
-ARM_KEYPOINTS = ("left_elbow", "right_elbow", "left_wrist", "right_wrist")
-
 
 def segment_distance_sq(p0, p1, q0, q1, eps: float = 1e-12):
     """Squared distance between segments p0p1 and q0q1 ((3,1) CasADi or numpy).
@@ -220,28 +216,6 @@ class RetargetRobot:
         self.keypoint_weights = np.array(weights, dtype=float)
         self.n_keypoints = len(pts)
         self.root_keypoint = self.keypoint_names.index(self.profile.root_joint)
-        self.arm_bodies = self._arm_bodies()
-
-    def _arm_bodies(self) -> frozenset:
-        """Body ids of the arms: the chains that carry the elbow and wrist keypoints, from below the
-        trunk (the bodies that carry the pelvis, spine, head and hip keypoints, and their
-        ancestors) down to the hands (every body below them)."""
-        parent = self.kin.model.body_parentid
-
-        def up(b: int) -> set:
-            out = set()
-            while b > 0:
-                out.add(b)
-                b = int(parent[b])
-            return out
-
-        body = dict(zip(self.keypoint_names, (b for b, _ in self.keypoint_points)))
-        trunk = set().union(*(up(body[k]) for k in TRUNK_KEYPOINTS if k in body))
-        arms = set().union(*(up(body[k]) for k in ARM_KEYPOINTS if k in body)) - trunk
-        for b in range(1, self.kin.model.nbody):
-            if up(b) & arms:
-                arms.add(b)
-        return frozenset(arms)
 
     def _position_limits(self, src: str) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) (nx,) of x: the MJCF ranges narrowed by the profile's joint_limits."""

@@ -56,14 +56,7 @@ class StreamingConfig:
     balance_contact_weight: float = 1e3  # planted feet off their footprint (replaces contact_weight)
     level_weight: float = 30.0  # sole corner heights differing within a foot
     upright_weight: float = 0.3  # per rad² of root pitch and roll (a leaning servo robot sags further)
-    collision_weight: float = 1e5  # the profile's capsule pairs penetrating (inside their margin)
-    # ... for a pair with an arm capsule (RetargetRobot.arm_bodies). At 1e5 the row was so stiff
-    # that a frame's few iterations left the rest of the body unsolved when a forearm reached its
-    # margin: on cmu18_01 the other shoulder then ran at its speed limit for a frame (streamed
-    # jerk ratio 1.05; 0.97 at 3e4). Softer arms press into the body in physics (5e3 and 1e4: a
-    # generated partner's forearm 2-5 mm into its hip); the legs' pairs keep 1e5 (softer hip-servo
-    # pairs let a generated partner's step turn its stance leg until the hip yaw stalled)
-    arm_collision_weight: float = 3e4
+    collision_weight: float = 1e5  # the profile's capsule pairs penetrating
     feet_clearance: float = 0.015  # extra distance kept between the two feet's capsules
     double_support_inset: float = 0.01  # on two feet the CoM stays this far inside the feet's centre lines
     # steps (BalancePlanner._paced): steps at the robot's pace, the weight shifted over the stance
@@ -325,7 +318,7 @@ class StreamingRetargeter:
             outside = bal.edges[0, :].T * pt[0] + bal.edges[1, :].T * pt[1] - bal.edges[2, :].T
             res.append(bal.point_w[i] * ca.fmax(outside, 0))
         res.append(bal.zmp_scale * (com[0:2] - bal.c_pred))
-        if rb.collision_pairs:
+        if rb.collision_pairs and cfg.collision_weight > 0:
             # (d² − r²) / 2r ≈ d − r (m) for the profile's capsule pairs, penalised below 0;
             # two feet keep feet_clearance more (a servo leg sags, a lifted foot swings in)
             feet = {f.body for f in rb.feet}
@@ -335,10 +328,7 @@ class StreamingRetargeter:
                 if cap_a.body in feet and cap_b.body in feet:
                     rr += cfg.feet_clearance
                 d2 = segment_distance_sq(*rb.kin.capsule_segment(cap_a), *rb.kin.capsule_segment(cap_b))
-                arm = cap_a.body in rb.arm_bodies or cap_b.body in rb.arm_bodies
-                w = cfg.arm_collision_weight if arm else cfg.collision_weight
-                if w > 0:
-                    res.append(np.sqrt(w) * ca.fmin((d2 - rr * rr) / (2 * rr), 0))
+                res.append(np.sqrt(cfg.collision_weight) * ca.fmin((d2 - rr * rr) / (2 * rr), 0))
         return res
 
     def _compile(self, r, p, sole, com) -> None:

@@ -132,20 +132,6 @@ def test_bundled_profiles_load():
         load_robot("no_such_robot")
 
 
-
-@pytest.mark.parametrize("name", ["op3", "ub14", "toy"])
-def test_arm_bodies_are_the_chains_to_the_hands_and_nothing_of_the_trunk_or_legs(name):
-    rb = toy_robot() if name == "toy" else load_robot(name)
-    body = dict(zip(rb.keypoint_names, (b for b, _ in rb.keypoint_points)))
-    arms = {body[k] for k in ("left_elbow", "right_elbow", "left_wrist", "right_wrist") if k in body}
-    assert arms and arms <= rb.arm_bodies
-    others = [k for k in body if not any(p in k for p in ("shoulder", "elbow", "wrist", "hand"))]
-    assert others and not {body[k] for k in others} & rb.arm_bodies, others
-    # every body below a hand is on the arm; the legs' and feet's capsules are not
-    parent = rb.kin.model.body_parentid
-    assert all(int(parent[b]) in rb.arm_bodies for b in range(1, rb.kin.model.nbody) if int(parent[b]) in arms)
-    assert not {f.body for f in rb.feet} & rb.arm_bodies
-
 def test_an_mjcf_path_never_picks_up_a_bundled_profile(tmp_path):
     """A user's model called op3.xml outside a robot folder is not the bundled op3: it has no
     profile until one is written (issue: `--robot path/op3.xml` silently used the bundled one)."""
