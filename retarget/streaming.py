@@ -78,9 +78,8 @@ class StreamingConfig:
     # (retarget.step_turn). Measured on op3 (bench/stepping.py, both clip sets, physics): at 3 mm
     # (0.39 rad toes out) the CMU clips' worst streamed jerk ratio is 0.93 and one fast orbiting
     # duet falls, streamed; at 0 (0.45 rad) all 51 clips pass in both modes and the keypoint error
-    # is lower, but CMU 18_01 streamed reached 1.05 (its body's turn over the feet ran into an
-    # arm capsule and stopped within a frame; 0.97 since the arm pairs' rows are lighter:
-    # arm_collision_weight)
+    # is lower, but CMU 18_01 streamed reaches 1.05 (its body's turn over the feet runs into an
+    # arm capsule and stops within a frame)
     step_turn_clearance: float = 0.0
     swing_speed: float = 0.4  # m/s: a step longer than this covers in min_swing takes longer
     anchor_time: float = 0.1  # time constant of anchoring the person's translation to the planted feet
