@@ -14,6 +14,7 @@ import importlib.util
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -267,8 +268,6 @@ def test_an_address_where_no_cluster_answers_is_one_error_naming_it(tmp_path):
     clips = tmp_path / "clips"
     clips.mkdir()
     standing(clips / "s.npz")
-    import socket
-
     with socket.socket() as s:  # a port nothing listens on once this closes
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
