@@ -49,6 +49,28 @@ def test_the_adaptive_clock_settles_at_the_delay_the_frames_actually_have():
         assert arrival(k_played + 1) <= now + 1e-9
 
 
+def test_a_burst_of_frames_no_actor_paced_does_not_speed_playback_up():
+    """Frames 0-89 arrive 150 ms after their time; then frames 90-209 arrive all at once (the
+    robot's return to its stance, made in one go after the stream): counted as arrivals they
+    would pull the clock earlier at 1.2x real time; untimed, playback stays at real time."""
+
+    def run(timed: bool):
+        clock = PlaybackClock(FPS, 0, now=0.15, policy=PlaybackPolicy(margin=0.02, lead_frames=1.0, window_s=1.0))
+        track = []
+        for now in np.arange(0.15, 5.0, 0.01):
+            burst = now >= 89 / FPS + 0.15
+            clock.arrived(209 if burst else min(int((now - 0.15) * FPS), 89), now, timed=timed or not burst)
+            track.append((now, clock.motion_time(now), burst))
+        track = np.array(track)
+        after = track[track[:, 2] == 1]
+        return after[-1, 1] - after[0, 1], after[-1, 0] - after[0, 0]  # motion time played, wall time
+
+    played, elapsed = run(timed=True)
+    assert played > elapsed + 0.08  # counted as arrivals, the burst sped playback up (0.1 s here)
+    played, elapsed = run(timed=False)
+    assert abs(played - elapsed) < 1 / FPS  # real time (the old arrivals' quantile drifts by under a frame)
+
+
 def test_the_adaptive_clock_slows_down_for_late_frames_and_catches_up_after():
     def arrival(k):
         return k / FPS + (0.3 if 60 <= k < 70 else 0.05)  # a stall of 250 ms around 2 s

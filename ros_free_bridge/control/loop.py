@@ -185,7 +185,7 @@ class TickPlayback:
         self.ticks = 0  #: motion time t0 + ticks * dt at the next call
         self.stalled = 0.0  #: never stops for a late frame (PlaybackClock.stalled)
 
-    def arrived(self, newest_index: int, now: float) -> None:
+    def arrived(self, newest_index: int, now: float, timed: bool = True) -> None:
         pass
 
     def motion_time(self, now: float) -> float:
@@ -482,7 +482,8 @@ class ControlLoop:
         cfg = self.config
         newest = self.targets.newest()
         if newest is not None:
-            stream.playback.arrived(newest.index, now)
+            # a frame without a source arrival (the return to stance after a stream) was not paced by one
+            stream.playback.arrived(newest.index, now, timed=newest.source_arrival == newest.source_arrival)
         sample = stream.curve.sample(stream.playback.motion_time(now), now, clock)
         if self.targets.error is not None:
             self._begin_stop(f"generator failed: {self.targets.error}", fault=True)
@@ -596,7 +597,8 @@ class ControlLoop:
             self._last_used = used.index
             self.summary.frames_played += 1
             e2e = write_time - used.source_arrival
-            self.summary.e2e_latency.append(e2e)
+            if e2e == e2e:  # NaN: a frame no actor frame completed (the return to stance after a stream)
+                self.summary.e2e_latency.append(e2e)
         if flags.any():
             self.summary.interventions += 1
         if self._degraded:

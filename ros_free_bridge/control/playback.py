@@ -65,12 +65,16 @@ class PlaybackClock:
         self._last = now
         self._want: float | None = None  # t0* of the current offsets (None: to recompute)
 
-    def arrived(self, newest_index: int, now: float) -> None:
+    def arrived(self, newest_index: int, now: float, timed: bool = True) -> None:
         """The newest target frame is ``newest_index`` at ``now`` (call every tick; frames newer
-        than the last call count as arrived now)."""
+        than the last call count as arrived now). ``timed`` False: frames that no actor frame
+        paced (made all at once, e.g. the robot's return to its stance after a stream): they
+        extend what may be played but not the arrival statistics (a burst of them arriving
+        early would speed playback up by ``speed_up``)."""
         n = len(self._offsets)
-        for k in range(self._seen + 1, newest_index + 1):
-            self._offsets.append((now, now - k / self.fps))
+        if timed:
+            for k in range(self._seen + 1, newest_index + 1):
+                self._offsets.append((now, now - k / self.fps))
         self._seen = max(self._seen, newest_index)
         expired = 0
         while self._offsets and self._offsets[0][0] < now - self.window_s:
