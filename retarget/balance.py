@@ -96,6 +96,12 @@ class BalancePlanner:
         self._sole_from_ankle = [
             soles[4 * s : 4 * s + 4, 0:2].mean(axis=0) - self._stand_kp[self._ankles[s], 0:2] for s in range(2)
         ]
+        # the stand pose about the midpoint of its soles' centres, and its heights above the
+        # floor (the profile's standing_heights are its rest pose's): stand_over_feet
+        mid = 0.5 * (soles[0:4, 0:2].mean(axis=0) + soles[4:8, 0:2].mean(axis=0))
+        self._stand_about_mid = self._stand_kp[:, 0:2] - mid
+        self._stand_sole_about_mid = [soles[4 * s : 4 * s + 4, 0:2].mean(axis=0) - mid for s in range(2)]
+        self._stand_z = self._stand_kp[:, 2] - float(soles[:, 2].min())
 
     def _set_pace(self, k: float) -> None:
         """The step's phases at ``k`` x their configured lengths: ``min_stance``, ``min_double``,
@@ -368,6 +374,14 @@ class BalancePlanner:
         self._heads_now = [heads[0] + self.psi, heads[1] + self.psi]
         self._heads_person = heads
         self._ankle_z = (lz, rz)
+        return self.placed(targets, first)
+
+    def placed(self, targets: np.ndarray, first: bool = False) -> np.ndarray:
+        """``targets`` (K, 3) moved by the present anchoring transform, the body above the knees
+        turned by ``body_twist`` (not on the first frame), as :meth:`anchor` returns them; no
+        state changes."""
+        c, sn = math.cos(self.psi), math.sin(self.psi)
+        ox, oy = self.offset
         out = targets @ np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) + np.array([ox, oy, 0.0])
         limit = self.config.body_twist
         if limit > 0 and not first:
@@ -402,6 +416,80 @@ class BalancePlanner:
             out[k, 0] = targets[root, 0] + c * dx - sn * dy
             out[k, 1] = targets[root, 1] + sn * dx + c * dy
             out[k, 2] = self.robot.standing_heights[k]
+        return out
+
+    # -- the end of a stream (retarget.settle): in the robot's own frame ----------------------
+    def rebase(self) -> None:
+        """From now on the targets are given in the robot's frame: the anchoring transform is
+        the identity (and the body twist with it). The footprints, anchors and pelvis place are
+        kept: they are in the robot's frame already."""
+        self.psi, self.offset = 0.0, (0.0, 0.0)
+
+    @property
+    def foot_keypoints(self) -> list:
+        """Per foot (left, right), the indices of its keypoints (ankle, and toe where there is one)."""
+        return self._foot_kps
+
+    def own_feet(self, targets: np.ndarray) -> None:
+        """The ankle and toe targets of each planted foot put (in place) where the anchoring
+        holds it, toe straight ahead along the foot's heading: after :meth:`rebase` such
+        targets keep the anchoring the identity."""
+        for s in range(2):
+            if not self.planted[s]:
+                continue
+            ankle = np.asarray(self._ankle_ref[s])
+            targets[self._ankles[s], 0:2] = ankle
+            targets[self._ankles[s], 2] = self._stand_z[self._ankles[s]]
+            if self._toes is not None:
+                t, h = self._toes[s], self._head_ref[s]
+                reach = float(np.linalg.norm(self._stand_kp[t, 0:2] - self._stand_kp[self._ankles[s], 0:2]))
+                targets[t, 0:2] = ankle + reach * np.array([math.cos(h), math.sin(h)])
+                targets[t, 2] = self._stand_z[t]
+
+    def stand_over_feet(self, fallback: np.ndarray) -> np.ndarray:
+        """(K, 3) the robot's stand pose over its planted feet (robot frame): facing their mean
+        heading, its soles' midpoint where theirs is (one foot planted: beside it), each toe
+        target straight ahead of its ankle (a step lands the sole along ankle → toe; the stand
+        pose's toe keypoints sit off the soles' axes, op3: 0.2 rad). No foot planted: under
+        the pelvis of ``fallback`` (K, 3), facing its hips (or +x)."""
+        down = [s for s in range(2) if self.planted[s]]
+        if down:
+            heads = [self._head_ref[s] for s in down]
+            yaw = math.atan2(sum(map(math.sin, heads)), sum(map(math.cos, heads)))
+        elif self._hips is not None:
+            across = fallback[self._hips[0], 0:2] - fallback[self._hips[1], 0:2]
+            yaw = math.atan2(-across[0], across[1])
+        else:
+            yaw = 0.0
+        rot = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
+        if down:
+            mid = np.mean([self._prints[s].mean(axis=0) - self._stand_sole_about_mid[s] @ rot for s in down], axis=0)
+        else:
+            mid = fallback[self.robot.root_keypoint, 0:2] - self._stand_about_mid[self.robot.root_keypoint] @ rot
+        out = np.empty_like(fallback)
+        out[:, 0:2] = self._stand_about_mid @ rot + mid
+        out[:, 2] = self._stand_z
+        if self._toes is not None:
+            for ankle, toe in zip(self._ankles, self._toes):
+                reach = float(np.linalg.norm(self._stand_kp[toe, 0:2] - self._stand_kp[ankle, 0:2]))
+                out[toe, 0:2] = out[ankle, 0:2] + reach * np.array([math.cos(yaw), math.sin(yaw)])
+        return out
+
+    def stance_offsets(self, targets: np.ndarray) -> list | None:
+        """How far each planted foot is from where ``targets`` (K, 3, robot frame: after
+        :meth:`rebase`) put it: per foot (left, right) (distance of the sole centres m, turn
+        from the foot heading of ankle → toe rad); None while a foot is up."""
+        if not self.planted.all():
+            return None
+        feet = targets[self._feet_idx, 0:2]
+        out = []
+        for s in range(2):
+            h = math.atan2(*(feet[2 + s] - feet[s])[::-1]) if self._toes is not None else self._head_ref[s]
+            c, sn = math.cos(h), math.sin(h)
+            ox, oy = self._sole_from_ankle[s]
+            centre = feet[s] + (c * ox - sn * oy, sn * ox + c * oy)
+            dist = float(np.linalg.norm(self._prints[s].mean(axis=0) - centre))
+            out.append((dist, abs(_wrap(self._head_ref[s] - h))))
         return out
 
     def set_points(self, first: bool) -> None:

@@ -393,6 +393,7 @@ class StreamingRetargeter:
         """Forget the history (the next frame is solved from the stand pose)."""
         self._x1 = None
         self._x2 = None
+        self._last_in = None
         self._anchor[:] = 0.0
         self._contact = np.zeros(2, dtype=bool)
         if self.planner is not None:
@@ -412,6 +413,19 @@ class StreamingRetargeter:
         self._residual(self._x1)
         if self._has_feet:
             self._anchor[:] = self._solebuf[0:2, :]
+
+    @property
+    def last_targets(self) -> np.ndarray | None:
+        """The last frame's targets (K, 3) as given to :meth:`step` (None before the first)."""
+        return self._last_in
+
+    def settle(self):
+        """After the last frame: an iterable of the frames x (nx,) that step the robot back to
+        its own stance and bring it to rest, made as they are taken, with the robot's steps in
+        ``.steps`` (:class:`retarget.settle.Settle`; no frames without balance)."""
+        from retarget.settle import Settle
+
+        return Settle(self)
 
     @property
     def planted(self) -> np.ndarray:
@@ -510,6 +524,7 @@ class StreamingRetargeter:
             )
         cfg = self.config
         first = self._x1 is None
+        self._last_in = targets.copy()
         if self.balance:
             targets = self.planner.anchor(targets, contact, first)
             if first:  # start standing: feet at the robot's own stance under the person's pelvis

@@ -1,0 +1,113 @@
+"""The end of a live stream (retarget.settle): the robot steps back to its own stance and comes
+to rest before the bridge's joint-space stop ramp, on the bundled op3, in physics too."""
+
+import numpy as np
+import pytest
+
+from bench.stepping_leaders import turning_leader
+from retarget.robot import load_robot
+from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x
+from retarget.targets import make_targets
+
+FPS = 30.0
+
+
+@pytest.fixture(scope="module")
+def op3():
+    return load_robot("op3")
+
+
+@pytest.fixture(scope="module")
+def turned(op3):
+    """A person who turns at 0.9 rad/s for 2 s and stops: the stream ends with the robot's feet
+    behind the turn and its body twisted over them."""
+    motion = turning_leader(2.0, -0.9)
+    st = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True, steps=True))
+    tg = make_targets(op3, motion)
+    X = [st.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)]
+    frames = st.settle()
+    settle = list(frames)
+    return st, np.stack(X), settle, frames.steps
+
+
+def _hip_yaws(rb, x):
+    return np.array([x[rb.n_root + rb.joint_names.index(j)] for j in rb.joint_names if "hip_yaw" in j])
+
+
+def test_the_robot_steps_back_to_its_stand_pose_and_stance(op3, turned):
+    st, X, settle, steps = turned
+    assert np.abs(_hip_yaws(op3, X[-1])).max() > 0.2  # the stream left the body twisted over its feet
+    assert steps >= 1 and len(settle) > steps * 10
+    # at rest in the stand pose: both feet down, the joints at the stand pose's (the bridge's
+    # rest pose: the feet in the stand stance under the hips) and the body no longer twisted
+    assert st.planted.all()
+    q = settle[-1][op3.n_root :]
+    assert np.abs(q - op3.x_stand[op3.n_root :]).max() < 0.2
+    assert np.abs(_hip_yaws(op3, settle[-1])).max() < 0.12
+    # the last frames hold still (the joints slower than SettleConfig.rest_speed, 0.3 rad/s)
+    assert np.abs(np.diff(np.stack(settle[-15:]), axis=0)[:, op3.n_root :]).max() <= 0.3 / FPS + 1e-12
+
+
+def test_every_settle_frame_is_inside_the_joint_range_and_speed_limits(op3, turned):
+    st, X, settle, _ = turned
+    xs = np.concatenate([X[-1:], np.stack(settle)])
+    assert np.all(xs >= op3.x_lower - 1e-9) and np.all(xs <= op3.x_upper + 1e-9)
+    vmax = np.concatenate([op3.root_velocity_limits, op3.velocity_limits]) / FPS
+    assert np.all(np.abs(np.diff(xs, axis=0)) <= vmax + 1e-9)
+
+
+def _stop_ramp(rb, last: np.ndarray) -> np.ndarray:
+    """The bridge's stop ramp (ControlLoop: minimum jerk in joint space to the rest pose, the
+    stand pose, over 1 s), then 1 s held: (60, nx) after ``last`` (nx,)."""
+    rest = rb.x_stand[rb.n_root :]
+    u = np.minimum(np.arange(1, 61) / 30.0, 1.0)[:, None]
+    xs = np.repeat(last[None], 60, axis=0)
+    xs[:, rb.n_root :] += u**3 * (10 - 15 * u + 6 * u * u) * (rest - last[rb.n_root :])
+    return xs
+
+
+def _physics(rb, xs):
+    from retarget.robot import robot_ref
+    from sim.check import CheckConfig, check_trajectory
+
+    traj = trajectory_from_x(rb, np.asarray(xs), FPS, {"mode": "streaming"})
+    return check_trajectory(traj, CheckConfig(mode="free"), robot=robot_ref("op3"))
+
+
+@pytest.mark.slow
+def test_the_stop_ramp_after_the_settle_keeps_op3_standing_in_physics(op3, turned):
+    """The stop ramp played after the settle frames: the free-standing robot stays up
+    throughout, and the ramp has little left to do."""
+    _, X, settle, _ = turned
+    assert np.abs(settle[-1][op3.n_root :] - op3.x_stand[op3.n_root :]).max() < 0.2
+    result = _physics(op3, np.concatenate([X, np.stack(settle), _stop_ramp(op3, settle[-1])]))
+    assert result.passed, (result.reason, result.first_failure_time)
+
+
+@pytest.mark.slow
+def test_the_real_partner_falls_in_the_bare_stop_ramp_and_stands_after_the_settle(op3, cmu_pair_paths):
+    """CMU 19_01 streamed ends with the hips turned -0.22 / 0.40 rad over the feet: the stop ramp
+    straight from there unwinds them on planted feet and the robot falls; stepping back to its
+    stance first, it stands."""
+    from dualflow.motion.io import load_pair, put_on_ground
+
+    motion = put_on_ground(load_pair(*cmu_pair_paths, fps=FPS)).reactor
+    st = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
+    tg = make_targets(op3, motion)
+    X = np.stack([st.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
+    bare = _physics(op3, np.concatenate([X, _stop_ramp(op3, X[-1])]))
+    assert not bare.passed and bare.reason == "fall" and bare.first_failure_time > motion.n_frames / FPS
+    frames = st.settle()
+    settle = list(frames)
+    assert frames.steps >= 1
+    result = _physics(op3, np.concatenate([X, np.stack(settle), _stop_ramp(op3, settle[-1])]))
+    assert result.passed, (result.reason, result.first_failure_time)
+
+
+def test_no_settle_without_balance_or_before_the_first_frame(op3):
+    st = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
+    assert list(st.settle()) == []  # nothing streamed yet
+    plain = StreamingRetargeter(op3, FPS, StreamingConfig(balance=False))
+    tg = make_targets(op3, turning_leader(0.5, -0.9))
+    plain.step(tg.keypoints[0], tg.contacts[0])
+    assert list(plain.settle()) == []  # no planner, no steps: the stop ramp alone
