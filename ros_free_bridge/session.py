@@ -525,6 +525,9 @@ def _pipeline_info(opts: SessionOptions, core, config: LoopConfig, pipeline) -> 
         "playback_margin_ms": round(1e3 * config.playback_margin, 1),
         "frames_dropped": pipeline.frames_dropped,
         "catch_ups": sum(e.get("kind") == "generator_behind" for e in pipeline.events),
+        # the robot's return to its stance after the stream (retarget.settle): seconds, steps
+        "settle_s": sum(e.get("seconds", 0.0) for e in pipeline.events if e.get("kind") == "settle"),
+        "settle_steps": sum(e.get("steps", 0) for e in pipeline.events if e.get("kind") == "settle"),
         "frames_ahead": getattr(core, "frames_ahead", None),
     }
     cpu = getattr(core, "streaming_cpu_s", float("nan"))

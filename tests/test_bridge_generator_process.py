@@ -83,6 +83,8 @@ def test_messages_round_trip_through_a_pipe_in_pieces():
     assert np.array_equal(back.q, target.q) and np.array_equal(back.positions, pos)
     with pytest.raises(BridgeError, match="expected"):
         decode_target(got[1][1], 19)  # a joint count mismatch is caught, not misread
+    settle = decode_target(encode_target(PartnerTarget(13, target.q, pos, float("nan"), 24, 0.0, 0.0, settle=True)), 20)
+    assert (settle.held, settle.settle) == (False, True) and np.isnan(settle.arrival)
     assert rx.receive(0.1) == [] and rx.eof
     rx.close()
 
@@ -133,15 +135,18 @@ def test_a_backlog_beyond_max_lag_is_dropped_held_and_reported(tiny_checkpoint):
     for f in frames[60:]:
         feed([f])
     out += core.finish()
-    # the partner timeline stays whole: one target per actor frame, in order
-    assert [t.index for t in out] == list(range(leader.n_frames))
+    # the partner timeline stays whole: one target per actor frame, in order, then the robot's
+    # return to its stance on the same timeline
+    partner = [t for t in out if not t.settle]
+    assert [t.index for t in partner] == list(range(leader.n_frames))
+    assert [t.index for t in out] == list(range(len(out))) and len(out) > len(partner)
     assert core.frames_dropped == restart - kept_up and len(events) == 1
     # a generated frame is stamped with the last actor frame it depends on (i + L: the newest
     # row is encoded with a predicted next frame)
     gen = [t for t in out if not t.held and t.index + L < leader.n_frames]
     assert all(t.actor_frame == t.index + L and t.arrival == frames[t.index + L].arrival for t in gen)
     # the end-of-stream flush: the arrival actor frame i + L would have had on the actor's clock
-    flush = [t for t in out if t.index + L >= leader.n_frames]
+    flush = [t for t in partner if t.index + L >= leader.n_frames]
     assert len(flush) == L and all(t.actor_frame == t.index + L for t in flush)
     np.testing.assert_allclose([t.arrival for t in flush], [(t.index + L) / 30.0 for t in flush])
 
@@ -168,7 +173,7 @@ def test_the_process_pipeline_streams_every_frame_and_exits(tiny_checkpoint, lim
     assert pipe.frames_in == leader.n_frames
     assert pipe.frames_out == leader.n_frames == len(pipe.partner_positions)
     # how many the loop plays depends on the machine's load (late frames are skipped): not asserted
-    assert 0 < summary.frames_played <= pipe.frames_out
+    assert 0 < summary.frames_played <= pipe.frames_out + pipe.settle_frames
     assert not pipe.alive
     assert gen.process.wait(10) == 0  # the pipeline closed its input: the child ended cleanly
     _assert_in_limits(tr, limits)

@@ -63,13 +63,40 @@ def test_generated_partner_streams_every_frame_to_the_transport(op3, tiny_checkp
     assert pipe.frames_out == leader.n_frames
     # nearly every frame is played: a late tick, or frames that arrive in a burst after the
     # playback clock has passed them, make the loop jump to the newest (it keeps time)
-    assert 0.8 * pipe.frames_out <= summary.frames_played <= pipe.frames_out
+    assert 0.8 * pipe.frames_out <= summary.frames_played <= pipe.frames_out + pipe.settle_frames
 
 
 def test_imitation_retargets_the_actor_itself(op3):
     summary, pipe, leader = _run(op3, None)
     assert summary.end_state == "STOPPED"
     assert pipe.frames_out == pipe.frames_in == leader.n_frames
+
+
+def test_the_stream_ends_with_the_robot_stepping_back_to_its_stance(op3):
+    """After the last actor frame the core sends the robot's return to its stance: targets
+    flagged ``settle``, on the same frame timeline, without an arrival (no latency is counted
+    for them), in small batches, then a ``settle`` event; the last one is the stand pose,
+    which is the loop's rest pose, so the stop ramp after it has little to do."""
+    from ros_free_bridge.partner.core import PartnerCore
+    from ros_free_bridge.sources.udp import ActorFrame
+
+    robot, limits = op3
+    core = PartnerCore(None, RetargetStage(robot, 30.0, limits.names))
+    leader = make_leader(3.0, 30.0, seed=2)
+    out = []
+    for k in range(leader.n_frames):
+        out += core.feed([ActorFrame(k, leader.positions[k], k / 30.0)])[0]
+    batches = list(core.finish_stream())
+    settle = [t for targets, _ in batches for t in targets]
+    events = [e for _, ev in batches for e in ev]
+    assert len(out) == leader.n_frames and not any(t.settle for t in out)
+    assert len(settle) >= 15 and all(t.settle and np.isnan(t.arrival) for t in settle)
+    assert [t.index for t in out + settle] == list(range(len(out) + len(settle)))
+    assert max(len(targets) for targets, _ in batches) <= PartnerCore.SETTLE_BATCH
+    assert [e["kind"] for e in events] == ["settle"] and events[0]["frames"] == len(settle)
+    stand = np.asarray(robot.x_stand)[robot.n_root :]
+    rest = limits.clip(stand[[robot.joint_names.index(n) for n in limits.names]])
+    assert np.abs(settle[-1].q - rest).max() < 0.1 < np.abs(out[-1].q - rest).max()
 
 
 def test_text_and_music_reach_the_generator(tmp_path):

@@ -33,3 +33,19 @@ def test_the_steps_line_names_the_partners_jump(tmp_path):
     assert "landing from 1 jump" in line and "the robot 1" in line, line
     save_motion(Motion(still, 30.0, name="partner"), path)
     assert "jump" not in steps_line(path, _Check())
+
+
+def test_the_steps_line_counts_the_return_to_stance_apart(tmp_path):
+    """The robot's steps back to its stance after the stream are not steps matched to the
+    partner's: counted apart (the physics check saw 3 lift-offs, 2 of them after the stream)."""
+    from dualflow.synthetic import make_leader
+
+    class Three:
+        metrics = {"stances": [3, 2]}
+
+    still = np.repeat(make_leader(1.0, 30.0, seed=0).positions[:1], 30, axis=0)
+    path = tmp_path / "partner.npz"
+    save_motion(Motion(still, 30.0, name="partner"), path)
+    line = steps_line(path, Three(), settle_steps=2)
+    assert "the robot 1 " in line and "and 2 returning to its stance after the stream" in line, line
+    assert "returning" not in steps_line(path, Three())

@@ -125,7 +125,7 @@ def demo(args) -> int:
             video = render_video(result, out / "demo.mp4", on_tick=tick)
 
     _print_demo_summary(result, check, reports, video)
-    print(steps_line(out / "partner.npz", check))
+    print(steps_line(out / "partner.npz", check, result.pipeline_info.get("settle_steps", 0)))
     print(f"done in {time.monotonic() - t_start:.0f} s")
     ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed
     return 0 if ok else 1
@@ -184,21 +184,23 @@ def _print_demo_summary(result, check, reports: dict, video) -> None:
         print(f"video: {video}")
 
 
-def steps_line(partner_file: Path, check) -> str:
+def steps_line(partner_file: Path, check, settle_steps: int = 0) -> str:
     """The partner's steps (touch-downs of its detected foot contacts) next to the robot's
-    (its feet's lift-offs in the physics check: sim's stances per foot, less one). Touch-downs
+    (its feet's lift-offs in the physics check: sim's stances per foot, less one), less the
+    ``settle_steps`` it took returning to its stance after the stream (named). Touch-downs
     that end a jump (both of the partner's feet up) are named: the robot keeps its feet down
     through a jump, so it has no step there to match."""
     from dualflow.motion.io import load_any
     from retarget.schedule import count_steps
     from retarget.targets import detect_contacts, side_contacts
 
-    robot = sum(max(0, n - 1) for n in check.metrics.get("stances") or [])
+    robot = sum(max(0, n - 1) for n in check.metrics.get("stances") or []) - settle_steps
+    after = f", and {settle_steps} returning to its stance after the stream" if settle_steps else ""
     try:
         motion = load_any(partner_file)
         contacts = side_contacts(detect_contacts(motion))
     except Exception as exc:  # noqa: BLE001 - a summary line; the run's verdict is already made
-        return f"steps: the robot {robot} (the partner's not counted: {exc})"
+        return f"steps: the robot {robot}{after} (the partner's not counted: {exc})"
     person = f"the partner {count_steps(contacts)}"
     jumps, landings, airborne = jump_landings(contacts, motion.fps)
     if jumps:
@@ -206,7 +208,7 @@ def steps_line(partner_file: Path, check) -> str:
             f" ({landings} of them landing from {jumps} jump{'s' if jumps > 1 else ''}, {airborne:.2f} s in the air,"
             " which the robot stands through)"
         )
-    return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics)"
+    return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics){after}"
 
 
 def jump_landings(contacts, fps: float) -> tuple[int, int, float]:

@@ -303,7 +303,12 @@ def print_summary(result, stream=None) -> None:
     lines = [
         f"robot {result.files.name}: {s.end_state} ({s.reason})",
         f"ticks {s.ticks}, deadline misses {s.deadline_misses}, late ticks {s.late_ticks}",
-        f"partner frames played {s.frames_played}",
+        f"partner frames played {s.frames_played}"
+        + (
+            f" (the last {g['settle_s']:.1f} s returning to stand, {g['settle_steps']} steps)"
+            if g.get("settle_s")
+            else ""
+        ),
         what + " " + (f"p50 {lat['p50'] * 1e3:.0f} ms, p99 {lat['p99'] * 1e3:.0f} ms" if lat else "n/a"),
         f"safety interventions on {s.interventions} ticks, faults: {fault_names(s.faults)}"
         + ("; targets extrapolated while a frame was on its way" if Fault.EXTRAPOLATED in flags else ""),

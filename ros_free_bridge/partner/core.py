@@ -21,7 +21,9 @@ from ros_free_bridge.partner.idle_slots import CatchUpScheduler
 class PartnerTarget:
     """One robot target from :class:`PartnerCore`: q (n,) rad, the partner pose (22, 3) m it
     came from, and its timing. ``held``: a stand-in that repeats the previous pose for a frame
-    the generator skipped to catch up (``gen_latency`` is NaN then)."""
+    the generator skipped to catch up (``gen_latency`` is NaN then). ``settle``: a frame of
+    the robot's return to its own stance after the stream's end (RetargetStage.settle): no
+    partner pose of its own (``positions`` repeats the last one)."""
 
     index: int
     q: np.ndarray
@@ -31,6 +33,7 @@ class PartnerTarget:
     gen_latency: float
     rt_latency: float
     held: bool = False
+    settle: bool = False
 
 
 class PartnerCore:
@@ -69,6 +72,7 @@ class PartnerCore:
         self._arrivals: dict[int, float] = {}  # actor index -> arrival, for frames not yet used as c(i)
         self._last_q: np.ndarray | None = None
         self._last_pos: np.ndarray | None = None
+        self._last_index = -1  # the last target's index
         self._last: tuple[float, int] = (0.0, -1)
 
     @staticmethod
@@ -139,12 +143,19 @@ class PartnerCore:
         return held, [event]
 
     def finish(self) -> list[PartnerTarget]:
-        """End of the actor stream: the remaining partner frames (none for imitation)."""
+        """End of the actor stream: the remaining partner frames (none for imitation), then the
+        robot's return to its stance (``settle`` targets)."""
         return [t for targets, _ in self.finish_stream() for t in targets]
 
     def finish_stream(self):
         """End of the actor stream: yield (targets, events) batches, one window at a time (so
-        the loop plays them while the rest is generated), the drop-to-newest policy first."""
+        the loop plays them while the rest is generated), the drop-to-newest policy first; last,
+        the robot's return to its stance in small batches and a ``settle`` event (:meth:`_settle`)."""
+        yield from self._flush()
+        yield from self._settle()
+
+    def _flush(self):
+        """The reactor's remaining partner frames, batch by batch (finish_stream)."""
         if self.reactor is None or self._last[1] < 0:
             return
         held, events = self._drop_to_newest()
@@ -157,6 +168,35 @@ class PartnerCore:
             if not batch:
                 return
             yield batch, []
+
+    SETTLE_BATCH = 3  #: settle frames sent together (a frame takes ~1 ms: the loop never waits for them)
+
+    def _settle(self):
+        """After the last partner frame: yield batches of the frames that step the robot back
+        to its own stance and bring it to rest (:meth:`RetargetStage.settle`), on the partner's
+        clock, made as they are sent; the last batch carries a ``settle`` event with their
+        length and steps. Nothing before any frame was emitted."""
+        if self._last_q is None:
+            return
+        batch, count, nan = [], 0, float("nan")
+        frames = iter(self.retarget.settle())
+        while True:
+            t0 = time.perf_counter()
+            q = next(frames, None)
+            if q is None:
+                break
+            rt = time.perf_counter() - t0
+            self._last_index += 1
+            # no actor frame completed it: no arrival, so no end-to-end latency either
+            actor = self._last_index + self.frames_ahead
+            batch.append(PartnerTarget(self._last_index, q, self._last_pos, nan, actor, nan, rt, settle=True))
+            self._last_q, count = q, count + 1
+            if len(batch) == self.SETTLE_BATCH:
+                yield batch, []
+                batch = []
+        if count:
+            seconds = round(count / self.retarget.fps, 2)
+            yield batch, [{"kind": "settle", "frames": count, "seconds": seconds, "steps": self.retarget.settle_steps}]
 
     def _targets(self, reactor_frames) -> list[PartnerTarget]:
         out = []
@@ -207,5 +247,5 @@ class PartnerCore:
         t0 = time.perf_counter()
         q = self.retarget.step(positions, contacts)
         rt = time.perf_counter() - t0
-        self._last_q, self._last_pos = q, np.asarray(positions)
+        self._last_q, self._last_pos, self._last_index = q, np.asarray(positions), index
         return PartnerTarget(index, q, np.asarray(positions), arrival, actor_frame, gen_latency, rt)

@@ -51,7 +51,8 @@ class PartnerPipeline:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="partner-pipeline", daemon=True)
         self.frames_in = 0
-        self.frames_out = 0
+        self.frames_out = 0  #: partner frames sent to the loop ...
+        self.settle_frames = 0  #: ... and frames of the robot's return to its stance after them
         self.events: list[dict] = []
         self.record = record
         self.actor_positions: list[np.ndarray] = []
@@ -139,7 +140,10 @@ class PartnerPipeline:
             if self.on_event is not None:
                 self.on_event(**e)
         for t in targets:
+            self.buffer.push(TargetFrame(t.index, t.q, t.arrival, t.actor_frame, t.gen_latency, t.rt_latency))
+            if t.settle:  # the robot's return to its stance: no partner pose
+                self.settle_frames += 1
+                continue
             if self.record:
                 self.partner_positions.append(t.positions)
-            self.buffer.push(TargetFrame(t.index, t.q, t.arrival, t.actor_frame, t.gen_latency, t.rt_latency))
             self.frames_out += 1

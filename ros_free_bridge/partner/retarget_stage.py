@@ -29,6 +29,8 @@ class RetargetStage:
             )
         self.joint_names = names
         self._index = np.array([robot.joint_names.index(n) for n in names])
+        self.fps = float(fps)
+        self.settle_steps = 0  #: the robot's steps in the last settle (after the stream's end)
 
     def step(self, positions: np.ndarray, contacts: np.ndarray | None = None) -> np.ndarray:
         """One partner pose (22, 3) m (and its foot contacts (4,) bool, None: no foot down) →
@@ -40,3 +42,14 @@ class RetargetStage:
             side = tuple(bool(c) for c in side_contacts(np.asarray(contacts)[None])[0])
         q, _, _ = self.streamer.split(self.streamer.step_human(positions, side))
         return q[self._index]
+
+    def settle(self):
+        """After the last frame: joint angles (n,) rad per frame, yielded as they are made,
+        that step the robot back to its own stance and bring it to rest (retarget.settle; none
+        for a robot without balance); ``settle_steps`` then holds the robot's steps in them.
+        The bridge's stop ramp then starts from the stand pose."""
+        frames = self.streamer.settle()
+        for x in frames:
+            self.settle_steps = frames.steps
+            yield self.streamer.split(x)[0][self._index]
+        self.settle_steps = frames.steps

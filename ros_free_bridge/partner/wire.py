@@ -102,7 +102,7 @@ def encode_target(t: PartnerTarget) -> bytes:
     """A T message's body: a target's indices and timing, q (n,) rad, partner positions (22, 3) m."""
     q = np.ascontiguousarray(t.q, dtype="<f8")
     pos = np.ascontiguousarray(t.positions, dtype="<f8").reshape(N_POS)
-    head = TARGET.pack(t.index, t.actor_frame, t.arrival, t.gen_latency, t.rt_latency, int(t.held))
+    head = TARGET.pack(t.index, t.actor_frame, t.arrival, t.gen_latency, t.rt_latency, int(t.held) | int(t.settle) << 1)
     return head + q.tobytes() + pos.tobytes()
 
 
@@ -112,7 +112,7 @@ def decode_target(payload: bytes, n_joints: int) -> PartnerTarget:
             f"generator process: target message of {len(payload)} bytes, expected "
             f"{TARGET.size + 8 * (n_joints + N_POS)} for {n_joints} joints"
         )
-    index, actor_frame, arrival, gen, rt, held = TARGET.unpack_from(payload)
+    index, actor_frame, arrival, gen, rt, flags = TARGET.unpack_from(payload)
     q = np.frombuffer(payload, "<f8", n_joints, TARGET.size).copy()
     pos = np.frombuffer(payload, "<f8", N_POS, TARGET.size + 8 * n_joints).reshape(22, 3).copy()
-    return PartnerTarget(index, q, pos, arrival, actor_frame, gen, rt, bool(held))
+    return PartnerTarget(index, q, pos, arrival, actor_frame, gen, rt, bool(flags & 1), bool(flags & 2))
