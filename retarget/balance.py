@@ -102,6 +102,15 @@ class BalancePlanner:
         self._stand_about_mid = self._stand_kp[:, 0:2] - mid
         self._stand_sole_about_mid = [soles[4 * s : 4 * s + 4, 0:2].mean(axis=0) - mid for s in range(2)]
         self._stand_z = self._stand_kp[:, 2] - float(soles[:, 2].min())
+        # each sole's heading less the hips' in the stand pose (a robot standing toes out: + on
+        # the left), so that planted feet name the heading of a body standing square on them
+        self._stand_sole_turn = [0.0, 0.0]
+        if self._hips is not None:
+            across = self._stand_kp[self._hips[0], 0:2] - self._stand_kp[self._hips[1], 0:2]
+            hips = math.atan2(-across[0], across[1])
+            for side in range(2):
+                axis = _long_axis(soles[4 * side : 4 * side + 4, 0:2], hips)
+                self._stand_sole_turn[side] = _wrap(math.atan2(axis[1], axis[0]) - hips)
 
     def _set_pace(self, k: float) -> None:
         """The step's phases at ``k`` x their configured lengths: ``min_stance``, ``min_double``,
@@ -446,27 +455,28 @@ class BalancePlanner:
                 targets[t, 0:2] = ankle + reach * np.array([math.cos(h), math.sin(h)])
                 targets[t, 2] = self._stand_z[t]
 
-    def stand_over_feet(self, fallback: np.ndarray) -> np.ndarray:
-        """(K, 3) the robot's stand pose over its planted feet (robot frame): facing their mean
-        heading, its soles' midpoint where theirs is (one foot planted: beside it), each toe
-        target straight ahead of its ankle (a step lands the sole along ankle → toe; the stand
-        pose's toe keypoints sit off the soles' axes, op3: 0.2 rad). No foot planted: under
-        the pelvis of ``fallback`` (K, 3), facing its hips (or +x)."""
+    def stand_over_feet(self, body: np.ndarray) -> np.ndarray:
+        """(K, 3) the robot's stand pose over its planted feet (robot frame), facing where the
+        hips of ``body`` (K, 3) face (the feet turn to it by stepping: the body is not turned
+        over planted feet; without hip keypoints, the feet's mean heading): its soles' midpoint
+        where theirs is (one foot planted: beside it; none: under the pelvis of ``body``), each
+        toe target straight ahead of its ankle (a step lands the sole along ankle → toe; the
+        stand pose's toe keypoints sit off the soles' axes, op3: 0.2 rad)."""
         down = [s for s in range(2) if self.planted[s]]
-        if down:
-            heads = [self._head_ref[s] for s in down]
-            yaw = math.atan2(sum(map(math.sin, heads)), sum(map(math.cos, heads)))
-        elif self._hips is not None:
-            across = fallback[self._hips[0], 0:2] - fallback[self._hips[1], 0:2]
+        if self._hips is not None:
+            across = body[self._hips[0], 0:2] - body[self._hips[1], 0:2]
             yaw = math.atan2(-across[0], across[1])
+        elif down:
+            heads = [self._head_ref[s] - self._stand_sole_turn[s] for s in down]
+            yaw = math.atan2(sum(map(math.sin, heads)), sum(map(math.cos, heads)))
         else:
             yaw = 0.0
         rot = np.array([[math.cos(yaw), math.sin(yaw)], [-math.sin(yaw), math.cos(yaw)]])
         if down:
             mid = np.mean([self._prints[s].mean(axis=0) - self._stand_sole_about_mid[s] @ rot for s in down], axis=0)
         else:
-            mid = fallback[self.robot.root_keypoint, 0:2] - self._stand_about_mid[self.robot.root_keypoint] @ rot
-        out = np.empty_like(fallback)
+            mid = body[self.robot.root_keypoint, 0:2] - self._stand_about_mid[self.robot.root_keypoint] @ rot
+        out = np.empty_like(body)
         out[:, 0:2] = self._stand_about_mid @ rot + mid
         out[:, 2] = self._stand_z
         if self._toes is not None:

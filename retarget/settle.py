@@ -12,8 +12,10 @@ apply), so that the planner takes the steps (with their weight shift and ZMP pla
 the person's:
 
 1. the body goes from where the robot last tracked it to the robot's stand pose over its
-   planted feet, facing their mean heading (``blend`` s, minimum jerk, longer for a large
-   twist); the feet stay where they are, a foot in the air comes down;
+   planted feet, still facing where its hips faced (``blend`` s, minimum jerk); the feet stay
+   where they are, a foot in the air comes down. A body twisted over its feet is not turned
+   back over them: the feet turn to it by stepping (unwinding 0.66 rad of twist on planted
+   feet in 0.8-2 s, the demo's robot fell in 1-2 runs of 6);
 2. once the body has come to rest (``pause``), while a planted foot is further than
    ``tolerance`` m (the planner's ``step_distance``) or ``turn_tolerance`` rad from where that
    stance puts it, it is lifted and put there (each foot in turn, at most ``max_steps`` steps;
@@ -34,7 +36,7 @@ import numpy as np
 @dataclass(frozen=True)
 class SettleConfig:
     blend: float = 0.5  #: s from the last pose to the stand pose, at least; ...
-    turn_speed: float = 1.5  #: rad/s: ... longer where the body turns faster (the peak speed)
+    turn_speed: float = 0.6  #: rad/s: ... longer where the body turns faster (the peak speed)
     hold: float = 0.5  #: s held at the end, the feet down and the joints slower than ...
     rest_speed: float = 0.3  #: ... this (rad/s)
     max_hold: float = 2.5  #: s: the hold ends after this long whatever the speed
@@ -67,12 +69,13 @@ class Settle:
     def _frames(self, seconds: float) -> int:
         return max(1, round(seconds * self.streamer.fps))
 
-    def _add(self, targets: np.ndarray, contact=(True, True)) -> np.ndarray:
-        """One frame: the planted feet's targets where the planner holds them, then stepped."""
+    def _add(self, targets: np.ndarray, contact=(True, True), still: bool = False) -> np.ndarray:
+        """One frame: the planted feet's targets where the planner holds them, then stepped
+        (``still``: a held pose, StreamingRetargeter.step)."""
         st = self.streamer
         st.planner.own_feet(targets)
         before = st.planted.copy()
-        self._last_x = x = st.step(targets, contact)
+        self._last_x = x = st.step(targets, contact, still)
         self.steps += int((before & ~st.planted).sum())
         return x
 
@@ -103,13 +106,16 @@ class Settle:
 
     def _hold(self, now: np.ndarray, hold: float, longest: float):
         """The pose ``now`` held until both feet have stood and the joints moved slower than
-        ``rest_speed`` for ``hold`` s (the planner may still be finishing a step; the pelvis
-        turns over its feet last: its yaw is the weakest part of the fit), at most ``longest`` s."""
+        ``rest_speed`` for ``hold`` s (the planner may still be finishing a step), at most
+        ``longest`` s. Each frame's motion is damped (``still``): with the acceleration row
+        alone the pelvis yaw over the planted feet rang at 1-2 rad/s for seconds after the
+        body turned, and the holds ran to their longest (5.5 s settles on the demo partners,
+        3.1 s damped)."""
         n_root = self.streamer.robot.n_root
         still, slow = 0, self.config.rest_speed / self.streamer.fps
         for _ in range(self._frames(longest)):
             before = self._last_x
-            yield self._add(now)
+            yield self._add(now, still=True)
             moving = np.abs(self._last_x - before)[n_root:].max() > slow
             still = 0 if moving or not self.streamer.planted.all() else still + 1
             if still >= self._frames(hold):

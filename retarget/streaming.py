@@ -513,10 +513,13 @@ class StreamingRetargeter:
                 best, best_cost = x, cost
         return best
 
-    def step(self, targets: np.ndarray, contact=(False, False)) -> np.ndarray:
+    def step(self, targets: np.ndarray, contact=(False, False), still: bool = False) -> np.ndarray:
         """targets (K, 3) m, contact (2,) bool (the human's left, right foot) → configuration
         x (nx,) within all limits. With balance the robot's own foot contacts are in
-        :attr:`planted` afterwards (see the module docstring)."""
+        :attr:`planted` afterwards (see the module docstring). ``still``: the acceleration row
+        taken against the last frame held still (x₋₂ = x₋₁), i.e. a velocity penalty: a held
+        pose comes to rest instead of ringing (the acceleration row alone leaves a weakly held
+        direction, the pelvis yaw over planted feet, an oscillator that decays over seconds)."""
         targets = np.asarray(targets, dtype=np.float64)
         if targets.shape != (self.robot.n_keypoints, 3) or not np.all(np.isfinite(targets)):
             raise RetargetError(
@@ -539,7 +542,7 @@ class StreamingRetargeter:
             x = self._best_start(x, targets, contact)
         else:
             x1 = self._x1
-            x2 = self._x2 if self._x2 is not None else self._x1
+            x2 = self._x2 if self._x2 is not None and not still else self._x1
             x = x1.copy()
             acc = self._sqrt_wa_fps2
             iters = cfg.iterations
