@@ -305,7 +305,8 @@ def print_summary(result, stream=None) -> None:
         f"ticks {s.ticks}, deadline misses {s.deadline_misses}, late ticks {s.late_ticks}",
         f"partner frames played {s.frames_played}"
         + (
-            f" (the last {g['settle_s']:.1f} s returning to stand, {g['settle_steps']} steps)"
+            f" (the last {g['settle_s']:.1f} s returning to stand, {g['settle_steps']} "
+            + ("step)" if g["settle_steps"] == 1 else "steps)")
             if g.get("settle_s")
             else ""
         ),
