@@ -49,3 +49,21 @@ def test_the_steps_line_counts_the_return_to_stance_apart(tmp_path):
     line = steps_line(path, Three(), settle_steps=2)
     assert "the robot 1 " in line and "and 2 returning to its stance after the stream" in line, line
     assert "returning" not in steps_line(path, Three())
+
+
+def test_the_live_robot_line_names_a_fall_the_replayed_check_may_not_see():
+    """The demo's video shows the virtual robot that ran live; the check replays the commands in
+    its own simulation. A live robot whose torso tips past the check's fall tilt is reported
+    (and fails the demo) with the time it happened."""
+    from retarget.trajectory import RobotTrajectory
+    from ros_free_bridge.commands.demo import live_robot_line
+
+    T, fps = 300, 100.0
+    tip = np.radians(np.clip((np.arange(T) - 200) * 1.5, 0.0, 80.0))  # upright, then tipping 1.5 deg a tick
+    quat = np.stack([np.cos(tip / 2), np.sin(tip / 2), np.zeros(T), np.zeros(T)], axis=1)  # about x
+    fallen = RobotTrajectory(("j",), np.zeros((T, 1)), np.zeros((T, 3)), quat, fps, "op3", {})
+    fell, line = live_robot_line(fallen, 50.0)
+    assert fell and "FELL at 2.34 s" in line, line  # 51 deg there, 49.5 a tick before
+    upright = RobotTrajectory(("j",), np.zeros((231, 1)), np.zeros((231, 3)), quat[:231], fps, "op3", {})
+    fell, line = live_robot_line(upright, 50.0)
+    assert not fell and "stayed up (largest torso tilt 45 deg)" in line, line

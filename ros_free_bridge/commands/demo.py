@@ -126,9 +126,28 @@ def demo(args) -> int:
 
     _print_demo_summary(result, check, reports, video)
     print(steps_line(out / "partner.npz", check, result.pipeline_info.get("settle_steps", 0)))
+    fell, line = live_robot_line(result.robot_motion, check.config.fall_tilt_deg)
+    print(line)
     print(f"done in {time.monotonic() - t_start:.0f} s")
-    ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed
+    ok = result.summary.ok and result.transport_info.get("bus_violations", 0) == 0 and check.passed and not fell
     return 0 if ok else 1
+
+
+def live_robot_line(motion, fall_tilt_deg: float) -> tuple[bool, str]:
+    """(fell, a summary line) for the virtual robot that ran live (the video's robot): its
+    torso tilt over the run. The physics check replays the commands in a simulation of its
+    own; the live one differs by the run's timing, and near a fall the two can part."""
+    if motion is None or motion.n_frames == 0:
+        return False, "live virtual robot: not recorded"
+    w, x, y, _ = np.asarray(motion.root_quat, dtype=np.float64).T
+    tilt = np.degrees(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
+    over = np.flatnonzero(tilt > fall_tilt_deg)
+    if len(over):
+        return True, (
+            f"live virtual robot: FELL at {over[0] / motion.fps:.2f} s (torso tilt beyond {fall_tilt_deg:g} deg; "
+            "the physics check replays the commands in its own simulation)"
+        )
+    return False, f"live virtual robot: stayed up (largest torso tilt {tilt.max():.0f} deg)"
 
 
 def _demo_music(args, model_meta: dict, out: Path) -> str | None:
