@@ -102,15 +102,11 @@ class BalancePlanner:
         self._stand_about_mid = self._stand_kp[:, 0:2] - mid
         self._stand_sole_about_mid = [soles[4 * s : 4 * s + 4, 0:2].mean(axis=0) - mid for s in range(2)]
         self._stand_z = self._stand_kp[:, 2] - float(soles[:, 2].min())
-        # each sole's heading less the hips' in the stand pose (a robot standing toes out: + on
-        # the left), so that planted feet name the heading of a body standing square on them
-        self._stand_sole_turn = [0.0, 0.0]
-        if self._hips is not None:
-            across = self._stand_kp[self._hips[0], 0:2] - self._stand_kp[self._hips[1], 0:2]
-            hips = math.atan2(-across[0], across[1])
-            for side in range(2):
-                axis = _long_axis(soles[4 * side : 4 * side + 4, 0:2], hips)
-                self._stand_sole_turn[side] = _wrap(math.atan2(axis[1], axis[0]) - hips)
+        # each toe keypoint's distance from its ankle's, standing (own_feet, stand_over_feet)
+        toes = self._toes or ()
+        self._toe_reach = [
+            float(np.linalg.norm(self._stand_kp[t, 0:2] - self._stand_kp[a, 0:2])) for a, t in zip(self._ankles, toes)
+        ]
 
     def _set_pace(self, k: float) -> None:
         """The step's phases at ``k`` x their configured lengths: ``min_stance``, ``min_double``,
@@ -451,8 +447,7 @@ class BalancePlanner:
             targets[self._ankles[s], 2] = self._stand_z[self._ankles[s]]
             if self._toes is not None:
                 t, h = self._toes[s], self._head_ref[s]
-                reach = float(np.linalg.norm(self._stand_kp[t, 0:2] - self._stand_kp[self._ankles[s], 0:2]))
-                targets[t, 0:2] = ankle + reach * np.array([math.cos(h), math.sin(h)])
+                targets[t, 0:2] = ankle + self._toe_reach[s] * np.array([math.cos(h), math.sin(h)])
                 targets[t, 2] = self._stand_z[t]
 
     def stand_over_feet(self, body: np.ndarray) -> np.ndarray:
@@ -467,7 +462,7 @@ class BalancePlanner:
             across = body[self._hips[0], 0:2] - body[self._hips[1], 0:2]
             yaw = math.atan2(-across[0], across[1])
         elif down:
-            heads = [self._head_ref[s] - self._stand_sole_turn[s] for s in down]
+            heads = [self._head_ref[s] for s in down]
             yaw = math.atan2(sum(map(math.sin, heads)), sum(map(math.cos, heads)))
         else:
             yaw = 0.0
@@ -480,8 +475,7 @@ class BalancePlanner:
         out[:, 0:2] = self._stand_about_mid @ rot + mid
         out[:, 2] = self._stand_z
         if self._toes is not None:
-            for ankle, toe in zip(self._ankles, self._toes):
-                reach = float(np.linalg.norm(self._stand_kp[toe, 0:2] - self._stand_kp[ankle, 0:2]))
+            for ankle, toe, reach in zip(self._ankles, self._toes, self._toe_reach):
                 out[toe, 0:2] = out[ankle, 0:2] + reach * np.array([math.cos(yaw), math.sin(yaw)])
         return out
 

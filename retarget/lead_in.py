@@ -154,7 +154,8 @@ def _warp(u: np.ndarray, ease: float) -> np.ndarray:
     return np.where(u < ease, ease * (x**3 - 0.5 * x**4), u - 0.5 * ease)
 
 
-def _min_jerk(u: np.ndarray) -> np.ndarray:
+def min_jerk_share(u: np.ndarray) -> np.ndarray:
+    """The share 10u³ − 15u⁴ + 6u⁵ of a minimum-jerk move done at u (clipped to [0, 1])."""
     u = np.clip(u, 0.0, 1.0)
     return 10 * u**3 - 15 * u**4 + 6 * u**5
 
@@ -397,12 +398,12 @@ class _LeadInBuilder:
         over[0:2] += cfg.shift_share * (feet[1 - s][0][0:2] - pel[0:2])
         k = self.n(cfg.shift_s)
         for i in range(1, k + 1):
-            self.emit(pel + (over - pel) * _min_jerk(np.array(i / k)), self.rel_stand, (True, True))
+            self.emit(pel + (over - pel) * min_jerk_share(np.array(i / k)), self.rel_stand, (True, True))
         a0, t0 = feet[s]
         a1, t1 = self.first_feet[s]
         k = self.n(cfg.swing_s)
         for i in range(1, k + 1):
-            w = float(_min_jerk(np.array(i / k)))
+            w = float(min_jerk_share(np.array(i / k)))
             arc = cfg.lift * 4 * (i / k) * (1 - i / k)
             ank = a0 + (a1 - a0) * w + np.array([0, 0, arc])
             toe_rel = (t0 - a0) + ((t1 - a1) - (t0 - a0)) * w
@@ -416,7 +417,7 @@ class _LeadInBuilder:
         )
         k = self.n(cfg.double_s)
         for i in range(1, k + 1):
-            self.emit(over + (centre - over) * _min_jerk(np.array(i / k)), self.rel_stand, (True, True))
+            self.emit(over + (centre - over) * min_jerk_share(np.array(i / k)), self.rel_stand, (True, True))
         self.pel = centre
         return True
 
@@ -430,7 +431,7 @@ class _LeadInBuilder:
         moves.append(float(np.max(np.linalg.norm(rel0 - self.rel_stand, axis=1))))
         k = max(self.n(cfg.move_s), self.n(max(moves) / cfg.move_speed))
         for i in range(1, k + 1):
-            w = float(_min_jerk(np.array(i / k)))
+            w = float(min_jerk_share(np.array(i / k)))
             for s in range(2):
                 (a0, t0), (a1, t1) = start_feet[s], self.first_feet[s]
                 self.feet[s] = (a0 + (a1 - a0) * w, t0 + (t1 - t0) * w)
@@ -463,11 +464,11 @@ class _LeadInBuilder:
         body = [PELVIS] + self.upper
         for i in range(max(lift - k_in, 0), min(land + k_out, T)):
             if i < lift:
-                w = float(_min_jerk(np.array((i - (lift - k_in)) / k_in)))
+                w = float(min_jerk_share(np.array((i - (lift - k_in)) / k_in)))
             elif i < land:
                 w = 1.0
             else:
-                w = 1.0 - float(_min_jerk(np.array((i - land + 1) / k_out)))
+                w = 1.0 - float(min_jerk_share(np.array((i - land + 1) / k_out)))
             d = np.zeros(3)
             d[0:2] = cfg.shift_share * w * (clip[i, ANKLE[st], 0:2] - clip[i, PELVIS, 0:2])
             clip[i, body] += d
@@ -514,7 +515,7 @@ class _LeadInBuilder:
             on_floor = [self._with_feet(f, {s: self.first_feet[s]}) for f in clip[:land]]
             target = clip[min(land, len(clip) - 1)]
             for i in range(land):  # on the floor until the lift, then to where the person landed
-                w = 0.0 if i < lift else float(_min_jerk(np.array((i - lift + 1) / (land - lift))))
+                w = 0.0 if i < lift else float(min_jerk_share(np.array((i - lift + 1) / (land - lift))))
                 clip[i] = on_floor[i] + w * (self._leg_of(target, s, on_floor[i]) - on_floor[i])
                 c4[i, 2 * s : 2 * s + 2] = i < lift
             swing_from.append(round(float(tau[lift]), 3))

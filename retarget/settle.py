@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from retarget.lead_in import min_jerk_share
+
 
 @dataclass(frozen=True)
 class SettleConfig:
@@ -46,12 +48,6 @@ class SettleConfig:
     turn_tolerance: float = 0.12  #: rad it may be turned from it
     max_steps: int = 6
     land_wait: float = 0.25  #: s both feet down after a step, beyond min_stance / min_double
-
-
-def _smooth(u: float) -> float:
-    """Minimum-jerk share of the way at u in [0, 1]."""
-    u = min(max(u, 0.0), 1.0)
-    return u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
 
 
 class Settle:
@@ -94,7 +90,7 @@ class Settle:
         turn = abs(_turn(start, goal, st.robot.root_keypoint, feet))
         n = self._frames(max(config.blend, 1.875 * turn / config.turn_speed))  # min-jerk peak: 1.875 x mean speed
         for k in range(1, n + 1):  # 1: the body to the stand pose; a planted foot stays, one in the air comes down
-            u = _smooth(k / n)
+            u = float(min_jerk_share(k / n))
             now[body] = start[body] + u * (goal[body] - start[body])
             for s in range(2):
                 if not st.planted[s]:

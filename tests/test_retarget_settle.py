@@ -57,12 +57,14 @@ def test_every_settle_frame_is_inside_the_joint_range_and_speed_limits(op3, turn
 
 
 def _stop_ramp(rb, last: np.ndarray) -> np.ndarray:
-    """The bridge's stop ramp (ControlLoop: minimum jerk in joint space to the rest pose, the
+    """The bridge's stop ramp (ros_free_bridge.control.safety.min_jerk to the rest pose, the
     stand pose, over 1 s), then 1 s held: (60, nx) after ``last`` (nx,)."""
+    from ros_free_bridge.control.safety import min_jerk
+
     rest = rb.x_stand[rb.n_root :]
-    u = np.minimum(np.arange(1, 61) / 30.0, 1.0)[:, None]
     xs = np.repeat(last[None], 60, axis=0)
-    xs[:, rb.n_root :] += u**3 * (10 - 15 * u + 6 * u * u) * (rest - last[rb.n_root :])
+    xs[:30, rb.n_root :] = min_jerk(last[rb.n_root :], rest, 1.0, 1.0 / FPS)
+    xs[30:, rb.n_root :] = rest
     return xs
 
 
