@@ -11,9 +11,11 @@ robot's frame (``BalancePlanner.rebase``: the person's frame and the body twist 
 apply), so that the planner takes the steps (with their weight shift and ZMP plan) as it takes
 the person's:
 
-1. the body goes from where the robot last tracked it to the robot's stand pose over its
-   planted feet, still facing where its hips faced (``blend`` s, minimum jerk); the feet stay
-   where they are, a foot in the air comes down. A body twisted over its feet is not turned
+1. the body goes from where the robot is (its keypoints in the last frame, not the targets it
+   was last given: a robot that could not keep up with them, the demo's partner ending
+   mid-lunge 0.1 m and 76 deg from its targets, was swung round to them at the servos' speed
+   limit) to the robot's stand pose over its planted feet, still facing where its hips face
+   (``blend`` s, minimum jerk); the feet stay where they are, a foot in the air comes down. A body twisted over its feet is not turned
    back over them: the feet turn to it by stepping (unwinding 0.66 rad of twist on planted
    feet in 0.8-2 s, the demo's robot fell in 1-2 runs of 6);
 2. once the body has come to rest (``pause``), while a planted foot is further than
@@ -77,15 +79,14 @@ class Settle:
 
     def __iter__(self):
         st, config = self.streamer, self.config
-        last = st.last_targets
-        if not st.balance or last is None:
+        start = st.last_keypoints  # where the robot is, not the targets it was last given
+        if not st.balance or start is None:
             return
         planner = st.planner
-        start = planner.placed(last)  # the body where the robot last tracked it (twist included)
         planner.rebase()
         goal = planner.stand_over_feet(start)
         feet = planner.foot_keypoints
-        body = np.setdiff1d(np.arange(len(last)), feet[0] + feet[1])
+        body = np.setdiff1d(np.arange(len(start)), feet[0] + feet[1])
         now = start.copy()
         turn = abs(_turn(start, goal, st.robot.root_keypoint, feet))
         n = self._frames(max(config.blend, 1.875 * turn / config.turn_speed))  # min-jerk peak: 1.875 x mean speed

@@ -419,6 +419,14 @@ class StreamingRetargeter:
         """The last frame's targets (K, 3) as given to :meth:`step` (None before the first)."""
         return self._last_in
 
+    @property
+    def last_keypoints(self) -> np.ndarray | None:
+        """Where the robot's keypoints are (K, 3) in the last frame, in the frame its
+        configurations are given in (None before the first)."""
+        if self._x1 is None:
+            return None
+        return np.array(self.robot.f_keypoints(self._x1)).T
+
     def settle(self):
         """After the last frame: an iterable of the frames x (nx,) that step the robot back to
         its own stance and bring it to rest, made as they are taken, with the robot's steps in

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from bench.stepping_leaders import turning_leader
+from dualflow.motion import REST_POSE, Motion
 from retarget.robot import load_robot
 from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x
 from retarget.targets import make_targets
@@ -54,6 +55,37 @@ def test_every_settle_frame_is_inside_the_joint_range_and_speed_limits(op3, turn
     assert np.all(xs >= op3.x_lower - 1e-9) and np.all(xs <= op3.x_upper + 1e-9)
     vmax = np.concatenate([op3.root_velocity_limits, op3.velocity_limits]) / FPS
     assert np.all(np.abs(np.diff(xs, axis=0)) <= vmax + 1e-9)
+
+
+def _hip_heading(rb, x) -> float:
+    """Where the robot's hips face (rad about the vertical) in configuration x."""
+    kp = np.array(rb.f_keypoints(x)).T
+    across = kp[rb.keypoint_names.index("left_hip"), 0:2] - kp[rb.keypoint_names.index("right_hip"), 0:2]
+    return float(np.arctan2(-across[0], across[1]))
+
+
+def test_the_settle_starts_from_where_the_robot_is_not_from_its_last_targets(op3):
+    """The person's body snaps round 1.5 rad in the last three frames, faster than the robot may
+    turn: the stream ends with the robot's body 1.1 rad short of its targets. The settle starts
+    from the robot's own pose, so its stand pose faces where the robot faces; started from the
+    last targets (as before) it turned the robot 1.1 rad further round over its planted feet
+    (the demo's generated partner ended mid-lunge 0.1 m and 76 deg from its targets, and the
+    settle swung the robot's body round at the servos' speed limit)."""
+    T = 40
+    turn = np.zeros(T)
+    turn[-3:] = (0.5, 1.0, 1.5)
+    pos = np.repeat(REST_POSE[None], T, axis=0)
+    root = pos[:, :1, 0:2].copy()
+    rel = pos[:, :, 0:2] - root
+    c, s = np.cos(turn)[:, None], np.sin(turn)[:, None]
+    pos[:, :, 0] = root[:, :, 0] + c * rel[:, :, 0] - s * rel[:, :, 1]
+    pos[:, :, 1] = root[:, :, 1] + s * rel[:, :, 0] + c * rel[:, :, 1]
+    st = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
+    tg = make_targets(op3, Motion(pos, FPS, name="snap"))
+    X = [st.step(tg.keypoints[t], tg.contacts[t]) for t in range(T)]
+    assert abs(_hip_heading(op3, X[-1]) - 1.5) > 0.8  # the robot could not follow the snap
+    settle = list(st.settle())
+    assert abs(_hip_heading(op3, settle[-1]) - _hip_heading(op3, X[-1])) < 0.15
 
 
 def _stop_ramp(rb, last: np.ndarray) -> np.ndarray:
