@@ -512,6 +512,28 @@ def test_a_person_hopping_away_is_not_chased_by_leaning(op3):
     assert any(c["what"] == "flight" for c in traj.meta["changes"])
 
 
+def test_a_quick_side_stepper_is_not_chased_by_pitching(op3):
+    """Side-stepping 0.18 m at 130 bpm, the person puts a foot down while the robot's same foot
+    is still in the air and lifts the other: no foot is down and planted for a few frames each
+    step. The person's travel then is not followed (as in the air), so the robot, which has
+    nothing to lean forward for, stays upright (it pitched 7.2 deg after the running targets)."""
+    from bench.stepping_leaders import sidestep_leader
+    from retarget.targets import make_targets
+
+    motion = sidestep_leader(6.0, 0.18, bpm=130.0)
+    st = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
+    tg = make_targets(op3, motion)
+    unshared, xs = 0, []
+    for t in range(motion.n_frames):
+        down = np.asarray(tg.contacts[t], bool)
+        unshared += int(t > 0 and down.any() and not (down & st.planted).any())
+        xs.append(st.step(tg.keypoints[t], tg.contacts[t]))
+    assert unshared >= 5  # the case this is about happens
+    _, quat = op3.kin.root_pose(np.array(xs))
+    pitch = np.degrees(np.abs(2 * np.arctan2(quat[:, 2], quat[:, 0])))
+    assert pitch.max() < 4.0, pitch.max()
+
+
 def test_step_timing_that_cannot_work_is_one_error_naming_the_field(op3):
     for kw, field in (
         ({"swing_speed": 0.0}, "swing_speed"),
