@@ -15,9 +15,10 @@ the person's:
    was last given: a robot that could not keep up with them, the demo's partner ending
    mid-lunge 0.1 m and 76 deg from its targets, was swung round to them at the servos' speed
    limit) to the robot's stand pose over its planted feet, still facing where its hips face
-   (``blend`` s, minimum jerk); the feet stay where they are, a foot in the air comes down. A body twisted over its feet is not turned
-   back over them: the feet turn to it by stepping (unwinding 0.66 rad of twist on planted
-   feet in 0.8-2 s, the demo's robot fell in 1-2 runs of 6);
+   (``blend`` s, minimum jerk); the feet stay where they are, a foot in the air comes down.
+   A body twisted over its feet is not turned back over them: the feet turn to it by
+   stepping (unwinding 0.66 rad of twist on planted feet in 0.8-2 s, the demo's robot fell
+   in 1-2 runs of 6);
 2. once the body has come to rest (``pause``), while a planted foot is further than
    ``tolerance`` m (the planner's ``step_distance``) or ``turn_tolerance`` rad from where that
    stance puts it, it is lifted and put there (each foot in turn, at most ``max_steps`` steps;
