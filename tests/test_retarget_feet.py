@@ -190,3 +190,20 @@ def test_op3_torso_shell_and_its_handles_are_held_by_the_forearms_capsules(op3):
                 and float(segment_distance_sq(p, p, np.asarray(c.p0), np.asarray(c.p1))) <= (c.radius + 1e-6) ** 2
             ]
             assert inside, (name, p)
+
+
+def test_op3_forearms_keep_a_wider_margin_from_the_legs_than_from_the_body(op3):
+    """The legs' servos sag under the body's weight (a knee 0.16 rad more bent than commanded),
+    so an arm hanging beside a leg touched the thigh in physics, 2-4 mm deep, with the capsules
+    4 mm apart: every forearm-leg pair uses the forearm widened by 8 mm (same segment, same
+    body), while the torso pairs keep the forearm itself."""
+    for side in "lr":
+        arm, wide = op3.capsules[f"{side}_forearm"], op3.capsules[f"{side}_forearm_legs"]
+        assert wide.body == arm.body
+        assert np.allclose(wide.p0, arm.p0) and np.allclose(wide.p1, arm.p1)
+        assert wide.radius >= arm.radius + 0.008 - 1e-9
+        legs = {b for a, b in op3.collision_pairs if a == f"{side}_forearm_legs"}
+        assert legs == {f"{side}_thigh", f"{side}_shin", f"{side}_hip_servos"}
+        body = {b for a, b in op3.collision_pairs if a == f"{side}_forearm"}
+        assert not body & {f"{s}_{p}" for s in "lr" for p in ("thigh", "shin", "hip_servos")}
+        assert "torso" in body
