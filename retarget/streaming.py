@@ -393,7 +393,6 @@ class StreamingRetargeter:
         """Forget the history (the next frame is solved from the stand pose)."""
         self._x1 = None
         self._x2 = None
-        self._last_in = None
         self._anchor[:] = 0.0
         self._contact = np.zeros(2, dtype=bool)
         if self.planner is not None:
@@ -413,11 +412,6 @@ class StreamingRetargeter:
         self._residual(self._x1)
         if self._has_feet:
             self._anchor[:] = self._solebuf[0:2, :]
-
-    @property
-    def last_targets(self) -> np.ndarray | None:
-        """The last frame's targets (K, 3) as given to :meth:`step` (None before the first)."""
-        return self._last_in
 
     @property
     def last_keypoints(self) -> np.ndarray | None:
@@ -535,7 +529,6 @@ class StreamingRetargeter:
             )
         cfg = self.config
         first = self._x1 is None
-        self._last_in = targets.copy()
         if self.balance:
             targets = self.planner.anchor(targets, contact, first)
             if first:  # start standing: feet at the robot's own stance under the person's pelvis

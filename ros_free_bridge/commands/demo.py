@@ -139,7 +139,7 @@ def live_robot_line(motion, fall_tilt_deg: float) -> tuple[bool, str]:
     own; the live one differs by the run's timing, and near a fall the two can part."""
     if motion is None or motion.n_frames == 0:
         return False, "live virtual robot: not recorded"
-    w, x, y, _ = np.asarray(motion.root_quat, dtype=np.float64).T
+    _, x, y, _ = np.asarray(motion.root_quat, dtype=np.float64).T
     tilt = np.degrees(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
     over = np.flatnonzero(tilt > fall_tilt_deg)
     if len(over):
