@@ -24,12 +24,12 @@ from dualflow.motion import REST_POSE, Motion
 from dualflow.synthetic import _ARM_DOWN, _BodyPlan, _synthesise
 
 
-def _leader(name: str, seconds: float, fps: float, bpm: float, heading, centre) -> Motion:
+def _leader(name: str, seconds: float, fps: float, bpm: float, heading, centre, arm_raise: float = 0.15) -> Motion:
     n = max(int(round(seconds * fps)), 2)
     period = 60.0 / bpm
     first_beat = 0.5 * period
     beats = first_beat - period + period * np.arange(int(np.ceil((seconds + 2 * period) / period)) + 2)
-    arms = lambda t: np.full(np.shape(t), _ARM_DOWN + 0.15)  # noqa: E731
+    arms = lambda t: np.full(np.shape(t), _ARM_DOWN + arm_raise)  # noqa: E731
     plan = _BodyPlan(centre=centre, heading=heading, arm_left=arms, arm_right=arms, beat_times=beats, first_foot=0)
     times = np.arange(n) / fps
     body = _synthesise(plan, times, period, 0.0)
@@ -70,9 +70,11 @@ def walking_leader(
     fps: float = 30.0,
     bpm: float = 100.0,
     lead_in: float = 1.0,
+    arm_raise: float = 0.15,
 ) -> Motion:
     """Walks forward at ``speed`` m/s after ``lead_in`` s of stepping on the spot (turning at
-    ``turn_rate`` rad/s while walking: a circle)."""
+    ``turn_rate`` rad/s while walking: a circle). The arms hang ``arm_raise`` rad out from
+    relaxed (negative: pressed against the thighs)."""
 
     def heading(t):
         return turn_rate * np.maximum(np.asarray(t, dtype=np.float64) - lead_in, 0.0)
@@ -87,7 +89,8 @@ def walking_leader(
         px, py = np.cumsum(v * np.cos(h) * dt), np.cumsum(v * np.sin(h) * dt)
         return np.stack([np.interp(t, grid, px), np.interp(t, grid, py)], axis=-1)
 
-    return _leader(f"synthetic_walk_{speed:g}m_s_{turn_rate:g}rad_s", seconds, fps, bpm, heading, centre)
+    name = f"synthetic_walk_{speed:g}m_s_{turn_rate:g}rad_s"
+    return _leader(name, seconds, fps, bpm, heading, centre, arm_raise)
 
 
 def sidestep_leader(seconds: float = 8.0, amplitude: float = 0.12, fps: float = 30.0, bpm: float = 90.0) -> Motion:
