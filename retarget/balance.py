@@ -128,16 +128,14 @@ class BalancePlanner:
         """How much shorter than configured the next step's phases are (``pace_floor`` .. 1): the
         person's step period (frames between its last two lift-offs, either foot, or since the
         last one if longer) against the robot's configured cycle (``min_double`` + ``step_shift``
-        + ``min_swing``). A person stepping faster than :data:`CHASE_LIMIT` allows is not chased:
-        the configured pace (1)."""
+        + ``min_swing``). A person stepping faster than the quickest pace is followed at it, and
+        the steps the robot has no time for are skipped."""
         cfg = self.config
         lifts = self._person_lifts
         if cfg.pace_floor >= 1.0 or len(lifts) < 2:
             return 1.0
         cycle = (cfg.min_double + cfg.step_shift + cfg.min_swing) * self.fps
         period = max(lifts[-1] - lifts[-2], self._frame - lifts[-1])
-        if period < CHASE_LIMIT * cfg.pace_floor * cycle:
-            return 1.0  # not chased: the robot skips steps either way, and at its quickest it fell
         return min(1.0, max(cfg.pace_floor, period / cycle))
 
     def bind(self, anchor: np.ndarray, edges, points, point_w, cpred, zmp, lift) -> None:
@@ -728,13 +726,6 @@ def _keys(frames: list, points: list) -> tuple[np.ndarray, np.ndarray]:
         out_f.append(f)
         out_p.append(p)
     return np.array(out_f), np.array(out_p, dtype=float)
-
-
-#: a person whose step period is below this share of the robot's quickest cycle (``pace_floor`` x
-#: the configured one) is not chased: the robot steps at its configured pace and skips the steps
-#: it has no time for. Measured on op3 (16 generated duets stepping 3.4 times a second with
-#: 0.17 s swings): chased at the quickest pace, 3 fell or hit themselves; not chased, none
-CHASE_LIMIT = 0.85
 
 
 def _check_step_timing(cfg, fps: float) -> None:

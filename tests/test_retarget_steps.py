@@ -149,15 +149,19 @@ def test_the_robot_quickens_its_pace_to_a_person_stepping_quickly(op3):
     assert sum(result.metrics["stances"]) - len(result.metrics["stances"]) >= 0.8 * person
 
 
-def test_a_person_faster_than_the_quickest_pace_is_not_chased(op3):
-    """4 steps a second is beyond the robot's quickest pace (2.7): it keeps its configured pace
-    (the same steps as with pace_floor 1) and reports the steps it skipped; 3 a second it chases."""
+def test_a_person_faster_than_the_quickest_pace_is_followed_at_it(op3):
+    """4 steps a second is beyond the robot's quickest pace (2.7): it steps at that pace, more
+    often than at its configured one, reports the steps it skipped and stays up in MuJoCo. (It
+    once went back to its configured pace here: at its quickest it fell in 3 of 16 quick
+    generated duets, before the soft capsule buffer.)"""
+    from sim.check import CheckConfig, check_trajectory
+
     motion = walking_leader(6.0, 0.0, bpm=240.0)
     steps, traj = _streamed_steps(op3, motion)
-    assert steps == _streamed_steps(op3, motion, pace_floor=1.0)[0]
+    assert steps >= _streamed_steps(op3, motion, pace_floor=1.0)[0] + 2
     assert sum(c["what"] == "step skipped" for c in traj.meta["changes"]) >= leader_steps(motion.contacts) - steps - 2
-    three = walking_leader(6.0, 0.0, bpm=180.0)
-    assert _streamed_steps(op3, three)[0] > _streamed_steps(op3, three, pace_floor=1.0)[0] + 3
+    result = check_trajectory(traj, CheckConfig(mode="free"))
+    assert result.passed, result.failures
 
 
 @pytest.mark.parametrize("index", range(6))
