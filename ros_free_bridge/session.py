@@ -549,7 +549,10 @@ def _save_outputs(result: SessionResult, pipeline, transport, emu) -> None:
         result.actor = Motion(np.asarray(pipeline.actor_positions), MOTION_FPS, name="actor")
         save_motion(result.actor, out / "actor.npz")
     if pipeline.partner_positions:
-        result.partner = Motion(np.asarray(pipeline.partner_positions), MOTION_FPS, name="partner")
+        # with the foot contacts the robot's retargeter was given, so that the file replays the run
+        known = all(c is not None for c in pipeline.partner_contacts)
+        contacts = np.asarray(pipeline.partner_contacts, dtype=bool) if known else None
+        result.partner = Motion(np.asarray(pipeline.partner_positions), MOTION_FPS, contacts=contacts, name="partner")
         save_motion(result.partner, out / "partner.npz")
     sim_transport = transport.transports[0] if hasattr(transport, "transports") else transport
     if hasattr(sim_transport, "recorded_trajectory"):

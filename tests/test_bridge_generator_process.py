@@ -85,6 +85,10 @@ def test_messages_round_trip_through_a_pipe_in_pieces():
         decode_target(got[1][1], 19)  # a joint count mismatch is caught, not misread
     settle = decode_target(encode_target(PartnerTarget(13, target.q, pos, float("nan"), 24, 0.0, 0.0, settle=True)), 20)
     assert (settle.held, settle.settle) == (False, True) and np.isnan(settle.arrival)
+    assert back.contacts is None and settle.contacts is None  # none given, none invented
+    for contacts in ([True, False, False, True], [False, True, True, False], [False] * 4):
+        t = PartnerTarget(14, target.q, pos, 1.0, 25, 0.0, 0.0, contacts=np.array(contacts))
+        assert decode_target(encode_target(t), 20).contacts.tolist() == contacts
     assert rx.receive(0.1) == [] and rx.eof
     rx.close()
 

@@ -47,6 +47,8 @@ def test_demo_writes_every_output(tmp_path, capsys):
     # frame; read raw: an untrained model's partner is not human-sized)
     with np.load(out / "partner.npz", allow_pickle=False) as partner:
         assert partner["positions"].shape == (n, 22, 3)
+        # ... with the foot contacts the robot's retargeter was given, so the file replays the run
+        assert partner["contacts"].shape == (n, 4) and partner["contacts"].dtype == bool
     robot = RobotTrajectory.load_npz(out / "robot.npz")
     assert robot.joint_names == tel.joint_names and robot.n_frames == len(tel.records) + 1
     assert check["robot"] == "op3" and isinstance(check["passed"], bool)

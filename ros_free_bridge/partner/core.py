@@ -34,6 +34,8 @@ class PartnerTarget:
     rt_latency: float
     held: bool = False
     settle: bool = False
+    #: the partner's foot contacts (4,) bool that the retargeter was given (None: none)
+    contacts: np.ndarray | None = None
 
 
 class PartnerCore:
@@ -72,6 +74,7 @@ class PartnerCore:
         self._arrivals: dict[int, float] = {}  # actor index -> arrival, for frames not yet used as c(i)
         self._last_q: np.ndarray | None = None
         self._last_pos: np.ndarray | None = None
+        self._last_contacts: np.ndarray | None = None
         self._last_index = -1  # the last target's index
         self._last: tuple[float, int] = (0.0, -1)
 
@@ -127,8 +130,9 @@ class PartnerCore:
         skipped = restart_at - r.next_index
         held = []
         if self._last_q is not None:
+            last = (self._last_q, self._last_pos)
             held = [
-                PartnerTarget(k, self._last_q, self._last_pos, arrival, newest, float("nan"), 0.0, True)
+                PartnerTarget(k, *last, arrival, newest, float("nan"), 0.0, True, contacts=self._last_contacts)
                 for k in range(r.next_index, restart_at)
             ]
         self.frames_dropped += skipped
@@ -248,4 +252,7 @@ class PartnerCore:
         q = self.retarget.step(positions, contacts)
         rt = time.perf_counter() - t0
         self._last_q, self._last_pos, self._last_index = q, np.asarray(positions), index
-        return PartnerTarget(index, q, np.asarray(positions), arrival, actor_frame, gen_latency, rt)
+        self._last_contacts = None if contacts is None else np.asarray(contacts, dtype=bool)
+        return PartnerTarget(
+            index, q, np.asarray(positions), arrival, actor_frame, gen_latency, rt, contacts=self._last_contacts
+        )

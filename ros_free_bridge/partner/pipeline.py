@@ -58,6 +58,7 @@ class PartnerPipeline:
         self.actor_positions: list[np.ndarray] = []
         self.actor_arrivals: list[float] = []  #: record: monotonic arrival of each actor frame
         self.partner_positions: list[np.ndarray] = []
+        self.partner_contacts: list[np.ndarray | None] = []  #: record: the contacts the retargeter got
 
     @property
     def frames_dropped(self) -> int:
@@ -146,4 +147,5 @@ class PartnerPipeline:
                 continue
             if self.record:
                 self.partner_positions.append(t.positions)
+                self.partner_contacts.append(t.contacts)
             self.frames_out += 1

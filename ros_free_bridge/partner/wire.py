@@ -99,10 +99,14 @@ def decode_actor(payload: bytes) -> ActorFrame:
 
 
 def encode_target(t: PartnerTarget) -> bytes:
-    """A T message's body: a target's indices and timing, q (n,) rad, partner positions (22, 3) m."""
+    """A T message's body: a target's indices, timing and flags (held, settle, the partner's
+    foot contacts), q (n,) rad, partner positions (22, 3) m."""
     q = np.ascontiguousarray(t.q, dtype="<f8")
     pos = np.ascontiguousarray(t.positions, dtype="<f8").reshape(N_POS)
-    head = TARGET.pack(t.index, t.actor_frame, t.arrival, t.gen_latency, t.rt_latency, int(t.held) | int(t.settle) << 1)
+    flags = int(t.held) | int(t.settle) << 1
+    if t.contacts is not None:  # bit 2: contacts known; bits 3-6: the four contacts
+        flags |= 4 | sum(int(bool(c)) << (3 + i) for i, c in enumerate(np.asarray(t.contacts).reshape(4)))
+    head = TARGET.pack(t.index, t.actor_frame, t.arrival, t.gen_latency, t.rt_latency, flags)
     return head + q.tobytes() + pos.tobytes()
 
 
@@ -115,4 +119,5 @@ def decode_target(payload: bytes, n_joints: int) -> PartnerTarget:
     index, actor_frame, arrival, gen, rt, flags = TARGET.unpack_from(payload)
     q = np.frombuffer(payload, "<f8", n_joints, TARGET.size).copy()
     pos = np.frombuffer(payload, "<f8", N_POS, TARGET.size + 8 * n_joints).reshape(22, 3).copy()
-    return PartnerTarget(index, q, pos, arrival, actor_frame, gen, rt, bool(flags & 1), bool(flags & 2))
+    contacts = np.array([bool(flags >> (3 + i) & 1) for i in range(4)]) if flags & 4 else None
+    return PartnerTarget(index, q, pos, arrival, actor_frame, gen, rt, bool(flags & 1), bool(flags & 2), contacts)
