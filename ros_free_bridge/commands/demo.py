@@ -10,8 +10,9 @@ the bridge's control loop drives the MuJoCo virtual robot and, at the same time,
 - ``demo.mp4``: the human leader, the generated partner and the robot, side by side;
 - ``check.json`` / ``check.md`` (+ plots): the physics check of the commands the robot received;
 - ``telemetry.dftl`` (+ ``.events.jsonl``): every control tick;
-- ``actor.npz``, ``partner.npz``, ``robot.npz``, ``music.wav``; and a printed summary
-  (frames, latency, safety interventions, the physics check's PASS/FAIL).
+- ``actor.npz``, ``partner.npz`` (with the foot contacts the robot's retargeter was given, so
+  that retargeting it again gives the robot's run), ``robot.npz``, ``music.wav``; and a printed
+  summary (frames, latency, safety interventions, the physics check's PASS/FAIL).
 
 Progress is shown for each of the three steps. No downloads, no hardware, no GPU; about a
 minute on a 2-core CPU with the defaults.
