@@ -85,6 +85,8 @@ def test_full_run_ramps_in_streams_and_ramps_out(tmp_path):
     assert len(tel.records) == summary.ticks
     np.testing.assert_allclose(tel.records["command"], cmds[1:].astype(np.float32))  # [0]: goal = present
     assert [e["kind"] for e in tel.events][-1] == "end"
+    for field in ("imu_gyro", "imu_accel", "imu_quat"):  # a transport without an IMU: none recorded, not zeros
+        assert np.isnan(tel.records[field]).all(), field
 
 
 def test_estop_mid_run_goes_limp_at_once_and_telemetry_is_complete(tmp_path):

@@ -181,6 +181,11 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     assert np.all(np.abs(np.diff(cmd, axis=0)) <= limits.max_velocity * 0.01 + 1e-5)
     events = [e["kind"] for e in read_telemetry(tmp_path / "t.dftl").events]
     assert "stabilizer" in events
+    # ... and the IMU sample it used, each tick: the virtual robot standing upright, still
+    quat, accel = rec["imu_quat"].astype(float), rec["imu_accel"].astype(float)
+    assert np.allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-4)
+    assert np.all(np.abs(quat[:, 1:3]) < 0.1)  # tilted less than about 11 degrees
+    assert abs(np.median(accel[:, 2]) - 9.81) < 0.5 and np.all(np.isfinite(rec["imu_gyro"]))
 
 
 def test_a_robot_without_an_imu_site_reads_its_body_rate_in_the_body_frame():

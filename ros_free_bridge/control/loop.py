@@ -606,6 +606,7 @@ class ControlLoop:
         self._faults |= faults
         self.summary.ticks += 1
         if self.telemetry is not None:
+            imu = state.imu
             self.telemetry.record(
                 t=tick.woke - self._t_start,
                 tick=tick.index,
@@ -615,6 +616,9 @@ class ControlLoop:
                 command=command,
                 correction=0.0 if correction is None else correction,
                 measured=state.position,
+                imu_gyro=np.nan if imu is None else imu.gyro,
+                imu_accel=np.nan if imu is None else imu.accel,
+                imu_quat=np.nan if imu is None else imu.quat,
                 intervention=flags,
                 state=int(self.state),
                 faults=int(faults),

@@ -44,6 +44,11 @@ def tick_dtype(n_joints: int) -> np.dtype:
             ("correction", "<f4", (n,)),  # the balance stabilizer's change to the target (0: off)
             ("command", "<f4", (n,)),  # what was sent
             ("measured", "<f4", (n,)),  # present positions read this tick (NaN if not read)
+            # the IMU sample read this tick, as the stabilizer got it (firmware_cfg.readings.ImuReading,
+            # the IMU's frame; NaN: no IMU): rate rad/s, specific force m/s², orientation w, x, y, z
+            ("imu_gyro", "<f4", (3,)),
+            ("imu_accel", "<f4", (3,)),
+            ("imu_quat", "<f4", (4,)),
             ("intervention", "u1", (n,)),  # safety.Intervention flags per joint
             ("state", "u1"),  # bridge state code (see loop.State)
             ("faults", "<u4"),  # fault bit flags (see loop.Fault)
