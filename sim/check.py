@@ -11,6 +11,7 @@ the bridge's balance stabilizer. Reference: docs/simulation.md.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -82,6 +83,14 @@ class CheckConfig:
     # balance feedback, as in the bridge's loop (module docstring); gains None: scaled to the robot
     stabilizer: bool = True
     stabilizer_gains: StabilizerGains | None = None
+    # control ticks between the readings the stabilizer gets and the command it makes: 1 as the
+    # bridge's split-phase bus gives them, 0 as the virtual robot does (its readings are fresh)
+    reading_age: int = 1
+    # None: each stabilized command moves no faster than the reference or the servo. Else a
+    # callable making, for one play, the bridge's safety filter (q (n,) -> q (n,)), which each
+    # stabilized command of the clip goes through as in the bridge's loop; the stabilizer's
+    # correction is then recorded before it, as the loop's telemetry records it
+    command_filter: object = None
 
     def validate(self) -> None:
         for name in ("control_hz", "physics_hz"):
@@ -111,6 +120,10 @@ class CheckConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise SimError(f"check config: {name} must be >= 0, got {v!r}")
+        if not (isinstance(self.reading_age, int) and self.reading_age >= 0):
+            raise SimError(f"check config: reading_age must be a whole number of ticks >= 0, got {self.reading_age!r}")
+        if self.command_filter is not None and not callable(self.command_filter):
+            raise SimError("check config: command_filter must be None or a callable that makes a filter")
 
 
 @dataclass
@@ -181,7 +194,8 @@ class CheckResult:
             "notes": list(self.notes),
             "metrics": self.metrics,
             "joint_names": list(self.joint_names),
-            "config": asdict(self.config),
+            # the command filter is code, not a setting: named by whether there was one
+            "config": {**asdict(self.config), "command_filter": self.config.command_filter is not None},
         }
 
 
@@ -524,23 +538,30 @@ class Checker:
 
     def _stabilized_commands(self, rec: _Recording):
         """Yield each tick's command: the reference through the stabilizer, fed with the readings
-        of one tick before (as the bridge's split-phase bus gives them), moving no faster than the
-        reference or the servo, whichever is faster; fills ``rec.q_cmd`` and ``rec.correction``."""
+        of ``reading_age`` ticks before (1: as the bridge's split-phase bus gives them), then
+        through ``command_filter``'s filter from the clip's first tick on (the bridge's safety
+        filter), else moving no faster than the reference or the servo, whichever is faster;
+        fills ``rec.q_cmd`` and ``rec.correction``."""
         cfg, d, r, stab, imu = self.config, self.scene.data, self.scene.robot, self.stabilizer, self.imu
         dt = 1.0 / cfg.control_hz
         q_ref = rec.q_ref
         speed = np.where(np.isfinite(r.no_load_speed), cfg.speed_tolerance * r.no_load_speed, np.inf) * dt
-        reading = (d.qpos[r.qpos_adr].copy(), imu.read(d))
+        filt = cfg.command_filter() if cfg.command_filter is not None else None
+        readings = deque(maxlen=cfg.reading_age + 1)
         for k in range(len(q_ref)):
-            fresh = (d.qpos[r.qpos_adr].copy(), imu.read(d))
+            readings.append((d.qpos[r.qpos_adr].copy(), imu.read(d)))
+            reading = readings[0]  # the oldest kept: reading_age ticks old once there are enough
             goal = stab.step(q_ref[k], reading[0], reading[1], dt)
-            reading = fresh
-            if k:
-                room = np.maximum(0.999 * speed, np.abs(q_ref[k] - q_ref[k - 1]))
-                goal = np.clip(goal, rec.q_cmd[k - 1] - room, rec.q_cmd[k - 1] + room)
+            if filt is not None and k >= rec.k0:
+                rec.correction[k] = goal - q_ref[k]  # the stabilizer's own, before the filter
+                goal = filt(goal)
+            else:
+                if k:
+                    room = np.maximum(0.999 * speed, np.abs(q_ref[k] - q_ref[k - 1]))
+                    goal = np.clip(goal, rec.q_cmd[k - 1] - room, rec.q_cmd[k - 1] + room)
+                rec.correction[k] = goal - q_ref[k]
+                stab.correction = rec.correction[k].copy()
             rec.q_cmd[k] = goal
-            rec.correction[k] = goal - q_ref[k]
-            stab.correction = rec.correction[k].copy()
             yield goal
 
     def _analyse(self, rec: _Recording) -> Series:

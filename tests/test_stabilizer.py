@@ -158,11 +158,16 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     )
     assert loop.stabilizer is not None
 
-    def produce():
+    names = list(limits.names)
+    sway = [names.index(j) for j in ("l_hip_roll", "r_hip_roll", "l_ank_roll", "r_ank_roll")]
+
+    def produce():  # standing, swaying sideways in 0.05 rad jumps every half second
         loop.ready.wait(10)
-        base = loop.safety.last_command
-        for k in range(60):
-            buf.push(TargetFrame(k, base, time.monotonic()))
+        base = loop.safety.last_command.copy()
+        for k in range(90):
+            q = base.copy()
+            q[sway] += 0.05 if (k // 15) % 2 else -0.05
+            buf.push(TargetFrame(k, q, time.monotonic()))
             time.sleep(1 / 30)
         buf.close()
 
@@ -172,7 +177,6 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     rec = read_telemetry(tmp_path / "t.dftl").records
     corr = rec["correction"].astype(float)
     assert np.abs(corr).max() > 0  # the IMU was read and used
-    names = list(limits.names)
     legs = {names.index(j) for j in ("r_ank_pitch", "l_ank_pitch", "r_ank_roll", "l_ank_roll")}
     others = [j for j in range(len(names)) if j not in legs]
     assert np.abs(corr[:, others]).max() == 0.0
@@ -181,11 +185,24 @@ def test_the_bridge_loop_stabilizes_through_the_safety_filter_and_records_the_co
     assert np.all(np.abs(np.diff(cmd, axis=0)) <= limits.max_velocity * 0.01 + 1e-5)
     events = [e["kind"] for e in read_telemetry(tmp_path / "t.dftl").events]
     assert "stabilizer" in events
-    # ... and the IMU sample it used, each tick: the virtual robot standing upright, still
+    # ... and the IMU sample it used, each tick: the virtual robot standing upright
     quat, accel = rec["imu_quat"].astype(float), rec["imu_accel"].astype(float)
     assert np.allclose(np.linalg.norm(quat, axis=1), 1.0, atol=1e-4)
     assert np.all(np.abs(quat[:, 1:3]) < 0.1)  # tilted less than about 11 degrees
     assert abs(np.median(accel[:, 2]) - 9.81) < 0.5 and np.all(np.isfinite(rec["imu_gyro"]))
+    # the check plays the same feedback as the loop did: its pre-stabilizer targets, readings as
+    # old as the transport's (the virtual robot's are fresh), then the loop's safety filter
+    from dataclasses import replace
+
+    from sim.check import CheckConfig, check_trajectory
+
+    targets, make_filter, age = read_telemetry(tmp_path / "t.dftl").loop_replay("op3")
+    assert age == 0
+    result = check_trajectory(targets, replace(CheckConfig(), reading_age=age, command_filter=make_filter), robot="op3")
+    k0 = int(np.searchsorted(result.series["t"], -1e-9))
+    gap = np.abs(result.series["correction"][k0 : k0 + len(corr)] - corr).max(axis=1)
+    # (the filtered open-loop commands with readings a tick old, the check before: 0.0077 rad)
+    assert np.quantile(gap, 0.9) < 2e-3, np.quantile(gap, 0.9)
 
 
 def test_a_robot_without_an_imu_site_reads_its_body_rate_in_the_body_frame():

@@ -27,6 +27,7 @@ import argparse
 import sys
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -174,17 +175,20 @@ def _check_commands(result, out: Path, stabilizer: bool):
     from sim.check import CheckConfig, check_trajectory
 
     tel = read_telemetry(out / "telemetry.dftl")
-    # the commands the loop would have sent without its stabilizer (its pre-stabilizer targets
-    # through its safety filter, Telemetry.open_loop_commands): the check runs its own stabilizer
-    # on its own simulated robot (off with --no-stabilizer, as in the run)
-    commands = tel.commands_trajectory(result.files.ref, without_correction=True)
+    cfg = CheckConfig(control_hz=tel.rate_hz, stabilizer=stabilizer)
+    loop = tel.loop_replay(result.files.ref) if stabilizer else None
+    if loop is not None:
+        # the loop's order: its pre-stabilizer targets, the check's stabilizer on its own simulated
+        # robot with readings as old as the run's, then the run's safety filter. (The filtered
+        # open-loop commands with readings a tick old made another controller: the check passed
+        # runs whose live robot fell in its balance feedback.)
+        commands, make_filter, age = loop
+        cfg = replace(cfg, reading_age=age, command_filter=make_filter)
+    else:
+        # the commands the loop sent without a stabilizer correction (Telemetry.open_loop_commands)
+        commands = tel.commands_trajectory(result.files.ref, without_correction=True)
     with motion_progress("[2/3] checking the robot's commands in physics", commands.duration) as tick:
-        return check_trajectory(
-            commands,
-            CheckConfig(control_hz=tel.rate_hz, stabilizer=stabilizer),
-            robot=result.files.ref,
-            on_tick=tick,
-        )
+        return check_trajectory(commands, cfg, robot=result.files.ref, on_tick=tick)
 
 
 def _print_demo_summary(result, check, reports: dict, video) -> None:

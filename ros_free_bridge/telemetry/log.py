@@ -203,6 +203,33 @@ class Telemetry:
             )
         return q, "the loop's pre-stabilizer targets through its safety filter (open loop)"
 
+    def loop_replay(self, robot: str = ""):
+        """What a check needs to play the run's balance feedback as the loop did: (the loop's
+        pre-stabilizer targets as a RobotTrajectory at the control rate, a callable making the
+        loop's safety filter (:class:`LoopFilter`) afresh, the readings' age in ticks: 1 with the
+        split-phase bus, else 0). None for a run without stabilizer corrections or without the
+        ``safety_filter`` event (then :meth:`open_loop_commands` is what there is)."""
+        from retarget import RobotTrajectory
+
+        r = self.records
+        if "correction" not in r.dtype.names or not np.any(r["correction"]):
+            return None
+        settings = _filter_settings(self)
+        if settings is None or len(r) < 2:
+            return None
+        n = len(r)
+        targets = RobotTrajectory(
+            self.joint_names,
+            r["target"].astype(np.float64),
+            np.zeros((n, 3)),
+            np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+            self.rate_hz,
+            robot,
+            {"source": "the loop's pre-stabilizer targets"},
+        )
+        age = 1 if any(e.get("kind") == "split_phase_bus" for e in self.events) else 0
+        return targets, lambda: LoopFilter(*settings), age
+
 
 #: rad: on a joint the stabilizer never corrected, the targets filtered again and the sent commands
 #: (recorded as float32) may differ by this much
@@ -255,21 +282,35 @@ def _filter_settings(tel: Telemetry):
     return float(dt), joints(event, "start"), limits, sorted(changes, key=lambda c: c[0])
 
 
-def _refilter(target: np.ndarray, dt: float, start: np.ndarray, limits, changes: list) -> np.ndarray:
-    """The targets (T, n) through a SafetyFilter of period ``dt`` s started at ``start`` with
-    ``limits``, its velocity limits replaced from record k on for each (k, max_velocity) in
-    ``changes``."""
-    from ros_free_bridge.control.safety import JointLimits, SafetyFilter
+class LoopFilter:
+    """The loop's safety filter replayed, one tick per call (q (n,) rad -> the command): a
+    SafetyFilter of period ``dt`` s started at ``start`` with ``limits``, its velocity limits
+    replaced from call k on for each (k, max_velocity) in ``changes``."""
 
-    f = SafetyFilter(limits, dt)
-    f.reset(start)
+    def __init__(self, dt: float, start: np.ndarray, limits, changes: list):
+        from ros_free_bridge.control.safety import SafetyFilter
+
+        self._filter = SafetyFilter(limits, dt)
+        self._filter.reset(start)
+        self._limits, self._pending, self._k = limits, list(changes), 0
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        from ros_free_bridge.control.safety import JointLimits
+
+        lim = self._limits
+        while self._pending and self._pending[0][0] <= self._k:
+            vmax = self._pending.pop(0)[1]
+            self._filter.limits = JointLimits(lim.names, lim.lower, lim.upper, vmax, lim.max_acceleration)
+        self._k += 1
+        return self._filter.step(q)[0]
+
+
+def _refilter(target: np.ndarray, dt: float, start: np.ndarray, limits, changes: list) -> np.ndarray:
+    """The targets (T, n) through :class:`LoopFilter`."""
+    f = LoopFilter(dt, start, limits, changes)
     out = np.empty_like(target)
-    pending = list(changes)
     for k in range(len(target)):
-        while pending and pending[0][0] <= k:
-            vmax = pending.pop(0)[1]
-            f.limits = JointLimits(limits.names, limits.lower, limits.upper, vmax, limits.max_acceleration)
-        out[k] = f.step(target[k])[0]
+        out[k] = f(target[k])
     return out
 
 
