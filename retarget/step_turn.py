@@ -37,6 +37,11 @@ def _chain(m, body: int, root: int) -> list[int]:
     return out
 
 
+def leg_bodies(robot) -> set[int]:
+    """The bodies of the robot's legs: each foot's body and its parents below the root body."""
+    return {b for foot in robot.feet for b in _chain(robot.kin.model, foot.body, robot.kin.root_body)}
+
+
 def leg_yaw_joints(robot) -> list[tuple[int, float]] | None:
     """Per foot (left, right), (index into x, sign): the hinge closest to the root among those on
     the chain from the root to that foot, not on the other foot's chain (a waist turns both

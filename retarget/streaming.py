@@ -20,6 +20,7 @@ from retarget.balance import N_EDGES, BalancePlanner
 from retarget.codegen import compiled_function
 from retarget.errors import RetargetError
 from retarget.robot import segment_distance_sq
+from retarget.step_turn import leg_bodies
 from retarget.targets import KeypointScaler, check_motion, make_targets
 from retarget.trajectory import RobotTrajectory
 
@@ -119,18 +120,6 @@ class StreamingConfig:
     step_settle: float = 0.3
     zmp_stance_inset: float = 0.015
     plan_weight: float = 3e4
-
-
-def leg_bodies(robot) -> set[int]:
-    """The bodies of the robot's legs: each foot's body and its parents below the root body."""
-    parent, root = robot.kin.model.body_parentid, robot.kin.root_body
-    out = set()
-    for foot in robot.feet:
-        b = foot.body
-        while b not in (root, 0):
-            out.add(int(b))
-            b = int(parent[b])
-    return out
 
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:

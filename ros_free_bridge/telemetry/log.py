@@ -148,16 +148,24 @@ class Telemetry:
         left at the origin, upright: a free robot is placed on the ground by whoever plays it.
         ``without_correction``: the commands the loop would have sent without its balance
         stabilizer (:meth:`open_loop_commands`), for a check that runs its own stabilizer."""
-        from retarget import RobotTrajectory
-
-        n = len(self.records)
-        if n < 2:
-            raise BridgeError("telemetry: fewer than 2 ticks were recorded; nothing to replay or check")
+        self._require_ticks()
         source = "telemetry commands"
         if without_correction:
             q, source = self.open_loop_commands()
         else:
             q = self.records["command"].astype(np.float64)
+        return self._trajectory(q, robot, source)
+
+    def _require_ticks(self) -> None:
+        if len(self.records) < 2:
+            raise BridgeError("telemetry: fewer than 2 ticks were recorded; nothing to replay or check")
+
+    def _trajectory(self, q: np.ndarray, robot: str, source: str):
+        """Joint angles (T, n) rad at the control rate as a RobotTrajectory, the root left at the
+        origin, upright."""
+        from retarget import RobotTrajectory
+
+        n = len(q)
         return RobotTrajectory(
             self.joint_names,
             q,
@@ -167,6 +175,11 @@ class Telemetry:
             robot,
             {"source": source},
         )
+
+    def _corrected(self) -> bool:
+        """The stabilizer changed some tick's target."""
+        r = self.records
+        return "correction" in r.dtype.names and bool(np.any(r["correction"]))
 
     def open_loop_commands(self) -> tuple[np.ndarray, str]:
         """(commands (T, n) rad, how they were found): what the loop's safety filter made of its
@@ -182,7 +195,7 @@ class Telemetry:
         targets must give the recorded commands back."""
         r = self.records
         command = r["command"].astype(np.float64)
-        if "correction" not in r.dtype.names or not np.any(r["correction"]):
+        if not self._corrected():
             return command, "telemetry commands (no stabilizer correction)"
         correction = r["correction"].astype(np.float64)
         settings = _filter_settings(self)
@@ -209,23 +222,12 @@ class Telemetry:
         loop's safety filter (:class:`LoopFilter`) afresh, the readings' age in ticks: 1 with the
         split-phase bus, else 0). None for a run without stabilizer corrections or without the
         ``safety_filter`` event (then :meth:`open_loop_commands` is what there is)."""
-        from retarget import RobotTrajectory
-
-        r = self.records
-        if "correction" not in r.dtype.names or not np.any(r["correction"]):
+        self._require_ticks()
+        settings = _filter_settings(self) if self._corrected() else None
+        if settings is None:
             return None
-        settings = _filter_settings(self)
-        if settings is None or len(r) < 2:
-            return None
-        n = len(r)
-        targets = RobotTrajectory(
-            self.joint_names,
-            r["target"].astype(np.float64),
-            np.zeros((n, 3)),
-            np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
-            self.rate_hz,
-            robot,
-            {"source": "the loop's pre-stabilizer targets"},
+        targets = self._trajectory(
+            self.records["target"].astype(np.float64), robot, "the loop's pre-stabilizer targets"
         )
         age = 1 if any(e.get("kind") == "split_phase_bus" for e in self.events) else 0
         return targets, lambda: LoopFilter(*settings), age
