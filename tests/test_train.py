@@ -70,6 +70,7 @@ def test_config_file_and_overrides(tmp_path):
         ("lr: fast\n", r"c\.yaml: field 'lr' must be float"),
         ("steps: 2.5\n", r"field 'steps' must be int"),
         ("warmup_steps: -1\n", "warmup_steps must be >= 0"),
+        ("data_workers: -2\n", "data_workers must be >= 0"),
         ("data: {rules: [tango]}\n", "unknown or empty rules"),
         ("model: {widht: 3}\n", "bad 'model' overrides"),
         ("- a\n- b\n", "must be a mapping"),

@@ -147,7 +147,7 @@ def _cache_file(config: TrainingDataConfig, split: str, cache_dir: Path) -> Path
     return cache_dir / f"synthetic_{split}_{h.hexdigest()[:16]}.npz"
 
 
-def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path) -> SyntheticSplit:
+def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path, workers: int = 0) -> SyntheticSplit:
     path = _cache_file(config, split, cache_dir)
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
@@ -155,7 +155,7 @@ def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path) -> Sy
             return SyntheticSplit(
                 z["features"], [str(t) for t in z["texts"]], z["beats"], z["rules"], z["seeds"], offsets=offsets
             )
-    out = build_split(config, split)
+    out = build_split(config, split, workers=workers)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
     np.savez(
@@ -176,6 +176,7 @@ def build_split(
     split: str = "train",
     cache_dir: str | os.PathLike | None = None,
     crop_any_split: bool = False,
+    workers: int = 0,
 ) -> SyntheticSplit:
     """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core).
 
@@ -184,11 +185,38 @@ def build_split(
     cache_dir: when given, the split is read from / written to an npz there (no pickle:
     texts are stored as a unicode array), keyed by the config and the generator's source.
     crop_any_split: crop validation clips too (:func:`crop_draw`; not cached).
+    workers: generate in this many processes (0 or 1: in this one). Every clip depends only on
+    its own seed, so the split is the same whatever the number.
     """
     if cache_dir is not None and not crop_any_split:
-        return _cached_split(config, split, Path(cache_dir))
+        return _cached_split(config, split, Path(cache_dir), workers)
     n = int(config.n_clips if split == "train" else config.val_clips)
-    frames = int(config.frames)
+    chunks = [range(a, min(n, a + _CHUNK)) for a in range(0, n, _CHUNK)] or [range(0)]
+    if int(workers) > 1 and len(chunks) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        # spawn: the trainer may already hold a CUDA context or torch threads, which fork does not survive
+        with ProcessPoolExecutor(int(workers), mp_context=multiprocessing.get_context("spawn")) as pool:
+            parts = list(pool.map(_build_clips, *zip(*[(config, split, c, crop_any_split) for c in chunks])))
+    else:
+        parts = [_build_clips(config, split, c, crop_any_split) for c in chunks]
+    return SyntheticSplit(
+        np.concatenate([q.features for q in parts]),
+        [t for q in parts for t in q.texts],
+        np.concatenate([q.beats for q in parts]),
+        np.concatenate([q.rules for q in parts]),
+        np.concatenate([q.seeds for q in parts]),
+        offsets=np.concatenate([q.offsets for q in parts]),
+    )
+
+
+_CHUNK = 256  # clips per task of a parallel build
+
+
+def _build_clips(config: TrainingDataConfig, split: str, indices: range, crop_any_split: bool) -> SyntheticSplit:
+    """Clips ``indices`` of one split (:func:`build_split`)."""
+    n, frames = len(indices), int(config.frames)
     seconds = (frames + 1) / float(config.fps)
     feats = np.empty((n, frames, 2, 262), dtype=np.float32)
     beats = np.empty((n, frames, 4), dtype=np.float32)
@@ -196,7 +224,7 @@ def build_split(
     rules = np.empty(n, dtype=np.int64)
     seeds = np.empty(n, dtype=np.int64)
     offsets = np.zeros(n, dtype=np.int64)
-    for i in range(n):
+    for k, i in enumerate(indices):
         rule_index = i % len(config.rules)
         seed = clip_seed(config, split, i)
         draw = crop_draw(config, split, seed, crop_any_split)
@@ -204,7 +232,7 @@ def build_split(
             pair = cropped_duet(
                 config.rules[rule_index], frames + 1, float(config.fps), seed, draw, varied=is_varied_clip(config, i)
             )
-            offsets[i] = draw.offset
+            offsets[k] = draw.offset
         else:
             pair = make_duet(
                 config.rules[rule_index],
@@ -218,11 +246,11 @@ def build_split(
             raise DualFlowError(
                 f"synthetic clip {i}: expected {frames} feature rows, got {f.shape[0]} (fps/frames mismatch)"
             )
-        feats[i] = f
-        beats[i] = pair.meta["beats"][:frames]
+        feats[k] = f
+        beats[k] = pair.meta["beats"][:frames]
         texts.append(pair.text)
-        rules[i] = rule_index
-        seeds[i] = seed
+        rules[k] = rule_index
+        seeds[k] = seed
     return SyntheticSplit(feats, texts, beats, rules, seeds, offsets=offsets)
 
 

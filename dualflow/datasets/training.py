@@ -137,10 +137,12 @@ def make_datasets(
     cache_dir: str | os.PathLike | None = None,
     music_kind: str | None = None,
     stats: NormStats | None = None,
+    workers: int = 0,
 ) -> tuple[DuetDataset, DuetDataset | None, NormStats]:
     """(train, val or None, NormStats fitted on the train split's raw features); cache_dir: see
     :func:`dualflow.datasets.synthetic.build_split`. stats: normalise with these instead
     (fine-tuning keeps the checkpoint's statistics; synthetic data only, :func:`widen_stats`).
+    workers: processes that generate the synthetic clips (:func:`dualflow.datasets.synthetic.build_split`).
 
     ``config.dataset`` other than "synthetic": the named dataset read from ``config.root``
     (:func:`make_training_sets`). music_kind "edge35" / "duolando54" on the synthetic duets:
@@ -157,7 +159,7 @@ def make_datasets(
         )
 
     def split_of(name: str) -> SyntheticSplit:
-        out = build_split(config, name, cache_dir)
+        out = build_split(config, name, cache_dir, workers=workers)
         return with_click_music(out, music_kind, float(config.fps)) if music_kind in ("edge35", "duolando54") else out
 
     train = split_of("train")
