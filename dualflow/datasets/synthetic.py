@@ -178,7 +178,7 @@ def build_split(
     crop_any_split: bool = False,
     workers: int = 0,
 ) -> SyntheticSplit:
-    """Generate and encode the clips of one split (about 30 ms per 2 s clip on one core).
+    """Generate and encode the clips of one split (about 5 ms per 2 s clip on one core).
 
     Features come from :func:`dualflow.motion.features.encode_pair` (actor's canonical Y-up
     frame; InterGen drops the last motion frame, hence ``frames + 1`` generated frames).
