@@ -281,9 +281,9 @@ class MiniLMEncoder:
     @torch.no_grad()
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         texts = _check_texts(texts, "MiniLMEncoder.encode")
-        bert = self._load()[0]
+        bert, tokenizer = self._load()
         out = np.zeros((len(texts), self.dim), dtype=np.float32)
-        ids_all = [self.tokenizer.encode(t) for t in texts]
+        ids_all = [tokenizer.encode(t) for t in texts]
         order = np.argsort([len(i) for i in ids_all], kind="stable")  # batch similar lengths
         for lo in range(0, len(texts), self.batch_size):
             idx = order[lo : lo + self.batch_size]

@@ -171,6 +171,9 @@ def _cached_split(config: TrainingDataConfig, split: str, cache_dir: Path, worke
     return out
 
 
+_CHUNK = 256  # clips per task of a parallel build (build_split's workers)
+
+
 def build_split(
     config: TrainingDataConfig,
     split: str = "train",
@@ -209,9 +212,6 @@ def build_split(
         np.concatenate([q.seeds for q in parts]),
         offsets=np.concatenate([q.offsets for q in parts]),
     )
-
-
-_CHUNK = 256  # clips per task of a parallel build
 
 
 def _build_clips(config: TrainingDataConfig, split: str, indices: range, crop_any_split: bool) -> SyntheticSplit:
