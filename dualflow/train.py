@@ -36,7 +36,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from dualflow.checkpoint import checkpoint_text_encoder, load_checkpoint, replace_directory, save_checkpoint
-from dualflow.datasets.config import TrainingDataConfig
+from dualflow.datasets.config import SYNTHETIC, TrainingDataConfig
 from dualflow.datasets.training import make_datasets
 from dualflow.errors import DualFlowError
 from dualflow.flow import StepSettings, TimeSampler, flow_training_step
@@ -76,6 +76,9 @@ class TrainConfig:
     (0 = off), ema_decay (0 = off), reactive_prob, look_ahead (None = model default),
     time_sampler ("uniform" | "logit_normal" with time_mean, time_std: t = sigmoid(N(mean, std));
     a negative mean shifts training towards the noise end, t = 0), cfg_drop (classifier-free-guidance drops),
+    uncued_rules (synthetic data only; empty = every duet): the follower rules whose duets may lose
+    their text in a drop; the other rules' duets keep it, so the partner made without a text cue
+    learns only these rules (e.g. [hand_hold, orbit], the two that face the leader),
     losses ("paper": flow + triplet + geometric + interaction terms of dualflow.losses with
     the synthetic rule as the triplet label; "flow": the flow loss alone), loss_weights
     (LossWeights overrides, e.g. {"sync": 0}).
@@ -112,6 +115,7 @@ class TrainConfig:
     time_mean: float = 0.0
     time_std: float = 1.0
     cfg_drop: bool = True
+    uncued_rules: tuple[str, ...] = ()
     losses: str = "paper"
     loss_weights: dict = field(default_factory=dict)
     out_dir: str = "runs/dualflow"
@@ -140,6 +144,12 @@ class TrainConfig:
         object.__setattr__(self, "data", dict(self.data or {}))
         object.__setattr__(self, "loss_weights", dict(self.loss_weights or {}))
         object.__setattr__(self, "retrieval", dict(self.retrieval or {}))
+        if isinstance(self.uncued_rules, str) or not isinstance(self.uncued_rules or (), (list, tuple)):
+            raise DualFlowError(
+                "train config: uncued_rules must be a list of rules, e.g. [hand_hold, orbit]; "
+                f"got {self.uncued_rules!r}"
+            )
+        object.__setattr__(self, "uncued_rules", tuple(self.uncued_rules or ()))
         checks = [
             (self.steps >= 1, "steps must be >= 1"),
             (self.batch_size >= 1, "batch_size must be >= 1"),
@@ -174,6 +184,24 @@ class TrainConfig:
         self.model_config()
         self.data_config()
         self.rag_config()
+        self.uncued_rule_mask()
+
+    def uncued_rule_mask(self) -> tuple[bool, ...] | None:
+        """Per data.rules entry: may its duets lose their text? None: every duet may."""
+        if not self.uncued_rules:
+            return None
+        data = self.data_config()
+        if data.dataset != SYNTHETIC:
+            raise DualFlowError(
+                f"train config: uncued_rules picks synthetic follower rules, but data.dataset is "
+                f"{data.dataset!r}; remove uncued_rules for a dataset"
+            )
+        bad = [r for r in self.uncued_rules if r not in data.rules]
+        if bad:
+            raise DualFlowError(
+                f"train config: uncued_rules {bad} are not among data.rules {list(data.rules)}; choose from those"
+            )
+        return tuple(r in self.uncued_rules for r in data.rules)
 
     def model_config(self) -> DualFlowConfig:
         try:
@@ -436,6 +464,8 @@ class Trainer:
         self.out_dir = Path(config.out_dir)
         self.model_config = config.model_config()
         self.data_config = config.data_config()
+        mask = config.uncued_rule_mask()
+        self.uncued = None if mask is None else torch.tensor(mask, device=self.ctx.device)
         self.text_encoder = checkpoint_text_encoder(
             {"text_encoder_name": config.text_encoder}, self.model_config.text_dim, config.text_cache or None
         )
@@ -721,6 +751,8 @@ class Trainer:
         drop_text = drop_music = None
         if self.config.cfg_drop:
             drop_text, drop_music = sample_condition_drop(b, gen, dev)
+            if self.uncued is not None:  # duets of the other rules keep their text
+                drop_text = drop_text & self.uncued[batch["rule"].to(dev)]
         retrieval = self._retrieval_tokens(batch, mode, drop_text, drop_music)
         return Conditions(
             text=batch["text"].to(dev),

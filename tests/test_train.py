@@ -73,6 +73,9 @@ def test_config_file_and_overrides(tmp_path):
         ("data_workers: -2\n", "data_workers must be >= 0"),
         ("data: {rules: [tango]}\n", "unknown or empty rules"),
         ("model: {widht: 3}\n", "bad 'model' overrides"),
+        ("uncued_rules: orbit\n", r"uncued_rules must be a list of rules"),
+        ("data: {rules: [mirror]}\nuncued_rules: [orbit]\n", r"uncued_rules \['orbit'\] are not among data.rules"),
+        ("data: {dataset: dd100, root: .}\nuncued_rules: [orbit]\n", "uncued_rules picks synthetic follower rules"),
         ("- a\n- b\n", "must be a mapping"),
     ],
 )
@@ -81,6 +84,26 @@ def test_bad_config_names_the_file_and_field(tmp_path, text, match):
     path.write_text(text)
     with pytest.raises(DualFlowError, match=match):
         load_train_config(path)
+
+
+def test_uncued_rules_keep_the_other_rules_text_in_every_drop(tmp_path):
+    """With uncued_rules, only those rules' duets lose their text cue; the draw of the drops
+    is unchanged, so the same samples lose their music, and without the setting every rule's
+    duets lose text (the paper's drop)."""
+    batch_rules = torch.arange(64) % 4  # data.rules: mirror, follow, hand_hold, orbit
+    drops = {}
+    for extra in ([], ["uncued_rules=[hand_hold, orbit]"]):
+        music = ["music=beats", "model.music_dim=4"]
+        trainer = Trainer(fast_config(tmp_path / str(len(extra)), "steps=1", *music, *extra))
+        batch = trainer.train_set.batch(torch.zeros(64, dtype=torch.long))
+        batch["rule"] = batch_rules
+        cond = trainer._conditions(batch, torch.Generator().manual_seed(3))
+        drops[len(extra)] = (cond.drop_text, cond.drop_music)
+    (text_all, music_all), (text_some, music_some) = drops[0], drops[1]
+    assert torch.equal(music_all, music_some)
+    assert set(batch_rules[text_all].tolist()) == {0, 1, 2, 3}  # every rule loses text somewhere
+    assert set(batch_rules[text_some].tolist()) == {2, 3}
+    assert torch.equal(text_some, text_all & (batch_rules >= 2))
 
 
 def test_missing_config_file(tmp_path):
