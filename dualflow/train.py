@@ -144,7 +144,7 @@ class TrainConfig:
         object.__setattr__(self, "data", dict(self.data or {}))
         object.__setattr__(self, "loss_weights", dict(self.loss_weights or {}))
         object.__setattr__(self, "retrieval", dict(self.retrieval or {}))
-        if isinstance(self.uncued_rules, str) or not isinstance(self.uncued_rules or (), (list, tuple)):
+        if not isinstance(self.uncued_rules or (), (list, tuple)):  # a string is neither
             raise DualFlowError(
                 "train config: uncued_rules must be a list of rules, e.g. [hand_hold, orbit]; "
                 f"got {self.uncued_rules!r}"
