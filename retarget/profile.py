@@ -20,6 +20,9 @@ import yaml
 from dualflow.motion.skeleton import JOINT_NAMES
 from retarget.errors import RetargetError
 
+#: the range of a profile's ``step_pace`` (x the streaming step phases' default lengths)
+MIN_STEP_PACE, MAX_STEP_PACE = 0.5, 4.0
+
 
 @dataclass(frozen=True)
 class KeypointSpec:
@@ -78,6 +81,10 @@ class RetargetProfile:
     #: whether the streaming retargeter (the live bridge) steps with this free-standing robot
     #: when the person steps (True), or keeps its feet planted (StreamingConfig.steps None)
     streaming_steps: bool = True
+    #: the streaming retargeter's step phases at this multiple of their lengths (StreamingConfig
+    #: step_pace None): a robot whose servos answer slowly steps at a slower pace (robot init
+    #: measures it: sim.step_probe)
+    step_pace: float = 1.0
     rigid_offsets: tuple = ("left_hip", "right_hip", "left_shoulder", "right_shoulder")
     source: str = ""
 
@@ -124,6 +131,7 @@ class RetargetProfile:
             "stand_pose",
             "rigid_offsets",
             "streaming_steps",
+            "step_pace",
         }
         unknown = sorted(set(data) - known)
         if unknown:
@@ -164,6 +172,7 @@ class RetargetProfile:
             stand_keyframe=str(data.get("stand_keyframe", "stand")),
             stand_pose=_parse_stand_pose(data, source),
             streaming_steps=_flag(data.get("streaming_steps", True), _where(source, "streaming_steps")),
+            step_pace=_step_pace(data.get("step_pace", 1.0), _where(source, "step_pace")),
             source=source,
         )
 
@@ -365,6 +374,16 @@ def _flag(v, where: str) -> bool:
     if not isinstance(v, bool):
         raise RetargetError(f"{where}: must be true or false, got {v!r}")
     return v
+
+
+def _step_pace(v, where: str) -> float:
+    x = _positive(v, where)
+    if not MIN_STEP_PACE <= x <= MAX_STEP_PACE:
+        raise RetargetError(
+            f"{where}: must be within {MIN_STEP_PACE:g}-{MAX_STEP_PACE:g} (x the step phases' default lengths), "
+            f"got {v!r}"
+        )
+    return x
 
 
 def _positive(v, where: str, allow_zero: bool = False) -> float:

@@ -927,9 +927,17 @@ ORDER = (
 
 
 def init_robot_folder(
-    mjcf: str | Path, out_dir: str | Path, name: str | None = None, force: bool = False
+    mjcf: str | Path,
+    out_dir: str | Path,
+    name: str | None = None,
+    force: bool = False,
+    probe_steps: bool = True,
+    progress=None,
 ) -> InitResult:
-    """Write ``profile.yaml``, ``hardware.yaml`` and ``README.md`` for the MJCF into ``out_dir``."""
+    """Write ``profile.yaml``, ``hardware.yaml`` and ``README.md`` for the MJCF into ``out_dir``.
+    With ``probe_steps``, a free-standing robot with feet is probed for stepping in physics
+    (:func:`sim.step_probe.choose_step_pace`; ``progress(clip name)`` before each clip) and the
+    profile's ``streaming_steps`` and ``step_pace`` written from it; else its feet stay planted."""
     from firmware_cfg.registry import HARDWARE_FILE, PROFILE_FILE, README_FILE
 
     given = Path(mjcf)
@@ -948,7 +956,13 @@ def init_robot_folder(
     files[0].write_text(_profile_text(draft))
     files[1].write_text(_hardware_text(m, draft.robot, draft.model_name, draft.rel, draft.limits))
     files[2].write_text(_readme_text(draft.model_name, model_path, given, draft.an, notes, draft.body_name))
-    _self_check(model_path, files[0])
+    robot = _self_check(model_path, files[0])
+    if probe_steps and robot.floating and robot.has_feet:
+        from sim.step_probe import choose_step_pace
+
+        steps = choose_step_pace(out.resolve(), progress=progress)
+        files[0].write_text(_profile_text(draft, steps))
+        notes.append(steps[1][-1].summary())
     return InitResult(out, model_path, files[0], files[1], files[2], draft.an, notes)
 
 
@@ -1062,7 +1076,7 @@ def _require_names(d: _ProfileDraft) -> None:
         )
 
 
-def _profile_text(d: _ProfileDraft) -> str:
+def _profile_text(d: _ProfileDraft, steps=None) -> str:
     """The profile.yaml text, with a comment on where each value came from."""
     B, an, rest = d.body_name, d.an, d.rest
     L = [
@@ -1106,15 +1120,34 @@ def _profile_text(d: _ProfileDraft) -> str:
     L.append("# Hips and shoulders at the robot's own offsets, turned with the person's pelvis and chest.")
     L.append(f"rigid_offsets: [{', '.join(rigid)}]")
     L.append("posture_weight: 0.02")
-    L.append("# The live bridge keeps the feet planted until you turn steps on (true) and")
-    L.append("# `dualflow-bridge retarget-check CLIPS --robot DIR --retargeter streaming` passes with them:")
-    L.append("# the step timing was tuned on the bundled op3; a published OP3 and G1 fell more often with them.")
-    L.append("streaming_steps: false")
+    L.extend(_steps_lines(steps))
     L.append(f"stand_keyframe: {d.stand[0]}  # {d.stand[1]}")
     if d.stand[2]:
         L.append(f"# The standing pose without that keyframe (rad), {d.stand[3]}:")
         L.append("stand_pose: {" + ", ".join(f"{k}: {_f(v)}" for k, v in d.stand[2].items()) + "}")
     return "\n".join(L) + "\n"
+
+
+def _steps_lines(steps) -> list[str]:
+    """The profile's ``streaming_steps`` (and ``step_pace``) with why: ``steps`` is
+    (pace or None, the probes run: sim.step_probe.choose_step_pace), or None (not probed)."""
+    if steps is None:
+        return [
+            "# The live bridge keeps the feet planted (robot init did not probe stepping). Turn steps on",
+            "# (true) once `dualflow-bridge retarget-check CLIPS --robot DIR --retargeter streaming`",
+            "# passes with them.",
+            "streaming_steps: false",
+        ]
+    pace, probes = steps
+    L = ["# Steps of the live bridge, measured by robot init in physics (sim/step_probe.py):"]
+    L += [f"#   {p.summary()}" for p in probes]
+    if pace is None:
+        L.append("# so the feet stay planted; turn steps on (true) only where your clips pass with them.")
+        L.append("streaming_steps: false")
+    else:
+        L.append("streaming_steps: true")
+        L.append(f"step_pace: {pace:g}  # x the step phases' default lengths (the op3's); larger is slower")
+    return L
 
 
 def _collision_lines(d: _ProfileDraft) -> list[str]:
@@ -1136,13 +1169,13 @@ def _collision_lines(d: _ProfileDraft) -> list[str]:
     return L
 
 
-def _self_check(model_path: Path, profile_path: Path) -> None:
-    """The profile just written must load against its model (else it is a bug here)."""
+def _self_check(model_path: Path, profile_path: Path):
+    """The profile just written must load against its model (else it is a bug here); returns the robot."""
     from retarget.kinematics import RobotKinematics
     from retarget.profile import RetargetProfile
     from retarget.robot import RetargetRobot
 
-    RetargetRobot(RobotKinematics.from_xml(model_path), RetargetProfile.load(profile_path))
+    return RetargetRobot(RobotKinematics.from_xml(model_path), RetargetProfile.load(profile_path))
 
 
 def _hardware_text(m, robot: str, model_name: str, rel: str, profile_limits: dict) -> str:

@@ -10,6 +10,7 @@ rules: docs/retargeting.md (sections 4 and 6).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import casadi as ca
@@ -43,6 +44,9 @@ class StreamingConfig:
     # the robot steps when the person does (False: both feet stay planted; None: the robot
     # profile's streaming_steps)
     steps: bool | None = None
+    # the step phases (min_stance, min_double, min_swing, max_swing, step_shift, step_settle) at
+    # this multiple of their lengths, swing_speed divided by it (None: the profile's step_pace)
+    step_pace: float | None = None
     balance_margin: float = 0.02  # footprints shrunk by this; the CoM, DCM and ZMP stay inside
     balance_weight: float = 1e4  # CoM outside the support region
     dcm_weight: float = 1e3  # capture point outside it
@@ -120,6 +124,25 @@ class StreamingConfig:
     step_settle: float = 0.3
     zmp_stance_inset: float = 0.015
     plan_weight: float = 3e4
+
+
+def paced(config: StreamingConfig, pace: float) -> StreamingConfig:
+    """``config`` with its step phases at ``pace`` x their lengths and the swing speed divided by
+    it (``step_pace`` set, so it is applied once)."""
+    if not (math.isfinite(pace) and pace > 0):
+        raise RetargetError(f"StreamingConfig: step_pace must be a number > 0, got {pace!r}")
+    c = config
+    return replace(
+        c,
+        step_pace=float(pace),
+        min_stance=c.min_stance * pace,
+        min_double=c.min_double * pace,
+        min_swing=c.min_swing * pace,
+        max_swing=c.max_swing * pace,
+        step_shift=c.step_shift * pace,
+        step_settle=c.step_settle * pace,
+        swing_speed=c.swing_speed / pace,
+    )
 
 
 def solve_box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int = 20) -> np.ndarray:
@@ -216,6 +239,8 @@ class StreamingRetargeter:
         self.fps = float(fps)
         if config.steps is None:
             config = replace(config, steps=robot.profile.streaming_steps)
+        if config.step_pace is None:
+            config = paced(config, robot.profile.step_pace)
         self.config = config
         self._build()
         self.reset()

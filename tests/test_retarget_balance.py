@@ -570,6 +570,37 @@ def test_steps_follow_the_robot_profile_unless_the_config_says():
         assert s.config.steps is lifts and bool((~held).any()) is lifts
 
 
+def test_the_profiles_step_pace_lengthens_the_steps_unless_the_config_says():
+    """StreamingConfig.step_pace None takes the profile's step_pace (robot init measures it):
+    at 2 the phases are twice as long and the swing half as fast, so a foot the person lifts
+    for 0.4 s lifts later on the robot and lands later; a given pace overrides the profile."""
+    import dataclasses
+
+    from retarget.robot import RetargetRobot
+    from retarget.streaming import paced
+
+    op3 = load_robot("op3")
+    slow = RetargetRobot(op3.kin, dataclasses.replace(op3.profile, step_pace=2.0))
+    base = StreamingConfig()
+    motion = person(seconds=3.0, lift=(1.0, 1.4))
+    runs = {}
+    for name, robot, pace in (("op3", op3, None), ("slow", slow, None), ("slow at 1", slow, 1.0)):
+        s, X, held = stream(robot, motion, steps=True, step_pace=pace)
+        up = np.flatnonzero(~held[:, 0])
+        assert len(up), name  # the robot steps with the person's lifted foot
+        runs[name] = (s.config, int(up[0]), int(up[-1]))
+    cfg = runs["slow"][0]
+    assert cfg.step_pace == 2.0 and cfg.min_swing == pytest.approx(2 * base.min_swing)
+    assert cfg.step_shift == pytest.approx(2 * base.step_shift)
+    assert cfg.swing_speed == pytest.approx(base.swing_speed / 2)
+    assert runs["slow at 1"][0].min_swing == pytest.approx(base.min_swing)
+    assert runs["slow at 1"][1:] == runs["op3"][1:]
+    assert runs["slow"][1] > runs["op3"][1]  # the weight shift before the lift takes longer
+    assert runs["slow"][2] > runs["op3"][2]  # ... and it lands later
+    with pytest.raises(RetargetError, match="step_pace"):
+        paced(base, 0.0)
+
+
 def test_a_brief_jitter_of_a_still_person_does_not_set_the_robots_com_swinging(op3):
     """The whole person shifts 1 cm sideways for 0.1 s and stands still again. The smoothing
     row holds the CoM to a prediction of its own motion; when that prediction kept the

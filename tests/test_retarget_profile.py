@@ -39,6 +39,8 @@ def _with(path, value):
         (("velocity_limits",), {"default": -1}, r"velocity_limits\.default.*> 0"),
         (("posture_weight",), "heavy", r"posture_weight.*number"),
         (("streaming_steps",), "yes", r"streaming_steps.*true or false"),
+        (("step_pace",), 0.1, r"step_pace: must be within 0.5-4"),
+        (("step_pace",), "slow", r"step_pace: give a number"),
     ],
 )
 def test_bad_profiles_name_the_field(path, value, match):

@@ -126,8 +126,10 @@ def cmu_pair():
     return put_on_ground(load_pair(a, b, fps=30.0))
 
 
-def init(mjcf, out, *extra) -> int:
-    return main(["robot", "init", str(mjcf), "-o", str(out), *extra])
+def init(mjcf, out, *extra, probe: bool = False) -> int:
+    """``robot init``; without ``probe`` it skips the stepping probe (sim.step_probe: 20 s on a
+    reference model), which only the tests of stepping need."""
+    return main(["robot", "init", str(mjcf), "-o", str(out), *extra, *(() if probe else ("--no-step-probe",))])
 
 
 def check(folder, capsys, *extra) -> tuple[int, list[str], str]:
@@ -317,21 +319,30 @@ def test_the_published_op3_walks_with_steps_and_gives_a_high_five_under_its_stab
     """The published OP3 has no IMU site: the stabilizer reads the torso body's own frame. Its
     rate was read in the torso's principal-inertia frame (a quarter turn about x), so the ankles
     were driven by the walking robot's yaw rate: it fell walking at 5.2 s and in the high five
-    at 2.1 s. Both are performed with the stabilizer on."""
+    at 2.1 s. Both are performed with the stabilizer on, at the step pace robot init measured
+    (its slow servos fell on one probe leader at the op3's pace: the profile says so), and the
+    robot steps as the streamed bridge would with this folder (steps and pace from the profile)."""
     from bench.gestures import gestures
     from bench.stepping_leaders import walking_leader
     from retarget.streaming import StreamingConfig, StreamingRetargeter
     from sim.check import CheckConfig, check_trajectory
 
     out = tmp_path / "pop3"
-    assert init(reference("robotis_op3"), out) == 0
+    assert init(reference("robotis_op3"), out, probe=True) == 0
+    text = (out / "profile.yaml").read_text()
+    prof = yaml.safe_load(text)
+    assert prof["streaming_steps"] is True and prof["step_pace"] > 1.0, text[-1200:]
+    assert f"at step_pace {prof['step_pace']:g}: 4 of 4 stepping leaders pass" in text
+    assert "at step_pace 1: " in text  # why it steps slower than the op3: the probe at its pace, recorded
     rb = load(out)
     high_five = next(g for g in gestures() if g.name == "gesture_high_five")
     for clip in (walking_leader(8.0, 0.3), high_five):
-        traj = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True)).run(clip)
+        traj = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True)).run(clip)
         result = check_trajectory(traj, CheckConfig(mode="free"), robot=out)
         assert result.passed, (clip.name, result.failures)
         assert result.metrics["stabilizer"]["on"], result.metrics["stabilizer"]
+        if clip is not high_five:  # 13 steps: the feet really left the floor
+            assert sum(result.metrics["stances"]) - 2 >= 8, result.metrics["stances"]
 
 
 # -- a humanoid with meaningless names ----------------------------------------------------------
@@ -420,7 +431,8 @@ def test_the_anatomy_comes_from_the_tree_and_geometry_not_the_names(toy_folder, 
     prof = yaml.safe_load((toy_folder / "profile.yaml").read_text())
     # the hip is the pitch hinge (the last of three at one point), the wrist the end of the forearm capsule
     assert "joint m3" in (toy_folder / "profile.yaml").read_text()
-    assert prof["streaming_steps"] is False  # a robot the step timing was not measured on keeps its feet planted
+    assert prof["streaming_steps"] is False  # not probed for stepping (--no-step-probe): the feet stay planted
+    assert "did not probe stepping" in (toy_folder / "profile.yaml").read_text()
     assert prof["keypoints"]["left_wrist"]["offset"] == pytest.approx([0, 0, -0.152], abs=1e-3)
     # the sole: the box's bottom face, in the foot's frame, counter-clockwise from above
     corners = np.array(prof["feet"]["left"]["corners"])

@@ -6,7 +6,10 @@
   the MJCF or the actuators' ctrlrange), a hardware-config skeleton whose unknowns (servo
   IDs, directions, offsets, port) are marked ``# FILL IN``, and a README. The model is not
   copied: the folder points to it (``mjcf:``). A scene file around the robot is replaced by
-  the robot model it includes. How it infers what: retarget/profile_init.py.
+  the robot model it includes. How it infers what: retarget/profile_init.py. A free-standing
+  robot is then probed for stepping in physics (sim/step_probe.py: stepping leaders streamed
+  with steps at slower and slower paces); the profile steps at the first pace that passes them
+  all, or keeps the feet planted (``--no-step-probe`` skips it and keeps them planted).
 - ``check DIR``: validate a robot folder and explain each problem with its fix (one line
   each); exit 0 when it is fine (left-over FILL IN markers are listed as to-dos), 2 when not.
   ``--hardware`` also fails on a missing hardware config or a marker left (before the
@@ -44,6 +47,11 @@ def register(subparsers) -> None:
     q.add_argument(
         "--force", action="store_true", help="overwrite profile.yaml, hardware.yaml and README.md if present"
     )
+    q.add_argument(
+        "--no-step-probe",
+        action="store_true",
+        help="skip the stepping probe in physics (a few seconds to a minute); the feet then stay planted",
+    )
     q.set_defaults(func=run_init)
 
     c = sub.add_parser(
@@ -74,7 +82,12 @@ def register(subparsers) -> None:
 def run_init(args) -> int:
     from retarget.profile_init import init_robot_folder
 
-    res = init_robot_folder(args.mjcf, args.out, name=args.name, force=args.force)
+    def progress(clip: str) -> None:
+        print(f"  probing steps in physics: {clip}", file=sys.stderr, flush=True)
+
+    res = init_robot_folder(
+        args.mjcf, args.out, name=args.name, force=args.force, probe_steps=not args.no_step_probe, progress=progress
+    )
     print(f"robot folder {res.folder} for {res.mjcf}:")
     for path in (res.profile, res.hardware, res.readme):
         print(f"  {path}")
