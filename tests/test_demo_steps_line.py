@@ -67,3 +67,27 @@ def test_the_live_robot_line_names_a_fall_the_replayed_check_may_not_see():
     upright = RobotTrajectory(("j",), np.zeros((231, 1)), np.zeros((231, 3)), quat[:231], fps, "op3", {})
     fell, line = live_robot_line(upright, 50.0)
     assert not fell and "stayed up (largest torso tilt 45 deg)" in line, line
+
+
+def test_the_steps_line_says_why_a_robot_keeps_its_feet_planted(tmp_path):
+    """A robot folder whose profile says streaming_steps: false (robot init, after its robot fell
+    with steps in the probe) takes no steps in the demo: the line names the file that says so.
+    The bundled op3 steps, and gets no such note."""
+    import shutil
+
+    from firmware_cfg.registry import BUNDLED_DIR
+    from ros_free_bridge.commands.demo import planted_note
+
+    assert planted_note("op3") == ""
+    folder = tmp_path / "flatfoot"
+    shutil.copytree(BUNDLED_DIR / "op3", folder)
+    prof = folder / "profile.yaml"
+    prof.write_text(prof.read_text() + "streaming_steps: false\n")
+    note = planted_note(folder)
+    assert "keeps its feet planted" in note and str(prof) in note, note
+    from dualflow.synthetic import make_leader
+
+    still = np.repeat(make_leader(1.0, 30.0, seed=0).positions[:1], 30, axis=0)
+    path = tmp_path / "partner.npz"
+    save_motion(Motion(still, 30.0, name="partner"), path)
+    assert steps_line(path, _Check(), planted=note).endswith(note)

@@ -127,7 +127,7 @@ def demo(args) -> int:
             video = render_video(result, out / "demo.mp4", on_tick=tick)
 
     _print_demo_summary(result, check, reports, video)
-    print(steps_line(out / "partner.npz", check, result.pipeline_info.get("settle_steps", 0)))
+    print(steps_line(out / "partner.npz", check, result.pipeline_info.get("settle_steps", 0), planted_note(args.robot)))
     fell, line = live_robot_line(result.robot_motion, check.config.fall_tilt_deg)
     print(line)
     print(f"done in {time.monotonic() - t_start:.0f} s")
@@ -208,12 +208,28 @@ def _print_demo_summary(result, check, reports: dict, video) -> None:
         print(f"video: {video}")
 
 
-def steps_line(partner_file: Path, check, settle_steps: int = 0) -> str:
+def planted_note(robot) -> str:
+    """Why the robot does not step, where its profile keeps its feet planted (``streaming_steps:
+    false``: robot init writes it for a robot that fell with steps in its probe); else ""."""
+    from firmware_cfg.registry import resolve
+    from retarget.profile import RetargetProfile
+
+    path = resolve(robot).profile
+    if path is None or RetargetProfile.load(path).streaming_steps:
+        return ""
+    return (
+        f"the robot keeps its feet planted: {path} says streaming_steps: false (the comment above it "
+        "says why; robot init writes it for a robot that fell with steps in its stepping probe)"
+    )
+
+
+def steps_line(partner_file: Path, check, settle_steps: int = 0, planted: str = "") -> str:
     """The partner's steps (touch-downs of its detected foot contacts) next to the robot's
     (its feet's lift-offs in the physics check: sim's stances per foot, less one), less the
     ``settle_steps`` it took returning to its stance after the stream (named). Touch-downs
     that end a jump (both of the partner's feet up) are named: the robot keeps its feet down
-    through a jump, so it has no step there to match."""
+    through a jump, so it has no step there to match. ``planted``: why the robot keeps its
+    feet planted (:func:`planted_note`), added to the line."""
     from dualflow.motion.io import load_any
     from retarget.schedule import count_steps
     from retarget.targets import detect_contacts, side_contacts
@@ -232,7 +248,8 @@ def steps_line(partner_file: Path, check, settle_steps: int = 0) -> str:
             f" ({landings} of them landing from {jumps} jump{'s' if jumps > 1 else ''}, {airborne:.2f} s in the air,"
             " which the robot stands through)"
         )
-    return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics){after}"
+    why = f"; {planted}" if planted else ""
+    return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics){after}{why}"
 
 
 def jump_landings(contacts, fps: float) -> tuple[int, int, float]:
