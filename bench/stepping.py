@@ -311,16 +311,16 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                     f"zmp in {100 * z0:.0f} %"
                 )
                 if args.physics:
-                    from sim.check import CheckConfig, check_trajectory
+                    from sim.check import CheckConfig, check_trajectory, lift_offs
 
                     res = check_trajectory(traj, CheckConfig(mode="free"), robot=ref)
                     s["phys"].append(res.passed)
-                    lift_offs = sum(res.metrics.get("stances", [])) - len(res.metrics.get("stances", []))
-                    s["lift_offs"] += lift_offs
+                    lifts = lift_offs(res.metrics)
+                    s["lift_offs"] += lifts
                     t0 = float(traj.meta.get("t0_s", 0.0))  # the lead-in's length (the check's times are clip times)
                     after = f"{res.first_failure_time:.2f} s after the clip's start" if not res.passed else ""
                     note += ", physics " + ("pass" if res.passed else f"{res.reason} at {after}")
-                    note += f", {lift_offs} lift-offs"
+                    note += f", {lifts} lift-offs"
                     if t0:
                         note += f" (lead-in {t0:.2f} s)"
             elif args.physics:

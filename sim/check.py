@@ -200,6 +200,11 @@ class CheckResult:
 
 
 # -- input -----------------------------------------------------------------
+def lift_offs(metrics: dict) -> int:
+    """How often a foot left the floor in a check (its ``metrics``): each foot's stances less one."""
+    return sum(max(0, int(n) - 1) for n in metrics.get("stances") or [])
+
+
 def load_trajectory(path) -> RobotTrajectory:
     """Read a trajectory npz; any problem becomes a SimError naming the file."""
     path = Path(path)

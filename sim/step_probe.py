@@ -70,26 +70,25 @@ def probe_steps(
     from retarget.schedule import count_steps
     from retarget.streaming import StreamingConfig, StreamingRetargeter, paced
     from retarget.targets import make_targets
-    from sim.check import CheckConfig, check_trajectory
+    from sim.check import CheckConfig, check_trajectory, lift_offs
 
     rb = load_robot(robot)
     ref = robot_ref(robot)
+    fps = 30.0
+    streamer = StreamingRetargeter(rb, fps, paced(StreamingConfig(balance=True, steps=True), pace))
     clips = []
     for seed in seeds:
-        motion = make_leader(seconds=seconds, fps=30.0, seed=int(seed))
+        motion = make_leader(seconds=seconds, fps=fps, seed=int(seed))
         if progress is not None:
             progress(motion.name)
-        streamer = StreamingRetargeter(rb, motion.fps, paced(StreamingConfig(balance=True, steps=True), pace))
-        traj = streamer.run(motion)
-        res = check_trajectory(traj, CheckConfig(mode="free"), robot=ref)
-        stances = res.metrics.get("stances") or []
+        res = check_trajectory(streamer.run(motion), CheckConfig(mode="free"), robot=ref)
         clips.append(
             ProbeClip(
                 motion.name,
                 bool(res.passed),
                 str(res.reason),
                 None if res.passed else float(res.first_failure_time),
-                int(sum(stances) - len(stances)),
+                lift_offs(res.metrics),
                 int(count_steps(make_targets(rb, motion).contacts)),
             )
         )

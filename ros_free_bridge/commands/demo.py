@@ -233,8 +233,9 @@ def steps_line(partner_file: Path, check, settle_steps: int = 0, planted: str = 
     from dualflow.motion.io import load_any
     from retarget.schedule import count_steps
     from retarget.targets import detect_contacts, side_contacts
+    from sim.check import lift_offs
 
-    robot = sum(max(0, n - 1) for n in check.metrics.get("stances") or []) - settle_steps
+    robot = lift_offs(check.metrics) - settle_steps
     after = f", and {settle_steps} returning to its stance after the stream" if settle_steps else ""
     try:
         motion = load_any(partner_file)
