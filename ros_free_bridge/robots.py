@@ -5,7 +5,7 @@ and, derived from them, the limits the bridge enforces.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -95,3 +95,54 @@ def model_limits(robot, default_acceleration: float = DEFAULT_MAX_ACCELERATION) 
         robot.velocity_limits,
         np.full(len(robot.joint_names), default_acceleration),
     )
+
+
+def loop_limits(files: RobotFiles) -> JointLimits:
+    """The limits the bridge's loop drives robot ``files`` with: its hardware config's
+    (:func:`bridge_limits`) when it has one, else its model's (:func:`model_limits`: a model
+    just brought in, simulated or recorded)."""
+    if files.hardware is not None:
+        return bridge_limits(files.hardware_config())
+    from retarget.robot import load_robot
+
+    return model_limits(load_robot(files.mjcf, files.profile))
+
+
+def check_command_filter(robot, control_hz: float):
+    """A :class:`sim.check.CheckConfig` ``command_filter`` for ``robot`` (a bundled name, a robot
+    folder or an MJCF): the safety filter of the bridge's loop at ``control_hz``, with the
+    limits it drives that robot with (:func:`loop_limits`), so that the physics check plays a
+    trajectory as the bridge would send it. BridgeError names a robot it cannot resolve."""
+    from ros_free_bridge.control.safety import SafetyFilter
+
+    files = resolve_robot(robot)
+    limits = loop_limits(files)
+    dt = 1.0 / float(control_hz)
+
+    def make(joint_names, start):
+        missing = [n for n in joint_names if n not in limits.names]
+        if missing:
+            raise BridgeError(f"robot {files.ref}: the bridge's limits have no joints {missing}")
+        idx = np.array([limits.names.index(n) for n in joint_names])
+        lim = JointLimits(
+            tuple(joint_names),
+            limits.lower[idx],
+            limits.upper[idx],
+            limits.max_velocity[idx],
+            limits.max_acceleration[idx],
+        )
+        f = SafetyFilter(lim, dt)
+        f.reset(start)
+        return lambda q: f.step(q)[0]
+
+    return make
+
+
+def bridge_check_config(robot, **fields):
+    """A :class:`sim.check.CheckConfig` with ``fields`` that plays each command through the
+    bridge's safety filter for ``robot`` (:func:`check_command_filter`): what ``check``,
+    ``render`` and ``retarget-check`` judge."""
+    from sim.check import CheckConfig
+
+    config = CheckConfig(**fields)
+    return replace(config, command_filter=check_command_filter(robot, config.control_hz))

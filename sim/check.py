@@ -87,10 +87,17 @@ class CheckConfig:
     # bridge's split-phase bus gives them, 0 as the virtual robot does (its readings are fresh)
     reading_age: int = 1
     # None: each stabilized command moves no faster than the reference or the servo. Else a
-    # callable making, for one play, the bridge's safety filter (q (n,) -> q (n,)), which each
-    # stabilized command of the clip goes through as in the bridge's loop; the stabilizer's
-    # correction is then recorded before it, as the loop's telemetry records it
+    # callable making, for one play, the bridge's safety filter: called as
+    # command_filter(joint_names, start) with the check's joint order and the command (n,) rad
+    # the clip starts from, it returns q (n,) -> q (n,), which each command of the clip goes
+    # through as in the bridge's loop (stabilized or not); the stabilizer's correction is then
+    # recorded before it, as the loop's telemetry records it.
+    # ros_free_bridge.robots.check_command_filter makes the one the bridge drives a robot with.
     command_filter: object = None
+    # with a command_filter: judge the joint and speed limits on what the trajectory asked (the
+    # reference; the filter makes the sent commands keep them) rather than on the sent commands.
+    # False where the reference is not a trajectory someone gave (a run's loop targets, replayed)
+    judge_reference: bool = True
 
     def validate(self) -> None:
         for name in ("control_hz", "physics_hz"):
@@ -399,6 +406,8 @@ class _Recording:
 class Series:
     """What the judge reads, per control tick (K ticks, judged up to ``k_run``): clip time ``t``
     (s, negative during the entry), the commands ``q_cmd`` and the stabilizer's ``correction``,
+    the commands the joint and speed limits are judged on ``q_judged`` (the reference when a
+    safety filter made the sent ones keep them and ``judge_reference`` says so, else ``q_cmd``),
     measured ``q``, ``qd`` and joint torques ``tau`` (K, n); root height, torso tilt (deg), the
     classified contacts (:class:`sim.contacts.ContactSeries`) and self-collision pairs; the
     robot-human distance; the CoM and measured-ZMP margins to the support polygon (m, + inside);
@@ -408,6 +417,7 @@ class Series:
 
     t: np.ndarray
     q_cmd: np.ndarray
+    q_judged: np.ndarray
     correction: np.ndarray
     q: np.ndarray
     qd: np.ndarray
@@ -515,7 +525,11 @@ class Checker:
         root_xpos, root_xmat, root_com = d.xpos[root], d.xmat[root], d.subtree_com[root]
         d_qpos, d_qvel, d_force, d_xpos, d_xmat = d.qpos, d.qvel, d.actuator_force, d.xpos, d.xmat
         actor, step, stop_at = sc.actor, mujoco.mj_step, K
-        stabilized = self._stabilized_commands(rec) if self.stabilizer is not None else None
+        if self.stabilizer is not None:
+            stabilized = self._stabilized_commands(rec)
+        else:
+            stabilized = None
+            self._filter_open_loop(rec)
         for k in range(K):
             goal = rec.q_cmd[k] if stabilized is None else next(stabilized)
             if ctrl is not None:
@@ -541,6 +555,20 @@ class Checker:
         rec.root_xpos, rec.root_xmat = root_xpos.copy(), root_xmat.copy()
         return rec
 
+    def _filter_start(self, rec: _Recording) -> np.ndarray:
+        """The clip's first tick's filter, started from the command before it (the entry's last)."""
+        k0 = rec.k0
+        start = rec.q_cmd[k0 - 1] if k0 else rec.q_ref[0]
+        return self.config.command_filter(tuple(self.scene.robot.joint_names), np.array(start, dtype=np.float64))
+
+    def _filter_open_loop(self, rec: _Recording) -> None:
+        """Without a stabilizer: the clip's commands through ``command_filter``'s filter (if given)."""
+        if self.config.command_filter is None or rec.k0 >= len(rec.q_cmd):
+            return
+        filt = self._filter_start(rec)
+        for k in range(rec.k0, len(rec.q_cmd)):
+            rec.q_cmd[k] = filt(rec.q_cmd[k])
+
     def _stabilized_commands(self, rec: _Recording):
         """Yield each tick's command: the reference through the stabilizer, fed with the readings
         of ``reading_age`` ticks before (1: as the bridge's split-phase bus gives them), then
@@ -551,13 +579,15 @@ class Checker:
         dt = 1.0 / cfg.control_hz
         q_ref = rec.q_ref
         speed = np.where(np.isfinite(r.no_load_speed), cfg.speed_tolerance * r.no_load_speed, np.inf) * dt
-        filt = cfg.command_filter() if cfg.command_filter is not None else None
+        filt = None
         readings = deque(maxlen=cfg.reading_age + 1)
         for k in range(len(q_ref)):
             readings.append((d.qpos[r.qpos_adr].copy(), imu.read(d)))
             reading = readings[0]  # the oldest kept: reading_age ticks old once there are enough
             goal = stab.step(q_ref[k], reading[0], reading[1], dt)
-            if filt is not None and k >= rec.k0:
+            if cfg.command_filter is not None and k == rec.k0:
+                filt = self._filter_start(rec)
+            if filt is not None:
                 rec.correction[k] = goal - q_ref[k]  # the stabilizer's own, before the filter
                 goal = filt(goal)
             else:
@@ -581,6 +611,9 @@ class Checker:
         s = Series(
             t=rec.t,
             q_cmd=rec.q_cmd,
+            # with the bridge's safety filter the sent commands keep the limits by construction:
+            # what the trajectory asked (before the clip, the entry's commands) is judged instead
+            q_judged=_asked(rec) if cfg.command_filter is not None and cfg.judge_reference else rec.q_cmd,
             correction=rec.correction,
             q=rec.qpos[:, r.qpos_adr],
             qd=rec.qvel[:, r.dof_adr],
@@ -853,7 +886,7 @@ class Checker:
     def _command_failures(self, s: Series) -> list[Failure]:
         """Commands outside the joint limits or faster than the servos' no-load speed."""
         cfg, r = self.config, self.scene.robot
-        t, q_cmd, names = s.t, s.q_cmd, r.joint_names
+        t, q_cmd, names = s.t, s.q_judged, r.joint_names
         out: list[Failure] = []
         outside = (q_cmd < r.lower - 1e-6) | (q_cmd > r.upper + 1e-6)
         if outside.any():
@@ -1050,6 +1083,11 @@ def _tipping_since(k: int, margin: np.ndarray, zmp_margin: np.ndarray, cfg: Chec
         tipping = (zmp_margin[:k] < cfg.zmp_edge_margin) | (margin[:k] < -cfg.balance_margin) | np.isnan(margin[:k])
     calm = np.flatnonzero(~tipping)
     return int(calm[-1] + 1) if len(calm) else 0
+
+
+def _asked(rec: _Recording) -> np.ndarray:
+    """The commands a trajectory asked for: the entry's, then the clip's reference (K, n)."""
+    return np.concatenate([rec.q_cmd[: rec.k0], rec.q_ref[rec.k0 :]])
 
 
 def _yaw(quat) -> float:

@@ -213,13 +213,14 @@ def _scene_placement(robot, traj, reactor, fixed: bool):
 
 def _physics_check(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     """``check.md`` and its plots in ``out``; the row's verdict (a retarget failure stays the reason)."""
-    from sim.check import CheckConfig, check_trajectory
+    from ros_free_bridge.robots import bridge_check_config
+    from sim.check import check_trajectory
     from sim.human_figure import People
     from sim.report import write_report
 
     check = check_trajectory(
         scene.traj,
-        CheckConfig(mode="fixed" if scene.fixed else "free"),
+        bridge_check_config(cfg.robot, mode="fixed" if scene.fixed else "free"),
         robot=cfg.robot,
         people=People(scene.partner, scene.placement),
     )
@@ -242,7 +243,7 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     video that cannot be made (no OpenGL) is noted in ``video_error.txt``; it never changes the row."""
     import math
 
-    from sim.check import CheckConfig
+    from ros_free_bridge.robots import bridge_check_config
     from sim.errors import SimError
     from sim.human_figure import People, Placement
     from sim.render import RenderConfig, render_trajectory
@@ -250,7 +251,7 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     traj, robot, src, partner, placement = scene.traj, scene.robot, scene.src, scene.partner, scene.placement
     fixed = scene.fixed
     w, h = cfg.video_size
-    check_cfg = CheckConfig(mode="fixed" if fixed else "free")
+    check_cfg = bridge_check_config(cfg.robot, mode="fixed" if fixed else "free")  # as _physics_check
     on_robot = placement or _scene_placement(robot, traj, src, fixed)  # the robot's person drawn on the robot
     try:
         if partner is not None:

@@ -7,6 +7,7 @@ the trajectory passes, 1 when it fails, 2 on a user error.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -49,6 +50,13 @@ def register(subparsers) -> None:
         action="store_true",
         help="play the trajectory open loop: without the balance stabilizer the bridge runs for a "
         "free-standing robot (default: with it, fed by the simulated IMU)",
+    )
+    p.add_argument(
+        "--no-safety-filter",
+        action="store_true",
+        help="play the trajectory's commands as they are: without the safety filter (joint, speed and "
+        "acceleration limits of the robot's hardware config, else its model) that the bridge passes "
+        "every command through (default: with it, as the bridge would send them)",
     )
     p.add_argument("-o", "--out", default="check_report", help="report folder (default check_report)")
     p.add_argument("--no-plots", action="store_true", help="write only the JSON report")
@@ -152,11 +160,18 @@ def run(args) -> int:
         stabilizer=not args.no_stabilizer,
     )
     from retarget.errors import RetargetError
+    from sim.check import load_trajectory
     from sim.errors import SimError
 
     try:
+        traj = load_trajectory(args.trajectory)
+        if not args.no_safety_filter:
+            from ros_free_bridge.robots import check_command_filter
+
+            robot = args.robot or traj.robot or "op3"
+            config = replace(config, command_filter=check_command_filter(robot, config.control_hz))
         result = check_trajectory(
-            args.trajectory,
+            traj,
             config,
             robot=args.robot,
             people=People(load_human(args.actor), placement_from_args(args)),

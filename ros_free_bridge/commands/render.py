@@ -52,7 +52,6 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from ros_free_bridge.commands.check import load_human, placement_from_args
-    from sim.check import CheckConfig
     from sim.human_figure import People
     from sim.render import CameraConfig, RenderConfig, render_trajectory
     from sim.report import verdict, warning_lines
@@ -66,11 +65,15 @@ def run(args) -> int:
         playback=args.playback,
         quality=args.quality,
     )
+    from ros_free_bridge.robots import bridge_check_config
+    from sim.check import load_trajectory
+
+    traj = load_trajectory(args.trajectory)
     path, result = render_trajectory(
-        args.trajectory,
+        traj,
         args.out,
         config,
-        CheckConfig(mode=args.mode),
+        bridge_check_config(args.robot or traj.robot or "op3", mode=args.mode),  # as `check` judges
         robot=args.robot,
         people=People(
             load_human(args.actor),

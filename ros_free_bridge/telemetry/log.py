@@ -230,7 +230,17 @@ class Telemetry:
             self.records["target"].astype(np.float64), robot, "the loop's pre-stabilizer targets"
         )
         age = 1 if any(e.get("kind") == "split_phase_bus" for e in self.events) else 0
-        return targets, lambda: LoopFilter(*settings), age
+        names = tuple(self.joint_names)
+
+        def make_filter(joint_names, start):  # sim.check.CheckConfig.command_filter; the run's own start
+            if tuple(joint_names) != names:
+                raise BridgeError(
+                    f"telemetry: the check's joints {tuple(joint_names)} are not the run's {names}; "
+                    "check the run with the robot it used"
+                )
+            return LoopFilter(*settings)
+
+        return targets, make_filter, age
 
 
 #: rad: on a joint the stabilizer never corrected, the targets filtered again and the sent commands
