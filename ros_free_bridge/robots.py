@@ -145,4 +145,5 @@ def bridge_check_config(robot, **fields):
     from sim.check import CheckConfig
 
     config = CheckConfig(**fields)
+    config.validate()  # a bad rate is named before the filter is made at it
     return replace(config, command_filter=check_command_filter(robot, config.control_hz))

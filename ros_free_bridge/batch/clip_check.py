@@ -17,6 +17,7 @@ from ros_free_bridge.batch.results import ClipResult
 VIDEO = "video.mp4"
 
 _ROBOT = {}
+_CHECK: dict = {}  #: (robot, fixed) -> sim.check.CheckConfig, per worker process
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,18 @@ class _Scene:
     src: object  #: dualflow Motion: the person the robot plays, as it played them (slowed alike)
     partner: object = None  #: a pair's actor (slowed alike), or None
     placement: object = None  #: sim.human_figure.Placement of the capture's people (a pair only)
+    check_config: object = None  #: sim.check.CheckConfig both play the trajectory with (_check_config)
+
+
+def _check_config(robot: str, fixed: bool):
+    """The physics check's config: the bridge's safety filter for ``robot`` (its hardware config
+    read once per worker process and robot)."""
+    key = (robot, fixed)
+    if key not in _CHECK:
+        from ros_free_bridge.robots import bridge_check_config
+
+        _CHECK[key] = bridge_check_config(robot, mode="fixed" if fixed else "free")
+    return _CHECK[key]
 
 
 def _robot(cfg: BatchConfig):
@@ -104,7 +117,7 @@ def check_clip(path, cfg: BatchConfig, name: str | None = None, actor=None, work
         if partner is not None and res.retime != 1.0:
             partner = _slowed(partner, res.retime)
         placement = None if partner is None else _scene_placement(robot, traj, src, fixed)
-        scene = _Scene(robot, fixed, traj, src, partner, placement)
+        scene = _Scene(robot, fixed, traj, src, partner, placement, _check_config(cfg.robot, fixed))
         res.stage = "check"
         _physics_check(scene, cfg, res, out)
         if cfg.video:
@@ -213,14 +226,13 @@ def _scene_placement(robot, traj, reactor, fixed: bool):
 
 def _physics_check(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     """``check.md`` and its plots in ``out``; the row's verdict (a retarget failure stays the reason)."""
-    from ros_free_bridge.robots import bridge_check_config
     from sim.check import check_trajectory
     from sim.human_figure import People
     from sim.report import write_report
 
     check = check_trajectory(
         scene.traj,
-        bridge_check_config(cfg.robot, mode="fixed" if scene.fixed else "free"),
+        scene.check_config,
         robot=cfg.robot,
         people=People(scene.partner, scene.placement),
     )
@@ -243,7 +255,6 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     video that cannot be made (no OpenGL) is noted in ``video_error.txt``; it never changes the row."""
     import math
 
-    from ros_free_bridge.robots import bridge_check_config
     from sim.errors import SimError
     from sim.human_figure import People, Placement
     from sim.render import RenderConfig, render_trajectory
@@ -251,7 +262,7 @@ def _film(scene: _Scene, cfg: BatchConfig, res: ClipResult, out: Path) -> None:
     traj, robot, src, partner, placement = scene.traj, scene.robot, scene.src, scene.partner, scene.placement
     fixed = scene.fixed
     w, h = cfg.video_size
-    check_cfg = bridge_check_config(cfg.robot, mode="fixed" if fixed else "free")  # as _physics_check
+    check_cfg = scene.check_config  # as _physics_check
     on_robot = placement or _scene_placement(robot, traj, src, fixed)  # the robot's person drawn on the robot
     try:
         if partner is not None:

@@ -7,7 +7,6 @@ the trajectory passes, 1 when it fails, 2 on a user error.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from pathlib import Path
 
 
@@ -152,7 +151,7 @@ def run(args) -> int:
     from sim.human_figure import People
     from sim.report import warning_lines, write_json, write_report
 
-    config = CheckConfig(
+    fields = dict(
         control_hz=args.control_hz,
         physics_hz=args.physics_hz,
         interpolation=args.interp,
@@ -165,11 +164,12 @@ def run(args) -> int:
 
     try:
         traj = load_trajectory(args.trajectory)
-        if not args.no_safety_filter:
-            from ros_free_bridge.robots import check_command_filter
+        if args.no_safety_filter:
+            config = CheckConfig(**fields)
+        else:
+            from ros_free_bridge.robots import bridge_check_config
 
-            robot = args.robot or traj.robot or "op3"
-            config = replace(config, command_filter=check_command_filter(robot, config.control_hz))
+            config = bridge_check_config(args.robot or traj.robot or "op3", **fields)
         result = check_trajectory(
             traj,
             config,
