@@ -8,9 +8,14 @@ model's kp, control at 100 Hz, physics at 500 Hz):
     steps; with the stabilizer (readings one tick old, as the bridge's split-phase bus gives
     them) and, as the baseline in the same run, without it (the servos alone);
   - the stabilizer's cost per tick (Stabilizer.step, CPU microseconds) next to the bridge's
-    safety filter step measured in the same run (the issue's budget: <= 100 us per tick).
+    safety filter step measured in the same run (the issue's budget: <= 100 us per tick);
+  - on stepping clips (the synthetic leaders of bench/stepping_leaders.py, streamed as the
+    bridge retargets them, checked as `check` does: the bridge's safety filter, readings one
+    tick old): clips performed without a fall and the feet's lift-offs per planned step, with
+    the default gains and, as the baseline in the same run, with the roll joints' feedback
+    kept on two feet (StabilizerGains(two_feet_roll=1), the rule before).
 
-Usage: python bench/stabilizer.py [--quick] [--max-force 60]
+Usage: python bench/stabilizer.py [--quick] [--max-force 60] [--stepping-clips leaders,quick]
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.table import Row, parse_args, script_main, verdict  # noqa: E402
 
 COST_BUDGET_US = 100.0
-QUICK = ["--max-force", "15", "--ticks", "2000"]
+QUICK = ["--max-force", "15", "--ticks", "2000", "--stepping-clips", "quick"]
 
 
 def survives(
@@ -115,10 +120,61 @@ def tick_cost_us(ticks: int) -> tuple[float, float]:
     return stab_us, safety_us
 
 
+def stepping(kinds: list[str], gains) -> tuple[int, int, int, int]:
+    """(clips, clips without a fall, the feet's lift-offs, planned steps) of the op3 on the
+    stepping leaders ``kinds`` ("leaders", "quick"), streamed and checked as ``check`` does with
+    stabilizer ``gains``."""
+    import numpy as np
+
+    from bench.stepping_leaders import leaders, quick_leaders
+    from retarget.robot import load_robot
+    from retarget.schedule import count_steps
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+    from ros_free_bridge.robots import bridge_check_config
+    from sim.check import check_trajectory, lift_offs
+
+    clips = (leaders() if "leaders" in kinds else []) + (quick_leaders() if "quick" in kinds else [])
+    rb = load_robot("op3")
+    config = bridge_check_config("op3", mode="free", stabilizer_gains=gains)
+    up = lifts = planned = 0
+    for motion in clips:
+        traj = StreamingRetargeter(rb, motion.fps, StreamingConfig(balance=True, steps=True)).run(motion)
+        res = check_trajectory(traj, config, robot="op3")
+        up += bool(res.passed or res.reason != "fall")
+        lifts += lift_offs(res.metrics)
+        planned += count_steps(np.asarray(traj.meta["contacts"], bool))
+    return len(clips), up, lifts, planned
+
+
+def _stepping_rows(kinds: list[str]) -> list[Row]:
+    from sim.stabilizer import StabilizerGains
+
+    n, up, lifts, planned = stepping(kinds, None)
+    n0, up0, lifts0, planned0 = stepping(kinds, StabilizerGains(two_feet_roll=1.0))
+    per, per0 = lifts / max(planned, 1), lifts0 / max(planned0, 1)
+    clips = ",".join(kinds)
+    print(f"  stepping clips ({clips}): {up}/{n} without a fall, {lifts} lift-offs for {planned} planned steps")
+    print(f"    baseline, the roll feedback kept on two feet: {up0}/{n0}, {lifts0} lift-offs for {planned0}")
+    what = f"op3, {n} streamed stepping leaders ({clips}), as check plays them; baseline: two_feet_roll=1"
+    return [
+        Row(f"clips without a fall, {what}", up, up0, ">= baseline", verdict(up >= up0)),
+        Row(
+            f"feet's lift-offs per planned step, {what}",
+            round(per, 3),
+            round(per0, 3),
+            "<= baseline",
+            verdict(per <= per0),
+        ),
+    ]
+
+
 def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-force", type=float, default=60.0, help="largest push tried, N (default 60)")
     ap.add_argument("--ticks", type=int, default=20000, help="ticks timed for the per-tick cost (default 20000)")
+    ap.add_argument(
+        "--stepping-clips", default="leaders,quick", help="stepping leaders checked: leaders, quick, both or none"
+    )
     args = parse_args(ap, argv, quick, QUICK)
     import sim  # noqa: F401  (MUJOCO_GL before mujoco loads)
     from sim.scene import Scene
@@ -147,6 +203,9 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                     verdict(on >= off),
                 )
             )
+    kinds = [k for k in args.stepping_clips.split(",") if k in ("leaders", "quick")]
+    if kinds:
+        out += _stepping_rows(kinds)
     stab_us, safety_us = tick_cost_us(args.ticks)
     print(f"  Stabilizer.step {stab_us:.1f} us per tick (safety filter step {safety_us:.1f} us)")
     out.append(

@@ -55,7 +55,8 @@ Figures per retargeter, over the clips (a failed retarget counts as not performe
   level footprints), and inside it with 1 cm to spare;
 - frames/s (CPU, one core);
 - with ``--physics``: sim's free-standing check as ``dualflow-bridge check`` runs it (with
-  sim's balance stabilizer where sim has it on by default): clips passed, first failure of each,
+  sim's balance stabilizer where sim has it on by default, and each command through the
+  bridge's safety filter for the robot): clips passed, first failure of each,
   and the lift-offs: how often a foot really left the floor in physics (sim's stances per foot,
   less one), next to the person's steps (a reference step can be a shuffle on the servos).
 """
@@ -311,9 +312,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                     f"zmp in {100 * z0:.0f} %"
                 )
                 if args.physics:
-                    from sim.check import CheckConfig, check_trajectory, lift_offs
+                    from ros_free_bridge.robots import bridge_check_config
+                    from sim.check import check_trajectory, lift_offs
 
-                    res = check_trajectory(traj, CheckConfig(mode="free"), robot=ref)
+                    res = check_trajectory(traj, bridge_check_config(ref, mode="free"), robot=ref)
                     s["phys"].append(res.passed)
                     lifts = lift_offs(res.metrics)
                     s["lift_offs"] += lifts
