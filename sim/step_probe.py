@@ -4,15 +4,18 @@ Contract: :func:`probe_steps` streams a few SYNTHETIC stepping leaders (:func:`d
 steps on the beat, in place or swaying, some turning or travelling) through the streaming
 retargeter with steps on (``StreamingConfig(balance=True, steps=True)``, as the live bridge runs
 a robot whose profile says ``streaming_steps: true``) and plays each through the physics check
-as ``dualflow-bridge check`` does (:func:`sim.check.check_trajectory`, free base, stabilizer on).
+(:func:`sim.check.check_trajectory`, free base, stabilizer on; ``check_config(robot)`` gives the
+check's config, as ``dualflow-bridge robot init`` passes the one ``check`` uses, with the bridge's
+safety filter: :func:`ros_free_bridge.robots.bridge_check_config`).
 :class:`StepProbe` says whether every clip passed, and per clip the verdict, the first failure
 and the steps taken. :func:`choose_step_pace` probes at slower and slower paces
 (``StreamingConfig.step_pace``) and returns the first at which every clip passes; ``robot init``
 writes the profile's ``streaming_steps`` and ``step_pace`` from it. The step timing was tuned on
-the bundled op3; measured with these probes, the published OP3 (servos with 4.5 x the op3's
-armature, answering at about 3 Hz) falls on 1 of 4 leaders at pace 1 and passes all at 2, and
-the Unitree G1 (6 cm wide soles, position servos at kp 500) falls at every pace: it keeps its feet
-planted rather than fall.
+the bundled op3; measured with these probes (as ``robot init`` runs them, with the bridge's safety
+filter), the published OP3 (servos with 4.5 x the op3's armature, answering at about 3 Hz) passes
+all 4 leaders at pace 1 (it fell on 2 at pace 1 while the stabilizer still rolled its ankles on
+two feet: sim.stabilizer.default_gains), and the Unitree G1 (6 cm wide soles, position servos at
+kp 500) falls at every pace: it keeps its feet planted rather than fall.
 """
 
 from __future__ import annotations
@@ -60,11 +63,18 @@ class StepProbe:
 
 
 def probe_steps(
-    robot, pace: float = 1.0, seeds=PROBE_SEEDS, seconds: float = PROBE_SECONDS, progress=None
+    robot,
+    pace: float = 1.0,
+    seeds=PROBE_SEEDS,
+    seconds: float = PROBE_SECONDS,
+    progress=None,
+    check_config=None,
 ) -> StepProbe:
     """Stream ``len(seeds)`` stepping leaders for ``robot`` (a bundled name or a robot folder)
     with steps on, the step phases at ``pace`` x their lengths (``StreamingConfig.step_pace``),
-    and judge each in physics (module docstring). ``progress(name)`` is called before each clip."""
+    and judge each in physics (module docstring). ``progress(name)`` is called before each clip;
+    ``check_config(robot)`` makes the check's :class:`sim.check.CheckConfig` (None: the free-base
+    defaults, commands played as they are)."""
     from dualflow.synthetic import make_leader
     from retarget.robot import load_robot, robot_ref
     from retarget.schedule import count_steps
@@ -76,12 +86,13 @@ def probe_steps(
     ref = robot_ref(robot)
     fps = 30.0
     streamer = StreamingRetargeter(rb, fps, paced(StreamingConfig(balance=True, steps=True), pace))
+    config = CheckConfig(mode="free") if check_config is None else check_config(robot)
     clips = []
     for seed in seeds:
         motion = make_leader(seconds=seconds, fps=fps, seed=int(seed))
         if progress is not None:
             progress(motion.name)
-        res = check_trajectory(streamer.run(motion), CheckConfig(mode="free"), robot=ref)
+        res = check_trajectory(streamer.run(motion), config, robot=ref)
         clips.append(
             ProbeClip(
                 motion.name,
@@ -95,12 +106,12 @@ def probe_steps(
     return StepProbe(float(pace), clips)
 
 
-def choose_step_pace(robot, paces=PROBE_PACES, progress=None) -> tuple[float | None, list]:
+def choose_step_pace(robot, paces=PROBE_PACES, progress=None, check_config=None) -> tuple[float | None, list]:
     """The first of ``paces`` at which :func:`probe_steps` passes every clip (None: none did),
     and the probes run (:class:`StepProbe`, in order)."""
     probes = []
     for pace in paces:
-        probe = probe_steps(robot, pace, progress=progress)
+        probe = probe_steps(robot, pace, progress=progress, check_config=check_config)
         probes.append(probe)
         if probe.passed:
             return float(pace), probes

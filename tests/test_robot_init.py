@@ -320,8 +320,9 @@ def test_the_published_op3_walks_with_steps_and_gives_a_high_five_under_its_stab
     rate was read in the torso's principal-inertia frame (a quarter turn about x), so the ankles
     were driven by the walking robot's yaw rate: it fell walking at 5.2 s and in the high five
     at 2.1 s. Both are performed with the stabilizer on, at the step pace robot init measured
-    (its slow servos fell on one probe leader at the op3's pace: the profile says so), and the
-    robot steps as the streamed bridge would with this folder (steps and pace from the profile)."""
+    (the probe judged as `check` does, with the bridge's safety filter; the profile records the
+    probe at that pace), and the robot steps as the streamed bridge would with this folder (steps
+    and pace from the profile)."""
     from bench.gestures import gestures
     from bench.stepping_leaders import walking_leader
     from retarget.streaming import StreamingConfig, StreamingRetargeter
@@ -331,9 +332,9 @@ def test_the_published_op3_walks_with_steps_and_gives_a_high_five_under_its_stab
     assert init(reference("robotis_op3"), out, probe=True) == 0
     text = (out / "profile.yaml").read_text()
     prof = yaml.safe_load(text)
-    assert prof["streaming_steps"] is True and prof["step_pace"] > 1.0, text[-1200:]
+    assert prof["streaming_steps"] is True and prof["step_pace"] in (1.0, 1.5, 2.0), text[-1200:]
     assert f"at step_pace {prof['step_pace']:g}: 4 of 4 stepping leaders pass" in text
-    assert "at step_pace 1: " in text  # why it steps slower than the op3: the probe at its pace, recorded
+    assert "at step_pace 1: " in text  # the probe at the op3's pace, recorded whatever it chose
     rb = load(out)
     high_five = next(g for g in gestures() if g.name == "gesture_high_five")
     for clip in (walking_leader(8.0, 0.3), high_five):

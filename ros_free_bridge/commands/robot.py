@@ -81,12 +81,22 @@ def register(subparsers) -> None:
 
 def run_init(args) -> int:
     from retarget.profile_init import init_robot_folder
+    from ros_free_bridge.robots import bridge_check_config
 
     def progress(clip: str) -> None:
         print(f"  probing steps in physics: {clip}", file=sys.stderr, flush=True)
 
+    def check_config(folder):  # the probe judges what the bridge would send, as `check` does
+        return bridge_check_config(folder, mode="free")
+
     res = init_robot_folder(
-        args.mjcf, args.out, name=args.name, force=args.force, probe_steps=not args.no_step_probe, progress=progress
+        args.mjcf,
+        args.out,
+        name=args.name,
+        force=args.force,
+        probe_steps=not args.no_step_probe,
+        progress=progress,
+        check_config=check_config,
     )
     print(f"robot folder {res.folder} for {res.mjcf}:")
     for path in (res.profile, res.hardware, res.readme):
