@@ -44,8 +44,21 @@ def check_motion(motion: Motion, min_frames: int = 2) -> None:
         )
 
 
+#: A person's foot joint is on the floor while it is within this height (m) of its rest height
+#: and moves slower than this speed (m/s, per 30 fps frame); runs and gaps shorter than
+#: CONTACT_MIN_FRAMES frames are smoothed away. sim.check counts a robot's steps by the same
+#: rule, scaled to the robot's size.
+CONTACT_HEIGHT = 0.05
+CONTACT_SPEED = 0.4
+CONTACT_MIN_FRAMES = 3
+CONTACT_FPS = 30.0
+
+
 def detect_contacts(
-    motion: Motion, height_tol: float = 0.05, speed_tol: float = 0.4, min_frames: int = 3
+    motion: Motion,
+    height_tol: float = CONTACT_HEIGHT,
+    speed_tol: float = CONTACT_SPEED,
+    min_frames: int = CONTACT_MIN_FRAMES,
 ) -> np.ndarray:
     """(T, 4) bool contact of left ankle, left toe, right ankle, right toe (InterGen's order)."""
     pos = motion.positions[:, list(FOOT_JOINTS), :]
@@ -57,10 +70,10 @@ def detect_contacts(
         vel[1:] = v
         vel[0] = v[0]
     c = (height < height_tol) & (vel < speed_tol)
-    return np.stack([_debounce(c[:, i], min_frames) for i in range(4)], axis=1)
+    return np.stack([debounce(c[:, i], min_frames) for i in range(4)], axis=1)
 
 
-def _debounce(c: np.ndarray, n: int) -> np.ndarray:
+def debounce(c: np.ndarray, n: int) -> np.ndarray:
     """Fill False gaps shorter than n between True runs, then drop True runs shorter than n."""
     c = c.copy()
     for value in (False, True):

@@ -212,6 +212,42 @@ def lift_offs(metrics: dict) -> int:
     return sum(max(0, int(n) - 1) for n in metrics.get("stances") or [])
 
 
+def steps_taken(metrics: dict) -> int:
+    """The robot's steps in a check (its ``metrics``), counted as the person's are
+    (:func:`steps_as_a_person`)."""
+    return sum(int(n) for n in metrics.get("steps") or [])
+
+
+def steps_as_a_person(sole: np.ndarray, dt: float, robot_height: float) -> list[int]:
+    """Each foot's steps, counted by the rule that counts the person's
+    (:func:`retarget.targets.detect_contacts`, :func:`retarget.schedule.count_steps`) scaled to
+    the robot: a foot is down while its sole point ``sole`` (K, F, 3) m, world, one row a tick
+    of ``dt`` s) is within 5 cm x s of where it stood at the first tick and moves slower than
+    0.4 m/s x s (over a 30 fps frame), s = the robot's height over the person's rest height;
+    ups and downs shorter than 0.1 s are smoothed away; a step is a touch-down after the first
+    tick. A foot that leaves the floor by millimetres and comes back where it was (a rebound on
+    landing, a rocking sole) is no step, as a person's shuffle below the rule is none; the raw
+    count of lift-offs is :func:`lift_offs`."""
+    from dualflow.motion.skeleton import REST_POSE
+    from retarget.schedule import count_steps
+    from retarget.targets import CONTACT_FPS, CONTACT_HEIGHT, CONTACT_MIN_FRAMES, CONTACT_SPEED, debounce
+
+    sole = np.asarray(sole, dtype=np.float64)
+    K, F = sole.shape[:2]
+    if K < 2:
+        return [0] * F
+    scale = robot_height / float(REST_POSE[:, 2].max())
+    w = max(1, int(round(1.0 / (CONTACT_FPS * dt))))  # ticks in one of the person's frames
+    speed = np.zeros((K, F))
+    if K > w:
+        speed[w:] = np.linalg.norm(sole[w:] - sole[:-w], axis=-1) / (w * dt)
+        speed[:w] = speed[w]
+    rise = sole[..., 2] - sole[0, :, 2]
+    down = (rise < CONTACT_HEIGHT * scale) & (speed < CONTACT_SPEED * scale)
+    n = max(1, int(round(CONTACT_MIN_FRAMES / (CONTACT_FPS * dt))))
+    return [count_steps(debounce(down[:, f], n)[:, None]) for f in range(F)]
+
+
 def load_trajectory(path) -> RobotTrajectory:
     """Read a trajectory npz; any problem becomes a SimError naming the file."""
     path = Path(path)
@@ -411,7 +447,8 @@ class Series:
     measured ``q``, ``qd`` and joint torques ``tau`` (K, n); root height, torso tilt (deg), the
     classified contacts (:class:`sim.contacts.ContactSeries`) and self-collision pairs; the
     robot-human distance; the CoM and measured-ZMP margins to the support polygon (m, + inside);
-    each foot's stances (:func:`_stance_slides`); the first fall tick ``fall_k``; the entry's
+    each foot's stances (:func:`_stance_slides`) and steps (:func:`steps_as_a_person`); the first
+    fall tick ``fall_k``; the entry's
     ``k0`` ticks; the standing root height; ``dt``; whether the robot stands free and a human
     is in the scene."""
 
@@ -430,6 +467,7 @@ class Series:
     margin: np.ndarray
     zmp_margin: np.ndarray
     stances: list
+    steps: list
     k_run: int
     fall_k: int | None
     k0: int
@@ -606,7 +644,8 @@ class Checker:
         xpos, root_zz = _root_pose_series(rec.qpos, r.free_qpos, rec.root_xpos, rec.root_xmat, rec.k_run)
         # each foot's sole point (Foot.sole_point, in its top body's frame) in the world: x + R p
         sole = np.array([f.sole_point for f in self.feet]).reshape(-1, 3)
-        foot_xy = (rec.foot_x + np.einsum("kfij,fj->kfi", rec.foot_R.reshape(K, -1, 3, 3), sole))[:, :, :2]
+        sole_w = rec.foot_x + np.einsum("kfij,fj->kfi", rec.foot_R.reshape(K, -1, 3, 3), sole)
+        foot_xy = sole_w[:, :, :2]
         contacts = self.contacts.classify_many(K, rec.con_count, rec.con_geom, rec.con_dist, rec.con_pos)
         s = Series(
             t=rec.t,
@@ -626,6 +665,7 @@ class Checker:
             margin=np.full(K, np.nan),
             zmp_margin=np.full(K, np.nan),
             stances=[],
+            steps=[],
             k_run=rec.k_run,
             fall_k=None,
             k0=rec.k0,
@@ -648,6 +688,7 @@ class Checker:
                 _stance_slides(on[:, i], foot_xy[: s.k_run, i], int(round(cfg.stance_gap_s / dt)))
                 for i in range(len(self.feet))
             ]
+            s.steps = steps_as_a_person(sole_w[: s.k_run], dt, sc.robot_height)
         if free:  # centre of mass, and the measured ZMP (centre of pressure), to the support polygon (+ inside)
             s.margin[: s.k_run] = contacts.support_margins(rec.com[: s.k_run, :2])
             fn = _normal_forces(rec.con_efc, rec.con_dim, rec.efc_force, m.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL)
@@ -711,6 +752,7 @@ class Checker:
             "min_human_distance_m": _finite(s.human_min[:K_run].min()) if s.has_actor else None,
             "foot_slip_m": [float(max((st[2] for st in fs), default=0.0)) for fs in s.stances],
             "stances": [len(fs) for fs in s.stances],
+            "steps": [int(n) for n in s.steps],
             "worst_stance": None
             if worst is None
             else {

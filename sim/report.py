@@ -132,6 +132,18 @@ def _foot_slip_text(m: dict) -> str:
     return slip
 
 
+def _steps_text(m: dict) -> str:
+    """The robot's steps (by the person's rule, sim.check.steps_as_a_person) and lift-offs."""
+    steps, stances = m.get("steps") or [], m.get("stances") or []
+    lifts = sum(max(0, int(n) - 1) for n in stances)
+    if not steps:
+        return f"feet off the floor: {lifts} times"
+    return (
+        f"steps (counted as a person's are, scaled to the robot): {sum(steps)} "
+        f"({', '.join(str(n) for n in steps)} per foot); feet off the floor: {lifts} times"
+    )
+
+
 def _summary_lines(result: CheckResult) -> list[str]:
     """The '## Summary' section: timing, stabilizer, contacts, human distance, slip and balance margins."""
     m = result.metrics
@@ -154,6 +166,7 @@ def _summary_lines(result: CheckResult) -> list[str]:
             f"({', '.join(f'{v:.2f}' for v in place['offset_m'])}) m, turned {place['yaw_deg']:.0f} deg"
         ),
         f"- largest slide of a foot within one stance, per foot: {slip}",
+        f"- {_steps_text(m)}",
         f"- min centre-of-mass margin: {_fmt(m['min_com_margin_m'], 1000, 'mm')}; min ZMP margin (centre of "
         f"pressure to the support edge): {_fmt(m.get('min_zmp_margin_m'), 1000, 'mm')}; max tilt "
         f"{_fmt(m['max_tilt_deg'], 1, 'deg')}",

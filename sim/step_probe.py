@@ -32,7 +32,8 @@ PROBE_PACES = (1.0, 1.5, 2.0)
 @dataclass(frozen=True)
 class ProbeClip:
     """One leader's outcome: ``passed``, the check's ``reason`` and first failure time (s, clip
-    time; None when passed), the robot's and the person's steps (touch-downs)."""
+    time; None when passed), the robot's steps in physics (counted by the person's rule:
+    :func:`sim.check.steps_as_a_person`) and the person's (touch-downs)."""
 
     name: str
     passed: bool
@@ -80,7 +81,7 @@ def probe_steps(
     from retarget.schedule import count_steps
     from retarget.streaming import StreamingConfig, StreamingRetargeter, paced
     from retarget.targets import make_targets
-    from sim.check import CheckConfig, check_trajectory, lift_offs
+    from sim.check import CheckConfig, check_trajectory, steps_taken
 
     rb = load_robot(robot)
     ref = robot_ref(robot)
@@ -99,7 +100,7 @@ def probe_steps(
                 bool(res.passed),
                 str(res.reason),
                 None if res.passed else float(res.first_failure_time),
-                lift_offs(res.metrics),
+                steps_taken(res.metrics),
                 int(count_steps(make_targets(rb, motion).contacts)),
             )
         )

@@ -9,7 +9,7 @@ from ros_free_bridge.commands.demo import jump_landings, steps_line
 
 
 class _Check:
-    metrics = {"stances": [2, 1]}  # the robot lifted its left foot once
+    metrics = {"stances": [2, 1], "steps": [1, 0]}  # the robot lifted its left foot once, a step
 
 
 def test_jump_landings_counts_the_touch_downs_that_end_a_jump():
@@ -30,7 +30,7 @@ def test_the_steps_line_names_the_partners_jump(tmp_path):
     path = tmp_path / "partner.npz"
     save_motion(Motion(hop, 30.0, name="partner"), path)
     line = steps_line(path, _Check())
-    assert "landing from 1 jump" in line and "the robot 1" in line, line
+    assert "landing from 1 jump" in line and "the robot 1 " in line, line
     save_motion(Motion(still, 30.0, name="partner"), path)
     assert "jump" not in steps_line(path, _Check())
 
@@ -41,13 +41,14 @@ def test_the_steps_line_counts_the_return_to_stance_apart(tmp_path):
     from dualflow.synthetic import make_leader
 
     class Three:
-        metrics = {"stances": [3, 2]}
+        metrics = {"stances": [3, 2], "steps": [2, 1]}
 
     still = np.repeat(make_leader(1.0, 30.0, seed=0).positions[:1], 30, axis=0)
     path = tmp_path / "partner.npz"
     save_motion(Motion(still, 30.0, name="partner"), path)
     line = steps_line(path, Three(), settle_steps=2)
     assert "the robot 1 " in line and "and 2 returning to its stance after the stream" in line, line
+    assert "they left the floor 1 time)" in line, line
     assert "returning" not in steps_line(path, Three())
 
 

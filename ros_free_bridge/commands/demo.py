@@ -227,7 +227,8 @@ def planted_note(robot) -> str:
 
 def steps_line(partner_file: Path, check, settle_steps: int = 0, planted: str = "") -> str:
     """The partner's steps (touch-downs of its detected foot contacts) next to the robot's
-    (its feet's lift-offs in the physics check: sim's stances per foot, less one), less the
+    (its feet in the physics check, counted by the partner's rule scaled to the robot:
+    :func:`sim.check.steps_as_a_person`; and how often they left the floor at all), less the
     ``settle_steps`` it took returning to its stance after the stream (named). Touch-downs
     that end a jump (both of the partner's feet up) are named: the robot keeps its feet down
     through a jump, so it has no step there to match. ``planted``: why the robot keeps its
@@ -235,9 +236,10 @@ def steps_line(partner_file: Path, check, settle_steps: int = 0, planted: str = 
     from dualflow.motion.io import load_any
     from retarget.schedule import count_steps
     from retarget.targets import detect_contacts, side_contacts
-    from sim.check import lift_offs
+    from sim.check import lift_offs, steps_taken
 
-    robot = lift_offs(check.metrics) - settle_steps
+    robot = steps_taken(check.metrics) - settle_steps
+    lifted = lift_offs(check.metrics) - settle_steps
     after = f", and {settle_steps} returning to its stance after the stream" if settle_steps else ""
     try:
         motion = load_any(partner_file)
@@ -252,7 +254,10 @@ def steps_line(partner_file: Path, check, settle_steps: int = 0, planted: str = 
             " which the robot stands through)"
         )
     why = f"; {planted}" if planted else ""
-    return f"steps: {person}, the robot {robot} (its feet lifted off the floor in physics){after}{why}"
+    return (
+        f"steps: {person}, the robot {robot} (its feet in physics, counted as the partner's are; "
+        f"they left the floor {lifted} time{'' if lifted == 1 else 's'}){after}{why}"
+    )
 
 
 def jump_landings(contacts, fps: float) -> tuple[int, int, float]:
