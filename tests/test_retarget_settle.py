@@ -100,12 +100,12 @@ def _stop_ramp(rb, last: np.ndarray) -> np.ndarray:
     return xs
 
 
-def _physics(rb, xs):
+def _physics(rb, xs, stabilizer: bool = True):
     from retarget.robot import robot_ref
     from sim.check import CheckConfig, check_trajectory
 
     traj = trajectory_from_x(rb, np.asarray(xs), FPS, {"mode": "streaming"})
-    return check_trajectory(traj, CheckConfig(mode="free"), robot=robot_ref("op3"))
+    return check_trajectory(traj, CheckConfig(mode="free", stabilizer=stabilizer), robot=robot_ref("op3"))
 
 
 @pytest.mark.slow
@@ -121,21 +121,24 @@ def test_the_stop_ramp_after_the_settle_keeps_op3_standing_in_physics(op3, turne
 @pytest.mark.slow
 def test_the_real_partner_falls_in_the_bare_stop_ramp_and_stands_after_the_settle(op3, cmu_pair_paths):
     """CMU 19_01 streamed ends with the hips turned -0.22 / 0.40 rad over the feet: the stop ramp
-    straight from there unwinds them on planted feet and the robot falls; stepping back to its
-    stance first, it stands."""
+    straight from there unwinds them on planted feet and the servos alone let the robot fall (at
+    3.99 s; the stabilizer catches it since it stopped rolling the ankles on two feet, at 16 deg of
+    tilt); stepping back to its stance first, it stands with the servos alone and stabilized."""
     from dualflow.motion.io import load_pair, put_on_ground
 
     motion = put_on_ground(load_pair(*cmu_pair_paths, fps=FPS)).reactor
     st = StreamingRetargeter(op3, FPS, StreamingConfig(balance=True))
     tg = make_targets(op3, motion)
     X = np.stack([st.step(tg.keypoints[t], tg.contacts[t]) for t in range(motion.n_frames)])
-    bare = _physics(op3, np.concatenate([X, _stop_ramp(op3, X[-1])]))
+    bare = _physics(op3, np.concatenate([X, _stop_ramp(op3, X[-1])]), stabilizer=False)
     assert not bare.passed and bare.reason == "fall" and bare.first_failure_time > motion.n_frames / FPS
     frames = st.settle()
     settle = list(frames)
     assert frames.steps >= 1
-    result = _physics(op3, np.concatenate([X, np.stack(settle), _stop_ramp(op3, settle[-1])]))
-    assert result.passed, (result.reason, result.first_failure_time)
+    settled = np.concatenate([X, np.stack(settle), _stop_ramp(op3, settle[-1])])
+    for stabilizer in (False, True):
+        result = _physics(op3, settled, stabilizer)
+        assert result.passed, (stabilizer, result.reason, result.first_failure_time)
 
 
 def test_no_settle_without_balance_or_before_the_first_frame(op3):
