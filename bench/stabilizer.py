@@ -136,9 +136,10 @@ def stepping(kinds: list[str], gains) -> tuple[int, int, int, int]:
     clips = (leaders() if "leaders" in kinds else []) + (quick_leaders() if "quick" in kinds else [])
     rb = load_robot("op3")
     config = bridge_check_config("op3", mode="free", stabilizer_gains=gains)
+    streamer = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True))  # run() resets it
     up = lifts = planned = 0
     for motion in clips:
-        traj = StreamingRetargeter(rb, motion.fps, StreamingConfig(balance=True, steps=True)).run(motion)
+        traj = streamer.run(motion)
         res = check_trajectory(traj, config, robot="op3")
         up += bool(res.passed or res.reason != "fall")
         lifts += lift_offs(res.metrics)

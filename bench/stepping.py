@@ -256,8 +256,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
             "done": 0,
             "phys": [],
             "lift_offs": 0,
-            "phys_steps": 0,  # the robot's steps in physics, counted by the person's rule
-            "phys_counts": [],  # (robot steps in physics, person steps) per clip checked
+            "phys_counts": [],  # (robot steps in physics by the person's rule, person steps) per clip checked
             "step_counts": [],  # (robot, person) per clip
         }
         for m in modes
@@ -319,14 +318,13 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
 
                     res = check_trajectory(traj, bridge_check_config(ref, mode="free"), robot=ref)
                     s["phys"].append(res.passed)
-                    lifts = lift_offs(res.metrics)
+                    lifts, taken = lift_offs(res.metrics), steps_taken(res.metrics)
                     s["lift_offs"] += lifts
-                    s["phys_steps"] += steps_taken(res.metrics)
-                    s["phys_counts"].append((steps_taken(res.metrics), person))
+                    s["phys_counts"].append((taken, person))
                     t0 = float(traj.meta.get("t0_s", 0.0))  # the lead-in's length (the check's times are clip times)
                     after = f"{res.first_failure_time:.2f} s after the clip's start" if not res.passed else ""
                     note += ", physics " + ("pass" if res.passed else f"{res.reason} at {after}")
-                    note += f", {steps_taken(res.metrics)} steps ({lifts} lift-offs)"
+                    note += f", {taken} steps ({lifts} lift-offs)"
                     if t0:
                         note += f" (lead-in {t0:.2f} s)"
             elif args.physics:
@@ -423,8 +421,10 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
                 Row(
                     f"{label}: robot steps in physics (counted by the person's rule, scaled: "
                     "sim.check.steps_as_a_person) / person steps; clips within 20 %",
-                    f"{s['phys_steps']}/{s['person']}; {sum(within)} of {len(within)}",
-                    f"{b['phys_steps']}/{b['person']}; {sum(b_within)} of {len(b_within)}" if b else "",
+                    f"{sum(r for r, _ in s['phys_counts'])}/{s['person']}; {sum(within)} of {len(within)}",
+                    f"{sum(r for r, _ in b['phys_counts'])}/{b['person']}; {sum(b_within)} of {len(b_within)}"
+                    if b
+                    else "",
                 )
             )
     return out

@@ -120,17 +120,10 @@ def check_command_filter(robot, control_hz: float):
     dt = 1.0 / float(control_hz)
 
     def make(joint_names, start):
-        missing = [n for n in joint_names if n not in limits.names]
-        if missing:
-            raise BridgeError(f"robot {files.ref}: the bridge's limits have no joints {missing}")
-        idx = np.array([limits.names.index(n) for n in joint_names])
-        lim = JointLimits(
-            tuple(joint_names),
-            limits.lower[idx],
-            limits.upper[idx],
-            limits.max_velocity[idx],
-            limits.max_acceleration[idx],
-        )
+        try:
+            lim = limits.in_order(joint_names)
+        except BridgeError as exc:
+            raise BridgeError(f"robot {files.ref}: the bridge's {exc}") from None
         f = SafetyFilter(lim, dt)
         f.reset(start)
         return lambda q: f.step(q)[0]

@@ -248,6 +248,11 @@ def steps_as_a_person(sole: np.ndarray, dt: float, robot_height: float) -> list[
     return [count_steps(debounce(down[:, f], n)[:, None]) for f in range(F)]
 
 
+def robot_of(traj: RobotTrajectory, robot=None):
+    """The robot a check of ``traj`` plays: ``robot`` if given, else the trajectory's, else op3."""
+    return robot or traj.robot or "op3"
+
+
 def load_trajectory(path) -> RobotTrajectory:
     """Read a trajectory npz; any problem becomes a SimError naming the file."""
     path = Path(path)
@@ -337,7 +342,7 @@ def scene_for(
     actor of ``people`` stands face to face with the robot's first frame unless its placement
     says otherwise; the reactor (the person the robot plays) is drawn where its placement puts
     it (None: as the file has it)."""
-    robot = robot or traj.robot or "op3"
+    robot = robot_of(traj, robot)
     people = people or People()
     return Scene(
         SceneConfig(

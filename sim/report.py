@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.check import CheckResult
+from sim.check import CheckResult, lift_offs, steps_taken
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
@@ -134,12 +134,11 @@ def _foot_slip_text(m: dict) -> str:
 
 def _steps_text(m: dict) -> str:
     """The robot's steps (by the person's rule, sim.check.steps_as_a_person) and lift-offs."""
-    steps, stances = m.get("steps") or [], m.get("stances") or []
-    lifts = sum(max(0, int(n) - 1) for n in stances)
+    steps, lifts = m.get("steps") or [], lift_offs(m)
     if not steps:
         return f"feet off the floor: {lifts} times"
     return (
-        f"steps (counted as a person's are, scaled to the robot): {sum(steps)} "
+        f"steps (counted as a person's are, scaled to the robot): {steps_taken(m)} "
         f"({', '.join(str(n) for n in steps)} per foot); feet off the floor: {lifts} times"
     )
 

@@ -159,7 +159,7 @@ def run(args) -> int:
         stabilizer=not args.no_stabilizer,
     )
     from retarget.errors import RetargetError
-    from sim.check import load_trajectory
+    from sim.check import load_trajectory, robot_of
     from sim.errors import SimError
 
     try:
@@ -169,7 +169,7 @@ def run(args) -> int:
         else:
             from ros_free_bridge.robots import bridge_check_config
 
-            config = bridge_check_config(args.robot or traj.robot or "op3", **fields)
+            config = bridge_check_config(robot_of(traj, args.robot), **fields)
         result = check_trajectory(
             traj,
             config,

@@ -66,14 +66,14 @@ def run(args) -> int:
         quality=args.quality,
     )
     from ros_free_bridge.robots import bridge_check_config
-    from sim.check import load_trajectory
+    from sim.check import load_trajectory, robot_of
 
     traj = load_trajectory(args.trajectory)
     path, result = render_trajectory(
         traj,
         args.out,
         config,
-        bridge_check_config(args.robot or traj.robot or "op3", mode=args.mode),  # as `check` judges
+        bridge_check_config(robot_of(traj, args.robot), mode=args.mode),  # as `check` judges
         robot=args.robot,
         people=People(
             load_human(args.actor),

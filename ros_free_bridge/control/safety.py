@@ -74,19 +74,25 @@ class JointLimits:
     def n(self) -> int:
         return len(self.names)
 
+    def in_order(self, names) -> JointLimits:
+        """These limits for the joints ``names``, in that order; BridgeError names any missing."""
+        missing = [n for n in names if n not in self.names]
+        if missing:
+            raise BridgeError(f"joint limits: joints {missing} are missing from the limit set ({list(self.names)})")
+        idx = np.array([self.names.index(n) for n in names], dtype=int)
+        return JointLimits(
+            tuple(names), self.lower[idx], self.upper[idx], self.max_velocity[idx], self.max_acceleration[idx]
+        )
+
     def intersect(self, other: JointLimits) -> JointLimits:
         """The tighter of two limit sets for the same joints (by name)."""
-        idx = [other.names.index(n) if n in other.names else -1 for n in self.names]
-        missing = [n for n, i in zip(self.names, idx) if i < 0]
-        if missing:
-            raise BridgeError(f"joint limits: joints {missing} are missing from the other limit set")
-        idx = np.asarray(idx)
+        o = other.in_order(self.names)
         return JointLimits(
             self.names,
-            np.maximum(self.lower, other.lower[idx]),
-            np.minimum(self.upper, other.upper[idx]),
-            np.minimum(self.max_velocity, other.max_velocity[idx]),
-            np.minimum(self.max_acceleration, other.max_acceleration[idx]),
+            np.maximum(self.lower, o.lower),
+            np.minimum(self.upper, o.upper),
+            np.minimum(self.max_velocity, o.max_velocity),
+            np.minimum(self.max_acceleration, o.max_acceleration),
         )
 
     def contains(self, q: np.ndarray, tol: float = 1e-9) -> bool:
