@@ -29,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 from dualflow.motion.skeleton import JOINT_NAMES, PARENTS
+from retarget.actuation import acceleration_limits
 from retarget.errors import RetargetError
 from retarget.kinematics import Capsule, RobotKinematics, quat_to_mat
 from retarget.profile import RetargetProfile
@@ -188,6 +189,10 @@ class RetargetRobot:
         self._bind_keypoints(src)
         self.x_lower, self.x_upper = self._position_limits(src)
         self.velocity_limits = self._velocity_limits(src)
+        #: (n_joints,) rad/s²: what each joint's servo can give its links
+        #: (:func:`retarget.actuation.acceleration_limits`); plans keep within it, and so does
+        #: the bridge's safety filter
+        self.acceleration_limits = acceleration_limits(kin.model, kin.joint_names)
         self.x_stand = self._stand_pose(src)
         self.feet: list[Foot] = [self._foot(side, src) for side in ("left", "right")] if profile.feet else []
         self.capsules: dict[str, Capsule] = self._bind_capsules(src)

@@ -286,6 +286,7 @@ class StreamingRetargeter:
         self._has_feet = rb.has_feet
         self._lo_pos, self._hi_pos = rb.x_lower.copy(), rb.x_upper.copy()
         self._vmax = np.concatenate([rb.root_velocity_limits, rb.velocity_limits]) / self.fps
+        self._amax = rb.acceleration_limits / self.fps**2  # joints only: the root has no servo
         self._sqrt_wa_fps2 = np.sqrt(cfg.accel_weight) * self.fps**2
         self._anchor = np.zeros((2, 8))
         # the first frame's long solves stop once a step gains < 1e-6 of the cost (with balance:
@@ -475,11 +476,20 @@ class StreamingRetargeter:
         return self.planner.planted if self.planner is not None else self._contact
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Position ∩ velocity bounds for the next frame."""
+        """Position ∩ velocity ∩ acceleration bounds for the next frame. The joints' step may
+        differ from the last one by the robot's ``acceleration_limits`` x frame time², so that
+        the bridge's safety filter, which enforces the same limits, sends the plan as planned;
+        where that box leaves the position ∩ velocity one (a joint coasting into its range's
+        end), the joint takes that one's nearest point to its coasting step."""
         lo, hi = self._lo_pos.copy(), self._hi_pos.copy()
         if self._x1 is not None:
             lo = np.maximum(lo, self._x1 - self._vmax)
             hi = np.minimum(hi, self._x1 + self._vmax)
+        if self._x2 is not None:
+            n = self.robot.n_root
+            coast = np.clip(2.0 * self._x1[n:] - self._x2[n:], lo[n:], hi[n:])
+            lo[n:] = np.maximum(lo[n:], coast - self._amax)  # coast is in [lo, hi]: never empty
+            hi[n:] = np.minimum(hi[n:], coast + self._amax)
         return lo, hi
 
     def _initial_guess(self, targets: np.ndarray) -> np.ndarray:

@@ -14,16 +14,16 @@ from firmware_cfg.config import RobotConfig, load_config
 from firmware_cfg.errors import ConfigError
 from firmware_cfg.registry import Robot, reference, resolve
 from firmware_cfg.servo_models import load_servo_model
+from retarget.actuation import DEFAULT_ACCELERATION
 from ros_free_bridge.control.safety import JointLimits
 from ros_free_bridge.errors import BridgeError
 
 #: Fraction of a servo's no-load speed the bridge may command (the rest is headroom
 #: for the position loop to catch up under load).
 VELOCITY_SCALE = 0.8
-#: Joint acceleration limit (rad/s²) when the hardware config sets no profile acceleration:
-#: about what brisk human arm motion scaled to a 0.5 m robot asks for, and well within what
-#: an XM430 (4 N·m) gives a small robot's light links.
-DEFAULT_MAX_ACCELERATION = 80.0
+#: Joint acceleration limit (rad/s²) for a joint whose actuator's torque its MJCF does not
+#: limit and whose servo sets no profile acceleration (:mod:`retarget.actuation`).
+DEFAULT_MAX_ACCELERATION = DEFAULT_ACCELERATION
 
 
 @dataclass(frozen=True)
@@ -57,12 +57,13 @@ def resolve_robot(robot: str | Path | Robot) -> RobotFiles:
     return RobotFiles(found.name, found.mjcf, profile, found.hardware, reference(robot), found.fixed_base)
 
 
-def bridge_limits(
-    config: RobotConfig, velocity_scale: float = VELOCITY_SCALE, default_acceleration: float = DEFAULT_MAX_ACCELERATION
-) -> JointLimits:
+def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE) -> JointLimits:
     """Position limits from the hardware config (already checked against the MJCF by
     ``load_config``), velocity from each servo model's no-load speed (or the profile
-    velocity when set and lower), acceleration from the profile or the default."""
+    velocity when set and lower), acceleration from the servo's profile acceleration, else
+    what the MJCF's actuator can give the joint's links (:mod:`retarget.actuation`, as the
+    retargeter plans with), else :data:`DEFAULT_MAX_ACCELERATION`."""
+    stall = _stall_accelerations(config.mjcf)
     lower, upper, vmax, amax = [], [], [], []
     for s in config.servos:
         lower.append(s.lower)
@@ -78,22 +79,32 @@ def bridge_limits(
                 "the bridge needs one to limit its speed"
             )
         vmax.append(v)
-        amax.append(s.profile_acceleration or default_acceleration)
+        amax.append(s.profile_acceleration or stall.get(s.joint, DEFAULT_MAX_ACCELERATION))
     return JointLimits(config.joint_names, lower, upper, vmax, amax)
 
 
-def model_limits(robot, default_acceleration: float = DEFAULT_MAX_ACCELERATION) -> JointLimits:
+def _stall_accelerations(mjcf) -> dict:
+    """:func:`retarget.actuation.stall_accelerations` of the MJCF at ``mjcf`` ({} for None)."""
+    if mjcf is None:
+        return {}
+    import mujoco
+
+    from retarget.actuation import stall_accelerations
+
+    try:
+        return stall_accelerations(mujoco.MjModel.from_xml_path(str(mjcf)))
+    except ValueError as exc:
+        raise BridgeError(f"{mjcf}: MuJoCo cannot load it ({exc})") from None
+
+
+def model_limits(robot) -> JointLimits:
     """Limits of a robot known only by its model (no hardware config: simulation or recording):
-    the joint ranges and speeds its retargeter keeps (MJCF ranges narrowed by the profile; the
-    profile's velocity limits, never above the MJCF's servo speed), the default acceleration.
-    ``robot`` is a :class:`retarget.robot.RetargetRobot`."""
+    the joint ranges, speeds and accelerations its retargeter keeps (MJCF ranges narrowed by the
+    profile; the profile's velocity limits, never above the MJCF's servo speed; what the
+    actuators can give the links). ``robot`` is a :class:`retarget.robot.RetargetRobot`."""
     n = robot.n_root
     return JointLimits(
-        tuple(robot.joint_names),
-        robot.x_lower[n:],
-        robot.x_upper[n:],
-        robot.velocity_limits,
-        np.full(len(robot.joint_names), default_acceleration),
+        tuple(robot.joint_names), robot.x_lower[n:], robot.x_upper[n:], robot.velocity_limits, robot.acceleration_limits
     )
 
 

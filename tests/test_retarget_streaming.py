@@ -94,7 +94,10 @@ def test_round_trip_keypoints_on_a_toy_humanoid():
 
 
 def test_limits_hold_on_every_frame_even_for_wild_targets():
-    """Targets that teleport and stretch: no emitted frame leaves the position or velocity box."""
+    """Targets that teleport and stretch: no emitted frame leaves the position or velocity box,
+    nor changes its joints' speed by more than the acceleration limit allows (the bridge's
+    safety filter would otherwise send a lagging copy of the plan), except where holding it
+    would carry a joint past its range."""
     rb = toy_robot()
     fps = 30.0
     s = StreamingRetargeter(rb, fps, StreamingConfig(compile=False))
@@ -109,6 +112,11 @@ def test_limits_hold_on_every_frame_even_for_wild_targets():
     lo, hi = rb.x_lower[rb.n_root :], rb.x_upper[rb.n_root :]
     assert np.all(q >= lo) and np.all(q <= hi)
     assert np.all(np.abs(np.diff(q, axis=0)) * fps <= rb.velocity_limits * (1 + 1e-12))
+    acc = np.abs(np.diff(q, n=2, axis=0)) * fps**2
+    coast = 2 * q[1:-1] - q[:-2]
+    inside = (coast >= lo) & (coast <= hi) & (np.abs(coast - q[1:-1]) <= rb.velocity_limits / fps)
+    assert inside.mean() > 0.9 and acc.max() > 0  # the check below is not vacuous
+    assert np.all(acc[inside] <= rb.acceleration_limits[np.nonzero(inside)[1]] * (1 + 1e-9))
 
 
 def test_acceleration_penalty_smooths_noisy_input():
