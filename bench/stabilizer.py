@@ -127,14 +127,13 @@ def stepping(kinds: list[str], gains) -> tuple[int, int, int, int]:
     import numpy as np
 
     from bench.stepping_leaders import leaders, quick_leaders
-    from retarget.robot import load_robot
     from retarget.schedule import count_steps
     from retarget.streaming import StreamingConfig, StreamingRetargeter
-    from ros_free_bridge.robots import bridge_check_config
+    from ros_free_bridge.robots import bridge_check_config, planning_robot
     from sim.check import check_trajectory, lift_offs
 
     clips = (leaders() if "leaders" in kinds else []) + (quick_leaders() if "quick" in kinds else [])
-    rb = load_robot("op3")
+    rb = planning_robot("op3")
     config = bridge_check_config("op3", mode="free", stabilizer_gains=gains)
     streamer = StreamingRetargeter(rb, 30.0, StreamingConfig(balance=True, steps=True))  # run() resets it
     up = lifts = planned = 0

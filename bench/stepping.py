@@ -84,11 +84,12 @@ from retarget.errors import RetargetError  # noqa: E402
 from retarget.offline import OfflineConfig, OfflineRetargeter, _Infeasible, feet_apart  # noqa: E402
 from retarget.planned import planned_trajectory  # noqa: E402
 from retarget.report import clip_targets, evaluate  # noqa: E402
-from retarget.robot import load_robot, robot_ref  # noqa: E402
+from retarget.robot import robot_ref  # noqa: E402
 from retarget.schedule import StepConfig, count_steps  # noqa: E402
 from retarget.streaming import StreamingConfig, StreamingRetargeter, trajectory_from_x  # noqa: E402
 from retarget.support import com_margins  # noqa: E402
 from retarget.targets import make_targets  # noqa: E402
+from ros_free_bridge.robots import planning_robot  # noqa: E402
 
 QUICK = ["--clips", "leaders", "--max-clips", "2"]
 GRAVITY = 9.81
@@ -165,7 +166,7 @@ def rows(quick: bool = False, argv: list[str] = ()) -> list[Row]:
     args = parse_args(ap, argv, quick, QUICK)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
-    rb = load_robot(args.robot)
+    rb = planning_robot(args.robot)  # within the loop's limits, as retarget-check plans
     ref = robot_ref(args.robot)  # the check finds a robot folder again by it, a bundled robot by name
     clips, clean = [], set()
     kinds = args.clips.split(",")

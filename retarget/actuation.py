@@ -8,8 +8,8 @@ the model's zero pose (``qpos0``), where most robots stand with straight legs an
 arms, about the most inertia each joint ever moves. A plan that asks for more is not tracked
 by the servo, and a safety filter set below it sends commands that lag the plan: on the op3,
 streamed steps with the filter at the old flat 80 rad/s² left a swing leg 0.26 rad behind at the
-hip and the feet collided (session 20's note). Joints whose actuator has no force limit get
-:data:`DEFAULT_ACCELERATION`.
+hip and the feet collided. The limit is never below :data:`DEFAULT_ACCELERATION`
+(:func:`acceleration_limits`).
 """
 
 from __future__ import annotations
@@ -55,7 +55,10 @@ def stall_accelerations(model) -> dict[str, float]:
 
 
 def acceleration_limits(model, joint_names) -> np.ndarray:
-    """(n,) rad/s² for ``joint_names``: :func:`stall_accelerations`, else
-    :data:`DEFAULT_ACCELERATION`."""
+    """(n,) rad/s² for ``joint_names``: :func:`stall_accelerations`, never below
+    :data:`DEFAULT_ACCELERATION` (a servo that cannot give its links that much at stall, such
+    as the ub14's waist and shoulders at 16-41 rad/s², still follows a person's motion, late,
+    as it did under the bridge's flat 80 rad/s²: a filter at its stall figure made CMU 19_01's
+    arm lag into the ub14's body), the default where the model limits no torque."""
     stall = stall_accelerations(model)
-    return np.array([stall.get(n, DEFAULT_ACCELERATION) for n in joint_names], dtype=float)
+    return np.array([max(stall.get(n, 0.0), DEFAULT_ACCELERATION) for n in joint_names], dtype=float)

@@ -472,6 +472,18 @@ class RetargetRobot:
         #: height of each keypoint above the lowest sole point at q = 0 (m)
         self.standing_heights = rest_kp[2] - ground
 
+    def narrow_limits(self, names, max_velocity, max_acceleration) -> RetargetRobot:
+        """Plan within other limits as well (the bridge's loop's for this robot: joint ``names``,
+        rad/s and rad/s² per name): each named joint's speed and acceleration limit becomes the
+        lower of its own and the given. Returns self."""
+        src = self.profile.source or "profile"
+        idx = [self.kin.joint_index(n, f"{src}: joint {n!r} of the limits to plan within") for n in names]
+        self.velocity_limits[idx] = np.minimum(self.velocity_limits[idx], np.asarray(max_velocity, dtype=float))
+        self.acceleration_limits[idx] = np.minimum(
+            self.acceleration_limits[idx], np.asarray(max_acceleration, dtype=float)
+        )
+        return self
+
     # -- facts ------------------------------------------------------------------
     @property
     def joint_names(self) -> tuple[str, ...]:

@@ -476,20 +476,32 @@ class StreamingRetargeter:
         return self.planner.planted if self.planner is not None else self._contact
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Position ∩ velocity ∩ acceleration bounds for the next frame. The joints' step may
-        differ from the last one by the robot's ``acceleration_limits`` x frame time², so that
-        the bridge's safety filter, which enforces the same limits, sends the plan as planned;
-        where that box leaves the position ∩ velocity one (a joint coasting into its range's
-        end), the joint takes that one's nearest point to its coasting step."""
+        """Position ∩ velocity ∩ acceleration bounds for the next frame, as the bridge's safety
+        filter bounds its commands (:class:`ros_free_bridge.control.safety.SafetyFilter`, with
+        the same limits), so that it sends the plan as planned: a joint's step differs from its
+        last by at most its ``acceleration_limits`` x frame time², and it approaches either end
+        of its range no faster than it can stop there (steps s, s − a, s − 2a, ... cover
+        s (s + a) / 2a). A joint whose last step its range cannot continue takes the nearest
+        step it can."""
         lo, hi = self._lo_pos.copy(), self._hi_pos.copy()
-        if self._x1 is not None:
-            lo = np.maximum(lo, self._x1 - self._vmax)
-            hi = np.minimum(hi, self._x1 + self._vmax)
+        x1 = self._x1
+        if x1 is not None:
+            lo = np.maximum(lo, x1 - self._vmax)
+            hi = np.minimum(hi, x1 + self._vmax)
         if self._x2 is not None:
-            n = self.robot.n_root
-            coast = np.clip(2.0 * self._x1[n:] - self._x2[n:], lo[n:], hi[n:])
-            lo[n:] = np.maximum(lo[n:], coast - self._amax)  # coast is in [lo, hi]: never empty
-            hi[n:] = np.minimum(hi[n:], coast + self._amax)
+            n, a = self.robot.n_root, self._amax
+            q1 = x1[n:]
+            for side, room in ((1.0, self._hi_pos[n:] - q1), (-1.0, q1 - self._lo_pos[n:])):
+                brake = np.maximum(0.5 * (-a + np.sqrt(a * a + 8.0 * a * np.maximum(room, 0.0))), a)
+                if side > 0:
+                    hi[n:] = np.minimum(hi[n:], q1 + brake)
+                else:
+                    lo[n:] = np.maximum(lo[n:], q1 - brake)
+            coast = 2.0 * q1 - self._x2[n:]
+            # [coast - a, coast + a] ∩ [lo, hi], or the end of [lo, hi] nearest to it
+            alo = np.minimum(np.maximum(lo[n:], coast - a), hi[n:])
+            ahi = np.maximum(np.minimum(hi[n:], coast + a), lo[n:])
+            lo[n:], hi[n:] = alo, ahi
         return lo, hi
 
     def _initial_guess(self, targets: np.ndarray) -> np.ndarray:

@@ -21,8 +21,9 @@ from ros_free_bridge.errors import BridgeError
 #: Fraction of a servo's no-load speed the bridge may command (the rest is headroom
 #: for the position loop to catch up under load).
 VELOCITY_SCALE = 0.8
-#: Joint acceleration limit (rad/s²) for a joint whose actuator's torque its MJCF does not
-#: limit and whose servo sets no profile acceleration (:mod:`retarget.actuation`).
+#: Joint acceleration limit (rad/s²) of a servo with no profile acceleration, at the least
+#: (:func:`retarget.actuation.acceleration_limits`: above it, what the MJCF's actuator can give
+#: the joint's links).
 DEFAULT_MAX_ACCELERATION = DEFAULT_ACCELERATION
 
 
@@ -61,9 +62,10 @@ def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE) -
     """Position limits from the hardware config (already checked against the MJCF by
     ``load_config``), velocity from each servo model's no-load speed (or the profile
     velocity when set and lower), acceleration from the servo's profile acceleration, else
-    what the MJCF's actuator can give the joint's links (:mod:`retarget.actuation`, as the
-    retargeter plans with), else :data:`DEFAULT_MAX_ACCELERATION`."""
-    stall = _stall_accelerations(config.mjcf)
+    what the MJCF's actuator can give the joint's links, at least
+    :data:`DEFAULT_MAX_ACCELERATION` (:func:`retarget.actuation.acceleration_limits`, as the
+    retargeter plans with)."""
+    model_acc = dict(zip(config.joint_names, _model_accelerations(config.mjcf, config.joint_names)))
     lower, upper, vmax, amax = [], [], [], []
     for s in config.servos:
         lower.append(s.lower)
@@ -79,20 +81,21 @@ def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE) -
                 "the bridge needs one to limit its speed"
             )
         vmax.append(v)
-        amax.append(s.profile_acceleration or stall.get(s.joint, DEFAULT_MAX_ACCELERATION))
+        amax.append(s.profile_acceleration or model_acc[s.joint])
     return JointLimits(config.joint_names, lower, upper, vmax, amax)
 
 
-def _stall_accelerations(mjcf) -> dict:
-    """:func:`retarget.actuation.stall_accelerations` of the MJCF at ``mjcf`` ({} for None)."""
+def _model_accelerations(mjcf, names) -> np.ndarray:
+    """:func:`retarget.actuation.acceleration_limits` of the MJCF at ``mjcf`` for joints
+    ``names`` (:data:`DEFAULT_MAX_ACCELERATION` each without one)."""
     if mjcf is None:
-        return {}
+        return np.full(len(names), DEFAULT_MAX_ACCELERATION)
     import mujoco
 
-    from retarget.actuation import stall_accelerations
+    from retarget.actuation import acceleration_limits
 
     try:
-        return stall_accelerations(mujoco.MjModel.from_xml_path(str(mjcf)))
+        return acceleration_limits(mujoco.MjModel.from_xml_path(str(mjcf)), names)
     except ValueError as exc:
         raise BridgeError(f"{mjcf}: MuJoCo cannot load it ({exc})") from None
 
@@ -106,6 +109,29 @@ def model_limits(robot) -> JointLimits:
     return JointLimits(
         tuple(robot.joint_names), robot.x_lower[n:], robot.x_upper[n:], robot.velocity_limits, robot.acceleration_limits
     )
+
+
+def planning_robot(robot, profile=None, fixed_base: bool = False):
+    """The :class:`retarget.robot.RetargetRobot` the bridge retargets for ``robot`` (a reference
+    as :func:`retarget.robot.load_robot` takes it, with its ``profile`` and ``fixed_base``):
+    where the robot has a hardware config, its speed and acceleration limits are narrowed to
+    the loop's (:func:`bridge_limits`), so that the safety filter sends its plans as planned
+    (a servo's profile acceleration, or the loop's 0.8 x no-load speed below the profile's
+    speed limit, would otherwise make the servos lag the plan)."""
+    from retarget.robot import load_robot
+
+    rb = load_robot(robot, profile, fixed_base=fixed_base)
+    try:
+        found = resolve(robot)
+    except ConfigError:  # a bare MJCF load_robot took with a profile given: no hardware to heed
+        return rb
+    if found.hardware is not None:
+        try:
+            lim = bridge_limits(load_config(found.hardware, found.mjcf))
+        except ConfigError as exc:
+            raise BridgeError(str(exc)) from None
+        rb.narrow_limits(lim.names, lim.max_velocity, lim.max_acceleration)
+    return rb
 
 
 def loop_limits(files: RobotFiles) -> JointLimits:

@@ -20,7 +20,7 @@ import numpy as np
 from ros_free_bridge.control.loop import ControlLoop, LoopConfig, RunSummary
 from ros_free_bridge.control.targets import TargetBuffer
 from ros_free_bridge.errors import BridgeError
-from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, resolve_robot
+from ros_free_bridge.robots import RobotFiles, bridge_limits, model_limits, planning_robot, resolve_robot
 from ros_free_bridge.telemetry.log import TelemetryWriter
 
 TRANSPORTS = ("sim", "record", "dynamixel", "serial", "sim+dynamixel")
@@ -300,8 +300,6 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         # the name now; whether torch sees the GPU where the model runs: the generator process
         # says so when it starts, before the robot moves (this process does not import torch)
         partner_device(opts.partner_device, check_torch=opts.generator == "thread")
-    from retarget.robot import load_robot
-
     actor_motion = load_actor_file(opts.actor)  # a bad file is named before anything starts
     check_udp_actor(opts.actor, opts.allow_remote_actor)
     files = resolve_robot(opts.robot)
@@ -309,12 +307,13 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         # a robot without hardware config (a model just brought in): the simulated robot
         # and recording need only the model's limits
         hardware = None
-        robot = load_robot(files.mjcf, files.profile)
-        limits = model_limits(robot)
+        limits = None
     else:
         hardware = files.hardware_config()
         limits = bridge_limits(hardware)
-        robot = load_robot(files.mjcf, files.profile)
+    robot = planning_robot(files.ref)  # plans within the loop's limits
+    if limits is None:
+        limits = model_limits(robot)
     names = limits.names
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -38,15 +38,22 @@ def test_stall_acceleration_is_torque_over_the_links_inertia_about_the_axis():
     # a joint whose torque the model does not limit gets the default
     limits = acceleration_limits(model, ["wrist", "shoulder"])
     assert limits[0] == DEFAULT_ACCELERATION and limits[1] == pytest.approx(3.4 / inertia)
+    # a servo too weak for the default still gets it: it follows late, as it did under it
+    weak = mujoco.MjModel.from_xml_string(ARM.replace("-3.4 3.4", "-0.5 0.5"))
+    assert stall_accelerations(weak)["shoulder"] == pytest.approx(0.5 / inertia)
+    assert 0.5 / inertia < DEFAULT_ACCELERATION
+    assert acceleration_limits(weak, ["shoulder"])[0] == DEFAULT_ACCELERATION
 
 
-def test_the_bridge_filters_with_the_accelerations_the_retargeter_plans_with():
+def test_the_bridge_filters_with_the_limits_the_retargeter_plans_with():
     """The op3 (hardware config, no profile acceleration set) and a model-only robot: the
-    loop's acceleration limits are the retargeter's, joint by joint. Where they differ, the
-    filter sends a lagging copy of a plan the servos could follow (the feet of a streamed
-    fast-stepping duet follower collided in physics at the old flat 80 rad/s²)."""
+    loop's acceleration limits are the retargeter's, joint by joint, and the bridge plans no
+    faster than its loop sends (the profile's 4.0 rad/s, the loop's 0.8 x the XM430's no-load
+    speed). Where they differ, the filter sends a lagging copy of a plan the servos could
+    follow (the feet of a streamed fast-stepping duet follower collided in physics at the old
+    flat 80 rad/s²)."""
     from retarget.robot import load_robot
-    from ros_free_bridge.robots import loop_limits, model_limits, resolve_robot
+    from ros_free_bridge.robots import loop_limits, model_limits, planning_robot, resolve_robot
 
     files = resolve_robot("op3")
     assert files.hardware is not None
@@ -54,9 +61,42 @@ def test_the_bridge_filters_with_the_accelerations_the_retargeter_plans_with():
     loop = loop_limits(files).in_order(robot.joint_names)
     assert np.allclose(loop.max_acceleration, robot.acceleration_limits)
     assert np.allclose(model_limits(robot).max_acceleration, robot.acceleration_limits)
+    assert np.any(robot.velocity_limits > loop.max_velocity)  # the profile's own speed is above the loop's
+    planned = planning_robot("op3")
+    assert np.allclose(planned.velocity_limits, np.minimum(robot.velocity_limits, loop.max_velocity))
+    assert np.allclose(planned.acceleration_limits, loop.max_acceleration)
     # the op3's hips move the whole leg: their servos speed it up least
     hips = [robot.joint_names.index(n) for n in ("l_hip_pitch", "l_hip_roll")]
     assert np.all(robot.acceleration_limits[hips] < np.median(robot.acceleration_limits))
+
+
+def test_a_servos_profile_acceleration_bounds_the_plan(tmp_path):
+    """A robot folder whose hardware config sets a profile acceleration of 30 rad/s²: the
+    bridge's retargeter plans within it, frame to frame."""
+    import shutil
+
+    import yaml
+
+    from dualflow.synthetic import make_leader
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+    from ros_free_bridge.robots import loop_limits, planning_robot, resolve_robot
+
+    folder = tmp_path / "slow_op3"
+    shutil.copytree(resolve_robot("op3").mjcf.parent, folder)
+    hw = yaml.safe_load((folder / "hardware.yaml").read_text())
+    hw["servo_defaults"]["profile_acceleration"] = 30.0
+    (folder / "hardware.yaml").write_text(yaml.safe_dump(hw))
+    assert np.all(loop_limits(resolve_robot(folder)).max_acceleration == 30.0)
+    robot = planning_robot(folder)
+    assert np.all(robot.acceleration_limits == 30.0)
+    traj = StreamingRetargeter(robot, 30.0, StreamingConfig(balance=True, steps=True)).run(make_leader(3.0, 30.0, 0))
+    q = traj.joint_pos
+    acc = np.abs(np.diff(q, n=2, axis=0)) * 30.0**2
+    # except the last step onto a range's end, which may stop short by up to a (as the filter's)
+    n = robot.n_root
+    at_end = (np.abs(q[2:] - robot.x_lower[n:]) < 1e-9) | (np.abs(q[2:] - robot.x_upper[n:]) < 1e-9)
+    assert acc[~at_end].max() <= 30.0 * (1 + 1e-9) + 1e-6
+    assert acc[at_end].max(initial=0.0) <= 2 * 30.0
 
 
 def test_a_fast_stepping_follower_streamed_stands_and_keeps_its_feet_apart():

@@ -60,12 +60,11 @@ def _robot(cfg: BatchConfig):
     if key not in _ROBOT:
         from retarget.lead_in import LeadInConfig
         from retarget.offline import OfflineConfig, OfflineRetargeter
-        from retarget.robot import load_robot
         from retarget.streaming import StreamingConfig, StreamingRetargeter
-        from ros_free_bridge.robots import resolve_robot
+        from ros_free_bridge.robots import planning_robot, resolve_robot
 
         fixed = cfg.fixed_base if cfg.fixed_base is not None else resolve_robot(cfg.robot).fixed_base
-        robot = load_robot(cfg.robot, fixed_base=fixed)
+        robot = planning_robot(cfg.robot, fixed_base=fixed)
         balance = cfg.balance and not fixed
         if cfg.retargeter == "streaming":
             retarget = StreamingRetargeter(robot, cfg.fps, StreamingConfig(compile=cfg.compile, balance=balance)).run

@@ -139,10 +139,10 @@ def _load(args):
 
 def run(args) -> int:
     from retarget.errors import RetargetError
-    from retarget.robot import load_robot
+    from ros_free_bridge.robots import planning_robot
 
     motion, stem = _load(args)
-    robot = load_robot(args.robot, args.profile, fixed_base=args.fixed_base)
+    robot = planning_robot(args.robot, args.profile, fixed_base=args.fixed_base)
     if args.mode == "offline" and args.offline_engine == "planner" and not (args.balance and robot.floating):
         raise RetargetError(
             "--offline-engine planner: plans a free-standing robot's steps with balance on: add --balance "

@@ -24,11 +24,10 @@ def build_core(cfg: GeneratorConfig):
     import torch
 
     from dualflow.streaming import StreamConfig
-    from retarget.robot import load_robot
     from ros_free_bridge.partner.core import PartnerCore
     from ros_free_bridge.partner.reactor import Cues, ReactorStage
     from ros_free_bridge.partner.retarget_stage import RetargetStage
-    from ros_free_bridge.robots import resolve_robot
+    from ros_free_bridge.robots import planning_robot
 
     torch.set_num_threads(max(1, int(cfg.threads)))
     incremental = cfg.incremental and cfg.device == "cpu"  # on CUDA full windows from CUDA graphs are faster
@@ -43,8 +42,7 @@ def build_core(cfg: GeneratorConfig):
         predict_next=cfg.predict_next,
         device=cfg.device,
     )
-    files = resolve_robot(cfg.robot)
-    retarget = RetargetStage(load_robot(files.mjcf, files.profile), cfg.fps, cfg.joint_names)
+    retarget = RetargetStage(planning_robot(cfg.robot), cfg.fps, cfg.joint_names)
     return PartnerCore(reactor, retarget, cfg.max_lag)
 
 
