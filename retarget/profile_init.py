@@ -934,12 +934,14 @@ def init_robot_folder(
     probe_steps: bool = True,
     progress=None,
     check_config=None,
+    planner=None,
 ) -> InitResult:
     """Write ``profile.yaml``, ``hardware.yaml`` and ``README.md`` for the MJCF into ``out_dir``.
     With ``probe_steps``, a free-standing robot with feet is probed for stepping in physics
     (:func:`sim.step_probe.choose_step_pace`; ``progress(clip name)`` before each clip, the check
-    configured by ``check_config(folder)`` when given) and the profile's ``streaming_steps`` and
-    ``step_pace`` written from it; else its feet stay planted."""
+    configured by ``check_config(folder)``, the robot that plans by ``planner(folder)``, when
+    given) and the profile's ``streaming_steps`` and ``step_pace`` written from it; else its
+    feet stay planted."""
     from firmware_cfg.registry import HARDWARE_FILE, PROFILE_FILE, README_FILE
 
     given = Path(mjcf)
@@ -962,7 +964,7 @@ def init_robot_folder(
     if probe_steps and robot.floating and robot.has_feet:
         from sim.step_probe import choose_step_pace
 
-        steps = choose_step_pace(out.resolve(), progress=progress, check_config=check_config)
+        steps = choose_step_pace(out.resolve(), progress=progress, check_config=check_config, planner=planner)
         files[0].write_text(_profile_text(draft, steps))
         notes.append(steps[1][-1].summary())
     return InitResult(out, model_path, files[0], files[1], files[2], draft.an, notes)

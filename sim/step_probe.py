@@ -70,12 +70,15 @@ def probe_steps(
     seconds: float = PROBE_SECONDS,
     progress=None,
     check_config=None,
+    planner=None,
 ) -> StepProbe:
     """Stream ``len(seeds)`` stepping leaders for ``robot`` (a bundled name or a robot folder)
     with steps on, the step phases at ``pace`` x their lengths (``StreamingConfig.step_pace``),
     and judge each in physics (module docstring). ``progress(name)`` is called before each clip;
     ``check_config(robot)`` makes the check's :class:`sim.check.CheckConfig` (None: the free-base
-    defaults, commands played as they are)."""
+    defaults, commands played as they are); ``planner(robot)`` gives the
+    :class:`retarget.robot.RetargetRobot` that plans (None: :func:`retarget.robot.load_robot`;
+    the bridge's is :func:`ros_free_bridge.robots.planning_robot`, within its loop's limits)."""
     from dualflow.synthetic import make_leader
     from retarget.robot import load_robot, robot_ref
     from retarget.schedule import count_steps
@@ -83,7 +86,7 @@ def probe_steps(
     from retarget.targets import make_targets
     from sim.check import CheckConfig, check_trajectory, steps_taken
 
-    rb = load_robot(robot)
+    rb = (planner or load_robot)(robot)
     ref = robot_ref(robot)
     fps = 30.0
     streamer = StreamingRetargeter(rb, fps, paced(StreamingConfig(balance=True, steps=True), pace))
@@ -107,12 +110,14 @@ def probe_steps(
     return StepProbe(float(pace), clips)
 
 
-def choose_step_pace(robot, paces=PROBE_PACES, progress=None, check_config=None) -> tuple[float | None, list]:
+def choose_step_pace(
+    robot, paces=PROBE_PACES, progress=None, check_config=None, planner=None
+) -> tuple[float | None, list]:
     """The first of ``paces`` at which :func:`probe_steps` passes every clip (None: none did),
     and the probes run (:class:`StepProbe`, in order)."""
     probes = []
     for pace in paces:
-        probe = probe_steps(robot, pace, progress=progress, check_config=check_config)
+        probe = probe_steps(robot, pace, progress=progress, check_config=check_config, planner=planner)
         probes.append(probe)
         if probe.passed:
             return float(pace), probes

@@ -81,7 +81,7 @@ def register(subparsers) -> None:
 
 def run_init(args) -> int:
     from retarget.profile_init import init_robot_folder
-    from ros_free_bridge.robots import bridge_check_config
+    from ros_free_bridge.robots import bridge_check_config, planning_robot
 
     def progress(clip: str) -> None:
         print(f"  probing steps in physics: {clip}", file=sys.stderr, flush=True)
@@ -97,6 +97,7 @@ def run_init(args) -> int:
         probe_steps=not args.no_step_probe,
         progress=progress,
         check_config=check_config,
+        planner=planning_robot,  # ... of the plans the bridge would make
     )
     print(f"robot folder {res.folder} for {res.mjcf}:")
     for path in (res.profile, res.hardware, res.readme):
