@@ -23,8 +23,9 @@ DEFAULT_ACCELERATION = 80.0
 
 def stall_accelerations(model) -> dict[str, float]:
     """{joint name: tau_max / I (rad/s²)} for each hinge or slide joint that an actuator with a
-    torque limit (its ``forcerange``, else the joint's ``actuatorfrcrange``) drives, with I the
-    joint's diagonal of the mass matrix in the zero pose. ``model`` a ``mujoco.MjModel``."""
+    torque limit (its ``forcerange`` x its ``gear``, else the joint's ``actuatorfrcrange``)
+    drives, with I the joint's diagonal of the mass matrix in the zero pose. ``model`` a
+    ``mujoco.MjModel``."""
     import mujoco
 
     data = mujoco.MjData(model)
@@ -41,9 +42,9 @@ def stall_accelerations(model) -> dict[str, float]:
         j = int(model.actuator_trnid[a, 0])
         if int(model.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
             continue
-        if model.actuator_forcelimited[a]:
-            tau = float(np.max(np.abs(model.actuator_forcerange[a])))
-        elif model.jnt_actfrclimited[j]:
+        if model.actuator_forcelimited[a]:  # the actuator's force, times its gear at the joint
+            tau = float(np.max(np.abs(model.actuator_forcerange[a]))) * abs(float(model.actuator_gear[a, 0]))
+        elif model.jnt_actfrclimited[j]:  # the joint's own limit on the actuators' total torque
             tau = float(np.max(np.abs(model.jnt_actfrcrange[j])))
         else:
             continue

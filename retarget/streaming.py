@@ -478,7 +478,7 @@ class StreamingRetargeter:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Position ∩ velocity ∩ acceleration bounds for the next frame, as the bridge's safety
         filter bounds its commands (:class:`ros_free_bridge.control.safety.SafetyFilter`, with
-        the same limits), so that it sends the plan as planned: a joint's step differs from its
+        the same limits), so that it sends the plan nearly as planned: a joint's step differs from its
         last by at most its ``acceleration_limits`` x frame time², and it approaches either end
         of its range no faster than it can stop there (steps s, s − a, s − 2a, ... cover
         s (s + a) / 2a). A joint whose last step its range cannot continue takes the nearest

@@ -115,7 +115,7 @@ def planning_robot(robot, profile=None, fixed_base: bool = False):
     """The :class:`retarget.robot.RetargetRobot` the bridge retargets for ``robot`` (a reference
     as :func:`retarget.robot.load_robot` takes it, with its ``profile`` and ``fixed_base``):
     where the robot has a hardware config, its speed and acceleration limits are narrowed to
-    the loop's (:func:`bridge_limits`), so that the safety filter sends its plans as planned
+    the loop's (:func:`bridge_limits`), so that the safety filter sends its plans nearly as planned
     (a servo's profile acceleration, or the loop's 0.8 x no-load speed below the profile's
     speed limit, would otherwise make the servos lag the plan)."""
     from retarget.robot import load_robot
@@ -128,8 +128,10 @@ def planning_robot(robot, profile=None, fixed_base: bool = False):
     if found.hardware is not None:
         try:
             lim = bridge_limits(load_config(found.hardware, found.mjcf))
-        except ConfigError as exc:
-            raise BridgeError(str(exc)) from None
+        except (ConfigError, BridgeError):
+            # a hardware config the loop cannot drive yet (a serial-link channel with no speed
+            # limit, say): retargeting does not need it, and `run` names what is wrong itself
+            return rb
         rb.narrow_limits(lim.names, lim.max_velocity, lim.max_acceleration)
     return rb
 

@@ -38,6 +38,9 @@ def test_stall_acceleration_is_torque_over_the_links_inertia_about_the_axis():
     # a joint whose torque the model does not limit gets the default
     limits = acceleration_limits(model, ["wrist", "shoulder"])
     assert limits[0] == DEFAULT_ACCELERATION and limits[1] == pytest.approx(3.4 / inertia)
+    # a geared motor: MuJoCo multiplies the clamped force by the gear at the joint
+    geared = mujoco.MjModel.from_xml_string(ARM.replace('forcerange="-3.4 3.4"', 'gear="10" forcerange="-0.34 0.34"'))
+    assert stall_accelerations(geared)["shoulder"] == pytest.approx(3.4 / inertia, rel=1e-9)
     # a servo too weak for the default still gets it: it follows late, as it did under it
     weak = mujoco.MjModel.from_xml_string(ARM.replace("-3.4 3.4", "-0.5 0.5"))
     assert stall_accelerations(weak)["shoulder"] == pytest.approx(0.5 / inertia)
@@ -118,3 +121,27 @@ def test_a_fast_stepping_follower_streamed_stands_and_keeps_its_feet_apart():
     res = check_trajectory(traj, bridge_check_config("op3", mode="free"), robot="op3")
     assert res.passed, res.failures
     assert res.metrics["self_collision_ticks"] == 0 and res.metrics["max_tilt_deg"] < 30
+
+
+def test_a_hardware_config_the_loop_cannot_drive_leaves_the_plan_to_the_model(tmp_path):
+    """Retargeting needs no loop: a robot folder whose hardware config the loop cannot use yet
+    (here, a servo on a Dynamixel bus with no servo model, so no speed limit either) plans
+    within its model's limits, as before the bridge narrowed them; `run` names the problem."""
+    import shutil
+
+    import yaml
+
+    from firmware_cfg.errors import ConfigError
+    from retarget.robot import load_robot
+    from ros_free_bridge.robots import planning_robot, resolve_robot
+
+    folder = tmp_path / "unfinished_op3"
+    shutil.copytree(resolve_robot("op3").mjcf.parent, folder)
+    hw = yaml.safe_load((folder / "hardware.yaml").read_text())
+    hw["buses"][0]["servos"][0]["model"] = None
+    (folder / "hardware.yaml").write_text(yaml.safe_dump(hw))
+    with pytest.raises(ConfigError, match="model: required on a Dynamixel bus"):
+        resolve_robot(folder).hardware_config()
+    robot, model = planning_robot(folder), load_robot(folder)
+    assert np.array_equal(robot.velocity_limits, model.velocity_limits)
+    assert np.array_equal(robot.acceleration_limits, model.acceleration_limits)
