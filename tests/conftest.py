@@ -8,6 +8,11 @@ from pathlib import Path
 
 import pytest
 
+# before any test module imports mujoco: on a machine without a display, importing sim sets
+# MUJOCO_GL=egl, which MuJoCo reads once, at its first import (a test file that imported mujoco
+# first left every later render in the run on GLFW, which fails headless)
+import sim  # noqa: F401
+
 #: ../shared/data beside the project root (override with DUALFLOW_SHARED_DATA).
 SHARED_DATA = Path(
     os.environ.get("DUALFLOW_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data")
