@@ -491,12 +491,12 @@ class StreamingRetargeter:
         if self._x2 is not None:
             n, a = self.robot.n_root, self._amax
             q1 = x1[n:]
-            for side, room in ((1.0, self._hi_pos[n:] - q1), (-1.0, q1 - self._lo_pos[n:])):
-                brake = np.maximum(0.5 * (-a + np.sqrt(a * a + 8.0 * a * np.maximum(room, 0.0))), a)
-                if side > 0:
-                    hi[n:] = np.minimum(hi[n:], q1 + brake)
-                else:
-                    lo[n:] = np.maximum(lo[n:], q1 - brake)
+
+            def brake(room):  # the largest step from which steps s, s - a, ... stop within room
+                return np.maximum(0.5 * (-a + np.sqrt(a * a + 8.0 * a * np.maximum(room, 0.0))), a)
+
+            hi[n:] = np.minimum(hi[n:], q1 + brake(self._hi_pos[n:] - q1))
+            lo[n:] = np.maximum(lo[n:], q1 - brake(q1 - self._lo_pos[n:]))
             coast = 2.0 * q1 - self._x2[n:]
             # [coast - a, coast + a] ∩ [lo, hi], or the end of [lo, hi] nearest to it
             alo = np.minimum(np.maximum(lo[n:], coast - a), hi[n:])

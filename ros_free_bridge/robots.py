@@ -21,10 +21,6 @@ from ros_free_bridge.errors import BridgeError
 #: Fraction of a servo's no-load speed the bridge may command (the rest is headroom
 #: for the position loop to catch up under load).
 VELOCITY_SCALE = 0.8
-#: Joint acceleration limit (rad/s²) of a servo with no profile acceleration, at the least
-#: (:func:`retarget.actuation.acceleration_limits`: above it, what the MJCF's actuator can give
-#: the joint's links).
-DEFAULT_MAX_ACCELERATION = DEFAULT_ACCELERATION
 
 
 @dataclass(frozen=True)
@@ -63,8 +59,8 @@ def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE) -
     ``load_config``), velocity from each servo model's no-load speed (or the profile
     velocity when set and lower), acceleration from the servo's profile acceleration, else
     what the MJCF's actuator can give the joint's links, at least
-    :data:`DEFAULT_MAX_ACCELERATION` (:func:`retarget.actuation.acceleration_limits`, as the
-    retargeter plans with)."""
+    :data:`retarget.actuation.DEFAULT_ACCELERATION` (:func:`retarget.actuation.acceleration_limits`,
+    as the retargeter plans with)."""
     model_acc = dict(zip(config.joint_names, _model_accelerations(config.mjcf, config.joint_names)))
     lower, upper, vmax, amax = [], [], [], []
     for s in config.servos:
@@ -87,9 +83,9 @@ def bridge_limits(config: RobotConfig, velocity_scale: float = VELOCITY_SCALE) -
 
 def _model_accelerations(mjcf, names) -> np.ndarray:
     """:func:`retarget.actuation.acceleration_limits` of the MJCF at ``mjcf`` for joints
-    ``names`` (:data:`DEFAULT_MAX_ACCELERATION` each without one)."""
+    ``names`` (:data:`retarget.actuation.DEFAULT_ACCELERATION` each without one)."""
     if mjcf is None:
-        return np.full(len(names), DEFAULT_MAX_ACCELERATION)
+        return np.full(len(names), DEFAULT_ACCELERATION)
     import mujoco
 
     from retarget.actuation import acceleration_limits
@@ -111,29 +107,38 @@ def model_limits(robot) -> JointLimits:
     )
 
 
-def planning_robot(robot, profile=None, fixed_base: bool = False):
+def planning_robot(robot, profile=None, fixed_base: bool = False, limits: JointLimits | None = None):
     """The :class:`retarget.robot.RetargetRobot` the bridge retargets for ``robot`` (a reference
     as :func:`retarget.robot.load_robot` takes it, with its ``profile`` and ``fixed_base``):
     where the robot has a hardware config, its speed and acceleration limits are narrowed to
-    the loop's (:func:`bridge_limits`), so that the safety filter sends its plans nearly as planned
-    (a servo's profile acceleration, or the loop's 0.8 x no-load speed below the profile's
-    speed limit, would otherwise make the servos lag the plan)."""
+    the loop's (``limits`` when the caller has them, else :func:`bridge_limits`), so that the
+    safety filter sends its plans nearly as planned (a servo's profile acceleration, or the
+    loop's 0.8 x no-load speed below the profile's speed limit, would otherwise make the servos
+    lag the plan)."""
     from retarget.robot import load_robot
 
     rb = load_robot(robot, profile, fixed_base=fixed_base)
+    if limits is None:
+        limits = _hardware_limits(robot)
+    if limits is not None:
+        rb.narrow_limits(limits.names, limits.max_velocity, limits.max_acceleration)
+    return rb
+
+
+def _hardware_limits(robot) -> JointLimits | None:
+    """:func:`bridge_limits` of ``robot``'s hardware config; None without one, or for one the
+    loop cannot drive yet (a serial-link channel with no speed limit, say): retargeting does not
+    need it, and `run` names what is wrong itself."""
     try:
         found = resolve(robot)
     except ConfigError:  # a bare MJCF load_robot took with a profile given: no hardware to heed
-        return rb
-    if found.hardware is not None:
-        try:
-            lim = bridge_limits(load_config(found.hardware, found.mjcf))
-        except (ConfigError, BridgeError):
-            # a hardware config the loop cannot drive yet (a serial-link channel with no speed
-            # limit, say): retargeting does not need it, and `run` names what is wrong itself
-            return rb
-        rb.narrow_limits(lim.names, lim.max_velocity, lim.max_acceleration)
-    return rb
+        return None
+    if found.hardware is None:
+        return None
+    try:
+        return bridge_limits(load_config(found.hardware, found.mjcf))
+    except (ConfigError, BridgeError):
+        return None
 
 
 def loop_limits(files: RobotFiles) -> JointLimits:

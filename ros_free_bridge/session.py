@@ -307,13 +307,12 @@ def run_session(opts: SessionOptions, on_status=None, on_ready=None) -> SessionR
         # a robot without hardware config (a model just brought in): the simulated robot
         # and recording need only the model's limits
         hardware = None
-        limits = None
+        robot = planning_robot(files.ref)
+        limits = model_limits(robot)
     else:
         hardware = files.hardware_config()
         limits = bridge_limits(hardware)
-    robot = planning_robot(files.ref)  # plans within the loop's limits
-    if limits is None:
-        limits = model_limits(robot)
+        robot = planning_robot(files.ref, limits=limits)  # plans within the loop's limits
     names = limits.names
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
