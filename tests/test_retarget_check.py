@@ -148,6 +148,32 @@ def test_an_unknown_robot_or_a_broken_profile_is_one_error_before_any_clip(tmp_p
         assert not out.exists()
 
 
+def test_a_hardware_config_the_loop_refuses_is_one_error_before_any_clip(tmp_path, capsys):
+    """The physics check plays each clip through the loop's safety filter, with the hardware
+    config's limits: a robot folder whose hardware config the loop refuses (a servo with no
+    model on a Dynamixel bus) stops retarget-check at once with exit 2 naming the field, where
+    it failed every clip, one error row each."""
+    import shutil
+
+    import yaml
+
+    from ros_free_bridge.robots import resolve_robot
+
+    clip = tmp_path / "clips" / "standing.npz"
+    clip.parent.mkdir()
+    save_motion(Motion(np.repeat(REST_POSE[None], 30, 0), 30.0), clip)
+    folder = tmp_path / "unfinished_op3"
+    shutil.copytree(resolve_robot("op3").mjcf.parent, folder)
+    hw = yaml.safe_load((folder / "hardware.yaml").read_text())
+    hw["buses"][0]["servos"][0]["model"] = None
+    (folder / "hardware.yaml").write_text(yaml.safe_dump(hw))
+    out = tmp_path / "out"
+    assert main(["retarget-check", str(clip.parent), "-o", str(out), "--robot", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert "model: required on a Dynamixel bus" in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
 def test_the_planner_asked_for_a_robot_it_cannot_plan_is_one_error_before_any_clip(tmp_path, capsys):
     """--offline-engine planner plans a free-standing robot's steps with balance: on the
     fixed-base ub14, or with --no-balance, retarget-check stops at once with exit 2 naming the

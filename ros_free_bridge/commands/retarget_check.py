@@ -163,13 +163,23 @@ def run(args) -> int:
 
 
 def _require_robot(robot: str) -> None:
-    """The robot and its profile load and bind (well under a second), or one BridgeError naming
-    the file and field: an unknown robot or a broken profile failed every clip, one row each."""
+    """The robot and its profile load and bind, and the loop's limits (its hardware config's,
+    which the physics check's safety filter plays each clip with) cover its joints (well under a
+    second), or one BridgeError naming the file and field: an unknown robot, a broken profile or
+    a hardware config the loop refuses failed every clip, one row each."""
+    from firmware_cfg.errors import ConfigError
     from retarget.errors import RetargetError
     from retarget.robot import load_robot
     from ros_free_bridge.errors import BridgeError
+    from ros_free_bridge.robots import loop_limits, resolve_robot
 
     try:
-        load_robot(robot)
-    except RetargetError as exc:
+        names = load_robot(robot).joint_names
+        files = resolve_robot(robot)
+        limits = loop_limits(files)
+    except (RetargetError, ConfigError) as exc:
         raise BridgeError(str(exc)) from None
+    try:
+        limits.in_order(names)
+    except BridgeError as exc:
+        raise BridgeError(f"robot {files.ref}: the bridge's {exc}") from None
