@@ -120,8 +120,7 @@ class BalancePlanner:
         self._min_swing_frames = max(2, frames(cfg.min_swing))
         self._min_double_frames = frames(cfg.min_double)
         self._shift_frames = frames(cfg.step_shift)
-        self._rise_frames = max(1, (self._min_swing_frames + 1) // 2)  # a swing rises over the first half of min_swing
-        self._fall_frames = max(1, self._min_swing_frames - self._rise_frames)  # ... and comes down over the rest
+        self._rise_frames, self._fall_frames = _halves(self._min_swing_frames)
         self._settle_frames = self._min_double_frames + max(0, round(cfg.step_settle * self.fps))
 
     def _person_pace(self) -> float:
@@ -178,6 +177,8 @@ class BalancePlanner:
         self._plan_until = -1  # the last frame the CoM follows the preview plan
         self._person_down = np.ones(2, dtype=bool)  # the person's feet down last frame
         self._person_lifts: list[int] = []  # frames of the person's last lift-offs (either foot)
+        self._person_up_at = [None, None]  # the frame each of the person's feet lifted, while it is up
+        self._person_swing = None  # frames the person's last finished swing (either foot) lasted
         self._set_pace(1.0)
         self._edges[:] = np.tile([0.0, 0.0, 1.0], N_EDGES)
         self._points[:] = 0.0
@@ -562,6 +563,12 @@ class BalancePlanner:
         down = np.asarray(contact, dtype=bool)
         if (self._person_down & ~down).any():
             self._person_lifts = self._person_lifts[-1:] + [self._frame]
+        for f in range(2):
+            if self._person_down[f] and not down[f]:
+                self._person_up_at[f] = self._frame
+            elif down[f] and not self._person_down[f] and self._person_up_at[f] is not None:
+                self._person_swing = self._frame - self._person_up_at[f]
+                self._person_up_at[f] = None
         self._person_down = down.copy()
         for s in range(2):
             if self.planted[s]:
@@ -611,12 +618,28 @@ class BalancePlanner:
         self._stance_centre = stance
         self._step_start = (self._frame, np.array(self._c1, dtype=float))
         self._landing = swing  # until the swing's targets say where it lands
+        self._rise_frames, self._fall_frames = _halves(self._swing_time())
         self._shifting = (s, self._frame + self._shift_frames)
         self._lift_by = self._frame + 2 * self._shift_frames
         self._plan_swing(s)
         if self._shift_frames == 0:
             self._shifting = None
             self._lift(s)
+
+    def _swing_time(self) -> int:
+        """Frames the next step's foot takes to rise and come down: ``min_swing`` at the pace,
+        longer by half the time the person's step period leaves the robot after its
+        ``min_double``, ``step_shift`` and ``min_swing``, up to the person's own last swing
+        and ``slow_swing``. A
+        person stepping slowly is followed by slow steps: a foot that rises over 4 frames jerks
+        the whole body (CMU 18_01 slowed to 0.7x: jerk ratio 1.9, 0.8 over 8 frames)."""
+        n = self._min_swing_frames
+        lifts, swing = self._person_lifts, self._person_swing
+        if len(lifts) < 2 or swing is None:
+            return n
+        period = max(lifts[-1] - lifts[-2], self._frame - lifts[-1])
+        spare = period - self._min_double_frames - self._shift_frames - n  # the robot's time to spare per step
+        return max(n, min(swing, n + spare // 2, round(self.config.slow_swing * self.fps), self._max_swing_frames))
 
     def _plan_swing(self, s: int) -> None:
         """The ZMP keys of foot s's step under way: from the CoM at the decision to the stance
@@ -710,6 +733,12 @@ def _long_axis(footprint: np.ndarray, heading: float) -> np.ndarray:
     return -axis if axis @ (math.cos(heading), math.sin(heading)) < 0 else axis
 
 
+def _halves(frames: int) -> tuple[int, int]:
+    """A swing of ``frames``: rises over the first half, comes down over the rest (1 frame each at least)."""
+    rise = max(1, (frames + 1) // 2)
+    return rise, max(1, frames - rise)
+
+
 def _wrap(angle: float) -> float:
     """``angle`` (rad) in [-π, π)."""
     return (angle + math.pi) % (2 * math.pi) - math.pi
@@ -747,7 +776,7 @@ def _check_step_timing(cfg, fps: float) -> None:
         problems.append(f"lift_shift must be 0 to 1 (got {cfg.lift_shift})")
     if not (math.isfinite(cfg.body_twist) and cfg.body_twist >= 0):
         problems.append(f"body_twist must be 0 rad or more (got {cfg.body_twist})")
-    for name, unit in (("max_step_turn", "rad"), ("step_turn_clearance", "m")):
+    for name, unit in (("max_step_turn", "rad"), ("step_turn_clearance", "m"), ("slow_swing", "s")):
         value = getattr(cfg, name)
         if not (math.isfinite(value) and value >= 0):
             problems.append(f"{name} must be 0 {unit} or more (got {value})")

@@ -44,7 +44,7 @@ class StreamingConfig:
     # the robot steps when the person does (False: both feet stay planted; None: the robot
     # profile's streaming_steps)
     steps: bool | None = None
-    # the step phases (min_stance, min_double, min_swing, max_swing, step_shift, step_settle) at
+    # the step phases (min_stance, min_double, min_swing, max_swing, slow_swing, step_shift, step_settle) at
     # this multiple of their lengths, swing_speed divided by it (None: the profile's step_pace)
     step_pace: float | None = None
     balance_margin: float = 0.02  # footprints shrunk by this; the CoM, DCM and ZMP stay inside
@@ -78,6 +78,9 @@ class StreamingConfig:
     min_double: float = 0.15  # both feet stand this long between two steps
     min_swing: float = 0.27  # a lifted foot rises over half of this and comes down over the other half
     max_swing: float = 0.6  # ... and comes down after this long even if the person's does not
+    # s: a step's rise and fall take up to this long together where the person's tempo leaves
+    # the time (BalancePlanner._swing_time); min_swing or less: always min_swing
+    slow_swing: float = 0.53
     # its ankle and toe targets stay at least this above standing height (with the weight shift,
     # its sole is lifted this high mid-swing: BalancePlanner._swing_lift) ...
     swing_clearance: float = 0.03
@@ -139,6 +142,7 @@ def paced(config: StreamingConfig, pace: float) -> StreamingConfig:
         min_double=c.min_double * pace,
         min_swing=c.min_swing * pace,
         max_swing=c.max_swing * pace,
+        slow_swing=c.slow_swing * pace,
         step_shift=c.step_shift * pace,
         step_settle=c.step_settle * pace,
         swing_speed=c.swing_speed / pace,

@@ -164,6 +164,38 @@ def test_a_person_faster_than_the_quickest_pace_is_followed_at_it(op3):
     assert result.passed, result.failures
 
 
+def _swings(traj) -> list[int]:
+    """Frames each of the robot's swings lasted (its planned contacts)."""
+    from retarget.targets import bool_runs
+
+    c = np.array(traj.meta["contacts"], dtype=bool)
+    return [stop - start for f in range(2) for start, stop, down in bool_runs(c[:, f]) if not down]
+
+
+def test_a_slow_stepper_is_followed_by_slow_steps(op3):
+    """StreamingConfig.slow_swing: where the person's step period leaves the robot time, its
+    foot rises and comes down more slowly (half the time to spare, up to the person's own
+    swing): at 60 steps a minute the swings last 16 frames, not min_swing's 8 plus the wait for
+    the person's foot, and the body's jerk halves (a foot rising 30 mm over 4 frames jerks the
+    whole body: CMU 18_01 slowed to 0.7x read a jerk ratio of 1.9, 1.4 now), with every step
+    still taken and the op3 standing in MuJoCo. A quick stepper leaves no time: its plan is
+    the same to the bit."""
+    from sim.check import CheckConfig, check_trajectory
+
+    slow = walking_leader(8.0, 0.15, bpm=60.0)
+    tg = make_targets(op3, slow)
+    steps, traj = _streamed_steps(op3, slow)
+    brisk_steps, brisk = _streamed_steps(op3, slow, slow_swing=0.0)
+    assert steps == brisk_steps == leader_steps(slow.contacts)
+    assert np.median(_swings(traj)) >= np.median(_swings(brisk)) + 2
+    assert evaluate(op3, traj, tg).jerk_robot <= 0.6 * evaluate(op3, brisk, tg).jerk_robot
+    result = check_trajectory(traj, CheckConfig(mode="free"))
+    assert result.passed, result.failures
+    quick = walking_leader(6.0, 0.0, bpm=150.0)
+    plan, brisk_plan = _streamed_steps(op3, quick)[1], _streamed_steps(op3, quick, slow_swing=0.0)[1]
+    assert np.array_equal(plan.joint_pos, brisk_plan.joint_pos)
+
+
 @pytest.mark.parametrize("index", range(6))
 def test_everyday_gestures_are_performed_standing(op3, index):
     """Bow, hand over, high fives, handshake, side lean, wave (bench/gestures.py): the streamed
@@ -225,6 +257,7 @@ def test_a_foot_lifts_once_the_weight_has_moved_towards_the_stance_foot(op3, mon
         ("body_twist", float("nan")),
         ("max_step_turn", -0.1),
         ("step_turn_clearance", float("inf")),
+        ("slow_swing", float("nan")),
         ("com_velocity_decay", -0.15),
         ("com_velocity_decay", 0.0),
     ],
