@@ -125,6 +125,42 @@ def test_contacts_are_detected_from_foot_height_and_speed():
     assert c[:14, 0].all() and not c[16:24, 0].any() and c[:, 2].all()
 
 
+def test_contacts_are_measured_from_the_clips_own_floor():
+    """A capture whose floor is not at z = 0 (or whose skeleton's ankles sit higher or lower
+    than SMPL's) has the contacts it would have on z = 0: 6 cm up, every frame read as in the
+    air and the robot stood through the clip as through a flight, never stepping (CMU 18_01 on
+    a platform: 0 steps; 3 now, as on the floor). A jump stays a jump."""
+    T = 60
+    pos = np.repeat(REST_POSE[None], T, axis=0).copy()
+    pos[15:25, [7, 10], 2] += 0.15  # the left foot lifted
+    pos[35:45, [8, 11], 2] += 0.15  # the right foot lifted
+    on_floor = detect_contacts(Motion(pos, fps=30.0))
+    for floor in (0.06, -0.03):
+        assert np.array_equal(detect_contacts(Motion(pos + [0.0, 0.0, floor], fps=30.0)), on_floor), floor
+    jump = pos.copy()
+    jump[48:56, :, 2] += 0.3  # the whole body in the air: no foot on the floor
+    c = detect_contacts(Motion(jump, fps=30.0))
+    assert not c[49:55].any() and c[:14].all()
+
+
+def test_a_capture_above_the_floor_is_stepped_as_on_it():
+    """The CMU clip 18_01 lifted 6 cm: the streamed op3 steps as it does on the floor."""
+    from conftest import CMU_DIR, _require
+
+    from dualflow.motion.io import load_motion
+    from retarget.schedule import count_steps
+    from retarget.streaming import StreamingConfig, StreamingRetargeter
+
+    motion = load_motion(_require(CMU_DIR / "18_01.bvh")).resample(30.0)
+    op3 = load_robot("op3")
+    steps = []
+    for floor in (0.0, 0.06):
+        lifted = Motion(motion.positions + [0.0, 0.0, floor], 30.0)
+        traj = StreamingRetargeter(op3, 30.0, StreamingConfig(balance=True, steps=True)).run(lifted)
+        steps.append(count_steps(np.array(traj.meta["contacts"], dtype=bool)))
+    assert steps[0] >= 2 and steps[1] == steps[0], steps
+
+
 def test_bundled_profiles_load():
     for name in ("op3", "ub14"):
         rb = load_robot(name)
