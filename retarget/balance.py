@@ -644,8 +644,9 @@ class BalancePlanner:
     def _plan_swing(self, s: int) -> None:
         """The ZMP keys of foot s's step under way: from the CoM at the decision to the stance
         point by the lift, there until the landing (``min_swing`` after the lift, or, while the
-        foot is still up, a fall's length from now), then between the stance point and where the
-        swing lands."""
+        foot is still up, a fall's length from now at the earliest, :meth:`_waited_landing`
+        while it waits for the person's), then between the stance point and where the swing
+        lands."""
         (n0, c0), stance_pt = self._step_start, self._stance_point
         mid = 0.5 * (self._stance_centre + self._landing)  # between the feet once landed, as _plan_landing
         lift = self._shifting[1] if self._shifting is not None else self._lifted_at
@@ -654,10 +655,24 @@ class BalancePlanner:
         elif self._shifting is not None:
             land = lift + self._rise_frames + self._fall_frames
         else:
-            land = max(lift + self._swing_frames(s), self._frame + self._fall_frames)
+            land = max(lift + self._swing_frames(s), self._frame + self._fall_frames, self._waited_landing(s, lift))
         settle = land + self._min_double_frames
         self._zmp_keys = _keys([n0, lift, land, settle + 1], [c0, stance_pt, stance_pt, mid])
         self._plan_until = settle + self._settle_frames
+
+    def _waited_landing(self, s: int, lift: int) -> int:
+        """While foot s waits up for the person's (still up): the frame it would land if the
+        person's foot comes down when their last swing says, or by ``max_swing`` (once that has
+        passed, or with no swing seen yet); 0 otherwise. A landing planned a fall's length from
+        now, frame after frame, kept the planned CoM between the feet through a long swing, the
+        ZMP outside the stance foot: CMU 19_01 planned with 2 or 5 mm of marker noise (3 seeds
+        each) fell in all 6, 1.2-1.8 s in; all pass with this."""
+        if self._person_down[s]:
+            return 0
+        up, swing, latest = self._person_up_at[s], self._person_swing, lift + self._max_swing_frames
+        if up is None or swing is None or self._frame > up + swing:
+            return latest
+        return min(up + swing + self._fall_frames, latest)
 
     def _plan_landing(self) -> None:
         """A foot touched down: the ZMP reference moves from the stance point to between the
