@@ -225,8 +225,8 @@ class BalancePlanner:
         return targets[self._ankles[s], 0:2] + (c * ox - sn * oy, sn * ox + c * oy)
 
     def _swing_frames(self, s: int) -> int:
-        """How long foot s's swing takes (frames): ``min_swing``, longer for a step longer than
-        ``swing_speed`` covers in that time, at most ``max_swing``."""
+        """How long foot s's swing takes (frames): its rise and fall (:meth:`_swing_time`),
+        longer for a step longer than ``swing_speed`` covers in that time, at most ``max_swing``."""
         dist = float(np.linalg.norm(self._landing - self._lift_print[s].mean(axis=0)))
         n = math.ceil(dist / self.config.swing_speed * self.fps)
         return min(max(n, self._rise_frames + self._fall_frames), self._max_swing_frames)
@@ -274,8 +274,8 @@ class BalancePlanner:
     def _swing_lift(self, s: int) -> float:
         """How high foot s's sole is held above the floor this frame (m): 0 planted; in a swing,
         ``swing_clearance`` x sin²(π/2 · rise) while it rises, held while the person's foot is up,
-        x cos²(π/2 · fall) while it comes down (rise and fall: the share of each half of
-        ``min_swing`` done). A servo robot's stance leg sags by about a centimetre under the
+        x cos²(π/2 · fall) while it comes down (rise and fall: the share of each half of the
+        step's swing time done, :meth:`_swing_time`). A servo robot's stance leg sags by about a centimetre under the
         whole weight: a foot aimed only just above the floor drags."""
         if self.planted[s]:
             return 0.0
@@ -549,10 +549,11 @@ class BalancePlanner:
         the other foot is planted under the person's down foot, foot s has stood ``min_stance``
         and both have stood ``min_double`` since the last step. From then the ZMP reference
         moves under the stance foot, and the foot lifts ``step_shift`` later, once the plan has
-        put the weight there (:meth:`_begin_step`). The lifted foot rises over half of
-        ``min_swing``, follows the person's foot s, kept where the robot can put it
-        (:meth:`_clamp_step`), begins to come down when the person's foot is down (or so as to
-        land by ``max_swing``) and lands over the other half. So the robot steps as often as it
+        put the weight there (:meth:`_begin_step`). The lifted foot rises over half of its
+        swing time (``min_swing``, longer for a slow stepper: :meth:`_swing_time`), follows the
+        person's foot s, kept where the robot can put it (:meth:`_clamp_step`), begins to come
+        down when the person's foot is down (or so as to land by ``max_swing``) and lands over
+        the other half. So the robot steps as often as it
         can, skips the steps it has no time for, and catches up where the person's feet went.
         (Without the shift, a foot lifted with the CoM between the feet stays loaded: the soft
         servos bend the leg instead of lifting it, and the steps were shuffles; with a
@@ -632,7 +633,9 @@ class BalancePlanner:
         ``min_double``, ``step_shift`` and ``min_swing``, up to the person's own last swing
         and ``slow_swing``. A
         person stepping slowly is followed by slow steps: a foot that rises over 4 frames jerks
-        the whole body (CMU 18_01 slowed to 0.7x: jerk ratio 1.9, 0.8 over 8 frames)."""
+        the whole body (CMU 18_01 slowed to 0.7x, streamed: jerk ratio 1.93 with every swing at
+        min_swing, 1.46 with this; 0.79 with every swing twice as long, which cost the quick
+        steppers a third of their steps)."""
         n = self._min_swing_frames
         lifts, swing = self._person_lifts, self._person_swing
         if len(lifts) < 2 or swing is None:
@@ -643,7 +646,7 @@ class BalancePlanner:
 
     def _plan_swing(self, s: int) -> None:
         """The ZMP keys of foot s's step under way: from the CoM at the decision to the stance
-        point by the lift, there until the landing (``min_swing`` after the lift, or, while the
+        point by the lift, there until the landing (the rise and fall after the lift, or, while the
         foot is still up, a fall's length from now at the earliest, :meth:`_waited_landing`
         while it waits for the person's), then between the stance point and where the swing
         lands."""
@@ -722,6 +725,7 @@ class BalancePlanner:
         self._prints[s] = fp
         self._anchor[:, 4 * s : 4 * s + 4] = fp.T
         self._ankle_ref[s] = self._ankles_now[s]
+        self._descend_at[s] = None  # the next step's shift plans its swing afresh (_plan_swing)
         # the foot's own heading; the axis's direction from where the swing pointed it (the
         # anchored person's heading can be more than π/2 off it after fast turns)
         hint = self._heads_now[s] if self._swing_heading[s] is None else self._swing_heading[s]

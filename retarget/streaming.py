@@ -76,7 +76,7 @@ class StreamingConfig:
     step_turn: float = 0.35  # rad, ... or turned this far
     min_stance: float = 0.2  # a foot stands this long before it may lift again
     min_double: float = 0.15  # both feet stand this long between two steps
-    min_swing: float = 0.27  # a lifted foot rises over half of this and comes down over the other half
+    min_swing: float = 0.27  # a lifted foot rises over half of this (or more: slow_swing) and comes down over the rest
     max_swing: float = 0.6  # ... and comes down after this long even if the person's does not
     # s: a step's rise and fall take up to this long together where the person's tempo leaves
     # the time (BalancePlanner._swing_time); min_swing or less: always min_swing

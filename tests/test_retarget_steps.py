@@ -177,7 +177,7 @@ def test_a_slow_stepper_is_followed_by_slow_steps(op3):
     foot rises and comes down more slowly (half the time to spare, up to the person's own
     swing): at 60 steps a minute the swings last 16 frames, not min_swing's 8 plus the wait for
     the person's foot, and the body's jerk halves (a foot rising 30 mm over 4 frames jerks the
-    whole body: CMU 18_01 slowed to 0.7x read a jerk ratio of 1.9, 1.4 now), with every step
+    whole body: CMU 18_01 slowed to 0.7x read a streamed jerk ratio of 1.9, 1.5 now), with every step
     still taken and the op3 standing in MuJoCo. A quick stepper leaves no time: its plan is
     the same to the bit."""
     from sim.check import CheckConfig, check_trajectory

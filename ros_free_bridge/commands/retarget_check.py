@@ -163,10 +163,10 @@ def run(args) -> int:
 
 
 def _require_robot(robot: str) -> None:
-    """The robot and its profile load and bind, and the loop's limits (its hardware config's,
-    which the physics check's safety filter plays each clip with) cover its joints (well under a
-    second), or one BridgeError naming the file and field: an unknown robot, a broken profile or
-    a hardware config the loop refuses failed every clip, one row each."""
+    """The robot and its profile load and bind, and its hardware config gives the loop its
+    limits (which the physics check's safety filter plays each clip with; well under a second),
+    or one BridgeError naming the file and field: an unknown robot, a broken profile or a
+    hardware config the loop refuses failed every clip, one row each."""
     from firmware_cfg.errors import ConfigError
     from retarget.errors import RetargetError
     from retarget.robot import load_robot
@@ -174,12 +174,7 @@ def _require_robot(robot: str) -> None:
     from ros_free_bridge.robots import loop_limits, resolve_robot
 
     try:
-        names = load_robot(robot).joint_names
-        files = resolve_robot(robot)
-        limits = loop_limits(files)
+        load_robot(robot)
+        loop_limits(resolve_robot(robot))
     except (RetargetError, ConfigError) as exc:
         raise BridgeError(str(exc)) from None
-    try:
-        limits.in_order(names)
-    except BridgeError as exc:
-        raise BridgeError(f"robot {files.ref}: the bridge's {exc}") from None
