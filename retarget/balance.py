@@ -275,8 +275,8 @@ class BalancePlanner:
         """How high foot s's sole is held above the floor this frame (m): 0 planted; in a swing,
         ``swing_clearance`` x sin²(π/2 · rise) while it rises, held while the person's foot is up,
         x cos²(π/2 · fall) while it comes down (rise and fall: the share of each half of the
-        step's swing time done, :meth:`_swing_time`). A servo robot's stance leg sags by about a centimetre under the
-        whole weight: a foot aimed only just above the floor drags."""
+        step's swing time done, :meth:`_swing_time`). A servo robot's stance leg sags by about
+        a centimetre under the whole weight: a foot aimed only just above the floor drags."""
         if self.planted[s]:
             return 0.0
         swing, down_at = int(self._since[s]), self._descend_at[s]
@@ -553,24 +553,15 @@ class BalancePlanner:
         swing time (``min_swing``, longer for a slow stepper: :meth:`_swing_time`), follows the
         person's foot s, kept where the robot can put it (:meth:`_clamp_step`), begins to come
         down when the person's foot is down (or so as to land by ``max_swing``) and lands over
-        the other half. So the robot steps as often as it
-        can, skips the steps it has no time for, and catches up where the person's feet went.
+        the other half. So the robot steps as often as it can, skips the steps it has no time
+        for, and catches up where the person's feet went.
         (Without the shift, a foot lifted with the CoM between the feet stays loaded: the soft
         servos bend the leg instead of lifting it, and the steps were shuffles; with a
         quasi-static shift and no preview the body rolled over the stance foot: docs/retargeting.md
         section 4.)"""
         self._since += 1
         self._frame += 1
-        down = np.asarray(contact, dtype=bool)
-        if (self._person_down & ~down).any():
-            self._person_lifts = self._person_lifts[-1:] + [self._frame]
-        for f in range(2):
-            if self._person_down[f] and not down[f]:
-                self._person_up_at[f] = self._frame
-            elif down[f] and not self._person_down[f] and self._person_up_at[f] is not None:
-                self._person_swing = self._frame - self._person_up_at[f]
-                self._person_up_at[f] = None
-        self._person_down = down.copy()
+        self._watch_person(np.asarray(contact, dtype=bool))
         for s in range(2):
             if self.planted[s]:
                 continue
@@ -609,6 +600,21 @@ class BalancePlanner:
                     self._begin_step(s)
                     break
 
+    def _watch_person(self, down: np.ndarray) -> None:
+        """Record the person's feet (``down`` (2,) bool this frame): the frames of their last
+        two lift-offs (either foot; :meth:`_person_pace`), when each foot that is up lifted and
+        how long their last finished swing lasted (:meth:`_swing_time`, :meth:`_waited_landing`)."""
+        lifted, landed = self._person_down & ~down, down & ~self._person_down
+        if lifted.any():
+            self._person_lifts = self._person_lifts[-1:] + [self._frame]
+        for f in np.flatnonzero(lifted):
+            self._person_up_at[f] = self._frame
+        for f in np.flatnonzero(landed):
+            if self._person_up_at[f] is not None:
+                self._person_swing = self._frame - self._person_up_at[f]
+                self._person_up_at[f] = None
+        self._person_down = down.copy()
+
     def _begin_step(self, s: int) -> None:
         """Decide to step with foot s: the ZMP reference moves from the CoM to the stance point
         (``zmp_stance_inset`` inwards of the stance foot's centre) over ``step_shift``, and the
@@ -631,11 +637,10 @@ class BalancePlanner:
         """Frames the next step's foot takes to rise and come down: ``min_swing`` at the pace,
         longer by half the time the person's step period leaves the robot after its
         ``min_double``, ``step_shift`` and ``min_swing``, up to the person's own last swing
-        and ``slow_swing``. A
-        person stepping slowly is followed by slow steps: a foot that rises over 4 frames jerks
-        the whole body (CMU 18_01 slowed to 0.7x, streamed: jerk ratio 1.93 with every swing at
-        min_swing, 1.46 with this; 0.79 with every swing twice as long, which cost the quick
-        steppers a third of their steps)."""
+        and ``slow_swing``. A person stepping slowly is followed by slow steps: a foot that
+        rises over 4 frames jerks the whole body (CMU 18_01 slowed to 0.7x, streamed: jerk
+        ratio 1.93 with every swing at min_swing, 1.46 with this; 0.79 with every swing twice
+        as long, which cost the quick steppers a third of their steps)."""
         n = self._min_swing_frames
         lifts, swing = self._person_lifts, self._person_swing
         if len(lifts) < 2 or swing is None:
